@@ -1,0 +1,582 @@
+//! The built-in scenes, made only of procedural shapes (no files needed).
+//!
+//! In: a scene name (`cornell`, `bowls`, `flower`). Out: the [`SceneFile`] a user could have
+//! written by hand — objects with shapes, transforms and materials, default lights, a camera
+//! and a patch density — which [`crate::scene::load_scene`] (`builtin:NAME`) validates and
+//! turns into triangles like any other scene. All three are in metres (`unit_mm` = 1000).
+
+use translux_proto::light::{Camera, Light};
+use translux_proto::scene::{
+    DEFAULT_UNIT_MM, ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile,
+    Shape, Transform,
+};
+
+/// The names `builtin:NAME` accepts.
+pub const BUILTIN_SCENES: [&str; 3] = ["cornell", "bowls", "flower"];
+
+/// The built-in scene called `name`, or `None` if there is none.
+pub fn builtin_scene(name: &str) -> Option<SceneFile> {
+    match name {
+        "cornell" => Some(cornell()),
+        "bowls" => Some(bowls()),
+        "flower" => Some(flower()),
+        _ => None,
+    }
+}
+
+/// Half the side of the Cornell box's interior (m).
+pub const CORNELL_HALF: f32 = 0.2775;
+/// Interior height of the Cornell box (m).
+pub const CORNELL_HEIGHT: f32 = 0.555;
+
+fn object(
+    name: &str,
+    shape: Shape,
+    translate: [f32; 3],
+    rotate_deg: [f32; 3],
+    material: Material,
+) -> ObjectDesc {
+    ObjectDesc {
+        name: name.to_owned(),
+        mesh: MeshRef::Shape(shape),
+        transform: Some(Transform {
+            translate,
+            rotate_deg,
+            scale: None,
+        }),
+        material,
+        crease_deg: None,
+    }
+}
+
+fn diffuse(albedo: [f32; 3]) -> Material {
+    Material::Diffuse { albedo }
+}
+
+fn dipole_preset(name: &str) -> Material {
+    Material::Translucent {
+        profile: Profile::Dipole {
+            preset: Some(name.to_owned()),
+            sigma_a: None,
+            sigma_s_prime: None,
+            eta: None,
+            scale: None,
+        },
+    }
+}
+
+fn dipole(sigma_a: [f32; 3], sigma_s_prime: [f32; 3]) -> Material {
+    Material::Translucent {
+        profile: Profile::Dipole {
+            preset: None,
+            sigma_a: Some(sigma_a),
+            sigma_s_prime: Some(sigma_s_prime),
+            eta: Some(1.3),
+            scale: None,
+        },
+    }
+}
+
+/// The paper's Cornell box: a 0.555 m room (x, z ∈ [−0.2775, 0.2775], y ∈ [0, 0.555]) of six
+/// inward-facing quads, a short yellow diffuse box and a tall marble block.
+fn cornell() -> SceneFile {
+    let (h, top) = (CORNELL_HALF, CORNELL_HEIGHT);
+    let wall = [2.0 * h, 2.0 * h];
+    let white = [0.725, 0.71, 0.68];
+    // A quad faces +Y; rotating by a about X sends +Y to (0, cos a, sin a), and by a about
+    // Z to (−sin a, cos a, 0). So: ceiling 180° about X (−Y), back wall +90° about X (+Z),
+    // front wall −90° about X (−Z), left wall −90° about Z (+X), right wall +90° about Z (−X).
+    let walls = [
+        ("floor", [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], white),
+        ("ceiling", [0.0, top, 0.0], [180.0, 0.0, 0.0], white),
+        ("back_wall", [0.0, 0.5 * top, -h], [90.0, 0.0, 0.0], white),
+        ("front_wall", [0.0, 0.5 * top, h], [-90.0, 0.0, 0.0], white),
+        (
+            "left_wall",
+            [-h, 0.5 * top, 0.0],
+            [0.0, 0.0, -90.0],
+            [0.63, 0.065, 0.05],
+        ),
+        (
+            "right_wall",
+            [h, 0.5 * top, 0.0],
+            [0.0, 0.0, 90.0],
+            [0.14, 0.45, 0.091],
+        ),
+    ];
+    let mut objects: Vec<ObjectDesc> = walls
+        .iter()
+        .map(|&(name, t, r, albedo)| {
+            object(name, Shape::Quad { size: wall }, t, r, diffuse(albedo))
+        })
+        .collect();
+    // Boxes are centred on their origin, so the centre height is half the box height: the
+    // bottom sits exactly on the floor. Footprint circumradius 0.0825·√2 = 0.1167 each and the
+    // centres are |(0.18, 0.15)| = 0.234 apart, so they cannot touch.
+    let short = 0.165;
+    objects.push(object(
+        "short_box",
+        Shape::Box {
+            size: [short, short, short],
+            inward: false,
+        },
+        [0.09, 0.5 * short, 0.07],
+        [0.0, -17.0, 0.0],
+        diffuse([0.75, 0.65, 0.15]),
+    ));
+    objects.push(object(
+        "tall_block",
+        Shape::Box {
+            size: [short, 2.0 * short, short],
+            inward: false,
+        },
+        [-0.09, short, -0.08],
+        [0.0, 17.0, 0.0],
+        dipole_preset("marble"),
+    ));
+    SceneFile {
+        name: Some("cornell".to_owned()),
+        objects,
+        lights: vec![Light::Point {
+            position: [0.0, 0.50, 0.0],
+            intensity: [0.8, 0.8, 0.8],
+        }],
+        unit_mm: DEFAULT_UNIT_MM,
+        patches: Some(PatchDensity {
+            target: Some(24_640),
+            max_edge: None,
+        }),
+        camera: Some(Camera {
+            position: [0.0, 0.5 * top, 1.3],
+            target: [0.0, 0.5 * top, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 40.0,
+        }),
+    }
+}
+
+/// Radius and wall thickness of the bowls (m).
+const BOWL_RADIUS: f32 = 0.09;
+const BOWL_THICKNESS: f32 = 0.008;
+/// Where the three bowls stand on the table (x, z).
+const BOWL_SPOTS: [[f32; 2]; 3] = [[-0.22, -0.06], [0.0, -0.13], [0.22, -0.06]];
+
+/// Three translucent coloured bowls and a translucent blob on a diffuse table, lit by a point
+/// light inside each bowl.
+fn bowls() -> SceneFile {
+    let mut objects = vec![object(
+        "table",
+        Shape::Quad { size: [1.2, 0.8] },
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0],
+        diffuse([0.7, 0.7, 0.7]),
+    )];
+    // Dipole media in mm⁻¹: σs′ ≈ 2 like dense milky glass-ceramics, with absorption one to
+    // two orders of magnitude lower in the channel that gives the colour (the albedo
+    // σs′/(σs′ + σa) is ≈ 0.999 there and ≈ 0.93–0.95 in the others).
+    let media = [
+        ("red_bowl", [0.003, 0.12, 0.15], [2.2, 2.0, 1.9]),
+        ("green_bowl", [0.14, 0.004, 0.11], [2.0, 2.2, 2.0]),
+        ("blue_bowl", [0.16, 0.09, 0.003], [1.9, 2.0, 2.2]),
+    ];
+    for (&(name, sa, ss), [x, z]) in media.iter().zip(BOWL_SPOTS) {
+        objects.push(object(
+            name,
+            Shape::Bowl {
+                radius: BOWL_RADIUS,
+                thickness: BOWL_THICKNESS,
+                segments: None,
+            },
+            [x, 0.0, z],
+            [0.0, 0.0, 0.0],
+            dipole(sa, ss),
+        ));
+    }
+    let blob = 0.06;
+    objects.push(object(
+        "blob",
+        Shape::Sphere {
+            radius: blob,
+            segments: None,
+        },
+        [0.0, blob, 0.12],
+        [0.0, 0.0, 0.0],
+        dipole_preset("skimmilk"),
+    ));
+    // One light in each cavity, 5 cm above the table: the inner wall (radius 0.082 about
+    // (x, 0.09, z)) is 4–8 cm away, and the lights stay below the rim at 0.09.
+    let lights = BOWL_SPOTS
+        .iter()
+        .map(|&[x, z]| Light::Point {
+            position: [x, 0.05, z],
+            intensity: [0.05, 0.05, 0.05],
+        })
+        .collect();
+    SceneFile {
+        name: Some("bowls".to_owned()),
+        objects,
+        lights,
+        unit_mm: DEFAULT_UNIT_MM,
+        patches: Some(PatchDensity {
+            target: Some(20_000),
+            max_edge: None,
+        }),
+        camera: Some(Camera {
+            position: [0.0, 0.5, 0.7],
+            target: [0.0, 0.04, -0.03],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 40.0,
+        }),
+    }
+}
+
+/// One term of an exponential-sum profile with total diffuse reflectance `rd` per channel:
+/// ∫₀^∞ a e^(−b r) 2πr dr = 2πa / b², so a = rd · b² / (2π) (a in mm⁻², b in mm⁻¹).
+fn exp_term(rd: [f32; 3], b: [f32; 3]) -> ExpTerm {
+    let a = std::array::from_fn(|c| rd[c] * b[c] * b[c] / std::f32::consts::TAU);
+    ExpTerm { a, b }
+}
+
+/// Number of petals of the flower.
+const PETALS: usize = 8;
+/// Petal width (m). Petal bases are tangent to a circle of radius [`PETAL_BASE_RADIUS`]; two
+/// neighbouring base edges (360°/8 apart) would meet at a half-width of r₀·tan(22.5°) =
+/// 0.0157 m, safely more than 0.014.
+const PETAL_WIDTH: f32 = 0.028;
+const PETAL_BASE_RADIUS: f32 = 0.038;
+const PETAL_BASE_HEIGHT: f32 = 0.01;
+
+/// Curled translucent petals (two-sided thin sheets) around a light, over a diffuse ground.
+fn flower() -> SceneFile {
+    let mut objects = vec![object(
+        "ground",
+        Shape::Quad { size: [0.4, 0.4] },
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0],
+        diffuse([0.35, 0.45, 0.3]),
+    )];
+    // A pink petal: total diffuse reflectance ≈ (0.75, 0.35, 0.5), mostly a short term,
+    // plus a weaker, longer term that carries red furthest. Σ 2πa/b² ≤ 1 per channel, so
+    // the profile never creates energy.
+    let profile = Profile::Exponentials {
+        terms: vec![
+            exp_term([0.6, 0.28, 0.4], [0.8, 1.5, 1.2]),
+            exp_term([0.15, 0.07, 0.1], [0.25, 0.5, 0.4]),
+        ],
+    };
+    let tilt_deg = 25.0f32;
+    for k in 0..PETALS {
+        let yaw_deg = 360.0 * k as f32 / PETALS as f32;
+        let (s, c) = yaw_deg.to_radians().sin_cos();
+        // A sheet runs along +Z from its base; tilting by −25° about X raises it, the yaw
+        // about Y turns +Z to (sin ψ, 0, cos ψ), and the base moves out along that direction.
+        objects.push(object(
+            &format!("petal_{k}"),
+            Shape::Sheet {
+                length: 0.06,
+                width: PETAL_WIDTH,
+                thickness: 0.001,
+                curl: 0.8,
+                segments: None,
+            },
+            [
+                PETAL_BASE_RADIUS * s,
+                PETAL_BASE_HEIGHT,
+                PETAL_BASE_RADIUS * c,
+            ],
+            [-tilt_deg, yaw_deg, 0.0],
+            Material::Translucent {
+                profile: profile.clone(),
+            },
+        ));
+    }
+    SceneFile {
+        name: Some("flower".to_owned()),
+        objects,
+        lights: vec![Light::Point {
+            position: [0.0, 0.035, 0.0],
+            intensity: [0.02, 0.02, 0.02],
+        }],
+        unit_mm: DEFAULT_UNIT_MM,
+        patches: Some(PatchDensity {
+            target: Some(20_000),
+            max_edge: None,
+        }),
+        camera: Some(Camera {
+            position: [0.0, 0.17, 0.18],
+            target: [0.0, 0.03, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 40.0,
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{LoadedObject, LoadedScene, load_scene};
+    use glam::Vec3;
+
+    fn load(name: &str) -> LoadedScene {
+        match load_scene(&format!("builtin:{name}")) {
+            Ok(s) => s,
+            Err(e) => panic!("builtin:{name}: {e}"),
+        }
+    }
+
+    fn normal(t: &[Vec3; 3]) -> Vec3 {
+        (t[1] - t[0]).cross(t[2] - t[0]).normalize()
+    }
+
+    fn object<'a>(s: &'a LoadedScene, name: &str) -> &'a LoadedObject {
+        s.objects
+            .iter()
+            .find(|o| o.name == name)
+            .unwrap_or_else(|| panic!("no {name}"))
+    }
+
+    fn bbox(o: &LoadedObject) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for v in o.triangles.iter().flatten() {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+        (lo, hi)
+    }
+
+    /// Does the segment p→q cross the interior of triangle t (Möller–Trumbore, with the ends
+    /// of the segment and the triangle's border excluded so that touching does not count)?
+    fn segment_hits(p: Vec3, q: Vec3, t: &[Vec3; 3]) -> bool {
+        let eps = 1e-4;
+        let d = q - p;
+        let (e1, e2) = (t[1] - t[0], t[2] - t[0]);
+        let h = d.cross(e2);
+        let det = e1.dot(h);
+        if det.abs() < 1e-12 {
+            return false; // parallel or coplanar
+        }
+        let f = 1.0 / det;
+        let s = p - t[0];
+        let u = f * s.dot(h);
+        let qv = s.cross(e1);
+        let v = f * d.dot(qv);
+        let w = f * e2.dot(qv);
+        u > eps && v > eps && u + v < 1.0 - eps && w > eps && w < 1.0 - eps
+    }
+
+    /// Do two triangle soups cross each other? Two triangles in general position intersect
+    /// iff an edge of one crosses the other.
+    fn objects_cross(a: &LoadedObject, b: &LoadedObject) -> bool {
+        let ((alo, ahi), (blo, bhi)) = (bbox(a), bbox(b));
+        if alo.cmpgt(bhi).any() || blo.cmpgt(ahi).any() {
+            return false;
+        }
+        let crosses = |x: &LoadedObject, y: &LoadedObject| {
+            x.triangles.iter().any(|tx| {
+                (0..3).any(|i| {
+                    let (p, q) = (tx[i], tx[(i + 1) % 3]);
+                    y.triangles.iter().any(|ty| segment_hits(p, q, ty))
+                })
+            })
+        };
+        crosses(a, b) || crosses(b, a)
+    }
+
+    #[test]
+    fn names_match_and_unknown_is_none() {
+        for name in BUILTIN_SCENES {
+            let s = builtin_scene(name).expect(name);
+            assert_eq!(s.name.as_deref(), Some(name));
+        }
+        assert!(builtin_scene("teapot").is_none());
+    }
+
+    #[test]
+    fn every_builtin_validates_loads_and_does_not_self_intersect() {
+        for name in BUILTIN_SCENES {
+            let file = builtin_scene(name).expect(name);
+            if let Err(e) = file.validate() {
+                panic!("{name}: {e}");
+            }
+            assert_eq!(file.unit_mm, 1000.0);
+            assert!(file.camera.is_some() && !file.lights.is_empty());
+            let s = load(name);
+            assert_eq!(s.name, name);
+            assert_eq!(s.source, format!("builtin:{name}"));
+            assert_eq!(s.objects.len(), file.objects.len());
+            for o in &s.objects {
+                assert!(!o.triangles.is_empty(), "{name}/{}", o.name);
+                assert_eq!(o.dropped_degenerate, 0, "{name}/{}", o.name);
+            }
+            for (i, a) in s.objects.iter().enumerate() {
+                for b in &s.objects[i + 1..] {
+                    assert!(
+                        !objects_cross(a, b),
+                        "{name}: {} crosses {}",
+                        a.name,
+                        b.name
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_crossing_check_can_fail() {
+        let s = load("cornell");
+        let mut moved = object(&s, "short_box").clone();
+        for v in moved.triangles.iter_mut().flatten() {
+            *v -= Vec3::new(0.12, 0.0, 0.1);
+        }
+        assert!(objects_cross(&moved, object(&s, "tall_block")));
+    }
+
+    #[test]
+    fn cornell_walls_face_into_the_room() {
+        let s = load("cornell");
+        assert_eq!(s.file.patches.and_then(|p| p.target), Some(24_640));
+        let (h, top) = (CORNELL_HALF, CORNELL_HEIGHT);
+        let walls = [
+            ("floor", Vec3::Y, 1, 0.0),
+            ("ceiling", -Vec3::Y, 1, top),
+            ("back_wall", Vec3::Z, 2, -h),
+            ("front_wall", -Vec3::Z, 2, h),
+            ("left_wall", Vec3::X, 0, -h),
+            ("right_wall", -Vec3::X, 0, h),
+        ];
+        let centre = Vec3::new(0.0, 0.5 * top, 0.0);
+        let mut area = 0.0;
+        for (name, n, axis, at) in walls {
+            let o = object(&s, name);
+            for t in &o.triangles {
+                assert!((normal(t) - n).length() < 1e-5, "{name}: {}", normal(t));
+                let c = (t[0] + t[1] + t[2]) / 3.0;
+                assert!(normal(t).dot(centre - c) > 0.0, "{name} faces out");
+                for v in t {
+                    assert!((v[axis] - at).abs() < 1e-6, "{name}: {v}");
+                    assert!(v.x.abs() <= h + 1e-6 && v.z.abs() <= h + 1e-6);
+                    assert!(v.y >= -1e-6 && v.y <= top + 1e-6);
+                }
+            }
+            area += crate::shapes::total_area(&o.triangles);
+        }
+        assert!((area - 6.0 * 0.555f64.powi(2)).abs() < 1e-4, "{area}");
+        let albedo = |name: &str| match object(&s, name).material {
+            Material::Diffuse { albedo } => albedo,
+            ref m => panic!("{name}: {m:?}"),
+        };
+        assert_eq!(albedo("left_wall"), [0.63, 0.065, 0.05]);
+        assert_eq!(albedo("right_wall"), [0.14, 0.45, 0.091]);
+        assert_eq!(albedo("short_box"), [0.75, 0.65, 0.15]);
+        assert!(matches!(
+            &object(&s, "tall_block").material,
+            Material::Translucent { profile: Profile::Dipole { preset: Some(p), .. } } if p == "marble"
+        ));
+    }
+
+    #[test]
+    fn cornell_boxes_stand_on_the_floor_inside_the_room() {
+        let s = load("cornell");
+        for (name, height, volume) in [
+            ("short_box", 0.165, 0.165f64.powi(3)),
+            ("tall_block", 0.33, 0.33 * 0.165f64.powi(2)),
+        ] {
+            let o = object(&s, name);
+            let (lo, hi) = bbox(o);
+            assert!(lo.y.abs() < 1e-6, "{name} bottom at {}", lo.y);
+            assert!((hi.y - height).abs() < 1e-6, "{name} top at {}", hi.y);
+            let inner = CORNELL_HALF - 0.01;
+            assert!(
+                lo.x > -inner && hi.x < inner && lo.z > -inner && hi.z < inner,
+                "{name}"
+            );
+            // Rotation about Y keeps the box upright and closed with outward normals.
+            let v = crate::shapes::signed_volume(&o.triangles);
+            assert!(
+                (v - volume).abs() < 1e-6 * volume.max(1.0) + 1e-9,
+                "{name}: {v}"
+            );
+            // The bottom face lies on the floor and faces down.
+            let bottom: Vec<_> = o
+                .triangles
+                .iter()
+                .filter(|t| t.iter().all(|v| v.y.abs() < 1e-6))
+                .collect();
+            assert_eq!(bottom.len(), 2);
+            assert!(bottom.iter().all(|t| normal(t).y < -0.999));
+        }
+    }
+
+    #[test]
+    fn bowls_and_flower_are_what_they_say() {
+        let s = load("bowls");
+        assert_eq!(s.file.lights.len(), 3);
+        assert_eq!(s.file.patches.and_then(|p| p.target), Some(20_000));
+        let table = object(&s, "table");
+        assert!(table.triangles.iter().all(|t| normal(t).y > 0.999));
+        // Each light sits inside one bowl's cavity: closer to the bowl's centre of curvature
+        // than the inner radius, and below the rim.
+        for (light, [x, z]) in s.file.lights.iter().zip(BOWL_SPOTS) {
+            let Light::Point { position, .. } = light else {
+                panic!("{light:?}")
+            };
+            let centre = Vec3::new(x, BOWL_RADIUS, z);
+            let p = Vec3::from(*position);
+            assert!(p.distance(centre) < BOWL_RADIUS - BOWL_THICKNESS && p.y < BOWL_RADIUS);
+            assert!(p.y > BOWL_THICKNESS);
+        }
+        for name in ["red_bowl", "green_bowl", "blue_bowl", "blob"] {
+            let o = object(&s, name);
+            assert!(matches!(o.material, Material::Translucent { .. }), "{name}");
+            let (lo, _) = bbox(o);
+            assert!(lo.y.abs() < 1e-6, "{name} floats at {}", lo.y);
+        }
+        // The colour channel has the lowest absorption.
+        for (name, channel) in [("red_bowl", 0), ("green_bowl", 1), ("blue_bowl", 2)] {
+            let Material::Translucent {
+                profile:
+                    Profile::Dipole {
+                        sigma_a: Some(sa), ..
+                    },
+            } = &object(&s, name).material
+            else {
+                panic!("{name}")
+            };
+            let lowest = (0..3).min_by(|&a, &b| sa[a].total_cmp(&sa[b]));
+            assert_eq!(lowest, Some(channel), "{name}");
+        }
+
+        let s = load("flower");
+        let petals: Vec<_> = s
+            .objects
+            .iter()
+            .filter(|o| o.name.starts_with("petal"))
+            .collect();
+        assert!((8..=10).contains(&petals.len()));
+        for p in &petals {
+            let Material::Translucent {
+                profile: Profile::Exponentials { terms },
+            } = &p.material
+            else {
+                panic!("{}", p.name)
+            };
+            assert_eq!(terms.len(), 2);
+            // Total diffuse reflectance Σ 2πa/b² stays ≤ 1 in every channel.
+            for c in 0..3 {
+                let rd: f32 = terms
+                    .iter()
+                    .map(|t| std::f32::consts::TAU * t.a[c] / (t.b[c] * t.b[c]))
+                    .sum();
+                assert!(rd > 0.2 && rd <= 1.0, "{}: channel {c}: {rd}", p.name);
+            }
+            let (lo, _) = bbox(p);
+            assert!(lo.y > 0.0, "{} goes under the ground", p.name);
+        }
+        let Light::Point { position, .. } = s.file.lights[0] else {
+            panic!()
+        };
+        let p = Vec3::from(position);
+        assert!(p.x.hypot(p.z) < PETAL_BASE_RADIUS && p.y > PETAL_BASE_HEIGHT);
+    }
+}

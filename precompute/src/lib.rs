@@ -1,0 +1,35 @@
+//! # translux-precompute
+//!
+//! The engine. In: a scene (a JSON scene file with OBJ meshes, or `builtin:NAME`). Out: a
+//! verified bundle on disk (see `translux_proto::bundle`) holding the patches, the viewer
+//! mesh and the form-factor matrix F, and the CPU radiosity solve that reads it.
+//!
+//! Stages, each in its own module:
+//! 1. [`scene`] — load and validate the scene; [`shapes`] and [`builtin`] make procedural
+//!    geometry and the built-in scenes.
+//! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
+//! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
+//! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
+//! 5. [`bundle`] — write arrays and manifest atomically.
+//! 6. [`radiosity`] — direct lighting and the diffuse solve B = Bₑ + ρ(E + F B).
+//!
+//! [`pipeline::precompute`] runs 1–5 with progress and a summary.
+//!
+//! ```no_run
+//! use translux_precompute::{pipeline, scene};
+//! let loaded = scene::load_scene("builtin:cornell").unwrap();
+//! let params = pipeline::PrecomputeParams { patches: Some(2000), ..Default::default() };
+//! let report = pipeline::precompute(&loaded, std::path::Path::new("out/cornell"), &params).unwrap();
+//! println!("{} patches, nnz(F) = {}", report.patch_count, report.nnz_f);
+//! ```
+
+pub mod builtin;
+pub mod bundle;
+pub mod formfactor;
+pub mod patch;
+pub mod pipeline;
+pub mod profile;
+pub mod radiosity;
+pub mod raycast;
+pub mod scene;
+pub mod shapes;

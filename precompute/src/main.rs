@@ -1,0 +1,144 @@
+//! `translux-precompute SCENE --out DIR [--patches N] [--inverse]`
+//!
+//! Parses the command line, loads the scene, runs [`translux_precompute::pipeline`] and
+//! prints the summary. Exit codes: 0 done, 1 failed (the message says why), 2 bad usage.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use translux_precompute::formfactor::FormFactorParams;
+use translux_precompute::pipeline::{self, PrecomputeParams};
+use translux_precompute::scene;
+
+/// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
+#[derive(Debug, Parser)]
+#[command(name = "translux-precompute", version)]
+struct Cli {
+    /// A scene file (JSON) or `builtin:NAME` (cornell, bowls, flower).
+    scene: String,
+    /// Folder to write the bundle to (replaced atomically if it exists).
+    #[arg(long)]
+    out: PathBuf,
+    /// Target patch count (overrides the scene file; builtin:cornell defaults to 24,640).
+    #[arg(long)]
+    patches: Option<u64>,
+    /// Maximum patch edge in scene units (instead of a count).
+    #[arg(long, conflicts_with = "patches")]
+    max_edge: Option<f32>,
+    /// Also compute the transfer matrix T = (I − S F)⁻¹ S.
+    #[arg(long)]
+    inverse: bool,
+    /// Drop form factors below this value and report the power they carried.
+    #[arg(long, default_value_t = 0.0)]
+    threshold: f32,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Refuse when the estimated peak memory exceeds this many GiB (default: 85% of free).
+    #[arg(long)]
+    max_memory_gib: Option<f64>,
+    /// No progress bars or stage lines.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn gib(b: u64) -> String {
+    format!("{:.2} GiB", b as f64 / (1u64 << 30) as f64)
+}
+
+fn mib(b: u64) -> String {
+    format!("{:.1} MiB", b as f64 / (1u64 << 20) as f64)
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    if cli.inverse {
+        bail!(
+            "--inverse: the transfer matrix T needs the subsurface matrix S, which this build \
+             does not compute yet; run without --inverse (relighting then uses the iterative solve)"
+        );
+    }
+    if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
+        bail!("--threshold must be in [0, 1), got {}", cli.threshold);
+    }
+    if let Some(t) = cli.threads {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t.max(1))
+            .build_global()
+            .context("setting up the thread pool")?;
+    }
+    let t0 = Instant::now();
+    let loaded = scene::load_scene(&cli.scene)?;
+    let load_s = t0.elapsed().as_secs_f64();
+    let params = PrecomputeParams {
+        patches: cli.patches,
+        max_edge: cli.max_edge,
+        form_factors: FormFactorParams {
+            threshold: cli.threshold,
+            ..Default::default()
+        },
+        memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
+        progress: !cli.quiet,
+    };
+    let report = pipeline::precompute(&loaded, &cli.out, &params)
+        .with_context(|| format!("precomputing {}", cli.scene))?;
+
+    let ff = &report.form_factors;
+    println!(
+        "translux-precompute: {} -> {}",
+        cli.scene,
+        cli.out.display()
+    );
+    println!("  patches            {}", report.patch_count);
+    println!("  viewer vertices    {}", report.vertex_count);
+    println!("  source triangles   {}", report.occluder_count);
+    println!(
+        "  nnz(F)             {} ({:.1}% of N²)",
+        report.nnz_f,
+        100.0 * report.nnz_f as f64 / (report.patch_count as f64).powi(2).max(1.0)
+    );
+    println!(
+        "  F row sums         mean {:.4}, min {:.4}, max {:.4}",
+        ff.row_sum_mean, ff.row_sum_min, ff.row_sum_max
+    );
+    if ff.threshold > 0.0 {
+        println!(
+            "  threshold          {} dropped {:.4}% of the power",
+            ff.threshold,
+            100.0 * ff.dropped_energy
+        );
+    }
+    println!(
+        "  occlusion rays     {} ({:.2} M rays/s over the F stage)",
+        ff.rays,
+        report.rays_per_second / 1e6
+    );
+    println!("  nnz(S)             0 (subsurface scattering not computed by this build)");
+    println!(
+        "  bundle             {} ({} bytes)",
+        mib(report.bundle_bytes),
+        report.bundle_bytes
+    );
+    println!("  stage times        load {load_s:.2} s");
+    for s in &report.stages {
+        println!("                     {} {:.2} s", s.stage, s.seconds);
+    }
+    println!("  memory estimate    {}", gib(report.memory_estimate));
+    if let Some(rss) = report.peak_rss {
+        println!("  peak memory (RSS)  {}", gib(rss));
+    }
+    Ok(())
+}

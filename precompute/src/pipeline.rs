@@ -1,0 +1,429 @@
+//! The whole precompute: loaded scene in, verified bundle on disk out.
+//!
+//! Stages: plan and check memory → patches and viewer mesh → BVH → form factors → write.
+//! Each long stage reports progress (a bar on a terminal, a line per stage otherwise), and
+//! [`PrecomputeReport`] carries the summary the CLI prints.
+
+use std::path::Path;
+use std::time::Instant;
+
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
+use thiserror::Error;
+use translux_proto::bundle::{
+    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, arrays,
+};
+use translux_proto::light::Camera;
+use translux_proto::scene::Material;
+
+use crate::bundle::{ArrayData, BundleWriteError, NamedArray, write_bundle};
+use crate::formfactor::{self, FormFactorParams};
+use crate::patch::{self, Density, Patches};
+use crate::profile;
+use crate::raycast::Occluder;
+use crate::scene::LoadedScene;
+
+/// Patch target for scene files that name no density.
+pub const DEFAULT_PATCHES: u64 = 10_000;
+/// More patches than this are refused outright: the pair loop is O(N²).
+pub const MAX_PATCHES: u64 = 400_000;
+
+/// Settings of [`precompute`].
+#[derive(Debug, Clone, Default)]
+pub struct PrecomputeParams {
+    /// Patch target; overrides the scene file's `patches`.
+    pub patches: Option<u64>,
+    /// Maximum patch edge (scene units); overrides the scene file's `patches`.
+    pub max_edge: Option<f32>,
+    pub form_factors: FormFactorParams,
+    /// Refuse when the estimated peak memory exceeds this many bytes (default: 85% of the
+    /// memory available now).
+    pub memory_limit: Option<u64>,
+    /// Draw progress bars / stage lines on stderr.
+    pub progress: bool,
+}
+
+/// What a precompute produced.
+#[derive(Debug, Clone)]
+pub struct PrecomputeReport {
+    pub patch_count: usize,
+    pub vertex_count: usize,
+    pub occluder_count: usize,
+    pub nnz_f: u64,
+    pub bundle_bytes: u64,
+    pub form_factors: FormFactorInfo,
+    pub stages: Vec<StageTime>,
+    /// Occlusion rays per second during the form-factor stage.
+    pub rays_per_second: f64,
+    /// Estimated peak memory before the form-factor stage (bytes).
+    pub memory_estimate: u64,
+    /// Peak resident memory of the process so far (bytes), where the OS tells.
+    pub peak_rss: Option<u64>,
+}
+
+/// Why a precompute stopped.
+#[derive(Debug, Error)]
+pub enum PrecomputeError {
+    #[error("--patches 0: a scene needs at least one patch")]
+    ZeroPatches,
+    #[error("max_edge must be finite and > 0, got {0}")]
+    BadMaxEdge(f32),
+    #[error(
+        "{requested} patches is too many: the form-factor pass is O(N²) (~{pairs:.1e} pairs); \
+         the limit is {MAX_PATCHES}"
+    )]
+    TooManyPatches { requested: u64, pairs: f64 },
+    #[error(
+        "{patches} patches would need about {estimate_gib:.1} GiB (F has ~{nnz:.2e} non-zeros, \
+         {bytes_per_nnz} bytes each while building), more than the {limit_gib:.1} GiB allowed; \
+         use fewer patches"
+    )]
+    OutOfMemory {
+        patches: u64,
+        nnz: f64,
+        bytes_per_nnz: u64,
+        estimate_gib: f64,
+        limit_gib: f64,
+    },
+    #[error("the scene has no triangles")]
+    Empty,
+    #[error(transparent)]
+    Write(#[from] BundleWriteError),
+}
+
+/// Bytes per stored non-zero of F while building: the final CSR (col 4 + val 4), the upper
+/// triangle as computed (12 bytes per pair = 6 per non-zero) and the transposed lower half
+/// (8 bytes per lower entry = 4 per non-zero).
+const BUILD_BYTES_PER_NNZ: u64 = 18;
+
+/// ρ a patch of this material carries in the diffuse solve, and its emitted exitance.
+pub fn material_albedo_emission(m: &Material) -> ([f32; 3], [f32; 3]) {
+    match m {
+        Material::Diffuse { albedo } => (*albedo, [0.0; 3]),
+        // Until S is in the bundle a translucent object is opaque with its profile's total
+        // diffuse reflectance (the "inter-reflection only" view of it), capped below 1.
+        Material::Translucent { profile } => (
+            profile::total_reflectance(profile).map(|r| r.clamp(0.0, 0.999)),
+            [0.0; 3],
+        ),
+        Material::Emitter { radiance } => ([0.0; 3], radiance.map(|l| l * std::f32::consts::PI)),
+    }
+}
+
+fn stage_bar(progress: bool, len: u64, name: &str) -> ProgressBar {
+    let target = if progress {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
+    };
+    let bar = ProgressBar::with_draw_target(Some(len), target);
+    if let Ok(style) = ProgressStyle::with_template(
+        "{prefix:>14} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
+    ) {
+        bar.set_style(style);
+    }
+    bar.set_prefix(name.to_string());
+    if progress && bar.is_hidden() {
+        // Not a terminal: one line per stage instead of a bar.
+        eprintln!("{name}: started");
+    }
+    bar
+}
+
+fn finish(bar: ProgressBar, progress: bool, name: &str, t: Instant, stages: &mut Vec<StageTime>) {
+    let seconds = t.elapsed().as_secs_f64();
+    if progress && bar.is_hidden() {
+        eprintln!("{name}: done in {seconds:.2} s");
+    }
+    bar.finish_and_clear();
+    stages.push(StageTime {
+        stage: name.to_string(),
+        seconds,
+    });
+}
+
+/// Bytes of memory available now (Linux `MemAvailable`), if known.
+pub fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Peak resident set size of this process (Linux `VmHWM`), if known.
+pub fn peak_rss() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Estimates nnz(F) from the orientation cull alone on up to 256 evenly spaced rows (an
+/// upper bound: occlusion only removes entries).
+pub fn estimate_nnz(p: &Patches) -> f64 {
+    let n = p.len();
+    if n < 2 {
+        return 0.0;
+    }
+    let rows = n.min(256);
+    let eps = 1e-9;
+    let front = |a: usize, b: usize| {
+        p.corners[b]
+            .iter()
+            .any(|v| p.normal[a].dot(*v - p.centroid[a]) > eps)
+    };
+    let seen: u64 = (0..rows)
+        .into_par_iter()
+        .map(|k| {
+            let i = k * n / rows;
+            (0..n)
+                .filter(|&j| j != i && front(i, j) && front(j, i))
+                .count() as u64
+        })
+        .sum();
+    seen as f64 / rows as f64 * n as f64
+}
+
+fn default_camera(p: &Patches) -> Camera {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for c in &p.corners {
+        for v in c {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+    }
+    let centre = (lo + hi) * 0.5;
+    let radius = ((hi - lo).length() * 0.5).max(1e-3);
+    // Far enough for a 40° vertical field of view to hold the bounding sphere.
+    let dist = radius / (20f32.to_radians().sin());
+    Camera {
+        position: (centre + Vec3::new(0.0, 0.25 * radius, dist)).to_array(),
+        target: centre.to_array(),
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 40.0,
+    }
+}
+
+/// Runs every stage and writes the bundle to `out` (atomically).
+pub fn precompute(
+    scene: &LoadedScene,
+    out: &Path,
+    params: &PrecomputeParams,
+) -> Result<PrecomputeReport, PrecomputeError> {
+    let mut stages = Vec::new();
+    let progress = params.progress;
+
+    // Plan: density and the patch count it gives, checked before anything big is made.
+    let density = match (params.patches, params.max_edge, scene.file.patches) {
+        (Some(0), _, _) => return Err(PrecomputeError::ZeroPatches),
+        (Some(n), _, _) => Density::Target(n),
+        (None, Some(e), _) => Density::MaxEdge(e),
+        (None, None, Some(d)) => match (d.target, d.max_edge) {
+            (Some(t), _) => Density::Target(t),
+            (None, Some(e)) => Density::MaxEdge(e),
+            (None, None) => Density::Target(DEFAULT_PATCHES),
+        },
+        (None, None, None) => Density::Target(DEFAULT_PATCHES),
+    };
+    if let Density::MaxEdge(e) = density
+        && !(e.is_finite() && e > 0.0)
+    {
+        return Err(PrecomputeError::BadMaxEdge(e));
+    }
+    if let Density::Target(t) = density
+        && t > MAX_PATCHES
+    {
+        return Err(PrecomputeError::TooManyPatches {
+            requested: t,
+            pairs: (t as f64).powi(2) / 2.0,
+        });
+    }
+    let sources: Vec<&[[Vec3; 3]]> = scene
+        .objects
+        .iter()
+        .map(|o| o.triangles.as_slice())
+        .collect();
+    if sources.iter().all(|s| s.is_empty()) {
+        return Err(PrecomputeError::Empty);
+    }
+    let t = Instant::now();
+    let (h, count) = patch::plan(&sources, density);
+    if count > MAX_PATCHES {
+        return Err(PrecomputeError::TooManyPatches {
+            requested: count,
+            pairs: (count as f64).powi(2) / 2.0,
+        });
+    }
+
+    // Patches and the viewer mesh.
+    let bar = stage_bar(progress, 2, "patches");
+    let patches = patch::subdivide(&sources, h);
+    bar.inc(1);
+    let crease: Vec<f32> = scene.objects.iter().map(|o| o.crease_deg).collect();
+    let mesh = patch::viewer_mesh(&patches, &crease);
+    bar.inc(1);
+    finish(bar, progress, "patches", t, &mut stages);
+
+    // Memory estimate for F, refused before the big allocation.
+    let nnz_est = estimate_nnz(&patches);
+    let memory_estimate =
+        (nnz_est * BUILD_BYTES_PER_NNZ as f64) as u64 + patches.len() as u64 * 200;
+    let limit = params
+        .memory_limit
+        .or_else(|| available_memory().map(|a| (a as f64 * 0.85) as u64))
+        .unwrap_or(u64::MAX);
+    if memory_estimate > limit {
+        return Err(PrecomputeError::OutOfMemory {
+            patches: patches.len() as u64,
+            nnz: nnz_est,
+            bytes_per_nnz: BUILD_BYTES_PER_NNZ,
+            estimate_gib: memory_estimate as f64 / (1u64 << 30) as f64,
+            limit_gib: limit as f64 / (1u64 << 30) as f64,
+        });
+    }
+
+    // BVH over the source triangles.
+    let t = Instant::now();
+    let bar = stage_bar(progress, 1, "bvh");
+    let occluder_tris: Vec<[Vec3; 3]> = sources.iter().flat_map(|s| s.iter().copied()).collect();
+    let occ = Occluder::new(&occluder_tris);
+    bar.inc(1);
+    finish(bar, progress, "bvh", t, &mut stages);
+
+    // Form factors.
+    let t = Instant::now();
+    let n = patches.len() as u64;
+    let bar = stage_bar(progress, n * n.saturating_sub(1) / 2, "form factors");
+    let (ff, ff_info) = formfactor::compute(&patches, &occ, &params.form_factors, &|k| bar.inc(k));
+    let ff_seconds = t.elapsed().as_secs_f64();
+    finish(bar, progress, "form factors", t, &mut stages);
+
+    // Bundle.
+    let t = Instant::now();
+    let bar = stage_bar(progress, 1, "write bundle");
+    let mut objects = Vec::new();
+    let mut albedo = vec![[0.0f32; 3]; patches.len()];
+    let mut emission = vec![[0.0f32; 3]; patches.len()];
+    for (o, range) in scene.objects.iter().zip(&patches.object_ranges) {
+        let (rho, be) = material_albedo_emission(&o.material);
+        albedo[range.clone()].fill(rho);
+        emission[range.clone()].fill(be);
+        objects.push(ObjectInfo {
+            name: o.name.clone(),
+            material: o.material.clone(),
+            first_patch: range.start as u64,
+            patch_count: range.len() as u64,
+            albedo: rho,
+        });
+    }
+    let flat3 = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+    let np = patches.len() as u64;
+    let nv = mesh.positions.len() as u64;
+    let nnz = ff.nnz() as u64;
+    let arrays_out = vec![
+        NamedArray {
+            name: arrays::PATCH_CORNERS,
+            shape: vec![np, 3, 3],
+            data: ArrayData::F32(patches.corners.iter().flat_map(|c| flat3(c)).collect()),
+        },
+        NamedArray {
+            name: arrays::PATCH_NORMAL,
+            shape: vec![np, 3],
+            data: ArrayData::F32(flat3(&patches.normal)),
+        },
+        NamedArray {
+            name: arrays::PATCH_AREA,
+            shape: vec![np],
+            data: ArrayData::F32(patches.area.clone()),
+        },
+        NamedArray {
+            name: arrays::PATCH_OBJECT,
+            shape: vec![np],
+            data: ArrayData::U32(patches.object.clone()),
+        },
+        NamedArray {
+            name: arrays::PATCH_ALBEDO,
+            shape: vec![np, 3],
+            data: ArrayData::F32(albedo.concat()),
+        },
+        NamedArray {
+            name: arrays::PATCH_EMISSION,
+            shape: vec![np, 3],
+            data: ArrayData::F32(emission.concat()),
+        },
+        NamedArray {
+            name: arrays::VERTEX_POSITION,
+            shape: vec![nv, 3],
+            data: ArrayData::F32(mesh.positions.concat()),
+        },
+        NamedArray {
+            name: arrays::VERTEX_NORMAL,
+            shape: vec![nv, 3],
+            data: ArrayData::F32(mesh.normals.concat()),
+        },
+        NamedArray {
+            name: arrays::TRIANGLE_VERTEX,
+            shape: vec![np, 3],
+            data: ArrayData::U32(mesh.triangles.concat()),
+        },
+        NamedArray {
+            name: arrays::OCCLUDER_TRI,
+            shape: vec![occluder_tris.len() as u64, 3, 3],
+            data: ArrayData::F32(occluder_tris.iter().flat_map(|c| flat3(c)).collect()),
+        },
+        NamedArray {
+            name: arrays::FF_ROW_PTR,
+            shape: vec![np + 1],
+            data: ArrayData::U64(ff.row_ptr),
+        },
+        NamedArray {
+            name: arrays::FF_COL,
+            shape: vec![nnz],
+            data: ArrayData::U32(ff.col),
+        },
+        NamedArray {
+            name: arrays::FF_VAL,
+            shape: vec![nnz],
+            data: ArrayData::F32(ff.val),
+        },
+    ];
+    let camera = scene
+        .file
+        .camera
+        .unwrap_or_else(|| default_camera(&patches));
+    let manifest = Manifest {
+        format: FORMAT.into(),
+        version: FORMAT_VERSION,
+        name: scene.name.clone(),
+        source: scene.source.clone(),
+        created_by: format!("translux-precompute {}", env!("CARGO_PKG_VERSION")),
+        unit_mm: scene.file.unit_mm,
+        patch_count: np,
+        vertex_count: nv,
+        occluder_count: occluder_tris.len() as u64,
+        objects,
+        lights: scene.file.lights.clone(),
+        camera,
+        form_factors: ff_info.clone(),
+        stages: stages.clone(),
+        arrays: Default::default(),
+    };
+    let written = write_bundle(out, manifest, arrays_out)?;
+    bar.inc(1);
+    finish(bar, progress, "write bundle", t, &mut stages);
+
+    Ok(PrecomputeReport {
+        patch_count: patches.len(),
+        vertex_count: mesh.positions.len(),
+        occluder_count: occluder_tris.len(),
+        nnz_f: nnz,
+        bundle_bytes: written.bytes,
+        rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
+        form_factors: ff_info,
+        stages,
+        memory_estimate,
+        peak_rss: peak_rss(),
+    })
+}

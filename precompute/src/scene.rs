@@ -1,0 +1,944 @@
+//! Loading a scene: from a spec to validated objects with triangles in scene units.
+//!
+//! In: a spec — `builtin:NAME` or the path of a JSON scene file (see
+//! `translux_proto::scene`) whose OBJ meshes are given relative to the scene file's folder.
+//! Out: a [`LoadedScene`]: the validated [`SceneFile`] and, per object, its material, crease
+//! angle and triangles in scene units with the object's transform applied (scale, then
+//! rotate about X, Y, Z, then translate). Geometry is never rescaled: `unit_mm` stays in
+//! the file for later stages.
+//!
+//! Every failure is a [`SceneError`] whose message names the scene, and the field, or the
+//! object and the mesh file: `scenes/box.json: objects[1].material.albedo[0] must be finite
+//! and in [0, 1]`, `scenes/box.json: objects[2] "bunny": mesh file "bunny.obj"
+//! (scenes/bunny.obj): line 7: face index 99 is out of range (the file has 3 vertices)`.
+//! Bad input never panics.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use glam::{Mat3, Vec3};
+use translux_proto::scene::{Material, MeshRef, ObjectDesc, SceneFile, Shape, Transform};
+use translux_proto::{FieldError, JsonError};
+
+use crate::builtin::{BUILTIN_SCENES, builtin_scene};
+use crate::shapes::shape_triangles;
+
+/// Default crease angle between smoothed and creased edges (degrees).
+pub const DEFAULT_CREASE_DEG: f32 = 40.0;
+
+/// One object, ready for patching.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadedObject {
+    pub name: String,
+    pub material: Material,
+    /// Edges whose faces differ by less than this (degrees) are smoothed (default 40).
+    pub crease_deg: f32,
+    /// Triangles in scene units with the transform applied, counter-clockwise seen from
+    /// the side the surface faces.
+    pub triangles: Vec<[Vec3; 3]>,
+    /// Zero-area triangles (area < 1e-12 × bounding-box diagonal²) that were dropped.
+    pub dropped_degenerate: usize,
+}
+
+/// A validated scene with its geometry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadedScene {
+    /// The file's `name`, else the file stem; for `builtin:NAME`, NAME.
+    pub name: String,
+    /// The spec it was loaded from (`builtin:cornell`, `scenes/box.json`).
+    pub source: String,
+    /// The validated scene file.
+    pub file: SceneFile,
+    /// The objects, in the file's order.
+    pub objects: Vec<LoadedObject>,
+}
+
+impl LoadedScene {
+    /// Number of triangles over all objects.
+    pub fn triangle_count(&self) -> usize {
+        self.objects.iter().map(|o| o.triangles.len()).sum()
+    }
+}
+
+/// Why a scene could not be loaded. Each message starts with the scene (its file or
+/// `builtin:NAME`).
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The scene file could not be read.
+    #[error("{scene}: cannot read the scene file: {source}")]
+    Read {
+        scene: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The scene file is not valid JSON for a scene (syntax, unknown field, wrong type).
+    #[error("{scene}: line {}, column {}: {}", .error.line, .error.column, json_detail(.error))]
+    Json { scene: String, error: JsonError },
+    /// A value is out of range.
+    #[error("{scene}: {error}")]
+    Invalid { scene: String, error: FieldError },
+    /// `builtin:NAME` with an unknown NAME.
+    #[error("builtin:{name}: no such built-in scene; the built-in scenes are {}", BUILTIN_SCENES.join(", "))]
+    UnknownBuiltin { name: String },
+    /// An object's mesh file does not exist.
+    #[error("{scene}: {object}: mesh file \"{mesh}\" ({}) not found", .path.display())]
+    MeshMissing {
+        scene: String,
+        object: String,
+        mesh: String,
+        path: PathBuf,
+    },
+    /// An object's mesh file exists but could not be read.
+    #[error("{scene}: {object}: cannot read mesh file \"{mesh}\" ({}): {source}", .path.display())]
+    MeshRead {
+        scene: String,
+        object: String,
+        mesh: String,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// An object's mesh file is not a valid OBJ (or holds unusable values).
+    #[error("{scene}: {object}: mesh file \"{mesh}\" ({}) is not a valid OBJ: {detail}", .path.display())]
+    MeshMalformed {
+        scene: String,
+        object: String,
+        mesh: String,
+        path: PathBuf,
+        detail: String,
+    },
+    /// An object ends up with no triangles of non-zero area.
+    #[error("{scene}: {object}: mesh {mesh} has no triangles{detail}")]
+    MeshEmpty {
+        scene: String,
+        object: String,
+        mesh: String,
+        detail: String,
+    },
+    /// The transform produced non-finite coordinates.
+    #[error("{scene}: {object}: the transform gives non-finite coordinates (mesh {mesh})")]
+    NonFinite {
+        scene: String,
+        object: String,
+        mesh: String,
+    },
+}
+
+fn json_detail(e: &JsonError) -> String {
+    if e.path.is_empty() || e.path == "." {
+        e.message.clone()
+    } else {
+        format!("{}: {}", e.path, e.message)
+    }
+}
+
+/// Loads `builtin:NAME` or a scene file.
+pub fn load_scene(spec: &str) -> Result<LoadedScene, SceneError> {
+    if let Some(name) = spec.strip_prefix("builtin:") {
+        let file = builtin_scene(name).ok_or_else(|| SceneError::UnknownBuiltin {
+            name: name.to_owned(),
+        })?;
+        return resolve_scene(file, Path::new("."), name.to_owned(), spec.to_owned());
+    }
+    load_scene_file(Path::new(spec))
+}
+
+/// Reads, parses, validates and resolves a JSON scene file.
+pub fn load_scene_file(path: &Path) -> Result<LoadedScene, SceneError> {
+    let scene = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+        scene: scene.clone(),
+        source,
+    })?;
+    let file: SceneFile = translux_proto::parse_json(&text).map_err(|error| SceneError::Json {
+        scene: scene.clone(),
+        error,
+    })?;
+    let name = match &file.name {
+        Some(n) => n.clone(),
+        None => path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "scene".to_owned()),
+    };
+    let base_dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    resolve_scene(file, base_dir, name, scene)
+}
+
+/// Validates `file` and builds every object's triangles; OBJ paths are relative to
+/// `base_dir`. `source` names the scene in error messages.
+pub fn resolve_scene(
+    file: SceneFile,
+    base_dir: &Path,
+    name: String,
+    source: String,
+) -> Result<LoadedScene, SceneError> {
+    file.validate().map_err(|error| SceneError::Invalid {
+        scene: source.clone(),
+        error,
+    })?;
+    // Meshes load in parallel; errors are reported in object order.
+    use rayon::prelude::*;
+    let results: Vec<Result<LoadedObject, SceneError>> = file
+        .objects
+        .par_iter()
+        .enumerate()
+        .map(|(i, desc)| load_object(i, desc, base_dir, &source))
+        .collect();
+    let objects = results.into_iter().collect::<Result<Vec<_>, _>>()?;
+    Ok(LoadedScene {
+        name,
+        source,
+        file,
+        objects,
+    })
+}
+
+fn load_object(
+    index: usize,
+    desc: &ObjectDesc,
+    base_dir: &Path,
+    scene: &str,
+) -> Result<LoadedObject, SceneError> {
+    let object = format!("objects[{index}] \"{}\"", desc.name);
+    let (raw, mesh) = match &desc.mesh {
+        MeshRef::Shape(shape) => {
+            let tag = match shape {
+                Shape::Quad { .. } => "quad",
+                Shape::Box { .. } => "box",
+                Shape::Sphere { .. } => "sphere",
+                Shape::Bowl { .. } => "bowl",
+                Shape::Sheet { .. } => "sheet",
+            };
+            (shape_triangles(shape), format!("(built-in {tag})"))
+        }
+        MeshRef::Path(rel) => {
+            let path = base_dir.join(rel);
+            let tris =
+                load_obj_triangles(&path).map_err(|e| e.into_error(scene, &object, rel, path))?;
+            (tris, format!("\"{rel}\""))
+        }
+    };
+    if raw.is_empty() {
+        return Err(SceneError::MeshEmpty {
+            scene: scene.to_owned(),
+            object,
+            mesh,
+            detail: " (no faces in the file)".to_owned(),
+        });
+    }
+    let transformed = apply_transform(raw, desc.transform.as_ref());
+    if transformed.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(SceneError::NonFinite {
+            scene: scene.to_owned(),
+            object,
+            mesh,
+        });
+    }
+    let (triangles, dropped) = drop_degenerate(transformed);
+    if triangles.is_empty() {
+        return Err(SceneError::MeshEmpty {
+            scene: scene.to_owned(),
+            object,
+            mesh,
+            detail: format!(" with non-zero area (all {dropped} are degenerate)"),
+        });
+    }
+    Ok(LoadedObject {
+        name: desc.name.clone(),
+        material: desc.material.clone(),
+        crease_deg: desc.crease_deg.unwrap_or(DEFAULT_CREASE_DEG),
+        triangles,
+        dropped_degenerate: dropped,
+    })
+}
+
+/// sin and cos of an angle in degrees, exact at multiples of 90° (so walls rotated by 90°
+/// meet exactly).
+fn sin_cos_deg(deg: f32) -> (f32, f32) {
+    let quarter = deg / 90.0;
+    if quarter == quarter.round() {
+        match (quarter as i64).rem_euclid(4) {
+            0 => (0.0, 1.0),
+            1 => (1.0, 0.0),
+            2 => (0.0, -1.0),
+            _ => (-1.0, 0.0),
+        }
+    } else {
+        deg.to_radians().sin_cos()
+    }
+}
+
+/// The linear part M = R_z R_y R_x S and the translation of a transform: a point p goes to
+/// M p + t (scale first, then rotate about X, then Y, then Z, then translate).
+pub fn transform_parts(t: Option<&Transform>) -> (Mat3, Vec3) {
+    let Some(t) = t else {
+        return (Mat3::IDENTITY, Vec3::ZERO);
+    };
+    let scale = t.scale.map(|s| Vec3::from(s.as_vec())).unwrap_or(Vec3::ONE);
+    let rot = |axis: usize| {
+        let (s, c) = sin_cos_deg(t.rotate_deg[axis]);
+        match axis {
+            0 => Mat3::from_cols(Vec3::X, Vec3::new(0.0, c, s), Vec3::new(0.0, -s, c)),
+            1 => Mat3::from_cols(Vec3::new(c, 0.0, -s), Vec3::Y, Vec3::new(s, 0.0, c)),
+            _ => Mat3::from_cols(Vec3::new(c, s, 0.0), Vec3::new(-s, c, 0.0), Vec3::Z),
+        }
+    };
+    let m = rot(2) * rot(1) * rot(0) * Mat3::from_diagonal(scale);
+    (m, Vec3::from(t.translate))
+}
+
+/// Applies the transform; a mirroring transform (det M < 0) would turn every triangle
+/// inside out, so it also swaps b and c to keep the normals on the same side.
+fn apply_transform(tris: Vec<[Vec3; 3]>, t: Option<&Transform>) -> Vec<[Vec3; 3]> {
+    let (m, tr) = transform_parts(t);
+    if t.is_none() {
+        return tris;
+    }
+    let flip = m.determinant() < 0.0;
+    tris.into_iter()
+        .map(|[a, b, c]| {
+            let (a, b, c) = (m * a + tr, m * b + tr, m * c + tr);
+            if flip { [a, c, b] } else { [a, b, c] }
+        })
+        .collect()
+}
+
+/// Drops triangles with area < 1e-12 × (bounding-box diagonal)²; returns the rest and the
+/// number dropped.
+fn drop_degenerate(tris: Vec<[Vec3; 3]>) -> (Vec<[Vec3; 3]>, usize) {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for v in tris.iter().flatten() {
+        lo = lo.min(*v);
+        hi = hi.max(*v);
+    }
+    let diag2 = f64::from((hi - lo).length_squared());
+    let min_area = 1e-12 * diag2;
+    let before = tris.len();
+    let kept: Vec<_> = tris
+        .into_iter()
+        .filter(|[a, b, c]| {
+            let (a, b, c) = (a.as_dvec3(), b.as_dvec3(), c.as_dvec3());
+            let area = 0.5 * (b - a).cross(c - a).length();
+            area >= min_area && area > 0.0
+        })
+        .collect();
+    let dropped = before - kept.len();
+    (kept, dropped)
+}
+
+/// An OBJ loading failure before it is given the scene and object names.
+#[derive(Debug)]
+enum ObjError {
+    Missing,
+    Io(std::io::Error),
+    Malformed(String),
+}
+
+impl ObjError {
+    fn into_error(self, scene: &str, object: &str, mesh: &str, path: PathBuf) -> SceneError {
+        let (scene, object, mesh) = (scene.to_owned(), object.to_owned(), mesh.to_owned());
+        match self {
+            ObjError::Missing => SceneError::MeshMissing {
+                scene,
+                object,
+                mesh,
+                path,
+            },
+            ObjError::Io(source) => SceneError::MeshRead {
+                scene,
+                object,
+                mesh,
+                path,
+                source,
+            },
+            ObjError::Malformed(detail) => SceneError::MeshMalformed {
+                scene,
+                object,
+                mesh,
+                path,
+                detail,
+            },
+        }
+    }
+}
+
+/// Reads every model of an OBJ file as one triangle list (object space).
+///
+/// tobj parses; its error says what kind of problem it met but not where, so on failure the
+/// file is scanned again by [`diagnose_obj`] to name the line. tobj also accepts `nan` and
+/// `inf` as coordinates and silently ignores unknown statements, so the result is checked
+/// here too. Material libraries are not read: they carry nothing translux uses, and tobj
+/// 4.0 panics on some malformed `.mtl` lines.
+fn load_obj_triangles(path: &Path) -> Result<Vec<[Vec3; 3]>, ObjError> {
+    let file = File::open(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => ObjError::Missing,
+        _ => ObjError::Io(e),
+    })?;
+    if path.is_dir() {
+        return Err(ObjError::Io(std::io::Error::other("it is a directory")));
+    }
+    let options = tobj::LoadOptions {
+        triangulate: true,
+        ignore_points: true,
+        ignore_lines: true,
+        ..Default::default()
+    };
+    let mut reader = BufReader::new(file);
+    let (models, _materials) = tobj::load_obj_buf(&mut reader, &options, |_| {
+        Err(tobj::LoadError::GenericFailure)
+    })
+    .map_err(|e| ObjError::Malformed(explain_tobj_error(path, &e)))?;
+    let mut tris = Vec::new();
+    for model in &models {
+        let pos = &model.mesh.positions;
+        let vertex = |i: u32| -> Option<Vec3> {
+            let k = 3 * i as usize;
+            Some(Vec3::new(*pos.get(k)?, *pos.get(k + 1)?, *pos.get(k + 2)?))
+        };
+        for idx in model.mesh.indices.chunks(3) {
+            let [a, b, c] = idx else {
+                return Err(ObjError::Malformed(
+                    "a face has fewer than 3 vertices".to_owned(),
+                ));
+            };
+            let (Some(a), Some(b), Some(c)) = (vertex(*a), vertex(*b), vertex(*c)) else {
+                return Err(ObjError::Malformed(with_location(
+                    path,
+                    "a face index is out of range".to_owned(),
+                )));
+            };
+            if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+                return Err(ObjError::Malformed(with_location(
+                    path,
+                    "a vertex coordinate is not a finite number".to_owned(),
+                )));
+            }
+            tris.push([a, b, c]);
+        }
+    }
+    Ok(tris)
+}
+
+fn explain_tobj_error(path: &Path, e: &tobj::LoadError) -> String {
+    with_location(path, e.to_string())
+}
+
+/// `what`, followed by the first problem [`diagnose_obj`] finds in the file, if any.
+fn with_location(path: &Path, what: String) -> String {
+    match std::fs::read(path)
+        .ok()
+        .and_then(|bytes| diagnose_obj(&bytes))
+    {
+        Some(found) => found,
+        None => what,
+    }
+}
+
+/// Scans OBJ text for the first line that cannot be right: a vertex whose first three
+/// coordinates are not finite numbers, or a face with an index that is not a number, is 0,
+/// or points past the vertices of the file (negative indices count back from the vertices
+/// read so far). Returns `line N: problem: \`text\``.
+fn diagnose_obj(bytes: &[u8]) -> Option<String> {
+    let text = match std::str::from_utf8(bytes) {
+        Ok(t) => t,
+        Err(e) => {
+            let line = 1 + bytes[..e.valid_up_to()]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count();
+            return Some(format!(
+                "line {line}: not UTF-8 text (is it a binary file?)"
+            ));
+        }
+    };
+    let total = text
+        .lines()
+        .filter(|l| l.split_whitespace().next() == Some("v"))
+        .count();
+    let mut seen = 0usize;
+    for (n, line) in text.lines().enumerate() {
+        let mut words = line.split_whitespace();
+        let shown: String = line.trim().chars().take(80).collect();
+        let at = |problem: String| Some(format!("line {}: {problem}: `{shown}`", n + 1));
+        match words.next() {
+            Some("v") => {
+                seen += 1;
+                let coords: Vec<&str> = words.by_ref().take(3).collect();
+                if coords.len() < 3 {
+                    return at("a vertex needs three coordinates".to_owned());
+                }
+                for c in coords {
+                    match c.parse::<f32>() {
+                        Ok(x) if x.is_finite() => {}
+                        Ok(_) => return at(format!("coordinate \"{c}\" is not finite")),
+                        Err(_) => return at(format!("coordinate \"{c}\" is not a number")),
+                    }
+                }
+                if let Some(w) = words.next() {
+                    match (w.parse::<f32>(), words.next()) {
+                        (Ok(w), None) if w == 0.0 || !w.is_finite() => {
+                            return at(format!("weight w = {w} is unusable"));
+                        }
+                        (Err(_), None) => return at(format!("weight \"{w}\" is not a number")),
+                        _ => {}
+                    }
+                }
+            }
+            Some("f") => {
+                for word in words {
+                    let v = word.split('/').next().unwrap_or("");
+                    let Ok(i) = v.parse::<i64>() else {
+                        return at(format!("vertex index \"{v}\" is not an integer"));
+                    };
+                    if i == 0 {
+                        return at("vertex index 0 (OBJ indices start at 1)".to_owned());
+                    }
+                    if i > total as i64 {
+                        return at(format!(
+                            "face index {i} is out of range (the file has {total} vertices)"
+                        ));
+                    }
+                    if i < 0 && -i > seen as i64 {
+                        return at(format!(
+                            "relative face index {i} points before the first vertex \
+                             ({seen} vertices so far)"
+                        ));
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    const BUNNY: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/stanford-bunny.obj"
+    );
+    const EXAMPLE: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/scenes/bunny-on-floor.json"
+    );
+
+    const TRI_OBJ: &str = "# one triangle and a quad\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n\
+                           o first\nf 1 2 3\no second\nf 2 4 3\n";
+
+    fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+        let p = dir.join(name);
+        let mut f = File::create(&p).expect("create");
+        f.write_all(text.as_bytes()).expect("write");
+        p
+    }
+
+    fn scene_with(mesh: &str, material: &str, extra: &str) -> String {
+        format!(
+            r#"{{
+  "objects": [
+    {{"name": "floor", "mesh": {{"shape": "quad", "size": [1, 1]}},
+     "material": {{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}}},
+    {{"name": "thing", "mesh": {mesh},
+     "material": {material}{extra}}}
+  ]
+}}"#
+        )
+    }
+
+    const GREY: &str = r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#;
+
+    /// Loads a scene file and returns the error message, which must name the file.
+    fn error_of(dir: &Path, scene: &str) -> String {
+        let p = write(dir, "box.json", scene);
+        match load_scene_file(&p) {
+            Ok(s) => panic!("loaded {} objects", s.objects.len()),
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.starts_with(&p.display().to_string()), "{msg}");
+                msg
+            }
+        }
+    }
+
+    fn normal(t: &[Vec3; 3]) -> Vec3 {
+        (t[1] - t[0]).cross(t[2] - t[0]).normalize()
+    }
+
+    #[test]
+    fn obj_with_transform_loads_relative_to_the_scene_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::create_dir(dir.path().join("meshes")).expect("mkdir");
+        write(&dir.path().join("meshes"), "tri.obj", TRI_OBJ);
+        let transform = r#", "transform": {"scale": 2, "rotate_deg": [0, 90, 0], "translate": [1, 2, 3]}, "crease_deg": 10"#;
+        let p = write(
+            dir.path(),
+            "s.json",
+            &scene_with("\"meshes/tri.obj\"", GREY, transform),
+        );
+        let s = load_scene_file(&p).expect("loads");
+        assert_eq!(s.name, "s");
+        assert_eq!(s.source, p.display().to_string());
+        assert_eq!(s.objects.len(), 2);
+        let o = &s.objects[1];
+        assert_eq!(
+            (o.name.as_str(), o.crease_deg, o.dropped_degenerate),
+            ("thing", 10.0, 0)
+        );
+        assert_eq!(s.objects[0].crease_deg, DEFAULT_CREASE_DEG);
+        // Both models of the file are merged.
+        assert_eq!(o.triangles.len(), 2);
+        // (1, 0, 0) → scale 2 → (2, 0, 0) → 90° about Y → (0, 0, −2) → + (1, 2, 3).
+        let expect = Vec3::new(1.0, 2.0, 1.0);
+        assert!(
+            o.triangles[0][1].distance(expect) < 1e-6,
+            "{}",
+            o.triangles[0][1]
+        );
+        // (0, 1, 0) → (0, 2, 0) → unchanged by the Y rotation → (1, 4, 3).
+        assert!(o.triangles[0][2].distance(Vec3::new(1.0, 4.0, 3.0)) < 1e-6);
+        // The triangle faced +Z; rotated 90° about Y it faces +X.
+        assert!((normal(&o.triangles[0]) - Vec3::X).length() < 1e-6);
+        assert_eq!(s.triangle_count(), 4);
+        // The name in the file wins over the stem.
+        let named = format!(
+            "{{\"name\": \"nice\", {}",
+            &scene_with("\"meshes/tri.obj\"", GREY, "")[1..]
+        );
+        let p = write(dir.path(), "s2.json", &named);
+        assert_eq!(load_scene_file(&p).expect("loads").name, "nice");
+        // `load_scene` takes a path too.
+        let s = load_scene(&p.display().to_string()).expect("loads");
+        assert_eq!(s.name, "nice");
+    }
+
+    #[test]
+    fn rotation_order_is_x_then_y_then_z() {
+        let t = Transform {
+            translate: [0.0; 3],
+            rotate_deg: [90.0, 90.0, 0.0],
+            scale: None,
+        };
+        let (m, _) = transform_parts(Some(&t));
+        // +Y → 90° about X → +Z → 90° about Y → +X (Y first, then X, would give +Z).
+        assert!((m * Vec3::Y - Vec3::X).length() < 1e-6, "{}", m * Vec3::Y);
+        let t = Transform {
+            translate: [0.0; 3],
+            rotate_deg: [0.0, 90.0, 90.0],
+            scale: None,
+        };
+        let (m, _) = transform_parts(Some(&t));
+        // +Z → 90° about Y → +X → 90° about Z → +Y.
+        assert!((m * Vec3::Z - Vec3::Y).length() < 1e-6);
+        // Non-multiples of 90° agree with glam's rotations.
+        let t = Transform {
+            translate: [0.0; 3],
+            rotate_deg: [10.0, 20.0, 30.0],
+            scale: None,
+        };
+        let (m, _) = transform_parts(Some(&t));
+        let g = Mat3::from_rotation_z(30f32.to_radians())
+            * Mat3::from_rotation_y(20f32.to_radians())
+            * Mat3::from_rotation_x(10f32.to_radians());
+        assert!((m * Vec3::new(0.3, -0.4, 0.5) - g * Vec3::new(0.3, -0.4, 0.5)).length() < 1e-6);
+    }
+
+    #[test]
+    fn mirroring_scale_keeps_normals_outward() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        for (scale, det_sign) in [("[-1, 1, 1]", -1.0), ("[-2, -1, 3]", 1.0), ("-0.5", -1.0)] {
+            let extra = format!(r#", "transform": {{"scale": {scale}}}"#);
+            let text = scene_with(
+                r#"{"shape": "sphere", "radius": 1, "segments": 16}"#,
+                GREY,
+                &extra,
+            );
+            let p = write(dir.path(), "m.json", &text);
+            let s = load_scene_file(&p).expect("loads");
+            let tris = &s.objects[1].triangles;
+            let v = crate::shapes::signed_volume(tris);
+            assert!(v > 0.0, "scale {scale} (det sign {det_sign}): volume {v}");
+            for t in tris {
+                let c = (t[0] + t[1] + t[2]) / 3.0;
+                assert!(normal(t).dot(c) > 0.0, "scale {scale}: inward face");
+            }
+        }
+    }
+
+    #[test]
+    fn degenerate_triangles_are_dropped_and_counted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write(
+            dir.path(),
+            "d.obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 2 0 0\nf 1 2 3\nf 1 2 4\nf 1 1 3\n",
+        );
+        let p = write(dir.path(), "d.json", &scene_with("\"d.obj\"", GREY, ""));
+        let s = load_scene_file(&p).expect("loads");
+        assert_eq!(s.objects[1].triangles.len(), 1);
+        assert_eq!(s.objects[1].dropped_degenerate, 2);
+        // Only degenerate faces: an error, not an empty object.
+        write(dir.path(), "d.obj", "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n");
+        let msg = error_of(dir.path(), &scene_with("\"d.obj\"", GREY, ""));
+        assert!(msg.contains("\"thing\"") && msg.contains("d.obj"), "{msg}");
+        assert!(msg.contains("no triangles with non-zero area"), "{msg}");
+    }
+
+    #[test]
+    fn malformed_obj_names_file_object_and_line() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cases = [
+            (
+                "v 0 0 0\nv 1 2 banana\nv 0 1 0\nf 1 2 3\n",
+                "line 2",
+                "banana",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99\n",
+                "line 4",
+                "out of range",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n",
+                "line 4",
+                "not an integer",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n",
+                "line 4",
+                "start at 1",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -7\n",
+                "line 4",
+                "before the first vertex",
+            ),
+            (
+                "v 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n",
+                "line 2",
+                "not finite",
+            ),
+            (
+                "v 0 0 0\nv 1 inf 0\nv 0 1 0\nf 1 2 3\n",
+                "line 2",
+                "not finite",
+            ),
+            ("v 0 0 0\nv 1 0 0\nv 0 1 0 0\nf 1 2 3\n", "line 3", "w = 0"),
+            (
+                "v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n",
+                "line 2",
+                "three coordinates",
+            ),
+        ];
+        for (obj, line, what) in cases {
+            write(dir.path(), "bad.obj", obj);
+            let msg = error_of(dir.path(), &scene_with("\"bad.obj\"", GREY, ""));
+            assert!(msg.contains("objects[1] \"thing\""), "{msg}");
+            assert!(
+                msg.contains("\"bad.obj\"") && msg.contains("not a valid OBJ"),
+                "{msg}"
+            );
+            assert!(msg.contains(line) && msg.contains(what), "{obj:?}: {msg}");
+        }
+        // Binary garbage.
+        std::fs::write(
+            dir.path().join("bad.obj"),
+            [0x76, 0x20, 0xff, 0xfe, 0x00, 0x0a],
+        )
+        .expect("write");
+        let msg = error_of(dir.path(), &scene_with("\"bad.obj\"", GREY, ""));
+        assert!(msg.contains("bad.obj") && msg.contains("UTF-8"), "{msg}");
+        // Text with no faces at all (tobj ignores what it does not know).
+        write(dir.path(), "bad.obj", "hello world\nthis is not an obj\n");
+        let msg = error_of(dir.path(), &scene_with("\"bad.obj\"", GREY, ""));
+        assert!(
+            msg.contains("\"thing\"") && msg.contains("bad.obj") && msg.contains("no triangles"),
+            "{msg}"
+        );
+        // Only points and lines: no surface.
+        write(
+            dir.path(),
+            "bad.obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\np 3\n",
+        );
+        let msg = error_of(dir.path(), &scene_with("\"bad.obj\"", GREY, ""));
+        assert!(msg.contains("no triangles"), "{msg}");
+    }
+
+    #[test]
+    fn malformed_mtl_is_ignored_not_a_panic() {
+        // tobj 4.0 panics on `Ka 1 2` in a material library; materials are not read.
+        let dir = tempfile::tempdir().expect("tempdir");
+        write(dir.path(), "m.mtl", "newmtl x\nKa 1 2\n");
+        write(
+            dir.path(),
+            "m.obj",
+            &format!("mtllib m.mtl\nusemtl x\n{TRI_OBJ}"),
+        );
+        let p = write(dir.path(), "s.json", &scene_with("\"m.obj\"", GREY, ""));
+        let s = load_scene_file(&p).expect("loads");
+        assert_eq!(s.objects[1].triangles.len(), 2);
+    }
+
+    #[test]
+    fn missing_mesh_and_missing_scene_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let msg = error_of(dir.path(), &scene_with("\"nowhere/gone.obj\"", GREY, ""));
+        assert!(msg.contains("objects[1] \"thing\""), "{msg}");
+        assert!(
+            msg.contains("\"nowhere/gone.obj\"") && msg.contains("not found"),
+            "{msg}"
+        );
+        // A directory is not a mesh.
+        std::fs::create_dir(dir.path().join("adir")).expect("mkdir");
+        let msg = error_of(dir.path(), &scene_with("\"adir\"", GREY, ""));
+        assert!(
+            msg.contains("\"adir\"") && msg.contains("\"thing\""),
+            "{msg}"
+        );
+
+        let p = dir.path().join("absent.json");
+        let msg = load_scene_file(&p)
+            .map(|_| ())
+            .expect_err("no file")
+            .to_string();
+        assert!(
+            msg.starts_with(&p.display().to_string()) && msg.contains("cannot read"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn bad_scene_json_names_file_and_field() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let quad = r#"{"shape": "quad", "size": [1, 1]}"#;
+        // Unknown material type: line and column, field path and the bad variant.
+        let msg = error_of(dir.path(), &scene_with(quad, r#"{"type": "glass"}"#, ""));
+        assert!(msg.contains("line 6, column"), "{msg}");
+        assert!(
+            msg.contains("objects[1].material") && msg.contains("glass"),
+            "{msg}"
+        );
+        // Negative albedo: validation with the full field path.
+        let msg = error_of(
+            dir.path(),
+            &scene_with(
+                quad,
+                r#"{"type": "diffuse", "albedo": [0.5, -0.1, 0.5]}"#,
+                "",
+            ),
+        );
+        assert!(
+            msg.ends_with("objects[1].material.albedo[1] must be finite and in [0, 1]"),
+            "{msg}"
+        );
+        // NaN is not JSON; a huge number overflows to infinity and fails validation.
+        let msg = error_of(
+            dir.path(),
+            &scene_with(
+                quad,
+                r#"{"type": "diffuse", "albedo": [NaN, 0.5, 0.5]}"#,
+                "",
+            ),
+        );
+        assert!(
+            msg.contains("line 6") && msg.contains("objects[1].material.albedo"),
+            "{msg}"
+        );
+        let msg = error_of(
+            dir.path(),
+            &scene_with(quad, GREY, r#", "transform": {"translate": [1e39, 0, 0]}"#),
+        );
+        // 1e39 does not fit an f32: refused while parsing, naming the field.
+        assert!(
+            msg.contains("objects[1].transform.translate[0]") && msg.contains("out of range"),
+            "{msg}"
+        );
+        // Unknown field.
+        let msg = error_of(dir.path(), &scene_with(quad, GREY, r#", "colour": 3"#));
+        assert!(
+            msg.contains("objects[1]") && msg.contains("colour"),
+            "{msg}"
+        );
+        // Bad shape parameter.
+        let msg = error_of(
+            dir.path(),
+            &scene_with(
+                r#"{"shape": "bowl", "radius": 1, "thickness": 2}"#,
+                GREY,
+                "",
+            ),
+        );
+        assert!(
+            msg.contains("objects[1].mesh.thickness must be smaller"),
+            "{msg}"
+        );
+        // Syntax error.
+        let msg = error_of(dir.path(), "{\"objects\": [");
+        assert!(msg.contains("line 1"), "{msg}");
+    }
+
+    #[test]
+    fn unknown_builtin_lists_the_known_ones() {
+        let msg = load_scene("builtin:teapot")
+            .map(|_| ())
+            .expect_err("unknown")
+            .to_string();
+        assert!(msg.contains("teapot"), "{msg}");
+        for name in BUILTIN_SCENES {
+            assert!(msg.contains(name), "{msg}");
+        }
+    }
+
+    #[test]
+    fn bunny_loads_through_a_scene_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let text = scene_with(
+            &format!("{:?}", BUNNY),
+            r#"{"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}}"#,
+            r#", "transform": {"scale": 2}"#,
+        );
+        let p = write(dir.path(), "bunny.json", &text);
+        let s = load_scene_file(&p).expect("loads");
+        let bunny = &s.objects[1];
+        assert_eq!(bunny.triangles.len() + bunny.dropped_degenerate, 69_451);
+        assert!(
+            bunny.dropped_degenerate < 10,
+            "{}",
+            bunny.dropped_degenerate
+        );
+        let top = bunny
+            .triangles
+            .iter()
+            .flatten()
+            .map(|v| v.y)
+            .fold(f32::MIN, f32::max);
+        // The scan is ≈ 0.19 m tall at y ≈ 0.187 max; scaled by 2.
+        assert!((0.3..0.45).contains(&top), "{top}");
+    }
+
+    #[test]
+    fn example_scene_loads() {
+        let s = load_scene(EXAMPLE).expect("the example scene loads");
+        assert_eq!(s.name, "bunny-on-floor");
+        let bunny = s.objects.iter().find(|o| o.name == "bunny").expect("bunny");
+        assert!(bunny.triangles.len() > 69_000);
+        // It stands on the floor.
+        let low = bunny
+            .triangles
+            .iter()
+            .flatten()
+            .map(|v| v.y)
+            .fold(f32::MAX, f32::min);
+        assert!(low.abs() < 2e-3, "{low}");
+    }
+}

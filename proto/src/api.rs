@@ -1,0 +1,266 @@
+//! The HTTP API's JSON bodies, shared by the server, scripts and tests.
+//!
+//! Requests are strict (`deny_unknown_fields`: a misspelt field is an error, never silently
+//! ignored); responses are plain data that clients may read with extra fields ignored.
+//!
+//! ```
+//! use translux_proto::api::{Components, RelightRequest, Solver};
+//! let req: RelightRequest = translux_proto::parse_json(
+//!     r#"{"lights":[{"type":"point","position":[0,1,0],"intensity":[5,5,5]}],"components":"direct"}"#,
+//! ).unwrap();
+//! assert_eq!(req.components, Components::Direct);
+//! assert_eq!(req.solver, Solver::Auto);
+//! assert!(req.materials.is_empty());
+//! // An empty body means "the bundle's default lights, full transport".
+//! assert_eq!(translux_proto::parse_json::<RelightRequest>("{}").unwrap(), RelightRequest::default());
+//! ```
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::bundle::{FormFactorInfo, StageTime};
+use crate::light::{Camera, Light};
+use crate::scene::Material;
+
+/// Which light paths a relight includes (the paper's Figure 6 components and heuristics).
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Components {
+    /// Everything: B = S(E + F B).
+    #[default]
+    Full,
+    /// Direct lighting only: B = Bₑ + S E, no inter-reflection.
+    Direct,
+    /// Subsurface scattering of direct light only.
+    SubsurfaceOnly,
+    /// Inter-reflection without subsurface transport.
+    InterreflectionOnly,
+    /// The paper's first heuristic.
+    HeuristicA,
+    /// The paper's second heuristic.
+    HeuristicB,
+}
+
+impl Components {
+    /// The name used in JSON.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Components::Full => "full",
+            Components::Direct => "direct",
+            Components::SubsurfaceOnly => "subsurface_only",
+            Components::InterreflectionOnly => "interreflection_only",
+            Components::HeuristicA => "heuristic_a",
+            Components::HeuristicB => "heuristic_b",
+        }
+    }
+}
+
+/// How the transport equation is solved.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Solver {
+    /// The server picks (the transfer matrix T where the bundle has one, else iterative).
+    #[default]
+    Auto,
+    /// Multiply by the precomputed T = (I − S F)⁻¹ S.
+    Inverse,
+    /// Iterate B ← S(E + F B) to the tolerance.
+    Iterative,
+}
+
+impl Solver {
+    /// The name used in JSON.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Solver::Auto => "auto",
+            Solver::Inverse => "inverse",
+            Solver::Iterative => "iterative",
+        }
+    }
+}
+
+/// `POST /api/v1/scenes/{id}/relight`. Every field is optional; `{}` relights with the
+/// bundle's default lights and full transport.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RelightRequest {
+    /// The lights; absent (or `null`) means the bundle's default lights, `[]` means none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lights: Option<Vec<Light>>,
+    /// Material overrides by object name.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub materials: BTreeMap<String, Material>,
+    #[serde(default)]
+    pub components: Components,
+    #[serde(default)]
+    pub solver: Solver,
+}
+
+/// What a relight did.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct RelightStats {
+    /// The solver that ran: `jacobi`, or `none` when nothing was solved (`direct`).
+    pub solver: String,
+    pub components: Components,
+    pub iterations: u32,
+    /// Relative residual ‖b − (I − ρF)B‖ / ‖b‖ of the answer (0 without a solve).
+    pub residual: f32,
+    pub converged: bool,
+    /// Wall-clock milliseconds for the whole relight (direct + solve + vertex colours).
+    pub ms: f64,
+    /// Milliseconds computing direct irradiance (with shadow rays).
+    pub direct_ms: f64,
+    /// Milliseconds in the solver.
+    pub solve_ms: f64,
+    pub lights: usize,
+}
+
+/// The JSON form of a relight answer.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct RelightResponse {
+    pub vertex_count: usize,
+    /// Linear outgoing radiance B/π, `[r, g, b]` per vertex of the mesh endpoint, flat.
+    pub radiance: Vec<f32>,
+    pub stats: RelightStats,
+}
+
+/// One entry of `GET /api/v1/scenes`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SceneSummary {
+    /// The bundle's folder name.
+    pub id: String,
+    /// The scene's name from the manifest.
+    pub name: String,
+    pub patches: u64,
+    pub vertices: u64,
+    pub objects: usize,
+}
+
+/// `GET /api/v1/scenes`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SceneList {
+    pub scenes: Vec<SceneSummary>,
+}
+
+/// One object in `GET /api/v1/scenes/{id}`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SceneObject {
+    pub name: String,
+    pub material: Material,
+    /// ρ the diffuse solver uses for its patches.
+    pub albedo: [f32; 3],
+    pub first_patch: u64,
+    pub patch_count: u64,
+}
+
+/// `GET /api/v1/scenes/{id}`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SceneDetail {
+    pub id: String,
+    pub name: String,
+    /// What the bundle was built from (`builtin:cornell`, a scene file).
+    pub source: String,
+    pub created_by: String,
+    /// Millimetres per scene unit.
+    pub unit_mm: f64,
+    pub patches: u64,
+    pub vertices: u64,
+    /// Triangles of the viewer mesh (one per patch).
+    pub triangles: u64,
+    /// Source triangles used for shadow rays.
+    pub occluders: u64,
+    pub objects: Vec<SceneObject>,
+    /// The lights a relight without `lights` uses.
+    pub lights: Vec<Light>,
+    pub camera: Camera,
+    pub form_factors: FormFactorInfo,
+    pub stages: Vec<StageTime>,
+    /// Bytes of the bundle on disk.
+    pub bundle_bytes: u64,
+}
+
+/// One object's triangle range in `GET /api/v1/scenes/{id}/mesh`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MeshObject {
+    pub name: String,
+    pub first_triangle: u64,
+    pub triangle_count: u64,
+}
+
+/// `GET /api/v1/scenes/{id}/mesh`: flat arrays, 3 floats per vertex, 3 indices per triangle.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Mesh {
+    pub positions: Vec<f32>,
+    pub normals: Vec<f32>,
+    pub indices: Vec<u32>,
+    pub objects: Vec<MeshObject>,
+}
+
+/// The GPU part of `GET /healthz`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GpuHealth {
+    pub available: bool,
+    /// Why there is no GPU (absent when there is one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+/// `GET /healthz`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Health {
+    /// Always `ok` while the server answers.
+    pub status: String,
+    /// `cpu` or `gpu`.
+    pub backend: String,
+    pub gpu: GpuHealth,
+    /// Ids of the scenes served.
+    pub scenes: Vec<String>,
+}
+
+/// The inside of every error answer.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+pub struct ErrorDetail {
+    /// Machine-readable: `not_found`, `bad_request`, `invalid`, `unsupported`,
+    /// `payload_too_large`, `unsupported_media_type`, `not_acceptable`,
+    /// `method_not_allowed`, `internal`.
+    pub code: String,
+    /// What was wrong and where (`lights[0].intensity[1] must be finite and >= 0`).
+    pub message: String,
+}
+
+/// Every 4xx/5xx answer: `{"error":{"code":"...","message":"..."}}`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::parse_json;
+
+    #[test]
+    fn relight_request_is_strict_and_names_fields() {
+        let e = parse_json::<RelightRequest>(r#"{"light":[]}"#).unwrap_err();
+        assert!(e.message.contains("unknown field `light`"), "{e}");
+        let e = parse_json::<RelightRequest>(r#"{"components":"everything"}"#).unwrap_err();
+        assert_eq!(e.path, "components", "{e}");
+        let e = parse_json::<RelightRequest>(
+            r#"{"lights":[{"type":"point","position":[0,1,0],"intensity":[1,"x",1]}]}"#,
+        )
+        .unwrap_err();
+        assert_eq!(e.path, "lights[0].intensity[1]", "{e}");
+        let r: RelightRequest = parse_json(
+            r#"{"lights":null,"materials":{"block":{"type":"diffuse","albedo":[1,0,0]}},"components":"heuristic_b","solver":"inverse"}"#,
+        )
+        .unwrap();
+        assert_eq!(r.lights, None);
+        assert_eq!(r.components.as_str(), "heuristic_b");
+        assert_eq!(r.solver.as_str(), "inverse");
+        assert_eq!(r.materials.len(), 1);
+        // Round trip.
+        let back: RelightRequest = parse_json(&serde_json::to_string(&r).unwrap()).unwrap();
+        assert_eq!(back, r);
+    }
+}

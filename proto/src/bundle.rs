@@ -1,0 +1,1311 @@
+//! The bundle: what `translux-precompute` writes and `translux-server` maps.
+//!
+//! A bundle is a folder. `manifest.json` describes the scene and lists every array file with
+//! its element type, shape, byte length and XXH3-64 checksum; each array is a raw
+//! little-endian file that is memory-mapped and cast in place (`bytemuck`), so a mapped file
+//! is page-aligned and every element is naturally aligned.
+//!
+//! ```text
+//! bundle/
+//! ├── manifest.json          format, version, counts, units, objects, lights, camera, arrays{}
+//! ├── patch_corners.f32      [N, 3, 3]  triangle corners of each patch (scene units)
+//! ├── patch_normal.f32       [N, 3]     unit normal (the side that sends and receives light)
+//! ├── patch_area.f32         [N]        area (scene units²)
+//! ├── patch_object.u32       [N]        index into manifest.objects
+//! ├── patch_albedo.f32       [N, 3]     ρ: S_ii of an opaque patch (0 for emitters)
+//! ├── patch_emission.f32     [N, 3]     emitted exitance π·L_e (W·m⁻²)
+//! ├── vertex_position.f32    [V, 3]     viewer mesh vertices (welded, split at creases)
+//! ├── vertex_normal.f32      [V, 3]
+//! ├── triangle_vertex.u32    [N, 3]     viewer triangle k = patch k
+//! ├── occluder_tri.f32       [M, 3, 3]  the scene's source triangles, for shadow rays
+//! ├── ff_row_ptr.u64         [N + 1]    F in CSR, rows are receivers (see `csr`)
+//! ├── ff_col.u32             [nnz]
+//! └── ff_val.f32             [nnz]
+//! ```
+//!
+//! Byte offsets inside an array file: element `k` of a `[N, c]` array of 4-byte type is at
+//! `4·(k·c + component)`; `ff_row_ptr` entries are 8 bytes. There are no headers: the manifest
+//! holds the shapes, and the loader refuses any file whose length or checksum disagrees.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::light::{Camera, Light};
+use crate::scene::Material;
+
+/// The `format` field of every manifest.
+pub const FORMAT: &str = "translux-bundle";
+/// Bumped whenever the layout changes; a loader refuses other versions.
+pub const FORMAT_VERSION: u32 = 1;
+/// The manifest's file name inside a bundle folder.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// Names of the arrays (the file is `NAME.DTYPE`).
+pub mod arrays {
+    pub const PATCH_CORNERS: &str = "patch_corners";
+    pub const PATCH_NORMAL: &str = "patch_normal";
+    pub const PATCH_AREA: &str = "patch_area";
+    pub const PATCH_OBJECT: &str = "patch_object";
+    pub const PATCH_ALBEDO: &str = "patch_albedo";
+    pub const PATCH_EMISSION: &str = "patch_emission";
+    pub const VERTEX_POSITION: &str = "vertex_position";
+    pub const VERTEX_NORMAL: &str = "vertex_normal";
+    pub const TRIANGLE_VERTEX: &str = "triangle_vertex";
+    pub const OCCLUDER_TRI: &str = "occluder_tri";
+    pub const FF_ROW_PTR: &str = "ff_row_ptr";
+    pub const FF_COL: &str = "ff_col";
+    pub const FF_VAL: &str = "ff_val";
+}
+
+/// Element type of an array file.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum DType {
+    F32,
+    U32,
+    U64,
+}
+
+impl DType {
+    pub fn size(self) -> usize {
+        match self {
+            DType::F32 | DType::U32 => 4,
+            DType::U64 => 8,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            DType::F32 => "f32",
+            DType::U32 => "u32",
+            DType::U64 => "u64",
+        }
+    }
+}
+
+/// One array file as the manifest lists it.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ArrayEntry {
+    /// File name inside the bundle folder.
+    pub file: String,
+    pub dtype: DType,
+    /// Shape; the product is the element count.
+    pub shape: Vec<u64>,
+    /// File length in bytes (= elements × dtype size).
+    pub bytes: u64,
+    /// XXH3-64 of the file's bytes, 16 lower-case hex digits.
+    pub xxh3: String,
+}
+
+/// One scene object: a contiguous run of patches.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ObjectInfo {
+    pub name: String,
+    pub material: Material,
+    pub first_patch: u64,
+    pub patch_count: u64,
+    /// The ρ its patches carry in `patch_albedo` (for a translucent object: the profile's
+    /// total diffuse reflectance, used until S is in the bundle).
+    pub albedo: [f32; 3],
+}
+
+/// How F was computed, and what was dropped.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct FormFactorInfo {
+    pub nnz: u64,
+    /// Entries below this were dropped (0: none).
+    pub threshold: f32,
+    /// Fraction of all power leaving patches that the dropped entries carried,
+    /// Σ A_i F_ij (dropped) / Σ A_i.
+    pub dropped_energy: f64,
+    /// Row sums Σ_j F_ij: mean, min, max.
+    pub row_sum_mean: f64,
+    pub row_sum_min: f64,
+    pub row_sum_max: f64,
+    /// Occlusion rays cast.
+    pub rays: u64,
+    /// Patch pairs considered after orientation culling.
+    pub pairs: u64,
+}
+
+/// Wall-clock time of one precompute stage.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StageTime {
+    pub stage: String,
+    pub seconds: f64,
+}
+
+/// The manifest of a bundle.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`FORMAT_VERSION`] for bundles this build can read.
+    pub version: u32,
+    /// Scene name (also the default bundle id).
+    pub name: String,
+    /// What it was built from: a scene file path or `builtin:NAME`.
+    pub source: String,
+    /// The precompute's version string.
+    pub created_by: String,
+    /// Millimetres per scene unit.
+    pub unit_mm: f64,
+    pub patch_count: u64,
+    pub vertex_count: u64,
+    pub occluder_count: u64,
+    pub objects: Vec<ObjectInfo>,
+    pub lights: Vec<Light>,
+    pub camera: Camera,
+    pub form_factors: FormFactorInfo,
+    pub stages: Vec<StageTime>,
+    /// Every array file, by array name (see [`arrays`]).
+    pub arrays: BTreeMap<String, ArrayEntry>,
+}
+
+/// XXH3-64 of `bytes` as 16 lower-case hex digits (the manifest's checksum format).
+pub fn checksum(bytes: &[u8]) -> String {
+    format!("{:016x}", xxhash_rust::xxh3::xxh3_64(bytes))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The verifying, memory-mapping loader.
+// ---------------------------------------------------------------------------------------------
+
+// Array files are raw little-endian and cast in place: a big-endian build would read garbage.
+#[cfg(target_endian = "big")]
+compile_error!(
+    "translux bundles hold little-endian arrays that are cast in place; big-endian targets are not supported"
+);
+
+/// The array files every bundle of [`FORMAT_VERSION`] holds, with their element types.
+/// A manifest may list further arrays; the loader verifies and maps those too.
+pub const REQUIRED_ARRAYS: &[(&str, DType)] = &[
+    (arrays::PATCH_CORNERS, DType::F32),
+    (arrays::PATCH_NORMAL, DType::F32),
+    (arrays::PATCH_AREA, DType::F32),
+    (arrays::PATCH_OBJECT, DType::U32),
+    (arrays::PATCH_ALBEDO, DType::F32),
+    (arrays::PATCH_EMISSION, DType::F32),
+    (arrays::VERTEX_POSITION, DType::F32),
+    (arrays::VERTEX_NORMAL, DType::F32),
+    (arrays::TRIANGLE_VERTEX, DType::U32),
+    (arrays::OCCLUDER_TRI, DType::F32),
+    (arrays::FF_ROW_PTR, DType::U64),
+    (arrays::FF_COL, DType::U32),
+    (arrays::FF_VAL, DType::F32),
+];
+
+/// What the first dimension of a required array counts.
+#[derive(Debug, Clone, Copy)]
+enum Rows {
+    /// `patch_count`
+    Patches,
+    /// `patch_count + 1`
+    PatchesPlusOne,
+    /// `vertex_count`
+    Vertices,
+    /// `occluder_count`
+    Occluders,
+    /// `form_factors.nnz`
+    Nnz,
+}
+
+/// The documented shape of each required array: (name, rows, trailing dimensions).
+const SHAPES: &[(&str, Rows, &[u64])] = &[
+    (arrays::PATCH_CORNERS, Rows::Patches, &[3, 3]),
+    (arrays::PATCH_NORMAL, Rows::Patches, &[3]),
+    (arrays::PATCH_AREA, Rows::Patches, &[]),
+    (arrays::PATCH_OBJECT, Rows::Patches, &[]),
+    (arrays::PATCH_ALBEDO, Rows::Patches, &[3]),
+    (arrays::PATCH_EMISSION, Rows::Patches, &[3]),
+    (arrays::VERTEX_POSITION, Rows::Vertices, &[3]),
+    (arrays::VERTEX_NORMAL, Rows::Vertices, &[3]),
+    (arrays::TRIANGLE_VERTEX, Rows::Patches, &[3]),
+    (arrays::OCCLUDER_TRI, Rows::Occluders, &[3, 3]),
+    (arrays::FF_ROW_PTR, Rows::PatchesPlusOne, &[]),
+    (arrays::FF_COL, Rows::Nnz, &[]),
+    (arrays::FF_VAL, Rows::Nnz, &[]),
+];
+
+/// The file name of array `name` with element type `dtype` (`ff_col.u32`).
+pub fn array_file_name(name: &str, dtype: DType) -> String {
+    format!("{name}.{}", dtype.name())
+}
+
+/// Whether `name` may name an array: non-empty, lower-case ASCII letters, digits and `_`
+/// only (so that `NAME.DTYPE` is a plain file name inside the bundle folder, never a path).
+pub fn is_valid_array_name(name: &str) -> bool {
+    !name.is_empty()
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_')
+}
+
+/// Why a bundle could not be opened. Every message starts with or names the file concerned.
+#[derive(Debug, thiserror::Error)]
+pub enum BundleError {
+    /// A file (or the bundle folder itself) does not exist.
+    #[error("{file} is missing")]
+    Missing { file: String },
+    /// A required array is not listed in the manifest.
+    #[error("{file} is missing from {MANIFEST_FILE}")]
+    NotListed { file: String },
+    /// Reading or mapping a file failed.
+    #[error("{file}: {error}")]
+    Io { file: String, error: std::io::Error },
+    /// `manifest.json` is not JSON, or not a [`Manifest`].
+    #[error("{MANIFEST_FILE}: line {line} column {column}: {what}",
+        line = .0.line, column = .0.column, what = json_cause(.0))]
+    Manifest(crate::JsonError),
+    /// The manifest's `format` is not [`FORMAT`].
+    #[error("{MANIFEST_FILE}: format is {found:?}, expected {FORMAT:?}")]
+    Format { found: String },
+    /// The manifest's `version` is not [`FORMAT_VERSION`].
+    #[error(
+        "{MANIFEST_FILE}: bundle version {found} is not supported (this build reads version {FORMAT_VERSION})"
+    )]
+    Version { found: u32 },
+    /// A file is shorter than the manifest says.
+    #[error("{file} is truncated: {got} bytes, manifest says {expected}")]
+    Truncated {
+        file: String,
+        got: u64,
+        expected: u64,
+    },
+    /// A file is longer than the manifest says.
+    #[error("{file} is too long: {got} bytes, manifest says {expected}")]
+    TooLong {
+        file: String,
+        got: u64,
+        expected: u64,
+    },
+    /// A file's XXH3-64 differs from the manifest's.
+    #[error("{file} is corrupt: checksum {got} != manifest {expected}")]
+    Corrupt {
+        file: String,
+        got: String,
+        expected: String,
+    },
+    /// A manifest entry or a file's content breaks a rule of the format.
+    #[error("{file}: {reason}")]
+    Invalid { file: String, reason: String },
+    /// The form-factor arrays are not a valid CSR matrix; `file` is the array at fault.
+    #[error("{file}: F is not a valid CSR matrix: {error}")]
+    Csr {
+        file: String,
+        error: crate::csr::CsrError,
+    },
+}
+
+fn json_cause(e: &crate::JsonError) -> String {
+    if e.path.is_empty() || e.path == "." {
+        e.message.clone()
+    } else {
+        format!("{}: {}", e.path, e.message)
+    }
+}
+
+impl BundleError {
+    /// The file the error is about (`manifest.json` for manifest errors).
+    pub fn file(&self) -> &str {
+        match self {
+            BundleError::Missing { file }
+            | BundleError::NotListed { file }
+            | BundleError::Io { file, .. }
+            | BundleError::Truncated { file, .. }
+            | BundleError::TooLong { file, .. }
+            | BundleError::Corrupt { file, .. }
+            | BundleError::Invalid { file, .. }
+            | BundleError::Csr { file, .. } => file,
+            BundleError::Manifest(_) | BundleError::Format { .. } | BundleError::Version { .. } => {
+                MANIFEST_FILE
+            }
+        }
+    }
+}
+
+fn invalid(file: impl Into<String>, reason: impl Into<String>) -> BundleError {
+    BundleError::Invalid {
+        file: file.into(),
+        reason: reason.into(),
+    }
+}
+
+/// How [`Bundle::open_with`] verifies. Lengths, shapes, counts and the CSR invariants are
+/// always checked; only the checksum pass (one read of every byte) is optional.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OpenOptions {
+    /// Recompute every array's XXH3-64 and compare it with the manifest (default: true).
+    pub verify_checksums: bool,
+}
+
+impl Default for OpenOptions {
+    fn default() -> Self {
+        Self {
+            verify_checksums: true,
+        }
+    }
+}
+
+/// One mapped array file. An empty file cannot be mapped and has no mapping.
+#[derive(Debug)]
+struct MappedArray {
+    dtype: DType,
+    map: Option<memmap2::Mmap>,
+}
+
+impl MappedArray {
+    fn bytes(&self) -> &[u8] {
+        self.map.as_deref().unwrap_or(&[])
+    }
+}
+
+/// Maps `file` read-only.
+///
+/// # Safety
+///
+/// `memmap2::Mmap::map` is unsafe because the slice it yields changes (or the process gets
+/// `SIGBUS`) if another process modifies or truncates the file while it is mapped. Bundles
+/// are immutable once they are in place: the writer fills a temporary folder and renames it
+/// into place, and replaces a bundle by renaming the old folder aside before deleting it, so
+/// a mapped file is never written to. Editing a bundle's files by hand while a server maps
+/// them would break this assumption.
+#[expect(
+    unsafe_code,
+    reason = "memory-mapping a file is unsafe; bundles are immutable once renamed into place"
+)]
+fn map_file(file: &std::fs::File) -> std::io::Result<memmap2::Mmap> {
+    // SAFETY: `file` was opened read-only and the mapping is read-only. Bundle files are never
+    // modified after the writer renames the bundle folder into place (write-to-temp-then-rename,
+    // replacement by rename-aside-then-delete), so the mapped bytes do not change underneath
+    // the slices handed out; only a concurrent writer bypassing that protocol could violate it.
+    unsafe { memmap2::Mmap::map(file) }
+}
+
+/// A bundle folder, verified and memory-mapped.
+///
+/// Opening it checks the manifest and every array (see [`Bundle::open`]); afterwards the
+/// accessors hand out zero-copy slices of the mapped files and never fail. It is `Send` and
+/// `Sync`: share it behind an `Arc`.
+#[derive(Debug)]
+pub struct Bundle {
+    dir: PathBuf,
+    manifest: Manifest,
+    manifest_bytes: u64,
+    arrays: BTreeMap<String, MappedArray>,
+    /// (rows, cols) of F, equal to patch_count.
+    n_patches: usize,
+}
+
+/// The counts of a manifest, as `usize`.
+struct Counts {
+    patches: u64,
+    vertices: u64,
+    occluders: u64,
+    nnz: u64,
+}
+
+impl Counts {
+    fn rows(&self, rows: Rows) -> Result<(u64, String), BundleError> {
+        Ok(match rows {
+            Rows::Patches => (self.patches, "N = patch_count".into()),
+            Rows::PatchesPlusOne => (
+                self.patches
+                    .checked_add(1)
+                    .ok_or_else(|| invalid(MANIFEST_FILE, "patch_count is too large"))?,
+                "N + 1 with N = patch_count".into(),
+            ),
+            Rows::Vertices => (self.vertices, "V = vertex_count".into()),
+            Rows::Occluders => (self.occluders, "M = occluder_count".into()),
+            Rows::Nnz => (self.nnz, "nnz = form_factors.nnz".into()),
+        })
+    }
+}
+
+fn to_usize(value: u64, file: &str, what: &str) -> Result<usize, BundleError> {
+    usize::try_from(value).map_err(|_| {
+        invalid(
+            file,
+            format!("{what} = {value} does not fit this machine's memory"),
+        )
+    })
+}
+
+/// Checks a manifest entry against its own name and against itself (file name, byte count =
+/// elements × dtype size); returns the byte count.
+fn check_entry(name: &str, entry: &ArrayEntry) -> Result<u64, BundleError> {
+    let expected_file = array_file_name(name, entry.dtype);
+    if !is_valid_array_name(name) {
+        return Err(invalid(
+            MANIFEST_FILE,
+            format!("array name {name:?} is not lower-case letters, digits and '_'"),
+        ));
+    }
+    if entry.file != expected_file {
+        return Err(invalid(
+            MANIFEST_FILE,
+            format!(
+                "array {name} is stored as {:?}, expected {expected_file:?}",
+                entry.file
+            ),
+        ));
+    }
+    let bytes = entry
+        .shape
+        .iter()
+        .try_fold(entry.dtype.size() as u64, |acc, &d| acc.checked_mul(d))
+        .ok_or_else(|| {
+            invalid(
+                &expected_file,
+                format!("shape {:?} is too large", entry.shape),
+            )
+        })?;
+    if bytes != entry.bytes {
+        return Err(invalid(
+            MANIFEST_FILE,
+            format!(
+                "{expected_file}: manifest lists {} bytes but shape {:?} of {} holds {bytes}",
+                entry.bytes,
+                entry.shape,
+                entry.dtype.name()
+            ),
+        ));
+    }
+    Ok(bytes)
+}
+
+/// Opens, length-checks, maps and (optionally) checksums one array file.
+fn map_array(
+    dir: &Path,
+    entry: &ArrayEntry,
+    bytes: u64,
+    verify_checksum: bool,
+) -> Result<MappedArray, BundleError> {
+    let file_name = entry.file.as_str();
+    let io = |error: std::io::Error| BundleError::Io {
+        file: file_name.to_string(),
+        error,
+    };
+    let path = dir.join(file_name);
+    let file = match std::fs::File::open(&path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(BundleError::Missing {
+                file: file_name.to_string(),
+            });
+        }
+        Err(e) => return Err(io(e)),
+    };
+    let meta = file.metadata().map_err(io)?;
+    if !meta.is_file() {
+        return Err(invalid(file_name, "is not a regular file"));
+    }
+    let got = meta.len();
+    if got < bytes {
+        return Err(BundleError::Truncated {
+            file: file_name.to_string(),
+            got,
+            expected: bytes,
+        });
+    }
+    if got > bytes {
+        return Err(BundleError::TooLong {
+            file: file_name.to_string(),
+            got,
+            expected: bytes,
+        });
+    }
+    let map = if got == 0 {
+        None
+    } else {
+        let map = map_file(&file).map_err(io)?;
+        if map.len() as u64 != bytes {
+            // The file changed between the length check and the mapping.
+            return Err(BundleError::Truncated {
+                file: file_name.to_string(),
+                got: map.len() as u64,
+                expected: bytes,
+            });
+        }
+        Some(map)
+    };
+    let mapped = MappedArray {
+        dtype: entry.dtype,
+        map,
+    };
+    if verify_checksum {
+        let sum = checksum(mapped.bytes());
+        if sum != entry.xxh3 {
+            return Err(BundleError::Corrupt {
+                file: file_name.to_string(),
+                got: sum,
+                expected: entry.xxh3.clone(),
+            });
+        }
+    }
+    Ok(mapped)
+}
+
+/// Which file a CSR violation is about.
+fn csr_file(error: &crate::csr::CsrError) -> String {
+    use crate::csr::CsrError as E;
+    match error {
+        E::RowPtrLength { .. } | E::RowPtrStart(_) | E::RowPtrDecreasing { .. } => {
+            array_file_name(arrays::FF_ROW_PTR, DType::U64)
+        }
+        E::NnzMismatch { .. } => format!(
+            "{}/{}/{}",
+            array_file_name(arrays::FF_ROW_PTR, DType::U64),
+            array_file_name(arrays::FF_COL, DType::U32),
+            array_file_name(arrays::FF_VAL, DType::F32)
+        ),
+        E::ColumnOutOfRange { .. } | E::ColumnsUnsorted { .. } => {
+            array_file_name(arrays::FF_COL, DType::U32)
+        }
+        E::NonFinite { .. } => array_file_name(arrays::FF_VAL, DType::F32),
+    }
+}
+
+impl Bundle {
+    /// Opens the bundle in `dir` with full verification, checksums included
+    /// ([`OpenOptions::default`]).
+    ///
+    /// In: a bundle folder. Out: the mapped bundle, or the first problem found, naming its
+    /// file. Checked: the manifest parses, its format and version are this build's; every
+    /// required array (see [`REQUIRED_ARRAYS`]) is listed with its dtype and the shape the
+    /// counts imply, and every listed file exists with exactly the listed length and checksum;
+    /// F is a valid `N × N` CSR matrix; `triangle_vertex < vertex_count`; the objects' patch
+    /// ranges are contiguous, in order and cover `0..N`, and `patch_object` agrees with them;
+    /// areas are finite and positive; the other geometry arrays are finite.
+    pub fn open(dir: &Path) -> Result<Bundle, BundleError> {
+        Self::open_with(dir, OpenOptions::default())
+    }
+
+    /// [`Bundle::open`] with options (skipping the checksum pass saves one read of every
+    /// byte; every other check still runs).
+    pub fn open_with(dir: &Path, opts: OpenOptions) -> Result<Bundle, BundleError> {
+        if !dir.is_dir() {
+            return Err(BundleError::Missing {
+                file: dir.display().to_string(),
+            });
+        }
+        let text = match std::fs::read_to_string(dir.join(MANIFEST_FILE)) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(BundleError::Missing {
+                    file: MANIFEST_FILE.into(),
+                });
+            }
+            Err(error) => {
+                return Err(BundleError::Io {
+                    file: MANIFEST_FILE.into(),
+                    error,
+                });
+            }
+        };
+        let manifest: Manifest = crate::parse_json(&text).map_err(BundleError::Manifest)?;
+        if manifest.format != FORMAT {
+            return Err(BundleError::Format {
+                found: manifest.format,
+            });
+        }
+        if manifest.version != FORMAT_VERSION {
+            return Err(BundleError::Version {
+                found: manifest.version,
+            });
+        }
+        let counts = Counts {
+            patches: manifest.patch_count,
+            vertices: manifest.vertex_count,
+            occluders: manifest.occluder_count,
+            nnz: manifest.form_factors.nnz,
+        };
+        let n_patches = to_usize(counts.patches, MANIFEST_FILE, "patch_count")?;
+
+        // The required arrays: listed, with the right dtype and shape.
+        for &(name, dtype) in REQUIRED_ARRAYS {
+            let file = array_file_name(name, dtype);
+            let entry = manifest
+                .arrays
+                .get(name)
+                .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+            if entry.dtype != dtype {
+                return Err(invalid(
+                    &file,
+                    format!(
+                        "manifest lists dtype {}, expected {}",
+                        entry.dtype.name(),
+                        dtype.name()
+                    ),
+                ));
+            }
+            let Some(&(_, rows, tail)) = SHAPES.iter().find(|(n, _, _)| *n == name) else {
+                return Err(invalid(&file, "no documented shape (a bug in this loader)"));
+            };
+            let (n, label) = counts.rows(rows)?;
+            let expected: Vec<u64> = std::iter::once(n).chain(tail.iter().copied()).collect();
+            if entry.shape != expected {
+                return Err(invalid(
+                    &file,
+                    format!(
+                        "shape {:?} does not match the manifest's counts: expected {expected:?} ({label} = {n})",
+                        entry.shape
+                    ),
+                ));
+            }
+        }
+
+        // Every listed array (required or not): consistent entry, file on disk, checksum.
+        let mut mapped = BTreeMap::new();
+        for (name, entry) in &manifest.arrays {
+            let bytes = check_entry(name, entry)?;
+            let array = map_array(dir, entry, bytes, opts.verify_checksums)?;
+            mapped.insert(name.clone(), array);
+        }
+
+        let bundle = Bundle {
+            dir: dir.to_path_buf(),
+            manifest,
+            manifest_bytes: text.len() as u64,
+            arrays: mapped,
+            n_patches,
+        };
+        bundle.check_contents()?;
+        Ok(bundle)
+    }
+
+    /// The content rules that need the mapped arrays (see [`Bundle::open`]).
+    fn check_contents(&self) -> Result<(), BundleError> {
+        let n = self.n_patches;
+
+        // Objects: contiguous runs covering 0..N, and patch_object agrees.
+        let object_file = array_file_name(arrays::PATCH_OBJECT, DType::U32);
+        let patch_object = self.patch_objects();
+        let n_objects = self.manifest.objects.len();
+        let mut end = 0u64;
+        for (o, object) in self.manifest.objects.iter().enumerate() {
+            if object.first_patch != end {
+                return Err(invalid(
+                    MANIFEST_FILE,
+                    format!(
+                        "objects[{o}] ({:?}) starts at patch {} but the previous object ends at {end}",
+                        object.name, object.first_patch
+                    ),
+                ));
+            }
+            end = object.first_patch.saturating_add(object.patch_count);
+            if end > n as u64 {
+                return Err(invalid(
+                    MANIFEST_FILE,
+                    format!(
+                        "objects[{o}] ({:?}) ends at patch {end} but patch_count is {n}",
+                        object.name
+                    ),
+                ));
+            }
+            let first = object.first_patch as usize;
+            let run = patch_object.get(first..end as usize).unwrap_or(&[]);
+            for (k, &v) in (first..).zip(run) {
+                if v as usize >= n_objects {
+                    return Err(invalid(
+                        &object_file,
+                        format!("patch {k} names object {v} but the manifest lists {n_objects}"),
+                    ));
+                }
+                if v as usize != o {
+                    return Err(invalid(
+                        &object_file,
+                        format!(
+                            "patch {k} names object {v} but lies in the patch range of objects[{o}] ({:?})",
+                            object.name
+                        ),
+                    ));
+                }
+            }
+        }
+        if end != n as u64 {
+            return Err(invalid(
+                MANIFEST_FILE,
+                format!("the objects cover patches 0..{end} but patch_count is {n}"),
+            ));
+        }
+
+        // Areas finite and positive; other geometry finite.
+        let area_file = array_file_name(arrays::PATCH_AREA, DType::F32);
+        if let Some((k, a)) = self
+            .patch_areas()
+            .iter()
+            .enumerate()
+            .find(|(_, a)| !(a.is_finite() && **a > 0.0))
+        {
+            return Err(invalid(
+                area_file,
+                format!("patch {k} has area {a}, expected finite and > 0"),
+            ));
+        }
+        for name in [
+            arrays::PATCH_CORNERS,
+            arrays::PATCH_NORMAL,
+            arrays::PATCH_ALBEDO,
+            arrays::PATCH_EMISSION,
+            arrays::VERTEX_POSITION,
+            arrays::VERTEX_NORMAL,
+            arrays::OCCLUDER_TRI,
+        ] {
+            if let Some((k, v)) = self
+                .f32s(name)
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !v.is_finite())
+            {
+                return Err(invalid(
+                    array_file_name(name, DType::F32),
+                    format!("element {k} is {v}, expected a finite number"),
+                ));
+            }
+        }
+
+        // Viewer triangles index existing vertices.
+        let v_count = self.manifest.vertex_count;
+        if let Some((k, &v)) = self
+            .u32s(arrays::TRIANGLE_VERTEX)
+            .iter()
+            .enumerate()
+            .find(|&(_, &v)| u64::from(v) >= v_count)
+        {
+            return Err(invalid(
+                array_file_name(arrays::TRIANGLE_VERTEX, DType::U32),
+                format!(
+                    "triangle {} corner {} is vertex {v} but vertex_count is {v_count}",
+                    k / 3,
+                    k % 3
+                ),
+            ));
+        }
+
+        // F is an N × N CSR matrix.
+        crate::csr::CsrView::new_checked(
+            n,
+            n,
+            self.u64s(arrays::FF_ROW_PTR),
+            self.u32s(arrays::FF_COL),
+            self.f32s(arrays::FF_VAL),
+        )
+        .map_err(|error| BundleError::Csr {
+            file: csr_file(&error),
+            error,
+        })?;
+        Ok(())
+    }
+
+    /// The bundle folder it was opened from.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The parsed manifest (its `arrays` lists every mapped file).
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    fn bytes_of(&self, name: &str, dtype: DType) -> &[u8] {
+        match self.arrays.get(name) {
+            Some(a) if a.dtype == dtype => a.bytes(),
+            _ => &[],
+        }
+    }
+
+    /// The elements of f32 array `name` (use the [`arrays`] constants). Never panics: a name
+    /// that the bundle does not hold as f32 gives an empty slice. Required arrays are always
+    /// present with the verified shape.
+    pub fn f32s(&self, name: &str) -> &[f32] {
+        bytemuck::try_cast_slice(self.bytes_of(name, DType::F32)).unwrap_or(&[])
+    }
+
+    /// The elements of u32 array `name`; empty when the bundle holds no such u32 array.
+    pub fn u32s(&self, name: &str) -> &[u32] {
+        bytemuck::try_cast_slice(self.bytes_of(name, DType::U32)).unwrap_or(&[])
+    }
+
+    /// The elements of u64 array `name`; empty when the bundle holds no such u64 array.
+    pub fn u64s(&self, name: &str) -> &[u64] {
+        bytemuck::try_cast_slice(self.bytes_of(name, DType::U64)).unwrap_or(&[])
+    }
+
+    /// `[N]` triangle corners of every patch (scene units).
+    pub fn patch_corners(&self) -> &[[[f32; 3]; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::PATCH_CORNERS)).unwrap_or(&[])
+    }
+
+    /// `[N]` unit normals.
+    pub fn patch_normals(&self) -> &[[f32; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::PATCH_NORMAL)).unwrap_or(&[])
+    }
+
+    /// `[N]` areas (scene units², finite and > 0).
+    pub fn patch_areas(&self) -> &[f32] {
+        self.f32s(arrays::PATCH_AREA)
+    }
+
+    /// `[N]` index into `manifest().objects` of each patch.
+    pub fn patch_objects(&self) -> &[u32] {
+        self.u32s(arrays::PATCH_OBJECT)
+    }
+
+    /// `[N]` albedo ρ (S_ii of an opaque patch).
+    pub fn patch_albedo(&self) -> &[[f32; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::PATCH_ALBEDO)).unwrap_or(&[])
+    }
+
+    /// `[N]` emitted exitance π·L_e (W·m⁻²).
+    pub fn patch_emission(&self) -> &[[f32; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::PATCH_EMISSION)).unwrap_or(&[])
+    }
+
+    /// `[V]` viewer-mesh vertex positions.
+    pub fn vertex_positions(&self) -> &[[f32; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::VERTEX_POSITION)).unwrap_or(&[])
+    }
+
+    /// `[V]` viewer-mesh vertex normals.
+    pub fn vertex_normals(&self) -> &[[f32; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::VERTEX_NORMAL)).unwrap_or(&[])
+    }
+
+    /// `[N]` viewer triangles (vertex indices `< V`); triangle k is patch k.
+    pub fn triangle_vertices(&self) -> &[[u32; 3]] {
+        bytemuck::try_cast_slice(self.u32s(arrays::TRIANGLE_VERTEX)).unwrap_or(&[])
+    }
+
+    /// `[M]` the scene's source triangles, for shadow rays.
+    pub fn occluder_triangles(&self) -> &[[[f32; 3]; 3]] {
+        bytemuck::try_cast_slice(self.f32s(arrays::OCCLUDER_TRI)).unwrap_or(&[])
+    }
+
+    /// F as an `N × N` CSR view, checked when the bundle was opened (no further pass).
+    pub fn form_factors(&self) -> crate::csr::CsrView<'_> {
+        crate::csr::CsrView::from_checked_parts(
+            self.n_patches,
+            self.n_patches,
+            self.u64s(arrays::FF_ROW_PTR),
+            self.u32s(arrays::FF_COL),
+            self.f32s(arrays::FF_VAL),
+        )
+    }
+
+    /// Bytes on disk: `manifest.json` plus every array file it lists.
+    pub fn total_bytes(&self) -> u64 {
+        self.manifest_bytes + self.manifest.arrays.values().map(|e| e.bytes).sum::<u64>()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::csr::CsrError;
+    use crate::light::Camera;
+    use crate::scene::Material;
+
+    /// One array as raw parts, for hand-made bundles (the real writer lives in precompute).
+    struct Raw {
+        name: &'static str,
+        dtype: DType,
+        shape: Vec<u64>,
+        bytes: Vec<u8>,
+    }
+
+    fn f32s(name: &'static str, shape: &[u64], v: &[f32]) -> Raw {
+        Raw {
+            name,
+            dtype: DType::F32,
+            shape: shape.to_vec(),
+            bytes: bytemuck::cast_slice(v).to_vec(),
+        }
+    }
+    fn u32s(name: &'static str, shape: &[u64], v: &[u32]) -> Raw {
+        Raw {
+            name,
+            dtype: DType::U32,
+            shape: shape.to_vec(),
+            bytes: bytemuck::cast_slice(v).to_vec(),
+        }
+    }
+    fn u64s(name: &'static str, shape: &[u64], v: &[u64]) -> Raw {
+        Raw {
+            name,
+            dtype: DType::U64,
+            shape: shape.to_vec(),
+            bytes: bytemuck::cast_slice(v).to_vec(),
+        }
+    }
+
+    /// A unit square on y = 0 split into two patches, one diffuse object, F with two entries.
+    fn two_patches() -> (Manifest, Vec<Raw>) {
+        let manifest = Manifest {
+            format: FORMAT.into(),
+            version: FORMAT_VERSION,
+            name: "square".into(),
+            source: "test".into(),
+            created_by: "proto tests".into(),
+            unit_mm: 1000.0,
+            patch_count: 2,
+            vertex_count: 4,
+            occluder_count: 1,
+            objects: vec![ObjectInfo {
+                name: "floor".into(),
+                material: Material::Diffuse { albedo: [0.5; 3] },
+                first_patch: 0,
+                patch_count: 2,
+                albedo: [0.5; 3],
+            }],
+            lights: vec![],
+            camera: Camera {
+                position: [0.0, 1.0, 3.0],
+                target: [0.0; 3],
+                up: [0.0, 1.0, 0.0],
+                fov_deg: 40.0,
+            },
+            form_factors: FormFactorInfo {
+                nnz: 2,
+                ..Default::default()
+            },
+            stages: vec![],
+            arrays: BTreeMap::new(),
+        };
+        let (a, b, c, d) = (
+            [0.0f32, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0],
+        );
+        let corners: Vec<f32> = [a, c, b, a, d, c].concat();
+        let arrays = vec![
+            f32s(arrays::PATCH_CORNERS, &[2, 3, 3], &corners),
+            f32s(
+                arrays::PATCH_NORMAL,
+                &[2, 3],
+                &[0.0, 1.0, 0.0, 0.0, 1.0, 0.0],
+            ),
+            f32s(arrays::PATCH_AREA, &[2], &[0.5, 0.5]),
+            u32s(arrays::PATCH_OBJECT, &[2], &[0, 0]),
+            f32s(arrays::PATCH_ALBEDO, &[2, 3], &[0.5; 6]),
+            f32s(arrays::PATCH_EMISSION, &[2, 3], &[0.0; 6]),
+            f32s(arrays::VERTEX_POSITION, &[4, 3], &[a, b, c, d].concat()),
+            f32s(
+                arrays::VERTEX_NORMAL,
+                &[4, 3],
+                &[[0.0, 1.0, 0.0]; 4].concat(),
+            ),
+            u32s(arrays::TRIANGLE_VERTEX, &[2, 3], &[0, 2, 1, 0, 3, 2]),
+            f32s(arrays::OCCLUDER_TRI, &[1, 3, 3], &[a, c, b].concat()),
+            u64s(arrays::FF_ROW_PTR, &[3], &[0, 1, 2]),
+            u32s(arrays::FF_COL, &[2], &[1, 0]),
+            f32s(arrays::FF_VAL, &[2], &[0.25, 0.125]),
+        ];
+        (manifest, arrays)
+    }
+
+    /// Writes the files and a manifest listing them (with their true checksums).
+    fn write(dir: &Path, mut manifest: Manifest, arrays: &[Raw]) {
+        std::fs::create_dir_all(dir).unwrap();
+        manifest.arrays.clear();
+        for a in arrays {
+            let file = array_file_name(a.name, a.dtype);
+            std::fs::write(dir.join(&file), &a.bytes).unwrap();
+            manifest.arrays.insert(
+                a.name.into(),
+                ArrayEntry {
+                    file,
+                    dtype: a.dtype,
+                    shape: a.shape.clone(),
+                    bytes: a.bytes.len() as u64,
+                    xxh3: checksum(&a.bytes),
+                },
+            );
+        }
+        std::fs::write(
+            dir.join(MANIFEST_FILE),
+            serde_json::to_string_pretty(&manifest).unwrap(),
+        )
+        .unwrap();
+    }
+
+    fn open_err(manifest: Manifest, arrays: &[Raw]) -> String {
+        let tmp = tempfile::tempdir().unwrap();
+        write(tmp.path(), manifest, arrays);
+        match Bundle::open(tmp.path()) {
+            Ok(_) => panic!("bundle opened but should not have"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    fn replace(arrays: &mut [Raw], new: Raw) {
+        let slot = arrays.iter_mut().find(|a| a.name == new.name).unwrap();
+        *slot = new;
+    }
+
+    #[test]
+    fn hand_made_bundle_round_trips() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (manifest, arrays) = two_patches();
+        write(tmp.path(), manifest.clone(), &arrays);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert_eq!(b.dir(), tmp.path());
+        assert_eq!(b.manifest().objects, manifest.objects);
+        assert_eq!(b.manifest().arrays.len(), REQUIRED_ARRAYS.len());
+        assert_eq!(
+            b.patch_corners()[0],
+            [[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
+        );
+        assert_eq!(b.patch_normals(), &[[0.0, 1.0, 0.0]; 2]);
+        assert_eq!(b.patch_areas(), &[0.5, 0.5]);
+        assert_eq!(b.patch_objects(), &[0, 0]);
+        assert_eq!(b.patch_albedo(), &[[0.5; 3]; 2]);
+        assert_eq!(b.patch_emission(), &[[0.0; 3]; 2]);
+        assert_eq!(b.vertex_positions()[2], [1.0, 0.0, 1.0]);
+        assert_eq!(b.vertex_normals().len(), 4);
+        assert_eq!(b.triangle_vertices(), &[[0, 2, 1], [0, 3, 2]]);
+        assert_eq!(b.occluder_triangles().len(), 1);
+        let f = b.form_factors();
+        assert_eq!((f.n_rows(), f.n_cols(), f.nnz()), (2, 2, 2));
+        assert_eq!(f.get(0, 1), 0.25);
+        assert_eq!(f.get(1, 0), 0.125);
+        assert_eq!(f.get(0, 0), 0.0);
+        // Unknown names and wrong dtypes give empty slices, never a panic.
+        assert!(b.f32s("nope").is_empty());
+        assert!(b.f32s(arrays::FF_COL).is_empty());
+        assert_eq!(b.u32s(arrays::FF_COL), &[1, 0]);
+        let on_disk: u64 = std::fs::read_dir(tmp.path())
+            .unwrap()
+            .map(|e| e.unwrap().metadata().unwrap().len())
+            .sum();
+        assert_eq!(b.total_bytes(), on_disk);
+    }
+
+    #[test]
+    fn bundle_can_be_shared_between_threads() {
+        fn shared<T: Send + Sync>() {}
+        shared::<Bundle>();
+    }
+
+    #[test]
+    fn empty_bundle_maps_zero_length_files() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (mut manifest, arrays) = two_patches();
+        manifest.patch_count = 0;
+        manifest.vertex_count = 0;
+        manifest.occluder_count = 0;
+        manifest.form_factors.nnz = 0;
+        manifest.objects.clear();
+        let arrays: Vec<Raw> = arrays
+            .into_iter()
+            .map(|a| {
+                if a.name == arrays::FF_ROW_PTR {
+                    u64s(a.name, &[1], &[0])
+                } else {
+                    let mut shape = a.shape;
+                    shape[0] = 0;
+                    Raw {
+                        shape,
+                        bytes: vec![],
+                        ..a
+                    }
+                }
+            })
+            .collect();
+        write(tmp.path(), manifest, &arrays);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert!(b.patch_corners().is_empty());
+        assert!(b.triangle_vertices().is_empty());
+        assert_eq!(b.form_factors().n_rows(), 0);
+        assert_eq!(b.form_factors().row_ptr(), &[0]);
+    }
+
+    #[test]
+    fn extra_arrays_are_verified_and_mapped() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (manifest, mut arrays) = two_patches();
+        arrays.push(f32s("s_val", &[3], &[1.0, 2.0, 3.0]));
+        write(tmp.path(), manifest, &arrays);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert_eq!(b.f32s("s_val"), &[1.0, 2.0, 3.0]);
+        // A corrupted extra array is refused like any other.
+        std::fs::write(
+            tmp.path().join("s_val.f32"),
+            bytemuck::cast_slice(&[1.0f32, 2.0, 4.0]),
+        )
+        .unwrap();
+        let e = Bundle::open(tmp.path()).unwrap_err().to_string();
+        assert!(e.starts_with("s_val.f32 is corrupt: checksum "), "{e}");
+    }
+
+    #[test]
+    fn content_rules_name_the_file() {
+        let base = two_patches;
+
+        let (m, mut a) = base();
+        replace(
+            &mut a,
+            u32s(arrays::TRIANGLE_VERTEX, &[2, 3], &[0, 2, 1, 0, 4, 2]),
+        );
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("triangle_vertex.u32: triangle 1 corner 1 is vertex 4"),
+            "{e}"
+        );
+
+        let (m, mut a) = base();
+        replace(&mut a, f32s(arrays::PATCH_AREA, &[2], &[0.5, 0.0]));
+        let e = open_err(m, &a);
+        assert!(e.starts_with("patch_area.f32: patch 1 has area 0"), "{e}");
+
+        let (m, mut a) = base();
+        replace(
+            &mut a,
+            f32s(
+                arrays::VERTEX_NORMAL,
+                &[4, 3],
+                &[[0.0, f32::NAN, 0.0]; 4].concat(),
+            ),
+        );
+        assert!(open_err(m, &a).starts_with("vertex_normal.f32: element 1 is NaN"));
+
+        let (m, mut a) = base();
+        replace(&mut a, u32s(arrays::PATCH_OBJECT, &[2], &[0, 1]));
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("patch_object.u32: patch 1 names object 1 but the manifest lists 1"),
+            "{e}"
+        );
+
+        // Objects must cover 0..N.
+        let (mut m, a) = base();
+        m.objects[0].patch_count = 1;
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("manifest.json: the objects cover patches 0..1 but patch_count is 2"),
+            "{e}"
+        );
+        let (mut m, a) = base();
+        m.objects[0].first_patch = 1;
+        m.objects[0].patch_count = 1;
+        assert!(open_err(m, &a).contains("objects[0] (\"floor\") starts at patch 1"));
+
+        // A count that disagrees with a shape.
+        let (mut m, a) = base();
+        m.vertex_count = 5;
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("vertex_position.f32: shape [4, 3] does not match"),
+            "{e}"
+        );
+
+        // A wrong dtype.
+        let (m, mut a) = base();
+        replace(&mut a, f32s(arrays::PATCH_OBJECT, &[2], &[0.0, 0.0]));
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("patch_object.u32: manifest lists dtype f32, expected u32"),
+            "{e}"
+        );
+
+        // A missing manifest entry.
+        let (m, mut a) = base();
+        a.retain(|r| r.name != arrays::OCCLUDER_TRI);
+        assert_eq!(
+            open_err(m, &a),
+            "occluder_tri.f32 is missing from manifest.json"
+        );
+
+        // A file longer than listed.
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = base();
+        write(tmp.path(), m, &a);
+        std::fs::write(tmp.path().join("ff_col.u32"), [0u8; 12]).unwrap();
+        let e = Bundle::open(tmp.path()).unwrap_err().to_string();
+        assert_eq!(e, "ff_col.u32 is too long: 12 bytes, manifest says 8");
+
+        // Unsorted columns name ff_col; a wrong row_ptr names ff_row_ptr.
+        let (mut m, mut a) = base();
+        m.form_factors.nnz = 2;
+        replace(&mut a, u64s(arrays::FF_ROW_PTR, &[3], &[0, 2, 2]));
+        replace(&mut a, u32s(arrays::FF_COL, &[2], &[1, 0]));
+        let tmp = tempfile::tempdir().unwrap();
+        write(tmp.path(), m.clone(), &a);
+        match Bundle::open(tmp.path()).unwrap_err() {
+            BundleError::Csr { file, error } => {
+                assert_eq!(file, "ff_col.u32");
+                assert_eq!(error, CsrError::ColumnsUnsorted { row: 0, col: 0 });
+            }
+            other => panic!("{other}"),
+        }
+        replace(&mut a, u64s(arrays::FF_ROW_PTR, &[3], &[1, 2, 2]));
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("ff_row_ptr.u64: F is not a valid CSR matrix: row_ptr[0] is 1"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn manifest_entries_cannot_escape_the_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = two_patches();
+        write(tmp.path(), m, &a);
+        let path = tmp.path().join(MANIFEST_FILE);
+        let text = std::fs::read_to_string(&path).unwrap();
+        std::fs::write(&path, text.replace("\"ff_val.f32\"", "\"../ff_val.f32\"")).unwrap();
+        let e = Bundle::open(tmp.path()).unwrap_err().to_string();
+        assert!(
+            e.starts_with("manifest.json: array ff_val is stored as \"../ff_val.f32\""),
+            "{e}"
+        );
+
+        // Listed byte counts must agree with the shape.
+        let (m, a) = two_patches();
+        write(tmp.path(), m, &a);
+        let mut m: Manifest = crate::parse_json(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        m.arrays.get_mut(arrays::FF_VAL).unwrap().bytes = 12;
+        std::fs::write(&path, serde_json::to_string(&m).unwrap()).unwrap();
+        let e = Bundle::open(tmp.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("ff_val.f32: manifest lists 12 bytes but shape [2] of f32 holds 8"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn manifest_errors_name_manifest_json() {
+        let tmp = tempfile::tempdir().unwrap();
+        let e = Bundle::open(&tmp.path().join("nope")).unwrap_err();
+        assert!(matches!(e, BundleError::Missing { .. }), "{e}");
+        let e = Bundle::open(tmp.path()).unwrap_err().to_string();
+        assert_eq!(e, "manifest.json is missing");
+        std::fs::write(tmp.path().join(MANIFEST_FILE), "{\n  \"format\": 3\n}").unwrap();
+        let e = Bundle::open(tmp.path()).unwrap_err();
+        assert_eq!(e.file(), MANIFEST_FILE);
+        assert!(
+            e.to_string()
+                .starts_with("manifest.json: line 2 column 13: format: invalid type"),
+            "{e}"
+        );
+        let (mut m, a) = two_patches();
+        m.format = "zip".into();
+        assert_eq!(
+            open_err(m, &a),
+            "manifest.json: format is \"zip\", expected \"translux-bundle\""
+        );
+        let (mut m, a) = two_patches();
+        m.version = 7;
+        assert_eq!(
+            open_err(m, &a),
+            "manifest.json: bundle version 7 is not supported (this build reads version 1)"
+        );
+    }
+}

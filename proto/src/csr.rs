@@ -1,0 +1,231 @@
+//! Compressed sparse rows: the layout of F (and later S) on disk and in memory.
+//!
+//! Rows are receivers: row `i` lists the patches `j` that patch `i` sees, with F_ij.
+//!
+//! ```text
+//!             row_ptr (u64, n+1)        col (u32, nnz)     val (f32, nnz)
+//!  row 0  ->  row_ptr[0] = 0         -> col[0..3] = 4 7 9   val[0..3] = F_04 F_07 F_09
+//!  row 1  ->  row_ptr[1] = 3         -> col[3..5] = 0 2     val[3..5] = F_10 F_12
+//!  ...
+//!  end        row_ptr[n] = nnz
+//! ```
+//!
+//! Column indices are strictly increasing within a row.
+
+use thiserror::Error;
+
+/// Why a set of arrays is not a valid CSR matrix.
+#[derive(Debug, Error, PartialEq)]
+pub enum CsrError {
+    #[error("row_ptr has {got} entries, expected rows + 1 = {expected}")]
+    RowPtrLength { got: usize, expected: usize },
+    #[error("row_ptr[0] is {0}, expected 0")]
+    RowPtrStart(u64),
+    #[error("row_ptr decreases at row {row}")]
+    RowPtrDecreasing { row: usize },
+    #[error("row_ptr ends at {end} but there are {col} column indices and {val} values")]
+    NnzMismatch { end: u64, col: usize, val: usize },
+    #[error("row {row}: column {col} is out of range (columns: {n_cols})")]
+    ColumnOutOfRange { row: usize, col: u32, n_cols: usize },
+    #[error("row {row}: columns are not strictly increasing at column {col}")]
+    ColumnsUnsorted { row: usize, col: u32 },
+    #[error("row {row}, column {col}: value {value} is not finite")]
+    NonFinite { row: usize, col: u32, value: f32 },
+}
+
+/// A borrowed CSR matrix, checked once at construction and trusted afterwards.
+#[derive(Debug, Clone, Copy)]
+pub struct CsrView<'a> {
+    n_rows: usize,
+    n_cols: usize,
+    row_ptr: &'a [u64],
+    col: &'a [u32],
+    val: &'a [f32],
+}
+
+impl<'a> CsrView<'a> {
+    /// Wraps the three arrays after checking every invariant: row_ptr length n+1, starting
+    /// at 0, non-decreasing, ending at nnz; columns in range and strictly increasing per
+    /// row; values finite. Costs one pass over the matrix.
+    pub fn new_checked(
+        n_rows: usize,
+        n_cols: usize,
+        row_ptr: &'a [u64],
+        col: &'a [u32],
+        val: &'a [f32],
+    ) -> Result<Self, CsrError> {
+        if row_ptr.len() != n_rows + 1 {
+            return Err(CsrError::RowPtrLength {
+                got: row_ptr.len(),
+                expected: n_rows + 1,
+            });
+        }
+        if row_ptr[0] != 0 {
+            return Err(CsrError::RowPtrStart(row_ptr[0]));
+        }
+        let end = row_ptr[n_rows];
+        if end as usize != col.len() || col.len() != val.len() {
+            return Err(CsrError::NnzMismatch {
+                end,
+                col: col.len(),
+                val: val.len(),
+            });
+        }
+        for row in 0..n_rows {
+            let (a, b) = (row_ptr[row], row_ptr[row + 1]);
+            if b < a || b > end {
+                return Err(CsrError::RowPtrDecreasing { row });
+            }
+            let cols = &col[a as usize..b as usize];
+            let vals = &val[a as usize..b as usize];
+            for (k, (&c, &v)) in cols.iter().zip(vals).enumerate() {
+                if c as usize >= n_cols {
+                    return Err(CsrError::ColumnOutOfRange {
+                        row,
+                        col: c,
+                        n_cols,
+                    });
+                }
+                if k > 0 && c <= cols[k - 1] {
+                    return Err(CsrError::ColumnsUnsorted { row, col: c });
+                }
+                if !v.is_finite() {
+                    return Err(CsrError::NonFinite {
+                        row,
+                        col: c,
+                        value: v,
+                    });
+                }
+            }
+        }
+        Ok(Self {
+            n_rows,
+            n_cols,
+            row_ptr,
+            col,
+            val,
+        })
+    }
+
+    /// Wraps arrays that already passed [`CsrView::new_checked`] with the same `n_rows` and
+    /// `n_cols` (the bundle loader checks once at open and hands out views afterwards without
+    /// another pass over the matrix). Crate-internal so that the invariants stay guaranteed.
+    pub(crate) fn from_checked_parts(
+        n_rows: usize,
+        n_cols: usize,
+        row_ptr: &'a [u64],
+        col: &'a [u32],
+        val: &'a [f32],
+    ) -> Self {
+        Self {
+            n_rows,
+            n_cols,
+            row_ptr,
+            col,
+            val,
+        }
+    }
+
+    pub fn n_rows(&self) -> usize {
+        self.n_rows
+    }
+    pub fn n_cols(&self) -> usize {
+        self.n_cols
+    }
+    pub fn nnz(&self) -> usize {
+        self.col.len()
+    }
+    pub fn row_ptr(&self) -> &'a [u64] {
+        self.row_ptr
+    }
+    pub fn col(&self) -> &'a [u32] {
+        self.col
+    }
+    pub fn val(&self) -> &'a [f32] {
+        self.val
+    }
+
+    /// The columns and values of row `i`.
+    #[inline]
+    pub fn row(&self, i: usize) -> (&'a [u32], &'a [f32]) {
+        let (a, b) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
+        (&self.col[a..b], &self.val[a..b])
+    }
+
+    /// The entry (i, j), or 0 when it is not stored.
+    pub fn get(&self, i: usize, j: usize) -> f32 {
+        let (cols, vals) = self.row(i);
+        match cols.binary_search(&(j as u32)) {
+            Ok(k) => vals[k],
+            Err(_) => 0.0,
+        }
+    }
+}
+
+/// An owned CSR matrix (what the precompute builds before writing it).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Csr {
+    pub n_rows: usize,
+    pub n_cols: usize,
+    pub row_ptr: Vec<u64>,
+    pub col: Vec<u32>,
+    pub val: Vec<f32>,
+}
+
+impl Csr {
+    /// Borrows it as a checked view.
+    pub fn view(&self) -> Result<CsrView<'_>, CsrError> {
+        CsrView::new_checked(
+            self.n_rows,
+            self.n_cols,
+            &self.row_ptr,
+            &self.col,
+            &self.val,
+        )
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.col.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checked_view_accepts_valid_and_names_each_violation() {
+        let rp = [0u64, 2, 3];
+        let col = [0u32, 2, 1];
+        let val = [0.5f32, 0.25, 1.0];
+        let v = CsrView::new_checked(2, 3, &rp, &col, &val).unwrap();
+        assert_eq!(v.get(0, 2), 0.25);
+        assert_eq!(v.get(1, 0), 0.0);
+        assert_eq!(
+            CsrView::new_checked(2, 2, &rp, &col, &val).unwrap_err(),
+            CsrError::ColumnOutOfRange {
+                row: 0,
+                col: 2,
+                n_cols: 2
+            }
+        );
+        let unsorted = [2u32, 0, 1];
+        assert!(matches!(
+            CsrView::new_checked(2, 3, &rp, &unsorted, &val),
+            Err(CsrError::ColumnsUnsorted { row: 0, .. })
+        ));
+        let nan = [0.5f32, f32::NAN, 1.0];
+        assert!(matches!(
+            CsrView::new_checked(2, 3, &rp, &col, &nan),
+            Err(CsrError::NonFinite { .. })
+        ));
+        assert!(matches!(
+            CsrView::new_checked(3, 3, &[0, 2, 1, 2], &col[..2], &val[..2]),
+            Err(CsrError::RowPtrDecreasing { row: 1 })
+        ));
+        assert!(matches!(
+            CsrView::new_checked(3, 3, &rp, &col, &val),
+            Err(CsrError::RowPtrLength { .. })
+        ));
+    }
+}

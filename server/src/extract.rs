@@ -1,0 +1,191 @@
+//! Request plumbing: the strict JSON body extractor and `Accept` negotiation.
+
+use axum::body::Bytes;
+use axum::extract::{FromRequest, Request};
+use axum::http::header::{ACCEPT, CONTENT_TYPE};
+use axum::http::{HeaderMap, HeaderValue};
+use serde::de::DeserializeOwned;
+
+use crate::error::AppError;
+
+/// Largest request body accepted, in bytes (1 MiB).
+pub const BODY_LIMIT: usize = 1 << 20;
+
+/// A JSON body read with [`translux_proto::parse_json`], so that a bad body's message names
+/// the field path, line and column. An empty body reads as `{}`.
+///
+/// Rejections: 415 when `Content-Type` is present and not JSON (or absent with a non-empty
+/// body), 413 over [`BODY_LIMIT`], 400 `bad_request` for anything serde refuses.
+#[derive(Debug, Clone)]
+pub struct JsonBody<T>(pub T);
+
+impl<S, T> FromRequest<S> for JsonBody<T>
+where
+    S: Send + Sync,
+    T: DeserializeOwned,
+{
+    type Rejection = AppError;
+
+    async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
+        let content_type = req.headers().get(CONTENT_TYPE).cloned();
+        if let Some(ct) = &content_type
+            && !is_json_media_type(ct)
+        {
+            return Err(AppError::unsupported_media_type(format!(
+                "Content-Type {} is not JSON; send the body as application/json",
+                show_header(ct)
+            )));
+        }
+        let bytes = Bytes::from_request(req, state).await.map_err(|rejection| {
+            if rejection.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+                AppError::payload_too_large(format!(
+                    "the request body is larger than the limit of {} bytes (1 MiB)",
+                    BODY_LIMIT
+                ))
+            } else {
+                AppError::bad_request(format!(
+                    "cannot read the request body: {}",
+                    rejection.body_text()
+                ))
+            }
+        })?;
+        let text = std::str::from_utf8(&bytes)
+            .map_err(|e| AppError::bad_request(format!("the request body is not UTF-8: {e}")))?;
+        let text = if text.trim().is_empty() {
+            "{}"
+        } else if content_type.is_none() {
+            return Err(AppError::unsupported_media_type(
+                "the request has a body but no Content-Type; send it as application/json",
+            ));
+        } else {
+            text
+        };
+        translux_proto::parse_json(text)
+            .map(JsonBody)
+            .map_err(|e| AppError::bad_request(format!("invalid JSON body: {e}")))
+    }
+}
+
+/// `application/json` or any `application/*+json`, parameters ignored.
+fn is_json_media_type(v: &HeaderValue) -> bool {
+    let Ok(s) = v.to_str() else { return false };
+    let essence = s
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    essence == "application/json"
+        || (essence.starts_with("application/") && essence.ends_with("+json"))
+}
+
+/// A header value for a message, quoted; non-ASCII shown lossily.
+fn show_header(v: &HeaderValue) -> String {
+    format!("{:?}", String::from_utf8_lossy(v.as_bytes()))
+}
+
+/// The answer formats of an endpoint that offers JSON and raw bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Json,
+    Binary,
+}
+
+/// Picks the format from `Accept`: `application/json` → JSON; `application/octet-stream`,
+/// `application/*`, `*/*` or no `Accept` → binary. The highest `q` wins; on a tie an exact
+/// type beats a wildcard, then the earlier entry. Nothing acceptable → 406.
+pub fn negotiate(headers: &HeaderMap) -> Result<Format, AppError> {
+    let mut best: Option<(f32, u8, Format)> = None;
+    let mut seen = Vec::new();
+    for value in headers.get_all(ACCEPT) {
+        let Ok(value) = value.to_str() else {
+            return Err(AppError::not_acceptable("the Accept header is not ASCII"));
+        };
+        for entry in value.split(',') {
+            let mut parts = entry.split(';');
+            let media = parts.next().unwrap_or("").trim().to_ascii_lowercase();
+            if media.is_empty() {
+                continue;
+            }
+            let mut q = 1.0f32;
+            for p in parts {
+                if let Some((k, v)) = p.split_once('=')
+                    && k.trim().eq_ignore_ascii_case("q")
+                {
+                    q = v.trim().parse().unwrap_or(0.0);
+                }
+            }
+            let candidate = match media.as_str() {
+                "application/json" => Some((2, Format::Json)),
+                "application/octet-stream" => Some((2, Format::Binary)),
+                "application/*" | "*/*" => Some((1, Format::Binary)),
+                _ => None,
+            };
+            seen.push(media);
+            if let Some((specificity, format)) = candidate
+                && q > 0.0
+                && best.is_none_or(|(bq, bs, _)| q > bq || (q == bq && specificity > bs))
+            {
+                best = Some((q, specificity, format));
+            }
+        }
+    }
+    match best {
+        Some((_, _, f)) => Ok(f),
+        None if seen.is_empty() => Ok(Format::Binary),
+        None => Err(AppError::not_acceptable(format!(
+            "Accept: {} is not available; this endpoint answers application/json or \
+             application/octet-stream",
+            seen.join(", ")
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn accept(v: &str) -> Result<Format, AppError> {
+        let mut h = HeaderMap::new();
+        h.insert(ACCEPT, HeaderValue::from_str(v).unwrap());
+        negotiate(&h)
+    }
+
+    #[test]
+    fn accept_negotiation() {
+        assert_eq!(negotiate(&HeaderMap::new()), Ok(Format::Binary));
+        assert_eq!(accept("application/json"), Ok(Format::Json));
+        assert_eq!(accept("application/json; charset=utf-8"), Ok(Format::Json));
+        assert_eq!(accept("*/*"), Ok(Format::Binary));
+        assert_eq!(accept("application/octet-stream"), Ok(Format::Binary));
+        assert_eq!(
+            accept("text/html, application/json;q=0.9, */*;q=0.8"),
+            Ok(Format::Json)
+        );
+        assert_eq!(accept("*/*, application/json"), Ok(Format::Json));
+        assert_eq!(
+            accept("application/json;q=0.5, application/octet-stream"),
+            Ok(Format::Binary)
+        );
+        assert_eq!(accept("application/json;q=0, */*"), Ok(Format::Binary));
+        assert_eq!(accept(""), Ok(Format::Binary));
+        let e = accept("image/png").unwrap_err();
+        assert_eq!(e.status.as_u16(), 406);
+        assert!(e.message.contains("image/png"), "{e}");
+        assert!(accept("application/json;q=0").is_err());
+    }
+
+    #[test]
+    fn json_media_types() {
+        for ok in [
+            "application/json",
+            "Application/JSON; charset=utf-8",
+            "application/vnd.x+json",
+        ] {
+            assert!(is_json_media_type(&HeaderValue::from_static(ok)), "{ok}");
+        }
+        for bad in ["text/plain", "application/x-www-form-urlencoded", "json"] {
+            assert!(!is_json_media_type(&HeaderValue::from_static(bad)), "{bad}");
+        }
+    }
+}

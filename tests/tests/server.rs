@@ -1,0 +1,730 @@
+//! End-to-end tests of `translux-server`: a small Cornell-box bundle is precomputed once per
+//! test binary, each test starts a server on 127.0.0.1:0 and talks HTTP to it.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use glam::Vec3;
+use reqwest::StatusCode;
+use reqwest::header::{ACCEPT, CONTENT_TYPE};
+use serde_json::{Value, json};
+use tokio::sync::oneshot;
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::radiosity::{
+    PatchGeometry, Rgb, SolveParams, direct_irradiance, solve_diffuse, vertex_radiance,
+};
+use translux_precompute::raycast::Occluder;
+use translux_precompute::scene::load_scene;
+use translux_proto::api::{ErrorBody, Health, Mesh, RelightResponse, SceneDetail, SceneList};
+use translux_proto::bundle::Bundle;
+use translux_proto::light::Light;
+use translux_server::{AppState, load_bundles};
+
+/// Patches of the test bundle: small enough to precompute in about a second.
+const PATCHES: u64 = 400;
+const ID: &str = "cornell";
+
+struct Fixture {
+    /// Holds one bundle, `cornell`.
+    root: PathBuf,
+}
+
+/// The test bundle, built on first use (inside this crate's target temp folder).
+fn fixture() -> &'static Fixture {
+    static FIXTURE: OnceLock<Fixture> = OnceLock::new();
+    FIXTURE.get_or_init(|| {
+        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
+        remove_stale_fixtures(parent);
+        // Statics are never dropped, so the folder is kept and cleaned up by a later run.
+        let root = tempfile::Builder::new()
+            .prefix(FIXTURE_PREFIX)
+            .tempdir_in(parent)
+            .expect("temp dir")
+            .keep();
+        let scene = load_scene("builtin:cornell").expect("builtin:cornell loads");
+        let params = PrecomputeParams {
+            patches: Some(PATCHES),
+            ..Default::default()
+        };
+        precompute(&scene, &root.join(ID), &params).expect("precompute");
+        Fixture { root }
+    })
+}
+
+const FIXTURE_PREFIX: &str = "server-bundles-";
+
+/// Removes fixture folders that earlier runs left behind (older than ten minutes: no test
+/// binary runs that long, so none is in use).
+fn remove_stale_fixtures(parent: &Path) {
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let stale = e.file_name().to_string_lossy().starts_with(FIXTURE_PREFIX)
+            && e.metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age.as_secs() > 600);
+        if stale {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+fn bundle_dir() -> PathBuf {
+    fixture().root.join(ID)
+}
+
+/// A running server; stopped (gracefully) by [`TestServer::stop`] or when the test's runtime
+/// ends.
+struct TestServer {
+    base: String,
+    client: reqwest::Client,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<std::io::Result<()>>,
+}
+
+impl TestServer {
+    async fn start(state: AppState) -> TestServer {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(translux_server::serve(listener, state, async move {
+            let _ = rx.await;
+        }));
+        TestServer {
+            base: format!("http://{addr}"),
+            client: reqwest::Client::new(),
+            stop: Some(tx),
+            task,
+        }
+    }
+
+    /// The server on the shared test bundle.
+    async fn cornell() -> TestServer {
+        let (state, errors) = load_bundles(&fixture().root);
+        assert!(errors.is_empty(), "{errors:?}");
+        TestServer::start(state).await
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    async fn get(&self, path: &str) -> reqwest::Response {
+        self.client.get(self.url(path)).send().await.unwrap()
+    }
+
+    async fn get_json<T: serde::de::DeserializeOwned>(&self, path: &str) -> T {
+        let r = self.get(path).await;
+        assert_eq!(r.status(), StatusCode::OK, "GET {path}");
+        assert_eq!(content_type(&r), "application/json", "GET {path}");
+        r.json().await.unwrap()
+    }
+
+    /// POSTs a JSON body to the scene's relight endpoint with the given `Accept`.
+    async fn relight(&self, id: &str, body: &Value, accept: Option<&str>) -> reqwest::Response {
+        let mut req = self
+            .client
+            .post(self.url(&format!("/api/v1/scenes/{id}/relight")))
+            .header(CONTENT_TYPE, "application/json")
+            .body(body.to_string());
+        if let Some(a) = accept {
+            req = req.header(ACCEPT, a);
+        }
+        req.send().await.unwrap()
+    }
+
+    async fn relight_json(&self, body: &Value) -> RelightResponse {
+        let r = self.relight(ID, body, Some("application/json")).await;
+        let status = r.status();
+        let text = r.text().await.unwrap();
+        assert_eq!(status, StatusCode::OK, "{text}");
+        serde_json::from_str(&text).unwrap()
+    }
+
+    async fn stop(mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        self.task.await.expect("server task").expect("serve");
+    }
+}
+
+fn content_type(r: &reqwest::Response) -> String {
+    r.headers()
+        .get(CONTENT_TYPE)
+        .map(|v| v.to_str().unwrap().to_string())
+        .unwrap_or_default()
+}
+
+/// Asserts an error answer: status, JSON error body with `code`, message containing each
+/// of `needles`.
+async fn expect_error(r: reqwest::Response, status: StatusCode, code: &str, needles: &[&str]) {
+    assert_eq!(r.status(), status);
+    assert_eq!(content_type(&r), "application/json");
+    let body: ErrorBody = r.json().await.expect("error body is JSON");
+    assert_eq!(body.error.code, code, "{}", body.error.message);
+    for n in needles {
+        assert!(
+            body.error.message.contains(n),
+            "{:?} lacks {n:?}",
+            body.error.message
+        );
+    }
+}
+
+/// The answer without a server: the same bundle through the library calls.
+fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb> {
+    let tris: Vec<[Vec3; 3]> = bundle
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let occ = Occluder::new(&tris);
+    let centroid: Vec<Vec3> = bundle
+        .patch_corners()
+        .iter()
+        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+        .collect();
+    let normal: Vec<Vec3> = bundle
+        .patch_normals()
+        .iter()
+        .map(|&n| Vec3::from(n))
+        .collect();
+    let geo = PatchGeometry {
+        centroid: &centroid,
+        normal: &normal,
+    };
+    let e = direct_irradiance(geo, &occ, lights, bundle.manifest().unit_mm).unwrap();
+    let (albedo, emission) = (bundle.patch_albedo(), bundle.patch_emission());
+    let b = if interreflection {
+        let (b, stats) = solve_diffuse(
+            &bundle.form_factors(),
+            albedo,
+            emission,
+            &e,
+            &SolveParams::default(),
+            None,
+        );
+        assert!(stats.converged);
+        b
+    } else {
+        (0..albedo.len())
+            .map(|i| std::array::from_fn(|c| emission[i][c] + albedo[i][c] * e[i][c]))
+            .collect()
+    };
+    let vertex_count = bundle.vertex_positions().len();
+    vertex_radiance(
+        bundle.triangle_vertices(),
+        bundle.patch_areas(),
+        vertex_count,
+        &b,
+    )
+}
+
+fn assert_close(got: &[f32], want: &[Rgb], rel: f32) {
+    let want: Vec<f32> = want.iter().flatten().copied().collect();
+    assert_eq!(got.len(), want.len());
+    let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0, "the scene is black");
+    for (k, (g, w)) in got.iter().zip(&want).enumerate() {
+        assert!(
+            (g - w).abs() <= rel * w.abs().max(1e-3 * scale),
+            "value {k}: {g} vs {w}"
+        );
+    }
+}
+
+fn floats(bytes: &[u8]) -> Vec<f32> {
+    assert_eq!(bytes.len() % 4, 0);
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+#[tokio::test]
+async fn scene_list_detail_health_and_index() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    let m = bundle.manifest();
+
+    let list: SceneList = s.get_json("/api/v1/scenes").await;
+    assert_eq!(list.scenes.len(), 1);
+    let summary = &list.scenes[0];
+    assert_eq!(
+        (summary.id.as_str(), summary.name.as_str()),
+        (ID, "cornell")
+    );
+    assert_eq!(summary.patches, m.patch_count);
+    assert_eq!(summary.vertices, m.vertex_count);
+    assert_eq!(summary.objects, m.objects.len());
+    assert!(summary.patches >= PATCHES / 2, "{}", summary.patches);
+
+    let d: SceneDetail = s.get_json("/api/v1/scenes/cornell").await;
+    assert_eq!(d.patches, m.patch_count);
+    assert_eq!(d.triangles, m.patch_count);
+    assert_eq!(d.objects.len(), m.objects.len());
+    for (o, mo) in d.objects.iter().zip(&m.objects) {
+        assert_eq!(
+            (&o.name, &o.material, o.first_patch),
+            (&mo.name, &mo.material, mo.first_patch)
+        );
+    }
+    assert!(
+        d.objects.iter().any(|o| o.material.kind() == "translucent"),
+        "{:?}",
+        d.objects
+    );
+    assert_eq!(d.lights, m.lights);
+    assert!(!d.lights.is_empty());
+    assert_eq!(d.camera, m.camera);
+    assert_eq!(d.form_factors, m.form_factors);
+    assert_eq!(d.bundle_bytes, bundle.total_bytes());
+    // The raw JSON uses the proto material format.
+    let raw: Value = s.get_json("/api/v1/scenes/cornell").await;
+    assert!(raw["objects"][0]["material"]["type"].is_string(), "{raw}");
+
+    let h: Health = s.get_json("/healthz").await;
+    assert_eq!((h.status.as_str(), h.backend.as_str()), ("ok", "cpu"));
+    assert!(!h.gpu.available);
+    assert_eq!(
+        h.gpu.reason.as_deref(),
+        Some("this build has no GPU backend yet")
+    );
+    assert_eq!(h.scenes, vec![ID.to_string()]);
+
+    let r = s.get("/").await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(content_type(&r).starts_with("text/html"));
+    let page = r.text().await.unwrap();
+    assert!(page.contains("/api/v1/scenes") && page.contains("<title>translux"));
+    assert!(
+        !page.contains("http://") && !page.contains("https://"),
+        "external resources"
+    );
+
+    expect_error(
+        s.get("/api/v1/scenes/nope").await,
+        StatusCode::NOT_FOUND,
+        "not_found",
+        &["\"nope\"", "cornell"],
+    )
+    .await;
+    expect_error(
+        s.get("/api/v1/scenes/nope/mesh").await,
+        StatusCode::NOT_FOUND,
+        "not_found",
+        &["nope"],
+    )
+    .await;
+    expect_error(
+        s.get("/api/v2/whatever").await,
+        StatusCode::NOT_FOUND,
+        "not_found",
+        &["/api/v2/whatever"],
+    )
+    .await;
+    expect_error(
+        s.get("/api/v1/scenes/cornell/relight").await,
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method_not_allowed",
+        &["GET"],
+    )
+    .await;
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn mesh_is_the_bundles_viewer_mesh() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    // Twice: the second answer comes from the cache and must be the same.
+    let mesh: Mesh = s.get_json("/api/v1/scenes/cornell/mesh").await;
+    let again: Mesh = s.get_json("/api/v1/scenes/cornell/mesh").await;
+    assert_eq!(mesh, again);
+    let nv = bundle.vertex_positions().len();
+    let nt = bundle.triangle_vertices().len();
+    assert_eq!(mesh.positions.len(), 3 * nv);
+    assert_eq!(mesh.normals.len(), 3 * nv);
+    assert_eq!(mesh.indices.len(), 3 * nt);
+    assert_eq!(mesh.positions, bundle.vertex_positions().concat());
+    assert_eq!(mesh.normals, bundle.vertex_normals().concat());
+    assert_eq!(mesh.indices, bundle.triangle_vertices().concat());
+    assert!(mesh.indices.iter().all(|&i| (i as usize) < nv));
+    // Objects' triangle ranges tile 0..N in order, with the manifest's names.
+    let mut next = 0;
+    for (o, mo) in mesh.objects.iter().zip(&bundle.manifest().objects) {
+        assert_eq!(o.name, mo.name);
+        assert_eq!(o.first_triangle, next);
+        assert_eq!(o.triangle_count, mo.patch_count);
+        next += o.triangle_count;
+    }
+    assert_eq!(mesh.objects.len(), bundle.manifest().objects.len());
+    assert_eq!(next as usize, nt);
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn relight_json_and_binary_agree_and_match_the_offline_solve() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    let nv = bundle.vertex_positions().len();
+
+    // No lights given: the bundle's default lights, full transport.
+    let json_answer = s.relight_json(&json!({})).await;
+    assert_eq!(json_answer.vertex_count, nv);
+    assert_eq!(json_answer.radiance.len(), 3 * nv);
+    let st = &json_answer.stats;
+    assert_eq!(st.solver, "jacobi");
+    assert!(
+        st.iterations > 0 && st.converged && st.residual <= 0.005,
+        "{st:?}"
+    );
+    assert!(st.ms >= st.direct_ms && st.direct_ms >= 0.0, "{st:?}");
+    assert_eq!(st.lights, bundle.manifest().lights.len());
+
+    let want = offline(&bundle, &bundle.manifest().lights, true);
+    assert_close(&json_answer.radiance, &want, 1e-5);
+
+    // Binary with every Accept that asks for it (and none): the same numbers, bit for bit.
+    for accept in [None, Some("application/octet-stream"), Some("*/*")] {
+        let r = s.relight(ID, &json!({}), accept).await;
+        assert_eq!(r.status(), StatusCode::OK, "{accept:?}");
+        assert_eq!(content_type(&r), "application/octet-stream");
+        let timing = r
+            .headers()
+            .get("server-timing")
+            .unwrap()
+            .to_str()
+            .unwrap()
+            .to_string();
+        assert!(
+            timing.contains("direct;dur=") && timing.contains("solve;dur="),
+            "{timing}"
+        );
+        let bytes = r.bytes().await.unwrap();
+        assert_eq!(bytes.len(), nv * 12);
+        let got = floats(&bytes);
+        assert_eq!(got, json_answer.radiance, "{accept:?}");
+    }
+
+    // An empty body (no Content-Type) is the same request as {}.
+    let r = s
+        .client
+        .post(s.url("/api/v1/scenes/cornell/relight"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(floats(&r.bytes().await.unwrap()), json_answer.radiance);
+
+    // Explicit lights of every supported type, solver "iterative".
+    let lights = json!([
+        {"type":"point","position":[0.1,0.45,0.05],"intensity":[0.5,0.4,0.3]},
+        {"type":"spot","position":[0.0,0.52,0.0],"intensity":[2,2,2],"direction":[0,-1,0],
+         "inner_deg":15,"outer_deg":30},
+        {"type":"directional","direction":[0.2,-1,-0.3],"irradiance":[0.3,0.3,0.3]}
+    ]);
+    let answer = s
+        .relight_json(&json!({"lights": lights, "solver": "iterative"}))
+        .await;
+    let parsed: Vec<Light> = serde_json::from_value(lights).unwrap();
+    assert_close(&answer.radiance, &offline(&bundle, &parsed, true), 1e-5);
+    assert_ne!(answer.radiance, json_answer.radiance);
+
+    // No lights at all: a black scene (the Cornell box has no emitters).
+    let dark = s.relight_json(&json!({"lights": []})).await;
+    assert!(dark.radiance.iter().all(|&v| v == 0.0));
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn direct_differs_from_full_and_full_is_never_darker() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    let full = s.relight_json(&json!({"components": "full"})).await;
+    let direct = s.relight_json(&json!({"components": "direct"})).await;
+    assert_eq!(direct.stats.solver, "none");
+    assert_eq!(direct.stats.iterations, 0);
+    assert_close(
+        &direct.radiance,
+        &offline(&bundle, &bundle.manifest().lights, false),
+        1e-5,
+    );
+    assert_eq!(full.radiance.len(), direct.radiance.len());
+    let mut brighter = 0;
+    for (k, (f, d)) in full.radiance.iter().zip(&direct.radiance).enumerate() {
+        assert!(f >= d, "value {k}: full {f} < direct {d}");
+        brighter += (f > &(d * 1.01)) as usize;
+    }
+    // Inter-reflection lights up most of the box, including what the lamp cannot see.
+    assert!(
+        brighter > full.radiance.len() / 2,
+        "{brighter} of {}",
+        full.radiance.len()
+    );
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
+    let s = TestServer::cornell().await;
+    let post = |path: &str| s.client.post(s.url(path));
+    let relight = "/api/v1/scenes/cornell/relight";
+
+    // Unknown scene.
+    let r = s
+        .relight("attic", &json!({}), Some("application/json"))
+        .await;
+    expect_error(r, StatusCode::NOT_FOUND, "not_found", &["attic"]).await;
+
+    // Malformed JSON: the message gives line and column.
+    let r = post(relight)
+        .header(CONTENT_TYPE, "application/json")
+        .body("{\n  \"lights\": [\n    {\"type\": \"point\",\n")
+        .send()
+        .await
+        .unwrap();
+    expect_error(r, StatusCode::BAD_REQUEST, "bad_request", &["line 4"]).await;
+    // A wrong type: the message names the field.
+    let body = json!({"lights":[{"type":"point","position":[0,0.5,0],"intensity":[1,"x",1]}]});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["lights[0].intensity[1]", "line 1"],
+    )
+    .await;
+    // NaN is not JSON.
+    let r = post(relight)
+        .header(CONTENT_TYPE, "application/json")
+        .body(r#"{"lights":[{"type":"point","position":[0,0.5,0],"intensity":[NaN,1,1]}]}"#)
+        .send()
+        .await
+        .unwrap();
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["lights[0].intensity"],
+    )
+    .await;
+
+    // Out-of-range values: `invalid`, with the field path and the rule.
+    let r = post(relight)
+        .header(CONTENT_TYPE, "application/json")
+        .body(r#"{"lights":[{"type":"point","position":[0,0.5,0],"intensity":[1e39,1,1]}]}"#)
+        .send()
+        .await
+        .unwrap();
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["lights[0].intensity[0] must be finite and >= 0"],
+    )
+    .await;
+    let body = json!({"lights":[
+        {"type":"directional","direction":[0,-1,0],"irradiance":[1,1,1]},
+        {"type":"point","position":[0,0.5,0],"intensity":[1,-2,1]}]});
+    let r = s.relight(ID, &body, Some("application/json")).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["lights[1].intensity[1] must be finite and >= 0"],
+    )
+    .await;
+    let body = json!({"lights":[{"type":"directional","direction":[0,0,0],"irradiance":[1,1,1]}]});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["lights[0].direction"],
+    )
+    .await;
+
+    // Unknown fields, at the top and inside a light.
+    let r = s.relight(ID, &json!({"light": []}), None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["unknown field `light`"],
+    )
+    .await;
+    let body =
+        json!({"lights":[{"type":"point","position":[0,0.5,0],"intensity":[1,1,1],"radius":1}]});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["lights[0]", "radius"],
+    )
+    .await;
+    let r = s
+        .relight(ID, &json!({"components": "everything"}), None)
+        .await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["components", "everything"],
+    )
+    .await;
+
+    // Valid but not supported yet: `unsupported`, saying what.
+    for (body, needle) in [
+        (
+            json!({"components": "subsurface_only"}),
+            "components \"subsurface_only\" is not supported yet",
+        ),
+        (json!({"components": "heuristic_a"}), "heuristic_a"),
+        (
+            json!({"solver": "inverse"}),
+            "solver \"inverse\" is not supported yet",
+        ),
+        (
+            json!({"lights": [{"type": "environment", "map": "builtin:sky"}]}),
+            "lights[0]: environment lights are not supported yet",
+        ),
+        (
+            json!({"materials": {"tall_block": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}}),
+            "material overrides are not supported yet",
+        ),
+    ] {
+        let r = s.relight(ID, &body, Some("application/json")).await;
+        expect_error(r, StatusCode::BAD_REQUEST, "unsupported", &[needle]).await;
+    }
+    // A material override for an object that does not exist is invalid, not unsupported.
+    let body = json!({"materials": {"teapot": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["materials.teapot", "tall_block"],
+    )
+    .await;
+
+    // Over 1 MiB.
+    let big = format!("{{\"lights\":[],\"pad\":\"{}\"}}", "x".repeat(2 << 20));
+    let r = post(relight)
+        .header(CONTENT_TYPE, "application/json")
+        .body(big)
+        .send()
+        .await
+        .unwrap();
+    expect_error(
+        r,
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "payload_too_large",
+        &["1 MiB"],
+    )
+    .await;
+
+    // Not JSON.
+    let r = post(relight)
+        .header(CONTENT_TYPE, "text/plain")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    expect_error(
+        r,
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+        &["text/plain"],
+    )
+    .await;
+    let r = post(relight).body("{}").send().await.unwrap();
+    expect_error(
+        r,
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+        &["Content-Type"],
+    )
+    .await;
+
+    // An answer format the endpoint does not offer.
+    let r = s.relight(ID, &json!({}), Some("image/png")).await;
+    expect_error(
+        r,
+        StatusCode::NOT_ACCEPTABLE,
+        "not_acceptable",
+        &["image/png"],
+    )
+    .await;
+
+    // The server is still fine.
+    let ok = s.relight_json(&json!({})).await;
+    assert!(ok.vertex_count > 0);
+    s.stop().await;
+}
+
+/// Copies a bundle folder (flat: a bundle has no sub-folders).
+fn copy_bundle(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+}
+
+#[tokio::test]
+async fn a_corrupt_bundle_is_skipped_and_the_good_one_served() {
+    let tmp = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap();
+    copy_bundle(&bundle_dir(), &tmp.path().join("good"));
+    copy_bundle(&bundle_dir(), &tmp.path().join("bad"));
+    let ff_val = tmp.path().join("bad").join("ff_val.f32");
+    let len = std::fs::metadata(&ff_val).unwrap().len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&ff_val)
+        .unwrap()
+        .set_len(len - 4)
+        .unwrap();
+    // A writer's hidden temporary folder and a stray file are passed over silently.
+    std::fs::create_dir(tmp.path().join(".good.tmp-1")).unwrap();
+    std::fs::write(tmp.path().join("README"), "not a bundle").unwrap();
+
+    let (state, errors) = load_bundles(tmp.path());
+    assert_eq!(state.ids(), vec!["good".to_string()]);
+    assert_eq!(errors.len(), 1, "{errors:?}");
+    assert_eq!(errors[0].0, "bad");
+    assert!(
+        errors[0].1.starts_with("ff_val.f32 is truncated"),
+        "{}",
+        errors[0].1
+    );
+
+    let s = TestServer::start(state).await;
+    let list: SceneList = s.get_json("/api/v1/scenes").await;
+    let ids: Vec<&str> = list.scenes.iter().map(|x| x.id.as_str()).collect();
+    assert_eq!(ids, ["good"]);
+    let h: Health = s.get_json("/healthz").await;
+    assert_eq!(h.scenes, ["good"]);
+    expect_error(
+        s.get("/api/v1/scenes/bad").await,
+        StatusCode::NOT_FOUND,
+        "not_found",
+        &["bad"],
+    )
+    .await;
+    let r = s
+        .relight("good", &json!({}), Some("application/json"))
+        .await;
+    assert_eq!(r.status(), StatusCode::OK);
+    s.stop().await;
+
+    // A folder that does not exist is one error, not a panic.
+    let (state, errors) = load_bundles(&tmp.path().join("missing"));
+    assert!(state.is_empty());
+    assert_eq!(errors.len(), 1);
+}
