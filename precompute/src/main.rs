@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::Parser;
 use translux_precompute::formfactor::FormFactorParams;
-use translux_precompute::pipeline::{self, PrecomputeParams};
+use translux_precompute::pipeline::{self, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
@@ -54,14 +54,6 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-fn gib(b: u64) -> String {
-    format!("{:.2} GiB", b as f64 / (1u64 << 30) as f64)
-}
-
-fn mib(b: u64) -> String {
-    format!("{:.1} MiB", b as f64 / (1u64 << 20) as f64)
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
@@ -112,7 +104,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     );
     println!(
         "  F row sums         mean {:.4}, min {:.4}, max {:.4}",
-        ff.row_sum_mean, ff.row_sum_min, ff.row_sum_max
+        ff.row_sum_mean,
+        ff.row_sum_min.max(0.0),
+        ff.row_sum_max
     );
     if ff.threshold > 0.0 {
         println!(
@@ -129,16 +123,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     println!("  nnz(S)             0 (subsurface scattering not computed by this build)");
     println!(
         "  bundle             {} ({} bytes)",
-        mib(report.bundle_bytes),
+        human_bytes(report.bundle_bytes),
         report.bundle_bytes
     );
     println!("  stage times        load {load_s:.2} s");
     for s in &report.stages {
         println!("                     {} {:.2} s", s.stage, s.seconds);
     }
-    println!("  memory estimate    {}", gib(report.memory_estimate));
+    println!(
+        "  memory estimate    {}",
+        human_bytes(report.memory_estimate)
+    );
     if let Some(rss) = report.peak_rss {
-        println!("  peak memory (RSS)  {}", gib(rss));
+        println!("  peak memory (RSS)  {}", human_bytes(rss));
     }
     Ok(())
 }

@@ -75,16 +75,17 @@ pub enum PrecomputeError {
     )]
     TooManyPatches { requested: u64, pairs: f64 },
     #[error(
-        "{patches} patches would need about {estimate_gib:.1} GiB (F has ~{nnz:.2e} non-zeros, \
-         {bytes_per_nnz} bytes each while building), more than the {limit_gib:.1} GiB allowed; \
-         use fewer patches"
+        "{patches} patches would need about {} (F has ~{nnz:.2e} non-zeros, {bytes_per_nnz} \
+         bytes each while building), more than the {} allowed; use fewer patches",
+        human_bytes(*estimate),
+        human_bytes(*limit)
     )]
     OutOfMemory {
         patches: u64,
         nnz: f64,
         bytes_per_nnz: u64,
-        estimate_gib: f64,
-        limit_gib: f64,
+        estimate: u64,
+        limit: u64,
     },
     #[error("the scene has no triangles")]
     Empty,
@@ -141,6 +142,21 @@ fn finish(bar: ProgressBar, progress: bool, name: &str, t: Instant, stages: &mut
         stage: name.to_string(),
         seconds,
     });
+}
+
+/// `1.5 GiB`, `12.0 MiB`, `512 B`.
+pub fn human_bytes(b: u64) -> String {
+    const UNITS: [&str; 4] = ["KiB", "MiB", "GiB", "TiB"];
+    if b < 1024 {
+        return format!("{b} B");
+    }
+    let mut v = b as f64 / 1024.0;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < UNITS.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    format!("{v:.1} {}", UNITS[u])
 }
 
 /// Bytes of memory available now (Linux `MemAvailable`), if known.
@@ -279,8 +295,8 @@ pub fn precompute(
             patches: patches.len() as u64,
             nnz: nnz_est,
             bytes_per_nnz: BUILD_BYTES_PER_NNZ,
-            estimate_gib: memory_estimate as f64 / (1u64 << 30) as f64,
-            limit_gib: limit as f64 / (1u64 << 30) as f64,
+            estimate: memory_estimate,
+            limit,
         });
     }
 

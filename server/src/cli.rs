@@ -1,6 +1,7 @@
 //! The `translux-server` command line: arguments, logging, the demo bundle, the listener.
 
 use std::future::Future;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -23,7 +24,14 @@ pub const DEMO_PATCHES: u64 = 3000;
 
 /// Serves translux bundles: lights in, per-vertex colours out.
 #[derive(Debug, Clone, Parser)]
-#[command(name = "translux-server", version, about, long_about = None)]
+#[command(
+    name = "translux-server",
+    version,
+    about,
+    long_about = None,
+    after_help = "Examples:\n  translux-server --demo\n  translux-server --bundles bundles --addr 0.0.0.0:8080\n\n\
+                  Logging: RUST_LOG (default info); RUST_LOG=debug logs every request."
+)]
 pub struct Args {
     /// Folder of bundles: each sub-folder is one bundle, served under its folder name.
     #[arg(
@@ -78,6 +86,7 @@ pub fn init_tracing() {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .try_init();
 }
 

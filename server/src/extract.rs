@@ -1,8 +1,9 @@
 //! Request plumbing: the strict JSON body extractor and `Accept` negotiation.
 
 use axum::body::Bytes;
-use axum::extract::{FromRequest, Request};
+use axum::extract::{FromRequest, FromRequestParts, Path, Request};
 use axum::http::header::{ACCEPT, CONTENT_TYPE};
+use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue};
 use serde::de::DeserializeOwned;
 
@@ -63,6 +64,28 @@ where
         translux_proto::parse_json(text)
             .map(JsonBody)
             .map_err(|e| AppError::bad_request(format!("invalid JSON body: {e}")))
+    }
+}
+
+/// The `{id}` of a scene route; an id that is not valid UTF-8 once percent-decoded is a 400
+/// `bad_request` in the JSON error format (axum's own rejection is plain text).
+#[derive(Debug, Clone)]
+pub struct SceneId(pub String);
+
+impl<S> FromRequestParts<S> for SceneId
+where
+    S: Send + Sync,
+{
+    type Rejection = AppError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        match Path::<String>::from_request_parts(parts, state).await {
+            Ok(Path(id)) => Ok(SceneId(id)),
+            Err(e) => Err(AppError::bad_request(format!(
+                "bad scene id: {}",
+                e.body_text()
+            ))),
+        }
     }
 }
 

@@ -161,6 +161,17 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError>
         b.vertex_positions().len(),
         &radiosity,
     );
+    // Finite inputs can still overflow f32 (an intensity near f32::MAX); never answer NaN or
+    // infinity (JSON has no such numbers).
+    if let Some(k) = radiance
+        .iter()
+        .position(|v| !v.iter().all(|x| x.is_finite()))
+    {
+        return Err(AppError::invalid(format!(
+            "lights: the result overflows (radiance at vertex {k} is not finite); use smaller \
+             intensities or irradiances"
+        )));
+    }
     let stats = RelightStats {
         solver: solver.to_string(),
         components: plan.components,

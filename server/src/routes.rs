@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use axum::Router;
 use axum::body::{Body, Bytes};
-use axum::extract::{DefaultBodyLimit, Path, Request, State};
+use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::header::{CONTENT_TYPE, VARY};
 use axum::http::{HeaderMap, HeaderValue, Method, Uri};
 use axum::middleware::{self, Next};
@@ -18,7 +18,7 @@ use translux_proto::api::{
 };
 
 use crate::error::AppError;
-use crate::extract::{BODY_LIMIT, Format, JsonBody, negotiate};
+use crate::extract::{BODY_LIMIT, Format, JsonBody, SceneId, negotiate};
 use crate::relight;
 use crate::state::{AppState, Scene};
 
@@ -106,7 +106,7 @@ async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError
 
 async fn scene_detail(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    SceneId(id): SceneId,
 ) -> Result<Response, AppError> {
     let scene = find_scene(&state, &id)?;
     let m = scene.bundle.manifest();
@@ -162,7 +162,7 @@ fn mesh_of(scene: &Scene) -> Mesh {
 
 async fn scene_mesh(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    SceneId(id): SceneId,
 ) -> Result<Response, AppError> {
     let scene = find_scene(&state, &id)?;
     if let Some(bytes) = scene.mesh_json.get() {
@@ -180,7 +180,7 @@ async fn scene_mesh(
 
 async fn relight(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    SceneId(id): SceneId,
     headers: HeaderMap,
     body: Result<JsonBody<RelightRequest>, AppError>,
 ) -> Result<Response, AppError> {
@@ -198,7 +198,7 @@ async fn relight(
         components = s.components.as_str(),
         lights = s.lights,
         iterations = s.iterations,
-        residual = s.residual,
+        residual = format_args!("{:.2e}", s.residual),
         direct_ms = format_args!("{:.1}", s.direct_ms),
         solve_ms = format_args!("{:.1}", s.solve_ms),
         ms = format_args!("{:.1}", s.ms),

@@ -320,6 +320,8 @@ async fn scene_list_detail_health_and_index() {
         &["nope"],
     )
     .await;
+    let r = s.get("/api/v1/scenes/%FF").await;
+    expect_error(r, StatusCode::BAD_REQUEST, "bad_request", &["UTF-8"]).await;
     expect_error(
         s.get("/api/v2/whatever").await,
         StatusCode::NOT_FOUND,
@@ -548,6 +550,13 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         &["lights[0].direction"],
     )
     .await;
+
+    // Finite but absurd: an error or an answer, never a hang, a 500 or a NaN.
+    let body = json!({"lights":[
+        {"type":"point","position":[1e30,-1e30,3e38],"intensity":[3e38,3e38,3e38]},
+        {"type":"point","position":[0,0.3,0],"intensity":[3e38,3e38,3e38]}]});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(r, StatusCode::BAD_REQUEST, "invalid", &["not finite"]).await;
 
     // Unknown fields, at the top and inside a light.
     let r = s.relight(ID, &json!({"light": []}), None).await;
