@@ -9,8 +9,8 @@
 //! ```
 //!
 //! Scenes: `builtin:cornell` split into ~130k patches (the patch corners are the triangle
-//! soup), the Stanford bunny (skipped when its OBJ is missing), and 100k random overlapping
-//! triangles. Queries: surface-to-surface segments between uniform points on two random
+//! soup), the Stanford bunny (skipped when its OBJ is missing; `--bunny PATH`), and 100k
+//! random overlapping triangles in the unit cube (`--soup-half`). Queries: surface-to-surface segments between uniform points on two random
 //! triangles (seeded xorshift), each end pushed off its triangle by 1e-5 × the scene diagonal
 //! towards the other end, as `formfactor.rs` does before calling [`Occluder::occluded`].
 //!
@@ -24,10 +24,13 @@
 //!   (a scalar slab test clipped to the segment), to show what a t-range would buy.
 //!
 //! Agreement is the share of segments on which a row gives the same hit/miss answer as the
-//! obvhs row. Some disagreement is expected: `intersect_closed` in `raycast.rs` widens the
-//! barycentric test by 1e-5 (seams), while bvh's test is exact and culls triangles whose
-//! determinant is below `f32::EPSILON` (absolute, so small triangles seen at a grazing
-//! angle are missed: this matters at the bunny's real scale of ~0.2 units).
+//! obvhs row; up to 2000 disagreements per row are re-checked by an exact f64 brute force
+//! over all triangles. Some disagreement is expected: `intersect_closed` in `raycast.rs`
+//! widens the barycentric test by 1e-5 (seams), while bvh's test is exact and culls
+//! triangles whose determinant is below `f32::EPSILON`. That threshold is absolute (the
+//! determinant is 2 × area × cos for a unit direction), so small triangles seen at a
+//! grazing angle are missed: at the bunny's real scale (~0.2 units, ~1e-6 per triangle)
+//! about 1% of segments, and none once the bunny is scaled up 100×.
 //!
 //! "All threads" is rayon's global pool; "1 thread" is a plain sequential loop. Each rate is
 //! the best of `--repeats` runs over all segments. Build times use all threads.
@@ -84,6 +87,7 @@ struct Options {
     repeats: usize,
     seed: u64,
     bunny: PathBuf,
+    soup_half: f32,
 }
 
 fn parse_args() -> Options {
@@ -93,21 +97,21 @@ fn parse_args() -> Options {
         repeats: 2,
         seed: 0x5EED,
         bunny: repo_root.join("../shared/data/stanford-bunny.obj"),
+        soup_half: SOUP_HALF,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
-        let mut value = || {
-            args.next()
-                .unwrap_or_else(|| panic!("{arg} needs a value"))
-        };
+        let mut value = || args.next().unwrap_or_else(|| panic!("{arg} needs a value"));
         match arg.as_str() {
             "--segments" => o.segments = value().parse().expect("--segments: a count"),
             "--repeats" => o.repeats = value().parse::<usize>().expect("--repeats").max(1),
             "--seed" => o.seed = value().parse().expect("--seed: an integer"),
             "--bunny" => o.bunny = PathBuf::from(value()),
+            "--soup-half" => o.soup_half = value().parse().expect("--soup-half: a length"),
             "-h" | "--help" => {
                 println!(
-                    "bvh_compare [--segments N (2000000)] [--repeats R (2)] [--seed S] [--bunny PATH]"
+                    "bvh_compare [--segments N (2000000)] [--repeats R (2)] [--seed S] [--bunny PATH] \
+                     [--soup-half H ({SOUP_HALF})]"
                 );
                 std::process::exit(0);
             }
@@ -151,14 +155,17 @@ fn obj_triangles(path: &std::path::Path) -> Result<Vec<[Vec3; 3]>, String> {
     Ok(tris)
 }
 
-/// `n` triangles with centres uniform in the unit cube and corners within ±0.05 of them:
-/// heavily overlapping boxes, the worst case for a BVH.
-fn random_soup(n: usize, seed: u64) -> Vec<[Vec3; 3]> {
+/// Default half-size of the random triangles' corner cube (unit-cube scene).
+const SOUP_HALF: f32 = 0.01;
+
+/// `n` triangles with centres uniform in the unit cube and corners within ±`half` of them:
+/// overlapping boxes, the worst case for a BVH.
+fn random_soup(n: usize, half: f32, seed: u64) -> Vec<[Vec3; 3]> {
     let mut rng = XorShift::new(seed);
     (0..n)
         .map(|_| {
             let c = rng.vec3();
-            let mut corner = || c + (rng.vec3() - Vec3::splat(0.5)) * 0.1;
+            let mut corner = || c + (rng.vec3() - Vec3::splat(0.5)) * (2.0 * half);
             [corner(), corner(), corner()]
         })
         .collect()
@@ -190,18 +197,29 @@ fn surface_point(tris: &[[Vec3; 3]], rng: &mut XorShift) -> (Vec3, Vec3) {
 }
 
 /// Segments between random surface points, each end offset along its normal, on the side
-/// facing the other end, by 1e-5 × the scene diagonal.
+/// facing the other end, by 1e-5 × the scene diagonal (surfaces count as two-sided).
+///
+/// Pairs where either point lies within 1e-6 × the diagonal of the other's plane are drawn
+/// again: `formfactor.rs` culls those before casting (`any_in_front`), and for two points on
+/// one wall the side "facing the other end" is rounding noise, which would send the segment
+/// through the wall at a grazing angle.
 fn make_segments(tris: &[[Vec3; 3]], count: usize, seed: u64) -> Vec<Segment> {
-    let offset = 1e-5 * diagonal(tris);
+    let diag = diagonal(tris);
+    let (offset, eps_plane) = (1e-5 * diag, 1e-6 * diag);
     let mut rng = XorShift::new(seed);
-    let toward = |n: Vec3, from: Vec3, to: Vec3| if n.dot(to - from) < 0.0 { -n } else { n };
     (0..count)
         .map(|_| {
-            let (p, np) = surface_point(tris, &mut rng);
-            let (q, nq) = surface_point(tris, &mut rng);
-            Segment {
-                a: p + toward(np, p, q) * offset,
-                b: q + toward(nq, q, p) * offset,
+            loop {
+                let (p, np) = surface_point(tris, &mut rng);
+                let (q, nq) = surface_point(tris, &mut rng);
+                let (hp, hq) = (np.dot(q - p), nq.dot(p - q));
+                if hp.abs() <= eps_plane || hq.abs() <= eps_plane {
+                    continue;
+                }
+                break Segment {
+                    a: p + np * hp.signum() * offset,
+                    b: q + nq * hq.signum() * offset,
+                };
             }
         })
         .collect()
@@ -317,6 +335,31 @@ impl BvhScene {
     }
 }
 
+/// The referee for disagreements: every triangle, exact Möller–Trumbore in f64, two-sided,
+/// no barycentric tolerance, hit when t ∈ (1e-4, 1 − 1e-4) in segment units.
+fn brute_force(tris: &[[Vec3; 3]], s: &Segment) -> bool {
+    let v = |p: Vec3| p.as_dvec3();
+    let (o, d) = (v(s.a), v(s.b) - v(s.a));
+    tris.iter().any(|t| {
+        let (t0, e1, e2) = (v(t[0]), v(t[1]) - v(t[0]), v(t[2]) - v(t[0]));
+        let p = d.cross(e2);
+        let det = e1.dot(p);
+        if det == 0.0 {
+            return false;
+        }
+        let inv = 1.0 / det;
+        let so = o - t0;
+        let u = so.dot(p) * inv;
+        let q = so.cross(e1);
+        let w = d.dot(q) * inv;
+        let t = e2.dot(q) * inv;
+        (0.0..=1.0).contains(&u) && w >= 0.0 && u + w <= 1.0 && t > 1e-4 && t < 1.0 - 1e-4
+    })
+}
+
+/// At most this many disagreements per row are checked against [`brute_force`].
+const REFEREE_CAP: usize = 2000;
+
 struct Measured {
     rate_1: f64,
     rate_all: f64,
@@ -355,6 +398,8 @@ struct Row {
     m: Measured,
     /// (segments that differ, of which obvhs hit and this row missed).
     differ: (usize, usize),
+    /// (disagreements checked by brute force, of which obvhs had the brute-force answer).
+    referee: (usize, usize),
 }
 
 fn bench_scene(name: &str, tris: &[[Vec3; 3]], o: &Options, rows: &mut Vec<Row>) {
@@ -391,18 +436,20 @@ fn bench_scene(name: &str, tris: &[[Vec3; 3]], o: &Options, rows: &mut Vec<Row>)
     let seg = measure(&segs, o.repeats, |a, b| scene.occluded_segment(a, b));
 
     let differ = |m: &Measured| {
-        let mut n = 0;
-        let mut only_ref = 0;
-        for (&r, &x) in reference.answers.iter().zip(&m.answers) {
-            if r != x {
-                n += 1;
-                only_ref += r as usize;
-            }
-        }
-        (n, only_ref)
+        let idx: Vec<usize> = (0..segs.len())
+            .filter(|&i| reference.answers[i] != m.answers[i])
+            .collect();
+        let only_ref = idx.iter().filter(|&&i| reference.answers[i]).count();
+        let checked = &idx[..idx.len().min(REFEREE_CAP)];
+        let ref_right = checked
+            .par_iter()
+            .filter(|&&i| brute_force(tris, &segs[i]) == reference.answers[i])
+            .count();
+        ((idx.len(), only_ref), (checked.len(), ref_right))
     };
+    eprintln!("  refereeing disagreements");
     let (d_ray, d_seg) = (differ(&ray), differ(&seg));
-    let mut row = |krate, build_ms: String, m: Measured, differ| {
+    let mut row = |krate, build_ms: String, m: Measured, (differ, referee)| {
         rows.push(Row {
             scene: name.to_owned(),
             triangles: tris.len(),
@@ -410,21 +457,17 @@ fn bench_scene(name: &str, tris: &[[Vec3; 3]], o: &Options, rows: &mut Vec<Row>)
             build_ms,
             m,
             differ,
+            referee,
         })
     };
     row(
         "obvhs 0.4 CWBVH (Occluder)",
         format!("{build_obvhs:.1}"),
         reference,
-        (0, 0),
+        ((0, 0), (0, 0)),
     );
     row("bvh 0.13 Ray", format!("{build_bvh:.1}"), ray, d_ray);
-    row(
-        "bvh 0.13 segment query",
-        "(same tree)".into(),
-        seg,
-        d_seg,
-    );
+    row("bvh 0.13 segment query", "(same tree)".into(), seg, d_seg);
 }
 
 fn main() {
@@ -449,7 +492,7 @@ fn main() {
         eprintln!("skipping the bunny: {why}");
     }
 
-    let tris = random_soup(100_000, o.seed);
+    let tris = random_soup(100_000, o.soup_half, o.seed);
     bench_scene("random overlapping", &tris, &o, &mut rows);
 
     println!(
@@ -480,16 +523,22 @@ fn main() {
             100.0 * hits / n
         );
     }
-    println!("\nDisagreements with obvhs (obvhs hit / this row hit):\n");
+    println!(
+        "\nDisagreements with obvhs; the first {REFEREE_CAP} of each row checked against an \
+         exact f64 brute force over all triangles (two-sided, no tolerance):\n"
+    );
     for r in rows.iter().filter(|r| !r.krate.starts_with("obvhs")) {
         println!(
-            "- {}, {}: {} of {} ({} / {})",
+            "- {}, {}: {} of {} segments (obvhs hit, this row missed: {}; the reverse: {}); \
+             brute force agrees with obvhs on {} of {} checked",
             r.scene,
             r.krate,
             r.differ.0,
             r.m.answers.len(),
             r.differ.1,
-            r.differ.0 - r.differ.1
+            r.differ.0 - r.differ.1,
+            r.referee.1,
+            r.referee.0
         );
     }
     if let Some(why) = skipped {
