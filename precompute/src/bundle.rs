@@ -365,7 +365,8 @@ pub fn write_bundle(
 mod tests {
     use super::*;
     use translux_proto::bundle::{
-        Bundle, FORMAT, FORMAT_VERSION, FormFactorInfo, ObjectInfo, OpenOptions, arrays,
+        Bundle, FORMAT, FORMAT_VERSION, FormFactorInfo, ObjectInfo, OpenOptions, SubsurfaceInfo,
+        arrays,
     };
     use translux_proto::light::Camera;
     use translux_proto::scene::Material;
@@ -404,6 +405,10 @@ mod tests {
             form_factors: FormFactorInfo {
                 nnz,
                 threshold: 0.0,
+                ..Default::default()
+            },
+            subsurface: SubsurfaceInfo {
+                nnz: N,
                 ..Default::default()
             },
             stages: vec![],
@@ -445,6 +450,13 @@ mod tests {
             NamedArray::u64(arrays::FF_ROW_PTR, vec![N + 1], row_ptr),
             NamedArray::u32(arrays::FF_COL, vec![nnz], col),
             NamedArray::f32(arrays::FF_VAL, vec![nnz], val),
+            // S = diag(ρ); no translucent object, so no distances.
+            NamedArray::u64(arrays::S_ROW_PTR, vec![N + 1], vec![0, 1, 2, 3, 4]),
+            NamedArray::u32(arrays::S_COL, vec![N], vec![0, 1, 2, 3]),
+            NamedArray::f32(arrays::S_VAL, vec![N, 3], [0.7, 0.6, 0.5].repeat(4)),
+            NamedArray::u64(arrays::DIST_ROW_PTR, vec![N + 1], vec![0; 5]),
+            NamedArray::u32(arrays::DIST_COL, vec![0], vec![]),
+            NamedArray::f32(arrays::DIST_VAL, vec![0], vec![]),
         ]
     }
 
@@ -481,7 +493,10 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path().join("nested").join("fan");
         let report = write_good(&out);
-        assert_eq!(report.files, 14);
+        assert_eq!(
+            report.files,
+            translux_proto::bundle::REQUIRED_ARRAYS.len() + 1
+        );
         // No temporary folder left next to it.
         assert_eq!(entries(out.parent().unwrap()), vec!["fan".to_string()]);
 
@@ -590,7 +605,7 @@ mod tests {
         fs::write(&path, serde_json::to_string_pretty(&json).unwrap()).unwrap();
         assert_eq!(
             open_err(&out),
-            "manifest.json: bundle version 99 is not supported (this build reads version 1)"
+            "manifest.json: bundle version 99 is not supported (this build reads version 2)"
         );
         fs::write(&path, "{\"format\": \"translux-bundle\",\n  oops").unwrap();
         let e = open_err(&out);

@@ -10,8 +10,10 @@
 //! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
 //! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
 //! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
-//! 5. [`bundle`] — write arrays and manifest atomically.
-//! 6. [`radiosity`] — direct lighting and the diffuse solve B = Bₑ + ρ(E + F B).
+//! 5. [`voxel`], [`profile`], [`subsurface`], [`smatrix`] — optical path distances inside
+//!    translucent objects, diffuse reflectance profiles, and S from both.
+//! 6. [`bundle`] — write arrays and manifest atomically.
+//! 7. [`radiosity`] — direct lighting and the solve B = Bₑ + S(E + F B).
 //!
 //! [`pipeline::precompute`] runs 1–5 with progress and a summary.
 //!
@@ -33,3 +35,6 @@ pub mod radiosity;
 pub mod raycast;
 pub mod scene;
 pub mod shapes;
+pub mod smatrix;
+pub mod subsurface;
+pub mod voxel;

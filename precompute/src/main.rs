@@ -59,8 +59,8 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<()> {
     if cli.inverse {
         bail!(
-            "--inverse: the transfer matrix T needs the subsurface matrix S, which this build \
-             does not compute yet; run without --inverse (relighting then uses the iterative solve)"
+            "--inverse: this build does not compute the transfer matrix T = (I - S F)^-1 S yet; \
+             run without --inverse (relighting then uses the iterative solve)"
         );
     }
     if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
@@ -84,6 +84,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         },
         memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
         progress: !cli.quiet,
+        ..Default::default()
     };
     let report = pipeline::precompute(&loaded, &cli.out, &params)
         .with_context(|| format!("precomputing {}", cli.scene))?;
@@ -120,7 +121,33 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         ff.rays,
         report.rays_per_second / 1e6
     );
-    println!("  nnz(S)             0 (subsurface scattering not computed by this build)");
+    let ss = &report.subsurface;
+    println!(
+        "  nnz(S)             {} (optical distances stored: {})",
+        ss.nnz, ss.distance_nnz
+    );
+    for o in &ss.objects {
+        println!(
+            "    {:<16} {} paths, r ≤ {:.4} (scene units), {} voxels ({} inside, size {:.4}), \
+             max column energy {:.3}{}, {:.2} s",
+            o.name,
+            o.method,
+            o.truncation_radius,
+            o.voxels,
+            o.interior_voxels,
+            o.voxel_size,
+            o.max_column_energy,
+            if o.scaled_columns > 0 {
+                format!(" ({} columns scaled to 1)", o.scaled_columns)
+            } else {
+                String::new()
+            },
+            o.seconds
+        );
+        if let Some(w) = &o.warning {
+            println!("    warning: {w}");
+        }
+    }
     println!(
         "  bundle             {} ({} bytes)",
         human_bytes(report.bundle_bytes),

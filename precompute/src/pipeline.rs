@@ -12,7 +12,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use thiserror::Error;
 use translux_proto::bundle::{
-    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, arrays,
+    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, SubsurfaceInfo, arrays,
 };
 use translux_proto::light::Camera;
 use translux_proto::scene::Material;
@@ -23,6 +23,7 @@ use crate::patch::{self, Density, Patches};
 use crate::profile;
 use crate::raycast::Occluder;
 use crate::scene::LoadedScene;
+use crate::smatrix::{self, ObjectMaterial, SError, SParams};
 
 /// Patch target for scene files that name no density.
 pub const DEFAULT_PATCHES: u64 = 10_000;
@@ -37,6 +38,7 @@ pub struct PrecomputeParams {
     /// Maximum patch edge (scene units); overrides the scene file's `patches`.
     pub max_edge: Option<f32>,
     pub form_factors: FormFactorParams,
+    pub subsurface: SParams,
     /// Refuse when the estimated peak memory exceeds this many bytes (default: 85% of the
     /// memory available now).
     pub memory_limit: Option<u64>,
@@ -53,6 +55,7 @@ pub struct PrecomputeReport {
     pub nnz_f: u64,
     pub bundle_bytes: u64,
     pub form_factors: FormFactorInfo,
+    pub subsurface: SubsurfaceInfo,
     pub stages: Vec<StageTime>,
     /// Occlusion rays per second during the form-factor stage.
     pub rays_per_second: f64,
@@ -89,6 +92,8 @@ pub enum PrecomputeError {
     },
     #[error("the scene has no triangles")]
     Empty,
+    #[error(transparent)]
+    Subsurface(#[from] SError),
     #[error(transparent)]
     Write(#[from] BundleWriteError),
 }
@@ -316,6 +321,63 @@ pub fn precompute(
     let ff_seconds = t.elapsed().as_secs_f64();
     finish(bar, progress, "form factors", t, &mut stages);
 
+    // Subsurface: distances and S per translucent object, ρ on the diagonal elsewhere.
+    let t = Instant::now();
+    let bar = stage_bar(progress, 2, "subsurface");
+    let geometry = smatrix::PatchGeometry {
+        corners: patches.corners.clone(),
+        centroid: patches.centroid.clone(),
+        normal: patches.normal.clone(),
+        area: patches.area.clone(),
+        size: patches.size.clone(),
+    };
+    let materials: Vec<ObjectMaterial<'_>> = scene
+        .objects
+        .iter()
+        .zip(&patches.object_ranges)
+        .map(|(o, r)| ObjectMaterial {
+            name: &o.name,
+            material: &o.material,
+            patches: r.clone(),
+        })
+        .collect();
+    let unit_mm = scene.file.unit_mm;
+    let sp = &params.subsurface;
+    let (dist, dist_reports) =
+        smatrix::scene_distances(&geometry, &materials, &sources, unit_mm, sp)?;
+    bar.inc(1);
+    let stored: Vec<f32> = materials
+        .iter()
+        .map(|o| {
+            dist_reports
+                .iter()
+                .find(|d| d.name == o.name)
+                .map_or(0.0, |d| d.radius)
+        })
+        .collect();
+    let dist_view = translux_proto::csr::CsrView::new_checked(
+        n as usize,
+        n as usize,
+        &dist.row_ptr,
+        &dist.col,
+        &dist.val,
+    )
+    .expect("stage 1 builds a valid CSR");
+    let (smat, s_reports) =
+        smatrix::assemble_scene(&geometry, &materials, dist_view, &stored, unit_mm, sp)?;
+    bar.inc(1);
+    for d in &dist_reports {
+        if let Some(w) = &d.warning {
+            eprintln!("warning: {w}");
+        }
+    }
+    let subsurface_info = SubsurfaceInfo {
+        nnz: smat.col.len() as u64,
+        distance_nnz: dist.col.len() as u64,
+        objects: smatrix::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy),
+    };
+    finish(bar, progress, "subsurface", t, &mut stages);
+
     // Bundle.
     let t = Instant::now();
     let bar = stage_bar(progress, 1, "write bundle");
@@ -404,6 +466,36 @@ pub fn precompute(
             shape: vec![nnz],
             data: ArrayData::F32(ff.val),
         },
+        NamedArray {
+            name: arrays::S_ROW_PTR,
+            shape: vec![np + 1],
+            data: ArrayData::U64(smat.row_ptr),
+        },
+        NamedArray {
+            name: arrays::S_COL,
+            shape: vec![smat.col.len() as u64],
+            data: ArrayData::U32(smat.col),
+        },
+        NamedArray {
+            name: arrays::S_VAL,
+            shape: vec![smat.val.len() as u64, 3],
+            data: ArrayData::F32(smat.val.concat()),
+        },
+        NamedArray {
+            name: arrays::DIST_ROW_PTR,
+            shape: vec![np + 1],
+            data: ArrayData::U64(dist.row_ptr),
+        },
+        NamedArray {
+            name: arrays::DIST_COL,
+            shape: vec![dist.col.len() as u64],
+            data: ArrayData::U32(dist.col),
+        },
+        NamedArray {
+            name: arrays::DIST_VAL,
+            shape: vec![dist.val.len() as u64],
+            data: ArrayData::F32(dist.val),
+        },
     ];
     let camera = scene
         .file
@@ -423,6 +515,7 @@ pub fn precompute(
         lights: scene.file.lights.clone(),
         camera,
         form_factors: ff_info.clone(),
+        subsurface: subsurface_info.clone(),
         stages: stages.clone(),
         arrays: Default::default(),
     };
@@ -438,6 +531,7 @@ pub fn precompute(
         bundle_bytes: written.bytes,
         rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
         form_factors: ff_info,
+        subsurface: subsurface_info,
         stages,
         memory_estimate,
         peak_rss: peak_rss(),

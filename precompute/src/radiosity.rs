@@ -1,15 +1,16 @@
-//! Direct lighting and the diffuse radiosity solve.
+//! Direct lighting and the radiosity solve.
 //!
-//! In: patch geometry, ρ (S = diag ρ), emitted exitance Bₑ, the form factors F and lights.
+//! In: patch geometry, the scattering operator S (diag ρ for opaque scenes, or the sparse
+//! subsurface matrix), emitted exitance Bₑ, the form factors F and lights.
 //! Out: radiosity B (W·m⁻², per patch, RGB) from
 //!
 //! ```text
-//!     B = Bₑ + ρ ∘ (E + F B)
+//!     B = Bₑ + S (E + F B)
 //! ```
 //!
-//! where E is the direct irradiance from the lights (W·m⁻², with shadows). This is the
-//! paper's eq. 7 with S = diag(ρ); the full S and its solvers come with the transport work.
-//! A vertex's colour is the outgoing radiance B/π ([`vertex_radiance`]).
+//! where E is the direct irradiance from the lights (W·m⁻², with shadows): the paper's eq. 7
+//! with emitters. With S = diag(ρ) it is classical radiosity. A vertex's colour is the
+//! outgoing radiance B/π ([`vertex_radiance`]).
 
 use std::time::Instant;
 
@@ -161,6 +162,58 @@ pub fn spmv_rgb(f: &CsrView<'_>, x: &[Rgb], y: &mut [Rgb]) {
         });
 }
 
+/// The scattering operator S: what exitance each patch sends out per unit irradiance.
+pub trait Scatter: Sync {
+    /// y = S h.
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]);
+    /// Whether S is diagonal (Gauss-Seidel needs that).
+    fn diagonal(&self) -> Option<&[Rgb]>;
+}
+
+/// S = diag(ρ): opaque Lambertian patches.
+#[derive(Debug, Clone, Copy)]
+pub struct Albedo<'a>(pub &'a [Rgb]);
+
+impl Scatter for Albedo<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        y.par_iter_mut()
+            .zip(h.par_iter())
+            .zip(self.0.par_iter())
+            .for_each(|((y, h), r)| {
+                *y = [r[0] * h[0], r[1] * h[1], r[2] * h[2]];
+            });
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        Some(self.0)
+    }
+}
+
+/// S as a sparse matrix of RGB entries: row j lists the sources i with S_ji.
+#[derive(Debug, Clone, Copy)]
+pub struct SparseScatter<'a>(pub CsrView<'a, Rgb>);
+
+impl Scatter for SparseScatter<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        y.par_iter_mut()
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(j, yj)| {
+                let (cols, vals) = self.0.row(j);
+                let mut acc = [0.0f32; 3];
+                for (&i, s) in cols.iter().zip(vals) {
+                    let hi = &h[i as usize];
+                    acc[0] += s[0] * hi[0];
+                    acc[1] += s[1] * hi[1];
+                    acc[2] += s[2] * hi[2];
+                }
+                *yj = acc;
+            });
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        None
+    }
+}
+
 /// Iteration scheme.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Method {
@@ -202,7 +255,16 @@ pub struct SolveStats {
     pub seconds: f64,
 }
 
-/// Solves B = Bₑ + ρ(E + F B). `warm` starts from a previous solution.
+/// Why a solve could not run.
+#[derive(Debug, Error, PartialEq)]
+pub enum SolveError {
+    #[error(
+        "Gauss-Seidel needs a diagonal S (an opaque scene); use Jacobi for translucent objects"
+    )]
+    GaussSeidelNeedsDiagonal,
+}
+
+/// Solves B = Bₑ + ρ(E + F B) for an opaque scene (S = diag ρ).
 pub fn solve_diffuse(
     f: &CsrView<'_>,
     albedo: &[Rgb],
@@ -211,17 +273,37 @@ pub fn solve_diffuse(
     params: &SolveParams,
     warm: Option<&[Rgb]>,
 ) -> (Vec<Rgb>, SolveStats) {
+    match solve(f, &Albedo(albedo), emission, irradiance, params, warm) {
+        Ok(r) => r,
+        // A diagonal S accepts every method.
+        Err(SolveError::GaussSeidelNeedsDiagonal) => unreachable!("Albedo is diagonal"),
+    }
+}
+
+/// Solves B = Bₑ + S(E + F B). `warm` starts from a previous solution.
+pub fn solve(
+    f: &CsrView<'_>,
+    s: &dyn Scatter,
+    emission: &[Rgb],
+    irradiance: &[Rgb],
+    params: &SolveParams,
+    warm: Option<&[Rgb]>,
+) -> Result<(Vec<Rgb>, SolveStats), SolveError> {
     let t0 = Instant::now();
-    let n = albedo.len();
-    // b = Bₑ + ρE, the right-hand side.
-    let b: Vec<Rgb> = (0..n)
-        .map(|i| std::array::from_fn(|c| emission[i][c] + albedo[i][c] * irradiance[i][c]))
-        .collect();
+    let n = emission.len();
+    let diag = s.diagonal();
+    if params.method == Method::GaussSeidel && diag.is_none() {
+        return Err(SolveError::GaussSeidelNeedsDiagonal);
+    }
+    // b = Bₑ + S E, the right-hand side.
+    let mut b = vec![[0.0f32; 3]; n];
+    s.apply(irradiance, &mut b);
+    for (bi, e) in b.iter_mut().zip(emission) {
+        for c in 0..3 {
+            bi[c] += e[c];
+        }
+    }
     let b_norm = norm(&b);
-    let mut x: Vec<Rgb> = match warm {
-        Some(w) if w.len() == n => w.to_vec(),
-        _ => b.clone(),
-    };
     if b_norm == 0.0 {
         let stats = SolveStats {
             iterations: 0,
@@ -229,20 +311,26 @@ pub fn solve_diffuse(
             converged: true,
             seconds: 0.0,
         };
-        return (vec![[0.0; 3]; n], stats);
+        return Ok((vec![[0.0; 3]; n], stats));
     }
+    let mut x: Vec<Rgb> = match warm {
+        Some(w) if w.len() == n => w.to_vec(),
+        _ => b.clone(),
+    };
     let mut fx = vec![[0.0f32; 3]; n];
+    let mut sfx = vec![[0.0f32; 3]; n];
     let mut iterations = 0;
     let mut residual;
     loop {
-        // r = b + ρ F x − x: the residual of x, and also the Jacobi step.
+        // r = b + S F x − x: the residual of x, and also the Jacobi step.
         spmv_rgb(f, &x, &mut fx);
+        s.apply(&fx, &mut sfx);
         let r2: f64 = (0..n)
             .into_par_iter()
             .map(|i| {
                 (0..3)
                     .map(|c| {
-                        let r = b[i][c] + albedo[i][c] * fx[i][c] - x[i][c];
+                        let r = b[i][c] + sfx[i][c] - x[i][c];
                         (r as f64) * (r as f64)
                     })
                     .sum::<f64>()
@@ -253,15 +341,8 @@ pub fn solve_diffuse(
             break;
         }
         iterations += 1;
-        match params.method {
-            Method::Jacobi => {
-                x.par_iter_mut().enumerate().for_each(|(i, xi)| {
-                    for c in 0..3 {
-                        xi[c] = b[i][c] + albedo[i][c] * fx[i][c];
-                    }
-                });
-            }
-            Method::GaussSeidel => {
+        match (params.method, diag) {
+            (Method::GaussSeidel, Some(albedo)) => {
                 for i in 0..n {
                     let (cols, vals) = f.row(i);
                     let mut acc = [0.0f32; 3];
@@ -276,6 +357,13 @@ pub fn solve_diffuse(
                     }
                 }
             }
+            _ => {
+                x.par_iter_mut().enumerate().for_each(|(i, xi)| {
+                    for c in 0..3 {
+                        xi[c] = b[i][c] + sfx[i][c];
+                    }
+                });
+            }
         }
     }
     let stats = SolveStats {
@@ -284,7 +372,7 @@ pub fn solve_diffuse(
         converged: residual <= params.tolerance,
         seconds: t0.elapsed().as_secs_f64(),
     };
-    (x, stats)
+    Ok((x, stats))
 }
 
 fn norm(v: &[Rgb]) -> f64 {

@@ -272,3 +272,36 @@ fn point_light_over_a_plane_gives_inverse_square_cosine() {
         .count();
     assert!(shadowed > 0, "no patch under the blocker is in shadow");
 }
+
+#[test]
+fn thresholding_reports_exactly_the_power_it_drops() {
+    let objects = room(1.0, 0.8, 1.3);
+    let srcs: Vec<&[[Vec3; 3]]> = objects.iter().map(|o| o.as_slice()).collect();
+    let (h, _) = patch::plan(&srcs, Density::Target(1500));
+    let p = patch::subdivide(&srcs, h);
+    let all: Vec<[Vec3; 3]> = objects.iter().flatten().copied().collect();
+    let occ = Occluder::new(&all);
+    let power = |f: &Csr| -> f64 {
+        let v = f.view().unwrap();
+        (0..p.len())
+            .map(|i| p.area[i] as f64 * v.row(i).1.iter().map(|&x| x as f64).sum::<f64>())
+            .sum()
+    };
+    let (full, info0) = formfactor::compute(&p, &occ, &FormFactorParams::default(), &|_| {});
+    assert_eq!(info0.dropped_energy, 0.0);
+    let params = FormFactorParams {
+        threshold: 2e-4,
+        ..Default::default()
+    };
+    let (cut, info) = formfactor::compute(&p, &occ, &params, &|_| {});
+    assert!(cut.nnz() < full.nnz(), "the threshold dropped nothing");
+    assert!(cut.val.iter().all(|&v| v >= 2e-4));
+    let total_area: f64 = p.area.iter().map(|&a| a as f64).sum();
+    let lost = (power(&full) - power(&cut)) / total_area;
+    assert!(info.dropped_energy > 0.0);
+    assert!(
+        (lost - info.dropped_energy).abs() < 1e-4 * lost.max(1e-9) + 1e-7,
+        "{lost} vs {}",
+        info.dropped_energy
+    );
+}

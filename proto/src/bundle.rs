@@ -20,7 +20,13 @@
 //! ├── occluder_tri.f32       [M, 3, 3]  the scene's source triangles, for shadow rays
 //! ├── ff_row_ptr.u64         [N + 1]    F in CSR, rows are receivers (see `csr`)
 //! ├── ff_col.u32             [nnz]
-//! └── ff_val.f32             [nnz]
+//! ├── ff_val.f32             [nnz]
+//! ├── s_row_ptr.u64          [N + 1]    S in CSR: row j (exitance at j) lists sources i
+//! ├── s_col.u32              [nnz_s]    (irradiance at i) and S_ji per RGB channel; opaque
+//! ├── s_val.f32              [nnz_s, 3] patches hold their diagonal ρ, emitters nothing
+//! ├── dist_row_ptr.u64       [N + 1]    optical path r_ij (scene units) between patches of
+//! ├── dist_col.u32           [nnz_d]    the same translucent object, truncated where the
+//! └── dist_val.f32           [nnz_d]    profile is negligible; S is rebuilt from these
 //! ```
 //!
 //! Byte offsets inside an array file: element `k` of a `[N, c]` array of 4-byte type is at
@@ -38,7 +44,7 @@ use crate::scene::Material;
 /// The `format` field of every manifest.
 pub const FORMAT: &str = "translux-bundle";
 /// Bumped whenever the layout changes; a loader refuses other versions.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// The manifest's file name inside a bundle folder.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -57,6 +63,12 @@ pub mod arrays {
     pub const FF_ROW_PTR: &str = "ff_row_ptr";
     pub const FF_COL: &str = "ff_col";
     pub const FF_VAL: &str = "ff_val";
+    pub const S_ROW_PTR: &str = "s_row_ptr";
+    pub const S_COL: &str = "s_col";
+    pub const S_VAL: &str = "s_val";
+    pub const DIST_ROW_PTR: &str = "dist_row_ptr";
+    pub const DIST_COL: &str = "dist_col";
+    pub const DIST_VAL: &str = "dist_val";
 }
 
 /// Element type of an array file.
@@ -132,6 +144,44 @@ pub struct FormFactorInfo {
     pub pairs: u64,
 }
 
+/// How S was built, per translucent object.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SubsurfaceInfo {
+    /// Stored entries of S (diagonals of opaque patches included).
+    pub nnz: u64,
+    /// Stored optical distances.
+    pub distance_nnz: u64,
+    pub objects: Vec<SubsurfaceObject>,
+}
+
+/// One translucent object's S.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SubsurfaceObject {
+    pub name: String,
+    /// `euclidean` (convex object) or `voxel` (shortest interior paths).
+    pub method: String,
+    /// S keeps pairs up to this radius (scene units): beyond it the profile carries less
+    /// than `truncation_energy` of its energy.
+    pub truncation_radius: f32,
+    /// The stored optical distances reach this far (a margin over `truncation_radius`, so a
+    /// more translucent profile can be applied without new geometry work).
+    pub distance_radius: f32,
+    pub truncation_energy: f32,
+    pub voxels: u64,
+    pub interior_voxels: u64,
+    pub voxel_size: f32,
+    /// max over columns of Σ_j A_j S_ji / A_i before enforcing ≤ 1, and how many columns
+    /// had to be scaled down to it.
+    pub max_column_energy: f32,
+    pub scaled_columns: u64,
+    /// A note when something fell back (e.g. no interior found: Euclidean distances used).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
+    pub seconds: f64,
+}
+
 /// Wall-clock time of one precompute stage.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -163,6 +213,7 @@ pub struct Manifest {
     pub lights: Vec<Light>,
     pub camera: Camera,
     pub form_factors: FormFactorInfo,
+    pub subsurface: SubsurfaceInfo,
     pub stages: Vec<StageTime>,
     /// Every array file, by array name (see [`arrays`]).
     pub arrays: BTreeMap<String, ArrayEntry>,
@@ -199,6 +250,12 @@ pub const REQUIRED_ARRAYS: &[(&str, DType)] = &[
     (arrays::FF_ROW_PTR, DType::U64),
     (arrays::FF_COL, DType::U32),
     (arrays::FF_VAL, DType::F32),
+    (arrays::S_ROW_PTR, DType::U64),
+    (arrays::S_COL, DType::U32),
+    (arrays::S_VAL, DType::F32),
+    (arrays::DIST_ROW_PTR, DType::U64),
+    (arrays::DIST_COL, DType::U32),
+    (arrays::DIST_VAL, DType::F32),
 ];
 
 /// What the first dimension of a required array counts.
@@ -214,6 +271,10 @@ enum Rows {
     Occluders,
     /// `form_factors.nnz`
     Nnz,
+    /// `subsurface.nnz`
+    SNnz,
+    /// `subsurface.distance_nnz`
+    DistNnz,
 }
 
 /// The documented shape of each required array: (name, rows, trailing dimensions).
@@ -231,6 +292,12 @@ const SHAPES: &[(&str, Rows, &[u64])] = &[
     (arrays::FF_ROW_PTR, Rows::PatchesPlusOne, &[]),
     (arrays::FF_COL, Rows::Nnz, &[]),
     (arrays::FF_VAL, Rows::Nnz, &[]),
+    (arrays::S_ROW_PTR, Rows::PatchesPlusOne, &[]),
+    (arrays::S_COL, Rows::SNnz, &[]),
+    (arrays::S_VAL, Rows::SNnz, &[3]),
+    (arrays::DIST_ROW_PTR, Rows::PatchesPlusOne, &[]),
+    (arrays::DIST_COL, Rows::DistNnz, &[]),
+    (arrays::DIST_VAL, Rows::DistNnz, &[]),
 ];
 
 /// The file name of array `name` with element type `dtype` (`ff_col.u32`).
@@ -409,6 +476,8 @@ struct Counts {
     vertices: u64,
     occluders: u64,
     nnz: u64,
+    s_nnz: u64,
+    dist_nnz: u64,
 }
 
 impl Counts {
@@ -424,6 +493,8 @@ impl Counts {
             Rows::Vertices => (self.vertices, "V = vertex_count".into()),
             Rows::Occluders => (self.occluders, "M = occluder_count".into()),
             Rows::Nnz => (self.nnz, "nnz = form_factors.nnz".into()),
+            Rows::SNnz => (self.s_nnz, "nnz_s = subsurface.nnz".into()),
+            Rows::DistNnz => (self.dist_nnz, "nnz_d = subsurface.distance_nnz".into()),
         })
     }
 }
@@ -552,25 +623,28 @@ fn map_array(
     Ok(mapped)
 }
 
-/// Which file a CSR violation is about.
-fn csr_file(error: &crate::csr::CsrError) -> String {
+/// Which file a CSR violation is about, for the matrix stored as `[row_ptr, col, val]`.
+fn csr_file(error: &crate::csr::CsrError, names: [&str; 3]) -> String {
     use crate::csr::CsrError as E;
+    let [rp, col, val] = names;
     match error {
         E::RowPtrLength { .. } | E::RowPtrStart(_) | E::RowPtrDecreasing { .. } => {
-            array_file_name(arrays::FF_ROW_PTR, DType::U64)
+            array_file_name(rp, DType::U64)
         }
         E::NnzMismatch { .. } => format!(
             "{}/{}/{}",
-            array_file_name(arrays::FF_ROW_PTR, DType::U64),
-            array_file_name(arrays::FF_COL, DType::U32),
-            array_file_name(arrays::FF_VAL, DType::F32)
+            array_file_name(rp, DType::U64),
+            array_file_name(col, DType::U32),
+            array_file_name(val, DType::F32)
         ),
-        E::ColumnOutOfRange { .. } | E::ColumnsUnsorted { .. } => {
-            array_file_name(arrays::FF_COL, DType::U32)
-        }
-        E::NonFinite { .. } => array_file_name(arrays::FF_VAL, DType::F32),
+        E::ColumnOutOfRange { .. } | E::ColumnsUnsorted { .. } => array_file_name(col, DType::U32),
+        E::NonFinite { .. } => array_file_name(val, DType::F32),
     }
 }
+
+const FF_NAMES: [&str; 3] = [arrays::FF_ROW_PTR, arrays::FF_COL, arrays::FF_VAL];
+const S_NAMES: [&str; 3] = [arrays::S_ROW_PTR, arrays::S_COL, arrays::S_VAL];
+const DIST_NAMES: [&str; 3] = [arrays::DIST_ROW_PTR, arrays::DIST_COL, arrays::DIST_VAL];
 
 impl Bundle {
     /// Opens the bundle in `dir` with full verification, checksums included
@@ -625,6 +699,8 @@ impl Bundle {
             vertices: manifest.vertex_count,
             occluders: manifest.occluder_count,
             nnz: manifest.form_factors.nnz,
+            s_nnz: manifest.subsurface.nnz,
+            dist_nnz: manifest.subsurface.distance_nnz,
         };
         let n_patches = to_usize(counts.patches, MANIFEST_FILE, "patch_count")?;
 
@@ -798,9 +874,45 @@ impl Bundle {
             self.f32s(arrays::FF_VAL),
         )
         .map_err(|error| BundleError::Csr {
-            file: csr_file(&error),
+            file: csr_file(&error, FF_NAMES),
             error,
         })?;
+
+        // S is an N × N CSR matrix of RGB values, non-negative; distances likewise, scalar.
+        let s = crate::csr::CsrView::<[f32; 3]>::new_checked(
+            n,
+            n,
+            self.u64s(arrays::S_ROW_PTR),
+            self.u32s(arrays::S_COL),
+            bytemuck::try_cast_slice(self.f32s(arrays::S_VAL)).unwrap_or(&[]),
+        )
+        .map_err(|error| BundleError::Csr {
+            file: csr_file(&error, S_NAMES),
+            error,
+        })?;
+        if let Some(k) = s.val().iter().position(|v| v.iter().any(|&x| x < 0.0)) {
+            return Err(invalid(
+                array_file_name(arrays::S_VAL, DType::F32),
+                format!("entry {k} is negative; S re-emits light, it never absorbs below 0"),
+            ));
+        }
+        let d = crate::csr::CsrView::<f32>::new_checked(
+            n,
+            n,
+            self.u64s(arrays::DIST_ROW_PTR),
+            self.u32s(arrays::DIST_COL),
+            self.f32s(arrays::DIST_VAL),
+        )
+        .map_err(|error| BundleError::Csr {
+            file: csr_file(&error, DIST_NAMES),
+            error,
+        })?;
+        if let Some(k) = d.val().iter().position(|&x| x < 0.0) {
+            return Err(invalid(
+                array_file_name(arrays::DIST_VAL, DType::F32),
+                format!("distance {k} is negative"),
+            ));
+        }
         Ok(())
     }
 
@@ -889,6 +1001,29 @@ impl Bundle {
     }
 
     /// F as an `N × N` CSR view, checked when the bundle was opened (no further pass).
+    /// S: row j lists the sources i and S_ji per RGB channel (verified at open).
+    pub fn subsurface(&self) -> crate::csr::CsrView<'_, [f32; 3]> {
+        crate::csr::CsrView::from_checked_parts(
+            self.n_patches,
+            self.n_patches,
+            self.u64s(arrays::S_ROW_PTR),
+            self.u32s(arrays::S_COL),
+            bytemuck::try_cast_slice(self.f32s(arrays::S_VAL)).unwrap_or(&[]),
+        )
+    }
+
+    /// Optical path distances between patches of the same translucent object (verified at
+    /// open; scene units).
+    pub fn distances(&self) -> crate::csr::CsrView<'_, f32> {
+        crate::csr::CsrView::from_checked_parts(
+            self.n_patches,
+            self.n_patches,
+            self.u64s(arrays::DIST_ROW_PTR),
+            self.u32s(arrays::DIST_COL),
+            self.f32s(arrays::DIST_VAL),
+        )
+    }
+
     pub fn form_factors(&self) -> crate::csr::CsrView<'_> {
         crate::csr::CsrView::from_checked_parts(
             self.n_patches,
@@ -975,6 +1110,10 @@ mod tests {
                 nnz: 2,
                 ..Default::default()
             },
+            subsurface: SubsurfaceInfo {
+                nnz: 2,
+                ..Default::default()
+            },
             stages: vec![],
             arrays: BTreeMap::new(),
         };
@@ -1007,6 +1146,12 @@ mod tests {
             u64s(arrays::FF_ROW_PTR, &[3], &[0, 1, 2]),
             u32s(arrays::FF_COL, &[2], &[1, 0]),
             f32s(arrays::FF_VAL, &[2], &[0.25, 0.125]),
+            u64s(arrays::S_ROW_PTR, &[3], &[0, 1, 2]),
+            u32s(arrays::S_COL, &[2], &[0, 1]),
+            f32s(arrays::S_VAL, &[2, 3], &[0.5; 6]),
+            u64s(arrays::DIST_ROW_PTR, &[3], &[0, 0, 0]),
+            u32s(arrays::DIST_COL, &[0], &[]),
+            f32s(arrays::DIST_VAL, &[0], &[]),
         ];
         (manifest, arrays)
     }
@@ -1102,11 +1247,12 @@ mod tests {
         manifest.vertex_count = 0;
         manifest.occluder_count = 0;
         manifest.form_factors.nnz = 0;
+        manifest.subsurface.nnz = 0;
         manifest.objects.clear();
         let arrays: Vec<Raw> = arrays
             .into_iter()
             .map(|a| {
-                if a.name == arrays::FF_ROW_PTR {
+                if [arrays::FF_ROW_PTR, arrays::S_ROW_PTR, arrays::DIST_ROW_PTR].contains(&a.name) {
                     u64s(a.name, &[1], &[0])
                 } else {
                     let mut shape = a.shape;
@@ -1131,18 +1277,18 @@ mod tests {
     fn extra_arrays_are_verified_and_mapped() {
         let tmp = tempfile::tempdir().unwrap();
         let (manifest, mut arrays) = two_patches();
-        arrays.push(f32s("s_val", &[3], &[1.0, 2.0, 3.0]));
+        arrays.push(f32s("extra_val", &[3], &[1.0, 2.0, 3.0]));
         write(tmp.path(), manifest, &arrays);
         let b = Bundle::open(tmp.path()).unwrap();
-        assert_eq!(b.f32s("s_val"), &[1.0, 2.0, 3.0]);
+        assert_eq!(b.f32s("extra_val"), &[1.0, 2.0, 3.0]);
         // A corrupted extra array is refused like any other.
         std::fs::write(
-            tmp.path().join("s_val.f32"),
+            tmp.path().join("extra_val.f32"),
             bytemuck::cast_slice(&[1.0f32, 2.0, 4.0]),
         )
         .unwrap();
         let e = Bundle::open(tmp.path()).unwrap_err().to_string();
-        assert!(e.starts_with("s_val.f32 is corrupt: checksum "), "{e}");
+        assert!(e.starts_with("extra_val.f32 is corrupt: checksum "), "{e}");
     }
 
     #[test]
@@ -1305,7 +1451,7 @@ mod tests {
         m.version = 7;
         assert_eq!(
             open_err(m, &a),
-            "manifest.json: bundle version 7 is not supported (this build reads version 1)"
+            "manifest.json: bundle version 7 is not supported (this build reads version 2)"
         );
     }
 }

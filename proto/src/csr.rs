@@ -29,21 +29,39 @@ pub enum CsrError {
     ColumnOutOfRange { row: usize, col: u32, n_cols: usize },
     #[error("row {row}: columns are not strictly increasing at column {col}")]
     ColumnsUnsorted { row: usize, col: u32 },
-    #[error("row {row}, column {col}: value {value} is not finite")]
-    NonFinite { row: usize, col: u32, value: f32 },
+    #[error("row {row}, column {col}: a value is not finite")]
+    NonFinite { row: usize, col: u32 },
+}
+
+/// A value a CSR matrix can hold: a scalar (F, distances) or an RGB triple (S).
+pub trait CsrValue: Copy + std::fmt::Debug {
+    /// Every component is finite.
+    fn is_finite_value(&self) -> bool;
+}
+
+impl CsrValue for f32 {
+    fn is_finite_value(&self) -> bool {
+        self.is_finite()
+    }
+}
+
+impl CsrValue for [f32; 3] {
+    fn is_finite_value(&self) -> bool {
+        self.iter().all(|v| v.is_finite())
+    }
 }
 
 /// A borrowed CSR matrix, checked once at construction and trusted afterwards.
 #[derive(Debug, Clone, Copy)]
-pub struct CsrView<'a> {
+pub struct CsrView<'a, T: CsrValue = f32> {
     n_rows: usize,
     n_cols: usize,
     row_ptr: &'a [u64],
     col: &'a [u32],
-    val: &'a [f32],
+    val: &'a [T],
 }
 
-impl<'a> CsrView<'a> {
+impl<'a, T: CsrValue> CsrView<'a, T> {
     /// Wraps the three arrays after checking every invariant: row_ptr length n+1, starting
     /// at 0, non-decreasing, ending at nnz; columns in range and strictly increasing per
     /// row; values finite. Costs one pass over the matrix.
@@ -52,7 +70,7 @@ impl<'a> CsrView<'a> {
         n_cols: usize,
         row_ptr: &'a [u64],
         col: &'a [u32],
-        val: &'a [f32],
+        val: &'a [T],
     ) -> Result<Self, CsrError> {
         if row_ptr.len() != n_rows + 1 {
             return Err(CsrError::RowPtrLength {
@@ -89,12 +107,8 @@ impl<'a> CsrView<'a> {
                 if k > 0 && c <= cols[k - 1] {
                     return Err(CsrError::ColumnsUnsorted { row, col: c });
                 }
-                if !v.is_finite() {
-                    return Err(CsrError::NonFinite {
-                        row,
-                        col: c,
-                        value: v,
-                    });
+                if !v.is_finite_value() {
+                    return Err(CsrError::NonFinite { row, col: c });
                 }
             }
         }
@@ -115,7 +129,7 @@ impl<'a> CsrView<'a> {
         n_cols: usize,
         row_ptr: &'a [u64],
         col: &'a [u32],
-        val: &'a [f32],
+        val: &'a [T],
     ) -> Self {
         Self {
             n_rows,
@@ -141,24 +155,28 @@ impl<'a> CsrView<'a> {
     pub fn col(&self) -> &'a [u32] {
         self.col
     }
-    pub fn val(&self) -> &'a [f32] {
+    pub fn val(&self) -> &'a [T] {
         self.val
     }
 
     /// The columns and values of row `i`.
     #[inline]
-    pub fn row(&self, i: usize) -> (&'a [u32], &'a [f32]) {
+    pub fn row(&self, i: usize) -> (&'a [u32], &'a [T]) {
         let (a, b) = (self.row_ptr[i] as usize, self.row_ptr[i + 1] as usize);
         (&self.col[a..b], &self.val[a..b])
     }
 
+    /// The entry (i, j), or `None` when it is not stored.
+    pub fn entry(&self, i: usize, j: usize) -> Option<T> {
+        let (cols, vals) = self.row(i);
+        cols.binary_search(&(j as u32)).ok().map(|k| vals[k])
+    }
+}
+
+impl CsrView<'_, f32> {
     /// The entry (i, j), or 0 when it is not stored.
     pub fn get(&self, i: usize, j: usize) -> f32 {
-        let (cols, vals) = self.row(i);
-        match cols.binary_search(&(j as u32)) {
-            Ok(k) => vals[k],
-            Err(_) => 0.0,
-        }
+        self.entry(i, j).unwrap_or(0.0)
     }
 }
 

@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use translux_precompute::radiosity::{
-    PatchGeometry, Rgb, SolveParams, direct_irradiance, solve_diffuse, vertex_radiance,
+    PatchGeometry, Rgb, SolveParams, SparseScatter, direct_irradiance, solve, vertex_radiance,
 };
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
@@ -124,8 +124,10 @@ pub fn solve_params() -> SolveParams {
     SolveParams::default()
 }
 
-/// Runs a plan: E from the lights (shadowed), then B = Bₑ + ρ(E + F B) (`full`) or
-/// B = Bₑ + ρE (`direct`), then B/π per vertex. CPU-heavy: call it off the async runtime.
+/// Runs a plan: E from the lights (shadowed), then B = Bₑ + S(E + F B) (`full`, S from the
+/// bundle: subsurface scattering in translucent objects, ρ on the diagonal of opaque ones)
+/// or B = Bₑ + ρE (`direct`: one local diffuse bounce, translucent patches at their profile's
+/// total diffuse reflectance), then B/π per vertex. CPU-heavy: call it off the async runtime.
 pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError> {
     let t0 = Instant::now();
     let b = &scene.bundle;
@@ -149,8 +151,9 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError>
         }
         _ => {
             let f = b.form_factors();
-            let (radiosity, s) =
-                solve_diffuse(&f, albedo, emission, &irradiance, &solve_params(), None);
+            let scatter = SparseScatter(b.subsurface());
+            let (radiosity, s) = solve(&f, &scatter, emission, &irradiance, &solve_params(), None)
+                .map_err(|e| AppError::unsupported(e.to_string()))?;
             (radiosity, "jacobi", s.iterations, s.residual, s.converged)
         }
     };

@@ -11,7 +11,7 @@ use serde_json::{Value, json};
 use tokio::sync::oneshot;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::radiosity::{
-    PatchGeometry, Rgb, SolveParams, direct_irradiance, solve_diffuse, vertex_radiance,
+    PatchGeometry, Rgb, SolveParams, SparseScatter, direct_irradiance, solve, vertex_radiance,
 };
 use translux_precompute::raycast::Occluder;
 use translux_precompute::scene::load_scene;
@@ -200,14 +200,15 @@ fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb>
     let e = direct_irradiance(geo, &occ, lights, bundle.manifest().unit_mm).unwrap();
     let (albedo, emission) = (bundle.patch_albedo(), bundle.patch_emission());
     let b = if interreflection {
-        let (b, stats) = solve_diffuse(
+        let (b, stats) = solve(
             &bundle.form_factors(),
-            albedo,
+            &SparseScatter(bundle.subsurface()),
             emission,
             &e,
             &SolveParams::default(),
             None,
-        );
+        )
+        .unwrap();
         assert!(stats.converged);
         b
     } else {
