@@ -113,6 +113,10 @@ pub struct RelightStats {
     pub direct_ms: f64,
     /// Milliseconds in the solver.
     pub solve_ms: f64,
+    /// Milliseconds rebuilding S for material overrides (0 when none, or when the same
+    /// overrides were applied just before and S came from the cache).
+    #[serde(default)]
+    pub materials_ms: f64,
     pub lights: usize,
 }
 

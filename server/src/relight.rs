@@ -11,6 +11,7 @@ use translux_precompute::radiosity::{
 };
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
+use translux_proto::scene::Material;
 
 use crate::error::AppError;
 use crate::state::Scene;
@@ -24,6 +25,8 @@ pub struct RelightPlan {
     pub lights: Vec<Light>,
     pub components: Components,
     pub solver: Solver,
+    /// Objects whose material the request replaces (index into the manifest's objects).
+    pub overrides: Vec<(usize, Material)>,
 }
 
 /// Validates `req` for `scene`: 400 `invalid` for out-of-range values (the message names the
@@ -64,26 +67,42 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         }
     }
 
-    if !req.materials.is_empty() {
-        for (name, material) in &req.materials {
-            if !manifest.objects.iter().any(|o| &o.name == name) {
-                let names: Vec<&str> = manifest.objects.iter().map(|o| o.name.as_str()).collect();
-                return Err(AppError::invalid(format!(
-                    "materials.{name}: scene {:?} has no object {name:?} (its objects are {})",
-                    scene.id,
-                    names.join(", ")
-                )));
-            }
-            material
-                .validate(&format!("materials.{name}"))
-                .map_err(|e| AppError::invalid(e.to_string()))?;
+    // Material overrides: checked here, applied in `run` by rebuilding S from the bundle's
+    // stored optical distances (no geometry work).
+    let mut overrides = Vec::new();
+    for (name, material) in &req.materials {
+        let Some(k) = manifest.objects.iter().position(|o| &o.name == name) else {
+            let names: Vec<&str> = manifest.objects.iter().map(|o| o.name.as_str()).collect();
+            return Err(AppError::invalid(format!(
+                "materials.{name}: scene {:?} has no object {name:?} (its objects are {})",
+                scene.id,
+                names.join(", ")
+            )));
+        };
+        material
+            .validate(&format!("materials.{name}"))
+            .map_err(|e| AppError::invalid(e.to_string()))?;
+        let built = &manifest.objects[k].material;
+        if matches!(material, Material::Translucent { .. })
+            && !matches!(built, Material::Translucent { .. })
+        {
+            return Err(AppError::unsupported(format!(
+                "materials.{name}: {name:?} was precomputed as {}, and a translucent material \
+                 needs the optical distances inside it, which only a translucent object's bundle \
+                 holds; precompute the scene with {name:?} translucent to vary its translucency",
+                built.kind()
+            )));
         }
-        let names: Vec<String> = req.materials.keys().map(|k| format!("{k:?}")).collect();
-        return Err(AppError::unsupported(format!(
-            "materials: per-request material overrides are not supported yet (got overrides for \
-             {}); relight without \"materials\" to use the bundle's materials",
-            names.join(", ")
-        )));
+        if material.kind() != "diffuse"
+            && material.kind() != "emitter"
+            && material.kind() != "translucent"
+        {
+            return Err(AppError::unsupported(format!(
+                "materials.{name}: {} overrides are not supported yet",
+                material.kind()
+            )));
+        }
+        overrides.push((k, material.clone()));
     }
 
     match req.components {
@@ -108,6 +127,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         lights,
         components: req.components,
         solver: req.solver,
+        overrides,
     })
 }
 
@@ -139,8 +159,21 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError>
         .map_err(|e| AppError::unsupported(e.to_string()))?;
     let direct_ms = t0.elapsed().as_secs_f64() * 1e3;
 
-    let albedo = b.patch_albedo();
-    let emission = b.patch_emission();
+    // Materials: the bundle's, or rebuilt for the request's overrides.
+    let tm = Instant::now();
+    let (overridden, rebuilt) = match scene.materials_for(&plan.overrides)? {
+        Some((m, rebuilt)) => (Some(m), rebuilt),
+        None => (None, false),
+    };
+    let materials_ms = if rebuilt {
+        tm.elapsed().as_secs_f64() * 1e3
+    } else {
+        0.0
+    };
+    let (albedo, emission) = match &overridden {
+        Some(m) => (m.albedo.as_slice(), m.emission.as_slice()),
+        None => (b.patch_albedo(), b.patch_emission()),
+    };
     let t1 = Instant::now();
     let (radiosity, solver, iterations, residual, converged) = match plan.components {
         Components::Direct => {
@@ -151,7 +184,10 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError>
         }
         _ => {
             let f = b.form_factors();
-            let scatter = SparseScatter(b.subsurface());
+            let scatter = match &overridden {
+                Some(m) => SparseScatter(m.s_view()),
+                None => SparseScatter(b.subsurface()),
+            };
             let (radiosity, s) = solve(&f, &scatter, emission, &irradiance, &solve_params(), None)
                 .map_err(|e| AppError::unsupported(e.to_string()))?;
             (radiosity, "jacobi", s.iterations, s.residual, s.converged)
@@ -184,6 +220,7 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError>
         ms: t0.elapsed().as_secs_f64() * 1e3,
         direct_ms,
         solve_ms,
+        materials_ms,
         lights: plan.lights.len(),
     };
     Ok(RelightOutput { radiance, stats })

@@ -2,12 +2,17 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use axum::body::Bytes;
 use glam::Vec3;
+use translux_precompute::pipeline::material_albedo_emission;
+use translux_precompute::radiosity::Rgb;
 use translux_precompute::raycast::Occluder;
+use translux_precompute::smatrix::{self, CsrOwned, SParams};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE};
+use translux_proto::csr::CsrView;
+use translux_proto::scene::Material;
 
 /// One served bundle: the mapped arrays plus what relighting needs that the bundle does not
 /// store (the shadow-ray BVH, patch centroids as vectors).
@@ -21,9 +26,67 @@ pub struct Scene {
     pub(crate) normals: Vec<Vec3>,
     /// `GET /mesh`'s JSON, serialised on first use.
     pub(crate) mesh_json: OnceLock<Bytes>,
+    /// The materials of the last override set, so a client that keeps its overrides while
+    /// moving lights pays for the S rebuild once.
+    pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
+}
+
+/// S, ρ and Bₑ for a set of material overrides.
+#[derive(Debug)]
+pub struct OverrideMaterials {
+    pub s: CsrOwned<[f32; 3]>,
+    pub albedo: Vec<Rgb>,
+    pub emission: Vec<Rgb>,
+}
+
+impl OverrideMaterials {
+    /// S as a view (built by `smatrix::assemble_scene`, valid by construction).
+    pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
+        let n = self.albedo.len();
+        CsrView::new_checked(n, n, &self.s.row_ptr, &self.s.col, &self.s.val)
+            .expect("assemble_scene builds a valid CSR matrix")
+    }
 }
 
 impl Scene {
+    /// The materials with `overrides` applied (S rebuilt from the stored distances), or
+    /// `None` without overrides. The flag says whether S was rebuilt (not cached).
+    pub fn materials_for(
+        &self,
+        overrides: &[(usize, Material)],
+    ) -> Result<Option<(Arc<OverrideMaterials>, bool)>, crate::error::AppError> {
+        if overrides.is_empty() {
+            return Ok(None);
+        }
+        let key = serde_json::to_string(overrides).unwrap_or_default();
+        if let Ok(cache) = self.material_cache.lock()
+            && let Some((k, m)) = cache.as_ref()
+            && *k == key
+        {
+            return Ok(Some((m.clone(), false)));
+        }
+        let (s, _) = smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
+            .map_err(|e| crate::error::AppError::invalid(format!("materials: {e}")))?;
+        let mut albedo = self.bundle.patch_albedo().to_vec();
+        let mut emission = self.bundle.patch_emission().to_vec();
+        for (k, m) in overrides {
+            let o = &self.bundle.manifest().objects[*k];
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            let (rho, be) = material_albedo_emission(m);
+            albedo[range.clone()].fill(rho);
+            emission[range].fill(be);
+        }
+        let m = Arc::new(OverrideMaterials {
+            s,
+            albedo,
+            emission,
+        });
+        if let Ok(mut cache) = self.material_cache.lock() {
+            *cache = Some((key, m.clone()));
+        }
+        Ok(Some((m, true)))
+    }
+
     /// Opens (verifies and maps) the bundle in `dir` and builds its BVH.
     pub fn open(id: impl Into<String>, dir: &Path) -> Result<Scene, BundleError> {
         let bundle = Bundle::open(dir)?;
@@ -55,6 +118,7 @@ impl Scene {
             centroids,
             normals,
             mesh_json: OnceLock::new(),
+            material_cache: Mutex::new(None),
         }
     }
 }

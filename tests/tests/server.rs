@@ -175,6 +175,36 @@ async fn expect_error(r: reqwest::Response, status: StatusCode, code: &str, need
     }
 }
 
+/// Direct irradiance for `lights` on the bundle's patches, through the library.
+fn direct(bundle: &Bundle, lights: &[Light]) -> Vec<Rgb> {
+    let tris: Vec<[Vec3; 3]> = bundle
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let occ = Occluder::new(&tris);
+    let centroid: Vec<Vec3> = bundle
+        .patch_corners()
+        .iter()
+        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+        .collect();
+    let normal: Vec<Vec3> = bundle
+        .patch_normals()
+        .iter()
+        .map(|&n| Vec3::from(n))
+        .collect();
+    direct_irradiance(
+        PatchGeometry {
+            centroid: &centroid,
+            normal: &normal,
+        },
+        &occ,
+        lights,
+        bundle.manifest().unit_mm,
+    )
+    .unwrap()
+}
+
 /// The answer without a server: the same bundle through the library calls.
 fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb> {
     let tris: Vec<[Vec3; 3]> = bundle
@@ -445,6 +475,68 @@ async fn relight_json_and_binary_agree_and_match_the_offline_solve() {
 }
 
 #[tokio::test]
+async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    let base = s.relight_json(&json!({})).await;
+    // A more translucent block: S rebuilt from the stored distances.
+    let body = json!({"materials": {"tall_block": {"type": "translucent",
+        "profile": {"type": "dipole", "preset": "marble", "scale": 1.8}}}});
+    let first = s.relight_json(&body).await;
+    assert!(first.stats.materials_ms > 0.0, "{:?}", first.stats);
+    assert_ne!(first.radiance, base.radiance);
+    // The same overrides again come from the cache, with the same answer.
+    let again = s.relight_json(&body).await;
+    assert_eq!(again.stats.materials_ms, 0.0, "{:?}", again.stats);
+    assert_eq!(again.radiance, first.radiance);
+    // The offline answer: rebuild S through the library, solve, average to vertices.
+    let k = bundle
+        .manifest()
+        .objects
+        .iter()
+        .position(|o| o.name == "tall_block")
+        .unwrap();
+    let material: translux_proto::scene::Material =
+        serde_json::from_value(body["materials"]["tall_block"].clone()).unwrap();
+    let (smat, _) = translux_precompute::smatrix::rebuild_from_bundle(
+        &bundle,
+        &[(k, material)],
+        &translux_precompute::smatrix::SParams::default(),
+    )
+    .unwrap();
+    let n = bundle.patch_areas().len();
+    let sv = translux_proto::csr::CsrView::new_checked(n, n, &smat.row_ptr, &smat.col, &smat.val)
+        .unwrap();
+    let e = direct(&bundle, &bundle.manifest().lights);
+    let (b, stats) = solve(
+        &bundle.form_factors(),
+        &SparseScatter(sv),
+        bundle.patch_emission(),
+        &e,
+        &SolveParams::default(),
+        None,
+    )
+    .unwrap();
+    assert!(stats.converged);
+    let want = vertex_radiance(
+        bundle.triangle_vertices(),
+        bundle.patch_areas(),
+        bundle.vertex_positions().len(),
+        &b,
+    );
+    assert_close(&first.radiance, &want, 1e-5);
+
+    // A wall's albedo: greener left wall, different picture.
+    let green = s
+        .relight_json(
+            &json!({"materials": {"left_wall": {"type": "diffuse", "albedo": [0.1, 0.7, 0.1]}}}),
+        )
+        .await;
+    assert_ne!(green.radiance, base.radiance);
+    s.stop().await;
+}
+
+#[tokio::test]
 async fn direct_differs_from_full_and_full_is_never_darker() {
     let s = TestServer::cornell().await;
     let bundle = Bundle::open(&bundle_dir()).unwrap();
@@ -605,8 +697,9 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
             "lights[0]: environment lights are not supported yet",
         ),
         (
-            json!({"materials": {"tall_block": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}}),
-            "material overrides are not supported yet",
+            json!({"materials": {"floor": {"type": "translucent",
+                "profile": {"type": "dipole", "preset": "marble"}}}}),
+            "\"floor\" was precomputed as diffuse",
         ),
     ] {
         let r = s.relight(ID, &body, Some("application/json")).await;
