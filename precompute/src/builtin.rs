@@ -1,18 +1,19 @@
 //! The built-in scenes, made only of procedural shapes (no files needed).
 //!
-//! In: a scene name (`cornell`, `bowls`, `flower`). Out: the [`SceneFile`] a user could have
-//! written by hand — objects with shapes, transforms and materials, default lights, a camera
-//! and a patch density — which [`crate::scene::load_scene`] (`builtin:NAME`) validates and
-//! turns into triangles like any other scene. All three are in metres (`unit_mm` = 1000).
+//! In: a scene name (`cornell`, `bowls`, `flower`, `cornell_checker`). Out: the
+//! [`SceneFile`] a user could have written by hand — objects with shapes, transforms and
+//! materials, default lights, a camera and a patch density — which
+//! [`crate::scene::load_scene`] (`builtin:NAME`) validates and turns into triangles like any
+//! other scene. All are in metres (`unit_mm` = 1000).
 
 use translux_proto::light::{Camera, Light};
 use translux_proto::scene::{
-    DEFAULT_UNIT_MM, ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile,
-    Shape, Transform,
+    DEFAULT_UNIT_MM, ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Pattern, Profile,
+    SceneFile, Shape, Transform,
 };
 
 /// The names `builtin:NAME` accepts.
-pub const BUILTIN_SCENES: [&str; 3] = ["cornell", "bowls", "flower"];
+pub const BUILTIN_SCENES: [&str; 4] = ["cornell", "bowls", "flower", "cornell_checker"];
 
 /// The built-in scene called `name`, or `None` if there is none.
 pub fn builtin_scene(name: &str) -> Option<SceneFile> {
@@ -20,6 +21,7 @@ pub fn builtin_scene(name: &str) -> Option<SceneFile> {
         "cornell" => Some(cornell()),
         "bowls" => Some(bowls()),
         "flower" => Some(flower()),
+        "cornell_checker" => Some(cornell_checker()),
         _ => None,
     }
 }
@@ -155,6 +157,51 @@ fn cornell() -> SceneFile {
     }
 }
 
+/// Edge of the checkerboard cells of `cornell_checker`'s tall block (m): about a third of
+/// the block's 0.165 m width.
+pub const CHECKER_CELL: f32 = 0.06;
+
+/// The orange, more absorbing medium of `cornell_checker` (σa, σs′ in mm⁻¹, η = 1.3):
+/// absorption 2–40× marble's, rising from red to blue, so its total diffuse reflectance is
+/// orange (≈ 0.79, 0.52, 0.14) and its light travels less far than marble's.
+pub fn checker_orange() -> Profile {
+    Profile::Dipole {
+        preset: None,
+        sigma_a: Some([0.004, 0.03, 0.3]),
+        sigma_s_prime: Some([1.8, 1.6, 1.4]),
+        eta: Some(1.3),
+        scale: None,
+    }
+}
+
+/// The paper's Fig. 7: the Cornell box with the tall block a 3-D checkerboard of marble and
+/// an orange, more absorbing medium ([`checker_orange`]), combined per optical path by eq. 9.
+/// Cells of [`CHECKER_CELL`] in the block's own frame, offset by half a cell across the
+/// footprint so that three cells span the width (0.0525 + 0.06 + 0.0525 m), and on the
+/// block's mid-height vertically (six layers, none thinner than 0.045 m); no face of the
+/// block lies on a cell plane.
+fn cornell_checker() -> SceneFile {
+    let mut s = cornell();
+    s.name = Some("cornell_checker".to_owned());
+    let marble = Profile::Dipole {
+        preset: Some("marble".to_owned()),
+        sigma_a: None,
+        sigma_s_prime: None,
+        eta: None,
+        scale: None,
+    };
+    for o in s.objects.iter_mut().filter(|o| o.name == "tall_block") {
+        o.material = Material::Heterogeneous {
+            materials: vec![marble.clone(), checker_orange()],
+            pattern: Pattern::Checkerboard {
+                cell: CHECKER_CELL,
+                origin: [0.5 * CHECKER_CELL, 0.0, 0.5 * CHECKER_CELL],
+            },
+        };
+    }
+    s
+}
+
 /// Radius and wall thickness of the bowls (m).
 const BOWL_RADIUS: f32 = 0.09;
 const BOWL_THICKNESS: f32 = 0.008;
@@ -245,6 +292,8 @@ const PETALS: usize = 8;
 const PETAL_WIDTH: f32 = 0.028;
 const PETAL_BASE_RADIUS: f32 = 0.038;
 const PETAL_BASE_HEIGHT: f32 = 0.01;
+/// Petal thickness (m).
+const PETAL_THICKNESS: f32 = 0.001;
 
 /// Curled translucent petals (two-sided thin sheets) around a light, over a diffuse ground.
 fn flower() -> SceneFile {
@@ -255,14 +304,25 @@ fn flower() -> SceneFile {
         [0.0, 0.0, 0.0],
         diffuse([0.35, 0.45, 0.3]),
     )];
-    // A pink petal: total diffuse reflectance ≈ (0.75, 0.35, 0.5), mostly a short term,
-    // plus a weaker, longer term that carries red furthest. Σ 2πa/b² ≤ 1 per channel, so
-    // the profile never creates energy.
-    let profile = Profile::Exponentials {
-        terms: vec![
-            exp_term([0.6, 0.28, 0.4], [0.8, 1.5, 1.2]),
-            exp_term([0.15, 0.07, 0.1], [0.25, 0.5, 0.4]),
-        ],
+    // A pink petal, after the paper's rose: R (same side) and T (through to the other side)
+    // are each a1 e^(−b1 r) + a2 e^(−b2 r), a short term plus a weaker, longer one that
+    // carries red furthest. Totals (Σ 2πa/b²): R ≈ (0.45, 0.20, 0.30), T ≈ (0.35, 0.12,
+    // 0.22) — light crossing the 1 mm petal spreads more (smaller b) and loses more green —
+    // so R + T ≈ (0.80, 0.32, 0.52) < 1: the petal never creates energy.
+    let petal = Material::ThinSheet {
+        reflectance: Profile::Exponentials {
+            terms: vec![
+                exp_term([0.36, 0.16, 0.24], [1.0, 1.6, 1.3]),
+                exp_term([0.09, 0.04, 0.06], [0.3, 0.5, 0.4]),
+            ],
+        },
+        transmittance: Profile::Exponentials {
+            terms: vec![
+                exp_term([0.25, 0.08, 0.15], [0.7, 1.1, 0.9]),
+                exp_term([0.10, 0.04, 0.07], [0.22, 0.35, 0.3]),
+            ],
+        },
+        thickness_mm: PETAL_THICKNESS * DEFAULT_UNIT_MM as f32,
     };
     let tilt_deg = 25.0f32;
     for k in 0..PETALS {
@@ -275,7 +335,7 @@ fn flower() -> SceneFile {
             Shape::Sheet {
                 length: 0.06,
                 width: PETAL_WIDTH,
-                thickness: 0.001,
+                thickness: PETAL_THICKNESS,
                 curl: 0.8,
                 segments: None,
             },
@@ -285,9 +345,7 @@ fn flower() -> SceneFile {
                 PETAL_BASE_RADIUS * c,
             ],
             [-tilt_deg, yaw_deg, 0.0],
-            Material::Translucent {
-                profile: profile.clone(),
-            },
+            petal.clone(),
         ));
     }
     SceneFile {
@@ -555,20 +613,29 @@ mod tests {
             .collect();
         assert!((8..=10).contains(&petals.len()));
         for p in &petals {
-            let Material::Translucent {
-                profile: Profile::Exponentials { terms },
+            // Thin sheets with two-term exponential R and T (the paper's rose), as thick as
+            // the sheet shape.
+            let Material::ThinSheet {
+                reflectance: Profile::Exponentials { terms: r },
+                transmittance: Profile::Exponentials { terms: t },
+                thickness_mm,
             } = &p.material
             else {
-                panic!("{}", p.name)
+                panic!("{}: {:?}", p.name, p.material)
             };
-            assert_eq!(terms.len(), 2);
-            // Total diffuse reflectance Σ 2πa/b² stays ≤ 1 in every channel.
-            for c in 0..3 {
-                let rd: f32 = terms
+            assert_eq!((r.len(), t.len()), (2, 2));
+            assert_eq!(*thickness_mm, PETAL_THICKNESS * 1000.0);
+            // R + T (Σ 2πa/b² of both) stays below 1 in every channel, each a real part.
+            let total = |terms: &[ExpTerm], c: usize| -> f32 {
+                terms
                     .iter()
                     .map(|t| std::f32::consts::TAU * t.a[c] / (t.b[c] * t.b[c]))
-                    .sum();
-                assert!(rd > 0.2 && rd <= 1.0, "{}: channel {c}: {rd}", p.name);
+                    .sum()
+            };
+            for c in 0..3 {
+                let (rd, td) = (total(r, c), total(t, c));
+                assert!(rd > 0.1 && td > 0.1, "{}: channel {c}: {rd}, {td}", p.name);
+                assert!(rd + td > 0.3 && rd + td < 1.0, "{}: channel {c}", p.name);
             }
             let (lo, _) = bbox(p);
             assert!(lo.y > 0.0, "{} goes under the ground", p.name);

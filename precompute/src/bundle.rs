@@ -457,6 +457,9 @@ mod tests {
             NamedArray::u64(arrays::DIST_ROW_PTR, vec![N + 1], vec![0; 5]),
             NamedArray::u32(arrays::DIST_COL, vec![0], vec![]),
             NamedArray::f32(arrays::DIST_VAL, vec![0], vec![]),
+            NamedArray::u32(arrays::DIST_KIND, vec![0], vec![]),
+            NamedArray::f32(arrays::DIST_MATERIAL_LEN, vec![0, 4], vec![]),
+            NamedArray::u32(arrays::PATCH_MATERIAL, vec![N], vec![0; 4]),
         ]
     }
 
@@ -605,7 +608,7 @@ mod tests {
         fs::write(&path, serde_json::to_string_pretty(&json).unwrap()).unwrap();
         assert_eq!(
             open_err(&out),
-            "manifest.json: bundle version 99 is not supported (this build reads version 2)"
+            "manifest.json: bundle version 99 is not supported (this build reads version 3)"
         );
         fs::write(&path, "{\"format\": \"translux-bundle\",\n  oops").unwrap();
         let e = open_err(&out);

@@ -11,9 +11,13 @@
 //! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
 //! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
 //! 5. [`voxel`], [`profile`], [`subsurface`], [`smatrix`] — optical path distances inside
-//!    translucent objects, diffuse reflectance profiles, and S from both.
+//!    translucent objects, diffuse reflectance profiles, and S from both; [`hetero`] —
+//!    heterogeneous objects (media by pattern, combined per path by the paper's eq. 9);
+//!    [`sheet`] — thin two-sided sheets (geodesic distances, reflectance and transmittance).
 //! 6. [`bundle`] — write arrays and manifest atomically.
 //! 7. [`radiosity`] — direct lighting and the solve B = Bₑ + S(E + F B).
+//! 8. [`render`] — a CPU rasterizer from per-vertex radiance to an sRGB image (PNG);
+//!    [`export`] — the relit mesh as binary glTF (`.glb`) or PLY with baked colours.
 //!
 //! [`pipeline::precompute`] runs 1–5 with progress and a summary.
 //!
@@ -27,14 +31,18 @@
 
 pub mod builtin;
 pub mod bundle;
+pub mod export;
 pub mod formfactor;
+pub mod hetero;
 pub mod patch;
 pub mod pipeline;
 pub mod profile;
 pub mod radiosity;
 pub mod raycast;
+pub mod render;
 pub mod scene;
 pub mod shapes;
+pub mod sheet;
 pub mod smatrix;
 pub mod subsurface;
 pub mod voxel;

@@ -118,6 +118,13 @@ pub fn plan(objects: &[&[[Vec3; 3]]], density: Density) -> (f32, u64) {
     }
 }
 
+/// How many patches [`subdivide`] cuts triangle `t` into at edge length `h` (n², in order,
+/// right after those of the triangles before it).
+pub fn split_count(t: &[Vec3; 3], h: f32) -> usize {
+    let n = splits(longest_edge(t), h) as usize;
+    n * n
+}
+
 /// Splits every triangle at edge length `h` (from [`plan`]).
 pub fn subdivide(objects: &[&[[Vec3; 3]]], h: f32) -> Patches {
     let mut p = Patches::default();

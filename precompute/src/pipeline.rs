@@ -19,6 +19,7 @@ use translux_proto::scene::Material;
 
 use crate::bundle::{ArrayData, BundleWriteError, NamedArray, write_bundle};
 use crate::formfactor::{self, FormFactorParams};
+use crate::hetero::{self, PatternFrame};
 use crate::patch::{self, Density, Patches};
 use crate::profile;
 use crate::raycast::Occluder;
@@ -114,6 +115,87 @@ pub fn material_albedo_emission(m: &Material) -> ([f32; 3], [f32; 3]) {
             [0.0; 3],
         ),
         Material::Emitter { radiance } => ([0.0; 3], radiance.map(|l| l * std::f32::consts::PI)),
+        // A thin sheet returns light to the side it came from (R) and to the other (T); seen
+        // as an opaque two-sided patch, a face re-emits the sum, capped below 1.
+        Material::ThinSheet {
+            reflectance,
+            transmittance,
+            ..
+        } => {
+            let (r, t) = (
+                profile::total_reflectance(reflectance),
+                profile::total_reflectance(transmittance),
+            );
+            (
+                std::array::from_fn(|c| (r[c] + t[c]).clamp(0.0, 0.999)),
+                [0.0; 3],
+            )
+        }
+        // A heterogeneous object as a whole: the mean of its media's total diffuse
+        // reflectances, each medium counted once (the precompute writes each patch's own
+        // medium's instead, see `patch_albedo`).
+        Material::Heterogeneous { materials, .. } => {
+            let mut sum = [0.0f32; 3];
+            for p in materials {
+                let rd = profile::total_reflectance(p);
+                for c in 0..3 {
+                    sum[c] += rd[c] / materials.len().max(1) as f32;
+                }
+            }
+            (sum.map(|r| r.clamp(0.0, 0.999)), [0.0; 3])
+        }
+    }
+}
+
+/// ρ of one patch: [`material_albedo_emission`]'s, except that a patch of a heterogeneous
+/// object carries the total diffuse reflectance of its own medium `medium` (so the
+/// inter-reflection-only view shows the pattern).
+pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
+    match m {
+        Material::Heterogeneous { materials, .. } => match materials.get(medium as usize) {
+            Some(p) => profile::total_reflectance(p).map(|r| r.clamp(0.0, 0.999)),
+            None => material_albedo_emission(m).0,
+        },
+        _ => material_albedo_emission(m).0,
+    }
+}
+
+/// Where the media of the scene's heterogeneous objects are: each object's pattern frame
+/// (from its transform) and each patch's medium ([`hetero::patch_media`]; by OBJ material,
+/// the medium of the source face the patch was cut from). `h` is the subdivision edge.
+pub fn scene_media(scene: &LoadedScene, patches: &Patches, h: f32) -> smatrix::SceneMedia {
+    let frames: Vec<PatternFrame> = scene
+        .file
+        .objects
+        .iter()
+        .map(|o| PatternFrame::of(o.transform.as_ref()))
+        .collect();
+    let mut patch_material = vec![0u32; patches.len()];
+    for (k, (o, range)) in scene.objects.iter().zip(&patches.object_ranges).enumerate() {
+        if !matches!(o.material, Material::Heterogeneous { .. }) {
+            continue;
+        }
+        // Source face media, repeated for the n² patches each face is split into.
+        let face_media: Option<Vec<u32>> = o.face_material.as_ref().map(|f| {
+            o.triangles
+                .iter()
+                .zip(f)
+                .flat_map(|(t, &m)| std::iter::repeat_n(m, patch::split_count(t, h)))
+                .collect()
+        });
+        let frame = frames.get(k).copied().unwrap_or_default();
+        let m = hetero::patch_media(
+            &o.material,
+            frame,
+            &patches.centroid[range.clone()],
+            &patches.normal[range.clone()],
+            face_media.as_deref(),
+        );
+        patch_material[range.clone()].copy_from_slice(&m);
+    }
+    smatrix::SceneMedia {
+        patch_material,
+        frames,
     }
 }
 
@@ -343,8 +425,9 @@ pub fn precompute(
         .collect();
     let unit_mm = scene.file.unit_mm;
     let sp = &params.subsurface;
-    let (dist, dist_reports) =
-        smatrix::scene_distances(&geometry, &materials, &sources, unit_mm, sp)?;
+    let media = scene_media(scene, &patches, h);
+    let (dist, dist_len, dist_kind, dist_reports) =
+        smatrix::scene_distances(&geometry, &materials, &sources, &media, unit_mm, sp)?;
     bar.inc(1);
     let stored: Vec<f32> = materials
         .iter()
@@ -363,8 +446,17 @@ pub fn precompute(
         &dist.val,
     )
     .expect("stage 1 builds a valid CSR");
-    let (smat, s_reports) =
-        smatrix::assemble_scene(&geometry, &materials, dist_view, &stored, unit_mm, sp)?;
+    let (smat, s_reports) = smatrix::assemble_scene(
+        &geometry,
+        &materials,
+        dist_view,
+        &dist_len,
+        &media.patch_material,
+        &dist_kind,
+        &stored,
+        unit_mm,
+        sp,
+    )?;
     bar.inc(1);
     for d in &dist_reports {
         if let Some(w) = &d.warning {
@@ -388,6 +480,11 @@ pub fn precompute(
         let (rho, be) = material_albedo_emission(&o.material);
         albedo[range.clone()].fill(rho);
         emission[range.clone()].fill(be);
+        if matches!(o.material, Material::Heterogeneous { .. }) {
+            for p in range.clone() {
+                albedo[p] = patch_albedo(&o.material, media.patch_material[p]);
+            }
+        }
         objects.push(ObjectInfo {
             name: o.name.clone(),
             material: o.material.clone(),
@@ -495,6 +592,21 @@ pub fn precompute(
             name: arrays::DIST_VAL,
             shape: vec![dist.val.len() as u64],
             data: ArrayData::F32(dist.val),
+        },
+        NamedArray {
+            name: arrays::DIST_KIND,
+            shape: vec![dist_kind.len() as u64],
+            data: ArrayData::U32(dist_kind),
+        },
+        NamedArray {
+            name: arrays::DIST_MATERIAL_LEN,
+            shape: vec![dist_len.len() as u64, hetero::MEDIA as u64],
+            data: ArrayData::F32(dist_len.concat()),
+        },
+        NamedArray {
+            name: arrays::PATCH_MATERIAL,
+            shape: vec![np],
+            data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
     let camera = scene

@@ -14,11 +14,11 @@
 //! Bad input never panics.
 
 use std::fs::File;
-use std::io::BufReader;
+use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use glam::{Mat3, Vec3};
-use translux_proto::scene::{Material, MeshRef, ObjectDesc, SceneFile, Shape, Transform};
+use translux_proto::scene::{Material, MeshRef, ObjectDesc, Pattern, SceneFile, Shape, Transform};
 use translux_proto::{FieldError, JsonError};
 
 use crate::builtin::{BUILTIN_SCENES, builtin_scene};
@@ -39,6 +39,10 @@ pub struct LoadedObject {
     pub triangles: Vec<[Vec3; 3]>,
     /// Zero-area triangles (area < 1e-12 × bounding-box diagonal²) that were dropped.
     pub dropped_degenerate: usize,
+    /// For a heterogeneous object with media by OBJ material (`by_obj_material`): the medium
+    /// of each triangle (the index of its `usemtl` name in the pattern's `names`), aligned
+    /// with `triangles`. `None` for every other object.
+    pub face_material: Option<Vec<u32>>,
 }
 
 /// A validated scene with its geometry.
@@ -205,6 +209,15 @@ fn load_object(
     scene: &str,
 ) -> Result<LoadedObject, SceneError> {
     let object = format!("objects[{index}] \"{}\"", desc.name);
+    // Media by OBJ material: the `usemtl` group of every face, mapped to the pattern's names.
+    let media_names = match &desc.material {
+        Material::Heterogeneous {
+            pattern: Pattern::ByObjMaterial { names },
+            ..
+        } => Some(names),
+        _ => None,
+    };
+    let mut face_material: Option<Vec<u32>> = None;
     let (raw, mesh) = match &desc.mesh {
         MeshRef::Shape(shape) => {
             let tag = match shape {
@@ -218,8 +231,20 @@ fn load_object(
         }
         MeshRef::Path(rel) => {
             let path = base_dir.join(rel);
-            let tris =
-                load_obj_triangles(&path).map_err(|e| e.into_error(scene, &object, rel, path))?;
+            let (tris, groups) = load_obj_triangles(&path, media_names.is_some())
+                .map_err(|e| e.into_error(scene, &object, rel, path))?;
+            if let (Some(names), Some(groups)) = (media_names, groups) {
+                face_material =
+                    Some(
+                        face_media(names, &groups, rel).map_err(|rule| SceneError::Invalid {
+                            scene: scene.to_owned(),
+                            error: FieldError::new(
+                                format!("objects[{index}].material.pattern.names"),
+                                rule,
+                            ),
+                        })?,
+                    );
+            }
             (tris, format!("\"{rel}\""))
         }
     };
@@ -239,6 +264,14 @@ fn load_object(
             mesh,
         });
     }
+    if let Some(f) = &mut face_material {
+        let keep = non_degenerate(&transformed);
+        let mut k = 0;
+        f.retain(|_| {
+            k += 1;
+            keep[k - 1]
+        });
+    }
     let (triangles, dropped) = drop_degenerate(transformed);
     if triangles.is_empty() {
         return Err(SceneError::MeshEmpty {
@@ -254,7 +287,36 @@ fn load_object(
         crease_deg: desc.crease_deg.unwrap_or(DEFAULT_CREASE_DEG),
         triangles,
         dropped_degenerate: dropped,
+        face_material,
     })
+}
+
+/// The medium of each face from its `usemtl` group: `names[k]` is medium k. Every face must
+/// be in a listed group; the error (a rule for the field `…pattern.names`) says which group
+/// is missing and how many faces it has.
+fn face_media(names: &[String], groups: &[Option<String>], mesh: &str) -> Result<Vec<u32>, String> {
+    let mut out = Vec::with_capacity(groups.len());
+    for g in groups {
+        let found = g.as_ref().and_then(|g| names.iter().position(|n| n == g));
+        match found {
+            Some(k) => out.push(k as u32),
+            None => {
+                let count = groups.iter().filter(|x| *x == g).count();
+                return Err(match g {
+                    Some(g) => format!(
+                        "do not list \"{g}\", the `usemtl` material of {count} faces of mesh \
+                         \"{mesh}\" (listed: {})",
+                        names.join(", ")
+                    ),
+                    None => format!(
+                        "cannot place {count} faces of mesh \"{mesh}\" that come before any \
+                         `usemtl`; by_obj_material needs every face in a listed material"
+                    ),
+                });
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// sin and cos of an angle in degrees, exact at multiples of 90° (so walls rotated by 90°
@@ -311,6 +373,19 @@ fn apply_transform(tris: Vec<[Vec3; 3]>, t: Option<&Transform>) -> Vec<[Vec3; 3]
 /// Drops triangles with area < 1e-12 × (bounding-box diagonal)²; returns the rest and the
 /// number dropped.
 fn drop_degenerate(tris: Vec<[Vec3; 3]>) -> (Vec<[Vec3; 3]>, usize) {
+    let keep = non_degenerate(&tris);
+    let before = tris.len();
+    let kept: Vec<_> = tris
+        .into_iter()
+        .zip(&keep)
+        .filter_map(|(t, &k)| k.then_some(t))
+        .collect();
+    let dropped = before - kept.len();
+    (kept, dropped)
+}
+
+/// Which triangles [`drop_degenerate`] keeps.
+fn non_degenerate(tris: &[[Vec3; 3]]) -> Vec<bool> {
     let mut lo = Vec3::splat(f32::INFINITY);
     let mut hi = Vec3::splat(f32::NEG_INFINITY);
     for v in tris.iter().flatten() {
@@ -319,17 +394,13 @@ fn drop_degenerate(tris: Vec<[Vec3; 3]>) -> (Vec<[Vec3; 3]>, usize) {
     }
     let diag2 = f64::from((hi - lo).length_squared());
     let min_area = 1e-12 * diag2;
-    let before = tris.len();
-    let kept: Vec<_> = tris
-        .into_iter()
-        .filter(|[a, b, c]| {
+    tris.iter()
+        .map(|[a, b, c]| {
             let (a, b, c) = (a.as_dvec3(), b.as_dvec3(), c.as_dvec3());
             let area = 0.5 * (b - a).cross(c - a).length();
             area >= min_area && area > 0.0
         })
-        .collect();
-    let dropped = before - kept.len();
-    (kept, dropped)
+        .collect()
 }
 
 /// An OBJ loading failure before it is given the scene and object names.
@@ -368,14 +439,24 @@ impl ObjError {
     }
 }
 
-/// Reads every model of an OBJ file as one triangle list (object space).
+/// An OBJ file's triangles and, when asked for, the `usemtl` group of each.
+type ObjTriangles = (Vec<[Vec3; 3]>, Option<Vec<Option<String>>>);
+
+/// Reads every model of an OBJ file as one triangle list (object space), and with `groups`
+/// the `usemtl` material name of every triangle (`None` before the first `usemtl`).
 ///
 /// tobj parses; its error says what kind of problem it met but not where, so on failure the
 /// file is scanned again by [`diagnose_obj`] to name the line. tobj also accepts `nan` and
 /// `inf` as coordinates and silently ignores unknown statements, so the result is checked
 /// here too. Material libraries are not read: they carry nothing translux uses, and tobj
-/// 4.0 panics on some malformed `.mtl` lines.
-fn load_obj_triangles(path: &Path) -> Result<Vec<[Vec3; 3]>, ObjError> {
+/// 4.0 panics on some malformed `.mtl` lines. tobj only resolves `usemtl` names it found in
+/// a library, so for `groups` the file is fed to it behind one synthetic line,
+/// `mtllib <GROUPS_LIBRARY>`, whose "library" (answered here, never read from disk) defines
+/// one empty material per `usemtl` name the file uses.
+fn load_obj_triangles(path: &Path, groups: bool) -> Result<ObjTriangles, ObjError> {
+    /// The file name of the synthetic material library (a control character keeps it from
+    /// ever naming a real file).
+    const GROUPS_LIBRARY: &str = "\u{1}translux-usemtl-groups";
     let file = File::open(path).map_err(|e| match e.kind() {
         std::io::ErrorKind::NotFound => ObjError::Missing,
         _ => ObjError::Io(e),
@@ -389,18 +470,54 @@ fn load_obj_triangles(path: &Path) -> Result<Vec<[Vec3; 3]>, ObjError> {
         ignore_lines: true,
         ..Default::default()
     };
-    let mut reader = BufReader::new(file);
-    let (models, _materials) = tobj::load_obj_buf(&mut reader, &options, |_| {
-        Err(tobj::LoadError::GenericFailure)
+    // The `usemtl` names in order of first use, parsed as tobj does (the rest of the line
+    // after the first space, trimmed).
+    let mut names: Vec<String> = Vec::new();
+    if groups && let Ok(text) = std::fs::read_to_string(path) {
+        for line in text.lines() {
+            if line.split_whitespace().next() == Some("usemtl") {
+                let name = line.split_once(' ').unwrap_or_default().1.trim();
+                if !name.is_empty() && !names.iter().any(|n| n == name) {
+                    names.push(name.to_owned());
+                }
+            }
+        }
+    }
+    let header = if groups {
+        format!("mtllib {GROUPS_LIBRARY}\n")
+    } else {
+        String::new()
+    };
+    let mut reader = BufReader::new(std::io::Cursor::new(header).chain(file));
+    let (models, _materials) = tobj::load_obj_buf(&mut reader, &options, |p| {
+        if groups && p == Path::new(GROUPS_LIBRARY) {
+            let materials = names
+                .iter()
+                .map(|n| tobj::Material {
+                    name: n.clone(),
+                    ..Default::default()
+                })
+                .collect();
+            let map = names
+                .iter()
+                .enumerate()
+                .map(|(k, n)| (n.clone(), k))
+                .collect();
+            Ok((materials, map))
+        } else {
+            Err(tobj::LoadError::GenericFailure)
+        }
     })
     .map_err(|e| ObjError::Malformed(explain_tobj_error(path, &e)))?;
     let mut tris = Vec::new();
+    let mut face_groups = Vec::new();
     for model in &models {
         let pos = &model.mesh.positions;
         let vertex = |i: u32| -> Option<Vec3> {
             let k = 3 * i as usize;
             Some(Vec3::new(*pos.get(k)?, *pos.get(k + 1)?, *pos.get(k + 2)?))
         };
+        let group = model.mesh.material_id.and_then(|k| names.get(k).cloned());
         for idx in model.mesh.indices.chunks(3) {
             let [a, b, c] = idx else {
                 return Err(ObjError::Malformed(
@@ -420,9 +537,12 @@ fn load_obj_triangles(path: &Path) -> Result<Vec<[Vec3; 3]>, ObjError> {
                 )));
             }
             tris.push([a, b, c]);
+            if groups {
+                face_groups.push(group.clone());
+            }
         }
     }
-    Ok(tris)
+    Ok((tris, groups.then_some(face_groups)))
 }
 
 fn explain_tobj_error(path: &Path, e: &tobj::LoadError) -> String {

@@ -3,24 +3,35 @@
 //! 1. [`scene_distances`] (precompute, geometry only): for every translucent object, the
 //!    optical path r_ij between its patches ([`voxel::optical_distances`]), kept out to
 //!    `radius_margin` × the built profile's truncation radius, so that a more translucent
-//!    profile later still finds its pairs. Stored in the bundle.
+//!    profile later still finds its pairs. Stored in the bundle. A thin sheet's distances
+//!    are geodesics along it, each with a kind — same side or other side — stored as
+//!    `dist_kind` ([`sheet::sheet_distances`]).
 //! 2. [`assemble_scene`] (precompute *and* every translucency change): S from the stored
-//!    distances and the materials — [`subsurface::assemble`] per translucent object, ρ on the
+//!    distances and the materials — [`subsurface::assemble`] per translucent object,
+//!    [`sheet::assemble`] per thin sheet (R by same-side, T by other-side distances), ρ on the
 //!    diagonal of opaque patches, nothing for emitters.
 //!
 //! [`rebuild_from_bundle`] runs stage 2 on a mapped bundle with material overrides: the
 //! library call behind a translucency slider.
+//!
+//! Heterogeneous objects ([`crate::hetero`]) take both stages too: stage 1 also records, per
+//! stored pair, the length of the path in each medium (`dist_material_len` in the bundle,
+//! [`SceneMedia`] saying where the media are), out to the largest of the media's truncation
+//! radii; stage 2 combines the media's profiles by eq. 9 from those lengths, so changing a
+//! medium's profile needs no geometry work either (its pattern must stay as built).
 
 use std::ops::Range;
 use std::time::Instant;
 
 use glam::Vec3;
 use thiserror::Error;
-use translux_proto::bundle::{Bundle, SubsurfaceObject};
+use translux_proto::bundle::{Bundle, SubsurfaceObject, arrays};
 use translux_proto::csr::CsrView;
-use translux_proto::scene::Material;
+use translux_proto::scene::{Material, Profile};
 
+use crate::hetero::{self, MEDIA, MediaLen, PatternFrame};
 use crate::profile::{ProfileError, ProfileEval};
+use crate::sheet::{self, SheetError};
 use crate::subsurface::{self, DistanceView, ObjectPatches, SubsurfaceParams, Tabulated};
 use crate::voxel::{self, VoxelError, VoxelParams};
 
@@ -55,6 +66,22 @@ pub enum SError {
     Profile { object: String, error: ProfileError },
     #[error(transparent)]
     Voxel(#[from] VoxelError),
+    #[error(transparent)]
+    Sheet(#[from] SheetError),
+    /// A heterogeneous material that the stored per-medium lengths cannot serve.
+    #[error("object '{object}': {why}")]
+    Media { object: String, why: String },
+}
+
+/// Where the media of the scene's heterogeneous objects are (stage 1), and which medium each
+/// patch is in (stage 2's self terms; `patch_material` in the bundle).
+#[derive(Debug, Clone, Default)]
+pub struct SceneMedia {
+    /// Per patch (global): its medium ([`hetero::patch_media`]); 0 outside heterogeneous
+    /// objects. May be empty when the scene has no heterogeneous object.
+    pub patch_material: Vec<u32>,
+    /// Per object: the frame its pattern is laid in (identity when missing).
+    pub frames: Vec<PatternFrame>,
 }
 
 /// The per-patch geometry S needs (one scene's worth, global indices).
@@ -151,58 +178,152 @@ fn euclidean_rows(c: &[Vec3], r_max: f32) -> Vec<Vec<(u32, f32)>> {
         .collect()
 }
 
+/// The object's patches as `subsurface` and `sheet` take them.
+fn object_patches(g: &PatchGeometry, r: Range<usize>) -> ObjectPatches<'_> {
+    ObjectPatches {
+        corners: &g.corners[r.clone()],
+        centroid: &g.centroid[r.clone()],
+        normal: &g.normal[r.clone()],
+        area: &g.area[r.clone()],
+        size: &g.size[r],
+    }
+}
+
+/// What [`scene_distances`] returns: the distances (CSR), their per-medium lengths and their
+/// kinds (both aligned with the CSR entries), and a report per translucent object.
+pub type SceneDistances = (CsrOwned<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
+
 /// Stage 1: optical distances of every translucent object (global indices; rows of other
 /// patches empty). `triangles[o]` are object o's source triangles (for the inside test).
+/// Also returns the kind of every stored distance (`dist_kind`: [`sheet::KIND_OPPOSITE`]
+/// for a thin sheet's other side, else [`sheet::KIND_SAME`]), aligned with the CSR entries.
+/// Also returns the per-medium lengths of every stored distance (aligned with the CSR
+/// entries; all 0 outside heterogeneous objects).
 pub fn scene_distances(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],
     triangles: &[&[[Vec3; 3]]],
+    media: &SceneMedia,
     unit_mm: f64,
     params: &SParams,
-) -> Result<(CsrOwned<f32>, Vec<DistanceReport>), SError> {
+) -> Result<SceneDistances, SError> {
     let mut rows: Vec<Vec<(u32, f32)>> = vec![Vec::new(); g.corners.len()];
+    let mut kinds: Vec<Vec<u32>> = vec![Vec::new(); g.corners.len()];
+    let mut lens: Vec<Vec<MediaLen>> = vec![Vec::new(); g.corners.len()];
     let mut reports = Vec::new();
-    for (o, tris) in objects.iter().zip(triangles) {
-        let Material::Translucent { profile } = o.material else {
+    for (k, (o, tris)) in objects.iter().zip(triangles).enumerate() {
+        if let Material::ThinSheet {
+            reflectance,
+            transmittance,
+            thickness_mm,
+        } = o.material
+        {
+            // Geodesics along the sheet, each with its side kind.
+            let r = o.patches.clone();
+            let (local, report) = sheet::object_distances(
+                o.name,
+                (reflectance, transmittance, *thickness_mm),
+                object_patches(g, r.clone()),
+                unit_mm,
+                params,
+            )?;
+            for (i, row) in local.into_iter().enumerate() {
+                rows[r.start + i] = row.iter().map(|e| (r.start as u32 + e.0, e.1)).collect();
+                kinds[r.start + i] = row.iter().map(|e| e.2).collect();
+            }
+            reports.push(report);
             continue;
+        }
+        let profiles: &[Profile] = match o.material {
+            Material::Translucent { profile } => std::slice::from_ref(profile),
+            Material::Heterogeneous { materials, .. } => materials,
+            _ => continue,
         };
         let t = Instant::now();
-        let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
-            object: o.name.to_string(),
-            error,
-        })?;
-        let radius =
-            eval.truncation_radius(params.truncation_energy) * params.radius_margin.max(1.0);
+        // A heterogeneous object keeps pairs out to the largest of its media's radii.
+        let mut wanted = 0.0f32;
+        for profile in profiles {
+            let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
+                object: o.name.to_string(),
+                error,
+            })?;
+            wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+        }
+        let radius = wanted * params.radius_margin.max(1.0);
         let r = o.patches.clone();
         let (cen, nor) = (&g.centroid[r.clone()], &g.normal[r.clone()]);
-        let (local, stats, warning) =
-            match voxel::optical_distances(o.name, tris, cen, nor, radius, &params.voxels) {
-                Ok((d, s)) => {
-                    let rows: Vec<Vec<(u32, f32)>> = (0..r.len())
+        let local_media = media.patch_material.get(r.clone()).unwrap_or(&[]);
+        let frame = media.frames.get(k).copied().unwrap_or_default();
+        let field = hetero::medium_field(o.material, frame, local_media);
+        if matches!(field, Some(hetero::MediumField::PerPatch(m)) if m.len() != r.len()) {
+            return Err(SError::Media {
+                object: o.name.to_string(),
+                why: "by_obj_material needs the medium of every patch".into(),
+            });
+        }
+        let mut local_lens: Vec<Vec<MediaLen>> = Vec::new();
+        let (local, stats, warning) = match voxel::optical_distances_media(
+            o.name,
+            tris,
+            cen,
+            nor,
+            radius,
+            &params.voxels,
+            field.as_ref(),
+        ) {
+            Ok((d, s)) => {
+                if field.is_some() {
+                    local_lens = (0..r.len())
                         .map(|i| {
                             let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
-                            d.col[a..b]
-                                .iter()
-                                .copied()
-                                .zip(d.dist[a..b].iter().copied())
+                            d.material_len[a..b].to_vec()
+                        })
+                        .collect();
+                }
+                let rows: Vec<Vec<(u32, f32)>> = (0..r.len())
+                    .map(|i| {
+                        let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
+                        d.col[a..b]
+                            .iter()
+                            .copied()
+                            .zip(d.dist[a..b].iter().copied())
+                            .collect()
+                    })
+                    .collect();
+                (rows, Some(s), None)
+            }
+            Err(VoxelError::NoInterior { .. }) => {
+                let rows = euclidean_rows(cen, radius);
+                if let Some(f) = &field {
+                    local_lens = rows
+                        .iter()
+                        .enumerate()
+                        .map(|(i, row)| {
+                            row.iter()
+                                .map(|&(j, d)| {
+                                    f.straight(i, j as usize, cen[i], cen[j as usize], d)
+                                })
                                 .collect()
                         })
                         .collect();
-                    (rows, Some(s), None)
                 }
-                Err(VoxelError::NoInterior { .. }) => (
-                    euclidean_rows(cen, radius),
+                (
+                    rows,
                     None,
                     Some(format!(
                         "'{}' has no interior (open or broken mesh): straight-line distances used",
                         o.name
                     )),
-                ),
-                Err(e) => return Err(e.into()),
-            };
+                )
+            }
+            Err(e) => return Err(e.into()),
+        };
         let base = r.start as u32;
         for (i, row) in local.into_iter().enumerate() {
             rows[r.start + i] = row.into_iter().map(|(j, d)| (base + j, d)).collect();
+        }
+        for (i, l) in local_lens.into_iter().enumerate() {
+            lens[r.start + i] = l;
         }
         reports.push(DistanceReport {
             name: o.name.to_string(),
@@ -219,7 +340,25 @@ pub fn scene_distances(
             seconds: t.elapsed().as_secs_f64(),
         });
     }
-    Ok((CsrOwned::from_rows(rows), reports))
+    // Per-medium lengths aligned with the CSR entries (zeros for homogeneous rows).
+    let mut material_len = Vec::new();
+    for (row, l) in rows.iter().zip(&lens) {
+        if l.len() == row.len() {
+            material_len.extend_from_slice(l);
+        } else {
+            material_len.extend(std::iter::repeat_n([0.0; MEDIA], row.len()));
+        }
+    }
+    // Kinds aligned with the CSR entries (same side / interior unless a sheet said otherwise).
+    let mut kind = Vec::new();
+    for (row, kd) in rows.iter().zip(&kinds) {
+        if kd.len() == row.len() {
+            kind.extend_from_slice(kd);
+        } else {
+            kind.extend(std::iter::repeat_n(sheet::KIND_SAME, row.len()));
+        }
+    }
+    Ok((CsrOwned::from_rows(rows), material_len, kind, reports))
 }
 
 /// How stage 2 went for one translucent object.
@@ -236,11 +375,18 @@ pub struct AssemblyReport {
 }
 
 /// Stage 2: S from stored distances. `stored_radius[o]` is how far object o's distances
-/// reach (0 for non-translucent objects).
+/// reach (0 for non-translucent objects). `material_len` (aligned with the entries of
+/// `distances`) and `patch_material` are stage 1's per-medium lengths and patch media; they
+/// are read for heterogeneous objects only. `dist_kind` (aligned likewise; missing entries
+/// read as same side) is read for thin sheets only.
+#[allow(clippy::too_many_arguments)]
 pub fn assemble_scene(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],
     distances: CsrView<'_, f32>,
+    material_len: &[MediaLen],
+    patch_material: &[u32],
+    dist_kind: &[u32],
     stored_radius: &[f32],
     unit_mm: f64,
     params: &SParams,
@@ -257,6 +403,106 @@ pub fn assemble_scene(
                 }
             }
             Material::Emitter { .. } => {}
+            Material::ThinSheet {
+                reflectance,
+                transmittance,
+                ..
+            } => {
+                let (s, report) = sheet::object_s(
+                    o.name,
+                    (reflectance, transmittance),
+                    object_patches(g, r.clone()),
+                    r.clone(),
+                    distances,
+                    dist_kind,
+                    stored_radius.get(k).copied().unwrap_or(0.0),
+                    unit_mm,
+                    params,
+                )?;
+                for (j, row) in s.rows.into_iter().enumerate() {
+                    rows[r.start + j] = row
+                        .into_iter()
+                        .map(|(i, v)| (r.start as u32 + i, v))
+                        .collect();
+                }
+                reports.push(report);
+            }
+            Material::Heterogeneous { materials, .. } => {
+                let t = Instant::now();
+                let object = || o.name.to_string();
+                if material_len.len() != distances.nnz() || patch_material.len() != n {
+                    return Err(SError::Media {
+                        object: object(),
+                        why: "no per-medium path lengths were stored for it".into(),
+                    });
+                }
+                // Equal media merge (eq. 9 is not idempotent); each distinct medium gets a
+                // table out to the largest wanted radius, capped by the stored distances.
+                let (map, distinct) = hetero::merge_media(materials);
+                let mut evals = Vec::with_capacity(distinct.len());
+                let mut wanted = 0.0f32;
+                for &d in &distinct {
+                    let eval = ProfileEval::new(&materials[d], unit_mm).map_err(|error| {
+                        SError::Profile {
+                            object: object(),
+                            error,
+                        }
+                    })?;
+                    wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+                    evals.push(eval);
+                }
+                let reach = stored_radius.get(k).copied().unwrap_or(0.0);
+                let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
+                let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+                // Local CSR of this object's block, with its per-medium lengths.
+                let base = r.start as u64;
+                let ptr = distances.row_ptr();
+                let mut row_ptr = vec![0u64];
+                let (mut col, mut dist, mut lens) = (Vec::new(), Vec::new(), Vec::new());
+                for i in r.clone() {
+                    let (cols, ds) = distances.row(i);
+                    for (e, (&j, &d)) in cols.iter().zip(ds).enumerate() {
+                        if (j as u64) >= base && (j as u64) < base + r.len() as u64 && d < radius {
+                            col.push((j as u64 - base) as u32);
+                            dist.push(d);
+                            lens.push(material_len[ptr[i] as usize + e]);
+                        }
+                    }
+                    row_ptr.push(col.len() as u64);
+                }
+                let tabs: Vec<Tabulated> = evals
+                    .iter()
+                    .map(|e| Tabulated::new(e, radius, 4096))
+                    .collect();
+                let op = ObjectPatches {
+                    corners: &g.corners[r.clone()],
+                    centroid: &g.centroid[r.clone()],
+                    normal: &g.normal[r.clone()],
+                    area: &g.area[r.clone()],
+                    size: &g.size[r.clone()],
+                };
+                let dv = DistanceView {
+                    row_ptr: &row_ptr,
+                    col: &col,
+                    dist: &dist,
+                };
+                let media = &patch_material[r.clone()];
+                let s = hetero::assemble(op, dv, &lens, media, &map, &tabs, &params.quadrature);
+                for (j, row) in s.rows.into_iter().enumerate() {
+                    rows[r.start + j] = row
+                        .into_iter()
+                        .map(|(i, v)| (r.start as u32 + i, v))
+                        .collect();
+                }
+                reports.push(AssemblyReport {
+                    name: o.name.to_string(),
+                    radius,
+                    capped_from,
+                    max_column_energy: s.report.max_column,
+                    scaled_columns: s.report.scaled_columns as u64,
+                    seconds: t.elapsed().as_secs_f64(),
+                });
+            }
             Material::Translucent { profile } => {
                 let t = Instant::now();
                 let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
@@ -387,5 +633,41 @@ pub fn rebuild_from_bundle(
                 .map_or(0.0, |s| s.distance_radius)
         })
         .collect();
-    assemble_scene(&g, &objects, bundle.distances(), &stored, m.unit_mm, params)
+    // A heterogeneous override needs lengths stored for the same media layout: the object
+    // must have been built heterogeneous with the same pattern and number of media (only the
+    // media's profiles may change).
+    for (k, mat) in overrides {
+        let Material::Heterogeneous { materials, pattern } = mat else {
+            continue;
+        };
+        let Some(built) = m.objects.get(*k) else {
+            continue;
+        };
+        let same = matches!(&built.material, Material::Heterogeneous { materials: bm, pattern: bp }
+            if bm.len() == materials.len() && bp == pattern);
+        if !same {
+            return Err(SError::Media {
+                object: built.name.clone(),
+                why: format!(
+                    "it was precomputed as {}; a heterogeneous material can only change the \
+                     profiles of the media it was precomputed with (same pattern, same number \
+                     of media), since the lengths per medium are geometry",
+                    built.material.kind()
+                ),
+            });
+        }
+    }
+    let material_len: &[MediaLen] =
+        bytemuck::try_cast_slice(bundle.f32s(arrays::DIST_MATERIAL_LEN)).unwrap_or(&[]);
+    assemble_scene(
+        &g,
+        &objects,
+        bundle.distances(),
+        material_len,
+        bundle.u32s(arrays::PATCH_MATERIAL),
+        bundle.distance_kinds(),
+        &stored,
+        m.unit_mm,
+        params,
+    )
 }

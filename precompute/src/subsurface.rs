@@ -171,7 +171,7 @@ impl Tabulated {
 }
 
 /// Points at the centroids of a triangle's m² regular sub-triangles (equal areas).
-fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
+pub(crate) fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
     let m = m.max(1) as usize;
     let (a, e1, e2) = (c[0], (c[1] - c[0]) / m as f32, (c[2] - c[0]) / m as f32);
     let mut out = Vec::with_capacity(m * m);
@@ -189,7 +189,7 @@ fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
 
 /// ∫ over triangle `t` of R(|x − y|) dA_y for x in t's plane: polar integration with K
 /// directions, exact along each direction through W.
-fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
+pub(crate) fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
     // An orthonormal frame (u, v) in the plane.
     let u = (t[1] - t[0]).normalize_or_zero();
     let v = n.cross(u);
@@ -252,77 +252,113 @@ pub fn assemble(
     params: &SubsurfaceParams,
 ) -> ObjectS {
     let n = p.area.len();
-    let eps = 1e-4 * p.size.iter().cloned().fold(0.0f32, f32::max);
+    let eps = coplanar_eps(&p);
     // Columns: for each source patch i, the receivers j with S_ji (computed per column so the
     // energy bound can be enforced per column).
-    let mut columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
+    let columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
         .into_par_iter()
         .map(|i| {
             let mut col = Vec::new();
             let xs = samples(&p.corners[i], params.samples);
-            // Self term: (1/A_i) ∫_Ai ∫_Ai R = mean over x ∈ A_i of ∫_Ai R(|x − y|) dA_y.
-            let mut s_ii = [0.0f32; 3];
-            for &x in &xs {
-                let v = polar_integral(x, &p.corners[i], p.normal[i], tab, params.directions);
-                for c in 0..3 {
-                    s_ii[c] += v[c] / xs.len() as f32;
-                }
-            }
-            col.push((i as u32, s_ii));
+            col.push((i as u32, self_term(&p, i, &xs, tab, params)));
             let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
             for (&j, &r) in d.col[a..b].iter().zip(&d.dist[a..b]) {
-                let j = j as usize;
                 if r >= tab.r_max() {
                     continue;
                 }
-                let near = r < params.near_factor * p.size[i].max(p.size[j]);
-                let s = if !near {
-                    // S_ji ≈ A_i R(r_ij).
-                    tab.r(r).map(|v| v * p.area[i])
-                } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
-                    // S_ji = (A_i / A_j) · mean_{x∈A_i} ∫_Aj R(|x − y|) dA_y.
-                    let mut acc = [0.0f32; 3];
-                    for &x in &xs {
-                        let v =
-                            polar_integral(x, &p.corners[j], p.normal[j], tab, params.directions);
-                        for c in 0..3 {
-                            acc[c] += v[c];
-                        }
-                    }
-                    acc.map(|v| v / xs.len() as f32 * p.area[i] / p.area[j])
-                } else {
-                    // Point samples on both sides; the optical path's excess over the straight
-                    // line between centroids carries over to every sample pair.
-                    let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
-                    let ys = samples(&p.corners[j], params.samples);
-                    let mut acc = [0.0f32; 3];
-                    for &x in &xs {
-                        for &y in &ys {
-                            let v = tab.r(x.distance(y) + excess);
-                            for c in 0..3 {
-                                acc[c] += v[c];
-                            }
-                        }
-                    }
-                    let k = (xs.len() * ys.len()) as f32;
-                    acc.map(|v| v / k * p.area[i])
-                };
+                let s = pair_term(&p, i, j as usize, r, &xs, tab, params, eps);
                 if s.iter().any(|&v| v > 0.0) {
-                    col.push((j as u32, s));
+                    col.push((j, s));
                 }
             }
             col
         })
         .collect();
+    bound_and_transpose(columns, p.area)
+}
 
-    // Energy: Σ_j A_j S_ji / A_i ≤ 1 per column and channel.
+/// Tolerance of the coplanarity test: 1e-4 × the object's largest patch.
+pub(crate) fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
+    1e-4 * p.size.iter().cloned().fold(0.0f32, f32::max)
+}
+
+/// The self term S_ii = (1/A_i) ∫_Ai ∫_Ai R = mean over x ∈ A_i of ∫_Ai R(|x − y|) dA_y,
+/// with `xs` the sample points of patch i.
+pub(crate) fn self_term(
+    p: &ObjectPatches<'_>,
+    i: usize,
+    xs: &[Vec3],
+    tab: &Tabulated,
+    params: &SubsurfaceParams,
+) -> [f32; 3] {
+    let mut s_ii = [0.0f32; 3];
+    for &x in xs {
+        let v = polar_integral(x, &p.corners[i], p.normal[i], tab, params.directions);
+        for c in 0..3 {
+            s_ii[c] += v[c] / xs.len() as f32;
+        }
+    }
+    s_ii
+}
+
+/// S_ji of a pair at optical distance r (< the table's reach) through one homogeneous
+/// medium, by the quadrature the module docs describe. `xs` are patch i's sample points.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn pair_term(
+    p: &ObjectPatches<'_>,
+    i: usize,
+    j: usize,
+    r: f32,
+    xs: &[Vec3],
+    tab: &Tabulated,
+    params: &SubsurfaceParams,
+    eps: f32,
+) -> [f32; 3] {
+    let near = r < params.near_factor * p.size[i].max(p.size[j]);
+    if !near {
+        // S_ji ≈ A_i R(r_ij).
+        tab.r(r).map(|v| v * p.area[i])
+    } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
+        // S_ji = (A_i / A_j) · mean_{x∈A_i} ∫_Aj R(|x − y|) dA_y.
+        let mut acc = [0.0f32; 3];
+        for &x in xs {
+            let v = polar_integral(x, &p.corners[j], p.normal[j], tab, params.directions);
+            for c in 0..3 {
+                acc[c] += v[c];
+            }
+        }
+        acc.map(|v| v / xs.len() as f32 * p.area[i] / p.area[j])
+    } else {
+        // Point samples on both sides; the optical path's excess over the straight line
+        // between centroids carries over to every sample pair.
+        let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
+        let ys = samples(&p.corners[j], params.samples);
+        let mut acc = [0.0f32; 3];
+        for &x in xs {
+            for &y in &ys {
+                let v = tab.r(x.distance(y) + excess);
+                for c in 0..3 {
+                    acc[c] += v[c];
+                }
+            }
+        }
+        let k = (xs.len() * ys.len()) as f32;
+        acc.map(|v| v / k * p.area[i])
+    }
+}
+
+/// Enforces Σ_j A_j S_ji / A_i ≤ 1 per column `columns[i]` = [(j, S_ji)] and channel
+/// (scaling offending columns down to the bound, counted in the report), then transposes the
+/// columns into rows (receivers j), sorted by source.
+pub(crate) fn bound_and_transpose(mut columns: Vec<Vec<(u32, [f32; 3])>>, area: &[f32]) -> ObjectS {
+    let n = columns.len();
     let mut report = EnergyReport::default();
     let mut mean = 0.0f64;
     for (i, col) in columns.iter_mut().enumerate() {
         let mut total = [0.0f32; 3];
         for &(j, s) in col.iter() {
             for c in 0..3 {
-                total[c] += p.area[j as usize] * s[c] / p.area[i];
+                total[c] += area[j as usize] * s[c] / area[i];
             }
         }
         let worst = total.iter().cloned().fold(0.0f32, f32::max);

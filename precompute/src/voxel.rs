@@ -24,6 +24,26 @@
 //! 8.2 % often quoted is the 2-D 8-neighbour figure). Straight interior paths are corrected to
 //! exact (below), so the remaining error of a bent path is at most 12.8 % of its length plus
 //! about two voxels (entry-voxel placement and staircase boundaries).
+//!
+//! Heterogeneous objects ([`optical_distances_media`] with a [`MediumField`]) also get, per
+//! stored pair, the length r_k the path travels in each medium k (Σ_k r_k = r):
+//! - straight paths (convex objects, unattached patches) are split where the segment between
+//!   the centroids crosses the pattern ([`MediumField::straight`]);
+//! - voxel paths: every interior voxel carries a medium label (the checkerboard at its
+//!   centre, or for per-patch media the medium of the nearest entry voxel through the
+//!   interior, [`label_by_nearest_entry`]). Dijkstra carries along each node's per-medium
+//!   graph lengths g_k: relaxing u → v with weight w adds w/2 to label(u) and w/2 to label(v)
+//!   (the edge's halves lie in the two voxels; the integer weights are even, so
+//!   Σ_k g_k = g exactly). A pair's lengths are its shares of the graph path applied to its
+//!   corrected optical length, r_k = r · g_k / g (the entry voxel's medium when g = 0).
+//!   Accuracy: a shortest 26-neighbour path to an oblique offset is a staircase whose
+//!   diagonal and axial steps may come in any order, so where it crosses a medium boundary,
+//!   as a share of its length, can differ from the straight line's by up to ≈ 9 % of the path
+//!   (offset (2, 1, 0): diagonal steps first or last), plus about a voxel for the staircase
+//!   of the boundary. For a checkerboard, pairs whose interior path is straight (zero
+//!   detour) are therefore split exactly along the segment between the centroids instead.
+//!   With several shortest paths, the one Dijkstra settles first is used, so r_k(i, j) and
+//!   r_k(j, i) may differ where paths tie; r(i, j) itself stays exactly symmetric.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
@@ -31,6 +51,9 @@ use std::time::Instant;
 
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
+
+use crate::hetero::MEDIA;
+pub use crate::hetero::{MediaLen, MediumField};
 
 /// Parameters of [`optical_distances`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -56,11 +79,14 @@ impl Default for VoxelParams {
 
 /// Optical path lengths, CSR over the object's patches: row `i` holds the columns `j`
 /// (sorted, `j ≠ i`) with `r(i, j) ≤ max_radius`, and `dist` the lengths (scene units).
+/// `material_len` (aligned with `col`) holds the per-medium lengths of each path for a
+/// heterogeneous object, and is empty otherwise.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Distances {
     pub row_ptr: Vec<u64>,
     pub col: Vec<u32>,
     pub dist: Vec<f32>,
+    pub material_len: Vec<MediaLen>,
 }
 
 impl Distances {
@@ -84,6 +110,12 @@ impl Distances {
     pub fn get(&self, i: usize, j: usize) -> Option<f32> {
         let (cols, d) = self.row(i);
         cols.binary_search(&(j as u32)).ok().map(|k| d[k])
+    }
+    /// The per-medium lengths of the path from i to j, if stored (heterogeneous objects).
+    pub fn get_len(&self, i: usize, j: usize) -> Option<MediaLen> {
+        let (cols, _) = self.row(i);
+        let k = cols.binary_search(&(j as u32)).ok()?;
+        self.material_len.get(self.row_ptr[i] as usize + k).copied()
     }
 }
 
@@ -217,6 +249,30 @@ pub fn optical_distances(
     max_radius: f32,
     params: &VoxelParams,
 ) -> Result<(Distances, DistanceStats), VoxelError> {
+    optical_distances_media(
+        object_name,
+        source_tris,
+        centroids,
+        normals,
+        max_radius,
+        params,
+        None,
+    )
+}
+
+/// [`optical_distances`], plus per-medium path lengths (`Distances::material_len`) when
+/// `media` says where the media of a heterogeneous object are (see the module docs).
+/// Per-patch media always take the voxel route, since the interior's media come from the
+/// voxel labelling.
+pub fn optical_distances_media(
+    object_name: &str,
+    source_tris: &[[Vec3; 3]],
+    centroids: &[Vec3],
+    normals: &[Vec3],
+    max_radius: f32,
+    params: &VoxelParams,
+    media: Option<&MediumField<'_>>,
+) -> Result<(Distances, DistanceStats), VoxelError> {
     let start = Instant::now();
     let object = || object_name.to_string();
     if centroids.len() != normals.len() {
@@ -238,10 +294,11 @@ pub fn optical_distances(
             patches: centroids.len(),
         });
     }
-    if !params.force_voxels && is_convex(source_tris, params.convex_tolerance) {
+    let per_patch = matches!(media, Some(MediumField::PerPatch(_)));
+    if !params.force_voxels && !per_patch && is_convex(source_tris, params.convex_tolerance) {
         let all: Vec<u32> = (0..centroids.len() as u32).collect();
         let hash = PointHash::new(centroids, &all, max_radius);
-        let d = assemble_in_order(centroids.len(), |i| {
+        let mut d = assemble_in_order(centroids.len(), |i| {
             let mut row = Vec::new();
             hash.within(centroids, centroids[i], max_radius, |j, d| {
                 if j as usize != i {
@@ -251,6 +308,24 @@ pub fn optical_distances(
             row.sort_unstable_by_key(|p| p.0);
             row
         });
+        if let Some(field) = media {
+            // Straight paths: split where the segment between the centroids crosses the
+            // pattern.
+            let per_row: Vec<Vec<MediaLen>> = (0..d.len())
+                .into_par_iter()
+                .map(|i| {
+                    let (cols, dist) = d.row(i);
+                    cols.iter()
+                        .zip(dist)
+                        .map(|(&j, &r)| {
+                            let j = j as usize;
+                            field.straight(i, j, centroids[i], centroids[j], r)
+                        })
+                        .collect()
+                })
+                .collect();
+            d.material_len = per_row.concat();
+        }
         let stats = DistanceStats {
             method: Method::Euclidean,
             voxels: 0,
@@ -271,6 +346,7 @@ pub fn optical_distances(
         normals,
         max_radius,
         params,
+        media,
         start,
     )
 }
@@ -584,6 +660,16 @@ struct Scratch {
     buckets: [Vec<(u32, u32)>; 4],
     reached: Vec<(u32, u32)>,
     candidates: Vec<(u32, f32)>,
+    // Per-medium tracking (heterogeneous objects only; empty otherwise).
+    /// `slot[v]`: where voxel v sits in `touched` (and `mlen`) during a run; grid-sized,
+    /// allocated on the first tracked run.
+    slot: Vec<u32>,
+    /// Per-medium graph lengths g_k of `touched[k]`.
+    mlen: Vec<[u32; MEDIA]>,
+    /// g_k of each `reached` entry.
+    reached_len: Vec<[u32; MEDIA]>,
+    /// Media shares g_k / g of each candidate (`None`: split the straight segment instead).
+    cand_share: Vec<Option<MediaLen>>,
 }
 
 impl Scratch {
@@ -594,6 +680,10 @@ impl Scratch {
             buckets: Default::default(),
             reached: Vec::new(),
             candidates: Vec::new(),
+            slot: Vec::new(),
+            mlen: Vec::new(),
+            reached_len: Vec::new(),
+            cand_share: Vec::new(),
         }
     }
 }
@@ -630,8 +720,27 @@ impl Drop for Lease<'_> {
 
 /// Single-source shortest paths over interior voxels with the 26-neighbour stencil, up to
 /// `gmax` (×UNIT). Leaves in `s.reached` every (group, length) whose entry voxel it settles.
-fn dijkstra(src: u32, offsets: &[(isize, u32); 26], group_of: &[u32], gmax: u32, s: &mut Scratch) {
+/// With `labels` (a medium per voxel), also the per-medium lengths of each path in
+/// `s.reached_len`: relaxing u → v with weight w gives v the lengths of u plus w/2 in
+/// label(u) and w/2 in label(v) (weights are even, so the parts sum to the length exactly).
+fn dijkstra(
+    src: u32,
+    offsets: &[(isize, u32); 26],
+    group_of: &[u32],
+    gmax: u32,
+    labels: Option<&[u8]>,
+    s: &mut Scratch,
+) {
     s.reached.clear();
+    s.reached_len.clear();
+    if labels.is_some() {
+        if s.slot.len() != group_of.len() {
+            s.slot = vec![0; group_of.len()];
+        }
+        s.mlen.clear();
+        s.slot[src as usize] = 0;
+        s.mlen.push([0; MEDIA]);
+    }
     s.dist[src as usize] = 0;
     s.touched.push(src);
     s.buckets[0].push((src, 0));
@@ -648,6 +757,9 @@ fn dijkstra(src: u32, offsets: &[(isize, u32); 26], group_of: &[u32], gmax: u32,
             let grp = group_of[v as usize];
             if grp != NONE {
                 s.reached.push((grp, g));
+                if labels.is_some() {
+                    s.reached_len.push(s.mlen[s.slot[v as usize] as usize]);
+                }
             }
             for &(off, w) in offsets {
                 let nb = (v as isize + off) as usize;
@@ -656,9 +768,19 @@ fn dijkstra(src: u32, offsets: &[(isize, u32); 26], group_of: &[u32], gmax: u32,
                     continue;
                 }
                 if s.dist[nb] == NONE {
+                    if labels.is_some() {
+                        s.slot[nb] = s.touched.len() as u32;
+                        s.mlen.push([0; MEDIA]);
+                    }
                     s.touched.push(nb as u32);
                 }
                 s.dist[nb] = ng;
+                if let Some(l) = labels {
+                    let mut m = s.mlen[s.slot[v as usize] as usize];
+                    m[l[v as usize] as usize] += w / 2;
+                    m[l[nb] as usize] += w / 2;
+                    s.mlen[s.slot[nb] as usize] = m;
+                }
                 s.buckets[(ng / UNIT) as usize % 4].push((nb as u32, ng));
                 pending += 1;
             }
@@ -676,12 +798,67 @@ fn dijkstra(src: u32, offsets: &[(isize, u32); 26], group_of: &[u32], gmax: u32,
 /// One row of the result, (column, distance), sorted by column.
 type Row = Vec<(u32, f32)>;
 
+/// A finished row: patch, row, and the per-medium lengths of its entries (empty unless media
+/// are tracked; kept apart so that homogeneous objects carry no extra bytes per pair).
+type RowOut = (u32, Row, Vec<MediaLen>);
+
+/// Sorts a row by column, its per-medium lengths (if any) alongside.
+fn sort_row(row: &mut Row, lens: &mut Vec<MediaLen>) {
+    if lens.is_empty() {
+        row.sort_unstable_by_key(|p| p.0);
+        return;
+    }
+    let mut order: Vec<u32> = (0..row.len() as u32).collect();
+    order.sort_unstable_by_key(|&k| row[k as usize].0);
+    *row = order.iter().map(|&k| row[k as usize]).collect();
+    *lens = order.iter().map(|&k| lens[k as usize]).collect();
+}
+
+/// Labels every interior voxel with the medium of the nearest seed voxel through the
+/// interior (a multi-source Dijkstra with the 26-neighbour weights; ties go to the seed
+/// popped first, i.e. the lower voxel index). Interior voxels no seed reaches, and exterior
+/// voxels, get medium 0.
+fn label_by_nearest_entry(
+    inside: &[bool],
+    seeds: &[(u32, u8)],
+    offsets: &[(isize, u32); 26],
+) -> Vec<u8> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    let mut label = vec![0u8; inside.len()];
+    let mut dist = vec![u32::MAX; inside.len()];
+    let mut heap = BinaryHeap::new();
+    for &(v, m) in seeds {
+        if inside[v as usize] && dist[v as usize] != 0 {
+            dist[v as usize] = 0;
+            label[v as usize] = m;
+            heap.push(Reverse((0u32, v)));
+        }
+    }
+    while let Some(Reverse((g, v))) = heap.pop() {
+        if g != dist[v as usize] {
+            continue;
+        }
+        for &(off, w) in offsets {
+            let nb = (v as isize + off) as usize;
+            let ng = g + w;
+            if inside[nb] && ng < dist[nb] {
+                dist[nb] = ng;
+                label[nb] = label[v as usize];
+                heap.push(Reverse((ng, nb as u32)));
+            }
+        }
+    }
+    label
+}
+
 /// Patches that share an entry voxel (or one unattached patch, `voxel == NONE`).
 struct Group {
     voxel: u32,
     members: std::ops::Range<usize>,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn voxel_distances(
     object_name: &str,
     tris: &[[Vec3; 3]],
@@ -689,6 +866,7 @@ fn voxel_distances(
     normals: &[Vec3],
     max_radius: f32,
     params: &VoxelParams,
+    media: Option<&MediumField<'_>>,
     start: Instant,
 ) -> Result<(Distances, DistanceStats), VoxelError> {
     let n = centroids.len();
@@ -783,21 +961,63 @@ fn voxel_distances(
         }
     }
 
+    // Media labels of the interior voxels (heterogeneous objects).
+    let labels: Option<Vec<u8>> = media.map(|field| match field {
+        MediumField::Checker(c) => (0..grid.len())
+            .into_par_iter()
+            .map(|v| {
+                if inside[v] {
+                    c.medium_at(grid.centre(v).as_vec3()) as u8
+                } else {
+                    0
+                }
+            })
+            .collect(),
+        MediumField::PerPatch(pm) => {
+            // Each entry voxel seeds the medium of its smallest patch.
+            let seeds: Vec<(u32, u8)> = groups
+                .iter()
+                .filter(|g| g.voxel != NONE)
+                .map(|g| {
+                    let first = by_voxel[g.members.start] as usize;
+                    (g.voxel, pm.get(first).copied().unwrap_or(0) as u8)
+                })
+                .collect();
+            label_by_nearest_entry(&inside, &seeds, &offsets)
+        }
+    });
+    let straight = |i: u32, j: u32, d: f32| -> MediaLen {
+        match media {
+            Some(f) => f.straight(
+                i as usize,
+                j as usize,
+                centroids[i as usize],
+                centroids[j as usize],
+                d,
+            ),
+            None => [0.0; MEDIA],
+        }
+    };
+
     let r = f64::from(max_radius);
-    let row_for_group = |g: &Group, s: &mut Scratch| -> Vec<(u32, Row)> {
+    let track = media.is_some();
+    let row_for_group = |g: &Group, s: &mut Scratch| -> Vec<RowOut> {
         let members = &by_voxel[g.members.clone()];
         if g.voxel == NONE {
             let i = members[0];
-            let mut row = Vec::new();
+            let (mut row, mut lens) = (Vec::new(), Vec::new());
             if let Some(h) = &hash_all {
                 h.within(centroids, centroids[i as usize], max_radius, |j, d| {
                     if j != i {
                         row.push((j, d));
+                        if track {
+                            lens.push(straight(i, j, d));
+                        }
                     }
                 });
             }
-            row.sort_unstable_by_key(|p| p.0);
-            return vec![(i, row)];
+            sort_row(&mut row, &mut lens);
+            return vec![(i, row, lens)];
         }
         let own_offset = members
             .iter()
@@ -809,16 +1029,21 @@ fn voxel_distances(
         let gmax = (reach * f64::from(UNIT))
             .ceil()
             .min(f64::from(NONE - 4 * W[2])) as u32;
-        dijkstra(g.voxel, &offsets, &group_of, gmax, s);
+        dijkstra(g.voxel, &offsets, &group_of, gmax, labels.as_deref(), s);
         // Candidates (j, detour), once per source: the detour over the straight voxel chord,
-        // in scene units (0 when g = ch). The same for every member of the group.
+        // in scene units (0 when g = ch). The same for every member of the group. With media,
+        // also each candidate's shares g_k / g of the graph path (all in the source voxel's
+        // medium when g = 0).
         let src = grid.coords(g.voxel as usize);
         s.candidates.clear();
-        for &(gj, glen) in &s.reached {
+        s.cand_share.clear();
+        for (k, &(gj, glen)) in s.reached.iter().enumerate() {
             let other = &groups[gj as usize];
             let c = grid.coords(other.voxel as usize);
             let dv = [c[0] - src[0], c[1] - src[1], c[2] - src[2]];
             let ch = chamfer(dv);
+            // A straight graph path (g = ch exactly, in integers).
+            let straight_path = u64::from(glen) == ch;
             let detour = if ch == 0 {
                 0.0
             } else {
@@ -829,23 +1054,49 @@ fn voxel_distances(
                 let members = &by_voxel[other.members.clone()];
                 s.candidates
                     .extend(members.iter().map(|&j| (j, detour as f32)));
+                if let Some(l) = &labels {
+                    let share = if straight_path && matches!(media, Some(MediumField::Checker(_))) {
+                        // A straight interior path: the exact split of the segment.
+                        None
+                    } else if glen == 0 {
+                        let mut one = [0.0; MEDIA];
+                        one[l[g.voxel as usize] as usize] = 1.0;
+                        Some(one)
+                    } else {
+                        Some(s.reached_len[k].map(|x| x as f32 / glen as f32))
+                    };
+                    s.cand_share
+                        .extend(std::iter::repeat_n(share, members.len()));
+                }
             }
         }
         let mut out = Vec::with_capacity(members.len());
         for &i in members {
             let ci = centroids[i as usize];
-            let mut row = Vec::new();
-            for &(j, detour) in &s.candidates {
+            let (mut row, mut lens) = (Vec::new(), Vec::new());
+            for (k, &(j, detour)) in s.candidates.iter().enumerate() {
                 let d = f64::from(ci.distance(centroids[j as usize])) + f64::from(detour);
                 if d <= r && j != i {
-                    row.push((j, d as f32));
+                    let d = d as f32;
+                    row.push((j, d));
+                    if track {
+                        lens.push(match s.cand_share[k] {
+                            Some(share) => share.map(|f| f * d),
+                            None => straight(i, j, d),
+                        });
+                    }
                 }
             }
             if let Some(h) = &hash_loose {
-                h.within(centroids, ci, max_radius, |j, d| row.push((j, d)));
+                h.within(centroids, ci, max_radius, |j, d| {
+                    row.push((j, d));
+                    if track {
+                        lens.push(straight(i, j, d));
+                    }
+                });
             }
-            row.sort_unstable_by_key(|p| p.0);
-            out.push((i, row));
+            sort_row(&mut row, &mut lens);
+            out.push((i, row, lens));
         }
         out
     };
@@ -855,21 +1106,21 @@ fn voxel_distances(
         free: &free,
         inside: &inside,
     };
-    let mut rows: Vec<Row> = vec![Vec::new(); n];
+    let mut rows: Vec<(Row, Vec<MediaLen>)> = vec![(Vec::new(), Vec::new()); n];
     let mut out = CsrBuilder::new(n);
     let batch = (groups.len() / 32).max(256);
     let mut g0 = 0;
     while g0 < groups.len() {
         let g1 = (g0 + batch).min(groups.len());
-        let done: Vec<Vec<(u32, Row)>> = groups[g0..g1]
+        let done: Vec<Vec<RowOut>> = groups[g0..g1]
             .par_iter()
             .map_init(
                 || pool.lease(),
                 |l, g| row_for_group(g, l.s.as_mut().unwrap()),
             )
             .collect();
-        for (i, row) in done.into_iter().flatten() {
-            rows[i as usize] = row;
+        for (i, row, lens) in done.into_iter().flatten() {
+            rows[i as usize] = (row, lens);
         }
         // Every row below the next batch's smallest member belongs to a finished group.
         let complete = groups
@@ -877,7 +1128,9 @@ fn voxel_distances(
             .map_or(n, |g| by_voxel[g.members.start] as usize);
         while out.rows() < complete {
             let i = out.rows();
-            out.push_row(&std::mem::take(&mut rows[i]));
+            let (row, lens) = std::mem::take(&mut rows[i]);
+            out.push_row(&row);
+            out.0.material_len.extend_from_slice(&lens);
         }
         g0 = g1;
     }
@@ -1272,7 +1525,7 @@ mod tests {
             .collect();
         let mut s = Scratch::new(&inside);
         let src = grid.index(1, 2, 3) as u32;
-        dijkstra(src, &offsets, &group_of, 6 * UNIT, &mut s);
+        dijkstra(src, &offsets, &group_of, 6 * UNIT, None, &mut s);
         let a = grid.coords(src as usize);
         let mut seen = 0;
         for &(v, g) in &s.reached {
@@ -1295,6 +1548,230 @@ mod tests {
                 .zip(&inside)
                 .all(|(&d, &i)| d == if i { NONE } else { 0 })
         );
+    }
+
+    /// A checkerboard of 2 media split by the plane x = 0 only (cells of 1 around a box
+    /// of 0.3 × 0.1 × 0.1): medium 1 for x < 0, medium 0 for x ≥ 0.
+    fn split_at_x0() -> crate::hetero::Checker {
+        crate::hetero::Checker {
+            frame: Default::default(),
+            cell: 1.0,
+            origin: DVec3::new(0.0, -0.5, -0.5),
+            count: 2,
+        }
+    }
+
+    fn bar() -> Vec<[Vec3; 3]> {
+        shape_triangles(&Shape::Box {
+            size: [0.3, 0.1, 0.1],
+            inward: false,
+        })
+    }
+
+    #[test]
+    fn media_lengths_of_straight_paths_are_the_exact_split() {
+        let tris = bar();
+        let (c, n) = patches_of(&tris, 1500);
+        let field = MediumField::Checker(split_at_x0());
+        let (d, st) = optical_distances_media(
+            "bar",
+            &tris,
+            &c,
+            &n,
+            0.2,
+            &VoxelParams::default(),
+            Some(&field),
+        )
+        .unwrap();
+        assert_eq!(st.method, Method::Euclidean);
+        assert_eq!(d.material_len.len(), d.col.len());
+        let mut crossing = 0;
+        for i in 0..c.len() {
+            let (cols, dist) = d.row(i);
+            for (&j, &r) in cols.iter().zip(dist) {
+                let (a, b) = (c[i], c[j as usize]);
+                let l = d.get_len(i, j as usize).unwrap();
+                assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+                // By hand: the straight segment meets x = 0 at t = −a_x / (b_x − a_x).
+                let want1 = if a.x < 0.0 && b.x < 0.0 {
+                    r
+                } else if a.x >= 0.0 && b.x >= 0.0 {
+                    0.0
+                } else {
+                    crossing += 1;
+                    let t = -a.x / (b.x - a.x);
+                    if a.x < 0.0 { t * r } else { (1.0 - t) * r }
+                };
+                assert!((l[1] - want1).abs() <= 1e-5, "{a} → {b}: {l:?} vs {want1}");
+                assert_eq!((l[2], l[3]), (0.0, 0.0));
+            }
+        }
+        assert!(crossing > 100, "{crossing}");
+    }
+
+    #[test]
+    fn media_lengths_of_voxel_paths_follow_the_pattern() {
+        // The bar through the voxel method: every interior path is straight (zero detour),
+        // so the split is the exact one of the segment, as for the Euclidean method.
+        let tris = bar();
+        let (c, n) = patches_of(&tris, 1500);
+        let params = VoxelParams {
+            max_voxels: 200_000,
+            force_voxels: true,
+            ..Default::default()
+        };
+        let field = MediumField::Checker(split_at_x0());
+        let r_max = 0.2;
+        let (d, st) =
+            optical_distances_media("bar", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+        assert_eq!(st.method, Method::Voxel);
+        check_structure(&d, c.len(), r_max);
+        // The same distances as without media: tracking changes nothing else.
+        let (plain, _) = optical_distances("bar", &tris, &c, &n, r_max, &params).unwrap();
+        assert_eq!(
+            (&plain.row_ptr, &plain.col, &plain.dist),
+            (&d.row_ptr, &d.col, &d.dist)
+        );
+        assert!(plain.material_len.is_empty());
+        let mut crossing = 0;
+        for i in 0..c.len() {
+            let (cols, dist) = d.row(i);
+            for (&j, &r) in cols.iter().zip(dist) {
+                let (a, b) = (c[i], c[j as usize]);
+                let l = d.get_len(i, j as usize).unwrap();
+                assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+                let want1 = if a.x < 0.0 && b.x < 0.0 {
+                    r
+                } else if a.x >= 0.0 && b.x >= 0.0 {
+                    0.0
+                } else {
+                    crossing += 1;
+                    let t = -a.x / (b.x - a.x);
+                    if a.x < 0.0 { t * r } else { (1.0 - t) * r }
+                };
+                assert!((l[1] - want1).abs() <= 1e-5, "{a} → {b}: {l:?} vs {want1}");
+            }
+        }
+        assert!(crossing > 100, "{crossing}");
+    }
+
+    #[test]
+    fn media_lengths_of_bent_paths_come_from_the_graph_path() {
+        // The U with its left half (x < 1.5 s, one arm and half the base) in medium 1 and the
+        // right half in medium 0. Tip to tip around the bend, the path is symmetric about
+        // x = 1.5 s: half of it in each medium.
+        let s = 0.1;
+        let tris = u_shape(s, s);
+        let (c, n) = patches_of(&tris, 3000);
+        let params = VoxelParams {
+            max_voxels: 200_000,
+            ..Default::default()
+        };
+        // Cells of 1 with the origin at x = 1.5 s − 1: the U (x, y, z ∈ [0, 3 s], s = 0.1)
+        // lies in cell 0 for x < 1.5 s (medium 0) and in cell 1 beyond (medium 1).
+        let field = MediumField::Checker(crate::hetero::Checker {
+            frame: Default::default(),
+            cell: 1.0,
+            origin: DVec3::new(1.5 * f64::from(s) - 1.0, -0.5, -0.5),
+            count: 2,
+        });
+        let r_max = 1.0;
+        let (d, st) =
+            optical_distances_media("u", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+        assert_eq!(st.method, Method::Voxel);
+        let vs = st.voxel_size;
+        let near = |p: Vec3| {
+            (0..c.len())
+                .filter(|&i| n[i].y > 0.9 && (c[i].y - 3.0 * s).abs() < 1e-5)
+                .min_by(|&a, &b| c[a].distance(p).total_cmp(&c[b].distance(p)))
+                .unwrap()
+        };
+        let a = near(Vec3::new(0.5 * s, 3.0 * s, 0.5 * s));
+        let b = near(Vec3::new(2.5 * s, 3.0 * s, 0.5 * s));
+        let r = d.get(a, b).unwrap();
+        let l = d.get_len(a, b).unwrap();
+        let m = |p: Vec3| (field_medium(&field, p), p);
+        eprintln!(
+            "U: r {r:.4}, lengths {l:?}, vs {vs:.4}, tips {:?} {:?}",
+            m(c[a]),
+            m(c[b])
+        );
+        assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r);
+        // Within the staircase bound (≈ 9 % of the path) and a voxel of the mirror path.
+        for k in 0..2 {
+            assert!((l[k] - 0.5 * r).abs() <= 0.09 * r + vs, "{l:?} vs {r}");
+        }
+        // Along one arm, nothing crosses: all in that arm's medium.
+        let a2 = near(Vec3::new(0.2 * s, 3.0 * s, 0.2 * s));
+        let l = d.get_len(a, a2).unwrap();
+        assert_eq!(l[1], 0.0, "{l:?}");
+        let b2 = near(Vec3::new(2.8 * s, 3.0 * s, 0.8 * s));
+        let l = d.get_len(b, b2).unwrap();
+        assert_eq!(l[0], 0.0, "{l:?}");
+    }
+
+    fn field_medium(f: &MediumField<'_>, p: Vec3) -> u32 {
+        match f {
+            MediumField::Checker(c) => c.medium_at(p),
+            MediumField::PerPatch(_) => u32::MAX,
+        }
+    }
+
+    #[test]
+    fn per_patch_media_fill_the_inside_from_the_nearest_patch() {
+        // The bar's patches left of x = 0 are medium 1, the others medium 0; the inside takes
+        // the medium of the nearest patch, so the media meet near the plane x = 0.
+        let tris = bar();
+        let (c, n) = patches_of(&tris, 1500);
+        let media: Vec<u32> = c.iter().map(|p| u32::from(p.x < 0.0)).collect();
+        let field = MediumField::PerPatch(&media);
+        let params = VoxelParams {
+            max_voxels: 200_000,
+            ..Default::default()
+        };
+        let r_max = 0.2;
+        let (d, st) =
+            optical_distances_media("bar", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+        // Convex, but per-patch media always take the voxel route.
+        assert_eq!(st.method, Method::Voxel);
+        let vs = st.voxel_size;
+        let size = patch_size(&tris, 1500);
+        let (mut crossing, mut worst) = (0, 0.0f32);
+        for i in 0..c.len() {
+            let (cols, dist) = d.row(i);
+            for (&j, &r) in cols.iter().zip(dist) {
+                let (a, b) = (c[i], c[j as usize]);
+                let l = d.get_len(i, j as usize).unwrap();
+                assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+                if a.x < -2.0 * vs && b.x < -2.0 * vs {
+                    assert_eq!(l[0], 0.0, "{a} → {b}: {l:?}");
+                }
+                if a.x > 2.0 * vs && b.x > 2.0 * vs {
+                    assert_eq!(l[1], 0.0, "{a} → {b}: {l:?}");
+                }
+                if a.x < -2.0 * vs && b.x > 2.0 * vs && b.x - a.x > 0.5 * r {
+                    // Paths mostly along x: the straight split, within the staircase bound of
+                    // graph paths (≈ 9 % of the path) and the placement of the boundary
+                    // (half a patch and a voxel, stretched by r / Δx ≤ 2).
+                    crossing += 1;
+                    let want1 = -a.x / (b.x - a.x) * r;
+                    worst = worst.max((l[1] - want1).abs() / r);
+                    assert!(
+                        (l[1] - want1).abs() <= 0.09 * r + size + 2.0 * vs,
+                        "{a} → {b}: {l:?} vs {want1}"
+                    );
+                }
+            }
+        }
+        eprintln!("per-patch media: {crossing} crossing pairs, worst {worst:.3} of r");
+        assert!(crossing > 100);
+    }
+
+    /// The longest patch edge [`patches_of`] makes.
+    fn patch_size(tris: &[[Vec3; 3]], target: u64) -> f32 {
+        let (h, _) = plan(&[tris], Density::Target(target));
+        let p = subdivide(&[tris], h);
+        p.size.iter().cloned().fold(0.0, f32::max)
     }
 
     #[test]

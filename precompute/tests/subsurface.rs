@@ -211,3 +211,42 @@ fn light_enters_one_side_of_the_block_and_leaves_the_others() {
     .unwrap();
     assert!(stats.converged, "{stats:?}");
 }
+
+#[test]
+fn a_translucent_mesh_with_no_interior_falls_back_and_says_so() {
+    // A single open quad has no inside: optical paths cannot be traced, so straight-line
+    // distances are used and the bundle records the warning (never a silent fallback).
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("leaf.obj"),
+        "v 0 0 0\nv 0.1 0 0\nv 0.1 0 0.1\nv 0 0 0.1\nf 1 3 2\nf 1 4 3\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.path().join("scene.json"),
+        r#"{"objects":[
+            {"name":"floor","mesh":{"shape":"quad","size":[1,1]},"material":{"type":"diffuse","albedo":[0.5,0.5,0.5]}},
+            {"name":"leaf","mesh":"leaf.obj","transform":{"translate":[0,0.2,0]},
+             "material":{"type":"translucent","profile":{"type":"dipole","preset":"skimmilk"}}}],
+           "patches":{"target":600}}"#,
+    )
+    .unwrap();
+    let scene =
+        translux_precompute::scene::load_scene_file(&dir.path().join("scene.json")).unwrap();
+    let out = dir.path().join("b");
+    precompute(&scene, &out, &PrecomputeParams::default()).unwrap();
+    let b = Bundle::open(&out).unwrap();
+    let leaf = b
+        .manifest()
+        .subsurface
+        .objects
+        .iter()
+        .find(|o| o.name == "leaf")
+        .unwrap();
+    assert_eq!(leaf.method, "euclidean (fallback)");
+    let w = leaf.warning.as_deref().unwrap_or("");
+    assert!(w.contains("leaf") && w.contains("no interior"), "{w}");
+    // S still conserves energy and the leaf scatters light within itself.
+    assert!(leaf.max_column_energy <= 1.0);
+    assert!(b.manifest().subsurface.distance_nnz > 0);
+}

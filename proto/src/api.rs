@@ -97,6 +97,156 @@ pub struct RelightRequest {
     pub solver: Solver,
 }
 
+/// The tone curve that maps exposed linear radiance to display values (before the sRGB
+/// encoding) in renders and exports.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum ToneMap {
+    /// Clamp to [0, 1]: what a plain sRGB display shows.
+    #[default]
+    Srgb,
+    /// The ACES filmic curve (Narkowicz's 2016 fit): a soft shoulder instead of clipping.
+    Filmic,
+}
+
+impl ToneMap {
+    /// The name used in JSON and on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ToneMap::Srgb => "srgb",
+            ToneMap::Filmic => "filmic",
+        }
+    }
+}
+
+impl std::str::FromStr for ToneMap {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "srgb" => Ok(ToneMap::Srgb),
+            "filmic" => Ok(ToneMap::Filmic),
+            other => Err(format!(
+                "unknown tone map {other:?}; expected \"srgb\" or \"filmic\""
+            )),
+        }
+    }
+}
+
+/// Default `width` of a render, in pixels.
+pub const DEFAULT_RENDER_WIDTH: u32 = 800;
+/// Default `height` of a render, in pixels.
+pub const DEFAULT_RENDER_HEIGHT: u32 = 600;
+
+/// `POST /api/v1/scenes/{id}/render`: a relight request plus how to picture it; the answer
+/// is a PNG. Every field is optional; `{}` renders the bundle's default lights from its
+/// camera at 800 × 600.
+///
+/// The relight fields (`lights`, `materials`, `components`, `solver`) sit at the top level,
+/// next to the picture's, and mean what they mean in [`RelightRequest`];
+/// [`RenderRequest::relight`] splits them off. They are repeated here rather than
+/// `#[serde(flatten)]`ed from a `RelightRequest`: serde cannot combine `flatten` with
+/// `deny_unknown_fields` (a misspelt field would be ignored), and a flattened field loses its
+/// path in error messages. A test checks that every relight request is also a render request.
+///
+/// ```
+/// use translux_proto::api::{RenderRequest, ToneMap};
+/// let req: RenderRequest = translux_proto::parse_json(
+///     r#"{"components":"direct","width":320,"height":240,"tone":"filmic","exposure":1,
+///         "camera":{"position":[0,0.3,1.3],"target":[0,0.3,0]}}"#,
+/// ).unwrap();
+/// assert_eq!((req.width, req.height, req.tone), (320, 240, ToneMap::Filmic));
+/// assert_eq!(req.relight().components.as_str(), "direct");
+/// assert!(translux_proto::parse_json::<RenderRequest>(r#"{"widht":3}"#).is_err());
+/// ```
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RenderRequest {
+    /// As in [`RelightRequest::lights`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lights: Option<Vec<Light>>,
+    /// As in [`RelightRequest::materials`].
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub materials: BTreeMap<String, Material>,
+    #[serde(default)]
+    pub components: Components,
+    #[serde(default)]
+    pub solver: Solver,
+    /// The viewpoint; absent means the bundle's camera.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<Camera>,
+    /// Pixels, 1..=8192.
+    #[serde(default = "default_width")]
+    pub width: u32,
+    /// Pixels, 1..=8192.
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// EV stops: radiance × 2^exposure before the tone curve.
+    #[serde(default)]
+    pub exposure: f32,
+    #[serde(default)]
+    pub tone: ToneMap,
+    /// Where nothing is seen: linear display RGB in [0, 1] (sRGB-encoded, not exposed or
+    /// tone mapped).
+    #[serde(default)]
+    pub background: [f32; 3],
+    /// Skip triangles facing away from the camera, so a closed room is seen from outside
+    /// through its near wall.
+    #[serde(default = "yes")]
+    pub cull_backfaces: bool,
+}
+
+fn default_width() -> u32 {
+    DEFAULT_RENDER_WIDTH
+}
+fn default_height() -> u32 {
+    DEFAULT_RENDER_HEIGHT
+}
+fn yes() -> bool {
+    true
+}
+
+impl Default for RenderRequest {
+    fn default() -> Self {
+        RenderRequest {
+            lights: None,
+            materials: BTreeMap::new(),
+            components: Components::default(),
+            solver: Solver::default(),
+            camera: None,
+            width: DEFAULT_RENDER_WIDTH,
+            height: DEFAULT_RENDER_HEIGHT,
+            exposure: 0.0,
+            tone: ToneMap::default(),
+            background: [0.0; 3],
+            cull_backfaces: true,
+        }
+    }
+}
+
+impl RenderRequest {
+    /// The relight part of the request.
+    pub fn relight(&self) -> RelightRequest {
+        RelightRequest {
+            lights: self.lights.clone(),
+            materials: self.materials.clone(),
+            components: self.components,
+            solver: self.solver,
+        }
+    }
+
+    /// A render request with `relight`'s fields and the picture's defaults.
+    pub fn from_relight(relight: RelightRequest) -> RenderRequest {
+        RenderRequest {
+            lights: relight.lights,
+            materials: relight.materials,
+            components: relight.components,
+            solver: relight.solver,
+            ..Default::default()
+        }
+    }
+}
+
 /// What a relight did.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct RelightStats {
@@ -243,6 +393,62 @@ pub struct ErrorBody {
 mod tests {
     use super::*;
     use crate::parse_json;
+
+    #[test]
+    fn every_relight_request_is_a_render_request() {
+        // Every field of RelightRequest set to a non-default value: if RelightRequest gains
+        // a field that RenderRequest lacks, this stops parsing (deny_unknown_fields).
+        let relight: RelightRequest = parse_json(
+            r#"{"lights":[{"type":"point","position":[0,1,0],"intensity":[1,2,3]}],
+                "materials":{"block":{"type":"diffuse","albedo":[1,0,0]}},
+                "components":"direct","solver":"iterative"}"#,
+        )
+        .unwrap();
+        let text = serde_json::to_string(&relight).unwrap();
+        let render: RenderRequest = parse_json(&text).unwrap();
+        assert_eq!(render.relight(), relight);
+        assert_eq!(render, RenderRequest::from_relight(relight));
+        assert_eq!((render.width, render.height), (800, 600));
+        assert!(render.cull_backfaces && render.camera.is_none());
+        assert_eq!(
+            parse_json::<RenderRequest>("{}").unwrap(),
+            RenderRequest::default()
+        );
+
+        let e = parse_json::<RenderRequest>(r#"{"width":-1}"#).unwrap_err();
+        assert_eq!(e.path, "width", "{e}");
+        let e = parse_json::<RenderRequest>(r#"{"tone":"aces"}"#).unwrap_err();
+        assert_eq!(e.path, "tone", "{e}");
+        let e = parse_json::<RenderRequest>(r#"{"camera":{"position":[0,0,1]}}"#).unwrap_err();
+        assert!(e.message.contains("target"), "{e}");
+        let e = parse_json::<RenderRequest>(
+            r#"{"camera":{"position":[0,0,1],"target":[0,0,0],"fov":3}}"#,
+        )
+        .unwrap_err();
+        assert!(
+            e.path.starts_with("camera") && e.message.contains("fov"),
+            "{e}"
+        );
+        let e = parse_json::<RenderRequest>(
+            r#"{"lights":[{"type":"point","position":[0,1,0],"intensity":[1,"x",1]}]}"#,
+        )
+        .unwrap_err();
+        assert_eq!(e.path, "lights[0].intensity[1]", "{e}");
+        assert_eq!("filmic".parse::<ToneMap>(), Ok(ToneMap::Filmic));
+        assert!("aces".parse::<ToneMap>().unwrap_err().contains("aces"));
+        let full = RenderRequest {
+            camera: Some(Camera {
+                position: [0.0, 0.0, 1.0],
+                target: [0.0; 3],
+                up: [0.0, 1.0, 0.0],
+                fov_deg: 30.0,
+            }),
+            tone: ToneMap::Filmic,
+            ..Default::default()
+        };
+        let back: RenderRequest = parse_json(&serde_json::to_string(&full).unwrap()).unwrap();
+        assert_eq!(back, full);
+    }
 
     #[test]
     fn relight_request_is_strict_and_names_fields() {

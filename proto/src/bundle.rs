@@ -26,7 +26,15 @@
 //! ├── s_val.f32              [nnz_s, 3] patches hold their diagonal ρ, emitters nothing
 //! ├── dist_row_ptr.u64       [N + 1]    optical path r_ij (scene units) between patches of
 //! ├── dist_col.u32           [nnz_d]    the same translucent object, truncated where the
-//! └── dist_val.f32           [nnz_d]    profile is negligible; S is rebuilt from these
+//! ├── dist_val.f32           [nnz_d]    profile is negligible; S is rebuilt from these
+//! ├── dist_kind.u32          [nnz_d]    0: a path inside the object (or along a thin
+//! │                                     sheet's side: reflectance), 1: across a thin sheet
+//! │                                     to its other side (transmittance profile)
+//! ├── dist_material_len.f32  [nnz_d, 4] of a heterogeneous object's path: the length r_k it
+//! │                                     travels in medium k (Σ_k r_k = dist_val); all 0
+//! │                                     for a homogeneous object
+//! └── patch_material.u32     [N]        medium of a heterogeneous object's patch (under its
+//!                                       centroid; S_ii's profile), 0 for every other patch
 //! ```
 //!
 //! Byte offsets inside an array file: element `k` of a `[N, c]` array of 4-byte type is at
@@ -44,7 +52,7 @@ use crate::scene::Material;
 /// The `format` field of every manifest.
 pub const FORMAT: &str = "translux-bundle";
 /// Bumped whenever the layout changes; a loader refuses other versions.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// The manifest's file name inside a bundle folder.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -69,6 +77,9 @@ pub mod arrays {
     pub const DIST_ROW_PTR: &str = "dist_row_ptr";
     pub const DIST_COL: &str = "dist_col";
     pub const DIST_VAL: &str = "dist_val";
+    pub const DIST_KIND: &str = "dist_kind";
+    pub const DIST_MATERIAL_LEN: &str = "dist_material_len";
+    pub const PATCH_MATERIAL: &str = "patch_material";
 }
 
 /// Element type of an array file.
@@ -256,6 +267,9 @@ pub const REQUIRED_ARRAYS: &[(&str, DType)] = &[
     (arrays::DIST_ROW_PTR, DType::U64),
     (arrays::DIST_COL, DType::U32),
     (arrays::DIST_VAL, DType::F32),
+    (arrays::DIST_KIND, DType::U32),
+    (arrays::DIST_MATERIAL_LEN, DType::F32),
+    (arrays::PATCH_MATERIAL, DType::U32),
 ];
 
 /// What the first dimension of a required array counts.
@@ -298,6 +312,9 @@ const SHAPES: &[(&str, Rows, &[u64])] = &[
     (arrays::DIST_ROW_PTR, Rows::PatchesPlusOne, &[]),
     (arrays::DIST_COL, Rows::DistNnz, &[]),
     (arrays::DIST_VAL, Rows::DistNnz, &[]),
+    (arrays::DIST_KIND, Rows::DistNnz, &[]),
+    (arrays::DIST_MATERIAL_LEN, Rows::DistNnz, &[4]),
+    (arrays::PATCH_MATERIAL, Rows::Patches, &[]),
 ];
 
 /// The file name of array `name` with element type `dtype` (`ff_col.u32`).
@@ -913,6 +930,46 @@ impl Bundle {
                 format!("distance {k} is negative"),
             ));
         }
+        // Distance kinds: 0 (same side / interior) or 1 (a thin sheet's other side).
+        if let Some((k, &v)) = self
+            .u32s(arrays::DIST_KIND)
+            .iter()
+            .enumerate()
+            .find(|&(_, &v)| v > 1)
+        {
+            return Err(invalid(
+                array_file_name(arrays::DIST_KIND, DType::U32),
+                format!("distance {k} has kind {v}, expected 0 (same side) or 1 (other side)"),
+            ));
+        }
+        // Per-medium path lengths: finite and ≥ 0; media indices within the limit.
+        if let Some((k, v)) = self
+            .f32s(arrays::DIST_MATERIAL_LEN)
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && **v >= 0.0))
+        {
+            return Err(invalid(
+                array_file_name(arrays::DIST_MATERIAL_LEN, DType::F32),
+                format!(
+                    "distance {} medium {} has length {v}, expected finite and >= 0",
+                    k / 4,
+                    k % 4
+                ),
+            ));
+        }
+        let limit = crate::scene::MAX_HETEROGENEOUS_MATERIALS as u32;
+        if let Some((k, &m)) = self
+            .u32s(arrays::PATCH_MATERIAL)
+            .iter()
+            .enumerate()
+            .find(|&(_, &m)| m >= limit)
+        {
+            return Err(invalid(
+                array_file_name(arrays::PATCH_MATERIAL, DType::U32),
+                format!("patch {k} names medium {m}; there are at most {limit}"),
+            ));
+        }
         Ok(())
     }
 
@@ -1022,6 +1079,13 @@ impl Bundle {
             self.u32s(arrays::DIST_COL),
             self.f32s(arrays::DIST_VAL),
         )
+    }
+
+    /// `[nnz_d]` the kind of each stored distance, parallel to `distances().val()`: 0 for a
+    /// path inside an object or along one side of a thin sheet, 1 for a thin sheet's other
+    /// side (verified at open to be 0 or 1).
+    pub fn distance_kinds(&self) -> &[u32] {
+        self.u32s(arrays::DIST_KIND)
     }
 
     pub fn form_factors(&self) -> crate::csr::CsrView<'_> {
@@ -1152,6 +1216,9 @@ mod tests {
             u64s(arrays::DIST_ROW_PTR, &[3], &[0, 0, 0]),
             u32s(arrays::DIST_COL, &[0], &[]),
             f32s(arrays::DIST_VAL, &[0], &[]),
+            u32s(arrays::DIST_KIND, &[0], &[]),
+            f32s(arrays::DIST_MATERIAL_LEN, &[0, 4], &[]),
+            u32s(arrays::PATCH_MATERIAL, &[2], &[0, 0]),
         ];
         (manifest, arrays)
     }
@@ -1400,6 +1467,96 @@ mod tests {
     }
 
     #[test]
+    fn per_medium_lengths_and_patch_media_are_checked() {
+        // Two distances (0 → 1 and 1 → 0) with their per-medium lengths.
+        let with = |lens: [f32; 8], media: [u32; 2]| {
+            let (mut m, mut a) = two_patches();
+            m.subsurface.distance_nnz = 2;
+            replace(&mut a, u64s(arrays::DIST_ROW_PTR, &[3], &[0, 1, 2]));
+            replace(&mut a, u32s(arrays::DIST_COL, &[2], &[1, 0]));
+            replace(&mut a, f32s(arrays::DIST_VAL, &[2], &[0.5, 0.5]));
+            replace(&mut a, f32s(arrays::DIST_MATERIAL_LEN, &[2, 4], &lens));
+            replace(&mut a, u32s(arrays::DIST_KIND, &[2], &[0, 0]));
+            replace(&mut a, u32s(arrays::PATCH_MATERIAL, &[2], &media));
+            (m, a)
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = with([0.2, 0.3, 0.0, 0.0, 0.3, 0.2, 0.0, 0.0], [0, 1]);
+        write(tmp.path(), m, &a);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert_eq!(b.f32s(arrays::DIST_MATERIAL_LEN)[4], 0.3);
+        assert_eq!(b.u32s(arrays::PATCH_MATERIAL), &[0, 1]);
+
+        let (m, a) = with([0.2, 0.3, 0.0, 0.0, 0.3, -0.2, 0.0, 0.0], [0, 1]);
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("dist_material_len.f32: distance 1 medium 1 has length -0.2"),
+            "{e}"
+        );
+        let (m, a) = with([0.2, f32::NAN, 0.0, 0.0, 0.3, 0.2, 0.0, 0.0], [0, 1]);
+        assert!(open_err(m, &a).starts_with("dist_material_len.f32: distance 0 medium 1"));
+        let (m, a) = with([0.0; 8], [0, 4]);
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("patch_material.u32: patch 1 names medium 4; there are at most 4"),
+            "{e}"
+        );
+        // The shape follows the distance count, with 4 media per distance.
+        let (m, mut a) = with([0.0; 8], [0, 0]);
+        replace(&mut a, f32s(arrays::DIST_MATERIAL_LEN, &[2, 3], &[0.0; 6]));
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("dist_material_len.f32: shape [2, 3] does not match"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn distance_kinds_are_0_or_1() {
+        // Two distances (0 → 1 and 1 → 0): a thin sheet's front and back patch.
+        let with = |kinds: [u32; 2]| {
+            let (mut m, mut a) = two_patches();
+            m.subsurface.distance_nnz = 2;
+            replace(&mut a, u64s(arrays::DIST_ROW_PTR, &[3], &[0, 1, 2]));
+            replace(&mut a, u32s(arrays::DIST_COL, &[2], &[1, 0]));
+            replace(&mut a, f32s(arrays::DIST_VAL, &[2], &[0.0, 0.0]));
+            replace(&mut a, u32s(arrays::DIST_KIND, &[2], &kinds));
+            // Other per-distance arrays follow the count (all zeros).
+            for r in a.iter_mut() {
+                if ![arrays::DIST_COL, arrays::DIST_VAL, arrays::DIST_KIND].contains(&r.name)
+                    && r.shape.first() == Some(&0)
+                {
+                    r.shape[0] = 2;
+                    let per: u64 = r.shape[1..].iter().product();
+                    r.bytes = vec![0u8; (2 * per) as usize * r.dtype.size()];
+                }
+            }
+            (m, a)
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = with([1, 1]);
+        write(tmp.path(), m, &a);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert_eq!(b.distance_kinds(), &[1, 1]);
+        assert_eq!(b.distances().nnz(), 2);
+
+        let (m, a) = with([0, 2]);
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("dist_kind.u32: distance 1 has kind 2, expected 0 (same side) or 1"),
+            "{e}"
+        );
+        // The shape follows the distance count.
+        let (m, mut a) = with([0, 1]);
+        replace(&mut a, u32s(arrays::DIST_KIND, &[1], &[0]));
+        let e = open_err(m, &a);
+        assert!(
+            e.starts_with("dist_kind.u32: shape [1] does not match"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn manifest_entries_cannot_escape_the_folder() {
         let tmp = tempfile::tempdir().unwrap();
         let (m, a) = two_patches();
@@ -1451,7 +1608,7 @@ mod tests {
         m.version = 7;
         assert_eq!(
             open_err(m, &a),
-            "manifest.json: bundle version 7 is not supported (this build reads version 2)"
+            "manifest.json: bundle version 7 is not supported (this build reads version 3)"
         );
     }
 }

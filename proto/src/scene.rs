@@ -204,8 +204,47 @@ tagged_enum! {
     Diffuse { albedo: [f32; 3] },
     /// Subsurface scattering through the object, described by a 1-D profile.
     Translucent { profile: Profile },
+    /// A thin two-sided sheet (a petal, a leaf, paper) of constant thickness, after the
+    /// paper's rose: light entering one face leaves the same face by `reflectance` and the
+    /// other face by `transmittance`, both over the geodesic distance along the sheet (R, T
+    /// per unit area as measured on a slab of `thickness_mm`). The mesh must have a front and
+    /// a back face (a `sheet` shape has both).
+    ThinSheet {
+        reflectance: Profile,
+        transmittance: Profile,
+        thickness_mm: f32,
+    },
     /// A Lambertian emitter of constant radiance (W·m⁻²·sr⁻¹); it reflects nothing.
     Emitter { radiance: [f32; 3] },
+    /// A translucent object made of 2 to [`MAX_HETEROGENEOUS_MATERIALS`] homogeneous media
+    /// laid out by `pattern`. A path of length r = Σ_k r_k, r_k travelled in medium k,
+    /// scatters by the paper's eq. 9 generalised to K media,
+    /// `S = (Σ_k S_k(0) r_k / r) · Π_k S_k(r_k) / S_k(0)`, S_k the profile of medium k.
+    Heterogeneous { materials: Vec<Profile>, pattern: Pattern },
+}
+}
+
+/// Most media a [`Material::Heterogeneous`] object may combine (the bundle stores four
+/// per-medium lengths per optical path).
+pub const MAX_HETEROGENEOUS_MATERIALS: usize = 4;
+
+tagged_enum! {
+    tag = "type", mirror = PatternRepr;
+    /// Which medium of a heterogeneous object is where.
+    #[derive(Debug, Clone, PartialEq)]
+    pub enum Pattern {
+    /// A 3-D checkerboard of cubic cells of edge `cell` (scene units), fixed to the object:
+    /// a point p of the scene is taken into the object's frame by undoing its transform's
+    /// translation and rotation (not its scale), q = Rᵀ(p − t) − origin, and lies in medium
+    /// (⌊q_x/cell⌋ + ⌊q_y/cell⌋ + ⌊q_z/cell⌋) mod K (K = number of materials).
+    Checkerboard {
+        cell: f32,
+        #[serde(default)]
+        origin: [f32; 3],
+    },
+    /// Media by the OBJ's `usemtl` groups: faces of material `names[k]` are medium k; a point
+    /// inside the object is in the medium of the nearest face (measured through the inside).
+    ByObjMaterial { names: Vec<String> },
 }
 }
 
@@ -215,7 +254,9 @@ impl Material {
         match self {
             Material::Diffuse { .. } => "diffuse",
             Material::Translucent { .. } => "translucent",
+            Material::ThinSheet { .. } => "thin_sheet",
             Material::Emitter { .. } => "emitter",
+            Material::Heterogeneous { .. } => "heterogeneous",
         }
     }
 }
@@ -334,6 +375,20 @@ impl SceneFile {
                 }
             }
             o.material.validate(&format!("{at}.material"))?;
+            if let (
+                Material::Heterogeneous {
+                    pattern: Pattern::ByObjMaterial { .. },
+                    ..
+                },
+                MeshRef::Shape(_),
+            ) = (&o.material, &o.mesh)
+            {
+                return Err(FieldError::new(
+                    format!("{at}.material.pattern"),
+                    "by_obj_material needs an OBJ mesh with `usemtl` groups; a built-in shape \
+                     has none (use a checkerboard)",
+                ));
+            }
             if let Some(c) = o.crease_deg {
                 check_range(&format!("{at}.crease_deg"), c, 0.0, 180.0)?;
             }
@@ -427,6 +482,78 @@ impl Material {
                 check_vec_range(&format!("{at}.radiance"), radiance, 0.0, f32::MAX)
             }
             Material::Translucent { profile } => profile.validate(&format!("{at}.profile")),
+            Material::ThinSheet {
+                reflectance,
+                transmittance,
+                thickness_mm,
+            } => {
+                reflectance.validate(&format!("{at}.reflectance"))?;
+                transmittance.validate(&format!("{at}.transmittance"))?;
+                let path = format!("{at}.thickness_mm");
+                check_finite(&path, *thickness_mm)?;
+                if *thickness_mm <= 0.0 {
+                    return Err(FieldError::new(path, "must be > 0"));
+                }
+                Ok(())
+            }
+            Material::Heterogeneous { materials, pattern } => {
+                let k = materials.len();
+                if !(2..=MAX_HETEROGENEOUS_MATERIALS).contains(&k) {
+                    return Err(FieldError::new(
+                        format!("{at}.materials"),
+                        format!(
+                            "has {k} profiles; a heterogeneous object needs 2 to \
+                             {MAX_HETEROGENEOUS_MATERIALS}"
+                        ),
+                    ));
+                }
+                for (i, p) in materials.iter().enumerate() {
+                    p.validate(&format!("{at}.materials[{i}]"))?;
+                }
+                pattern.validate(&format!("{at}.pattern"), k)
+            }
+        }
+    }
+}
+
+impl Pattern {
+    /// Checks ranges; `at` is the field path of this pattern, `count` the number of media.
+    pub fn validate(&self, at: &str, count: usize) -> Result<(), FieldError> {
+        match self {
+            Pattern::Checkerboard { cell, origin } => {
+                check_finite(&format!("{at}.cell"), *cell)?;
+                if *cell <= 0.0 {
+                    return Err(FieldError::new(format!("{at}.cell"), "must be > 0"));
+                }
+                check_vec_finite(&format!("{at}.origin"), origin)
+            }
+            Pattern::ByObjMaterial { names } => {
+                if names.len() != count {
+                    return Err(FieldError::new(
+                        format!("{at}.names"),
+                        format!(
+                            "has {} names but there are {count} materials; names[k] picks \
+                             the faces of materials[k]",
+                            names.len()
+                        ),
+                    ));
+                }
+                for (i, n) in names.iter().enumerate() {
+                    if n.trim().is_empty() {
+                        return Err(FieldError::new(
+                            format!("{at}.names[{i}]"),
+                            "must not be empty",
+                        ));
+                    }
+                    if names[..i].contains(n) {
+                        return Err(FieldError::new(
+                            format!("{at}.names[{i}]"),
+                            format!("\"{n}\" is listed twice; names must be unique"),
+                        ));
+                    }
+                }
+                Ok(())
+            }
         }
     }
 }
@@ -543,5 +670,227 @@ impl Profile {
                 Ok(())
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::parse_json;
+
+    /// A one-object scene with `material` (JSON) on mesh `mesh` (JSON).
+    fn scene(mesh: &str, material: &str) -> String {
+        format!(r#"{{"objects":[{{"name":"block","mesh":{mesh},"material":{material}}}]}}"#)
+    }
+
+    const MARBLE: &str = r#"{"type":"dipole","preset":"marble"}"#;
+    const KETCHUP: &str = r#"{"type":"dipole","preset":"ketchup"}"#;
+    const BOX: &str = r#"{"shape":"box","size":[1,2,1]}"#;
+
+    fn validate(mesh: &str, material: &str) -> Result<SceneFile, String> {
+        let s: SceneFile = parse_json(&scene(mesh, material)).map_err(|e| e.to_string())?;
+        s.validate().map_err(|e| e.to_string())?;
+        Ok(s)
+    }
+
+    #[test]
+    fn heterogeneous_checkerboard_parses_with_default_origin() {
+        let s = validate(
+            BOX,
+            &format!(
+                r#"{{"type":"heterogeneous","materials":[{MARBLE},{KETCHUP}],
+                    "pattern":{{"type":"checkerboard","cell":0.25}}}}"#
+            ),
+        )
+        .unwrap();
+        let Material::Heterogeneous { materials, pattern } = &s.objects[0].material else {
+            panic!("{:?}", s.objects[0].material)
+        };
+        assert_eq!(materials.len(), 2);
+        assert_eq!(
+            *pattern,
+            Pattern::Checkerboard {
+                cell: 0.25,
+                origin: [0.0; 3]
+            }
+        );
+        assert_eq!(s.objects[0].material.kind(), "heterogeneous");
+        // It round-trips through JSON with its tags.
+        let text = serde_json::to_string(&s).unwrap();
+        assert!(text.contains(r#""type":"heterogeneous""#), "{text}");
+        assert!(text.contains(r#""type":"checkerboard""#), "{text}");
+        assert_eq!(parse_json::<SceneFile>(&text).unwrap(), s);
+        // by_obj_material on an OBJ mesh.
+        validate(
+            r#""block.obj""#,
+            &format!(
+                r#"{{"type":"heterogeneous","materials":[{MARBLE},{KETCHUP}],
+                    "pattern":{{"type":"by_obj_material","names":["white","orange"]}}}}"#
+            ),
+        )
+        .unwrap();
+    }
+
+    #[test]
+    fn heterogeneous_errors_name_the_field() {
+        let het = |materials: &str, pattern: &str| {
+            format!(r#"{{"type":"heterogeneous","materials":[{materials}],"pattern":{pattern}}}"#)
+        };
+        let checker = r#"{"type":"checkerboard","cell":0.1}"#;
+        let cases = [
+            (
+                BOX.to_string(),
+                het(MARBLE, checker),
+                "objects[0].material.materials has 1 profiles; a heterogeneous object needs 2 to 4",
+            ),
+            (
+                BOX.to_string(),
+                het(&[MARBLE; 5].join(","), checker),
+                "objects[0].material.materials has 5 profiles",
+            ),
+            (
+                BOX.to_string(),
+                het(
+                    &format!(r#"{MARBLE},{{"type":"dipole","preset":"jade"}}"#),
+                    checker,
+                ),
+                "objects[0].material.materials[1].preset \"jade\" is not a known medium",
+            ),
+            (
+                BOX.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"checkerboard","cell":0}"#,
+                ),
+                "objects[0].material.pattern.cell must be > 0",
+            ),
+            (
+                BOX.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"checkerboard","cell":-1}"#,
+                ),
+                "objects[0].material.pattern.cell must be > 0",
+            ),
+            (
+                r#""m.obj""#.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"by_obj_material","names":[]}"#,
+                ),
+                "objects[0].material.pattern.names has 0 names but there are 2 materials",
+            ),
+            (
+                r#""m.obj""#.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"by_obj_material","names":["a","a"]}"#,
+                ),
+                "objects[0].material.pattern.names[1] \"a\" is listed twice",
+            ),
+            (
+                r#""m.obj""#.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"by_obj_material","names":["a"," "]}"#,
+                ),
+                "objects[0].material.pattern.names[1] must not be empty",
+            ),
+            (
+                BOX.to_string(),
+                het(
+                    &format!("{MARBLE},{KETCHUP}"),
+                    r#"{"type":"by_obj_material","names":["a","b"]}"#,
+                ),
+                "objects[0].material.pattern by_obj_material needs an OBJ mesh",
+            ),
+        ];
+        for (mesh, material, want) in cases {
+            let got = validate(&mesh, &material).unwrap_err();
+            assert!(
+                got.starts_with(want),
+                "{material}: got {got:?}, want {want:?}"
+            );
+        }
+        // Decoding errors inside the pattern keep their path too.
+        let e = parse_json::<SceneFile>(&scene(
+            BOX,
+            &het(
+                &format!("{MARBLE},{KETCHUP}"),
+                r#"{"type":"checkerboard","cell":0.1,"origin":[0,"x",0]}"#,
+            ),
+        ))
+        .unwrap_err();
+        assert_eq!(e.path, "objects[0].material.pattern.origin[1]", "{e}");
+        let e = parse_json::<SceneFile>(&scene(
+            BOX,
+            &het(
+                &format!("{MARBLE},{KETCHUP}"),
+                r#"{"type":"stripes","cell":0.1}"#,
+            ),
+        ))
+        .unwrap_err();
+        assert!(e.message.contains("stripes"), "{e}");
+    }
+}
+
+#[cfg(test)]
+mod thin_sheet_tests {
+    use super::*;
+    use crate::parse_json;
+
+    /// A petal-like object with a thin-sheet material whose thickness is `thickness` (JSON).
+    fn petal(thickness: &str, t_terms: &str) -> String {
+        format!(
+            r#"{{"objects":[{{"name":"petal","mesh":{{"shape":"sheet","length":0.06,"width":0.03,"thickness":0.001}},
+               "material":{{"type":"thin_sheet",
+                 "reflectance":{{"type":"exponentials","terms":[{{"a":[0.1,0.05,0.08],"b":[1,1,1]}}]}},
+                 "transmittance":{{"type":"exponentials","terms":[{t_terms}]}},"thickness_mm":{thickness}}}}}]}}"#
+        )
+    }
+    const T_OK: &str = r#"{"a":[0.05,0.02,0.04],"b":[0.8,0.8,0.8]}"#;
+
+    #[test]
+    fn thin_sheet_parses_round_trips_and_validates() {
+        let s: SceneFile = parse_json(&petal("1.0", T_OK)).unwrap();
+        s.validate().unwrap();
+        let m = &s.objects[0].material;
+        assert_eq!(m.kind(), "thin_sheet");
+        let Material::ThinSheet {
+            reflectance: Profile::Exponentials { .. },
+            transmittance: Profile::Exponentials { terms },
+            thickness_mm,
+        } = m
+        else {
+            panic!("{m:?}")
+        };
+        assert_eq!((*thickness_mm, terms[0].b[0]), (1.0, 0.8));
+        let text = serde_json::to_string(&s).unwrap();
+        assert!(text.contains(r#""type":"thin_sheet""#), "{text}");
+        assert_eq!(parse_json::<SceneFile>(&text).unwrap(), s);
+    }
+
+    #[test]
+    fn thin_sheet_errors_name_the_field() {
+        for (thickness, want) in [
+            ("0", "objects[0].material.thickness_mm must be > 0"),
+            ("-1", "objects[0].material.thickness_mm must be > 0"),
+        ] {
+            let s: SceneFile = parse_json(&petal(thickness, T_OK)).unwrap();
+            assert_eq!(s.validate().unwrap_err().to_string(), want);
+        }
+        // A bad transmittance coefficient names the profile it sits in.
+        let s: SceneFile =
+            parse_json(&petal("1", r#"{"a":[0.05,0.02,0.04],"b":[0.8,0,0.8]}"#)).unwrap();
+        assert_eq!(
+            s.validate().unwrap_err().to_string(),
+            "objects[0].material.transmittance.terms[0].b[1] must be > 0 (the profile must fall off)"
+        );
+        // Decoding errors keep their path: a thickness that is not a number, a missing field.
+        let e = parse_json::<SceneFile>(&petal(r#""thin""#, T_OK)).unwrap_err();
+        assert_eq!(e.path, "objects[0].material.thickness_mm", "{e}");
+        let e = parse_json::<SceneFile>(&petal("1", T_OK).replace(r#","thickness_mm":1"#, ""))
+            .unwrap_err();
+        assert!(e.message.contains("thickness_mm"), "{e}");
     }
 }

@@ -1,4 +1,13 @@
-//! The `translux-server` command line: arguments, logging, the demo bundle, the listener.
+//! The `translux-server` command line: arguments, logging, the demo bundle, the listener,
+//! and the offline subcommands.
+//!
+//! Two forms, told apart by clap:
+//! - the server: `translux-server --bundles DIR [--addr HOST:PORT]` or `--demo` (flags only,
+//!   as always);
+//! - an offline command: `translux-server render | export | relight --bundle DIR
+//!   [--request REQ.json] --out FILE ...` ([`crate::offline`]). A subcommand lifts the
+//!   server's `--bundles`-or-`--demo` requirement (`subcommand_negates_reqs`), and the
+//!   server's flags cannot be mixed with a subcommand (`args_conflicts_with_subcommands`).
 
 use std::future::Future;
 use std::io::IsTerminal;
@@ -7,9 +16,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
+use translux_proto::api::ToneMap;
 use translux_proto::bundle::Bundle;
 
 use crate::state::load_bundles;
@@ -29,7 +39,11 @@ pub const DEMO_PATCHES: u64 = 3000;
     version,
     about,
     long_about = None,
-    after_help = "Examples:\n  translux-server --demo\n  translux-server --bundles bundles --addr 0.0.0.0:8080\n\n\
+    subcommand_negates_reqs = true,
+    args_conflicts_with_subcommands = true,
+    after_help = "Examples:\n  translux-server --demo\n  translux-server --bundles bundles --addr 0.0.0.0:8080\n  \
+                  translux-server render --bundle demo-bundles/cornell --out cornell.png\n  \
+                  translux-server export --bundle demo-bundles/cornell --request req.json --out cornell.glb\n\n\
                   Logging: RUST_LOG (default info); RUST_LOG=debug logs every request."
 )]
 pub struct Args {
@@ -53,12 +67,105 @@ pub struct Args {
     /// ./demo-bundles) unless a valid bundle is already there, then serve DIR.
     #[arg(long)]
     pub demo: bool,
+    /// An offline command instead of the server.
+    #[command(subcommand)]
+    pub command: Option<Command>,
+}
+
+/// The offline commands: one bundle, one request, one file out, no HTTP.
+#[derive(Debug, Clone, Subcommand)]
+pub enum Command {
+    /// Relight a bundle and render it from a camera to a PNG.
+    Render(RenderArgs),
+    /// Relight a bundle and write its mesh with baked vertex colours (.glb or .ply).
+    Export(ExportArgs),
+    /// Relight a bundle and write the per-vertex radiance B/pi (.f32 or .json).
+    Relight(RelightArgs),
+}
+
+/// `translux-server render`.
+#[derive(Debug, Clone, clap::Args)]
+#[command(
+    after_help = "The request is POST /api/v1/scenes/{id}/render's body: the relight \
+    fields (lights, materials, components, solver) plus camera, width, height, exposure, tone, \
+    background, cull_backfaces. Flags override the file's fields."
+)]
+pub struct RenderArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON render request (`-`: standard input); default `{}`: the bundle's lights and camera.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The PNG to write.
+    #[arg(long, value_name = "FILE.png")]
+    pub out: PathBuf,
+    /// Image width in pixels (1..=8192; default 800).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height in pixels (1..=8192; default 600).
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Exposure in EV stops (radiance × 2^EV; default 0).
+    #[arg(long, allow_negative_numbers = true)]
+    pub exposure: Option<f32>,
+    /// Tone curve: srgb (clamp) or filmic (ACES fit); default srgb.
+    #[arg(long, value_name = "srgb|filmic")]
+    pub tone: Option<ToneMap>,
+}
+
+/// `translux-server export`.
+#[derive(Debug, Clone, clap::Args)]
+#[command(
+    after_help = "glTF colours (COLOR_0) are linear floats (exposure and tone curve \
+    applied, no sRGB encoding: glTF vertex colours are linear); PLY colours are 8-bit sRGB."
+)]
+pub struct ExportArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON relight request (`-`: standard input); default `{}`: the bundle's lights.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The file to write: FILE.glb (binary glTF 2.0) or FILE.ply (binary PLY).
+    #[arg(long, value_name = "FILE.glb|FILE.ply")]
+    pub out: PathBuf,
+    /// Exposure in EV stops applied to the baked colours.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0)]
+    pub exposure: f32,
+    /// Tone curve for the baked colours: srgb (clamp) or filmic (ACES fit); default srgb.
+    #[arg(long, value_name = "srgb|filmic")]
+    pub tone: Option<ToneMap>,
+}
+
+/// `translux-server relight`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RelightArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON relight request (`-`: standard input); default `{}`: the bundle's lights.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The file to write: FILE.f32 (n × 3 little-endian f32, as the binary API) or FILE.json
+    /// (as the JSON API).
+    #[arg(long, value_name = "FILE.f32|FILE.json")]
+    pub out: PathBuf,
 }
 
 /// The binary's `main`: logging from `RUST_LOG` (default `info`), then [`run`].
 pub fn main() -> ExitCode {
     let args = Args::parse();
     init_tracing();
+    if let Some(command) = &args.command {
+        return match crate::offline::run(command) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                tracing::error!("{e:#}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -96,6 +203,9 @@ pub async fn run(
     args: Args,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
+    if args.command.is_some() {
+        bail!("an offline command runs with crate::offline::run, not as a server");
+    }
     let dir = match (&args.bundles, args.demo) {
         (Some(dir), _) => dir.clone(),
         (None, true) => PathBuf::from(DEMO_DIR),
@@ -243,5 +353,90 @@ mod tests {
         if std::env::var_os("TRANSLUX_BUNDLES").is_none() {
             assert!(Args::try_parse_from(["translux-server"]).is_err());
         }
+        assert!(a.command.is_none());
+    }
+
+    #[test]
+    fn subcommands() {
+        let a = Args::try_parse_from([
+            "translux-server",
+            "render",
+            "--bundle",
+            "b/cornell",
+            "--out",
+            "x.png",
+            "--width",
+            "64",
+            "--exposure",
+            "-1.5",
+            "--tone",
+            "filmic",
+        ])
+        .unwrap();
+        let Some(Command::Render(r)) = a.command else {
+            panic!("{a:?}")
+        };
+        assert_eq!(r.bundle, PathBuf::from("b/cornell"));
+        assert_eq!(r.out, PathBuf::from("x.png"));
+        assert_eq!((r.width, r.height), (Some(64), None));
+        assert_eq!(r.exposure, Some(-1.5));
+        assert_eq!(r.tone, Some(ToneMap::Filmic));
+        assert!(r.request.is_none());
+
+        let a = Args::try_parse_from([
+            "translux-server",
+            "export",
+            "--bundle",
+            "b",
+            "--request",
+            "r.json",
+            "--out",
+            "m.glb",
+        ])
+        .unwrap();
+        let Some(Command::Export(e)) = a.command else {
+            panic!("{a:?}")
+        };
+        assert_eq!(e.request, Some(PathBuf::from("r.json")));
+        assert_eq!((e.exposure, e.tone), (0.0, None));
+
+        let a = Args::try_parse_from([
+            "translux-server",
+            "relight",
+            "--bundle",
+            "b",
+            "--out",
+            "c.f32",
+        ])
+        .unwrap();
+        assert!(matches!(a.command, Some(Command::Relight(_))));
+
+        // Missing --out, an unknown tone, server flags mixed with a subcommand: refused.
+        assert!(Args::try_parse_from(["translux-server", "render", "--bundle", "b"]).is_err());
+        let e = Args::try_parse_from([
+            "translux-server",
+            "render",
+            "--bundle",
+            "b",
+            "--out",
+            "x.png",
+            "--tone",
+            "aces",
+        ])
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("aces"), "{e}");
+        assert!(
+            Args::try_parse_from([
+                "translux-server",
+                "--demo",
+                "render",
+                "--bundle",
+                "b",
+                "--out",
+                "x.png"
+            ])
+            .is_err()
+        );
     }
 }

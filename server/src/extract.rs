@@ -164,6 +164,43 @@ pub fn negotiate(headers: &HeaderMap) -> Result<Format, AppError> {
     }
 }
 
+/// Whether `Accept` allows `image/png` (the render endpoint's only format): absent, empty,
+/// or an entry `image/png`, `image/*` or `*/*` with q > 0; otherwise 406.
+pub fn accept_png(headers: &HeaderMap) -> Result<(), AppError> {
+    let mut seen = Vec::new();
+    for value in headers.get_all(ACCEPT) {
+        let Ok(value) = value.to_str() else {
+            return Err(AppError::not_acceptable("the Accept header is not ASCII"));
+        };
+        for entry in value.split(',') {
+            let mut parts = entry.split(';');
+            let media = parts.next().unwrap_or("").trim().to_ascii_lowercase();
+            if media.is_empty() {
+                continue;
+            }
+            let mut q = 1.0f32;
+            for p in parts {
+                if let Some((k, v)) = p.split_once('=')
+                    && k.trim().eq_ignore_ascii_case("q")
+                {
+                    q = v.trim().parse().unwrap_or(0.0);
+                }
+            }
+            if q > 0.0 && matches!(media.as_str(), "image/png" | "image/*" | "*/*") {
+                return Ok(());
+            }
+            seen.push(media);
+        }
+    }
+    if seen.is_empty() {
+        return Ok(());
+    }
+    Err(AppError::not_acceptable(format!(
+        "Accept: {} is not available; this endpoint answers image/png",
+        seen.join(", ")
+    )))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -196,6 +233,30 @@ mod tests {
         assert_eq!(e.status.as_u16(), 406);
         assert!(e.message.contains("image/png"), "{e}");
         assert!(accept("application/json;q=0").is_err());
+    }
+
+    #[test]
+    fn png_acceptance() {
+        let accept_png_for = |v: &str| {
+            let mut h = HeaderMap::new();
+            h.insert(ACCEPT, HeaderValue::from_str(v).unwrap());
+            accept_png(&h)
+        };
+        assert!(accept_png(&HeaderMap::new()).is_ok());
+        for ok in [
+            "image/png",
+            "image/*",
+            "*/*",
+            "text/html, image/png;q=0.5",
+            "",
+        ] {
+            assert!(accept_png_for(ok).is_ok(), "{ok}");
+        }
+        for bad in ["application/json", "image/png;q=0", "image/jpeg"] {
+            let e = accept_png_for(bad).unwrap_err();
+            assert_eq!(e.status.as_u16(), 406, "{bad}");
+            assert!(e.message.contains("image/png"), "{e}");
+        }
     }
 
     #[test]

@@ -15,6 +15,11 @@
 //! | `GET /api/v1/scenes/{id}` | counts, objects and materials, default lights, camera, F info |
 //! | `GET /api/v1/scenes/{id}/mesh` | flat `positions`, `normals`, `indices`, object ranges |
 //! | `POST /api/v1/scenes/{id}/relight` | JSON (`Accept: application/json`) or n×3 LE `f32` |
+//! | `POST /api/v1/scenes/{id}/render` | `image/png`: the relit scene from a camera ([`picture`]) |
+//!
+//! The same binary works offline, without HTTP: `translux-server render | export | relight
+//! --bundle DIR [--request REQ.json] --out FILE` writes a PNG, a `.glb`/`.ply` with baked
+//! colours, or the per-vertex radiance ([`cli`], [`offline`]).
 //!
 //! Request and answer bodies are the types of [`translux_proto::api`]. Every error is
 //! `{"error":{"code","message"}}` with a 4xx/5xx status ([`AppError`]); bad input never
@@ -34,6 +39,8 @@
 pub mod cli;
 pub mod error;
 pub mod extract;
+pub mod offline;
+pub mod picture;
 pub mod relight;
 pub mod routes;
 pub mod state;

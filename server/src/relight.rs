@@ -84,7 +84,10 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
             .map_err(|e| AppError::invalid(e.to_string()))?;
         let built = &manifest.objects[k].material;
         if matches!(material, Material::Translucent { .. })
-            && !matches!(built, Material::Translucent { .. })
+            && !matches!(
+                built,
+                Material::Translucent { .. } | Material::Heterogeneous { .. }
+            )
         {
             return Err(AppError::unsupported(format!(
                 "materials.{name}: {name:?} was precomputed as {}, and a translucent material \
@@ -93,9 +96,37 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
                 built.kind()
             )));
         }
+        if matches!(material, Material::ThinSheet { .. })
+            && !matches!(built, Material::ThinSheet { .. })
+        {
+            return Err(AppError::unsupported(format!(
+                "materials.{name}: {name:?} was precomputed as {}, and a thin-sheet material \
+                 needs the distances along the sheet and which side each pair is on, which only \
+                 a thin sheet's bundle holds; precompute the scene with {name:?} as a thin sheet \
+                 to vary its reflectance and transmittance",
+                built.kind()
+            )));
+        }
+        // A heterogeneous object's stored per-medium lengths serve new profiles for its
+        // media, not another layout of media.
+        if let Material::Heterogeneous { materials, pattern } = material {
+            let same = matches!(built, Material::Heterogeneous { materials: bm, pattern: bp }
+                if bm.len() == materials.len() && bp == pattern);
+            if !same {
+                return Err(AppError::unsupported(format!(
+                    "materials.{name}: {name:?} was precomputed as {}; a heterogeneous override \
+                     can change the profiles of the media it was precomputed with, not their \
+                     pattern or number (the lengths each path travels in each medium are \
+                     geometry); precompute the scene with the new pattern",
+                    built.kind()
+                )));
+            }
+        }
         if material.kind() != "diffuse"
             && material.kind() != "emitter"
             && material.kind() != "translucent"
+            && material.kind() != "thin_sheet"
+            && material.kind() != "heterogeneous"
         {
             return Err(AppError::unsupported(format!(
                 "materials.{name}: {} overrides are not supported yet",

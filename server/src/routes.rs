@@ -13,14 +13,14 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use serde::Serialize;
 use translux_proto::api::{
-    GpuHealth, Health, Mesh, MeshObject, RelightRequest, RelightResponse, SceneDetail, SceneList,
-    SceneObject, SceneSummary,
+    GpuHealth, Health, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest,
+    SceneDetail, SceneList, SceneObject, SceneSummary,
 };
 
 use crate::error::AppError;
-use crate::extract::{BODY_LIMIT, Format, JsonBody, SceneId, negotiate};
-use crate::relight;
+use crate::extract::{BODY_LIMIT, Format, JsonBody, SceneId, accept_png, negotiate};
 use crate::state::{AppState, Scene};
+use crate::{picture, relight};
 
 /// The viewer page served at `/`.
 pub const INDEX_HTML: &str = include_str!("../../web/index.html");
@@ -37,6 +37,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/v1/scenes/{id}", get(scene_detail))
         .route("/api/v1/scenes/{id}/mesh", get(scene_mesh))
         .route("/api/v1/scenes/{id}/relight", post(relight))
+        .route("/api/v1/scenes/{id}/render", post(render))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(BODY_LIMIT))
@@ -231,6 +232,49 @@ async fn relight(
     let h = response.headers_mut();
     h.insert(VARY, HeaderValue::from_static("accept"));
     h.insert("x-vertex-count", HeaderValue::from(vertex_count));
+    if let Ok(v) = HeaderValue::from_str(&timing) {
+        h.insert("server-timing", v);
+    }
+    Ok(response)
+}
+
+/// `POST /api/v1/scenes/{id}/render`: the relight request's fields plus a camera and the
+/// picture's size, exposure and tone curve; answers `image/png`. The relight runs through
+/// the same [`relight::plan`] / [`relight::run`] as `/relight`.
+async fn render(
+    State(state): State<AppState>,
+    SceneId(id): SceneId,
+    headers: HeaderMap,
+    body: Result<JsonBody<RenderRequest>, AppError>,
+) -> Result<Response, AppError> {
+    let scene = find_scene(&state, &id)?;
+    accept_png(&headers)?;
+    let JsonBody(req) = body?;
+    let plan = picture::plan(&scene, req)?;
+    let task_scene = scene.clone();
+    let out = tokio::task::spawn_blocking(move || picture::run(&task_scene, &plan))
+        .await
+        .map_err(|e| AppError::internal(format!("the render task failed: {e}")))??;
+    let s = &out.stats;
+    tracing::info!(
+        scene = %scene.id,
+        components = s.components.as_str(),
+        lights = s.lights,
+        iterations = s.iterations,
+        relight_ms = format_args!("{:.1}", s.ms),
+        raster_ms = format_args!("{:.1}", out.raster_ms),
+        encode_ms = format_args!("{:.1}", out.encode_ms),
+        bytes = out.png.len(),
+        "rendered"
+    );
+    let timing = format!(
+        "direct;dur={:.3}, solve;dur={:.3}, raster;dur={:.3}, encode;dur={:.3}, total;dur={:.3}",
+        s.direct_ms, s.solve_ms, out.raster_ms, out.encode_ms, out.total_ms
+    );
+    let mut response = Body::from(out.png).into_response();
+    let h = response.headers_mut();
+    h.insert(CONTENT_TYPE, HeaderValue::from_static("image/png"));
+    h.insert("x-vertex-count", HeaderValue::from(out.vertex_count));
     if let Ok(v) = HeaderValue::from_str(&timing) {
         h.insert("server-timing", v);
     }

@@ -6,11 +6,11 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use axum::body::Bytes;
 use glam::Vec3;
-use translux_precompute::pipeline::material_albedo_emission;
+use translux_precompute::pipeline::{material_albedo_emission, patch_albedo};
 use translux_precompute::radiosity::Rgb;
 use translux_precompute::raycast::Occluder;
 use translux_precompute::smatrix::{self, CsrOwned, SParams};
-use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE};
+use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, arrays};
 use translux_proto::csr::CsrView;
 use translux_proto::scene::Material;
 
@@ -74,7 +74,14 @@ impl Scene {
             let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
             let (rho, be) = material_albedo_emission(m);
             albedo[range.clone()].fill(rho);
-            emission[range].fill(be);
+            emission[range.clone()].fill(be);
+            if matches!(m, Material::Heterogeneous { .. }) {
+                // Each patch at its own medium's total diffuse reflectance.
+                let media = self.bundle.u32s(arrays::PATCH_MATERIAL);
+                for p in range {
+                    albedo[p] = patch_albedo(m, media.get(p).copied().unwrap_or(0));
+                }
+            }
         }
         let m = Arc::new(OverrideMaterials {
             s,

@@ -831,3 +831,217 @@ async fn a_corrupt_bundle_is_skipped_and_the_good_one_served() {
     assert!(state.is_empty());
     assert_eq!(errors.len(), 1);
 }
+
+/// POSTs a JSON body to the scene's render endpoint.
+async fn post_render(s: &TestServer, body: &Value, accept: Option<&str>) -> reqwest::Response {
+    let mut req = s
+        .client
+        .post(s.url("/api/v1/scenes/cornell/render"))
+        .header(CONTENT_TYPE, "application/json")
+        .body(body.to_string());
+    if let Some(a) = accept {
+        req = req.header(ACCEPT, a);
+    }
+    req.send().await.unwrap()
+}
+
+/// Renders and decodes, asserting a 200 PNG answer.
+async fn render_png(s: &TestServer, body: &Value) -> image::RgbImage {
+    let r = post_render(s, body, Some("image/png")).await;
+    let status = r.status();
+    let ct = content_type(&r);
+    let bytes = r.bytes().await.unwrap();
+    assert_eq!(
+        status,
+        StatusCode::OK,
+        "{}",
+        String::from_utf8_lossy(&bytes)
+    );
+    assert_eq!(ct, "image/png");
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n", "PNG signature");
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .expect("the answer decodes as PNG")
+        .to_rgb8()
+}
+
+/// Mean of the red channel over the columns `cols` (all rows).
+fn mean_red(img: &image::RgbImage, cols: std::ops::Range<u32>) -> f64 {
+    let mut sum = 0.0;
+    let mut n = 0.0;
+    for y in 0..img.height() {
+        for x in cols.clone() {
+            sum += img.get_pixel(x, y).0[0] as f64;
+            n += 1.0;
+        }
+    }
+    sum / n
+}
+
+#[tokio::test]
+async fn render_answers_a_png_of_the_relit_scene() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+
+    // The bundle's lights and camera, at the requested size.
+    let body = json!({"width": 160, "height": 120, "exposure": -1.0});
+    let img = render_png(&s, &body).await;
+    assert_eq!(img.dimensions(), (160, 120));
+    let colours: std::collections::HashSet<[u8; 3]> = img.pixels().map(|p| p.0).collect();
+    assert!(colours.len() > 50, "{} distinct colours", colours.len());
+    // The camera looks into the box through its (culled) front wall: the centre is lit, the
+    // corners are outside the box (background black).
+    assert_ne!(img.get_pixel(80, 60).0, [0, 0, 0]);
+    assert_eq!(img.get_pixel(0, 0).0, [0, 0, 0]);
+
+    // The same pixels as the library's renderer on the relight route's radiance: the render
+    // route relights through the same path.
+    let relit = s.relight_json(&json!({})).await;
+    let radiance: Vec<[f32; 3]> = relit
+        .radiance
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let want = translux_precompute::render::render(
+        bundle.vertex_positions(),
+        bundle.triangle_vertices(),
+        &radiance,
+        &bundle.manifest().camera,
+        &translux_precompute::render::RenderParams {
+            width: 160,
+            height: 120,
+            exposure: -1.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(img.as_raw(), want.as_raw());
+
+    // Moving the light changes the picture: near the red (left, −x) wall the left third is
+    // redder than with the light near the green (right) wall.
+    let light = |x: f32| {
+        json!({"width": 120, "height": 90, "components": "direct", "lights": [
+            {"type": "point", "position": [x, 0.45, 0.0], "intensity": [0.3, 0.3, 0.3]}]})
+    };
+    let left = render_png(&s, &light(-0.2)).await;
+    let right = render_png(&s, &light(0.2)).await;
+    assert_ne!(left.as_raw(), right.as_raw());
+    assert!(
+        mean_red(&left, 0..40) > mean_red(&right, 0..40) + 5.0,
+        "{} vs {}",
+        mean_red(&left, 0..40),
+        mean_red(&right, 0..40)
+    );
+
+    // A camera, a tone curve, an empty body (800 × 600 by default), and no Accept header.
+    let cam = json!({"width": 64, "height": 64, "tone": "filmic", "background": [0.2, 0.2, 0.2],
+        "camera": {"position": [0.0, 0.3, 0.25], "target": [0.0, 0.1, -0.2], "fov_deg": 60}});
+    let inside = render_png(&s, &cam).await;
+    assert_eq!(inside.dimensions(), (64, 64));
+    assert_ne!(inside.as_raw(), img.as_raw());
+    let r = s
+        .client
+        .post(s.url("/api/v1/scenes/cornell/render"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let big = image::load_from_memory(&r.bytes().await.unwrap()).unwrap();
+    assert_eq!((big.width(), big.height()), (800, 600));
+    s.stop().await;
+}
+
+#[tokio::test]
+async fn render_rejects_bad_input_in_the_json_error_format() {
+    let s = TestServer::cornell().await;
+    for (body, status, code, needles) in [
+        (
+            json!({"width": 0}),
+            400,
+            "invalid",
+            &["width must be an integer in 1..=8192"][..],
+        ),
+        (json!({"height": 9000}), 400, "invalid", &["height", "9000"]),
+        (json!({"width": -3}), 400, "bad_request", &["width"]),
+        (
+            json!({"exposure": 1000}),
+            400,
+            "invalid",
+            &["exposure must be finite"],
+        ),
+        (
+            json!({"tone": "aces"}),
+            400,
+            "bad_request",
+            &["tone", "aces"],
+        ),
+        (
+            json!({"hieght": 3}),
+            400,
+            "bad_request",
+            &["unknown field `hieght`"],
+        ),
+        (
+            json!({"camera": {"position": [0, 0, 1], "target": [0, 0, 1]}}),
+            400,
+            "invalid",
+            &["camera.target must differ from position"],
+        ),
+        (
+            json!({"camera": {"position": [0, 0, 1], "target": [0, 0, 0], "fov_deg": 0}}),
+            400,
+            "invalid",
+            &["camera.fov_deg"],
+        ),
+        (
+            json!({"camera": {"position": [0, 0, 1], "target": [0, 0, 0], "up": [0, 0, 1]}}),
+            400,
+            "invalid",
+            &["camera.up must not be parallel"],
+        ),
+        (
+            json!({"camera": {"position": [0, 0, 1], "target": [0, 0, 0], "zoom": 2}}),
+            400,
+            "bad_request",
+            &["camera", "zoom"],
+        ),
+        // The relight fields are checked as on /relight.
+        (
+            json!({"lights": [{"type": "point", "position": [0, 0.5, 0], "intensity": [1, -1, 1]}]}),
+            400,
+            "invalid",
+            &["lights[0].intensity[1] must be finite and >= 0"],
+        ),
+        (
+            json!({"components": "heuristic_a"}),
+            400,
+            "unsupported",
+            &["heuristic_a"],
+        ),
+    ] {
+        let r = post_render(&s, &body, None).await;
+        expect_error(r, StatusCode::from_u16(status).unwrap(), code, needles).await;
+    }
+    let r = post_render(&s, &json!({}), Some("application/json")).await;
+    expect_error(
+        r,
+        StatusCode::NOT_ACCEPTABLE,
+        "not_acceptable",
+        &["image/png"],
+    )
+    .await;
+    let r = s
+        .client
+        .post(s.url("/api/v1/scenes/attic/render"))
+        .send()
+        .await
+        .unwrap();
+    expect_error(r, StatusCode::NOT_FOUND, "not_found", &["attic"]).await;
+    expect_error(
+        s.get("/api/v1/scenes/cornell/render").await,
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method_not_allowed",
+        &["GET"],
+    )
+    .await;
+    s.stop().await;
+}

@@ -1,0 +1,870 @@
+//! A CPU rasterizer for relit meshes: per-vertex linear radiance in, an 8-bit sRGB image out.
+//!
+//! In: vertex positions (scene units), triangles (indices into the positions, counter-clockwise
+//! seen from the front: the front normal is (b − a) × (c − a), the winding every translux mesh
+//! uses), linear outgoing radiance B/π per vertex (what a relight answers), a pinhole
+//! [`Camera`] and [`RenderParams`]. Out: an [`RgbImage`] of `width × height` pixels, row 0 at
+//! the top; [`encode_png`] turns it into PNG bytes.
+//!
+//! The pipeline, per triangle and then per pixel:
+//!
+//! 1. **View space.** With f = normalize(target − position), r = normalize(f × up) and
+//!    u = r × f, a point p has view coordinates x = (p − eye)·r, y = (p − eye)·u,
+//!    z = (p − eye)·f (z is the depth along the view direction, positive in front).
+//! 2. **Back faces.** With n = (b − a) × (c − a) in world space, a triangle faces the camera
+//!    when n · (eye − a) > 0. With `cull_backfaces` (the default) the others are
+//!    skipped, so a closed room such as the Cornell box is seen from outside through its front
+//!    wall, whose front faces the inside.
+//! 3. **Clipping** (Sutherland–Hodgman, in view space) against the near plane z ≥ z_near
+//!    (z_near = [`NEAR_FRACTION`] × |target − position|) and the four side planes
+//!    |x| ≤ g·tx·z, |y| ≤ g·ty·z with tx = aspect·ty, ty = tan(fov/2) and a guard band
+//!    g = [`GUARD`]. A triangle crossing the near plane becomes a polygon of up to 4 vertices
+//!    (up to 8 with the side planes), re-triangulated as a fan; nothing is dropped and
+//!    nothing is projected from behind the eye. New vertices interpolate the radiance
+//!    linearly along the clipped edge, which is exact: radiance is affine over the triangle
+//!    in 3-D, and the clip is done in 3-D.
+//! 4. **Projection.** ndc_x = x / (z·tx), ndc_y = y / (z·ty); pixel coordinates
+//!    X = (ndc_x + 1)/2 · W, Y = (1 − ndc_y)/2 · H; pixel (i, j) is sampled at its centre
+//!    (i + ½, j + ½).
+//! 5. **Rasterization** with edge functions: with e_k(P) the signed area of P and the edge
+//!    opposite vertex k, the screen barycentrics are λ_k = e_k / (e_0 + e_1 + e_2); a pixel is
+//!    covered when every λ_k ≥ 0.
+//! 6. **Perspective-correct interpolation and depth.** 1/z and c/z are affine in screen
+//!    space, so w = Σ λ_k / z_k and c = (Σ λ_k c_k / z_k) / w. The z-buffer keeps the largest
+//!    w (the nearest surface); an equal w keeps the triangle drawn first.
+//! 7. **Display.** c ← c · 2^EV (exposure), then the tone curve ([`ToneMap::Srgb`]: clamp to
+//!    [0, 1]; [`ToneMap::Filmic`]: the ACES fit of Narkowicz 2016, see [`aces_filmic`]), then
+//!    the sRGB OETF ([`srgb_oetf`]), then round(255 v).
+//!
+//! Work is parallel over bands of [`BAND_ROWS`] rows (rayon): triangles are set up in
+//! parallel, binned by the rows they touch, and each band owns its part of the depth buffer
+//! and of the image. Memory beyond the 3-byte-per-pixel image is one band's buffers per
+//! thread. Bad parameters and bad meshes are errors ([`RenderError`]) naming the field, never
+//! panics.
+
+use glam::Vec3;
+use image::RgbImage;
+use rayon::prelude::*;
+use translux_proto::light::Camera;
+use translux_proto::validate::{FieldError, check_range, check_vec_range};
+
+pub use translux_proto::api::ToneMap;
+
+/// Largest `width` and `height`, each.
+pub const MAX_SIZE: u32 = 8192;
+
+/// Exposure limit in EV stops, each way: 2^±64 keeps every product with an f32 radiance in
+/// range, and no display value changes past it.
+pub const MAX_EXPOSURE: f32 = 64.0;
+
+/// The near plane's distance as a fraction of the camera's distance to its target.
+pub const NEAR_FRACTION: f32 = 1e-3;
+
+/// Side-plane guard band: triangles are clipped 5% outside the view so that clipped screen
+/// coordinates stay small; the pixel loop clamps to the image.
+pub const GUARD: f32 = 1.05;
+
+/// Rows per band of parallel work.
+pub const BAND_ROWS: u32 = 16;
+
+/// How to picture the radiance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderParams {
+    /// Pixels, 1..=[`MAX_SIZE`].
+    pub width: u32,
+    /// Pixels, 1..=[`MAX_SIZE`].
+    pub height: u32,
+    /// Exposure in EV stops: radiance is multiplied by 2^exposure before the tone curve.
+    pub exposure: f32,
+    /// The tone curve.
+    pub tone: ToneMap,
+    /// The colour where no triangle is seen, as linear display RGB in [0, 1]: encoded with
+    /// the sRGB OETF only (neither exposed nor tone mapped), so `[1, 1, 1]` is white.
+    pub background: [f32; 3],
+    /// Skip triangles whose front faces away from the camera (default `true`).
+    pub cull_backfaces: bool,
+}
+
+impl Default for RenderParams {
+    fn default() -> Self {
+        RenderParams {
+            width: 800,
+            height: 600,
+            exposure: 0.0,
+            tone: ToneMap::Srgb,
+            background: [0.0; 3],
+            cull_backfaces: true,
+        }
+    }
+}
+
+impl RenderParams {
+    /// Checks every field; the error names it (`width must be an integer in 1..=8192`).
+    pub fn validate(&self) -> Result<(), RenderError> {
+        for (name, v) in [("width", self.width), ("height", self.height)] {
+            if !(1..=MAX_SIZE).contains(&v) {
+                return Err(FieldError::new(
+                    name,
+                    format!("must be an integer in 1..={MAX_SIZE} (got {v})"),
+                )
+                .into());
+            }
+        }
+        check_range("exposure", self.exposure, -MAX_EXPOSURE, MAX_EXPOSURE)?;
+        check_vec_range("background", &self.background, 0.0, 1.0)?;
+        Ok(())
+    }
+}
+
+/// Why a render failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RenderError {
+    /// A parameter or the camera broke a rule; the path names the field (`width`,
+    /// `camera.fov_deg`).
+    #[error("{0}")]
+    Invalid(#[from] FieldError),
+    /// The mesh is inconsistent (an index out of range, a non-finite position, a radiance
+    /// array of the wrong length).
+    #[error("bad mesh: {0}")]
+    Mesh(String),
+    /// The PNG encoder failed.
+    #[error("cannot encode the PNG: {0}")]
+    Encode(String),
+}
+
+/// The camera's view frame: eye, right, up, forward, and the tangents of the half angles.
+#[derive(Debug, Clone, Copy)]
+struct ViewFrame {
+    eye: Vec3,
+    right: Vec3,
+    up: Vec3,
+    forward: Vec3,
+    /// tan(fov_x / 2) = aspect · tan(fov_y / 2).
+    tx: f32,
+    /// tan(fov_y / 2).
+    ty: f32,
+    near: f32,
+}
+
+/// Checks a camera for rendering (at the field path `camera`): [`Camera::validate`]'s rules,
+/// plus an `up` that is not parallel to the view direction.
+pub fn check_camera(camera: &Camera) -> Result<(), RenderError> {
+    frame(camera, 1.0).map(|_| ())
+}
+
+fn frame(camera: &Camera, aspect: f32) -> Result<ViewFrame, RenderError> {
+    camera.validate("camera")?;
+    let eye = Vec3::from(camera.position);
+    let to_target = Vec3::from(camera.target) - eye;
+    let distance = to_target.length();
+    let forward = to_target / distance;
+    let up_hint = Vec3::from(camera.up).normalize();
+    let right = forward.cross(up_hint);
+    // |f × û| = sin of the angle between them.
+    if right.length_squared() <= 1e-8 {
+        return Err(FieldError::new(
+            "camera.up",
+            "must not be parallel to the view direction (target - position)",
+        )
+        .into());
+    }
+    let right = right.normalize();
+    let up = right.cross(forward);
+    let ty = (0.5 * camera.fov_deg.to_radians()).tan();
+    Ok(ViewFrame {
+        eye,
+        right,
+        up,
+        forward,
+        tx: ty * aspect,
+        ty,
+        near: NEAR_FRACTION * distance,
+    })
+}
+
+/// A vertex in view space with its radiance.
+#[derive(Debug, Clone, Copy, Default)]
+struct ClipVertex {
+    p: Vec3,
+    c: [f32; 3],
+}
+
+/// A convex polygon of at most 3 + 5 vertices (each clip plane adds at most one).
+#[derive(Debug, Clone, Copy)]
+struct Poly {
+    v: [ClipVertex; 9],
+    n: usize,
+}
+
+impl Poly {
+    /// Sutherland–Hodgman against the half-space d(p) ≥ 0. Along an edge a → b with
+    /// d(a) ≥ 0 > d(b) (or the reverse) the crossing is at t = d(a) / (d(a) − d(b)), and both
+    /// position and radiance are interpolated linearly there.
+    fn clip(&self, d: impl Fn(Vec3) -> f32) -> Poly {
+        let mut out = Poly {
+            v: [ClipVertex::default(); 9],
+            n: 0,
+        };
+        for k in 0..self.n {
+            let a = self.v[k];
+            let b = self.v[(k + 1) % self.n];
+            let (da, db) = (d(a.p), d(b.p));
+            if da >= 0.0 {
+                out.push(a);
+            }
+            if (da >= 0.0) != (db >= 0.0) {
+                let t = da / (da - db);
+                out.push(ClipVertex {
+                    p: a.p + (b.p - a.p) * t,
+                    c: std::array::from_fn(|i| a.c[i] + (b.c[i] - a.c[i]) * t),
+                });
+            }
+        }
+        out
+    }
+
+    fn push(&mut self, v: ClipVertex) {
+        // A convex polygon clipped by a plane gains at most one vertex, so 3 + 5 ≤ 9 holds;
+        // the guard keeps a degenerate numeric case from indexing out of bounds.
+        if self.n < self.v.len() {
+            self.v[self.n] = v;
+            self.n += 1;
+        }
+    }
+}
+
+/// A projected vertex: pixel coordinates, w = 1/z, and radiance / z.
+#[derive(Debug, Clone, Copy)]
+struct ScreenVertex {
+    x: f64,
+    y: f64,
+    w: f32,
+    c_w: [f32; 3],
+}
+
+/// A screen triangle, counter-clockwise in pixel coordinates (positive edge-function area),
+/// with its rows.
+#[derive(Debug, Clone, Copy)]
+struct ScreenTri {
+    v: [ScreenVertex; 3],
+    /// 1 / (e_0 + e_1 + e_2).
+    inv_area: f64,
+    x_min: f64,
+    x_max: f64,
+    y_min: f64,
+    y_max: f64,
+}
+
+/// Renders the mesh as seen from `camera`; see the module documentation for the math.
+///
+/// `positions` and `vertex_radiance` have one entry per vertex; `triangles` index them.
+/// Errors: parameters out of range or a bad camera ([`RenderError::Invalid`], naming the
+/// field), an index out of range or a non-finite position or radiance ([`RenderError::Mesh`]).
+pub fn render(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+    camera: &Camera,
+    params: &RenderParams,
+) -> Result<RgbImage, RenderError> {
+    params.validate()?;
+    let (width, height) = (params.width, params.height);
+    let view = frame(camera, width as f32 / height as f32)?;
+    check_mesh(positions, triangles, vertex_radiance)?;
+
+    // 1–4: view space, culling, clipping, projection; in parallel, in triangle order.
+    let tris: Vec<ScreenTri> = triangles
+        .par_chunks(4096)
+        .map(|chunk| {
+            let mut out = Vec::with_capacity(chunk.len());
+            for t in chunk {
+                setup_triangle(t, positions, vertex_radiance, &view, params, &mut out);
+            }
+            out
+        })
+        .collect::<Vec<_>>()
+        .concat();
+
+    // Bin by band: band b holds rows [b·BAND_ROWS, (b+1)·BAND_ROWS).
+    let bands = height.div_ceil(BAND_ROWS) as usize;
+    let mut bins: Vec<Vec<u32>> = vec![Vec::new(); bands];
+    for (k, t) in tris.iter().enumerate() {
+        // Rows whose centre y + ½ can lie in [y_min, y_max].
+        let Some((r0, r1)) = pixel_span(t.y_min, t.y_max, height) else {
+            continue;
+        };
+        for bin in &mut bins[(r0 / BAND_ROWS) as usize..=(r1 / BAND_ROWS) as usize] {
+            bin.push(k as u32);
+        }
+    }
+
+    // 5–7: each band rasterizes its triangles into its own depth and colour buffers, then
+    // writes display values into its rows of the image.
+    let scale = exposure_scale(params.exposure);
+    let background = params.background.map(|v| to_u8(srgb_oetf(v)));
+    let row_bytes = width as usize * 3;
+    let mut pixels = vec![0u8; row_bytes * height as usize];
+    pixels
+        .par_chunks_mut(row_bytes * BAND_ROWS as usize)
+        .zip(bins.par_iter())
+        .enumerate()
+        .for_each(|(b, (out, bin))| {
+            let row0 = b as u32 * BAND_ROWS;
+            let rows = (out.len() / row_bytes) as u32;
+            let n = (width * rows) as usize;
+            let mut depth = vec![0.0f32; n];
+            let mut colour = vec![[0.0f32; 3]; n];
+            for &k in bin {
+                raster(
+                    &tris[k as usize],
+                    width,
+                    row0,
+                    rows,
+                    &mut depth,
+                    &mut colour,
+                );
+            }
+            for (i, px) in out.chunks_exact_mut(3).enumerate() {
+                let rgb = if depth[i] > 0.0 {
+                    display_rgb8(colour[i], scale, params.tone)
+                } else {
+                    background
+                };
+                px.copy_from_slice(&rgb);
+            }
+        });
+    RgbImage::from_raw(width, height, pixels)
+        .ok_or_else(|| RenderError::Encode("the pixel buffer does not match the size".into()))
+}
+
+/// Indices in range, positions and radiance finite, one radiance per position.
+fn check_mesh(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+) -> Result<(), RenderError> {
+    if vertex_radiance.len() != positions.len() {
+        return Err(RenderError::Mesh(format!(
+            "vertex_radiance has {} entries for {} vertices",
+            vertex_radiance.len(),
+            positions.len()
+        )));
+    }
+    let n = positions.len();
+    if let Some((k, t)) = triangles
+        .par_iter()
+        .enumerate()
+        .find_first(|(_, t)| t.iter().any(|&i| i as usize >= n))
+    {
+        return Err(RenderError::Mesh(format!(
+            "triangles[{k}] = {t:?} has an index out of range ({n} vertices)"
+        )));
+    }
+    if let Some(k) = positions
+        .par_iter()
+        .position_first(|p| !p.iter().all(|x| x.is_finite()))
+    {
+        return Err(RenderError::Mesh(format!(
+            "positions[{k}] = {:?} is not finite",
+            positions[k]
+        )));
+    }
+    if let Some(k) = vertex_radiance
+        .par_iter()
+        .position_first(|c| !c.iter().all(|x| x.is_finite()))
+    {
+        return Err(RenderError::Mesh(format!(
+            "vertex_radiance[{k}] = {:?} is not finite",
+            vertex_radiance[k]
+        )));
+    }
+    Ok(())
+}
+
+/// Transforms, culls, clips and projects one triangle, appending 0 to 7 screen triangles.
+fn setup_triangle(
+    t: &[u32; 3],
+    positions: &[[f32; 3]],
+    radiance: &[[f32; 3]],
+    view: &ViewFrame,
+    params: &RenderParams,
+    out: &mut Vec<ScreenTri>,
+) {
+    let to_view = |i: u32| {
+        let d = Vec3::from(positions[i as usize]) - view.eye;
+        ClipVertex {
+            p: Vec3::new(d.dot(view.right), d.dot(view.up), d.dot(view.forward)),
+            c: radiance[i as usize],
+        }
+    };
+    // Facing, in world space (the view frame (r, u, f) is left-handed, which would flip a
+    // cross product taken in view coordinates): n · (eye − a) > 0.
+    let [a, b, c] = t.map(|i| Vec3::from(positions[i as usize]));
+    let facing = (b - a).cross(c - a).dot(view.eye - a);
+    let v = t.map(to_view);
+    // NaN (an overflow in view space) compares false both ways: not drawn.
+    let draw = facing > 0.0 || (!params.cull_backfaces && facing < 0.0);
+    if !draw {
+        return;
+    }
+    let mut poly = Poly {
+        v: [ClipVertex::default(); 9],
+        n: 3,
+    };
+    poly.v[..3].copy_from_slice(&v);
+    let (near, gx, gy) = (view.near, GUARD * view.tx, GUARD * view.ty);
+    // Trivially inside every plane: no clipping work.
+    let inside = v
+        .iter()
+        .all(|c| c.p.z >= near && c.p.x.abs() <= gx * c.p.z && c.p.y.abs() <= gy * c.p.z);
+    if !inside {
+        poly = poly.clip(|p| p.z - near);
+        poly = poly.clip(|p| gx * p.z - p.x);
+        poly = poly.clip(|p| gx * p.z + p.x);
+        poly = poly.clip(|p| gy * p.z - p.y);
+        poly = poly.clip(|p| gy * p.z + p.y);
+        if poly.n < 3 {
+            return;
+        }
+    }
+    let (w, h) = (params.width as f64, params.height as f64);
+    let project = |c: &ClipVertex| {
+        // z ≥ near > 0 after clipping.
+        let inv_z = 1.0 / c.p.z;
+        ScreenVertex {
+            x: (c.p.x as f64 * inv_z as f64 / view.tx as f64 + 1.0) * 0.5 * w,
+            y: (1.0 - c.p.y as f64 * inv_z as f64 / view.ty as f64) * 0.5 * h,
+            w: inv_z,
+            c_w: c.c.map(|x| x * inv_z),
+        }
+    };
+    let s0 = project(&poly.v[0]);
+    for k in 1..poly.n - 1 {
+        let (mut s1, mut s2) = (project(&poly.v[k]), project(&poly.v[k + 1]));
+        let mut area = edge(&s0, &s1, s2.x, s2.y);
+        if area < 0.0 {
+            std::mem::swap(&mut s1, &mut s2);
+            area = -area;
+        }
+        let t = ScreenTri {
+            v: [s0, s1, s2],
+            inv_area: 1.0 / area,
+            x_min: s0.x.min(s1.x).min(s2.x),
+            x_max: s0.x.max(s1.x).max(s2.x),
+            y_min: s0.y.min(s1.y).min(s2.y),
+            y_max: s0.y.max(s1.y).max(s2.y),
+        };
+        // Edge-on (or collapsed by clipping) triangles cover no pixel centre reliably, and
+        // coordinates that overflowed are not drawn.
+        let finite = [t.x_min, t.x_max, t.y_min, t.y_max]
+            .iter()
+            .all(|v| v.is_finite());
+        if area > 1e-12 && area.is_finite() && finite {
+            out.push(t);
+        }
+    }
+}
+
+/// Twice the signed area of (a, b, p): positive when p is left of a → b in pixel
+/// coordinates (y down), i.e. the edge function.
+fn edge(a: &ScreenVertex, b: &ScreenVertex, px: f64, py: f64) -> f64 {
+    (b.x - a.x) * (py - a.y) - (b.y - a.y) * (px - a.x)
+}
+
+/// The pixels i in 0..n whose centre i + ½ lies in [lo, hi], or `None`.
+fn pixel_span(lo: f64, hi: f64, n: u32) -> Option<(u32, u32)> {
+    let first = (lo - 0.5).ceil().max(0.0);
+    let last = (hi - 0.5).floor().min(n as f64 - 1.0);
+    (first <= last).then_some((first as u32, last as u32))
+}
+
+/// Rasterizes one triangle into the band of `rows` rows starting at `row0`.
+fn raster(
+    t: &ScreenTri,
+    width: u32,
+    row0: u32,
+    rows: u32,
+    depth: &mut [f32],
+    colour: &mut [[f32; 3]],
+) {
+    let Some((x0, x1)) = pixel_span(t.x_min, t.x_max, width) else {
+        return;
+    };
+    let Some((y0, y1)) = pixel_span(t.y_min, t.y_max, row0 + rows) else {
+        return;
+    };
+    let y0 = y0.max(row0);
+    if y0 > y1 {
+        return;
+    }
+    let [a, b, c] = &t.v;
+    for y in y0..=y1 {
+        let py = y as f64 + 0.5;
+        let row = ((y - row0) * width) as usize;
+        for x in x0..=x1 {
+            let px = x as f64 + 0.5;
+            // λ_k = e_k / area, e_k the edge function of the edge opposite vertex k.
+            let e0 = edge(b, c, px, py);
+            let e1 = edge(c, a, px, py);
+            let e2 = edge(a, b, px, py);
+            if e0 < 0.0 || e1 < 0.0 || e2 < 0.0 {
+                continue;
+            }
+            let l = [
+                (e0 * t.inv_area) as f32,
+                (e1 * t.inv_area) as f32,
+                (e2 * t.inv_area) as f32,
+            ];
+            // 1/z is affine in screen space.
+            let w = l[0] * a.w + l[1] * b.w + l[2] * c.w;
+            let i = row + x as usize;
+            if w > depth[i] {
+                depth[i] = w;
+                // c = (Σ λ_k c_k / z_k) / (Σ λ_k / z_k).
+                colour[i] = std::array::from_fn(|ch| {
+                    (l[0] * a.c_w[ch] + l[1] * b.c_w[ch] + l[2] * c.c_w[ch]) / w
+                });
+            }
+        }
+    }
+}
+
+/// 2^ev: the factor an exposure of `ev` stops applies to radiance.
+pub fn exposure_scale(ev: f32) -> f32 {
+    ev.exp2()
+}
+
+/// The ACES filmic curve as fitted by K. Narkowicz, "ACES Filmic Tone Mapping Curve" (blog
+/// post, 2016-01-06; CC0/MIT): f(x) = x(2.51x + 0.03) / (x(2.43x + 0.59) + 0.14), saturated
+/// to [0, 1]. It fits ACES's RRT + Rec.709 ODT with the display gamma removed (maximum error
+/// 0.0138) on pre-exposed input, so 1 maps to about 0.8 (the full ACES curve is f(0.6 x));
+/// the output is linear and still needs the display OETF. A luminance-style fit applied per
+/// channel: bright saturated colours shift toward their primaries.
+pub fn aces_filmic(x: f32) -> f32 {
+    // Past x = 1e4 the curve is 1 after saturation; the bound keeps x² finite.
+    let x = x.clamp(0.0, 1e4);
+    let y = (x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14);
+    y.clamp(0.0, 1.0)
+}
+
+/// The tone curve, per channel, from exposed linear radiance to linear display values in
+/// [0, 1]. NaN and negative inputs give 0.
+pub fn tone_map(x: f32, tone: ToneMap) -> f32 {
+    let x = if x > 0.0 { x } else { 0.0 };
+    match tone {
+        ToneMap::Srgb => x.min(1.0),
+        ToneMap::Filmic => aces_filmic(x),
+    }
+}
+
+/// The sRGB opto-electronic transfer function (IEC 61966-2-1): 12.92 v for v ≤ 0.0031308,
+/// else 1.055 v^(1/2.4) − 0.055. Input clamped to [0, 1].
+pub fn srgb_oetf(v: f32) -> f32 {
+    let v = v.clamp(0.0, 1.0);
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// The inverse of [`srgb_oetf`]: (V + 0.055)/1.055)^2.4 above 0.04045, V / 12.92 below.
+pub fn srgb_eotf(v: f32) -> f32 {
+    let v = v.clamp(0.0, 1.0);
+    if v <= 0.040_45 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// round(255 v) for v clamped to [0, 1].
+pub fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// Linear radiance to an 8-bit sRGB pixel: × `scale` (= 2^EV), tone curve, OETF, 8 bits.
+pub fn display_rgb8(radiance: [f32; 3], scale: f32, tone: ToneMap) -> [u8; 3] {
+    radiance.map(|c| to_u8(srgb_oetf(tone_map(c * scale, tone))))
+}
+
+/// The image as PNG bytes (8-bit RGB, fast zlib level: renders are mostly flat shading).
+pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>, RenderError> {
+    use image::ImageEncoder;
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    let mut bytes = Vec::new();
+    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| RenderError::Encode(e.to_string()))?;
+    Ok(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Looking down −Z from the origin, 90° vertical field of view.
+    fn cam() -> Camera {
+        Camera {
+            position: [0.0; 3],
+            target: [0.0, 0.0, -1.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 90.0,
+        }
+    }
+
+    fn params(w: u32, h: u32) -> RenderParams {
+        RenderParams {
+            width: w,
+            height: h,
+            background: [0.2, 0.4, 0.6],
+            ..Default::default()
+        }
+    }
+
+    fn px(img: &RgbImage, x: u32, y: u32) -> [u8; 3] {
+        img.get_pixel(x, y).0
+    }
+
+    fn bg() -> [u8; 3] {
+        [0.2f32, 0.4, 0.6].map(|v| to_u8(srgb_oetf(v)))
+    }
+
+    /// A triangle at depth z facing the camera (counter-clockwise seen from +Z).
+    fn facing_triangle(z: f32, half: f32) -> Vec<[f32; 3]> {
+        vec![[-half, -half, z], [half, -half, z], [0.0, half, z]]
+    }
+
+    #[test]
+    fn transfer_functions() {
+        // 0.5 linear: 1.055 · 0.5^(1/2.4) − 0.055 = 0.7354 → 187.5 → 188.
+        assert_eq!(to_u8(srgb_oetf(0.5)), 188);
+        assert_eq!(to_u8(srgb_oetf(0.0)), 0);
+        assert_eq!(to_u8(srgb_oetf(1.0)), 255);
+        for k in 0..=100 {
+            let v = k as f32 / 100.0;
+            assert!((srgb_eotf(srgb_oetf(v)) - v).abs() < 1e-5, "{v}");
+        }
+        // Narkowicz's fit: f(1) = 2.54 / 3.16 = 0.8038, f(0) = 0, saturates at 1.
+        assert!((aces_filmic(1.0) - 2.54 / 3.16).abs() < 1e-6);
+        assert_eq!(aces_filmic(0.0), 0.0);
+        assert_eq!(aces_filmic(1e6), 1.0);
+        assert_eq!(aces_filmic(f32::INFINITY), 1.0);
+        assert_eq!(tone_map(f32::NAN, ToneMap::Filmic), 0.0);
+        assert_eq!(tone_map(-1.0, ToneMap::Srgb), 0.0);
+        assert_eq!(tone_map(3.0, ToneMap::Srgb), 1.0);
+        // Monotonic.
+        let mut last = 0.0;
+        for k in 1..2000 {
+            let y = aces_filmic(k as f32 * 0.01);
+            assert!(y >= last);
+            last = y;
+        }
+        assert_eq!(exposure_scale(1.0), 2.0);
+        assert_eq!(
+            display_rgb8([0.25, 0.5, 1.0], 2.0, ToneMap::Srgb),
+            [188, 255, 255]
+        );
+    }
+
+    #[test]
+    fn a_facing_triangle_covers_the_centre_with_the_expected_value() {
+        let pos = facing_triangle(-2.0, 1.0);
+        let img = render(&pos, &[[0, 1, 2]], &[[0.5; 3]; 3], &cam(), &params(64, 48)).unwrap();
+        assert_eq!((img.width(), img.height()), (64, 48));
+        let c = px(&img, 32, 24);
+        for ch in c {
+            assert!(ch.abs_diff(188) <= 1, "{c:?}");
+        }
+        for (x, y) in [(0, 0), (63, 0), (0, 47), (63, 47)] {
+            assert_eq!(px(&img, x, y), bg(), "corner ({x}, {y})");
+        }
+        // Coverage: the triangle spans ndc y in [−0.5, 0.5] (half = 1 at depth 2, ty = 1),
+        // i.e. rows 12..36; the rows just outside are background.
+        assert_eq!(px(&img, 32, 10), bg());
+        assert_eq!(px(&img, 32, 37), bg());
+        assert_ne!(px(&img, 32, 34), bg());
+        // Filmic and exposure change the value: 0.5 · 2 = 1 → 0.8038 → sRGB 232.
+        let p = RenderParams {
+            tone: ToneMap::Filmic,
+            exposure: 1.0,
+            ..params(64, 48)
+        };
+        let img = render(&pos, &[[0, 1, 2]], &[[0.5; 3]; 3], &cam(), &p).unwrap();
+        let want = to_u8(srgb_oetf(2.54 / 3.16));
+        assert_eq!(want, 232);
+        assert!(px(&img, 32, 24)[0].abs_diff(want) <= 1);
+    }
+
+    #[test]
+    fn back_faces_are_culled_unless_asked_not_to() {
+        // Clockwise seen from the camera: its front faces −Z, away from the eye.
+        let pos = facing_triangle(-2.0, 1.0);
+        let tri = [[0, 2, 1]];
+        let img = render(&pos, &tri, &[[0.5; 3]; 3], &cam(), &params(32, 32)).unwrap();
+        assert_eq!(px(&img, 16, 16), bg());
+        let p = RenderParams {
+            cull_backfaces: false,
+            ..params(32, 32)
+        };
+        let img = render(&pos, &tri, &[[0.5; 3]; 3], &cam(), &p).unwrap();
+        assert!(px(&img, 16, 16)[1].abs_diff(188) <= 1);
+    }
+
+    #[test]
+    fn the_nearer_triangle_wins_whatever_the_order() {
+        let mut pos = facing_triangle(-2.0, 1.0); // near, red
+        pos.extend(facing_triangle(-3.0, 2.0)); // far, green
+        let mut rad = vec![[1.0, 0.0, 0.0]; 3];
+        rad.extend([[0.0, 1.0, 0.0]; 3]);
+        for tris in [[[0, 1, 2], [3, 4, 5]], [[3, 4, 5], [0, 1, 2]]] {
+            let img = render(&pos, &tris, &rad, &cam(), &params(40, 40)).unwrap();
+            assert_eq!(px(&img, 20, 20), [255, 0, 0], "{tris:?}");
+            // Below the near one's base (ndc y −0.5), above the far one's (−0.667): green.
+            assert_eq!(px(&img, 20, 32), [0, 255, 0], "{tris:?}");
+        }
+    }
+
+    #[test]
+    fn a_triangle_through_the_near_plane_is_clipped_not_dropped() {
+        // A floor at y = −1 from behind the eye (z = +5) to far ahead (z = −50), facing up.
+        let pos = vec![[-20.0, -1.0, 5.0], [20.0, -1.0, 5.0], [0.0, -1.0, -50.0]];
+        let img = render(&pos, &[[0, 1, 2]], &[[0.5; 3]; 3], &cam(), &params(64, 64)).unwrap();
+        // Below the horizon: covered down to the bottom row; above it: background.
+        for y in [36, 48, 63] {
+            assert_ne!(px(&img, 32, y), bg(), "row {y}");
+            assert!(px(&img, 32, y)[0].abs_diff(188) <= 1);
+        }
+        for y in [0, 16, 31] {
+            assert_eq!(px(&img, 32, y), bg(), "row {y}");
+        }
+        // Grazing: a triangle entirely behind the eye draws nothing.
+        let behind = vec![[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, 2.0]];
+        let p = RenderParams {
+            cull_backfaces: false,
+            ..params(16, 16)
+        };
+        let img = render(&behind, &[[0, 1, 2]], &[[0.5; 3]; 3], &cam(), &p).unwrap();
+        assert!(img.pixels().all(|p| p.0 == bg()));
+    }
+
+    #[test]
+    fn interpolation_is_perspective_correct() {
+        // A quad tilted in depth: the near edge at z = −1, y = −0.2 (ndc y = −0.2), the far
+        // edge at z = −3, y = 0.6 (ndc y = +0.2), radiance 0 near and 1 far. The image
+        // centre (ndc y = 0) is halfway on screen, where 1/z = ½(1 + ⅓) = ⅔ and
+        // c = ½(0/1 + 1/3) / ⅔ = ¼; affine interpolation would give ½.
+        let pos = vec![
+            [-2.0, -0.2, -1.0],
+            [2.0, -0.2, -1.0],
+            [2.0, 0.6, -3.0],
+            [-2.0, 0.6, -3.0],
+        ];
+        let rad = vec![[0.0; 3], [0.0; 3], [1.0; 3], [1.0; 3]];
+        let p = RenderParams {
+            cull_backfaces: false,
+            ..params(101, 101)
+        };
+        let img = render(&pos, &[[0, 1, 2], [0, 2, 3]], &rad, &cam(), &p).unwrap();
+        let got = px(&img, 50, 50)[0];
+        let perspective = to_u8(srgb_oetf(0.25)); // 137
+        let affine = to_u8(srgb_oetf(0.5)); // 188
+        assert_eq!(perspective, 137);
+        assert!(got.abs_diff(perspective) <= 1, "{got}");
+        assert!(got.abs_diff(affine) > 20, "{got}");
+    }
+
+    #[test]
+    fn png_round_trips() {
+        let pos = facing_triangle(-2.0, 1.0);
+        let rad = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let img = render(&pos, &[[0, 1, 2]], &rad, &cam(), &params(37, 23)).unwrap();
+        let bytes = encode_png(&img).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        let back = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(back.dimensions(), (37, 23));
+        assert_eq!(back.as_raw(), img.as_raw());
+    }
+
+    #[test]
+    fn bad_parameters_and_meshes_are_errors_naming_the_field() {
+        let pos = facing_triangle(-2.0, 1.0);
+        let tri = [[0, 1, 2]];
+        let rad = [[0.5; 3]; 3];
+        let go = |p: RenderParams| {
+            render(&pos, &tri, &rad, &cam(), &p)
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(go(params(0, 10)).starts_with("width must be"));
+        assert!(go(params(10, 8193)).starts_with("height must be"));
+        assert!(
+            go(RenderParams {
+                exposure: f32::NAN,
+                ..params(4, 4)
+            })
+            .starts_with("exposure must be finite")
+        );
+        assert!(
+            go(RenderParams {
+                background: [0.0, 2.0, 0.0],
+                ..params(4, 4)
+            })
+            .starts_with("background[1]")
+        );
+        let p = params(4, 4);
+        let mut c = cam();
+        c.fov_deg = 0.0;
+        let e = render(&pos, &tri, &rad, &c, &p).unwrap_err().to_string();
+        assert!(e.starts_with("camera.fov_deg"), "{e}");
+        let mut c = cam();
+        c.up = [0.0, 0.0, 2.0];
+        let e = render(&pos, &tri, &rad, &c, &p).unwrap_err().to_string();
+        assert!(e.starts_with("camera.up must not be parallel"), "{e}");
+        assert!(check_camera(&cam()).is_ok());
+        let e = render(&pos, &[[0, 1, 3]], &rad, &cam(), &p).unwrap_err();
+        assert!(e.to_string().contains("triangles[0]"), "{e}");
+        let e = render(&pos, &tri, &rad[..2], &cam(), &p).unwrap_err();
+        assert!(e.to_string().contains("vertex_radiance has 2"), "{e}");
+        let mut bad = pos.clone();
+        bad[1][2] = f32::INFINITY;
+        let e = render(&bad, &tri, &rad, &cam(), &p).unwrap_err();
+        assert!(e.to_string().contains("positions[1]"), "{e}");
+        let e = render(&pos, &tri, &[[0.5; 3], [f32::NAN; 3], [0.5; 3]], &cam(), &p).unwrap_err();
+        assert!(e.to_string().contains("vertex_radiance[1]"), "{e}");
+        // An empty mesh is a background image, not an error.
+        let img = render(&[], &[], &[], &cam(), &p).unwrap();
+        assert!(img.pixels().all(|q| q.0 == bg()));
+    }
+
+    #[test]
+    fn a_large_image_over_many_bands_covers_the_analytic_area() {
+        // 1000 × 700: the triangle's centre pixel and corners, across band boundaries.
+        let pos = facing_triangle(-2.0, 1.0);
+        let img = render(
+            &pos,
+            &[[0, 1, 2]],
+            &[[0.5; 3]; 3],
+            &cam(),
+            &params(1000, 700),
+        )
+        .unwrap();
+        assert!(px(&img, 500, 350)[0].abs_diff(188) <= 1);
+        assert_eq!(px(&img, 0, 699), bg());
+        let covered = img.pixels().filter(|p| p.0 != bg()).count() as f64;
+        // The analytic screen area: x = (x/(z·tx) + 1)/2 · W, y = (1 − y/(z·ty))/2 · H with
+        // z = 2, tx = aspect = 1000/700, ty = 1.
+        let (w, h, tx) = (1000.0, 700.0, 1000.0 / 700.0);
+        let sx = |x: f64| (x / (2.0 * tx) + 1.0) * 0.5 * w;
+        let sy = |y: f64| (1.0 - y / 2.0) * 0.5 * h;
+        let area = 0.5 * (sx(1.0) - sx(-1.0)) * (sy(-1.0) - sy(1.0));
+        assert!((covered - area).abs() < 0.01 * area, "{covered} vs {area}");
+    }
+}

@@ -1,0 +1,200 @@
+//! The offline commands: `translux-server render | export | relight`, no HTTP.
+//!
+//! In: a bundle folder, an optional JSON request file (`-` reads standard input; absent
+//! means `{}`: the bundle's lights, full transport) and flags. Out: one file, written whole
+//! to a temporary name beside it and renamed into place.
+//!
+//! | command | request file | `--out` |
+//! | --- | --- | --- |
+//! | `render` | a render request (`POST /render`'s body: relight fields plus `camera`, `width`, `height`, `exposure`, `tone`, `background`, `cull_backfaces`); flags override its fields | `.png` |
+//! | `export` | a relight request (`POST /relight`'s body); `--exposure`, `--tone` | `.glb` (linear float colours) or `.ply` (8-bit sRGB colours) |
+//! | `relight` | a relight request | `.f32` (n × 3 little-endian `f32`, the binary API answer) or `.json` (the JSON API answer) |
+//!
+//! The work is the server's own ([`crate::relight`], [`crate::picture`]), so an offline answer
+//! equals the HTTP answer for the same request; errors carry the same messages.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use serde::de::DeserializeOwned;
+use translux_proto::api::{RelightRequest, RelightResponse, RenderRequest, ToneMap};
+
+use crate::cli::{Command, ExportArgs, RelightArgs, RenderArgs};
+use crate::picture::{self, MeshFormat};
+use crate::relight;
+use crate::state::Scene;
+
+/// Runs one offline command; the summary goes to the log (stderr).
+pub fn run(command: &Command) -> anyhow::Result<()> {
+    match command {
+        Command::Render(a) => render(a),
+        Command::Export(a) => export(a),
+        Command::Relight(a) => relight_command(a),
+    }
+}
+
+/// The lower-case extension of `out`, or an error listing the allowed ones.
+fn extension(out: &Path, allowed: &[&str]) -> anyhow::Result<String> {
+    let ext = out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    if !allowed.contains(&ext.as_str()) {
+        bail!(
+            "--out {}: the file name must end in {}",
+            out.display(),
+            allowed
+                .iter()
+                .map(|e| format!(".{e}"))
+                .collect::<Vec<_>>()
+                .join(" or ")
+        );
+    }
+    Ok(ext)
+}
+
+/// Reads the request file (`-`: standard input); `None` reads as `{}`.
+fn read_request<T: DeserializeOwned>(path: Option<&Path>) -> anyhow::Result<T> {
+    let (name, text) = match path {
+        None => ("(none)".to_string(), "{}".to_string()),
+        Some(p) if p == Path::new("-") => {
+            let mut s = String::new();
+            std::io::Read::read_to_string(&mut std::io::stdin(), &mut s)
+                .context("cannot read the request from standard input")?;
+            ("standard input".to_string(), s)
+        }
+        Some(p) => (
+            p.display().to_string(),
+            std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read the request {}", p.display()))?,
+        ),
+    };
+    let text = if text.trim().is_empty() { "{}" } else { &text };
+    translux_proto::parse_json(text).with_context(|| format!("invalid request in {name}"))
+}
+
+/// Opens the bundle and builds its relight state; the id is the folder's name.
+fn open_scene(dir: &Path) -> anyhow::Result<Scene> {
+    let id = dir
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("bundle")
+        .to_string();
+    let t = Instant::now();
+    let scene = Scene::open(id, dir)
+        .with_context(|| format!("cannot open the bundle {}", dir.display()))?;
+    tracing::info!(
+        "opened {} ({} patches, {} vertices) in {:.0} ms",
+        dir.display(),
+        scene.bundle.manifest().patch_count,
+        scene.bundle.manifest().vertex_count,
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(scene)
+}
+
+/// Writes `bytes` to `out` through a temporary file beside it, so that a reader never sees
+/// half a file.
+fn write_file(out: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let name = out
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp: PathBuf = out.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    std::fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
+    if let Err(e) = std::fs::rename(&tmp, out) {
+        let _ = std::fs::remove_file(&tmp);
+        bail!("cannot move {} to {}: {e}", tmp.display(), out.display());
+    }
+    Ok(())
+}
+
+fn render(a: &RenderArgs) -> anyhow::Result<()> {
+    extension(&a.out, &["png"])?;
+    let mut req: RenderRequest = read_request(a.request.as_deref())?;
+    if let Some(w) = a.width {
+        req.width = w;
+    }
+    if let Some(h) = a.height {
+        req.height = h;
+    }
+    if let Some(e) = a.exposure {
+        req.exposure = e;
+    }
+    if let Some(t) = a.tone {
+        req.tone = t;
+    }
+    let scene = open_scene(&a.bundle)?;
+    let plan = picture::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let out = picture::run(&scene, &plan).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    write_file(&a.out, &out.png)?;
+    tracing::info!(
+        "wrote {} ({}×{}, {} bytes): relight {:.0} ms ({} iterations), raster {:.0} ms, \
+         PNG {:.0} ms",
+        a.out.display(),
+        plan.params.width,
+        plan.params.height,
+        out.png.len(),
+        out.stats.ms,
+        out.stats.iterations,
+        out.raster_ms,
+        out.encode_ms
+    );
+    Ok(())
+}
+
+fn export(a: &ExportArgs) -> anyhow::Result<()> {
+    let format = match extension(&a.out, &["glb", "ply"])?.as_str() {
+        "glb" => MeshFormat::Glb,
+        _ => MeshFormat::Ply,
+    };
+    let req: RelightRequest = read_request(a.request.as_deref())?;
+    let scene = open_scene(&a.bundle)?;
+    let plan = relight::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let tone = a.tone.unwrap_or(ToneMap::Srgb);
+    let (bytes, stats) = picture::export(&scene, &plan, a.exposure, tone, format)
+        .map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    write_file(&a.out, &bytes)?;
+    tracing::info!(
+        "wrote {} ({} bytes, {} triangles): relight {:.0} ms ({} iterations)",
+        a.out.display(),
+        bytes.len(),
+        scene.bundle.triangle_vertices().len(),
+        stats.ms,
+        stats.iterations
+    );
+    Ok(())
+}
+
+fn relight_command(a: &RelightArgs) -> anyhow::Result<()> {
+    let ext = extension(&a.out, &["f32", "json"])?;
+    let req: RelightRequest = read_request(a.request.as_deref())?;
+    let scene = open_scene(&a.bundle)?;
+    let plan = relight::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let out = relight::run(&scene, &plan).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let vertex_count = out.radiance.len();
+    let bytes = if ext == "json" {
+        serde_json::to_vec(&RelightResponse {
+            vertex_count,
+            radiance: out.radiance.iter().flatten().copied().collect(),
+            stats: out.stats.clone(),
+        })
+        .context("cannot serialise the answer")?
+    } else {
+        out.radiance
+            .iter()
+            .flatten()
+            .flat_map(|v| v.to_le_bytes())
+            .collect()
+    };
+    write_file(&a.out, &bytes)?;
+    tracing::info!(
+        "wrote {} ({vertex_count} vertices): relight {:.0} ms ({} iterations)",
+        a.out.display(),
+        out.stats.ms,
+        out.stats.iterations
+    );
+    Ok(())
+}

@@ -1,0 +1,399 @@
+//! The `translux-server` binary's offline commands (`render`, `export`, `relight`) and its
+//! server flags, run as a user would, on a small Cornell-box bundle built in the test.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::render::RenderParams;
+use translux_precompute::scene::load_scene;
+use translux_proto::api::{RelightRequest, RelightResponse, ToneMap};
+use translux_proto::bundle::Bundle;
+use translux_server::relight;
+use translux_server::state::Scene;
+
+const BIN: &str = env!("CARGO_BIN_EXE_translux-server");
+
+/// A ~300-patch Cornell box, built once per test binary in a folder under the target's temp
+/// folder. Statics are never dropped, so each run removes the folders that earlier runs left
+/// (older than ten minutes: no run of this binary takes that long).
+fn bundle_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
+        remove_stale(parent);
+        let root = tempfile::Builder::new()
+            .prefix(PREFIX)
+            .tempdir_in(parent)
+            .unwrap()
+            .keep();
+        let dir = root.join("cornell");
+        let scene = load_scene("builtin:cornell").unwrap();
+        let params = PrecomputeParams {
+            patches: Some(300),
+            ..Default::default()
+        };
+        precompute(&scene, &dir, &params).unwrap();
+        dir
+    })
+}
+
+const PREFIX: &str = "server-cli-bundle-";
+
+fn remove_stale(parent: &Path) {
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let stale = e.file_name().to_string_lossy().starts_with(PREFIX)
+            && e.metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age.as_secs() > 600);
+        if stale {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+fn server(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .env("RUST_LOG", "info")
+        .env_remove("TRANSLUX_BUNDLES")
+        .output()
+        .unwrap()
+}
+
+/// Runs the binary, asserting success; returns stderr (the log).
+fn ok(args: &[&str]) -> String {
+    let out = server(args);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{args:?}: {stderr}");
+    stderr
+}
+
+/// Runs the binary, asserting failure; returns stderr.
+fn fails(args: &[&str]) -> String {
+    let out = server(args);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "{args:?} should fail: {stderr}");
+    stderr
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// The library's answer for the same request: open, plan, relight.
+fn library_radiance(req: RelightRequest) -> (Scene, Vec<[f32; 3]>) {
+    let scene = Scene::open("cornell", bundle_dir()).unwrap();
+    let plan = relight::plan(&scene, req).unwrap();
+    let out = relight::run(&scene, &plan).unwrap();
+    (scene, out.radiance)
+}
+
+const REQUEST: &str = r#"{"components": "direct",
+    "lights": [{"type": "point", "position": [-0.1, 0.45, 0.05], "intensity": [0.4, 0.35, 0.3]}]}"#;
+
+#[test]
+fn render_writes_the_png_the_library_renders() {
+    let tmp = tempfile::tempdir().unwrap();
+    let req = tmp.path().join("req.json");
+    std::fs::write(&req, REQUEST).unwrap();
+    let png = tmp.path().join("cornell.png");
+    let log = ok(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&png),
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--exposure",
+        "-0.5",
+        "--tone",
+        "filmic",
+    ]);
+    assert!(log.contains("wrote") && log.contains("96×72"), "{log}");
+    let bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(img.dimensions(), (96, 72));
+    let first = img.get_pixel(0, 0).0;
+    assert!(img.pixels().any(|p| p.0 != first), "one colour");
+
+    // Flags applied on top of the request: the same picture as the library makes.
+    let (scene, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
+    let b = &scene.bundle;
+    let want = translux_precompute::render::render(
+        b.vertex_positions(),
+        b.triangle_vertices(),
+        &radiance,
+        &b.manifest().camera,
+        &RenderParams {
+            width: 96,
+            height: 72,
+            exposure: -0.5,
+            tone: ToneMap::Filmic,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(img.as_raw(), want.as_raw());
+
+    // No request: the bundle's lights and camera, 800 × 600.
+    let default_png = tmp.path().join("default.png");
+    ok(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--out",
+        s(&default_png),
+    ]);
+    let img = image::open(&default_png).unwrap();
+    assert_eq!((img.width(), img.height()), (800, 600));
+
+    // Errors name the problem and write nothing.
+    let bad = tmp.path().join("bad.png");
+    let e = fails(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--out",
+        s(&bad),
+        "--width",
+        "0",
+    ]);
+    assert!(e.contains("width must be an integer in 1..=8192"), "{e}");
+    std::fs::write(
+        &req,
+        r#"{"camera": {"position": [0, 0, 1], "target": [0, 0, 1]}}"#,
+    )
+    .unwrap();
+    let e = fails(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&bad),
+    ]);
+    assert!(e.contains("camera.target must differ"), "{e}");
+    std::fs::write(
+        &req,
+        r#"{"lights": [{"type": "point", "position": [0, 1]}]}"#,
+    )
+    .unwrap();
+    let e = fails(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&bad),
+    ]);
+    assert!(e.contains("lights[0].position"), "{e}");
+    let e = fails(&["render", "--bundle", s(bundle_dir()), "--out", "x.jpg"]);
+    assert!(e.contains("must end in .png"), "{e}");
+    let e = fails(&[
+        "render",
+        "--bundle",
+        "/nonexistent/bundle",
+        "--out",
+        s(&bad),
+    ]);
+    assert!(e.contains("cannot open the bundle"), "{e}");
+    assert!(!bad.exists());
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().unwrap())
+}
+
+#[test]
+fn export_writes_glb_and_ply() {
+    let tmp = tempfile::tempdir().unwrap();
+    let req = tmp.path().join("req.json");
+    std::fs::write(&req, REQUEST).unwrap();
+    let bundle = Bundle::open(bundle_dir()).unwrap();
+    let nv = bundle.vertex_positions().len();
+    let nf = bundle.triangle_vertices().len();
+
+    let glb_path = tmp.path().join("cornell.glb");
+    ok(&[
+        "export",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&glb_path),
+        "--exposure",
+        "1",
+    ]);
+    let glb = std::fs::read(&glb_path).unwrap();
+    assert_eq!(&glb[..4], b"glTF");
+    assert_eq!(u32_at(&glb, 8) as usize, glb.len());
+    let json_len = u32_at(&glb, 12) as usize;
+    assert_eq!(json_len % 4, 0);
+    let root = gltf_json::Root::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bin_len = u32_at(&glb, 20 + json_len) as usize;
+    assert_eq!(root.buffers[0].byte_length.0 as usize, bin_len);
+    assert_eq!(bin_len, 36 * nv + 12 * nf);
+    let counts: Vec<u64> = root.accessors.iter().map(|a| a.count.0).collect();
+    assert_eq!(counts, [nv as u64, nv as u64, nv as u64, 3 * nf as u64]);
+    // COLOR_0 is linear: tone(L · 2^1), no OETF.
+    let (_, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
+    let bin = &glb[20 + json_len + 8..];
+    let colours: Vec<f32> = bin[24 * nv..36 * nv]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    for (k, c) in radiance.iter().enumerate() {
+        for ch in 0..3 {
+            let want = (c[ch] * 2.0).min(1.0);
+            assert!((colours[3 * k + ch] - want).abs() < 1e-6, "vertex {k}");
+        }
+    }
+
+    let ply_path = tmp.path().join("cornell.ply");
+    ok(&[
+        "export",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&ply_path),
+    ]);
+    let ply = std::fs::read(&ply_path).unwrap();
+    let header = translux_precompute::export::ply_header(nv, nf, 0.0, ToneMap::Srgb);
+    assert!(ply.starts_with(header.as_bytes()));
+    assert_eq!(ply.len(), header.len() + 27 * nv + 13 * nf);
+
+    let e = fails(&["export", "--bundle", s(bundle_dir()), "--out", "mesh.obj"]);
+    assert!(e.contains(".glb or .ply"), "{e}");
+    // A render request is not a relight request: its picture fields are refused, not ignored.
+    std::fs::write(&req, r#"{"width": 10}"#).unwrap();
+    let e = fails(&[
+        "export",
+        "--bundle",
+        s(bundle_dir()),
+        "--request",
+        s(&req),
+        "--out",
+        s(&glb_path),
+    ]);
+    assert!(e.contains("unknown field `width`"), "{e}");
+}
+
+#[test]
+fn relight_writes_f32_and_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let req = tmp.path().join("req.json");
+    std::fs::write(&req, REQUEST).unwrap();
+    let (_, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
+    let f32_path = tmp.path().join("colours.f32");
+    let json_path = tmp.path().join("colours.json");
+    for out in [&f32_path, &json_path] {
+        ok(&[
+            "relight",
+            "--bundle",
+            s(bundle_dir()),
+            "--request",
+            s(&req),
+            "--out",
+            s(out),
+        ]);
+    }
+    let raw: Vec<f32> = std::fs::read(&f32_path)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    let want: Vec<f32> = radiance.iter().flatten().copied().collect();
+    assert_eq!(raw, want);
+    let answer: RelightResponse =
+        serde_json::from_slice(&std::fs::read(&json_path).unwrap()).unwrap();
+    assert_eq!(answer.vertex_count, radiance.len());
+    assert_eq!(answer.radiance, want);
+    assert_eq!(answer.stats.solver, "none");
+}
+
+#[test]
+fn help_lists_the_subcommands_and_the_server_flags_still_work() {
+    let help = String::from_utf8(server(&["--help"]).stdout).unwrap();
+    for word in [
+        "render",
+        "export",
+        "relight",
+        "--bundles",
+        "--demo",
+        "--addr",
+    ] {
+        assert!(help.contains(word), "{word}: {help}");
+    }
+    // Server flags and a subcommand do not mix; no arguments at all is still an error.
+    fails(&["--demo", "render", "--bundle", "b", "--out", "x.png"]);
+    let e = fails(&[]);
+    assert!(e.contains("--bundles"), "{e}");
+
+    // The flag form serves: start on a free port, wait for "listening", stop it.
+    let parent = bundle_dir().parent().unwrap();
+    let mut child = Command::new(BIN)
+        .args(["--bundles", s(parent), "--addr", "127.0.0.1:0"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let start = Instant::now();
+    let mut log = Vec::new();
+    let mut listening = false;
+    while start.elapsed() < Duration::from_secs(60) {
+        match rx.recv_timeout(Duration::from_millis(200)) {
+            Ok(line) => {
+                listening |= line.contains("listening on http://127.0.0.1:");
+                log.push(line);
+                if listening {
+                    break;
+                }
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                if let Ok(Some(_)) = child.try_wait() {
+                    break;
+                }
+            }
+            Err(_) => break,
+        }
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(listening, "{log:#?}");
+    assert!(
+        log.iter().any(|l| l.contains("serving \"cornell\"")),
+        "{log:#?}"
+    );
+}
