@@ -207,27 +207,7 @@ fn direct(bundle: &Bundle, lights: &[Light]) -> Vec<Rgb> {
 
 /// The answer without a server: the same bundle through the library calls.
 fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb> {
-    let tris: Vec<[Vec3; 3]> = bundle
-        .occluder_triangles()
-        .iter()
-        .map(|t| t.map(Vec3::from))
-        .collect();
-    let occ = Occluder::new(&tris);
-    let centroid: Vec<Vec3> = bundle
-        .patch_corners()
-        .iter()
-        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-        .collect();
-    let normal: Vec<Vec3> = bundle
-        .patch_normals()
-        .iter()
-        .map(|&n| Vec3::from(n))
-        .collect();
-    let geo = PatchGeometry {
-        centroid: &centroid,
-        normal: &normal,
-    };
-    let e = direct_irradiance(geo, &occ, lights, bundle.manifest().unit_mm).unwrap();
+    let e = direct(bundle, lights);
     let (albedo, emission) = (bundle.patch_albedo(), bundle.patch_emission());
     let b = if interreflection {
         let (b, stats) = solve(
