@@ -48,6 +48,7 @@ fn object(
         }),
         material,
         crease_deg: None,
+        simplify_to: None,
     }
 }
 

@@ -24,6 +24,8 @@ use translux_proto::bundle::{
 /// The elements of one array, in row-major order.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ArrayData {
+    /// IEEE half floats as raw bits.
+    F16(Vec<u16>),
     F32(Vec<f32>),
     U32(Vec<u32>),
     U64(Vec<u64>),
@@ -33,6 +35,7 @@ impl ArrayData {
     /// The element type.
     pub fn dtype(&self) -> DType {
         match self {
+            ArrayData::F16(_) => DType::F16,
             ArrayData::F32(_) => DType::F32,
             ArrayData::U32(_) => DType::U32,
             ArrayData::U64(_) => DType::U64,
@@ -42,6 +45,7 @@ impl ArrayData {
     /// The number of elements.
     pub fn len(&self) -> usize {
         match self {
+            ArrayData::F16(v) => v.len(),
             ArrayData::F32(v) => v.len(),
             ArrayData::U32(v) => v.len(),
             ArrayData::U64(v) => v.len(),
@@ -57,6 +61,7 @@ impl ArrayData {
     /// build on big-endian targets).
     pub fn bytes(&self) -> &[u8] {
         match self {
+            ArrayData::F16(v) => bytemuck::cast_slice(v),
             ArrayData::F32(v) => bytemuck::cast_slice(v),
             ArrayData::U32(v) => bytemuck::cast_slice(v),
             ArrayData::U64(v) => bytemuck::cast_slice(v),
@@ -396,6 +401,8 @@ mod tests {
                 albedo: [0.7, 0.6, 0.5],
             }],
             lights: vec![],
+            transfer: None,
+            environment: None,
             camera: Camera {
                 position: [0.0, 2.0, 0.0],
                 target: [0.0; 3],
@@ -519,6 +526,7 @@ mod tests {
             assert_eq!(entry.dtype, a.data.dtype(), "{}", a.name);
             assert_eq!(entry.xxh3, checksum(a.data.bytes()), "{}", a.name);
             match &a.data {
+                ArrayData::F16(_) => {}
                 ArrayData::F32(v) => assert_eq!(b.f32s(a.name), &v[..], "{}", a.name),
                 ArrayData::U32(v) => assert_eq!(b.u32s(a.name), &v[..], "{}", a.name),
                 ArrayData::U64(v) => assert_eq!(b.u64s(a.name), &v[..], "{}", a.name),
@@ -608,7 +616,9 @@ mod tests {
         fs::write(&path, serde_json::to_string_pretty(&json).unwrap()).unwrap();
         assert_eq!(
             open_err(&out),
-            "manifest.json: bundle version 99 is not supported (this build reads version 3)"
+            format!(
+                "manifest.json: bundle version 99 is not supported (this build reads version {FORMAT_VERSION})"
+            )
         );
         fs::write(&path, "{\"format\": \"translux-bundle\",\n  oops").unwrap();
         let e = open_err(&out);

@@ -143,6 +143,18 @@ pub fn compute(
     params: &FormFactorParams,
     progress: &(dyn Fn(u64) + Sync),
 ) -> (Csr, FormFactorInfo) {
+    compute_with_stop(p, occ, params, progress, &|| false)
+}
+
+/// [`compute`] that skips the rows not yet started once `stop()` returns `true` (a
+/// cancelled precompute job); the result is then incomplete and must be thrown away.
+pub fn compute_with_stop(
+    p: &Patches,
+    occ: &Occluder,
+    params: &FormFactorParams,
+    progress: &(dyn Fn(u64) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
+) -> (Csr, FormFactorInfo) {
     let n = p.len();
     let diag = occ.diagonal();
     let eps_plane = 1e-6 * diag;
@@ -155,9 +167,12 @@ pub fn compute(
         .into_par_iter()
         .with_min_len(8)
         .map_init(Vec::new, |samples, i| {
+            let mut row = Vec::new();
+            if stop() {
+                return row;
+            }
             let (ci, ni, ai) = (p.centroid[i], p.normal[i], p.area[i]);
             let corners_i = &p.corners[i];
-            let mut row = Vec::new();
             let (mut row_rays, mut row_pairs) = (0u64, 0u64);
             for j in i + 1..n {
                 let (cj, nj) = (p.centroid[j], p.normal[j]);

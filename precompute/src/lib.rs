@@ -7,6 +7,7 @@
 //! Stages, each in its own module:
 //! 1. [`scene`] — load and validate the scene; [`shapes`] and [`builtin`] make procedural
 //!    geometry and the built-in scenes.
+//!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`).
 //! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
 //! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
 //! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
@@ -14,7 +15,8 @@
 //!    translucent objects, diffuse reflectance profiles, and S from both; [`hetero`] —
 //!    heterogeneous objects (media by pattern, combined per path by the paper's eq. 9);
 //!    [`sheet`] — thin two-sided sheets (geodesic distances, reflectance and transmittance).
-//! 6. [`bundle`] — write arrays and manifest atomically.
+//! 6. [`bundle`] — write arrays and manifest atomically; [`envvis`] — per-patch visibility
+//!    of direction bins for environment lighting ([`envmap`]: `.hdr` maps, built-in skies).
 //! 7. [`radiosity`] — direct lighting and the solve B = Bₑ + S(E + F B).
 //! 8. [`render`] — a CPU rasterizer from per-vertex radiance to an sRGB image (PNG);
 //!    [`export`] — the relit mesh as binary glTF (`.glb`) or PLY with baked colours.
@@ -31,9 +33,12 @@
 
 pub mod builtin;
 pub mod bundle;
+pub mod envmap;
+pub mod envvis;
 pub mod export;
 pub mod formfactor;
 pub mod hetero;
+pub mod inverse;
 pub mod patch;
 pub mod pipeline;
 pub mod profile;
@@ -43,6 +48,8 @@ pub mod render;
 pub mod scene;
 pub mod shapes;
 pub mod sheet;
+pub mod simplify;
 pub mod smatrix;
+pub mod solver;
 pub mod subsurface;
 pub mod voxel;

@@ -43,6 +43,10 @@ struct Cli {
     /// No progress bars or stage lines.
     #[arg(long, short)]
     quiet: bool,
+    /// Environment-light visibility bins, ROWSxCOLS (default 16x32: 2 bytes per patch and
+    /// bin), or 0 to skip the stage (environment lights are then refused for the bundle).
+    #[arg(long, value_name = "ROWSxCOLS")]
+    env_bins: Option<String>,
 }
 
 fn main() -> ExitCode {
@@ -57,12 +61,6 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
-    if cli.inverse {
-        bail!(
-            "--inverse: this build does not compute the transfer matrix T = (I - S F)^-1 S yet; \
-             run without --inverse (relighting then uses the iterative solve)"
-        );
-    }
     if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
         bail!("--threshold must be in [0, 1), got {}", cli.threshold);
     }
@@ -84,6 +82,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         },
         memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
         progress: !cli.quiet,
+        inverse: cli.inverse,
+        environment: match cli.env_bins.as_deref() {
+            None => Default::default(),
+            Some(text) => translux_precompute::envvis::EnvVisParams {
+                bins: translux_precompute::envvis::parse_bins(text).map_err(anyhow::Error::msg)?,
+                ..Default::default()
+            },
+        },
         ..Default::default()
     };
     let report = pipeline::precompute(&loaded, &cli.out, &params)
@@ -147,6 +153,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         if let Some(w) = &o.warning {
             println!("    warning: {w}");
         }
+    }
+    if let Some(t) = &report.transfer {
+        let n = report.patch_count as u64;
+        println!(
+            "  transfer T         {} ({}), {:.2} s, LU residual {:.1e}",
+            human_bytes(translux_precompute::inverse::stored_bytes(n)),
+            t.storage,
+            t.seconds,
+            t.lu_residual
+        );
+        println!(
+            "    f16 error        entries: median {:.2e}, max {:.2e}; relight (default \
+             lights): max {:.2e}, norm {:.2e}",
+            t.median_rel_error, t.max_rel_error, t.relight_max_rel_error, t.relight_rel_error
+        );
     }
     println!(
         "  bundle             {} ({} bytes)",

@@ -12,7 +12,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use thiserror::Error;
 use translux_proto::bundle::{
-    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, SubsurfaceInfo, arrays,
+    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, SubsurfaceInfo,
+    TransferInfo, arrays,
 };
 use translux_proto::light::Camera;
 use translux_proto::scene::Material;
@@ -45,6 +46,34 @@ pub struct PrecomputeParams {
     pub memory_limit: Option<u64>,
     /// Draw progress bars / stage lines on stderr.
     pub progress: bool,
+    /// Told each stage's progress and asked whether to stop (a server's precompute jobs).
+    pub observer: Option<std::sync::Arc<dyn Observer>>,
+    /// Also compute the transfer matrix T = (I − S F)⁻¹ S ([`crate::inverse`]).
+    pub inverse: bool,
+    /// Per-patch environment visibility ([`crate::envvis`]); `bins: None` skips it.
+    pub environment: crate::envvis::EnvVisParams,
+}
+
+/// Watches a [`precompute`]: progress per stage, and a way to stop it.
+pub trait Observer: Send + Sync + std::fmt::Debug {
+    /// `stage` has done `done` of `total` units (called from many threads, often).
+    fn progress(&self, stage: &str, done: u64, total: u64);
+    /// `true` stops the precompute at the next check (before each stage and between
+    /// form-factor rows) with [`PrecomputeError::Cancelled`]; nothing is written.
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+/// Reports the start of `stage` to the observer, or stops if it asks to.
+fn stage_start(params: &PrecomputeParams, stage: &str) -> Result<(), PrecomputeError> {
+    if let Some(o) = &params.observer {
+        if o.cancelled() {
+            return Err(PrecomputeError::Cancelled);
+        }
+        o.progress(stage, 0, 1);
+    }
+    Ok(())
 }
 
 /// What a precompute produced.
@@ -57,6 +86,8 @@ pub struct PrecomputeReport {
     pub bundle_bytes: u64,
     pub form_factors: FormFactorInfo,
     pub subsurface: SubsurfaceInfo,
+    /// The transfer matrix's storage and errors (with `inverse`).
+    pub transfer: Option<TransferInfo>,
     pub stages: Vec<StageTime>,
     /// Occlusion rays per second during the form-factor stage.
     pub rays_per_second: f64,
@@ -95,8 +126,12 @@ pub enum PrecomputeError {
     Empty,
     #[error(transparent)]
     Subsurface(#[from] SError),
+    #[error("--inverse: {0}")]
+    Inverse(#[from] crate::inverse::InverseError),
     #[error(transparent)]
     Write(#[from] BundleWriteError),
+    #[error("cancelled")]
+    Cancelled,
 }
 
 /// Bytes per stored non-zero of F while building: the final CSR (col 4 + val 4), the upper
@@ -317,6 +352,22 @@ pub fn precompute(
 ) -> Result<PrecomputeReport, PrecomputeError> {
     let mut stages = Vec::new();
     let progress = params.progress;
+    for (k, o) in scene.objects.iter().enumerate() {
+        if o.reoriented {
+            eprintln!(
+                "note: objects[{k}] {:?}: its faces were wound inside out (negative volume); \
+                 flipped to face outward",
+                o.name
+            );
+        }
+        let loaded = o.triangles.len() + o.dropped_degenerate;
+        if o.source_triangles > loaded {
+            eprintln!(
+                "note: objects[{k}] {:?}: simplified from {} to {} triangles (simplify_to)",
+                o.name, o.source_triangles, loaded
+            );
+        }
+    }
 
     // Plan: density and the patch count it gives, checked before anything big is made.
     let density = match (params.patches, params.max_edge, scene.file.patches) {
@@ -361,6 +412,7 @@ pub fn precompute(
     }
 
     // Patches and the viewer mesh.
+    stage_start(params, "patches")?;
     let bar = stage_bar(progress, 2, "patches");
     let patches = patch::subdivide(&sources, h);
     bar.inc(1);
@@ -377,6 +429,20 @@ pub fn precompute(
         .memory_limit
         .or_else(|| available_memory().map(|a| (a as f64 * 0.85) as u64))
         .unwrap_or(u64::MAX);
+    // The dense LU of the inverse comes after F is built and dominates: refuse it up front.
+    if params.inverse {
+        let need = crate::inverse::memory_estimate(patches.len() as u64)
+            + (nnz_est * 8.0) as u64
+            + patches.len() as u64 * 200;
+        if need > limit {
+            return Err(crate::inverse::InverseError::OutOfMemory {
+                n: patches.len() as u64,
+                need,
+                limit,
+            }
+            .into());
+        }
+    }
     if memory_estimate > limit {
         return Err(PrecomputeError::OutOfMemory {
             patches: patches.len() as u64,
@@ -389,6 +455,7 @@ pub fn precompute(
 
     // BVH over the source triangles.
     let t = Instant::now();
+    stage_start(params, "bvh")?;
     let bar = stage_bar(progress, 1, "bvh");
     let occluder_tris: Vec<[Vec3; 3]> = sources.iter().flat_map(|s| s.iter().copied()).collect();
     let occ = Occluder::new(&occluder_tris);
@@ -398,13 +465,45 @@ pub fn precompute(
     // Form factors.
     let t = Instant::now();
     let n = patches.len() as u64;
-    let bar = stage_bar(progress, n * n.saturating_sub(1) / 2, "form factors");
-    let (ff, ff_info) = formfactor::compute(&patches, &occ, &params.form_factors, &|k| bar.inc(k));
+    stage_start(params, "form factors")?;
+    let ff_total = n * n.saturating_sub(1) / 2;
+    let bar = stage_bar(progress, ff_total, "form factors");
+    let ff_done = std::sync::atomic::AtomicU64::new(0);
+    let (ff, ff_info) = formfactor::compute_with_stop(
+        &patches,
+        &occ,
+        &params.form_factors,
+        &|k| {
+            bar.inc(k);
+            if let Some(o) = &params.observer {
+                let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+                o.progress("form factors", done, ff_total);
+            }
+        },
+        &|| params.observer.as_ref().is_some_and(|o| o.cancelled()),
+    );
+    if params.observer.as_ref().is_some_and(|o| o.cancelled()) {
+        return Err(PrecomputeError::Cancelled);
+    }
     let ff_seconds = t.elapsed().as_secs_f64();
     finish(bar, progress, "form factors", t, &mut stages);
 
+    // Environment visibility per patch and direction bin ([`crate::envvis`]).
+    let t = Instant::now();
+    stage_start(params, "environment")?;
+    let bar = stage_bar(progress, n, "environment");
+    let environment = crate::envvis::stage(
+        &patches.centroid,
+        &patches.normal,
+        &occ,
+        &params.environment,
+        &|k| bar.inc(k),
+    );
+    finish(bar, progress, "environment", t, &mut stages);
+
     // Subsurface: distances and S per translucent object, ρ on the diagonal elsewhere.
     let t = Instant::now();
+    stage_start(params, "subsurface")?;
     let bar = stage_bar(progress, 2, "subsurface");
     let geometry = smatrix::PatchGeometry {
         corners: patches.corners.clone(),
@@ -470,8 +569,60 @@ pub fn precompute(
     };
     finish(bar, progress, "subsurface", t, &mut stages);
 
+    // The transfer matrix T = (I − S F)⁻¹ S, stored as f16 R = T − S.
+    let transfer = if params.inverse {
+        let t = Instant::now();
+        stage_start(params, "inverse T")?;
+        let bar = stage_bar(progress, 6, "inverse T");
+        let f_view = ff.view().expect("form factors are a valid CSR");
+        let s_view = translux_proto::csr::CsrView::new_checked(
+            n as usize,
+            n as usize,
+            &smat.row_ptr,
+            &smat.col,
+            &smat.val,
+        )
+        .expect("assemble_scene builds a valid CSR");
+        let mut emission = vec![[0.0f32; 3]; patches.len()];
+        for (o, range) in scene.objects.iter().zip(&patches.object_ranges) {
+            emission[range.clone()].fill(material_albedo_emission(&o.material).1);
+        }
+        // The probe: v = E + F Bₑ for the scene's lights (uniform E = 1 W/m² where they
+        // cannot be evaluated here), to report what f16 storage does to a relight.
+        let geo = crate::radiosity::PatchGeometry {
+            centroid: &patches.centroid,
+            normal: &patches.normal,
+        };
+        let mut probe = crate::radiosity::direct_irradiance(geo, &occ, &scene.file.lights, unit_mm)
+            .unwrap_or_else(|_| vec![[1.0; 3]; patches.len()]);
+        let mut fbe = vec![[0.0f32; 3]; patches.len()];
+        crate::radiosity::spmv_rgb(&f_view, &emission, &mut fbe);
+        for (p, x) in probe.iter_mut().zip(&fbe) {
+            for c in 0..3 {
+                p[c] += x[c];
+            }
+        }
+        let tr =
+            crate::inverse::compute(&f_view, &s_view, &emission, &probe, limit, &|k| bar.inc(k))?;
+        finish(bar, progress, "inverse T", t, &mut stages);
+        Some(tr)
+    } else {
+        None
+    };
+    let transfer_info = transfer.as_ref().map(|t| TransferInfo {
+        storage: "f16 T - S, per-row scale".into(),
+        method: "dense partial-pivot LU per channel (faer), f64".into(),
+        median_rel_error: t.median_rel_error,
+        max_rel_error: t.max_rel_error,
+        relight_max_rel_error: t.relight_max_rel_error,
+        relight_rel_error: t.relight_rel_error,
+        lu_residual: t.lu_residual,
+        seconds: t.seconds,
+    });
+
     // Bundle.
     let t = Instant::now();
+    stage_start(params, "write bundle")?;
     let bar = stage_bar(progress, 1, "write bundle");
     let mut objects = Vec::new();
     let mut albedo = vec![[0.0f32; 3]; patches.len()];
@@ -497,7 +648,7 @@ pub fn precompute(
     let np = patches.len() as u64;
     let nv = mesh.positions.len() as u64;
     let nnz = ff.nnz() as u64;
-    let arrays_out = vec![
+    let mut arrays_out = vec![
         NamedArray {
             name: arrays::PATCH_CORNERS,
             shape: vec![np, 3, 3],
@@ -609,6 +760,26 @@ pub fn precompute(
             data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
+    if let Some(tr) = transfer {
+        arrays_out.push(NamedArray {
+            name: arrays::TRANSFER,
+            shape: vec![np, np, 3],
+            data: ArrayData::F16(tr.bits),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::TRANSFER_SCALE,
+            shape: vec![np, 3],
+            data: ArrayData::F32(tr.scale.concat()),
+        });
+    }
+    let environment_info = environment.map(|(bits, info)| {
+        arrays_out.push(NamedArray {
+            name: arrays::ENV_VISIBILITY,
+            shape: vec![np, u64::from(info.rows), u64::from(info.cols)],
+            data: ArrayData::F16(bits),
+        });
+        info
+    });
     let camera = scene
         .file
         .camera
@@ -629,6 +800,8 @@ pub fn precompute(
         form_factors: ff_info.clone(),
         subsurface: subsurface_info.clone(),
         stages: stages.clone(),
+        transfer: transfer_info.clone(),
+        environment: environment_info,
         arrays: Default::default(),
     };
     let written = write_bundle(out, manifest, arrays_out)?;
@@ -644,6 +817,7 @@ pub fn precompute(
         rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
         form_factors: ff_info,
         subsurface: subsurface_info,
+        transfer: transfer_info,
         stages,
         memory_estimate,
         peak_rss: peak_rss(),

@@ -12,8 +12,6 @@
 //! with emitters. With S = diag(ρ) it is classical radiosity. A vertex's colour is the
 //! outgoing radiance B/π ([`vertex_radiance`]).
 
-use std::time::Instant;
-
 use glam::Vec3;
 use rayon::prelude::*;
 use thiserror::Error;
@@ -21,6 +19,7 @@ use translux_proto::csr::CsrView;
 use translux_proto::light::Light;
 
 use crate::raycast::Occluder;
+pub use crate::solver::{Method, SolveError, SolveParams, SolveStats};
 
 /// RGB triple.
 pub type Rgb = [f32; 3];
@@ -166,6 +165,9 @@ pub fn spmv_rgb(f: &CsrView<'_>, x: &[Rgb], y: &mut [Rgb]) {
 pub trait Scatter: Sync {
     /// y = S h.
     fn apply(&self, h: &[Rgb], y: &mut [Rgb]);
+    /// y = S h for `ch` channels per patch (`[patch][channel]`, `ch` a multiple of 3):
+    /// channel c uses colour component c % 3. One pass over S for every channel.
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize);
     /// Whether S is diagonal (Gauss-Seidel needs that).
     fn diagonal(&self) -> Option<&[Rgb]>;
 }
@@ -181,6 +183,16 @@ impl Scatter for Albedo<'_> {
             .zip(self.0.par_iter())
             .for_each(|((y, h), r)| {
                 *y = [r[0] * h[0], r[1] * h[1], r[2] * h[2]];
+            });
+    }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        y.par_chunks_mut(ch)
+            .zip(h.par_chunks(ch))
+            .zip(self.0.par_iter())
+            .for_each(|((y, h), r)| {
+                for c in 0..ch {
+                    y[c] = r[c % 3] * h[c];
+                }
             });
     }
     fn diagonal(&self) -> Option<&[Rgb]> {
@@ -209,59 +221,28 @@ impl Scatter for SparseScatter<'_> {
                 *yj = acc;
             });
     }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        if ch == 3 {
+            self.apply(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y));
+            return;
+        }
+        y.par_chunks_mut(ch)
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(j, yj)| {
+                yj.fill(0.0);
+                let (cols, vals) = self.0.row(j);
+                for (&i, s) in cols.iter().zip(vals) {
+                    let hi = &h[i as usize * ch..(i as usize + 1) * ch];
+                    for c in 0..ch {
+                        yj[c] += s[c % 3] * hi[c];
+                    }
+                }
+            });
+    }
     fn diagonal(&self) -> Option<&[Rgb]> {
         None
     }
-}
-
-/// Iteration scheme.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Method {
-    /// B ← Bₑ + ρ(E + F B), all patches at once (parallel).
-    Jacobi,
-    /// The same update patch by patch, using values already updated in this sweep
-    /// (sequential; usually fewer sweeps).
-    GaussSeidel,
-}
-
-/// Solver settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SolveParams {
-    pub method: Method,
-    /// Stop when ‖b − (I − ρF)B‖₂ / ‖b‖₂ falls below this, b = Bₑ + ρE. Default 0.005 (the
-    /// paper's 0.5%).
-    pub tolerance: f32,
-    /// Give up after this many iterations. Default 500.
-    pub max_iterations: u32,
-}
-
-impl Default for SolveParams {
-    fn default() -> Self {
-        Self {
-            method: Method::Jacobi,
-            tolerance: 0.005,
-            max_iterations: 500,
-        }
-    }
-}
-
-/// What a solve did.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SolveStats {
-    pub iterations: u32,
-    /// Relative residual of the returned B.
-    pub residual: f32,
-    pub converged: bool,
-    pub seconds: f64,
-}
-
-/// Why a solve could not run.
-#[derive(Debug, Error, PartialEq)]
-pub enum SolveError {
-    #[error(
-        "Gauss-Seidel needs a diagonal S (an opaque scene); use Jacobi for translucent objects"
-    )]
-    GaussSeidelNeedsDiagonal,
 }
 
 /// Solves B = Bₑ + ρ(E + F B) for an opaque scene (S = diag ρ).
@@ -275,12 +256,13 @@ pub fn solve_diffuse(
 ) -> (Vec<Rgb>, SolveStats) {
     match solve(f, &Albedo(albedo), emission, irradiance, params, warm) {
         Ok(r) => r,
-        // A diagonal S accepts every method.
-        Err(SolveError::GaussSeidelNeedsDiagonal) => unreachable!("Albedo is diagonal"),
+        // A diagonal S accepts every method, and the lengths are the caller's.
+        Err(e) => panic!("solve_diffuse: {e}"),
     }
 }
 
-/// Solves B = Bₑ + S(E + F B). `warm` starts from a previous solution.
+/// Solves B = Bₑ + S(E + F B), i.e. (I − S F) B = Bₑ + S E, with `params.method`
+/// ([`crate::solver`]). `warm` starts from a previous solution.
 pub fn solve(
     f: &CsrView<'_>,
     s: &dyn Scatter,
@@ -289,12 +271,7 @@ pub fn solve(
     params: &SolveParams,
     warm: Option<&[Rgb]>,
 ) -> Result<(Vec<Rgb>, SolveStats), SolveError> {
-    let t0 = Instant::now();
     let n = emission.len();
-    let diag = s.diagonal();
-    if params.method == Method::GaussSeidel && diag.is_none() {
-        return Err(SolveError::GaussSeidelNeedsDiagonal);
-    }
     // b = Bₑ + S E, the right-hand side.
     let mut b = vec![[0.0f32; 3]; n];
     s.apply(irradiance, &mut b);
@@ -303,84 +280,15 @@ pub fn solve(
             bi[c] += e[c];
         }
     }
-    let b_norm = norm(&b);
-    if b_norm == 0.0 {
-        let stats = SolveStats {
-            iterations: 0,
-            residual: 0.0,
-            converged: true,
-            seconds: 0.0,
-        };
-        return Ok((vec![[0.0; 3]; n], stats));
-    }
-    let mut x: Vec<Rgb> = match warm {
-        Some(w) if w.len() == n => w.to_vec(),
-        _ => b.clone(),
-    };
-    let mut fx = vec![[0.0f32; 3]; n];
-    let mut sfx = vec![[0.0f32; 3]; n];
-    let mut iterations = 0;
-    let mut residual;
-    loop {
-        // r = b + S F x − x: the residual of x, and also the Jacobi step.
-        spmv_rgb(f, &x, &mut fx);
-        s.apply(&fx, &mut sfx);
-        let r2: f64 = (0..n)
-            .into_par_iter()
-            .map(|i| {
-                (0..3)
-                    .map(|c| {
-                        let r = b[i][c] + sfx[i][c] - x[i][c];
-                        (r as f64) * (r as f64)
-                    })
-                    .sum::<f64>()
-            })
-            .sum();
-        residual = (r2.sqrt() / b_norm) as f32;
-        if residual <= params.tolerance || iterations >= params.max_iterations {
-            break;
-        }
-        iterations += 1;
-        match (params.method, diag) {
-            (Method::GaussSeidel, Some(albedo)) => {
-                for i in 0..n {
-                    let (cols, vals) = f.row(i);
-                    let mut acc = [0.0f32; 3];
-                    for (&j, &v) in cols.iter().zip(vals) {
-                        let xj = &x[j as usize];
-                        for c in 0..3 {
-                            acc[c] += v * xj[c];
-                        }
-                    }
-                    for c in 0..3 {
-                        x[i][c] = b[i][c] + albedo[i][c] * acc[c];
-                    }
-                }
-            }
-            _ => {
-                x.par_iter_mut().enumerate().for_each(|(i, xi)| {
-                    for c in 0..3 {
-                        xi[c] = b[i][c] + sfx[i][c];
-                    }
-                });
-            }
-        }
-    }
-    let stats = SolveStats {
-        iterations,
-        residual,
-        converged: residual <= params.tolerance,
-        seconds: t0.elapsed().as_secs_f64(),
-    };
-    Ok((x, stats))
-}
-
-fn norm(v: &[Rgb]) -> f64 {
-    v.iter()
-        .flat_map(|x| x.iter())
-        .map(|&a| (a as f64) * (a as f64))
-        .sum::<f64>()
-        .sqrt()
+    let (x, stats) = crate::solver::solve_system(
+        f,
+        s,
+        bytemuck::cast_slice(&b),
+        3,
+        params,
+        warm.map(bytemuck::cast_slice),
+    )?;
+    Ok((bytemuck::cast_slice(&x).to_vec(), stats))
 }
 
 /// Outgoing radiance per viewer vertex: B/π, area-weighted over the vertex's patches.

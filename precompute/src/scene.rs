@@ -39,6 +39,12 @@ pub struct LoadedObject {
     pub triangles: Vec<[Vec3; 3]>,
     /// Zero-area triangles (area < 1e-12 × bounding-box diagonal²) that were dropped.
     pub dropped_degenerate: usize,
+    /// Triangles the mesh had before `simplify_to` (equal to the loaded count plus
+    /// `dropped_degenerate` when it was not simplified).
+    pub source_triangles: usize,
+    /// The OBJ's faces were wound inside out (negative enclosed volume) and were flipped to
+    /// face outward.
+    pub reoriented: bool,
     /// For a heterogeneous object with media by OBJ material (`by_obj_material`): the medium
     /// of each triangle (the index of its `usemtl` name in the pattern's `names`), aligned
     /// with `triangles`. `None` for every other object.
@@ -256,6 +262,11 @@ fn load_object(
             detail: " (no faces in the file)".to_owned(),
         });
     }
+    let source_triangles = raw.len();
+    let raw = match desc.simplify_to {
+        Some(n) if raw.len() as u64 > n => crate::simplify::simplify(&raw, n as usize).triangles,
+        _ => raw,
+    };
     let transformed = apply_transform(raw, desc.transform.as_ref());
     if transformed.iter().flatten().any(|v| !v.is_finite()) {
         return Err(SceneError::NonFinite {
@@ -272,7 +283,16 @@ fn load_object(
             keep[k - 1]
         });
     }
-    let (triangles, dropped) = drop_degenerate(transformed);
+    let (mut triangles, dropped) = drop_degenerate(transformed);
+    // Scanned meshes are often wound inside out (horse.obj is): every normal then points
+    // into the object, so lights outside never reach it and a translucent object has no
+    // inside. A mesh that encloses clearly negative volume is turned outward.
+    let reoriented = matches!(desc.mesh, MeshRef::Path(_)) && inside_out(&triangles);
+    if reoriented {
+        for t in &mut triangles {
+            t.swap(1, 2);
+        }
+    }
     if triangles.is_empty() {
         return Err(SceneError::MeshEmpty {
             scene: scene.to_owned(),
@@ -287,8 +307,24 @@ fn load_object(
         crease_deg: desc.crease_deg.unwrap_or(DEFAULT_CREASE_DEG),
         triangles,
         dropped_degenerate: dropped,
+        source_triangles,
+        reoriented,
         face_material,
     })
+}
+
+/// Whether `tris` enclose a negative volume of more than 1% of their bounding box: a closed
+/// (or nearly closed, like a scan with an open bottom) mesh wound inside out. Open sheets
+/// enclose about nothing and are left as they are.
+fn inside_out(tris: &[[Vec3; 3]]) -> bool {
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for v in tris.iter().flatten() {
+        lo = lo.min(*v);
+        hi = hi.max(*v);
+    }
+    let size = (hi - lo).as_dvec3();
+    let volume = crate::shapes::signed_volume(tris);
+    volume < -0.01 * size.x * size.y * size.z
 }
 
 /// The medium of each face from its `usemtl` group: `names[k]` is medium k. Every face must
@@ -692,6 +728,61 @@ mod tests {
 
     fn normal(t: &[Vec3; 3]) -> Vec3 {
         (t[1] - t[0]).cross(t[2] - t[0]).normalize()
+    }
+
+    /// A tetrahedron whose faces all point inward (each face's corners clockwise seen
+    /// from outside).
+    const INSIDE_OUT_TET: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n\
+                                  f 1 2 3\nf 1 4 2\nf 1 3 4\nf 2 4 3\n";
+
+    #[test]
+    fn inside_out_meshes_are_turned_outward_and_sheets_are_left_alone() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write(dir.path(), "tet.obj", INSIDE_OUT_TET);
+        let p = write(dir.path(), "s.json", &scene_with("\"tet.obj\"", GREY, ""));
+        let s = load_scene_file(&p).expect("loads");
+        let o = &s.objects[1];
+        assert!(o.reoriented);
+        assert!(crate::shapes::signed_volume(&o.triangles) > 0.0);
+        // Every normal now points away from the centroid.
+        let c = Vec3::splat(0.25);
+        for t in &o.triangles {
+            assert!(normal(t).dot(t[0] - c) > 0.0, "{t:?}");
+        }
+        // A lone triangle encloses nothing: kept as it is; built-in shapes never flip.
+        assert!(!s.objects[0].reoriented);
+        write(dir.path(), "tri.obj", TRI_OBJ);
+        let p = write(dir.path(), "t.json", &scene_with("\"tri.obj\"", GREY, ""));
+        assert!(!load_scene_file(&p).expect("loads").objects[1].reoriented);
+    }
+
+    #[test]
+    fn simplify_to_reduces_a_scanned_mesh_and_rejects_bad_values() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let bunny =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/stanford-bunny.obj");
+        let mesh = format!("{:?}", bunny.display().to_string());
+        let p = write(
+            dir.path(),
+            "b.json",
+            &scene_with(&mesh, GREY, r#", "simplify_to": 5000"#),
+        );
+        let s = load_scene_file(&p).expect("loads");
+        let o = &s.objects[1];
+        assert_eq!(o.source_triangles, 69_451);
+        let n = o.triangles.len() + o.dropped_degenerate;
+        assert!((4_000..=5_000).contains(&n), "{n}");
+        assert!(!o.reoriented, "the bunny faces outward already");
+        for (v, rule) in [("0", "must be in [4, 10000000]"), ("2.5", "simplify_to")] {
+            let msg = error_of(
+                dir.path(),
+                &scene_with(&mesh, GREY, &format!(r#", "simplify_to": {v}"#)),
+            );
+            assert!(
+                msg.contains("objects[1].simplify_to") && msg.contains(rule),
+                "{msg}"
+            );
+        }
     }
 
     #[test]

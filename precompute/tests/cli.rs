@@ -143,8 +143,14 @@ fn bad_input_is_refused_with_a_message_and_no_bundle() {
             "missing.json",
         ),
         (
-            vec!["builtin:cornell".into(), "--inverse".into()],
-            "--inverse",
+            // The dense LU of T at the default 24,640 patches needs ~13 GiB.
+            vec![
+                "builtin:cornell".into(),
+                "--inverse".into(),
+                "--max-memory-gib".into(),
+                "2".into(),
+            ],
+            "--inverse: the transfer matrix for",
         ),
         (
             vec!["builtin:cornell".into(), "--threshold".into(), "NaN".into()],

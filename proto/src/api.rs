@@ -23,22 +23,26 @@ use crate::bundle::{FormFactorInfo, StageTime};
 use crate::light::{Camera, Light};
 use crate::scene::Material;
 
-/// Which light paths a relight includes (the paper's Figure 6 components and heuristics).
+/// Which light paths a relight includes (the paper's Figures 5 and 12: components and
+/// heuristics). P = diag ρ̄ is each patch's opaque albedo (a translucent patch's profile's
+/// total diffuse reflectance); docs/transport.md defines each.
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
 #[serde(rename_all = "snake_case")]
 pub enum Components {
-    /// Everything: B = S(E + F B).
+    /// Everything: B = Bₑ + S(E + F B).
     #[default]
     Full,
-    /// Direct lighting only: B = Bₑ + S E, no inter-reflection.
+    /// Direct lighting, one local diffuse bounce: B = Bₑ + P E.
     Direct,
-    /// Subsurface scattering of direct light only.
+    /// Subsurface scattering of direct light, no inter-reflection: B = Bₑ + S E.
     SubsurfaceOnly,
-    /// Inter-reflection without subsurface transport.
+    /// Diffuse inter-reflection with translucent objects opaque: B = Bₑ + P(E + F B).
     InterreflectionOnly,
-    /// The paper's first heuristic.
+    /// The paper's (I − F)⁻¹ S L: one subsurface bounce of direct light, then diffuse
+    /// inter-reflection: B = (I − P F)⁻¹(Bₑ + S E).
     HeuristicA,
-    /// The paper's second heuristic.
+    /// The paper's S L + (I − F)⁻¹ L: subsurface scattering of direct light plus diffuse
+    /// inter-reflection: B = Bₑ + S E + (I − P F)⁻¹ P F (Bₑ + P E).
     HeuristicB,
 }
 
@@ -250,11 +254,14 @@ impl RenderRequest {
 /// What a relight did.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct RelightStats {
-    /// The solver that ran: `jacobi`, or `none` when nothing was solved (`direct`).
+    /// What computed the transport: `inverse` (one product with the stored T), an
+    /// iterative method (`bicgstab`, `jacobi`, `gauss_seidel`), or `none` when nothing was
+    /// solved (`direct`, `subsurface_only`).
     pub solver: String,
     pub components: Components,
     pub iterations: u32,
-    /// Relative residual ‖b − (I − ρF)B‖ / ‖b‖ of the answer (0 without a solve).
+    /// Relative residual ‖b − (I − K F)B‖ / ‖b‖ of the answer (0 without a solve; with T,
+    /// 0 here and the stored T's error is in the bundle's manifest).
     pub residual: f32,
     pub converged: bool,
     /// Wall-clock milliseconds for the whole relight (direct + solve + vertex colours).
@@ -268,6 +275,24 @@ pub struct RelightStats {
     #[serde(default)]
     pub materials_ms: f64,
     pub lights: usize,
+    /// Passes over F and S (or over T) the transport made.
+    #[serde(default)]
+    pub products: u32,
+    /// Whether the iterative solve started from a previous solution of this scene with the
+    /// same materials and components.
+    #[serde(default)]
+    pub warm: bool,
+    /// How many relights shared this transport (one pass over the matrices for all).
+    #[serde(default = "one")]
+    pub batch: usize,
+    /// Why the server took the path it did when `solver` was `auto` and T was not used
+    /// (e.g. a translucency change makes T stale).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+}
+
+fn one() -> usize {
+    1
 }
 
 /// The JSON form of a relight answer.
@@ -356,6 +381,40 @@ pub struct Mesh {
 pub struct GpuHealth {
     pub available: bool,
     /// Why there is no GPU (absent when there is one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// The adapter relights run on (absent without a GPU).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adapter: Option<GpuAdapter>,
+    /// GPU bytes held by all scenes.
+    #[serde(default)]
+    pub bytes: u64,
+    /// Each scene the GPU backend has seen: on the device, or served from the CPU and why.
+    #[serde(default)]
+    pub scenes: Vec<GpuScene>,
+}
+
+/// The adapter in [`GpuHealth`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GpuAdapter {
+    pub name: String,
+    /// wgpu's backend: `vulkan`, …
+    pub backend: String,
+    /// `discrete`, `integrated`, `virtual`, `cpu` or `other`.
+    pub device_type: String,
+    /// A software adapter (lavapipe, llvmpipe): it runs on the CPU.
+    pub software: bool,
+    /// The largest storage binding; bigger matrices are split into row blocks.
+    pub max_binding_bytes: u64,
+}
+
+/// One scene in [`GpuHealth`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GpuScene {
+    pub id: String,
+    /// `gpu`, or `cpu` for a scene that does not fit (see `reason`).
+    pub on: String,
+    pub bytes: u64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
 }

@@ -33,9 +33,24 @@
 //! ├── dist_material_len.f32  [nnz_d, 4] of a heterogeneous object's path: the length r_k it
 //! │                                     travels in medium k (Σ_k r_k = dist_val); all 0
 //! │                                     for a homogeneous object
-//! └── patch_material.u32     [N]        medium of a heterogeneous object's patch (under its
-//!                                       centroid; S_ii's profile), 0 for every other patch
+//! ├── patch_material.u32     [N]        medium of a heterogeneous object's patch (under its
+//! │                                     centroid; S_ii's profile), 0 for every other patch
+//! │  only with `--inverse` (manifest `transfer` present):
+//! ├── transfer.f16           [N, N, 3]  R = T − S with T = (I − S F)⁻¹ S, row j (receiver)
+//! │                                     by column k (source), RGB; IEEE half floats, each
+//! │                                     row and channel scaled to its largest |value| (≤ 1)
+//! ├── transfer_scale.f32     [N, 3]     that scale: R_jk,c = transfer[j,k,c] · scale[j,c]
+//! │  unless precomputed with `--env-bins 0` (manifest `environment` present):
+//! └── env_visibility.f16     [N, R, C]  V_ik = ∫_bin k visible_i(ω) max(n_i·ω, 0) dω (sr) for
+//!                                       the R × C equal-area direction bins of
+//!                                       `translux_precompute::envmap::Bins`; IEEE half floats
 //! ```
+//!
+//! `transfer.f16` row j, channel c: element (j·N + k)·3 + c, 2 bytes each (byte offset
+//! 2·((j·N + k)·3 + c)). Why T − S and not T: T's diagonal holds ρ (≈ 0.7) while its
+//! off-diagonal entries are ~1/N of that, below f16's normal range after row scaling; S is
+//! in the bundle already (sparse, f32), so only the smooth inter-reflected part is stored
+//! in half precision.
 //!
 //! Byte offsets inside an array file: element `k` of a `[N, c]` array of 4-byte type is at
 //! `4·(k·c + component)`; `ff_row_ptr` entries are 8 bytes. There are no headers: the manifest
@@ -52,7 +67,7 @@ use crate::scene::Material;
 /// The `format` field of every manifest.
 pub const FORMAT: &str = "translux-bundle";
 /// Bumped whenever the layout changes; a loader refuses other versions.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 /// The manifest's file name inside a bundle folder.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -80,12 +95,19 @@ pub mod arrays {
     pub const DIST_KIND: &str = "dist_kind";
     pub const DIST_MATERIAL_LEN: &str = "dist_material_len";
     pub const PATCH_MATERIAL: &str = "patch_material";
+    /// R = T − S, f16 `[N, N, 3]` (only with `Manifest::transfer`).
+    pub const TRANSFER: &str = "transfer";
+    /// Per row and channel scale of [`TRANSFER`], f32 `[N, 3]`.
+    pub const TRANSFER_SCALE: &str = "transfer_scale";
+    /// Environment visibility, f16 `[N, rows, cols]` (only with `Manifest::environment`).
+    pub const ENV_VISIBILITY: &str = "env_visibility";
 }
 
 /// Element type of an array file.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "lowercase")]
 pub enum DType {
+    F16,
     F32,
     U32,
     U64,
@@ -94,12 +116,14 @@ pub enum DType {
 impl DType {
     pub fn size(self) -> usize {
         match self {
+            DType::F16 => 2,
             DType::F32 | DType::U32 => 4,
             DType::U64 => 8,
         }
     }
     pub fn name(self) -> &'static str {
         match self {
+            DType::F16 => "f16",
             DType::F32 => "f32",
             DType::U32 => "u32",
             DType::U64 => "u64",
@@ -193,6 +217,45 @@ pub struct SubsurfaceObject {
     pub seconds: f64,
 }
 
+/// How the transfer matrix T = (I − S F)⁻¹ S was computed and stored, and what storing it
+/// cost in accuracy.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct TransferInfo {
+    /// What is stored: `"f16 T - S, per-row scale"`.
+    pub storage: String,
+    /// How it was computed (`dense partial-pivot LU per channel (faer), f64`).
+    pub method: String,
+    /// Element-wise relative error |R_f16 − R| / |R| of the stored entries against the
+    /// computed f64 values, over entries ≥ 10⁻⁴ of their row's largest: median and max.
+    pub median_rel_error: f64,
+    pub max_rel_error: f64,
+    /// Relative error of the relit radiosity B with the stored T against the f64 T, for the
+    /// scene's default lights: largest over patches with B above 1% of the peak, and
+    /// ‖ΔB‖/‖B‖ over all patches.
+    pub relight_max_rel_error: f64,
+    pub relight_rel_error: f64,
+    /// ‖(I − S F) T − S‖_max / ‖S‖_max of the f64 solution (LU accuracy).
+    pub lu_residual: f64,
+    pub seconds: f64,
+}
+
+/// How the per-patch environment visibility (`env_visibility.f16`) was estimated.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct EnvironmentInfo {
+    /// Direction bins: `rows` bands uniform in cos θ (from +Y) × `cols` ranges of the map's u.
+    pub rows: u32,
+    pub cols: u32,
+    /// Cosine cells per bin side (integrated without rays).
+    pub cos_grid: u32,
+    /// Visibility rays per bin side.
+    pub rays_per_side: u32,
+    /// Rays cast in all.
+    pub rays: u64,
+    pub seconds: f64,
+}
+
 /// Wall-clock time of one precompute stage.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -226,6 +289,12 @@ pub struct Manifest {
     pub form_factors: FormFactorInfo,
     pub subsurface: SubsurfaceInfo,
     pub stages: Vec<StageTime>,
+    /// The transfer matrix, when the bundle was precomputed with `--inverse`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transfer: Option<TransferInfo>,
+    /// The environment visibility, unless precomputed with `--env-bins 0`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<EnvironmentInfo>,
     /// Every array file, by array name (see [`arrays`]).
     pub arrays: BTreeMap<String, ArrayEntry>,
 }
@@ -238,6 +307,44 @@ pub fn checksum(bytes: &[u8]) -> String {
 // ---------------------------------------------------------------------------------------------
 // The verifying, memory-mapping loader.
 // ---------------------------------------------------------------------------------------------
+
+/// The environment visibility `[N, rows, cols]` as IEEE half-float bits (verified at open:
+/// finite and ≥ 0); patch i's `rows · cols` bins are [`EnvVisibilityView::row`].
+#[derive(Debug, Clone, Copy)]
+pub struct EnvVisibilityView<'a> {
+    pub rows: u32,
+    pub cols: u32,
+    pub bits: &'a [u16],
+}
+
+impl<'a> EnvVisibilityView<'a> {
+    /// Bins per patch.
+    pub fn bins(&self) -> usize {
+        self.rows as usize * self.cols as usize
+    }
+
+    /// Patch i's visibility per bin (half-float bits).
+    pub fn row(&self, i: usize) -> &'a [u16] {
+        let k = self.bins();
+        &self.bits[k * i..k * (i + 1)]
+    }
+}
+
+/// The stored transfer matrix R = T − S (see the layout above): `bits` holds IEEE half
+/// floats `[N, N, 3]` as raw bits, `scale` the per-row, per-channel factors.
+#[derive(Debug, Clone, Copy)]
+pub struct TransferView<'a> {
+    pub n: usize,
+    pub bits: &'a [u16],
+    pub scale: &'a [[f32; 3]],
+}
+
+impl<'a> TransferView<'a> {
+    /// Row j: 3N half-float bits (column k, channel c at 3k + c).
+    pub fn row(&self, j: usize) -> &'a [u16] {
+        &self.bits[3 * self.n * j..3 * self.n * (j + 1)]
+    }
+}
 
 // Array files are raw little-endian and cast in place: a big-endian build would read garbage.
 #[cfg(target_endian = "big")]
@@ -721,6 +828,53 @@ impl Bundle {
         };
         let n_patches = to_usize(counts.patches, MANIFEST_FILE, "patch_count")?;
 
+        // The transfer matrix: both arrays, with these shapes, when the manifest says so.
+        if manifest.transfer.is_some() {
+            let n = counts.patches;
+            for (name, dtype, shape) in [
+                (arrays::TRANSFER, DType::F16, vec![n, n, 3]),
+                (arrays::TRANSFER_SCALE, DType::F32, vec![n, 3]),
+            ] {
+                let file = array_file_name(name, dtype);
+                let entry = manifest
+                    .arrays
+                    .get(name)
+                    .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+                if entry.dtype != dtype || entry.shape != shape {
+                    return Err(invalid(
+                        &file,
+                        format!(
+                            "manifest lists {} {:?}, expected {} {shape:?} (N = patch_count)",
+                            entry.dtype.name(),
+                            entry.shape,
+                            dtype.name()
+                        ),
+                    ));
+                }
+            }
+        }
+
+        // The environment visibility: listed with its shape when the manifest says so.
+        if let Some(env) = &manifest.environment {
+            let file = array_file_name(arrays::ENV_VISIBILITY, DType::F16);
+            let shape = vec![counts.patches, u64::from(env.rows), u64::from(env.cols)];
+            let entry = manifest
+                .arrays
+                .get(arrays::ENV_VISIBILITY)
+                .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+            if env.rows == 0 || env.cols == 0 || entry.dtype != DType::F16 || entry.shape != shape {
+                return Err(invalid(
+                    &file,
+                    format!(
+                        "manifest lists {} {:?}, expected f16 {shape:?} (N = patch_count, \
+                         environment.rows and .cols >= 1)",
+                        entry.dtype.name(),
+                        entry.shape,
+                    ),
+                ));
+            }
+        }
+
         // The required arrays: listed, with the right dtype and shape.
         for &(name, dtype) in REQUIRED_ARRAYS {
             let file = array_file_name(name, dtype);
@@ -970,7 +1124,71 @@ impl Bundle {
                 format!("patch {k} names medium {m}; there are at most {limit}"),
             ));
         }
+        // Environment visibility: finite half floats >= 0 (no sign bit unless zero).
+        if let Some(v) = self.environment_visibility()
+            && let Some(k) = v
+                .bits
+                .iter()
+                .position(|&b| b & 0x7c00 == 0x7c00 || (b & 0x8000 != 0 && b != 0x8000))
+        {
+            return Err(invalid(
+                array_file_name(arrays::ENV_VISIBILITY, DType::F16),
+                format!(
+                    "element {k} (patch {}, bin {}) is not a finite number >= 0",
+                    k / v.bins().max(1),
+                    k % v.bins().max(1)
+                ),
+            ));
+        }
+        // The transfer matrix: finite half floats (exponent bits not all ones), scales
+        // finite and ≥ 0.
+        if let Some(t) = self.transfer() {
+            if let Some(k) = t.bits.iter().position(|&b| b & 0x7c00 == 0x7c00) {
+                return Err(invalid(
+                    array_file_name(arrays::TRANSFER, DType::F16),
+                    format!(
+                        "element {k} (row {}, column {}, channel {}) is not a finite number",
+                        k / (3 * n.max(1)),
+                        (k / 3) % n.max(1),
+                        k % 3
+                    ),
+                ));
+            }
+            if let Some(k) = t
+                .scale
+                .iter()
+                .flatten()
+                .position(|v| !(v.is_finite() && *v >= 0.0))
+            {
+                return Err(invalid(
+                    array_file_name(arrays::TRANSFER_SCALE, DType::F32),
+                    format!("element {k} is not finite and >= 0"),
+                ));
+            }
+        }
         Ok(())
+    }
+
+    /// The environment visibility, when the bundle holds it (see [`EnvVisibilityView`]).
+    pub fn environment_visibility(&self) -> Option<EnvVisibilityView<'_>> {
+        let env = self.manifest.environment.as_ref()?;
+        Some(EnvVisibilityView {
+            rows: env.rows,
+            cols: env.cols,
+            bits: bytemuck::try_cast_slice(self.bytes_of(arrays::ENV_VISIBILITY, DType::F16))
+                .unwrap_or(&[]),
+        })
+    }
+
+    /// The transfer matrix, when the bundle holds one (see [`TransferView`]).
+    pub fn transfer(&self) -> Option<TransferView<'_>> {
+        self.manifest.transfer.as_ref()?;
+        Some(TransferView {
+            n: self.n_patches,
+            bits: bytemuck::try_cast_slice(self.bytes_of(arrays::TRANSFER, DType::F16))
+                .unwrap_or(&[]),
+            scale: bytemuck::try_cast_slice(self.f32s(arrays::TRANSFER_SCALE)).unwrap_or(&[]),
+        })
     }
 
     /// The bundle folder it was opened from.
@@ -1179,6 +1397,8 @@ mod tests {
                 ..Default::default()
             },
             stages: vec![],
+            transfer: None,
+            environment: None,
             arrays: BTreeMap::new(),
         };
         let (a, b, c, d) = (
@@ -1608,7 +1828,9 @@ mod tests {
         m.version = 7;
         assert_eq!(
             open_err(m, &a),
-            "manifest.json: bundle version 7 is not supported (this build reads version 3)"
+            format!(
+                "manifest.json: bundle version 7 is not supported (this build reads version {FORMAT_VERSION})"
+            )
         );
     }
 }

@@ -86,7 +86,17 @@ pub struct ObjectDesc {
     /// (degrees); sharper edges stay creased. Default 40.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crease_deg: Option<f32>,
+    /// Simplify the mesh toward this many triangles before it is split into patches
+    /// (quadric edge collapse; open borders stay in place). For scanned meshes whose
+    /// triangle count alone would exceed the patch budget: every source triangle becomes at
+    /// least one patch. Ignored when the mesh already has no more triangles.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub simplify_to: Option<u64>,
 }
+
+/// Bounds of [`ObjectDesc::simplify_to`].
+pub const MIN_SIMPLIFY_TO: u64 = 4;
+pub const MAX_SIMPLIFY_TO: u64 = 10_000_000;
 
 /// Where an object's triangles come from.
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -391,6 +401,25 @@ impl SceneFile {
             }
             if let Some(c) = o.crease_deg {
                 check_range(&format!("{at}.crease_deg"), c, 0.0, 180.0)?;
+            }
+            if let Some(n) = o.simplify_to {
+                if !(MIN_SIMPLIFY_TO..=MAX_SIMPLIFY_TO).contains(&n) {
+                    return Err(FieldError::new(
+                        format!("{at}.simplify_to"),
+                        format!("must be in [{MIN_SIMPLIFY_TO}, {MAX_SIMPLIFY_TO}] triangles"),
+                    ));
+                }
+                if let Material::Heterogeneous {
+                    pattern: Pattern::ByObjMaterial { .. },
+                    ..
+                } = o.material
+                {
+                    return Err(FieldError::new(
+                        format!("{at}.simplify_to"),
+                        "cannot simplify a mesh whose media follow its `usemtl` groups \
+                         (by_obj_material): collapsed faces would lose their group",
+                    ));
+                }
             }
         }
         for (i, l) in self.lights.iter().enumerate() {

@@ -13,7 +13,7 @@ use std::future::Future;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
@@ -22,7 +22,8 @@ use translux_precompute::scene::load_scene;
 use translux_proto::api::ToneMap;
 use translux_proto::bundle::Bundle;
 
-use crate::state::load_bundles;
+use crate::config::{FileConfig, ServerParams};
+use crate::state::{AppState, discover};
 
 /// Where `--demo` keeps its bundles when `--bundles` is not given.
 pub const DEMO_DIR: &str = "demo-bundles";
@@ -42,8 +43,12 @@ pub const DEMO_PATCHES: u64 = 3000;
     subcommand_negates_reqs = true,
     args_conflicts_with_subcommands = true,
     after_help = "Examples:\n  translux-server --demo\n  translux-server --bundles bundles --addr 0.0.0.0:8080\n  \
+                  translux-server --config translux.toml --workers 4\n  \
                   translux-server render --bundle demo-bundles/cornell --out cornell.png\n  \
                   translux-server export --bundle demo-bundles/cornell --request req.json --out cornell.glb\n\n\
+                  Settings: flags, then TRANSLUX_* environment variables, then the --config TOML \
+                  file (keys: bundles, addr, demo, workers, queue, max_batch, deadline_ms), then \
+                  the defaults.\n\
                   Logging: RUST_LOG (default info); RUST_LOG=debug logs every request."
 )]
 pub struct Args {
@@ -52,24 +57,104 @@ pub struct Args {
         long,
         value_name = "DIR",
         env = "TRANSLUX_BUNDLES",
-        required_unless_present = "demo"
+        required_unless_present_any = ["demo", "config"]
     )]
     pub bundles: Option<PathBuf>,
-    /// Address to listen on.
-    #[arg(
-        long,
-        value_name = "HOST:PORT",
-        env = "TRANSLUX_ADDR",
-        default_value = "127.0.0.1:8080"
-    )]
-    pub addr: String,
+    /// Address to listen on [default: 127.0.0.1:8080].
+    #[arg(long, value_name = "HOST:PORT", env = "TRANSLUX_ADDR")]
+    pub addr: Option<String>,
     /// Precompute the built-in Cornell box into DIR/cornell (DIR: --bundles, else
     /// ./demo-bundles) unless a valid bundle is already there, then serve DIR.
     #[arg(long)]
     pub demo: bool,
+    /// A TOML file with any of: bundles, addr, demo, workers, queue, max_batch, deadline_ms.
+    #[arg(long, value_name = "FILE", env = "TRANSLUX_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Relight worker threads [default: one per core].
+    #[arg(long, value_name = "N", env = "TRANSLUX_WORKERS")]
+    pub workers: Option<usize>,
+    /// Relights that may wait; one more is answered 429 [default: 256].
+    #[arg(long, value_name = "N", env = "TRANSLUX_QUEUE")]
+    pub queue: Option<usize>,
+    /// Most relights of one scene computed together [default: 32].
+    #[arg(long, value_name = "N", env = "TRANSLUX_MAX_BATCH")]
+    pub max_batch: Option<usize>,
+    /// Compute every relight on its own (the same as --max-batch 1).
+    #[arg(long, env = "TRANSLUX_NO_BATCH", conflicts_with = "max_batch")]
+    pub no_batch: bool,
+    /// How long a relight may wait in the queue before it is answered 503 [default: 30000].
+    #[arg(long, value_name = "MS", env = "TRANSLUX_DEADLINE_MS")]
+    pub deadline_ms: Option<u64>,
+    /// Compute backend: auto (a hardware GPU if wgpu finds one, else the CPU), gpu (any
+    /// adapter, a software one too; none is a start-up error) or cpu.
+    #[arg(long, value_enum, env = "TRANSLUX_BACKEND", default_value_t = crate::backend::BackendChoice::Auto)]
+    pub backend: crate::backend::BackendChoice,
+    /// Access control, uploads and jobs, the memory budget ([`crate::team`]).
+    #[command(flatten)]
+    pub team: crate::team::TeamArgs,
     /// An offline command instead of the server.
     #[command(subcommand)]
     pub command: Option<Command>,
+}
+
+/// The server's settings after flags, environment, config file and defaults.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    pub bundles: PathBuf,
+    pub addr: String,
+    pub demo: bool,
+    pub params: ServerParams,
+}
+
+/// The address when nothing sets one.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
+
+impl Args {
+    /// Merges the flags (and environment) over the config file over the defaults.
+    pub fn settings(&self) -> anyhow::Result<Settings> {
+        let file = match &self.config {
+            Some(path) => FileConfig::read(path)?,
+            None => FileConfig::default(),
+        };
+        let demo = self.demo || file.demo.unwrap_or(false);
+        let bundles = match (self.bundles.clone().or(file.bundles), demo) {
+            (Some(dir), _) => dir,
+            (None, true) => PathBuf::from(DEMO_DIR),
+            (None, false) => bail!(
+                "no bundles folder: give --bundles DIR, TRANSLUX_BUNDLES, `bundles` in the \
+                 config file, or --demo"
+            ),
+        };
+        let defaults = ServerParams::default();
+        let max_batch = if self.no_batch {
+            1
+        } else {
+            self.max_batch
+                .or(file.max_batch)
+                .unwrap_or(defaults.max_batch)
+        };
+        let params = ServerParams {
+            workers: self.workers.or(file.workers).unwrap_or(defaults.workers),
+            queue: self.queue.or(file.queue).unwrap_or(defaults.queue),
+            max_batch,
+            deadline: self
+                .deadline_ms
+                .or(file.deadline_ms)
+                .map_or(defaults.deadline, Duration::from_millis),
+            ..defaults
+        };
+        params.validate()?;
+        Ok(Settings {
+            bundles,
+            addr: self
+                .addr
+                .clone()
+                .or(file.addr)
+                .unwrap_or_else(|| DEFAULT_ADDR.to_string()),
+            demo,
+            params,
+        })
+    }
 }
 
 /// The offline commands: one bundle, one request, one file out, no HTTP.
@@ -81,6 +166,9 @@ pub enum Command {
     Export(ExportArgs),
     /// Relight a bundle and write the per-vertex radiance B/pi (.f32 or .json).
     Relight(RelightArgs),
+    /// Make or hash access tokens for the tokens file (--tokens).
+    #[command(subcommand)]
+    Token(crate::auth::TokenCommand),
 }
 
 /// `translux-server render`.
@@ -157,6 +245,15 @@ pub struct RelightArgs {
 pub fn main() -> ExitCode {
     let args = Args::parse();
     init_tracing();
+    if let Some(Command::Token(t)) = &args.command {
+        return match crate::auth::token_command(t, &mut std::io::stdout()) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                tracing::error!("{e:#}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     if let Some(command) = &args.command {
         return match crate::offline::run(command) {
             Ok(()) => ExitCode::SUCCESS,
@@ -197,8 +294,9 @@ pub fn init_tracing() {
         .try_init();
 }
 
-/// Prepares the demo bundle if asked, opens the bundles, listens on `args.addr` and serves
-/// until `shutdown` completes.
+/// Listens on the configured address at once and serves until `shutdown` completes; the
+/// bundles load in the background meanwhile (each scene answers 503 until it is ready), the
+/// demo bundle first precomputed if asked and missing.
 pub async fn run(
     args: Args,
     shutdown: impl Future<Output = ()> + Send + 'static,
@@ -206,56 +304,69 @@ pub async fn run(
     if args.command.is_some() {
         bail!("an offline command runs with crate::offline::run, not as a server");
     }
-    let dir = match (&args.bundles, args.demo) {
-        (Some(dir), _) => dir.clone(),
-        (None, true) => PathBuf::from(DEMO_DIR),
-        (None, false) => bail!("--bundles DIR is required (or --demo)"),
-    };
-    if args.demo {
-        let demo_dir = dir.clone();
-        tokio::task::spawn_blocking(move || ensure_demo_bundle(&demo_dir))
-            .await
-            .context("the demo precompute task failed")??;
+    let settings = args.settings()?;
+    let dir = settings.bundles.clone();
+    if settings.demo {
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create the demo folder {}", dir.display()))?;
     }
     if !dir.is_dir() {
         bail!("--bundles {}: no such folder", dir.display());
     }
+    let (mut bundles, errors) =
+        discover(&dir).map_err(|e| anyhow::anyhow!("--bundles {}: {e}", dir.display()))?;
+    // The backend, once for the process; `gpu` without an adapter stops here.
+    let backend = crate::backend::Backend::start(args.backend)
+        .map_err(|e| anyhow::anyhow!("--backend gpu: {e}"))?;
+    tracing::info!("{}", backend.describe());
+    let mut params = settings.params.clone();
+    params.backend = backend.name().to_string();
+    let _ = crate::backend::install(backend);
+    let state = AppState::with_params(params);
+    let team = crate::team::Team::start(&args.team, &dir, state.clone())?;
+    for (id, error) in errors {
+        tracing::warn!("skipping {id:?} in {}: {error}", dir.display());
+        state.set_failed(id, error);
+    }
+    if settings.demo && !bundles.iter().any(|(id, _)| id == DEMO_ID) {
+        bundles.push((DEMO_ID.to_string(), dir.join(DEMO_ID)));
+    }
+    if bundles.is_empty() {
+        tracing::warn!("no bundle under {}; serving no scenes", dir.display());
+    }
+    let demo_dir = settings.demo.then(|| dir.clone());
+    state.load_in_background(bundles, move |state| {
+        if let Some(dir) = demo_dir
+            && let Err(e) = ensure_demo_bundle(&dir)
+        {
+            tracing::error!("{e:#}");
+            state.set_failed(DEMO_ID, format!("{e:#}"));
+        }
+    });
 
-    let loading = dir.clone();
-    let (state, errors) = tokio::task::spawn_blocking(move || load_bundles(&loading))
+    let listener = tokio::net::TcpListener::bind(&settings.addr)
         .await
-        .context("the bundle loading task failed")?;
-    for (id, error) in &errors {
-        tracing::warn!("skipping bundle {id:?} in {}: {error}", dir.display());
-    }
-    for scene in state.scenes() {
-        let m = scene.bundle.manifest();
-        tracing::info!(
-            "serving {:?} ({}, from {}): {} patches, {} vertices, {} objects, nnz(F) {}, {:.1} MB",
-            scene.id,
-            m.name,
-            m.source,
-            m.patch_count,
-            m.vertex_count,
-            m.objects.len(),
-            m.form_factors.nnz,
-            scene.bundle.total_bytes() as f64 / 1e6
-        );
-    }
-    if state.is_empty() {
-        tracing::warn!("no valid bundle under {}; serving no scenes", dir.display());
-    }
-
-    let listener = tokio::net::TcpListener::bind(&args.addr)
-        .await
-        .with_context(|| format!("cannot listen on {}", args.addr))?;
+        .with_context(|| format!("cannot listen on {}", settings.addr))?;
     let local = listener
         .local_addr()
         .context("cannot read the listening address")?;
-    tracing::info!("listening on http://{local}/ (Ctrl-C to stop)");
-    crate::serve(listener, state, shutdown)
+    crate::auth::check_bind(&local, &team.auth)?;
+    tracing::info!("{}", team.describe());
+    let p = &settings.params;
+    tracing::info!(
+        "listening on http://{local}/ (Ctrl-C to stop); {} workers, queue {}, max batch {}, \
+         deadline {} ms",
+        p.workers,
+        p.queue,
+        p.max_batch,
+        p.deadline.as_millis()
+    );
+    let jobs = team.jobs.clone();
+    let app = crate::team::app(state.clone(), team);
+    crate::serve_router(listener, state, app, shutdown)
         .await
         .context("the server failed")?;
+    jobs.close();
     tracing::info!("stopped");
     Ok(())
 }
@@ -326,7 +437,7 @@ pub async fn shutdown_signal() {
         _ = ctrl_c => {},
         _ = terminate => {},
     }
-    tracing::info!("shutting down: finishing requests in flight");
+    tracing::info!("shutting down: finishing the requests accepted, then stopping");
 }
 
 #[cfg(test)]
@@ -337,7 +448,12 @@ mod tests {
     fn arguments() {
         let a = Args::try_parse_from(["translux-server", "--demo"]).unwrap();
         assert!(a.demo && a.bundles.is_none());
-        assert_eq!(a.addr, "127.0.0.1:8080");
+        if std::env::vars().all(|(k, _)| !k.starts_with("TRANSLUX_")) {
+            let s = a.settings().unwrap();
+            assert_eq!(s.addr, "127.0.0.1:8080");
+            assert_eq!(s.bundles, PathBuf::from(DEMO_DIR));
+            assert_eq!(s.params, ServerParams::default());
+        }
         let a = Args::try_parse_from([
             "translux-server",
             "--bundles",
@@ -347,13 +463,87 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(a.bundles, Some(PathBuf::from("b")));
-        assert_eq!(a.addr, "0.0.0.0:9000");
+        assert_eq!(a.addr.as_deref(), Some("0.0.0.0:9000"));
         assert!(Args::try_parse_from(["translux-server", "--demo", "--bundles", "x"]).is_ok());
         // Without --bundles or --demo (and no TRANSLUX_BUNDLES in the environment): refused.
         if std::env::var_os("TRANSLUX_BUNDLES").is_none() {
             assert!(Args::try_parse_from(["translux-server"]).is_err());
         }
         assert!(a.command.is_none());
+    }
+
+    #[test]
+    fn flags_override_the_config_file_which_overrides_the_defaults() {
+        if std::env::vars().any(|(k, _)| k.starts_with("TRANSLUX_")) {
+            return; // the environment would take part
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("t.toml");
+        std::fs::write(
+            &file,
+            "bundles = \"bb\"\naddr = \"0.0.0.0:1\"\nworkers = 3\nqueue = 5\nmax_batch = 4\n\
+             deadline_ms = 700\n",
+        )
+        .unwrap();
+        let cfg = file.to_str().unwrap();
+        let s = Args::try_parse_from(["translux-server", "--config", cfg])
+            .unwrap()
+            .settings()
+            .unwrap();
+        assert_eq!(s.bundles, dir.path().join("bb"));
+        assert_eq!(s.addr, "0.0.0.0:1");
+        assert_eq!(
+            (s.params.workers, s.params.queue, s.params.max_batch),
+            (3, 5, 4)
+        );
+        assert_eq!(s.params.deadline, Duration::from_millis(700));
+        let s = Args::try_parse_from([
+            "translux-server",
+            "--config",
+            cfg,
+            "--workers",
+            "1",
+            "--no-batch",
+            "--addr",
+            "127.0.0.1:0",
+            "--bundles",
+            "other",
+        ])
+        .unwrap()
+        .settings()
+        .unwrap();
+        assert_eq!(
+            (s.params.workers, s.params.queue, s.params.max_batch),
+            (1, 5, 1)
+        );
+        assert_eq!(
+            (s.addr.as_str(), s.bundles),
+            ("127.0.0.1:0", PathBuf::from("other"))
+        );
+        // Bad values name the setting; --no-batch and --max-batch conflict.
+        let e = Args::try_parse_from(["translux-server", "--bundles", "b", "--workers", "0"])
+            .unwrap()
+            .settings()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("workers"), "{e}");
+        assert!(
+            Args::try_parse_from([
+                "translux-server",
+                "--demo",
+                "--no-batch",
+                "--max-batch",
+                "2"
+            ])
+            .is_err()
+        );
+        std::fs::write(&file, "queue = -1").unwrap();
+        let e = Args::try_parse_from(["translux-server", "--config", cfg])
+            .unwrap()
+            .settings()
+            .unwrap_err();
+        let e = format!("{e:#}");
+        assert!(e.contains("t.toml") && e.contains("queue"), "{e}");
     }
 
     #[test]

@@ -2,7 +2,8 @@
 //! `{"error":{"code":"...","message":"..."}}` with a 4xx/5xx status.
 
 use axum::Json;
-use axum::http::StatusCode;
+use axum::http::header::RETRY_AFTER;
+use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use translux_proto::api::{ErrorBody, ErrorDetail};
 
@@ -12,6 +13,8 @@ pub struct AppError {
     pub status: StatusCode,
     pub code: &'static str,
     pub message: String,
+    /// Seconds for a `Retry-After` header (429 queue full, 503 loading or overloaded).
+    pub retry_after: Option<u64>,
 }
 
 impl AppError {
@@ -20,7 +23,40 @@ impl AppError {
             status,
             code,
             message: message.into(),
+            retry_after: None,
         }
+    }
+
+    /// The same error with a `Retry-After: secs` header (at least 1).
+    pub fn with_retry_after(mut self, secs: u64) -> Self {
+        self.retry_after = Some(secs.max(1));
+        self
+    }
+
+    /// 429: the relight queue is full.
+    pub fn queue_full(message: impl Into<String>, retry_after: u64) -> Self {
+        Self::new(StatusCode::TOO_MANY_REQUESTS, "queue_full", message)
+            .with_retry_after(retry_after)
+    }
+
+    /// 503: the scene is still loading.
+    pub fn loading(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::SERVICE_UNAVAILABLE, "loading", message).with_retry_after(1)
+    }
+
+    /// 503: the request waited in the queue past its deadline and was not computed.
+    pub fn deadline_exceeded(message: impl Into<String>, retry_after: u64) -> Self {
+        Self::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "deadline_exceeded",
+            message,
+        )
+        .with_retry_after(retry_after)
+    }
+
+    /// 503: the server is shutting down and takes no new work.
+    pub fn shutting_down(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::SERVICE_UNAVAILABLE, "shutting_down", message)
     }
 
     /// 404: unknown scene id or route.
@@ -103,12 +139,19 @@ impl IntoResponse for AppError {
                 self.message
             );
         }
+        let retry_after = self.retry_after;
         let body = ErrorBody {
             error: ErrorDetail {
                 code: self.code.to_string(),
                 message: self.message,
             },
         };
-        (self.status, Json(body)).into_response()
+        let mut response = (self.status, Json(body)).into_response();
+        if let Some(secs) = retry_after {
+            response
+                .headers_mut()
+                .insert(RETRY_AFTER, HeaderValue::from(secs));
+        }
+        response
     }
 }

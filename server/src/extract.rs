@@ -1,7 +1,9 @@
 //! Request plumbing: the strict JSON body extractor and `Accept` negotiation.
 
 use axum::body::Bytes;
-use axum::extract::{FromRequest, FromRequestParts, Path, Request};
+use std::net::SocketAddr;
+
+use axum::extract::{ConnectInfo, FromRequest, FromRequestParts, Path, Request};
 use axum::http::header::{ACCEPT, CONTENT_TYPE};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue};
@@ -86,6 +88,51 @@ where
                 e.body_text()
             ))),
         }
+    }
+}
+
+/// Who a request is from, for the worker pool's fair order: the `X-Client-Id` header
+/// (trimmed, at most [`MAX_CLIENT_ID`] bytes kept) when a client sends one, so one user's
+/// scripts count as one client across connections; otherwise the connection (peer address
+/// and port); `anonymous` when neither is known (a router driven without a socket).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ClientKey(pub String);
+
+/// Longest `X-Client-Id` kept.
+pub const MAX_CLIENT_ID: usize = 64;
+
+impl<S> FromRequestParts<S> for ClientKey
+where
+    S: Send + Sync,
+{
+    type Rejection = std::convert::Infallible;
+
+    async fn from_request_parts(parts: &mut Parts, _state: &S) -> Result<Self, Self::Rejection> {
+        // With access control on, the token is the client: its queue share cannot be
+        // multiplied by sending many X-Client-Id values.
+        if let Some(who) = parts.extensions.get::<crate::auth::Identity>()
+            && who.role.is_some()
+            && &*who.name != crate::auth::LOCAL_NAME
+        {
+            return Ok(ClientKey(format!("token:{}", who.name)));
+        }
+        if let Some(id) = parts
+            .headers
+            .get("x-client-id")
+            .and_then(|v| v.to_str().ok())
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+        {
+            let mut end = id.len().min(MAX_CLIENT_ID);
+            while !id.is_char_boundary(end) {
+                end -= 1;
+            }
+            return Ok(ClientKey(format!("id:{}", &id[..end])));
+        }
+        if let Some(ConnectInfo(addr)) = parts.extensions.get::<ConnectInfo<SocketAddr>>() {
+            return Ok(ClientKey(format!("conn:{addr}")));
+        }
+        Ok(ClientKey("anonymous".to_string()))
     }
 }
 

@@ -36,29 +36,66 @@
 //! # }
 //! ```
 
+pub mod auth;
+pub mod backend;
+pub mod budget;
 pub mod cli;
+pub mod config;
+pub mod environment;
 pub mod error;
 pub mod extract;
+pub mod gpu;
+pub mod jobs;
+pub mod metrics;
 pub mod offline;
 pub mod picture;
+pub mod pool;
 pub mod relight;
 pub mod routes;
 pub mod state;
+pub mod team;
+pub mod upload;
+pub mod ws;
 
 use std::future::Future;
 
+pub use config::ServerParams;
 pub use error::AppError;
 pub use routes::router;
-pub use state::{AppState, Scene, load_bundles};
+pub use state::{AppState, Scene, SceneState, load_bundles, load_bundles_with};
 
-/// Serves the API for `state` on `listener` until `shutdown` completes, then lets requests in
-/// flight finish (graceful shutdown).
+/// Serves the API for `state` on `listener` until `shutdown` completes, then shuts down
+/// gracefully: stops accepting connections, lets every request in flight finish (their
+/// queued relights are computed), closes WebSocket streams once their work is done (1001),
+/// and stops the worker pool after it has answered every job it accepted.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    axum::serve(listener, router(state))
-        .with_graceful_shutdown(shutdown)
-        .await
+    let app = router(state.clone());
+    serve_router(listener, state, app, shutdown).await
+}
+
+/// [`serve`] with a router built on `state` by the caller (the team routes of
+/// [`team::app`] around [`router`]).
+pub async fn serve_router(
+    listener: tokio::net::TcpListener,
+    state: AppState,
+    app: axum::Router,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let signal_state = state.clone();
+    let result = axum::serve(
+        listener,
+        app.into_make_service_with_connect_info::<std::net::SocketAddr>(),
+    )
+    .with_graceful_shutdown(async move {
+        shutdown.await;
+        signal_state.begin_shutdown();
+    })
+    .await;
+    let pool = state.pool().clone();
+    let _ = tokio::task::spawn_blocking(move || pool.join()).await;
+    result
 }

@@ -31,6 +31,7 @@ pub fn run(command: &Command) -> anyhow::Result<()> {
         Command::Render(a) => render(a),
         Command::Export(a) => export(a),
         Command::Relight(a) => relight_command(a),
+        Command::Token(t) => crate::auth::token_command(t, &mut std::io::stdout()),
     }
 }
 

@@ -4,17 +4,20 @@
 //! [`run`] does the work (direct light with shadow rays, the diffuse solve, vertex colours)
 //! and belongs on a blocking thread.
 
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use translux_precompute::inverse;
 use translux_precompute::radiosity::{
-    PatchGeometry, Rgb, SolveParams, SparseScatter, direct_irradiance, solve, vertex_radiance,
+    Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
 };
+use translux_precompute::solver::{solve_system, spmv_multi};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
 use crate::error::AppError;
-use crate::state::Scene;
+use crate::state::{OverrideMaterials, Scene};
 
 /// Most lights one request may carry (each costs a shadow ray per patch).
 pub const MAX_LIGHTS: usize = 256;
@@ -27,6 +30,9 @@ pub struct RelightPlan {
     pub solver: Solver,
     /// Objects whose material the request replaces (index into the manifest's objects).
     pub overrides: Vec<(usize, Material)>,
+    /// Relative residual the iterative solver stops at ([`solve_params`]'s 0.5% from
+    /// [`plan`]; tests tighten it). Plans batch together only with equal tolerances.
+    pub tolerance: f32,
 }
 
 /// Validates `req` for `scene`: 400 `invalid` for out-of-range values (the message names the
@@ -49,23 +55,8 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
                 .map_err(|e| AppError::invalid(e.to_string()))?;
         }
     }
-    for (i, l) in lights.iter().enumerate() {
-        if !matches!(
-            l,
-            Light::Point { .. } | Light::Spot { .. } | Light::Directional { .. }
-        ) {
-            let whose = if given {
-                ""
-            } else {
-                " (one of the scene's default lights)"
-            };
-            return Err(AppError::unsupported(format!(
-                "lights[{i}]{whose}: {} lights are not supported yet; this build evaluates \
-                 point, spot and directional lights",
-                l.kind()
-            )));
-        }
-    }
+    // Environment lights: the bundle's visibility and a readable map (cached for `run`).
+    crate::environment::check(scene, &lights, given)?;
 
     // Material overrides: checked here, applied in `run` by rebuilding S from the bundle's
     // stored optical distances (no geometry work).
@@ -136,22 +127,31 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         overrides.push((k, material.clone()));
     }
 
-    match req.components {
-        Components::Full | Components::Direct => {}
-        other => {
+    // The transfer matrix holds (I − S F)⁻¹ S for the bundle's own S: it serves `full`
+    // (the only component it represents) while the overrides leave S alone.
+    if req.solver == Solver::Inverse {
+        if scene.bundle.transfer().is_none() {
             return Err(AppError::unsupported(format!(
-                "components {:?} is not supported yet; this build supports \"full\" and \"direct\"",
-                other.as_str()
+                "solver \"inverse\": scene {:?} was precomputed without the transfer matrix T; \
+                 precompute it with `translux-precompute ... --inverse`, or use \"auto\" or \
+                 \"iterative\"",
+                scene.id
             )));
         }
-    }
-    match req.solver {
-        Solver::Auto | Solver::Iterative => {}
-        Solver::Inverse => {
-            return Err(AppError::unsupported(
-                "solver \"inverse\" is not supported yet (bundles hold no transfer matrix T); \
-                 use \"auto\" or \"iterative\"",
-            ));
+        if let Some(why) = transfer_stale(scene, &overrides) {
+            return Err(AppError::unsupported(format!(
+                "solver \"inverse\": {why}; use \"auto\" or \"iterative\""
+            )));
+        }
+        if !matches!(
+            req.components,
+            Components::Full | Components::Direct | Components::SubsurfaceOnly
+        ) {
+            return Err(AppError::unsupported(format!(
+                "solver \"inverse\": T = (I - S F)^-1 S gives the \"full\" transport; components \
+                 {:?} need the iterative solver (use \"auto\" or \"iterative\")",
+                req.components.as_str()
+            )));
         }
     }
     Ok(RelightPlan {
@@ -159,6 +159,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         components: req.components,
         solver: req.solver,
         overrides,
+        tolerance: solve_params().tolerance,
     })
 }
 
@@ -170,89 +171,438 @@ pub struct RelightOutput {
     pub stats: RelightStats,
 }
 
-/// The solver settings a relight uses (the paper's 0.5% residual).
+/// The solver settings a relight uses (BiCGSTAB to the paper's 0.5% residual).
 pub fn solve_params() -> SolveParams {
     SolveParams::default()
 }
 
-/// Runs a plan: E from the lights (shadowed), then B = Bₑ + S(E + F B) (`full`, S from the
-/// bundle: subsurface scattering in translucent objects, ρ on the diagonal of opaque ones)
-/// or B = Bₑ + ρE (`direct`: one local diffuse bounce, translucent patches at their profile's
-/// total diffuse reflectance), then B/π per vertex. CPU-heavy: call it off the async runtime.
+/// Why the bundle's T does not hold for these overrides, or `None` when it does: T depends
+/// on S (translucency and albedo), not on what emitters emit.
+pub fn transfer_stale(scene: &Scene, overrides: &[(usize, Material)]) -> Option<String> {
+    let objects = &scene.bundle.manifest().objects;
+    overrides.iter().find_map(|(k, m)| {
+        let built = &objects[*k].material;
+        let emitter_only =
+            matches!(m, Material::Emitter { .. }) && matches!(built, Material::Emitter { .. });
+        (!emitter_only).then(|| {
+            format!(
+                "materials.{} changes S (T was precomputed for the bundle's materials; only an \
+                 emitter's radiance can change without making T stale)",
+                objects[*k].name
+            )
+        })
+    })
+}
+
+/// The last solutions per scene, so a relight that differs a little from the previous one
+/// (a light moved) starts from it. Keyed by materials and components; the few most recent.
+#[derive(Debug, Default)]
+pub struct WarmCache(Mutex<Vec<(String, Arc<Vec<f32>>)>>);
+
+const WARM_ENTRIES: usize = 8;
+
+impl WarmCache {
+    fn get(&self, key: &str) -> Option<Arc<Vec<f32>>> {
+        let cache = self.0.lock().ok()?;
+        cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
+    }
+
+    fn put(&self, key: String, value: Vec<f32>) {
+        if let Ok(mut cache) = self.0.lock() {
+            cache.retain(|(k, _)| *k != key);
+            if cache.len() >= WARM_ENTRIES {
+                cache.remove(0);
+            }
+            cache.push((key, Arc::new(value)));
+        }
+    }
+}
+
+/// Runs a plan: E from the lights (shadowed), then the transport its components name (see
+/// [`run_batch`]), then B/π per vertex. CPU-heavy: call it off the async runtime.
 pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError> {
-    let t0 = Instant::now();
+    run_batch(scene, std::slice::from_ref(plan))
+        .pop()
+        .unwrap_or_else(|| Err(AppError::internal("run_batch answered nothing")))
+}
+
+/// What one plan needs before the transport: its E, materials and the path it takes.
+struct Prepared {
+    irradiance: Vec<Rgb>,
+    materials: Option<Arc<OverrideMaterials>>,
+    materials_key: String,
+    materials_ms: f64,
+    direct_ms: f64,
+    use_t: bool,
+    note: Option<String>,
+}
+
+/// Runs several plans for one scene (the worker pool batches concurrent relights this way);
+/// answers one result per plan, in order. Each plan fails or succeeds on its own.
+///
+/// Plans with the same materials and components share the transport: with T, one pass over
+/// T for all of their right-hand sides; with the iterative solver, one read of F and S per
+/// iteration for all of their systems ([`translux_precompute::solver`]).
+///
+/// Components (docs/transport.md), with ρ̄ the opaque albedo of each patch (a translucent
+/// patch's profile's total diffuse reflectance) and P = diag ρ̄:
+/// - `full`: B = Bₑ + S(E + F B)
+/// - `direct`: B = Bₑ + P E
+/// - `subsurface_only`: B = Bₑ + S E
+/// - `interreflection_only`: B = Bₑ + P(E + F B)
+/// - `heuristic_a`: B = Bₑ + S E + P F B, i.e. (I − P F)⁻¹(Bₑ + S E)
+/// - `heuristic_b`: B = Bₑ + S E + (I − P F)⁻¹ P F (Bₑ + P E)
+pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, AppError>> {
     let b = &scene.bundle;
     let geo = PatchGeometry {
         centroid: &scene.centroids,
         normal: &scene.normals,
     };
-    let irradiance = direct_irradiance(geo, &scene.occluder, &plan.lights, b.manifest().unit_mm)
-        .map_err(|e| AppError::unsupported(e.to_string()))?;
-    let direct_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let n = b.patch_areas().len();
+    // Per plan: E and materials.
+    let mut out: Vec<Option<Result<RelightOutput, AppError>>> =
+        plans.iter().map(|_| None).collect();
+    let mut prepared: Vec<Option<Prepared>> = Vec::with_capacity(plans.len());
+    for (idx, plan) in plans.iter().enumerate() {
+        let t0 = Instant::now();
+        let irradiance = match crate::environment::direct_irradiance(scene, geo, &plan.lights) {
+            Ok(e) => e,
+            Err(e) => {
+                out[idx] = Some(Err(e));
+                prepared.push(None);
+                continue;
+            }
+        };
+        let direct_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let tm = Instant::now();
+        let (materials, rebuilt) = match scene.materials_for(&plan.overrides) {
+            Ok(Some((m, rebuilt))) => (Some(m), rebuilt),
+            Ok(None) => (None, false),
+            Err(e) => {
+                out[idx] = Some(Err(e));
+                prepared.push(None);
+                continue;
+            }
+        };
+        let materials_ms = if rebuilt {
+            tm.elapsed().as_secs_f64() * 1e3
+        } else {
+            0.0
+        };
+        let has_t = b.transfer().is_some();
+        let stale = transfer_stale(scene, &plan.overrides);
+        let solves = !matches!(
+            plan.components,
+            Components::Direct | Components::SubsurfaceOnly
+        );
+        let use_t = solves
+            && plan.components == Components::Full
+            && has_t
+            && stale.is_none()
+            && plan.solver != Solver::Iterative;
+        let note = match (solves, plan.solver, has_t, &stale) {
+            (false, _, _, _) => None,
+            (true, Solver::Auto, true, Some(why)) => Some(format!("iterative: {why}")),
+            (true, Solver::Auto, true, None) if plan.components != Components::Full => {
+                Some(format!(
+                    "iterative: T holds the full transport, not {}",
+                    plan.components.as_str()
+                ))
+            }
+            (true, Solver::Auto, false, _) => {
+                Some("iterative: the bundle has no transfer matrix T".to_string())
+            }
+            _ => None,
+        };
+        prepared.push(Some(Prepared {
+            irradiance,
+            materials_key: serde_json::to_string(&plan.overrides).unwrap_or_default(),
+            materials,
+            materials_ms,
+            direct_ms,
+            use_t,
+            note,
+        }));
+    }
 
-    // Materials: the bundle's, or rebuilt for the request's overrides.
-    let tm = Instant::now();
-    let (overridden, rebuilt) = match scene.materials_for(&plan.overrides)? {
-        Some((m, rebuilt)) => (Some(m), rebuilt),
-        None => (None, false),
-    };
-    let materials_ms = if rebuilt {
-        tm.elapsed().as_secs_f64() * 1e3
-    } else {
-        0.0
-    };
-    let (albedo, emission) = match &overridden {
+    // Groups: same materials, components and path.
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (idx, p) in prepared.iter().enumerate() {
+        let Some(p) = p else { continue };
+        let key = |q: &Prepared, i: usize| {
+            (
+                q.materials_key.clone(),
+                plans[i].components,
+                q.use_t,
+                plans[i].tolerance.to_bits(),
+            )
+        };
+        match groups.iter_mut().find(|g| {
+            let first = g[0];
+            prepared[first]
+                .as_ref()
+                .is_some_and(|q| key(q, first) == key(p, idx))
+        }) {
+            Some(g) => g.push(idx),
+            None => groups.push(vec![idx]),
+        }
+    }
+
+    for group in groups {
+        let t1 = Instant::now();
+        let preps: Vec<&Prepared> = group.iter().filter_map(|&i| prepared[i].as_ref()).collect();
+        let first = preps[0];
+        let plan0 = &plans[group[0]];
+        let params = SolveParams {
+            tolerance: plan0.tolerance,
+            ..solve_params()
+        };
+        let result = transport(scene, plan0.components, &params, first, &preps, n);
+        let solve_ms = t1.elapsed().as_secs_f64() * 1e3;
+        match result {
+            Err(e) => {
+                for &i in &group {
+                    out[i] = Some(Err(e.clone()));
+                }
+            }
+            Ok((radiosity, ts)) => {
+                for (slot, (&i, p)) in group.iter().zip(&preps).enumerate() {
+                    let rad: Vec<Rgb> = (0..n)
+                        .map(|j| {
+                            std::array::from_fn(|c| radiosity[j * 3 * group.len() + 3 * slot + c])
+                        })
+                        .collect();
+                    let radiance = vertex_radiance(
+                        b.triangle_vertices(),
+                        b.patch_areas(),
+                        b.vertex_positions().len(),
+                        &rad,
+                    );
+                    // Finite inputs can still overflow f32 (an intensity near f32::MAX);
+                    // never answer NaN or infinity (JSON has no such numbers).
+                    if let Some(k) = radiance
+                        .iter()
+                        .position(|v| !v.iter().all(|x| x.is_finite()))
+                    {
+                        out[i] = Some(Err(AppError::invalid(format!(
+                            "lights: the result overflows (radiance at vertex {k} is not \
+                             finite); use smaller intensities or irradiances"
+                        ))));
+                        continue;
+                    }
+                    let stats = RelightStats {
+                        solver: ts.solver.to_string(),
+                        components: plans[i].components,
+                        iterations: ts.iterations,
+                        residual: ts.residual,
+                        converged: ts.converged,
+                        ms: p.direct_ms + p.materials_ms + solve_ms,
+                        direct_ms: p.direct_ms,
+                        solve_ms,
+                        materials_ms: p.materials_ms,
+                        lights: plans[i].lights.len(),
+                        products: ts.products,
+                        warm: ts.warm,
+                        batch: group.len(),
+                        note: p.note.clone(),
+                    };
+                    out[i] = Some(Ok(RelightOutput { radiance, stats }));
+                }
+            }
+        }
+    }
+    out.into_iter()
+        .map(|r| r.unwrap_or_else(|| Err(AppError::internal("a relight was not run"))))
+        .collect()
+}
+
+/// What the transport of one group did.
+struct TransportStats {
+    solver: &'static str,
+    iterations: u32,
+    products: u32,
+    residual: f32,
+    converged: bool,
+    warm: bool,
+}
+
+/// The transport for a group of plans with the same materials and components: radiosity
+/// `[patch][k·3]` for the k plans.
+fn transport(
+    scene: &Scene,
+    components: Components,
+    params: &SolveParams,
+    first: &Prepared,
+    preps: &[&Prepared],
+    n: usize,
+) -> Result<(Vec<f32>, TransportStats), AppError> {
+    let b = &scene.bundle;
+    let k = preps.len();
+    let ch = 3 * k;
+    let (albedo, emission) = match &first.materials {
         Some(m) => (m.albedo.as_slice(), m.emission.as_slice()),
         None => (b.patch_albedo(), b.patch_emission()),
     };
-    let t1 = Instant::now();
-    let (radiosity, solver, iterations, residual, converged) = match plan.components {
-        Components::Direct => {
-            let radiosity: Vec<Rgb> = (0..albedo.len())
-                .map(|i| std::array::from_fn(|c| emission[i][c] + albedo[i][c] * irradiance[i][c]))
-                .collect();
-            (radiosity, "none", 0, 0.0, true)
-        }
-        _ => {
-            let f = b.form_factors();
-            let scatter = match &overridden {
-                Some(m) => SparseScatter(m.s_view()),
-                None => SparseScatter(b.subsurface()),
-            };
-            let (radiosity, s) = solve(&f, &scatter, emission, &irradiance, &solve_params(), None)
-                .map_err(|e| AppError::unsupported(e.to_string()))?;
-            (radiosity, "jacobi", s.iterations, s.residual, s.converged)
-        }
+    let s_view = match &first.materials {
+        Some(m) => m.s_view(),
+        None => b.subsurface(),
     };
-    let solve_ms = t1.elapsed().as_secs_f64() * 1e3;
-    let radiance = vertex_radiance(
-        b.triangle_vertices(),
-        b.patch_areas(),
-        b.vertex_positions().len(),
-        &radiosity,
-    );
-    // Finite inputs can still overflow f32 (an intensity near f32::MAX); never answer NaN or
-    // infinity (JSON has no such numbers).
-    if let Some(k) = radiance
-        .iter()
-        .position(|v| !v.iter().all(|x| x.is_finite()))
-    {
-        return Err(AppError::invalid(format!(
-            "lights: the result overflows (radiance at vertex {k} is not finite); use smaller \
-             intensities or irradiances"
-        )));
+    let s = SparseScatter(s_view);
+    let p = Albedo(albedo);
+    let f = b.form_factors();
+    // Stacked E: [patch][plan][rgb].
+    let mut e = vec![0.0f32; n * ch];
+    for (slot, q) in preps.iter().enumerate() {
+        for j in 0..n {
+            e[j * ch + 3 * slot..j * ch + 3 * slot + 3].copy_from_slice(&q.irradiance[j]);
+        }
     }
-    let stats = RelightStats {
-        solver: solver.to_string(),
-        components: plan.components,
-        iterations,
-        residual,
-        converged,
-        ms: t0.elapsed().as_secs_f64() * 1e3,
-        direct_ms,
-        solve_ms,
-        materials_ms,
-        lights: plan.lights.len(),
+    // Bₑ repeated per plan.
+    let be: Vec<f32> = (0..n)
+        .flat_map(|j| std::iter::repeat_n(emission[j], k).flatten())
+        .collect();
+    let add = |a: &mut [f32], x: &[f32]| {
+        for (a, x) in a.iter_mut().zip(x) {
+            *a += x;
+        }
     };
-    Ok(RelightOutput { radiance, stats })
+    let none = |x: Vec<f32>| {
+        (
+            x,
+            TransportStats {
+                solver: "none",
+                iterations: 0,
+                products: 0,
+                residual: 0.0,
+                converged: true,
+                warm: false,
+            },
+        )
+    };
+    let mut se = vec![0.0f32; n * ch];
+    match components {
+        Components::Direct => {
+            // B = Bₑ + P E.
+            p.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            return Ok(none(se));
+        }
+        Components::SubsurfaceOnly => {
+            s.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            return Ok(none(se));
+        }
+        _ => {}
+    }
+    if first.use_t {
+        // B = Bₑ + S v + R v, v = E + F Bₑ (R = T − S, stored).
+        let t = b
+            .transfer()
+            .ok_or_else(|| AppError::internal("the transfer matrix vanished"))?;
+        let mut v = vec![0.0f32; n * ch];
+        spmv_multi(&f, &be, &mut v, ch);
+        add(&mut v, &e);
+        let mut bvec = vec![0.0f32; n * ch];
+        s.apply_multi(&v, &mut bvec, ch);
+        let mut rv = vec![0.0f32; n * ch];
+        // The product over T on the GPU backend (crate::backend), else on the CPU.
+        if !crate::backend::current().transfer_product(scene, &v, k, &mut rv) {
+            inverse::apply_stored(t.bits, t.scale, t.n, &v, k, &mut rv);
+        }
+        add(&mut bvec, &rv);
+        add(&mut bvec, &be);
+        return Ok((
+            bvec,
+            TransportStats {
+                solver: "inverse",
+                iterations: 0,
+                products: 1,
+                residual: 0.0,
+                converged: true,
+                warm: false,
+            },
+        ));
+    }
+    // The iterative path: (I − K F) x = rhs.
+    let (kop, mut rhs): (&dyn Scatter, Vec<f32>) = match components {
+        Components::Full => {
+            s.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            (&s, se)
+        }
+        Components::InterreflectionOnly | Components::HeuristicB => {
+            p.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            (&p, se)
+        }
+        Components::HeuristicA => {
+            s.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            (&p, se)
+        }
+        Components::Direct | Components::SubsurfaceOnly => unreachable!("handled above"),
+    };
+    if components == Components::HeuristicB {
+        // Y = (I − P F)⁻¹ P F (Bₑ + P E) solves (I − P F) Y = P F (Bₑ + P E).
+        let mut fx = vec![0.0f32; n * ch];
+        spmv_multi(&f, &rhs, &mut fx, ch);
+        p.apply_multi(&fx, &mut rhs, ch);
+    }
+    let key = format!("{}|{}", first.materials_key, components.as_str());
+    let warm_one = scene.warm.get(&key);
+    let warm: Option<Vec<f32>> = warm_one.as_ref().filter(|w| w.len() == 3 * n).map(|w| {
+        (0..n)
+            .flat_map(|j| {
+                std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
+                    .flatten()
+                    .copied()
+            })
+            .collect()
+    });
+    // The full transport (K = S) on the GPU backend (crate::backend), else on the CPU.
+    let on_gpu = (components == Components::Full)
+        .then(|| {
+            crate::backend::current().solve_rhs(
+                scene,
+                first.materials.as_ref(),
+                &rhs,
+                k,
+                params,
+                warm.as_deref(),
+            )
+        })
+        .flatten();
+    let (mut x, st) = match on_gpu {
+        Some(r) => r,
+        None => solve_system(&f, kop, &rhs, ch, params, warm.as_deref())
+            .map_err(|e| AppError::internal(e.to_string()))?,
+    };
+    // Keep the last system's answer for the next relight with these materials (never one
+    // that overflowed: it would poison the next solve).
+    if x.iter().all(|v| v.is_finite()) {
+        scene.warm.put(
+            key,
+            (0..n)
+                .flat_map(|j| x[j * ch + ch - 3..j * ch + ch].iter().copied())
+                .collect(),
+        );
+    }
+    if components == Components::HeuristicB {
+        // B = Bₑ + S E + Y.
+        let mut sev = vec![0.0f32; n * ch];
+        s.apply_multi(&e, &mut sev, ch);
+        add(&mut x, &sev);
+        add(&mut x, &be);
+    }
+    Ok((
+        x,
+        TransportStats {
+            solver: st.method.as_str(),
+            iterations: st.iterations,
+            products: st.products,
+            residual: st.residual,
+            converged: st.converged,
+            warm: st.warm,
+        },
+    ))
 }

@@ -1,47 +1,105 @@
 //! The HTTP API (axum): routes, handlers, and the middleware around them.
+//!
+//! Every route is registered through [`RouteTable`], which records its method and path, so
+//! [`routes`] lists exactly what [`router`] serves (a test checks each is in the OpenAPI
+//! document served at `/api/v1/openapi.json`, [`OPENAPI_JSON`]).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use axum::Router;
 use axum::body::{Body, Bytes};
-use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::header::{CONTENT_TYPE, VARY};
 use axum::http::{HeaderMap, HeaderValue, Method, Uri};
 use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::{get, post};
-use serde::Serialize;
+use axum::routing::{MethodRouter, get, post};
+use serde::{Deserialize, Serialize};
 use translux_proto::api::{
-    GpuHealth, Health, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest,
-    SceneDetail, SceneList, SceneObject, SceneSummary,
+    GpuHealth, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest, SceneDetail,
+    SceneList, SceneObject, SceneSummary,
 };
 
 use crate::error::AppError;
-use crate::extract::{BODY_LIMIT, Format, JsonBody, SceneId, accept_png, negotiate};
-use crate::state::{AppState, Scene};
-use crate::{picture, relight};
+use crate::extract::{BODY_LIMIT, ClientKey, Format, JsonBody, SceneId, accept_png, negotiate};
+use crate::pool::{Done, Work};
+use crate::state::{AppState, Scene, SceneState};
+use crate::{picture, relight, ws};
 
 /// The viewer page served at `/`.
 pub const INDEX_HTML: &str = include_str!("../../web/index.html");
 
+/// The viewer's scripts and styles under `/web/` (the list lives beside them in `web/`).
+#[path = "../../web/assets.rs"]
+pub mod web_assets;
+
 /// Why `/healthz` reports no GPU.
 pub const NO_GPU_REASON: &str = "this build has no GPU backend yet";
 
+/// The OpenAPI 3 document of every route, written by hand (a generator such as utoipa
+/// would add a proc-macro dependency and annotations on every handler for ten routes).
+pub const OPENAPI_JSON: &str = include_str!("openapi.json");
+
+/// Records each route's method and path while building the router.
+#[derive(Debug)]
+pub struct RouteTable {
+    router: Router<AppState>,
+    routes: Vec<(Method, &'static str)>,
+}
+
+impl RouteTable {
+    fn new() -> Self {
+        RouteTable {
+            router: Router::new(),
+            routes: Vec::new(),
+        }
+    }
+
+    fn add(mut self, method: Method, path: &'static str, handler: MethodRouter<AppState>) -> Self {
+        self.routes.push((method, path));
+        self.router = self.router.route(path, handler);
+        self
+    }
+
+    fn get(self, path: &'static str, handler: MethodRouter<AppState>) -> Self {
+        self.add(Method::GET, path, handler)
+    }
+
+    fn post(self, path: &'static str, handler: MethodRouter<AppState>) -> Self {
+        self.add(Method::POST, path, handler)
+    }
+}
+
+/// Every route of the API.
+fn table() -> RouteTable {
+    RouteTable::new()
+        .get("/", get(index))
+        .get("/healthz", get(healthz))
+        .get("/metrics", get(metrics))
+        .get("/api/v1/openapi.json", get(openapi))
+        .get("/api/v1/scenes", get(list_scenes))
+        .get("/api/v1/scenes/{id}", get(scene_detail))
+        .get("/api/v1/scenes/{id}/mesh", get(scene_mesh))
+        .post("/api/v1/scenes/{id}/relight", post(relight))
+        .post("/api/v1/scenes/{id}/render", post(render))
+        .get("/api/v1/scenes/{id}/stream", get(ws::stream))
+        .get("/web/{*path}", get(web_assets::serve))
+}
+
+/// `(method, path template)` of every route [`router`] serves.
+pub fn routes() -> Vec<(Method, &'static str)> {
+    table().routes
+}
+
 /// The whole API over `state`.
 pub fn router(state: AppState) -> Router {
-    Router::new()
-        .route("/", get(index))
-        .route("/healthz", get(healthz))
-        .route("/api/v1/scenes", get(list_scenes))
-        .route("/api/v1/scenes/{id}", get(scene_detail))
-        .route("/api/v1/scenes/{id}/mesh", get(scene_mesh))
-        .route("/api/v1/scenes/{id}/relight", post(relight))
-        .route("/api/v1/scenes/{id}/render", post(render))
+    table()
+        .router
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(BODY_LIMIT))
-        .layer(middleware::from_fn(log_request))
+        .layer(middleware::from_fn_with_state(state.clone(), log_request))
         .with_state(state)
 }
 
@@ -61,31 +119,139 @@ fn to_json<T: Serialize>(v: &T) -> Result<Response, AppError> {
 }
 
 fn find_scene(state: &AppState, id: &str) -> Result<Arc<Scene>, AppError> {
-    state.scene(id).cloned().ok_or_else(|| {
-        let ids = state.ids();
-        let known = if ids.is_empty() {
-            "none".to_string()
-        } else {
-            ids.join(", ")
-        };
-        AppError::not_found(format!("no scene {id:?}; the scenes served are: {known}"))
-    })
+    state.lookup(id)
 }
 
 async fn index() -> Html<&'static str> {
     Html(INDEX_HTML)
 }
 
-async fn healthz(State(state): State<AppState>) -> Result<Response, AppError> {
-    to_json(&Health {
+/// `GET /healthz`: the backend, each scene's state, memory and the queue.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct HealthReport {
+    /// `ok` while the server answers.
+    pub status: String,
+    /// `cpu` or `gpu`.
+    pub backend: String,
+    pub gpu: GpuHealth,
+    /// Ids of the scenes ready to serve.
+    pub scenes: Vec<String>,
+    /// Every scene found, ready or not.
+    pub scene_states: Vec<SceneHealth>,
+    pub memory: MemoryHealth,
+    pub queue: QueueHealth,
+    /// Open WebSocket streams.
+    pub streams: i64,
+    /// `true` once shutdown has begun.
+    pub shutting_down: bool,
+}
+
+/// One scene in [`HealthReport`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SceneHealth {
+    pub id: String,
+    /// `loading`, `ready` or `failed`.
+    pub state: String,
+    /// Why it failed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Bytes of its bundle (ready scenes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bundle_bytes: Option<u64>,
+}
+
+/// Memory in [`HealthReport`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MemoryHealth {
+    /// Resident set size of the process (absent where the OS does not say).
+    pub rss_bytes: Option<u64>,
+    /// Bytes of the bundles mapped by ready scenes (counted in RSS only once touched).
+    pub mapped_bundle_bytes: u64,
+}
+
+/// The worker pool in [`HealthReport`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct QueueHealth {
+    pub workers: usize,
+    /// Relights waiting now.
+    pub depth: usize,
+    pub capacity: usize,
+    pub max_batch: usize,
+    pub deadline_ms: u64,
+}
+
+fn health(state: &AppState) -> HealthReport {
+    let p = state.params();
+    HealthReport {
         status: "ok".into(),
-        backend: "cpu".into(),
-        gpu: GpuHealth {
-            available: false,
-            reason: Some(NO_GPU_REASON.into()),
-        },
+        backend: state.backend().to_string(),
+        gpu: crate::backend::current().gpu_health(),
         scenes: state.ids(),
-    })
+        scene_states: state
+            .scene_states()
+            .into_iter()
+            .map(|(id, s)| SceneHealth {
+                id,
+                state: s.as_str().to_string(),
+                error: match &s {
+                    SceneState::Failed(e) => Some(e.clone()),
+                    _ => None,
+                },
+                bundle_bytes: match &s {
+                    SceneState::Ready(scene) => Some(scene.bundle.total_bytes()),
+                    _ => None,
+                },
+            })
+            .collect(),
+        memory: MemoryHealth {
+            rss_bytes: crate::metrics::resident_bytes(),
+            mapped_bundle_bytes: state.mapped_bytes(),
+        },
+        queue: QueueHealth {
+            workers: p.workers,
+            depth: state.pool().queued(),
+            capacity: p.queue,
+            max_batch: p.max_batch,
+            deadline_ms: p.deadline.as_millis() as u64,
+        },
+        streams: state.metrics().ws_connections.get(),
+        shutting_down: *state.shutdown_watch().borrow(),
+    }
+}
+
+async fn healthz(State(state): State<AppState>) -> Result<Response, AppError> {
+    to_json(&health(&state))
+}
+
+/// `GET /metrics`: Prometheus text; the scene and memory gauges are read now.
+async fn metrics(State(state): State<AppState>) -> Result<Response, AppError> {
+    let m = state.metrics();
+    for s in ["loading", "ready", "failed", "evicted"] {
+        m.scenes.with_label_values(&[s]).set(0);
+    }
+    for (_, s) in state.scene_states() {
+        m.scenes.with_label_values(&[s.as_str()]).inc();
+    }
+    m.resident_bytes
+        .set(crate::metrics::resident_bytes().unwrap_or(0) as i64);
+    m.mapped_bytes.set(state.mapped_bytes() as i64);
+    m.gpu_bytes
+        .set(crate::backend::current().gpu_health().bytes as i64);
+    m.queue_depth.set(state.pool().queued() as i64);
+    let text = m.render().map_err(AppError::internal)?;
+    Ok((
+        [(
+            CONTENT_TYPE,
+            HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+        )],
+        text,
+    )
+        .into_response())
+}
+
+/// `GET /api/v1/openapi.json`.
+async fn openapi() -> Response {
+    json_bytes(OPENAPI_JSON)
 }
 
 fn summary(scene: &Scene) -> SceneSummary {
@@ -101,7 +267,16 @@ fn summary(scene: &Scene) -> SceneSummary {
 
 async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError> {
     to_json(&SceneList {
-        scenes: state.scenes().map(|s| summary(s)).collect(),
+        // Evicted scenes (memory budget) are listed too: their next request reopens them.
+        scenes: state
+            .scene_states()
+            .into_iter()
+            .filter_map(|(_, s)| match s {
+                SceneState::Ready(s) => Some(summary(&s)),
+                SceneState::Evicted(e) => Some(e.summary.clone()),
+                _ => None,
+            })
+            .collect(),
     })
 }
 
@@ -182,6 +357,7 @@ async fn scene_mesh(
 async fn relight(
     State(state): State<AppState>,
     SceneId(id): SceneId,
+    ClientKey(client): ClientKey,
     headers: HeaderMap,
     body: Result<JsonBody<RelightRequest>, AppError>,
 ) -> Result<Response, AppError> {
@@ -189,10 +365,15 @@ async fn relight(
     let format = negotiate(&headers)?;
     let JsonBody(req) = body?;
     let plan = relight::plan(&scene, req)?;
-    let task_scene = scene.clone();
-    let out = tokio::task::spawn_blocking(move || relight::run(&task_scene, &plan))
-        .await
-        .map_err(|e| AppError::internal(format!("the relight task failed: {e}")))??;
+    let answer = state
+        .pool()
+        .run(scene.clone(), Work::Relight(plan), client)
+        .await?;
+    let waited_ms = answer.waited.as_secs_f64() * 1e3;
+    let out = match answer.result? {
+        Done::Relight(out) => out,
+        Done::Render(_) => return Err(AppError::internal("the pool answered a render")),
+    };
     let s = &out.stats;
     tracing::info!(
         scene = %scene.id,
@@ -203,10 +384,11 @@ async fn relight(
         direct_ms = format_args!("{:.1}", s.direct_ms),
         solve_ms = format_args!("{:.1}", s.solve_ms),
         ms = format_args!("{:.1}", s.ms),
+        queue_ms = format_args!("{waited_ms:.1}"),
         "relit"
     );
     let timing = format!(
-        "direct;dur={:.3}, solve;dur={:.3}, total;dur={:.3}",
+        "queue;dur={waited_ms:.3}, direct;dur={:.3}, solve;dur={:.3}, total;dur={:.3}",
         s.direct_ms, s.solve_ms, s.ms
     );
     let vertex_count = out.radiance.len();
@@ -244,6 +426,7 @@ async fn relight(
 async fn render(
     State(state): State<AppState>,
     SceneId(id): SceneId,
+    ClientKey(client): ClientKey,
     headers: HeaderMap,
     body: Result<JsonBody<RenderRequest>, AppError>,
 ) -> Result<Response, AppError> {
@@ -251,10 +434,14 @@ async fn render(
     accept_png(&headers)?;
     let JsonBody(req) = body?;
     let plan = picture::plan(&scene, req)?;
-    let task_scene = scene.clone();
-    let out = tokio::task::spawn_blocking(move || picture::run(&task_scene, &plan))
-        .await
-        .map_err(|e| AppError::internal(format!("the render task failed: {e}")))??;
+    let answer = state
+        .pool()
+        .run(scene.clone(), Work::Render(Box::new(plan)), client)
+        .await?;
+    let out = match answer.result? {
+        Done::Render(out) => out,
+        Done::Relight(_) => return Err(AppError::internal("the pool answered a relight")),
+    };
     let s = &out.stats;
     tracing::info!(
         scene = %scene.id,
@@ -289,14 +476,25 @@ async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
     AppError::method_not_allowed(format!("{method} is not allowed on {}", uri.path()))
 }
 
-/// One log line per request: errors at info, the rest at debug.
-async fn log_request(req: Request, next: Next) -> Response {
+/// One log line per request (errors at info, the rest at debug) and its latency in the
+/// `translux_http_request_duration_seconds` histogram, by route template.
+async fn log_request(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let method = req.method().clone();
     let path = req.uri().path().to_owned();
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
     let t = Instant::now();
     let response = next.run(req).await;
     let status = response.status();
-    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let elapsed = t.elapsed();
+    state
+        .metrics()
+        .http_duration
+        .with_label_values(&[route.as_str(), method.as_str(), status.as_str()])
+        .observe(elapsed.as_secs_f64());
+    let ms = elapsed.as_secs_f64() * 1e3;
     if status.is_client_error() || status.is_server_error() {
         tracing::info!(%method, %path, status = status.as_u16(), ms = format_args!("{ms:.1}"), "request");
     } else {

@@ -1,11 +1,15 @@
-//! What the server holds: one [`Scene`] per bundle, opened once at start-up and shared.
+//! What the server holds: one [`Scene`] per bundle, opened once (in the background at
+//! start-up, [`AppState::load_in_background`]) and shared, each in a [`SceneState`]; the
+//! worker pool, the metrics, the settings and the shutdown signal ([`AppState`]).
 
 use std::collections::BTreeMap;
-use std::path::Path;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use axum::body::Bytes;
 use glam::Vec3;
+use tokio::sync::watch;
 use translux_precompute::pipeline::{material_albedo_emission, patch_albedo};
 use translux_precompute::radiosity::Rgb;
 use translux_precompute::raycast::Occluder;
@@ -13,6 +17,11 @@ use translux_precompute::smatrix::{self, CsrOwned, SParams};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, arrays};
 use translux_proto::csr::CsrView;
 use translux_proto::scene::Material;
+
+use crate::config::ServerParams;
+use crate::error::AppError;
+use crate::metrics::Metrics;
+use crate::pool::Pool;
 
 /// One served bundle: the mapped arrays plus what relighting needs that the bundle does not
 /// store (the shadow-ray BVH, patch centroids as vectors).
@@ -29,6 +38,8 @@ pub struct Scene {
     /// The materials of the last override set, so a client that keeps its overrides while
     /// moving lights pays for the S rebuild once.
     pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
+    /// The last solutions, for warm starts (see [`crate::relight::WarmCache`]).
+    pub(crate) warm: crate::relight::WarmCache,
 }
 
 /// S, ρ and Bₑ for a set of material overrides.
@@ -54,7 +65,7 @@ impl Scene {
     pub fn materials_for(
         &self,
         overrides: &[(usize, Material)],
-    ) -> Result<Option<(Arc<OverrideMaterials>, bool)>, crate::error::AppError> {
+    ) -> Result<Option<(Arc<OverrideMaterials>, bool)>, AppError> {
         if overrides.is_empty() {
             return Ok(None);
         }
@@ -66,7 +77,7 @@ impl Scene {
             return Ok(Some((m.clone(), false)));
         }
         let (s, _) = smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
-            .map_err(|e| crate::error::AppError::invalid(format!("materials: {e}")))?;
+            .map_err(|e| AppError::invalid(format!("materials: {e}")))?;
         let mut albedo = self.bundle.patch_albedo().to_vec();
         let mut emission = self.bundle.patch_emission().to_vec();
         for (k, m) in overrides {
@@ -126,91 +137,326 @@ impl Scene {
             normals,
             mesh_json: OnceLock::new(),
             material_cache: Mutex::new(None),
+            warm: Default::default(),
         }
     }
 }
 
-/// The scenes served, by id; cheap to clone (one `Arc`).
-#[derive(Debug, Clone, Default)]
+/// Where a scene is in its life: bundles load in the background after the server starts
+/// listening, so a request can find its scene still loading (503) or failed (404).
+#[derive(Debug, Clone)]
+pub enum SceneState {
+    /// Being opened (verified, mapped, BVH built) or precomputed (`--demo`).
+    Loading,
+    Ready(Arc<Scene>),
+    /// Could not be opened; the loader's message.
+    Failed(String),
+    /// Dropped to stay within the memory budget ([`crate::budget`]); reopened by its next
+    /// request ([`crate::team`]'s residency middleware).
+    Evicted(Arc<crate::budget::EvictedScene>),
+}
+
+impl SceneState {
+    /// `loading`, `ready` or `failed`.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            SceneState::Loading => "loading",
+            SceneState::Ready(_) => "ready",
+            SceneState::Failed(_) => "failed",
+            SceneState::Evicted(_) => "evicted",
+        }
+    }
+}
+
+/// What the server holds: the scenes by id and their state, the worker pool, the metrics,
+/// the settings and the shutdown signal. Cheap to clone (one `Arc`).
+#[derive(Debug, Clone)]
 pub struct AppState {
-    scenes: Arc<BTreeMap<String, Arc<Scene>>>,
+    inner: Arc<Inner>,
+}
+
+#[derive(Debug)]
+struct Inner {
+    scenes: RwLock<BTreeMap<String, SceneState>>,
+    pool: Pool,
+    metrics: Metrics,
+    /// `true` once shutdown has begun: streams finish their work and close.
+    shutdown: watch::Sender<bool>,
+    /// Ids for WebSocket streams (each its own client of the pool).
+    next_stream: AtomicU64,
+}
+
+impl Drop for Inner {
+    /// The last handle gone: the workers finish what is queued and exit.
+    fn drop(&mut self) {
+        self.pool.close();
+    }
+}
+
+impl Default for AppState {
+    fn default() -> Self {
+        AppState::with_params(ServerParams::default())
+    }
 }
 
 impl AppState {
-    /// A state serving `scenes` (a later scene with the same id replaces an earlier one).
+    /// A state serving `scenes`, all ready, with the default [`ServerParams`] (a later
+    /// scene with the same id replaces an earlier one).
     pub fn new(scenes: impl IntoIterator<Item = Scene>) -> AppState {
-        let map = scenes
-            .into_iter()
-            .map(|s| (s.id.clone(), Arc::new(s)))
-            .collect();
+        let state = AppState::default();
+        for s in scenes {
+            state.insert_ready(s);
+        }
+        state
+    }
+
+    /// A state with no scenes yet and its worker pool started with `params`.
+    pub fn with_params(params: ServerParams) -> AppState {
+        let metrics = Metrics::new();
+        let pool = Pool::new(params, metrics.clone());
         AppState {
-            scenes: Arc::new(map),
+            inner: Arc::new(Inner {
+                scenes: RwLock::new(BTreeMap::new()),
+                pool,
+                metrics,
+                shutdown: watch::channel(false).0,
+                next_stream: AtomicU64::new(1),
+            }),
         }
     }
 
-    /// The scene with this id.
-    pub fn scene(&self, id: &str) -> Option<&Arc<Scene>> {
-        self.scenes.get(id)
+    fn scenes_read(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<String, SceneState>> {
+        self.inner.scenes.read().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Every scene, in id order.
-    pub fn scenes(&self) -> impl Iterator<Item = &Arc<Scene>> {
-        self.scenes.values()
+    fn set(&self, id: String, state: SceneState) {
+        self.inner
+            .scenes
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id, state);
     }
 
-    /// The ids served, sorted.
+    /// Serves `scene` under its id.
+    pub fn insert_ready(&self, scene: Scene) {
+        self.set(scene.id.clone(), SceneState::Ready(Arc::new(scene)));
+    }
+
+    /// Marks `id` as loading (503 until it is ready or failed).
+    pub fn set_loading(&self, id: impl Into<String>) {
+        self.set(id.into(), SceneState::Loading);
+    }
+
+    /// Marks `id` as evicted (see [`SceneState::Evicted`]).
+    pub fn set_evicted(&self, id: impl Into<String>, evicted: Arc<crate::budget::EvictedScene>) {
+        self.set(id.into(), SceneState::Evicted(evicted));
+    }
+
+    /// Stops serving `id` altogether (a deleted scene); its old state.
+    pub fn remove(&self, id: &str) -> Option<SceneState> {
+        self.inner
+            .scenes
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id)
+    }
+
+    /// Marks `id` as failed with the loader's message.
+    pub fn set_failed(&self, id: impl Into<String>, message: impl Into<String>) {
+        self.set(id.into(), SceneState::Failed(message.into()));
+    }
+
+    /// The state of scene `id`, if it is known at all.
+    pub fn scene_state(&self, id: &str) -> Option<SceneState> {
+        self.scenes_read().get(id).cloned()
+    }
+
+    /// Every known scene with its state, in id order.
+    pub fn scene_states(&self) -> Vec<(String, SceneState)> {
+        self.scenes_read()
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect()
+    }
+
+    /// The ready scene with this id.
+    pub fn scene(&self, id: &str) -> Option<Arc<Scene>> {
+        match self.scenes_read().get(id) {
+            Some(SceneState::Ready(s)) => Some(s.clone()),
+            _ => None,
+        }
+    }
+
+    /// The ready scene with this id, or the error to answer: 503 `loading` (with
+    /// `Retry-After`) while it loads, 404 for an unknown id or a bundle that failed to load
+    /// (with the loader's message).
+    pub fn lookup(&self, id: &str) -> Result<Arc<Scene>, AppError> {
+        match self.scene_state(id) {
+            Some(SceneState::Ready(s)) => Ok(s),
+            Some(SceneState::Loading) => Err(AppError::loading(format!(
+                "scene {id:?} is still loading; retry in a moment (GET /healthz shows each \
+                 scene's state)"
+            ))),
+            Some(SceneState::Failed(why)) => Err(AppError::not_found(format!(
+                "scene {id:?} is not served: its bundle failed to load ({why})"
+            ))),
+            Some(SceneState::Evicted(_)) => Err(AppError::loading(format!(
+                "scene {id:?} was evicted to stay within the memory budget and is being \
+                 reopened; retry in a moment"
+            ))),
+            None => {
+                let ids = self.ids();
+                let known = if ids.is_empty() {
+                    "none".to_string()
+                } else {
+                    ids.join(", ")
+                };
+                Err(AppError::not_found(format!(
+                    "no scene {id:?}; the scenes served are: {known}"
+                )))
+            }
+        }
+    }
+
+    /// Every ready scene, in id order.
+    pub fn scenes(&self) -> Vec<Arc<Scene>> {
+        self.scenes_read()
+            .values()
+            .filter_map(|s| match s {
+                SceneState::Ready(s) => Some(s.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The ids of the ready scenes, sorted.
     pub fn ids(&self) -> Vec<String> {
-        self.scenes.keys().cloned().collect()
+        self.scenes().iter().map(|s| s.id.clone()).collect()
     }
 
+    /// Ready scenes.
     pub fn len(&self) -> usize {
-        self.scenes.len()
+        self.scenes().len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.scenes.is_empty()
+        self.len() == 0
+    }
+
+    /// Bytes of the bundles that ready scenes map.
+    pub fn mapped_bytes(&self) -> u64 {
+        self.scenes().iter().map(|s| s.bundle.total_bytes()).sum()
+    }
+
+    pub fn pool(&self) -> &Pool {
+        &self.inner.pool
+    }
+
+    pub fn params(&self) -> &ServerParams {
+        self.inner.pool.params()
+    }
+
+    /// The compute backend named in `/healthz`.
+    pub fn backend(&self) -> &str {
+        &self.params().backend
+    }
+
+    pub fn metrics(&self) -> &Metrics {
+        &self.inner.metrics
+    }
+
+    /// A new id for a WebSocket stream.
+    pub fn next_stream_id(&self) -> u64 {
+        self.inner.next_stream.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Starts shutting down: streams finish their work and close. Idempotent.
+    pub fn begin_shutdown(&self) {
+        self.inner.shutdown.send_replace(true);
+    }
+
+    /// Whether shutdown has begun; `changed()` on it wakes when it does.
+    pub fn shutdown_watch(&self) -> watch::Receiver<bool> {
+        self.inner.shutdown.subscribe()
+    }
+
+    /// Opens the bundle in `dir` as scene `id` (marked loading first) and records the
+    /// outcome; logs it. Blocking.
+    pub fn load_one(&self, id: &str, dir: &Path) {
+        self.set_loading(id);
+        let t = std::time::Instant::now();
+        match Scene::open(id, dir) {
+            Ok(scene) => {
+                let m = scene.bundle.manifest();
+                tracing::info!(
+                    "serving {id:?} ({}, from {}): {} patches, {} vertices, {} objects, \
+                     nnz(F) {}, {:.1} MB, loaded in {:.2} s",
+                    m.name,
+                    m.source,
+                    m.patch_count,
+                    m.vertex_count,
+                    m.objects.len(),
+                    m.form_factors.nnz,
+                    scene.bundle.total_bytes() as f64 / 1e6,
+                    t.elapsed().as_secs_f64()
+                );
+                // On the GPU backend, F and S go to the device now, not on the first relight.
+                crate::backend::current().prepare(&scene);
+                self.insert_ready(scene);
+            }
+            Err(e) => {
+                tracing::warn!("skipping bundle {id:?} in {}: {e}", dir.display());
+                self.set_failed(id, e.to_string());
+            }
+        }
+    }
+
+    /// Marks every `(id, folder)` as loading, then opens them one after another on a
+    /// background thread (after `before`, e.g. the demo's precompute, has run).
+    pub fn load_in_background(
+        &self,
+        bundles: Vec<(String, PathBuf)>,
+        before: impl FnOnce(&AppState) + Send + 'static,
+    ) -> std::thread::JoinHandle<()> {
+        for (id, _) in &bundles {
+            self.set_loading(id.clone());
+        }
+        let state = self.clone();
+        std::thread::Builder::new()
+            .name("bundle-loader".into())
+            .spawn(move || {
+                before(&state);
+                for (id, dir) in bundles {
+                    // `before` may have settled a scene already (a failed demo precompute).
+                    if matches!(state.scene_state(&id), Some(SceneState::Loading)) {
+                        state.load_one(&id, &dir);
+                    }
+                }
+            })
+            .expect("cannot start the bundle loader thread")
     }
 }
 
-/// Opens every bundle under `dir`: each sub-folder is one bundle whose id is the folder
-/// name. Hidden folders (a writer's temporaries start with `.`) and plain files are passed
-/// over. If `dir` itself holds a `manifest.json` it is served alone, under its own name.
-///
-/// Returns the state with every bundle that opened, and `(id, message)` for each that did
-/// not (the loader's message, e.g. `ff_val.f32 is truncated: 100 bytes, manifest says 400`);
-/// a folder that cannot be read at all comes back as one error with `dir` as its id.
-pub fn load_bundles(dir: &Path) -> (AppState, Vec<(String, String)>) {
-    let mut scenes = Vec::new();
-    let mut errors = Vec::new();
-    let mut try_open =
-        |id: String, path: &Path, errors: &mut Vec<(String, String)>| match Scene::open(
-            id.clone(),
-            path,
-        ) {
-            Ok(scene) => scenes.push(scene),
-            Err(e) => errors.push((id, e.to_string())),
-        };
+/// `(id, folder)` of each bundle found, and `(name, why)` of each folder that cannot be one.
+pub type Discovered = (Vec<(String, PathBuf)>, Vec<(String, String)>);
+
+/// The bundle folders under `dir` as `(id, folder)`, sorted: each sub-folder whose name is
+/// UTF-8 and does not start with `.` (a writer's temporaries); `dir` itself, under its own
+/// name, if it holds a `manifest.json`. Folders that cannot be ids come back as errors.
+pub fn discover(dir: &Path) -> Result<Discovered, String> {
     if dir.join(MANIFEST_FILE).is_file() {
         let id = folder_name(dir).unwrap_or_else(|| "bundle".to_string());
-        try_open(id, dir, &mut errors);
-        return (AppState::new(scenes), errors);
+        return Ok((vec![(id, dir.to_path_buf())], Vec::new()));
     }
-    let entries = match std::fs::read_dir(dir) {
-        Ok(entries) => entries,
-        Err(e) => {
-            errors.push((
-                dir.display().to_string(),
-                format!("cannot read the folder: {e}"),
-            ));
-            return (AppState::new(scenes), errors);
-        }
-    };
+    let entries = std::fs::read_dir(dir).map_err(|e| format!("cannot read the folder: {e}"))?;
     let mut folders: Vec<_> = entries
         .filter_map(Result::ok)
         .map(|e| e.path())
         .filter(|p| p.is_dir())
         .collect();
     folders.sort();
+    let mut found = Vec::new();
+    let mut errors = Vec::new();
     for path in folders {
         let Some(name) = path.file_name() else {
             continue;
@@ -225,9 +471,36 @@ pub fn load_bundles(dir: &Path) -> (AppState, Vec<(String, String)>) {
         if id.starts_with('.') {
             continue;
         }
-        try_open(id.to_string(), &path, &mut errors);
+        found.push((id.to_string(), path));
     }
-    (AppState::new(scenes), errors)
+    Ok((found, errors))
+}
+
+/// Opens every bundle under `dir`: each sub-folder is one bundle whose id is the folder
+/// name. Hidden folders (a writer's temporaries start with `.`) and plain files are passed
+/// over. If `dir` itself holds a `manifest.json` it is served alone, under its own name.
+///
+/// Returns the state with every bundle that opened, and `(id, message)` for each that did
+/// not (the loader's message, e.g. `ff_val.f32 is truncated: 100 bytes, manifest says 400`);
+/// a folder that cannot be read at all comes back as one error with `dir` as its id.
+pub fn load_bundles(dir: &Path) -> (AppState, Vec<(String, String)>) {
+    load_bundles_with(dir, ServerParams::default())
+}
+
+/// [`load_bundles`] with the given settings.
+pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(String, String)>) {
+    let state = AppState::with_params(params);
+    let (found, mut errors) = match discover(dir) {
+        Ok(x) => x,
+        Err(e) => return (state, vec![(dir.display().to_string(), e)]),
+    };
+    for (id, path) in found {
+        match Scene::open(id.clone(), &path) {
+            Ok(scene) => state.insert_ready(scene),
+            Err(e) => errors.push((id, e.to_string())),
+        }
+    }
+    (state, errors)
 }
 
 /// The last component of `dir` (after resolving `.` and `..`).

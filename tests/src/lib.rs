@@ -1,1 +1,7 @@
-//! End-to-end tests live in tests/.
+//! Shared by the end-to-end tests and the Table 1 benchmark (`examples/table1.rs`).
+//!
+//! [`mitsuba`]: an independent reference. In: a bundle (its patches as triangles, its
+//! materials) plus lights and query points. Out: Mitsuba 3's path-traced radiance at those
+//! points, and per-point error statistics of translux's answer against it.
+
+pub mod mitsuba;

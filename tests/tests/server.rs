@@ -301,10 +301,8 @@ async fn scene_list_detail_health_and_index() {
     let h: Health = s.get_json("/healthz").await;
     assert_eq!((h.status.as_str(), h.backend.as_str()), ("ok", "cpu"));
     assert!(!h.gpu.available);
-    assert_eq!(
-        h.gpu.reason.as_deref(),
-        Some("this build has no GPU backend yet")
-    );
+    // The test builds its state without choosing a backend: the CPU, and /healthz says why.
+    assert_eq!(h.gpu.reason.as_deref(), Some("no backend was installed"));
     assert_eq!(h.scenes, vec![ID.to_string()]);
 
     let r = s.get("/").await;
@@ -445,7 +443,11 @@ async fn relight_json_and_binary_agree_and_match_the_offline_solve() {
         .relight_json(&json!({"lights": lights, "solver": "iterative"}))
         .await;
     let parsed: Vec<Light> = serde_json::from_value(lights).unwrap();
-    assert_close(&answer.radiance, &offline(&bundle, &parsed, true), 1e-5);
+    // This solve starts from the previous answer (same materials and components), so it
+    // is a different iterate than the offline cold start: both have a residual ≤ 0.5%, and
+    // they agree to the solver's accuracy rather than bit for bit.
+    assert!(answer.stats.warm, "{:?}", answer.stats);
+    assert_close(&answer.radiance, &offline(&bundle, &parsed, true), 0.15);
     assert_ne!(answer.radiance, json_answer.radiance);
 
     // No lights at all: a black scene (the Cornell box has no emitters).
@@ -630,6 +632,19 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         {"type":"point","position":[0,0.3,0],"intensity":[3e38,3e38,3e38]}]});
     let r = s.relight(ID, &body, None).await;
     expect_error(r, StatusCode::BAD_REQUEST, "invalid", &["not finite"]).await;
+    // That overflow must not poison the next relight (the solver warm-starts from the last
+    // answer with the same materials): an ordinary light still gets the library's answer.
+    let lights = json!([{"type":"point","position":[0.05,0.4,0.02],"intensity":[1,1,1]}]);
+    let answer = s
+        .relight_json(&json!({"lights": lights, "solver": "iterative"}))
+        .await;
+    assert!(answer.radiance.iter().all(|v| v.is_finite()));
+    let parsed: Vec<Light> = serde_json::from_value(lights).unwrap();
+    assert_close(
+        &answer.radiance,
+        &offline(&Bundle::open(&bundle_dir()).unwrap(), &parsed, true),
+        0.15,
+    );
 
     // Unknown fields, at the top and inside a light.
     let r = s.relight(ID, &json!({"light": []}), None).await;
@@ -664,17 +679,8 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
     // Valid but not supported yet: `unsupported`, saying what.
     for (body, needle) in [
         (
-            json!({"components": "subsurface_only"}),
-            "components \"subsurface_only\" is not supported yet",
-        ),
-        (json!({"components": "heuristic_a"}), "heuristic_a"),
-        (
             json!({"solver": "inverse"}),
-            "solver \"inverse\" is not supported yet",
-        ),
-        (
-            json!({"lights": [{"type": "environment", "map": "builtin:sky"}]}),
-            "lights[0]: environment lights are not supported yet",
+            "precomputed without the transfer matrix T",
         ),
         (
             json!({"materials": {"floor": {"type": "translucent",
@@ -685,6 +691,16 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         let r = s.relight(ID, &body, Some("application/json")).await;
         expect_error(r, StatusCode::BAD_REQUEST, "unsupported", &[needle]).await;
     }
+    // An environment map that is not there is invalid, and names the light and the map.
+    let body = json!({"lights": [{"type": "environment", "map": "no-such-map.hdr"}]});
+    let r = s.relight(ID, &body, None).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["lights[0]", "no-such-map.hdr"],
+    )
+    .await;
     // A material override for an object that does not exist is invalid, not unsupported.
     let body = json!({"materials": {"teapot": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}});
     let r = s.relight(ID, &body, None).await;
@@ -992,10 +1008,10 @@ async fn render_rejects_bad_input_in_the_json_error_format() {
             &["lights[0].intensity[1] must be finite and >= 0"],
         ),
         (
-            json!({"components": "heuristic_a"}),
+            json!({"solver": "inverse"}),
             400,
             "unsupported",
-            &["heuristic_a"],
+            &["--inverse"],
         ),
     ] {
         let r = post_render(&s, &body, None).await;

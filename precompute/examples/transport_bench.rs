@@ -1,0 +1,140 @@
+//! Measures the transport solvers on precomputed bundles and prints a table: Jacobi vs
+//! BiCGSTAB (iterations, products, ms; cold and warm), relight with the stored T, and k
+//! right-hand sides at once.
+//!
+//! `cargo run --release -p translux-precompute --example transport_bench -- BUNDLE...`
+//! (bundles made with `translux-precompute ... --inverse` also time T).
+
+use std::time::Instant;
+
+use glam::Vec3;
+use translux_precompute::inverse;
+use translux_precompute::radiosity::{
+    self, Method, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter,
+};
+use translux_precompute::raycast::Occluder;
+use translux_precompute::solver::{solve_system, spmv_multi};
+use translux_proto::bundle::Bundle;
+
+fn best_ms(reps: usize, mut f: impl FnMut()) -> f64 {
+    (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn main() {
+    println!(
+        "| bundle | patches | method | iterations | products | ms (cold) | warm iterations | ms (warm) |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    let mut t_rows = Vec::new();
+    for path in std::env::args().skip(1) {
+        let b = Bundle::open(std::path::Path::new(&path)).expect("a bundle");
+        let n = b.patch_areas().len();
+        let tris: Vec<[Vec3; 3]> = b
+            .occluder_triangles()
+            .iter()
+            .map(|t| t.map(Vec3::from))
+            .collect();
+        let occ = Occluder::new(&tris);
+        let centroid: Vec<Vec3> = b
+            .patch_corners()
+            .iter()
+            .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+            .collect();
+        let normal: Vec<Vec3> = b.patch_normals().iter().map(|&v| Vec3::from(v)).collect();
+        let geo = PatchGeometry {
+            centroid: &centroid,
+            normal: &normal,
+        };
+        let lights = b.manifest().lights.clone();
+        let e = radiosity::direct_irradiance(geo, &occ, &lights, b.manifest().unit_mm).unwrap();
+        // A nearby light for the warm start: every E 3% brighter.
+        let e2: Vec<Rgb> = e.iter().map(|x| x.map(|v| v * 1.03)).collect();
+        let f = b.form_factors();
+        let s = SparseScatter(b.subsurface());
+        let be = b.patch_emission();
+        // (Gauss-Seidel needs a diagonal S; these scenes are translucent.)
+        for method in [Method::Jacobi, Method::BiCgStab, Method::Auto] {
+            let p = SolveParams {
+                method,
+                ..Default::default()
+            };
+            let (x, st) = radiosity::solve(&f, &s, be, &e, &p, None).unwrap();
+            let cold = best_ms(3, || {
+                radiosity::solve(&f, &s, be, &e, &p, None).unwrap();
+            });
+            let (_, wst) = radiosity::solve(&f, &s, be, &e2, &p, Some(&x)).unwrap();
+            let warm = best_ms(3, || {
+                radiosity::solve(&f, &s, be, &e2, &p, Some(&x)).unwrap();
+            });
+            println!(
+                "| {path} | {n} | {} | {} | {} | {cold:.1} | {} | {warm:.1} |",
+                method.as_str(),
+                st.iterations,
+                st.products,
+                wst.iterations
+            );
+        }
+        // Four right-hand sides at once vs four solves.
+        let k = 4;
+        let mut rhs1 = vec![[0.0f32; 3]; n];
+        s.apply(&e, &mut rhs1);
+        let stacked: Vec<f32> = (0..n)
+            .flat_map(|j| std::iter::repeat_n(rhs1[j], k).flatten())
+            .collect();
+        let p = SolveParams::default();
+        let batch = best_ms(3, || {
+            solve_system(&f, &s, &stacked, 3 * k, &p, None).unwrap();
+        });
+        let one = best_ms(3, || {
+            solve_system(&f, &s, bytemuck::cast_slice(&rhs1), 3, &p, None).unwrap();
+        });
+        let mut t_ms = None;
+        let mut t4_ms = None;
+        if let Some(t) = b.transfer() {
+            let mut v = vec![0.0f32; n * 3];
+            spmv_multi(&f, bytemuck::cast_slice(be), &mut v, 3);
+            let v: Vec<f32> = v
+                .iter()
+                .zip(bytemuck::cast_slice::<Rgb, f32>(&e))
+                .map(|(a, b)| a + b)
+                .collect();
+            let mut y = vec![0.0f32; n * 3];
+            t_ms = Some(best_ms(5, || {
+                inverse::apply_stored(t.bits, t.scale, n, &v, 1, &mut y);
+                let mut sv = vec![0.0f32; n * 3];
+                s.apply_multi(&v, &mut sv, 3);
+            }));
+            let v4: Vec<f32> = (0..n)
+                .flat_map(|j| {
+                    std::iter::repeat_n(&v[3 * j..3 * j + 3], k)
+                        .flatten()
+                        .copied()
+                })
+                .collect();
+            let mut y4 = vec![0.0f32; n * 3 * k];
+            t4_ms = Some(best_ms(5, || {
+                inverse::apply_stored(t.bits, t.scale, n, &v4, k, &mut y4);
+            }));
+        }
+        t_rows.push((path, n, one, batch, t_ms, t4_ms));
+    }
+    println!();
+    println!(
+        "| bundle | patches | solve (auto) 1 rhs ms | solve (auto) 4 rhs ms, one batch | T relight ms | T 4 rhs ms |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for (path, n, one, batch, t, t4) in t_rows {
+        let show = |x: Option<f64>| x.map_or("—".to_string(), |v| format!("{v:.1}"));
+        println!(
+            "| {path} | {n} | {one:.1} | {batch:.1} | {} | {} |",
+            show(t),
+            show(t4)
+        );
+    }
+}

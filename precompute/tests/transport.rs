@@ -1,0 +1,290 @@
+//! Full transport: the solvers agree with each other and with closed forms, Krylov beats
+//! Jacobi where it should, warm starts pay, and the light components mean what their
+//! definitions say.
+//!
+//! Where new tests go: solver and component behaviour here; the transfer matrix T in
+//! `inverse.rs`; server-side behaviour in the `translux-tests` crate.
+
+use glam::Vec3;
+use translux_precompute::formfactor::{self, FormFactorParams};
+use translux_precompute::patch::{self, Density, Patches};
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::radiosity::{
+    self, Albedo, Method, PatchGeometry, Rgb, SolveParams, SparseScatter,
+};
+use translux_precompute::raycast::Occluder;
+use translux_precompute::scene::load_scene;
+use translux_proto::bundle::Bundle;
+use translux_proto::csr::Csr;
+
+/// A rectangle from `origin` spanned by `u` and `v`, facing u × v.
+fn rect(origin: Vec3, u: Vec3, v: Vec3) -> Vec<[Vec3; 3]> {
+    let (a, b, c, d) = (origin, origin + u, origin + u + v, origin + v);
+    vec![[a, b, c], [a, c, d]]
+}
+
+/// A closed box w × h × d, every face facing inwards.
+fn room(w: f32, h: f32, d: f32) -> Vec<Vec<[Vec3; 3]>> {
+    let (x, y, z) = (Vec3::X * w, Vec3::Y * h, Vec3::Z * d);
+    vec![
+        rect(Vec3::ZERO, z, x),
+        rect(y, x, z),
+        rect(Vec3::ZERO, x, y),
+        rect(z, y, x),
+        rect(Vec3::ZERO, y, z),
+        rect(x, z, y),
+    ]
+}
+
+fn build(objects: &[Vec<[Vec3; 3]>], density: Density) -> (Patches, Csr) {
+    let srcs: Vec<&[[Vec3; 3]]> = objects.iter().map(|o| o.as_slice()).collect();
+    let (h, _) = patch::plan(&srcs, density);
+    let p = patch::subdivide(&srcs, h);
+    let all: Vec<[Vec3; 3]> = objects.iter().flatten().copied().collect();
+    let occ = Occluder::new(&all);
+    let (f, _) = formfactor::compute(&p, &occ, &FormFactorParams::default(), &|_| {});
+    (p, f)
+}
+
+/// ‖a − b‖₂ / ‖b‖₂ over every patch and channel.
+fn rel_diff(a: &[Rgb], b: &[Rgb]) -> f64 {
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for (x, y) in a.iter().zip(b) {
+        for c in 0..3 {
+            num += ((x[c] - y[c]) as f64).powi(2);
+            den += (y[c] as f64).powi(2);
+        }
+    }
+    (num / den).sqrt()
+}
+
+/// A small translucent Cornell box (marble block) and its default lights' E.
+fn translucent_cornell(patches: u64) -> (tempfile::TempDir, Bundle, Vec<Rgb>) {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = load_scene("builtin:cornell").unwrap();
+    let out = dir.path().join("cornell");
+    let params = PrecomputeParams {
+        patches: Some(patches),
+        ..Default::default()
+    };
+    precompute(&scene, &out, &params).unwrap();
+    let b = Bundle::open(&out).unwrap();
+    let e = direct(&b);
+    (dir, b, e)
+}
+
+fn direct(b: &Bundle) -> Vec<Rgb> {
+    let tris: Vec<[Vec3; 3]> = b
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let occ = Occluder::new(&tris);
+    let centroid: Vec<Vec3> = b
+        .patch_corners()
+        .iter()
+        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+        .collect();
+    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
+    let geo = PatchGeometry {
+        centroid: &centroid,
+        normal: &normal,
+    };
+    radiosity::direct_irradiance(geo, &occ, &b.manifest().lights, b.manifest().unit_mm).unwrap()
+}
+
+fn params(method: Method, tolerance: f32) -> SolveParams {
+    SolveParams {
+        method,
+        tolerance,
+        max_iterations: 5000,
+    }
+}
+
+#[test]
+fn bicgstab_equals_jacobi_on_a_translucent_scene() {
+    let (_dir, b, e) = translucent_cornell(1200);
+    let f = b.form_factors();
+    let s = SparseScatter(b.subsurface());
+    let be = b.patch_emission();
+    // A tight Jacobi solution is the reference.
+    let (reference, rs) =
+        radiosity::solve(&f, &s, be, &e, &params(Method::Jacobi, 1e-6), None).unwrap();
+    assert!(rs.converged, "{rs:?}");
+    for tol in [1e-5f32, 0.005] {
+        let (jac, js) =
+            radiosity::solve(&f, &s, be, &e, &params(Method::Jacobi, tol), None).unwrap();
+        let (kry, ks) =
+            radiosity::solve(&f, &s, be, &e, &params(Method::BiCgStab, tol), None).unwrap();
+        assert!(js.converged && ks.converged, "{js:?} {ks:?}");
+        // Deterministic: the same inputs give the same bits.
+        let (again, _) =
+            radiosity::solve(&f, &s, be, &e, &params(Method::BiCgStab, tol), None).unwrap();
+        assert!(again == kry, "two identical BiCGSTAB solves differ");
+        assert!(ks.residual <= tol && js.residual <= tol);
+        let (dj, dk) = (rel_diff(&jac, &reference), rel_diff(&kry, &reference));
+        eprintln!(
+            "tolerance {tol}: jacobi {} iterations ({} products), error {dj:.2e}; \
+             bicgstab {} iterations ({} products), error {dk:.2e}",
+            js.iterations, js.products, ks.iterations, ks.products
+        );
+        // The error of a solution with relative residual τ is at most κ·τ; here κ(I − SF)
+        // ≤ (1 + ‖SF‖)/(1 − ‖SF‖) is a few, so both must be within a few τ of the reference.
+        assert!(dk <= 5.0 * tol as f64 + 1e-6, "bicgstab {dk}");
+        assert!(dj <= 5.0 * tol as f64 + 1e-6, "jacobi {dj}");
+        // In the Cornell box (ρ ≤ 0.73) auto stays with Jacobi.
+        let (_, auto) = radiosity::solve(&f, &s, be, &e, &params(Method::Auto, tol), None).unwrap();
+        assert_eq!(auto.method, Method::Jacobi, "{auto:?}");
+        // Every bright patch agrees per channel at the tight tolerance.
+        if tol < 1e-4 {
+            let peak = reference
+                .iter()
+                .flat_map(|x| x.iter())
+                .fold(0.0f32, |a, &v| a.max(v));
+            for (k, (x, y)) in kry.iter().zip(&reference).enumerate() {
+                for c in 0..3 {
+                    if y[c] > 0.01 * peak {
+                        let d = (x[c] - y[c]).abs() / y[c];
+                        assert!(d < 1e-3, "patch {k} channel {c}: {} vs {}", x[c], y[c]);
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn bicgstab_needs_far_fewer_products_in_a_bright_closed_room() {
+    let (p, f) = build(&room(1.0, 0.9, 1.2), Density::Target(1500));
+    let v = f.view().unwrap();
+    let n = p.len();
+    let rho = 0.98f32;
+    let albedo = vec![[rho, 0.97, 0.96]; n];
+    // A light on part of the ceiling.
+    let be: Vec<Rgb> = (0..n)
+        .map(|i| {
+            let c = (p.corners[i][0] + p.corners[i][1] + p.corners[i][2]) / 3.0;
+            if c.y > 0.89 && (c.x - 0.5).abs() < 0.2 && (c.z - 0.6).abs() < 0.2 {
+                [10.0; 3]
+            } else {
+                [0.0; 3]
+            }
+        })
+        .collect();
+    let e = vec![[0.0f32; 3]; n];
+    let s = Albedo(&albedo);
+    let tol = 0.005;
+    let (jac, js) = radiosity::solve(&v, &s, &be, &e, &params(Method::Jacobi, tol), None).unwrap();
+    let (kry, ks) =
+        radiosity::solve(&v, &s, &be, &e, &params(Method::BiCgStab, tol), None).unwrap();
+    let (gs, gss) =
+        radiosity::solve(&v, &s, &be, &e, &params(Method::GaussSeidel, tol), None).unwrap();
+    eprintln!(
+        "closed room, {n} patches, rho {rho}: jacobi {} iterations / {} products; \
+         gauss-seidel {} / {}; bicgstab {} / {}",
+        js.iterations, js.products, gss.iterations, gss.products, ks.iterations, ks.products
+    );
+    assert!(js.converged && ks.converged && gss.converged);
+    // Auto measures Jacobi's slow contraction and switches to BiCGSTAB.
+    let (_, auto) = radiosity::solve(&v, &s, &be, &e, &params(Method::Auto, tol), None).unwrap();
+    eprintln!("auto: {auto:?}");
+    assert_eq!(auto.method, Method::BiCgStab);
+    assert!(
+        auto.converged && auto.products * 3 < js.products,
+        "{auto:?}"
+    );
+    // Jacobi contracts like ρ per sweep: on the order of ln(τ)/ln(ρ) products.
+    assert!(js.products > 60, "{js:?}");
+    assert!(
+        ks.products * 3 < js.products,
+        "bicgstab {ks:?} vs jacobi {js:?}"
+    );
+    // Same answer (to a few tolerances; κ is larger here, ≈ (1 + ρ)/(1 − ρ)).
+    assert!(rel_diff(&kry, &jac) < 0.1, "{}", rel_diff(&kry, &jac));
+    assert!(rel_diff(&gs, &jac) < 0.1);
+    // The closed room's total power balance: Σ A B (1 − ρ) = Σ A Bₑ (all light absorbed
+    // eventually) within the row-sum error (~1%) and the tolerance.
+    let absorbed: f64 = (0..n)
+        .map(|i| p.area[i] as f64 * kry[i][0] as f64 * (1.0 - albedo[i][0] as f64))
+        .sum();
+    let emitted: f64 = (0..n).map(|i| p.area[i] as f64 * be[i][0] as f64).sum();
+    assert!(
+        (absorbed / emitted - 1.0).abs() < 0.1,
+        "absorbed {absorbed} emitted {emitted}"
+    );
+}
+
+#[test]
+fn warm_start_from_a_nearby_solution_needs_fewer_iterations() {
+    let (_dir, b, e) = translucent_cornell(1200);
+    let f = b.form_factors();
+    let s = SparseScatter(b.subsurface());
+    let be = b.patch_emission();
+    // The light moved a little: 5% brighter and a tint.
+    let e2: Vec<Rgb> = e
+        .iter()
+        .map(|x| [x[0] * 1.05, x[1] * 1.04, x[2] * 1.06])
+        .collect();
+    for method in [Method::Jacobi, Method::BiCgStab] {
+        let p = params(method, 0.001);
+        let (first, _) = radiosity::solve(&f, &s, be, &e, &p, None).unwrap();
+        let (cold_x, cold) = radiosity::solve(&f, &s, be, &e2, &p, None).unwrap();
+        let (warm_x, warm) = radiosity::solve(&f, &s, be, &e2, &p, Some(&first)).unwrap();
+        eprintln!(
+            "{}: cold {} iterations ({} products), warm {} iterations ({} products)",
+            method.as_str(),
+            cold.iterations,
+            cold.products,
+            warm.iterations,
+            warm.products
+        );
+        assert!(warm.warm && !cold.warm);
+        assert!(cold.converged && warm.converged);
+        assert!(
+            warm.products < cold.products,
+            "{method:?}: warm {warm:?} cold {cold:?}"
+        );
+        assert!(rel_diff(&warm_x, &cold_x) < 0.01);
+    }
+}
+
+#[test]
+fn batched_systems_equal_separate_solves() {
+    let (_dir, b, e) = translucent_cornell(800);
+    let f = b.form_factors();
+    let s = SparseScatter(b.subsurface());
+    let n = e.len();
+    // Three right-hand sides: E, 2E + tint, and zero (answer 0).
+    let mut rhs = vec![[0.0f32; 3]; n];
+    radiosity::Scatter::apply(&s, &e, &mut rhs);
+    let rhs2: Vec<Rgb> = rhs.iter().map(|x| [2.0 * x[0], x[1], 0.5 * x[2]]).collect();
+    let mut stacked = Vec::with_capacity(n * 9);
+    for i in 0..n {
+        stacked.extend_from_slice(&rhs[i]);
+        stacked.extend_from_slice(&rhs2[i]);
+        stacked.extend_from_slice(&[0.0; 3]);
+    }
+    for method in [Method::Jacobi, Method::BiCgStab] {
+        let p = params(method, 1e-4);
+        let (x, st) =
+            translux_precompute::solver::solve_system(&f, &s, &stacked, 9, &p, None).unwrap();
+        assert!(st.converged, "{st:?}");
+        for (k, r) in [&rhs, &rhs2].into_iter().enumerate() {
+            let (single, _) = translux_precompute::solver::solve_system(
+                &f,
+                &s,
+                bytemuck::cast_slice(r),
+                3,
+                &p,
+                None,
+            )
+            .unwrap();
+            let single: &[Rgb] = bytemuck::cast_slice(&single);
+            let mine: Vec<Rgb> = (0..n)
+                .map(|i| std::array::from_fn(|c| x[i * 9 + 3 * k + c]))
+                .collect();
+            assert!(rel_diff(&mine, single) < 5e-4, "{method:?} system {k}");
+        }
+        assert!((0..n).all(|i| x[i * 9 + 6..i * 9 + 9] == [0.0; 3]));
+    }
+}

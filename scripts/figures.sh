@@ -1,0 +1,102 @@
+#!/usr/bin/env bash
+# Renders the paper's comparison figures into docs/figures/ with the offline commands
+# (no server): Fig. 5 (light components of the Cornell box), Fig. 6 (translucency sweep),
+# Fig. 7 (heterogeneous checkerboard block) and Fig. 12 (full model vs the two heuristics).
+# docs/figures/README.md says what each image shows.
+#
+#   bash scripts/figures.sh            # 3000 patches per scene, 400×300 images
+#   PATCHES=6000 SIZE=640x480 bash scripts/figures.sh
+#
+# A few minutes on 2 cores: it builds the two binaries (release), precomputes three bundles
+# into a temporary folder and renders 11 images.
+set -euo pipefail
+
+cd "$(dirname "$0")/.."
+PATCHES="${PATCHES:-3000}"
+SIZE="${SIZE:-400x300}"
+WIDTH="${SIZE%x*}"
+HEIGHT="${SIZE#*x}"
+OUT=docs/figures
+WORK="$(mktemp -d "${TMPDIR:-/tmp}/translux-figures.XXXXXX")"
+trap 'rm -rf "$WORK"' EXIT
+
+cargo build --release --quiet -p translux-precompute -p translux-server
+BIN="${CARGO_TARGET_DIR:-target}/release"
+mkdir -p "$OUT"
+
+precompute() { # SCENE NAME
+  echo "precompute $1 ($PATCHES patches)"
+  "$BIN/translux-precompute" "$1" --out "$WORK/$2" --patches "$PATCHES" --quiet >/dev/null
+}
+
+render() { # BUNDLE OUT.png EXPOSURE REQUEST-JSON
+  echo "render $2"
+  printf '%s' "$4" >"$WORK/request.json"
+  RUST_LOG=warn "$BIN/translux-server" render --bundle "$WORK/$1" --request "$WORK/request.json" \
+    --out "$OUT/$2" --width "$WIDTH" --height "$HEIGHT" --exposure "$3" --tone filmic
+}
+
+# The Cornell box of builtin:cornell with the tall block's marble 8× more translucent (the
+# dipole's mean free path × 8): at a few thousand patches (4 cm each) real marble scatters
+# within about one patch and looks opaque. Distances are stored to twice the truncation
+# radius, so the sweep below can go up to scale 16 without new geometry work.
+cat >"$WORK/cornell.json" <<'JSON'
+{"name": "cornell8",
+ "objects": [
+  {"name": "floor", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "material": {"type": "diffuse", "albedo": [0.725, 0.71, 0.68]}},
+  {"name": "ceiling", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "transform": {"rotate_deg": [180, 0, 0], "translate": [0, 0.555, 0]},
+   "material": {"type": "diffuse", "albedo": [0.725, 0.71, 0.68]}},
+  {"name": "back_wall", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "transform": {"rotate_deg": [90, 0, 0], "translate": [0, 0.2775, -0.2775]},
+   "material": {"type": "diffuse", "albedo": [0.725, 0.71, 0.68]}},
+  {"name": "front_wall", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "transform": {"rotate_deg": [-90, 0, 0], "translate": [0, 0.2775, 0.2775]},
+   "material": {"type": "diffuse", "albedo": [0.725, 0.71, 0.68]}},
+  {"name": "left_wall", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "transform": {"rotate_deg": [0, 0, -90], "translate": [-0.2775, 0.2775, 0]},
+   "material": {"type": "diffuse", "albedo": [0.63, 0.065, 0.05]}},
+  {"name": "right_wall", "mesh": {"shape": "quad", "size": [0.555, 0.555]},
+   "transform": {"rotate_deg": [0, 0, 90], "translate": [0.2775, 0.2775, 0]},
+   "material": {"type": "diffuse", "albedo": [0.14, 0.45, 0.091]}},
+  {"name": "short_box", "mesh": {"shape": "box", "size": [0.165, 0.165, 0.165]},
+   "transform": {"rotate_deg": [0, -17, 0], "translate": [0.09, 0.0825, 0.07]},
+   "material": {"type": "diffuse", "albedo": [0.75, 0.65, 0.15]}},
+  {"name": "tall_block", "mesh": {"shape": "box", "size": [0.165, 0.33, 0.165]},
+   "transform": {"rotate_deg": [0, 17, 0], "translate": [-0.09, 0.165, -0.08]},
+   "material": {"type": "translucent",
+                "profile": {"type": "dipole", "preset": "marble", "scale": 8}}}],
+ "lights": [{"type": "point", "position": [0, 0.5, 0], "intensity": [0.8, 0.8, 0.8]}],
+ "camera": {"position": [0, 0.2775, 1.3], "target": [0, 0.2775, 0], "fov_deg": 40}}
+JSON
+precompute "$WORK/cornell.json" cornell
+precompute builtin:cornell_checker checker
+precompute builtin:bowls bowls
+
+# Fig. 5: direct, inter-reflection only, subsurface only, full (the paper's order). The
+# components with inter-reflection are 3–4× brighter: they are shown 1.5 EV darker.
+EV=-1
+for c in direct subsurface_only; do
+  render cornell "fig5_$c.png" 0.5 "{\"components\":\"$c\"}"
+done
+for c in interreflection_only full; do
+  render cornell "fig5_$c.png" "$EV" "{\"components\":\"$c\"}"
+done
+
+# Fig. 6: the block from less to more translucent (marble's mean free path × 1, 4, 16; S
+# rebuilt from the stored distances, no geometry work).
+for s in 1 4 16; do
+  render cornell "fig6_scale_$s.png" "$EV" \
+    "{\"materials\":{\"tall_block\":{\"type\":\"translucent\",\"profile\":{\"type\":\"dipole\",\"preset\":\"marble\",\"scale\":$s}}}}"
+done
+
+# Fig. 7: the tall block a checkerboard of marble and an orange medium.
+render checker fig7_checker.png "$EV" '{}'
+
+# Fig. 12: the bowls lit from inside: full model, heuristic A, heuristic B.
+for c in full heuristic_a heuristic_b; do
+  render bowls "fig12_$c.png" 2 "{\"components\":\"$c\"}"
+done
+
+echo "wrote $(ls "$OUT"/*.png | wc -l) images to $OUT"

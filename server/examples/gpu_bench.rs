@@ -1,0 +1,287 @@
+//! GPU vs CPU backend on `builtin:cornell`: what the transport costs per relight.
+//!
+//! Measures, per backend (the CPU, then the wgpu adapter), the paper's Table 1 columns:
+//! relight with the transfer matrix T (one relight, batches of 8 and 64: one pass over T per
+//! batch), relight with the iterative solver, and a translucency change (S rebuilt from the
+//! stored distances on the CPU, then solved); the product over T alone with its achieved
+//! bandwidth against a measured copy bandwidth of the same device (for the CPU: a memcpy).
+//! Whole-relight times include the shadowed direct light, which runs on the CPU for both.
+//!
+//! ```sh
+//! cargo run --release -p translux-server --example gpu_bench -- --patches 3000
+//! ```
+//!
+//! The bundle (with `--inverse`) is precomputed once into `target/gpu-bench/cornell-N`.
+//! Software adapters (lavapipe) are CPUs: their numbers measure correctness plumbing, not a
+//! GPU.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use translux_precompute::inverse;
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene;
+use translux_proto::bundle::Bundle;
+use translux_server::backend::{self, Backend};
+use translux_server::gpu::{DenseData, GpuContext, GpuDense, GpuOptions};
+use translux_server::relight;
+use translux_server::state::Scene;
+
+struct Args {
+    patches: u64,
+    reps: usize,
+    gpu: bool,
+}
+
+fn args() -> anyhow::Result<Args> {
+    let mut a = Args {
+        patches: 24_640,
+        reps: 5,
+        gpu: true,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        match flag.as_str() {
+            "--patches" => a.patches = it.next().context("--patches N")?.parse()?,
+            "--reps" => a.reps = it.next().context("--reps N")?.parse()?,
+            "--cpu-only" => a.gpu = false,
+            other => bail!("unknown argument {other:?} (--patches N, --reps N, --cpu-only)"),
+        }
+    }
+    Ok(a)
+}
+
+/// Median milliseconds of `reps` runs of `f` (after one warm-up run).
+fn time_ms(reps: usize, mut f: impl FnMut(usize)) -> f64 {
+    f(usize::MAX);
+    let mut t: Vec<f64> = (0..reps.max(1))
+        .map(|r| {
+            let s = Instant::now();
+            f(r);
+            s.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+/// A relight request: one point light moved by `r`, a solver, optional marble scale.
+fn body(r: usize, solver: &str, marble: Option<f32>) -> String {
+    let x = -0.2 + 0.05 * (r % 9) as f32;
+    let mat = marble.map_or(String::new(), |s| {
+        format!(
+            r#","materials":{{"tall_block":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble","scale":{s}}}}}}}"#
+        )
+    });
+    format!(
+        r#"{{"solver":"{solver}","lights":[{{"type":"point","position":[{x},0.5,0.1],"intensity":[1,1,1]}}]{mat}}}"#
+    )
+}
+
+struct Row {
+    what: String,
+    ms: f64,
+    note: String,
+}
+
+/// The whole-relight rows for the installed backend.
+fn relight_rows(scene: &Scene, reps: usize) -> anyhow::Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    let plan = |b: &str| -> anyhow::Result<relight::RelightPlan> {
+        relight::plan(scene, serde_json::from_str(b)?).map_err(|e| anyhow::anyhow!("{e:?}"))
+    };
+    for k in [1usize, 8, 64] {
+        let plans: Vec<_> = (0..k)
+            .map(|i| plan(&body(i, "inverse", None)))
+            .collect::<anyhow::Result<_>>()?;
+        let mut solve_ms = 0.0;
+        let ms = time_ms(reps, |_| {
+            let out = relight::run_batch(scene, &plans);
+            solve_ms = out[0].as_ref().map_or(f64::NAN, |o| o.stats.solve_ms);
+        });
+        rows.push(Row {
+            what: format!("relight with T, batch of {k}"),
+            ms,
+            note: format!(
+                "{:.2} ms per relight; transport {solve_ms:.2} ms per batch",
+                ms / k as f64
+            ),
+        });
+    }
+    let mut stats = String::new();
+    let ms = time_ms(reps, |r| {
+        let p = plan(&body(r.min(1000), "iterative", None)).expect("valid request");
+        match relight::run(scene, &p) {
+            Ok(o) => {
+                stats = format!(
+                    "{} {} it., residual {:.1e}, solve {:.1} ms",
+                    o.stats.solver, o.stats.iterations, o.stats.residual, o.stats.solve_ms
+                )
+            }
+            Err(e) => stats = format!("failed: {e:?}"),
+        }
+    });
+    rows.push(Row {
+        what: "relight with the solver (light moved, warm start)".into(),
+        ms,
+        note: stats,
+    });
+    let mut stats = String::new();
+    let ms = time_ms(reps, |r| {
+        // A new marble scale each time: S is rebuilt, never cached.
+        let scale = 1.0 + 0.137 * (r.min(1000) as f32 + 1.0);
+        let p = plan(&body(0, "iterative", Some(scale))).expect("valid request");
+        match relight::run(scene, &p) {
+            Ok(o) => {
+                stats = format!(
+                    "S rebuild {:.1} ms (CPU), solve {:.1} ms ({} {} it.)",
+                    o.stats.materials_ms, o.stats.solve_ms, o.stats.solver, o.stats.iterations
+                )
+            }
+            Err(e) => stats = format!("failed: {e:?}"),
+        }
+    });
+    rows.push(Row {
+        what: "translucency change (S rebuilt, then solved)".into(),
+        ms,
+        note: stats,
+    });
+    Ok(rows)
+}
+
+fn print(title: &str, rows: &[Row]) {
+    println!("\n### {title}\n");
+    println!("| measurement | ms | notes |");
+    println!("| --- | ---: | --- |");
+    for r in rows {
+        println!("| {} | {:.2} | {} |", r.what, r.ms, r.note);
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let a = args()?;
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../target/gpu-bench")
+        .join(format!("cornell-{}", a.patches));
+    if Bundle::open(&dir).map_or(true, |b| b.transfer().is_none()) {
+        eprintln!(
+            "precomputing builtin:cornell at {} patches with T into {}",
+            a.patches,
+            dir.display()
+        );
+        let params = PrecomputeParams {
+            patches: Some(a.patches),
+            inverse: true,
+            progress: true,
+            ..Default::default()
+        };
+        precompute(&load_scene("builtin:cornell")?, &dir, &params)?;
+    }
+    let scene = Scene::open("cornell", &dir)?;
+    let b = &scene.bundle;
+    let n = b.patch_areas().len();
+    let t = b.transfer().context("the bundle has no T")?;
+    let t_bytes = (t.bits.len() * 2) as u64;
+    let f = b.form_factors();
+    let s = b.subsurface();
+    println!("# GPU benchmark: builtin:cornell, {n} patches");
+    println!(
+        "\nnnz(F) {}, nnz(S) {}, T (f16 RGB) {:.1} MiB; CPU threads {}",
+        f.nnz(),
+        s.nnz(),
+        t_bytes as f64 / (1 << 20) as f64,
+        rayon::current_num_threads()
+    );
+
+    // The product over T alone, CPU: the precompute's own kernel.
+    let mut product_rows = Vec::new();
+    let host_bw = {
+        let src = vec![1u8; 256 << 20];
+        let mut dst = vec![0u8; 256 << 20];
+        let ms = time_ms(3, |_| dst.copy_from_slice(&src));
+        2.0 * src.len() as f64 / (ms * 1e-3) / 1e9
+    };
+    for k in [1usize, 8, 64] {
+        let v: Vec<f32> = (0..n * 3 * k).map(|i| (i % 7) as f32 * 0.1 + 0.1).collect();
+        let mut y = vec![0.0f32; n * 3 * k];
+        let ms = time_ms(a.reps, |_| {
+            inverse::apply_stored(t.bits, t.scale, n, &v, k, &mut y)
+        });
+        product_rows.push(Row {
+            what: format!("CPU: R·X over T, k = {k}"),
+            ms,
+            note: format!(
+                "{:.2} GB/s of T (memcpy: {host_bw:.1} GB/s)",
+                t_bytes as f64 / (ms * 1e-3) / 1e9
+            ),
+        });
+    }
+    let cpu_rows = relight_rows(&scene, a.reps)?;
+    print("CPU backend (rayon)", &cpu_rows);
+
+    if a.gpu {
+        let ctx = GpuContext::new(&GpuOptions {
+            allow_software: true,
+            ..Default::default()
+        })?;
+        let ad = ctx.adapter().clone();
+        let bw = ctx.copy_bandwidth(256 << 20, 5)?;
+        let t0 = Instant::now();
+        let dense = GpuDense::upload(&ctx, "T", n, n, DenseData::F16(t.bits), Some(t.scale))?;
+        let upload_ms = t0.elapsed().as_secs_f64() * 1e3;
+        for k in [1usize, 8, 64] {
+            let v: Vec<f32> = (0..n * 3 * k).map(|i| (i % 7) as f32 * 0.1 + 0.1).collect();
+            let mut y = vec![0.0f32; n * 3 * k];
+            let ms = time_ms(a.reps, |_| {
+                dense
+                    .multiply_interleaved(&ctx, &v, k, &mut y)
+                    .expect("GPU product")
+            });
+            product_rows.push(Row {
+                what: format!("GPU: R·X over T, k = {k} (upload and read-back included)"),
+                ms,
+                note: format!(
+                    "{:.2} GB/s of T (device copy: {bw:.1} GB/s); {} blocks",
+                    t_bytes as f64 / (ms * 1e-3) / 1e9,
+                    dense.blocks()
+                ),
+            });
+        }
+        drop(dense);
+        assert!(backend::install(Backend::on_gpu(ctx)).is_ok());
+        // A fresh scene: no warm starts from the CPU's runs.
+        let scene = Scene::open("cornell", &dir)?;
+        let t1 = Instant::now();
+        let on = backend::current().prepare(&scene);
+        let prep_ms = t1.elapsed().as_secs_f64() * 1e3;
+        let gpu_rows = relight_rows(&scene, a.reps)?;
+        let h = backend::current().gpu_health();
+        print(
+            &format!(
+                "GPU backend: {} ({}, {}{}), scene on {}",
+                ad.name,
+                ad.backend,
+                ad.device_type,
+                if ad.software {
+                    ", a software adapter: a CPU"
+                } else {
+                    ""
+                },
+                if on {
+                    "the GPU"
+                } else {
+                    "the CPU (did not fit)"
+                }
+            ),
+            &gpu_rows,
+        );
+        println!(
+            "\nGPU bytes: {:.1} MiB for the scene (F, S, vectors, T); upload of F and S {prep_ms:.0} ms, \
+             of T {upload_ms:.0} ms; device copy bandwidth {bw:.1} GB/s",
+            h.bytes as f64 / (1 << 20) as f64
+        );
+    }
+    print("The product over T alone (R = T − S, f16)", &product_rows);
+    Ok(())
+}

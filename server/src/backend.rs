@@ -1,0 +1,574 @@
+//! The compute backend, chosen once at start-up: `--backend auto|gpu|cpu`.
+//!
+//! In: the choice, and per request a scene, its S (the bundle's or a material override's),
+//! Bₑ and E. Out: the radiosity B from the device ([`crate::gpu`]), or `None`, which tells
+//! the relight to compute on the CPU (the reference path, [`translux_precompute::radiosity`]).
+//!
+//! - `cpu`: everything on the CPU.
+//! - `auto` (default): a hardware adapter (discrete, integrated, virtual) if wgpu finds one;
+//!   a software adapter (lavapipe/llvmpipe: a CPU in disguise, slower than the CPU backend)
+//!   is passed over. Without one the server runs on the CPU and says why in its log and in
+//!   `/healthz`.
+//! - `gpu`: the best adapter there is, software included (`/healthz` then says `software`);
+//!   none at all is a start-up error.
+//!
+//! A scene is uploaded once, when the server loads it or on its first solve (F, S, and the
+//! vectors of the solve; bind groups and staging buffers made once and reused; T on the first
+//! relight that uses it). A scene that does not fit — a row larger than one binding, the
+//! device refusing memory, or more than the budget
+//! `TRANSLUX_GPU_MEMORY_MIB` — is served from the CPU, with a warning in the log and its
+//! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use serde::Serialize;
+use translux_precompute::radiosity::{Rgb, SolveParams, SolveStats};
+
+use crate::gpu::{
+    AdapterSummary, DenseData, GpuContext, GpuCsr, GpuDense, GpuError, GpuOptions, GpuSystem,
+    SystemParams,
+};
+use crate::state::{OverrideMaterials, Scene};
+
+/// `--backend`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendChoice {
+    /// A hardware GPU if there is one, else the CPU.
+    #[default]
+    Auto,
+    /// The GPU (a software adapter too); an error without any adapter.
+    Gpu,
+    /// The CPU.
+    Cpu,
+}
+
+/// The environment variable that caps the GPU memory all scenes may use (MiB).
+pub const MEMORY_ENV: &str = "TRANSLUX_GPU_MEMORY_MIB";
+
+/// Where a scene is served.
+#[derive(Debug)]
+enum Slot {
+    Gpu(Arc<GpuScene>),
+    Cpu(String),
+}
+
+/// One scene on the device: F and the bundle's S, and the last override's S.
+#[derive(Debug)]
+struct GpuScene {
+    base: GpuSystem,
+    /// The last material override's system, keyed by its materials (held, so the pointer
+    /// cannot be reused).
+    over: Mutex<Option<(Arc<OverrideMaterials>, GpuSystem)>>,
+    /// The bundle's transfer matrix R = T − S, uploaded on first use; `Err`: it did not fit
+    /// (the CPU computes the product).
+    transfer: Mutex<Option<Result<Arc<GpuDense>, String>>>,
+}
+
+impl GpuScene {
+    fn bytes(&self) -> u64 {
+        let t = match self.transfer.lock().ok().as_deref() {
+            Some(Some(Ok(t))) => t.bytes(),
+            _ => 0,
+        };
+        t + self.base.bytes()
+            + self
+                .over
+                .lock()
+                .ok()
+                .and_then(|o| o.as_ref().map(|(_, s)| s.own_bytes()))
+                .unwrap_or(0)
+    }
+}
+
+/// The backend: a GPU context and its scenes, or the CPU. Cheap to clone.
+#[derive(Debug, Clone)]
+pub struct Backend {
+    inner: Arc<Inner>,
+}
+
+#[derive(Debug)]
+struct Inner {
+    gpu: Option<GpuContext>,
+    /// Why the CPU serves (backend `cpu`), or `None`.
+    reason: Option<String>,
+    /// By [`scene_key`]: the scene id and where it is served.
+    scenes: Mutex<HashMap<String, (String, Slot)>>,
+    params: SystemParams,
+}
+
+/// `/healthz`'s view of the backend.
+#[derive(Debug, Clone, Serialize)]
+pub struct BackendHealth {
+    /// `gpu` or `cpu`.
+    pub backend: String,
+    /// The adapter in use (absent on the CPU backend).
+    pub adapter: Option<AdapterSummary>,
+    /// Why the CPU serves (absent on the GPU backend).
+    pub reason: Option<String>,
+    /// GPU bytes held by all scenes.
+    pub gpu_bytes: u64,
+    /// Scenes uploaded (or refused) so far.
+    pub scenes: Vec<SceneBackend>,
+}
+
+/// One scene in [`BackendHealth`].
+#[derive(Debug, Clone, Serialize)]
+pub struct SceneBackend {
+    pub id: String,
+    /// `gpu` or `cpu`.
+    pub on: String,
+    pub gpu_bytes: u64,
+    /// Why a scene of the GPU backend is served from the CPU.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+static CURRENT: OnceLock<Backend> = OnceLock::new();
+
+/// Makes `b` the process's backend (the server does this once at start-up); a second call
+/// is refused with the backend already installed.
+pub fn install(b: Backend) -> Result<(), Backend> {
+    CURRENT.set(b)
+}
+
+/// The installed backend; the CPU when none was installed (library use, tests).
+pub fn current() -> &'static Backend {
+    static DEFAULT: OnceLock<Backend> = OnceLock::new();
+    CURRENT
+        .get()
+        .unwrap_or_else(|| DEFAULT.get_or_init(|| Backend::cpu("no backend was installed")))
+}
+
+impl Backend {
+    /// The CPU backend, with the reason it was chosen.
+    pub fn cpu(reason: impl Into<String>) -> Backend {
+        Backend {
+            inner: Arc::new(Inner {
+                gpu: None,
+                reason: Some(reason.into()),
+                scenes: Mutex::new(HashMap::new()),
+                params: SystemParams::default(),
+            }),
+        }
+    }
+
+    /// A GPU backend on `ctx`.
+    pub fn on_gpu(ctx: GpuContext) -> Backend {
+        Backend {
+            inner: Arc::new(Inner {
+                gpu: Some(ctx),
+                reason: None,
+                scenes: Mutex::new(HashMap::new()),
+                params: SystemParams::default(),
+            }),
+        }
+    }
+
+    /// Starts the chosen backend (see the module docs). `auto` never fails; `gpu` fails when
+    /// no adapter can be had. The budget comes from [`MEMORY_ENV`] when set.
+    pub fn start(choice: BackendChoice) -> Result<Backend, GpuError> {
+        let budget_bytes = match std::env::var(MEMORY_ENV) {
+            Ok(v) => Some(
+                v.trim()
+                    .parse::<u64>()
+                    .map_err(|_| {
+                        GpuError::Invalid(format!(
+                            "{MEMORY_ENV} must be a whole number of MiB, got {v:?}"
+                        ))
+                    })?
+                    .saturating_mul(1 << 20),
+            ),
+            Err(_) => None,
+        };
+        let mut opts = GpuOptions {
+            allow_software: false,
+            max_binding_bytes: None,
+            budget_bytes,
+        };
+        match choice {
+            BackendChoice::Cpu => Ok(Backend::cpu("--backend cpu")),
+            BackendChoice::Gpu => {
+                opts.allow_software = true;
+                Ok(Backend::on_gpu(GpuContext::new(&opts)?))
+            }
+            BackendChoice::Auto => match GpuContext::new(&opts) {
+                Ok(ctx) => Ok(Backend::on_gpu(ctx)),
+                Err(e) => Ok(Backend::cpu(format!("--backend auto: {e}"))),
+            },
+        }
+    }
+
+    /// `gpu` or `cpu`.
+    pub fn name(&self) -> &'static str {
+        if self.inner.gpu.is_some() {
+            "gpu"
+        } else {
+            "cpu"
+        }
+    }
+
+    /// The GPU context, when the backend is the GPU.
+    pub fn gpu(&self) -> Option<&GpuContext> {
+        self.inner.gpu.as_ref()
+    }
+
+    /// A line for the start-up log.
+    pub fn describe(&self) -> String {
+        match (&self.inner.gpu, &self.inner.reason) {
+            (Some(ctx), _) => {
+                let a = ctx.adapter();
+                format!(
+                    "backend gpu: {} ({}, {}{}), one binding holds {} MiB",
+                    a.name,
+                    a.backend,
+                    a.device_type,
+                    if a.software {
+                        ", a software adapter: it runs on the CPU"
+                    } else {
+                        ""
+                    },
+                    a.max_binding_bytes >> 20
+                )
+            }
+            (None, Some(r)) => format!("backend cpu: {r}"),
+            (None, None) => "backend cpu".into(),
+        }
+    }
+
+    /// The backend's state for `/healthz`.
+    pub fn health(&self) -> BackendHealth {
+        let scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        let mut list: Vec<SceneBackend> = scenes
+            .iter()
+            .map(|(_, (id, slot))| match slot {
+                Slot::Gpu(g) => SceneBackend {
+                    id: id.clone(),
+                    on: "gpu".into(),
+                    gpu_bytes: g.bytes(),
+                    reason: None,
+                },
+                Slot::Cpu(r) => SceneBackend {
+                    id: id.clone(),
+                    on: "cpu".into(),
+                    gpu_bytes: 0,
+                    reason: Some(r.clone()),
+                },
+            })
+            .collect();
+        list.sort_by(|a, b| a.id.cmp(&b.id));
+        BackendHealth {
+            backend: self.name().into(),
+            adapter: self.inner.gpu.as_ref().map(|g| g.adapter().clone()),
+            reason: self.inner.reason.clone(),
+            gpu_bytes: self.inner.gpu.as_ref().map_or(0, |g| g.used_bytes()),
+            scenes: list,
+        }
+    }
+
+    /// The GPU part of `/healthz`.
+    pub fn gpu_health(&self) -> translux_proto::api::GpuHealth {
+        use translux_proto::api::{GpuAdapter, GpuHealth, GpuScene};
+        let h = self.health();
+        GpuHealth {
+            available: self.inner.gpu.is_some(),
+            reason: h.reason,
+            adapter: h.adapter.map(|a| GpuAdapter {
+                name: a.name,
+                backend: a.backend,
+                device_type: a.device_type,
+                software: a.software,
+                max_binding_bytes: a.max_binding_bytes,
+            }),
+            bytes: h.gpu_bytes,
+            scenes: h
+                .scenes
+                .into_iter()
+                .map(|s| GpuScene {
+                    id: s.id,
+                    on: s.on,
+                    bytes: s.gpu_bytes,
+                    reason: s.reason,
+                })
+                .collect(),
+        }
+    }
+
+    /// GPU bytes held for the scene `id` (0 when it is not on the device).
+    pub fn scene_bytes(&self, id: &str) -> u64 {
+        let scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        scenes
+            .values()
+            .filter(|(sid, _)| sid == id)
+            .map(|(_, slot)| match slot {
+                Slot::Gpu(g) => g.bytes(),
+                Slot::Cpu(_) => 0,
+            })
+            .sum()
+    }
+
+    /// Uploads `scene` now (the server may call it at load; a solve does it otherwise).
+    /// Returns whether the scene is on the device.
+    pub fn prepare(&self, scene: &Scene) -> bool {
+        self.scene(scene).is_some()
+    }
+
+    /// The scene's device state, uploading it on first use; `None` on the CPU backend or
+    /// when the scene does not fit (then logged once and reported in `/healthz`).
+    fn scene(&self, scene: &Scene) -> Option<Arc<GpuScene>> {
+        let ctx = self.inner.gpu.as_ref()?;
+        let key = scene_key(scene);
+        let mut scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((_, slot)) = scenes.get(&key) {
+            return match slot {
+                Slot::Gpu(g) => Some(g.clone()),
+                Slot::Cpu(_) => None,
+            };
+        }
+        let b = &scene.bundle;
+        let t = std::time::Instant::now();
+        let made = GpuSystem::new(
+            ctx,
+            &scene.id,
+            &b.form_factors(),
+            &b.subsurface(),
+            SolveParams::default().max_iterations.max(1000),
+        );
+        match made {
+            Ok(sys) => {
+                tracing::info!(
+                    scene = %scene.id,
+                    "uploaded to the GPU: {} MiB (F {} blocks, S {} blocks) in {:.0} ms",
+                    sys.bytes() >> 20,
+                    sys.matrices().0.blocks(),
+                    sys.matrices().1.blocks(),
+                    t.elapsed().as_secs_f64() * 1e3
+                );
+                let g = Arc::new(GpuScene {
+                    base: sys,
+                    over: Mutex::new(None),
+                    transfer: Mutex::new(None),
+                });
+                scenes.insert(key, (scene.id.clone(), Slot::Gpu(g.clone())));
+                Some(g)
+            }
+            Err(e) => {
+                tracing::warn!(scene = %scene.id, "served from the CPU: it does not fit on the GPU: {e}");
+                scenes.insert(
+                    key,
+                    (
+                        scene.id.clone(),
+                        Slot::Cpu(format!("does not fit on the GPU: {e}")),
+                    ),
+                );
+                None
+            }
+        }
+    }
+
+    /// Solves B = Bₑ + S(E + F B) on the device for `scene` with the bundle's S, or with
+    /// `over`'s S for a material override (uploaded once per override set). `None`: solve on
+    /// the CPU (CPU backend, a scene that does not fit, or a device error, which is logged
+    /// and moves the scene to the CPU).
+    pub fn solve(
+        &self,
+        scene: &Scene,
+        over: Option<&Arc<OverrideMaterials>>,
+        emission: &[Rgb],
+        irradiance: &[Rgb],
+        params: &SolveParams,
+    ) -> Option<(Vec<Rgb>, SolveStats)> {
+        let ctx = self.inner.gpu.as_ref()?;
+        let g = self.scene(scene)?;
+        let run = |sys: &GpuSystem| {
+            sys.solve(ctx, emission, irradiance, params, &self.inner.params, None)
+                .map(|(b, s)| (b, s.stats))
+        };
+        match self.with_system(ctx, scene, &g, over, run) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                self.fail(ctx, scene, "solve", &e);
+                None
+            }
+        }
+    }
+
+    /// The system of `scene` for `over`'s S (uploaded once per override set) or the
+    /// bundle's S, run through `f`.
+    fn with_system<T>(
+        &self,
+        ctx: &GpuContext,
+        scene: &Scene,
+        g: &GpuScene,
+        over: Option<&Arc<OverrideMaterials>>,
+        f: impl FnOnce(&GpuSystem) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        let Some(m) = over else {
+            return f(&g.base);
+        };
+        let mut slot = g.over.lock().unwrap_or_else(|p| p.into_inner());
+        if !slot.as_ref().is_some_and(|(k, _)| Arc::ptr_eq(k, m)) {
+            if let Some((_, old)) = slot.take() {
+                old.release(ctx);
+            }
+            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &m.s_view())?;
+            let sys = GpuSystem::with_f(
+                ctx,
+                &scene.id,
+                g.base.f().clone(),
+                s,
+                SolveParams::default().max_iterations.max(1000),
+            )?;
+            *slot = Some((m.clone(), sys));
+        }
+        let (_, sys) = slot.as_ref().expect("set above");
+        f(sys)
+    }
+
+    /// Moves a scene to the CPU after a device error (logged; its buffers go when the last
+    /// request holding them ends).
+    fn fail(&self, ctx: &GpuContext, scene: &Scene, what: &str, e: &GpuError) {
+        tracing::warn!(scene = %scene.id, "GPU {what} failed, the CPU takes over: {e}");
+        let mut scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        let old = scenes.insert(
+            scene_key(scene),
+            (
+                scene.id.clone(),
+                Slot::Cpu(format!("a GPU {what} failed: {e}")),
+            ),
+        );
+        if let Some((_, Slot::Gpu(old))) = old {
+            ctx.release(old.bytes());
+        }
+    }
+
+    /// Solves (I − S F) x = rhs on the device for the k RGB systems of `rhs`
+    /// (`[patch][k·3]`, the relight's batched layout), S the bundle's or `over`'s; one
+    /// device solve per system. `warm` (same layout) starts each from a previous solution.
+    /// `None`: solve on the CPU (see [`Backend::solve`]).
+    pub fn solve_rhs(
+        &self,
+        scene: &Scene,
+        over: Option<&Arc<OverrideMaterials>>,
+        rhs: &[f32],
+        k: usize,
+        params: &SolveParams,
+        warm: Option<&[f32]>,
+    ) -> Option<(Vec<f32>, SolveStats)> {
+        let ctx = self.inner.gpu.as_ref()?;
+        let g = self.scene(scene)?;
+        let n = g.base.n();
+        if k == 0 || rhs.len() != n * 3 * k {
+            return None;
+        }
+        let ch = 3 * k;
+        let column = |v: &[f32], s: usize| -> Vec<Rgb> {
+            (0..n)
+                .map(|j| {
+                    let o = j * ch + 3 * s;
+                    [v[o], v[o + 1], v[o + 2]]
+                })
+                .collect()
+        };
+        let run = |sys: &GpuSystem| -> Result<(Vec<f32>, SolveStats), GpuError> {
+            let mut x = vec![0.0f32; n * ch];
+            let mut total: Option<SolveStats> = None;
+            for s in 0..k {
+                let w = warm.filter(|w| w.len() == n * ch).map(|w| column(w, s));
+                let (b, st) = sys.solve_rhs(
+                    ctx,
+                    &column(rhs, s),
+                    params,
+                    &self.inner.params,
+                    w.as_deref(),
+                )?;
+                for (j, v) in b.iter().enumerate() {
+                    x[j * ch + 3 * s..j * ch + 3 * s + 3].copy_from_slice(v);
+                }
+                let st = st.stats;
+                total = Some(match total {
+                    None => st,
+                    Some(t) => SolveStats {
+                        iterations: t.iterations.max(st.iterations),
+                        products: t.products + st.products,
+                        residual: t.residual.max(st.residual),
+                        converged: t.converged && st.converged,
+                        warm: t.warm && st.warm,
+                        seconds: t.seconds + st.seconds,
+                        ..t
+                    },
+                });
+            }
+            Ok((x, total.expect("k > 0")))
+        };
+        match self.with_system(ctx, scene, &g, over, run) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                self.fail(ctx, scene, "solve", &e);
+                None
+            }
+        }
+    }
+
+    /// y = R v with the bundle's stored transfer matrix R = T − S (f16, scaled per row and
+    /// channel) for k right-hand sides (`[patch][k·3]`), one pass over R per 64 of them.
+    /// `false`: compute it on the CPU (CPU backend, no T, T does not fit, device error).
+    pub fn transfer_product(&self, scene: &Scene, v: &[f32], k: usize, y: &mut [f32]) -> bool {
+        let Some(ctx) = self.inner.gpu.as_ref() else {
+            return false;
+        };
+        let Some(g) = self.scene(scene) else {
+            return false;
+        };
+        let Some(t) = scene.bundle.transfer() else {
+            return false;
+        };
+        let dense = {
+            let mut slot = g.transfer.lock().unwrap_or_else(|p| p.into_inner());
+            if slot.is_none() {
+                let made = GpuDense::upload(
+                    ctx,
+                    &format!("{} T", scene.id),
+                    t.n,
+                    t.n,
+                    DenseData::F16(t.bits),
+                    Some(t.scale),
+                );
+                if let Err(e) = &made {
+                    tracing::warn!(scene = %scene.id, "the transfer matrix stays on the CPU: {e}");
+                }
+                *slot = Some(made.map(Arc::new).map_err(|e| e.to_string()));
+            }
+            match slot.as_ref() {
+                Some(Ok(d)) => d.clone(),
+                _ => return false,
+            }
+        };
+        match dense.multiply_interleaved(ctx, v, k, y) {
+            Ok(()) => true,
+            Err(e) => {
+                self.fail(ctx, scene, "transfer product", &e);
+                false
+            }
+        }
+    }
+}
+
+/// A scene's identity on the device: its id and the checksums of F and S, so a bundle
+/// replaced under the same id is uploaded anew.
+fn scene_key(scene: &Scene) -> String {
+    let arrays = &scene.bundle.manifest().arrays;
+    let sum = |name: &str| {
+        arrays
+            .get(name)
+            .map_or("-", |a| a.xxh3.as_str())
+            .to_string()
+    };
+    format!(
+        "{}:{}:{}",
+        scene.id,
+        sum(translux_proto::bundle::arrays::FF_VAL),
+        sum(translux_proto::bundle::arrays::S_VAL)
+    )
+}

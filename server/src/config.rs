@@ -1,0 +1,208 @@
+//! Server settings: how many workers, how long a queue, how much batching, how long a
+//! request may wait. They come from, in order of precedence, the command line, the
+//! environment (`TRANSLUX_*`, read by clap), an optional TOML file (`--config FILE`), and
+//! the defaults documented on [`ServerParams`].
+//!
+//! ```toml
+//! # translux.toml — every key optional
+//! bundles = "bundles"        # relative to this file's folder
+//! addr = "0.0.0.0:8080"
+//! demo = false
+//! workers = 2                # relight threads; default: one per core
+//! queue = 256                # relights waiting at most; more get 429
+//! max_batch = 32             # relights of one scene computed together; 1 = no batching
+//! deadline_ms = 30000        # a relight that waited longer gets 503
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context;
+use serde::Deserialize;
+
+/// Defaults of [`ServerParams`].
+pub const DEFAULT_QUEUE: usize = 256;
+pub const DEFAULT_MAX_BATCH: usize = 32;
+pub const DEFAULT_DEADLINE_MS: u64 = 30_000;
+pub const DEFAULT_PING_S: u64 = 15;
+/// Upper bounds, so a typo cannot ask for a million threads.
+pub const MAX_WORKERS: usize = 1024;
+pub const MAX_QUEUE: usize = 1 << 20;
+pub const MAX_BATCH: usize = 1024;
+
+/// How the server shares its CPU between requests.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ServerParams {
+    /// Relight worker threads (default: the number of cores).
+    pub workers: usize,
+    /// Relights that may wait in the queue (default [`DEFAULT_QUEUE`]); one more is
+    /// answered 429 with `Retry-After`.
+    pub queue: usize,
+    /// Most relights of one scene computed in one batch (default [`DEFAULT_MAX_BATCH`]);
+    /// 1 turns batching off.
+    pub max_batch: usize,
+    /// How long a request may wait in the queue before it is answered 503
+    /// `deadline_exceeded` instead of computed (default [`DEFAULT_DEADLINE_MS`]).
+    pub deadline: Duration,
+    /// How often a WebSocket stream is pinged (default [`DEFAULT_PING_S`] s).
+    pub ping_interval: Duration,
+    /// The compute backend named in `/healthz` (`cpu`).
+    pub backend: String,
+}
+
+impl Default for ServerParams {
+    fn default() -> Self {
+        ServerParams {
+            workers: default_workers(),
+            queue: DEFAULT_QUEUE,
+            max_batch: DEFAULT_MAX_BATCH,
+            deadline: Duration::from_millis(DEFAULT_DEADLINE_MS),
+            ping_interval: Duration::from_secs(DEFAULT_PING_S),
+            backend: "cpu".to_string(),
+        }
+    }
+}
+
+impl ServerParams {
+    /// Checks the ranges; the message names the setting.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        if !(1..=MAX_WORKERS).contains(&self.workers) {
+            anyhow::bail!("workers must be in 1..={MAX_WORKERS}, got {}", self.workers);
+        }
+        if !(1..=MAX_QUEUE).contains(&self.queue) {
+            anyhow::bail!("queue must be in 1..={MAX_QUEUE}, got {}", self.queue);
+        }
+        if !(1..=MAX_BATCH).contains(&self.max_batch) {
+            anyhow::bail!(
+                "max_batch must be in 1..={MAX_BATCH}, got {}",
+                self.max_batch
+            );
+        }
+        if self.deadline.is_zero() {
+            anyhow::bail!("deadline_ms must be at least 1");
+        }
+        if self.ping_interval.is_zero() {
+            anyhow::bail!("the ping interval must be at least 1 ms");
+        }
+        Ok(())
+    }
+}
+
+/// One worker per core (at least one).
+pub fn default_workers() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// The TOML file's keys; all optional, unknown keys refused.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileConfig {
+    pub bundles: Option<PathBuf>,
+    pub addr: Option<String>,
+    pub demo: Option<bool>,
+    pub workers: Option<usize>,
+    pub queue: Option<usize>,
+    pub max_batch: Option<usize>,
+    pub deadline_ms: Option<u64>,
+}
+
+impl FileConfig {
+    /// Reads and parses `path`; a relative `bundles` is taken relative to the file's folder.
+    /// Errors name the file and, for a bad key or value, the key and line.
+    pub fn read(path: &Path) -> anyhow::Result<FileConfig> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read the config file {}", path.display()))?;
+        let mut cfg =
+            FileConfig::parse(&text).with_context(|| format!("config file {}", path.display()))?;
+        if let Some(b) = &cfg.bundles
+            && b.is_relative()
+        {
+            let base = path.parent().unwrap_or(Path::new(""));
+            cfg.bundles = Some(base.join(b));
+        }
+        Ok(cfg)
+    }
+
+    /// Parses TOML text.
+    pub fn parse(text: &str) -> anyhow::Result<FileConfig> {
+        toml::from_str(text).map_err(|e| anyhow::anyhow!("{}", e.to_string().trim_end()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn file_keys_parse_and_unknown_keys_are_refused() {
+        let c = FileConfig::parse(
+            "bundles = \"b\"\naddr = \"0.0.0.0:1\"\nworkers = 3\nqueue = 9\nmax_batch = 1\n\
+             deadline_ms = 500\ndemo = true\n",
+        )
+        .unwrap();
+        assert_eq!(c.bundles, Some(PathBuf::from("b")));
+        assert_eq!(c.addr.as_deref(), Some("0.0.0.0:1"));
+        assert_eq!(
+            (c.workers, c.queue, c.max_batch, c.deadline_ms, c.demo),
+            (Some(3), Some(9), Some(1), Some(500), Some(true))
+        );
+        assert_eq!(FileConfig::parse("").unwrap(), FileConfig::default());
+        let e = FileConfig::parse("wokers = 3").unwrap_err().to_string();
+        assert!(e.contains("wokers"), "{e}");
+        let e = FileConfig::parse("workers = \"many\"")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("workers"), "{e}");
+    }
+
+    #[test]
+    fn relative_bundles_are_relative_to_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.toml");
+        std::fs::write(&path, "bundles = \"bb\"").unwrap();
+        let c = FileConfig::read(&path).unwrap();
+        assert_eq!(c.bundles, Some(dir.path().join("bb")));
+        let e = FileConfig::read(&dir.path().join("missing.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing.toml"), "{e}");
+    }
+
+    #[test]
+    fn ranges_are_checked() {
+        assert!(ServerParams::default().validate().is_ok());
+        for (p, key) in [
+            (
+                ServerParams {
+                    workers: 0,
+                    ..Default::default()
+                },
+                "workers",
+            ),
+            (
+                ServerParams {
+                    queue: 0,
+                    ..Default::default()
+                },
+                "queue",
+            ),
+            (
+                ServerParams {
+                    max_batch: 0,
+                    ..Default::default()
+                },
+                "max_batch",
+            ),
+            (
+                ServerParams {
+                    deadline: Duration::ZERO,
+                    ..Default::default()
+                },
+                "deadline_ms",
+            ),
+        ] {
+            let e = p.validate().unwrap_err().to_string();
+            assert!(e.contains(key), "{e}");
+        }
+    }
+}

@@ -1,0 +1,268 @@
+//! Environment lights in a relight: map paths, the map cache, and E from the bundle's
+//! precomputed visibility (no rays).
+//!
+//! In: a scene and the request's lights. Out: [`check`] refuses what cannot be lit (400,
+//! the field named) before any work; [`direct_irradiance`] is E for all lights, point-like
+//! ones with shadow rays ([`translux_precompute::radiosity::direct_irradiance`]) plus each
+//! environment light's E_i = scale · Σ_k V_ik L̄_k ([`translux_precompute::envvis`]).
+//!
+//! Maps (see `docs/environment.md`): `builtin:sky`, `builtin:white`, or a Radiance `.hdr`
+//! file named by a relative path inside the *bundles folder* — the folder that holds the
+//! scene's bundle folder (`--bundles DIR` for the server; the parent of `--bundle DIR`
+//! offline). Absolute paths, `..` and links that lead outside it are refused. Loaded maps
+//! (keyed by path, length and modification time) and their per-bin means (keyed also by
+//! rotation and bins) are cached process-wide, a few of each.
+
+use std::path::{Component, Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::SystemTime;
+
+use translux_precompute::envmap::{self, Bins, EnvMap};
+use translux_precompute::radiosity::{self, PatchGeometry, Rgb};
+use translux_proto::light::Light;
+
+use crate::error::AppError;
+use crate::state::Scene;
+
+/// Maps kept in memory (a 2k × 1k map is 24 MB).
+const MAP_CACHE: usize = 4;
+/// Per-bin means kept (one per map, rotation and partition; a few KB each).
+const MEAN_CACHE: usize = 64;
+
+/// Where a map comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum MapKey {
+    Builtin(String),
+    /// Canonical path, byte length, modification time.
+    File(PathBuf, u64, Option<SystemTime>),
+}
+
+type MeanKey = (MapKey, u32, u32, u32);
+
+#[derive(Debug, Default)]
+struct Caches {
+    maps: Vec<(MapKey, Arc<EnvMap>)>,
+    means: Vec<(MeanKey, Arc<Vec<Rgb>>)>,
+}
+
+fn caches() -> &'static Mutex<Caches> {
+    static C: OnceLock<Mutex<Caches>> = OnceLock::new();
+    C.get_or_init(Mutex::default)
+}
+
+/// The folder map paths are relative to: the one holding the scene's bundle folder.
+fn maps_root(scene: &Scene) -> PathBuf {
+    let dir = scene.bundle.dir();
+    let abs = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+    abs.parent().map(Path::to_path_buf).unwrap_or(abs)
+}
+
+/// Resolves `map` (the value of `lights[i].map`, named `at` in messages).
+fn resolve(scene: &Scene, map: &str, at: &str) -> Result<MapKey, AppError> {
+    if map.starts_with("builtin:") {
+        EnvMap::builtin(map).map_err(|e| AppError::invalid(format!("{at}: {e}")))?;
+        return Ok(MapKey::Builtin(map.to_string()));
+    }
+    let rel = Path::new(map);
+    let plain = rel
+        .components()
+        .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    if !plain || rel.as_os_str().is_empty() {
+        return Err(AppError::invalid(format!(
+            "{at}: {map:?} must be builtin:sky, builtin:white or a relative path inside the \
+             bundles folder (no absolute path, no '..')"
+        )));
+    }
+    let is_hdr = rel
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
+    if !is_hdr {
+        return Err(AppError::invalid(format!(
+            "{at}: {map:?} is not a .hdr file (environment maps are equirectangular Radiance \
+             .hdr images)"
+        )));
+    }
+    let root = maps_root(scene);
+    let path = match std::fs::canonicalize(root.join(rel)) {
+        Ok(p) => p,
+        Err(_) => {
+            return Err(AppError::invalid(format!(
+                "{at}: no map {map:?} in the bundles folder (paths are relative to the folder \
+                 that holds the scene's bundle)"
+            )));
+        }
+    };
+    if !path.starts_with(&root) {
+        return Err(AppError::invalid(format!(
+            "{at}: {map:?} leads outside the bundles folder"
+        )));
+    }
+    let meta = std::fs::metadata(&path)
+        .map_err(|e| AppError::invalid(format!("{at}: cannot read {map:?}: {e}")))?;
+    if !meta.is_file() {
+        return Err(AppError::invalid(format!("{at}: {map:?} is not a file")));
+    }
+    Ok(MapKey::File(path, meta.len(), meta.modified().ok()))
+}
+
+/// The map for `key`, from the cache or loaded (and cached).
+fn load(key: &MapKey, map: &str, at: &str) -> Result<Arc<EnvMap>, AppError> {
+    if let Ok(c) = caches().lock()
+        && let Some((_, m)) = c.maps.iter().find(|(k, _)| k == key)
+    {
+        return Ok(m.clone());
+    }
+    let loaded = match key {
+        MapKey::Builtin(name) => EnvMap::builtin(name),
+        MapKey::File(path, ..) => EnvMap::load_hdr(path),
+    };
+    // The message names the request's path, never the server's folders.
+    let loaded = Arc::new(loaded.map_err(|e| {
+        let reason = match e {
+            envmap::EnvMapError::Malformed { reason, .. } => {
+                format!("not a valid Radiance .hdr image: {reason}")
+            }
+            envmap::EnvMapError::TooLarge { width, height, .. } => format!(
+                "{width}×{height} pixels is larger than the {} allowed",
+                envmap::MAX_PIXELS
+            ),
+            envmap::EnvMapError::Io { error, .. } => format!("cannot read the file: {error}"),
+            other => other.to_string(),
+        };
+        AppError::invalid(format!("{at}: {map:?}: {reason}"))
+    })?);
+    if let Ok(mut c) = caches().lock() {
+        if c.maps.len() >= MAP_CACHE {
+            c.maps.remove(0);
+        }
+        c.maps.push((key.clone(), loaded.clone()));
+    }
+    Ok(loaded)
+}
+
+/// The map's mean radiance per bin after rotation, cached.
+fn means(key: &MapKey, map: &Arc<EnvMap>, rotation_deg: f32, bins: Bins) -> Arc<Vec<Rgb>> {
+    let mk = (key.clone(), rotation_deg.to_bits(), bins.rows, bins.cols);
+    if let Ok(c) = caches().lock()
+        && let Some((_, m)) = c.means.iter().find(|(k, _)| *k == mk)
+    {
+        return m.clone();
+    }
+    let m = Arc::new(envmap::bin_radiance(map, rotation_deg, bins));
+    if let Ok(mut c) = caches().lock() {
+        if c.means.len() >= MEAN_CACHE {
+            c.means.remove(0);
+        }
+        c.means.push((mk, m.clone()));
+    }
+    m
+}
+
+/// Checks every environment light of `lights` against `scene` (visibility in the bundle,
+/// the map found and readable); loads and caches the maps. `given`: whether the lights came
+/// with the request (else they are the scene's defaults, which the message says).
+pub fn check(scene: &Scene, lights: &[Light], given: bool) -> Result<(), AppError> {
+    for (i, l) in lights.iter().enumerate() {
+        let Light::Environment { map, .. } = l else {
+            continue;
+        };
+        let at = if given {
+            format!("lights[{i}]")
+        } else {
+            format!("lights[{i}] (one of the scene's default lights)")
+        };
+        if scene.bundle.environment_visibility().is_none() {
+            return Err(AppError::unsupported(format!(
+                "{at}: scene {:?} was precomputed without environment visibility \
+                 (--env-bins 0); precompute it again without that flag to light it with an \
+                 environment",
+                scene.id
+            )));
+        }
+        let key = resolve(scene, map, &format!("{at}.map"))?;
+        load(&key, map, &format!("{at}.map"))?;
+    }
+    Ok(())
+}
+
+/// E for every patch from all of `lights`: point, spot and directional lights with shadow
+/// rays, environment lights from the bundle's visibility (W·m⁻²).
+pub fn direct_irradiance(
+    scene: &Scene,
+    geo: PatchGeometry<'_>,
+    lights: &[Light],
+) -> Result<Vec<Rgb>, AppError> {
+    let (env, others): (Vec<&Light>, Vec<&Light>) = lights
+        .iter()
+        .partition(|l| matches!(l, Light::Environment { .. }));
+    let others: Vec<Light> = others.into_iter().cloned().collect();
+    let mut e = radiosity::direct_irradiance(
+        geo,
+        &scene.occluder,
+        &others,
+        scene.bundle.manifest().unit_mm,
+    )
+    .map_err(|e| AppError::unsupported(e.to_string()))?;
+    if env.is_empty() {
+        return Ok(e);
+    }
+    let Some(vis) = scene.bundle.environment_visibility() else {
+        return Err(AppError::unsupported(format!(
+            "lights: scene {:?} was precomputed without environment visibility (--env-bins 0)",
+            scene.id
+        )));
+    };
+    let bins = Bins {
+        rows: vis.rows,
+        cols: vis.cols,
+    };
+    // Σ over lights of scale · L̄ per bin, so the N × K product runs once.
+    let mut total = vec![[0.0f32; 3]; bins.count()];
+    for (i, l) in lights.iter().enumerate() {
+        let Light::Environment {
+            map,
+            scale,
+            rotation_deg,
+        } = l
+        else {
+            continue;
+        };
+        let at = format!("lights[{i}].map");
+        let key = resolve(scene, map, &at)?;
+        let m = load(&key, map, &at)?;
+        for (t, l) in total
+            .iter_mut()
+            .zip(means(&key, &m, *rotation_deg, bins).iter())
+        {
+            for c in 0..3 {
+                t[c] += scale * l[c];
+            }
+        }
+    }
+    add_from_bits(vis, &total, &mut e);
+    Ok(e)
+}
+
+/// e_i += Σ_k V_ik L_k with V as half-float bits (converted a row at a time).
+fn add_from_bits(vis: translux_proto::bundle::EnvVisibilityView<'_>, total: &[Rgb], e: &mut [Rgb]) {
+    use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
+    use rayon::prelude::*;
+    let k = vis.bins();
+    e.par_iter_mut().enumerate().with_min_len(64).for_each_init(
+        || vec![0.0f32; k],
+        |row, (i, ei)| {
+            let bits: &[half::f16] = vis.row(i).reinterpret_cast();
+            bits.convert_to_f32_slice(row);
+            let mut acc = [0.0f32; 3];
+            for (&v, l) in row.iter().zip(total) {
+                acc[0] += v * l[0];
+                acc[1] += v * l[1];
+                acc[2] += v * l[2];
+            }
+            for c in 0..3 {
+                ei[c] += acc[c];
+            }
+        },
+    );
+}

@@ -1,0 +1,849 @@
+//! Precompute jobs: uploaded scenes turned into bundles in the background.
+//!
+//! In: a [`JobSpec`] (a checked scene file in an upload folder, the scene id, the patch
+//! density, who asked) through [`Jobs::submit`]. Out: a bundle at `BUNDLES/ID`, written by
+//! [`translux_precompute::pipeline::precompute`] (to a temporary folder, renamed into place:
+//! a bundle is there whole or not at all), handed to the `on_done` hook that starts serving
+//! it; and a [`JobRecord`] per job that clients poll or stream.
+//!
+//! - **Bounded**: `workers` jobs run at once (default 1), on their own rayon thread pool of
+//!   `threads` threads, so a precompute does not starve relighting; at most `queue` jobs wait,
+//!   and at most `per_owner` of them from one token; more are refused with 429 `queue_full`.
+//!   Waiting jobs run owner by owner in turn (the owner with the fewest running jobs first,
+//!   then the oldest job), so one person's batch of uploads does not hold up everyone else.
+//! - **States**: `queued` → `running` (stage and percent) → `done` | `failed` (message) |
+//!   `cancelled`. [`Jobs::cancel`] cancels a queued job at once and a running one at the
+//!   next check (before each stage and between form-factor rows).
+//! - **Restarts**: each record is a small JSON file in the jobs folder, rewritten at every
+//!   change of state. On start-up ([`Jobs::start`]) a job found `queued` or `running` is
+//!   marked `failed` ("the server stopped before the job finished"), its temporary bundle
+//!   folders (`BUNDLES/.ID.tmp-*`) and its upload folder are removed: a restart never leaves
+//!   half a bundle.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::Context;
+use axum::http::StatusCode;
+use serde::{Deserialize, Serialize};
+use tokio::sync::watch;
+use translux_precompute::pipeline::{Observer, PrecomputeError, PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene_file;
+
+use crate::error::AppError;
+
+/// Where a job is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    Queued,
+    Running,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    /// `done`, `failed` or `cancelled`: nothing will change any more.
+    pub fn is_final(self) -> bool {
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
+    }
+}
+
+/// What a finished job produced.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobResult {
+    pub patches: u64,
+    pub vertices: u64,
+    pub nnz_f: u64,
+    pub bundle_bytes: u64,
+    pub seconds: f64,
+}
+
+/// A job as clients see it (`GET /api/v1/jobs/{id}`) and as it is kept on disk.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobRecord {
+    /// `j` and 20 hex digits.
+    pub id: String,
+    /// The scene id the bundle will be served under.
+    pub scene: String,
+    /// The name of the token that submitted it.
+    pub owner: String,
+    pub state: JobState,
+    /// The stage running now (`load`, `patches`, `bvh`, `form factors`, `subsurface`,
+    /// `write bundle`), the last one reached once final.
+    pub stage: Option<String>,
+    /// Percent of the current stage done.
+    pub stage_percent: f64,
+    /// Percent of the whole job done (stages weighted by their usual share of the time).
+    pub percent: f64,
+    /// Why it failed or was cancelled.
+    pub error: Option<String>,
+    /// Requested patch target or maximum edge (`None`: the scene file's own).
+    pub patches: Option<u64>,
+    pub max_edge: Option<f32>,
+    /// Unix seconds.
+    pub created: u64,
+    pub started: Option<u64>,
+    pub finished: Option<u64>,
+    pub result: Option<JobResult>,
+}
+
+/// Settings of the job pool.
+#[derive(Debug, Clone)]
+pub struct JobsConfig {
+    /// The bundles folder: finished bundles go to `bundles/SCENE`.
+    pub bundles: PathBuf,
+    /// Job records (`ID.json`).
+    pub jobs_dir: PathBuf,
+    /// Upload folders (`ID/`), one per job, removed when the job ends.
+    pub uploads_dir: PathBuf,
+    /// Jobs running at once.
+    pub workers: usize,
+    /// Threads of the precompute thread pool.
+    pub threads: usize,
+    /// Jobs that may wait.
+    pub queue: usize,
+    /// Jobs one token may have waiting.
+    pub per_owner: usize,
+}
+
+impl JobsConfig {
+    /// The default layout: records and uploads in hidden folders of the bundles folder
+    /// (`.jobs/`, `.uploads/`; the bundle loader passes over dot-folders).
+    pub fn in_bundles(bundles: &Path) -> JobsConfig {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        JobsConfig {
+            bundles: bundles.to_path_buf(),
+            jobs_dir: bundles.join(".jobs"),
+            uploads_dir: bundles.join(".uploads"),
+            workers: 1,
+            threads: (cores / 2).max(1),
+            queue: 16,
+            per_owner: 4,
+        }
+    }
+}
+
+/// A job to run: made by the upload route after it has checked everything it can.
+#[derive(Debug, Clone)]
+pub struct JobSpec {
+    /// From [`Jobs::new_id`]; the upload folder is `uploads_dir/ID`.
+    pub id: String,
+    pub scene: String,
+    pub owner: String,
+    /// The scene file inside the upload folder.
+    pub scene_file: PathBuf,
+    pub patches: Option<u64>,
+    pub max_edge: Option<f32>,
+}
+
+/// Called with `(scene id, bundle folder)` when a job's bundle is in place.
+pub type OnDone = Arc<dyn Fn(&str, &Path) + Send + Sync>;
+
+/// The job pool; cheap to clone.
+#[derive(Clone)]
+pub struct Jobs {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Jobs {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Jobs")
+            .field("config", &self.inner.config)
+            .finish_non_exhaustive()
+    }
+}
+
+struct Inner {
+    config: JobsConfig,
+    state: Mutex<Table>,
+    wake: Condvar,
+    on_done: OnDone,
+    rayon: rayon::ThreadPool,
+}
+
+#[derive(Default)]
+struct Table {
+    jobs: BTreeMap<String, Arc<Entry>>,
+    /// Ids of queued jobs, oldest first.
+    queued: Vec<String>,
+    /// Running jobs per owner.
+    running: HashMap<String, usize>,
+    closed: bool,
+}
+
+/// One job: its record (also published to watchers) and its cancel flag.
+struct Entry {
+    spec: JobSpec,
+    record: Mutex<JobRecord>,
+    tx: watch::Sender<JobRecord>,
+    cancel: AtomicBool,
+    /// Last published whole percent, to publish only changes.
+    last_percent: AtomicU64,
+}
+
+impl std::fmt::Debug for Entry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Entry")
+            .field("id", &self.spec.id)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Stage weights for the overall percent: (stage, share of the job's time, typical).
+const STAGES: [(&str, f64); 6] = [
+    ("load", 0.02),
+    ("patches", 0.03),
+    ("bvh", 0.02),
+    ("form factors", 0.70),
+    ("subsurface", 0.18),
+    ("write bundle", 0.05),
+];
+
+fn overall_percent(stage: &str, stage_fraction: f64) -> f64 {
+    let mut before = 0.0;
+    for (name, w) in STAGES {
+        if name == stage {
+            return 100.0 * (before + w * stage_fraction.clamp(0.0, 1.0));
+        }
+        before += w;
+    }
+    100.0 * before
+}
+
+fn now_unix() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
+impl Entry {
+    fn lock(&self) -> MutexGuard<'_, JobRecord> {
+        self.record.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Changes the record, publishes it, and (for changes of state) writes it to disk.
+    fn update(&self, jobs_dir: &Path, persist: bool, f: impl FnOnce(&mut JobRecord)) {
+        let snapshot = {
+            let mut r = self.lock();
+            f(&mut r);
+            r.clone()
+        };
+        if persist && let Err(e) = write_record(jobs_dir, &snapshot) {
+            tracing::warn!("job {}: cannot save its record: {e:#}", snapshot.id);
+        }
+        self.tx.send_replace(snapshot);
+    }
+}
+
+/// The observer handed to the precompute: progress into the record, the cancel flag out.
+#[derive(Debug)]
+struct JobObserver {
+    entry: Arc<Entry>,
+    jobs_dir: PathBuf,
+}
+
+impl Observer for JobObserver {
+    fn progress(&self, stage: &str, done: u64, total: u64) {
+        let fraction = if total == 0 {
+            1.0
+        } else {
+            done as f64 / total as f64
+        };
+        let percent = overall_percent(stage, fraction);
+        let stage_changed = self.entry.lock().stage.as_deref() != Some(stage);
+        // Publish only when the stage or the whole stage percent changes: the form-factor
+        // stage reports once per row.
+        let key = (fraction * 100.0).floor() as u64;
+        if !stage_changed && self.entry.last_percent.swap(key, Ordering::Relaxed) == key {
+            return;
+        }
+        if stage_changed {
+            self.entry.last_percent.store(key, Ordering::Relaxed);
+            tracing::info!(job = %self.entry.spec.id, scene = %self.entry.spec.scene, "stage {stage}");
+        }
+        self.entry.update(&self.jobs_dir, false, |r| {
+            let stage_percent = (fraction * 100.0).clamp(0.0, 100.0);
+            if r.stage.as_deref() == Some(stage) {
+                // Rows finish on several threads: a report may arrive after a later one.
+                r.stage_percent = r.stage_percent.max(stage_percent);
+                r.percent = r.percent.max(percent);
+            } else {
+                r.stage = Some(stage.to_string());
+                r.stage_percent = stage_percent;
+                r.percent = r.percent.max(percent);
+            }
+        });
+    }
+
+    fn cancelled(&self) -> bool {
+        self.entry.cancel.load(Ordering::Relaxed)
+    }
+}
+
+impl Jobs {
+    /// Creates the folders, settles what an earlier run left (see the module
+    /// documentation), and starts the workers. Returns the pool and one line per job that
+    /// was found unfinished.
+    pub fn start(config: JobsConfig, on_done: OnDone) -> anyhow::Result<(Jobs, Vec<String>)> {
+        if config.workers == 0 || config.threads == 0 || config.queue == 0 || config.per_owner == 0
+        {
+            anyhow::bail!(
+                "the job pool needs at least one worker, thread, queue slot and slot per token"
+            );
+        }
+        for d in [&config.jobs_dir, &config.uploads_dir] {
+            std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
+        }
+        let (records, notes) = recover(&config)?;
+        let rayon = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(|k| format!("precompute-{k}"))
+            .build()
+            .context("cannot start the precompute thread pool")?;
+        let mut table = Table::default();
+        for r in records {
+            let spec = JobSpec {
+                id: r.id.clone(),
+                scene: r.scene.clone(),
+                owner: r.owner.clone(),
+                scene_file: PathBuf::new(),
+                patches: r.patches,
+                max_edge: r.max_edge,
+            };
+            table
+                .jobs
+                .insert(r.id.clone(), Arc::new(Entry::new(spec, r)));
+        }
+        let jobs = Jobs {
+            inner: Arc::new(Inner {
+                config,
+                state: Mutex::new(table),
+                wake: Condvar::new(),
+                on_done,
+                rayon,
+            }),
+        };
+        for k in 0..jobs.inner.config.workers {
+            let j = jobs.clone();
+            std::thread::Builder::new()
+                .name(format!("job-worker-{k}"))
+                .spawn(move || j.worker())
+                .context("cannot start a job worker")?;
+        }
+        Ok((jobs, notes))
+    }
+
+    pub fn config(&self) -> &JobsConfig {
+        &self.inner.config
+    }
+
+    fn table(&self) -> MutexGuard<'_, Table> {
+        self.inner.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A fresh job id: `j`, 12 hex digits of milliseconds since 1970, 8 random ones (ids
+    /// sort by age; they are safe as file names).
+    pub fn new_id() -> String {
+        let ms = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64);
+        let mut r = [0u8; 4];
+        if getrandom::fill(&mut r).is_err() {
+            static SEQ: AtomicU64 = AtomicU64::new(0);
+            r = (SEQ.fetch_add(1, Ordering::Relaxed) as u32).to_le_bytes();
+        }
+        format!("j{ms:012x}{}", crate::auth::hex(&r))
+    }
+
+    /// Whether `id` has the shape [`Jobs::new_id`] makes.
+    pub fn valid_id(id: &str) -> bool {
+        id.len() == 21
+            && id.starts_with('j')
+            && id[1..]
+                .bytes()
+                .all(|b| b.is_ascii_hexdigit() && !b.is_ascii_uppercase())
+    }
+
+    /// The upload folder of job `id`.
+    pub fn upload_dir(&self, id: &str) -> PathBuf {
+        self.inner.config.uploads_dir.join(id)
+    }
+
+    /// Whether a queued or running job will write scene `scene`.
+    pub fn busy_scene(&self, scene: &str) -> Option<String> {
+        self.table()
+            .jobs
+            .values()
+            .find(|e| e.spec.scene == scene && !e.lock().state.is_final())
+            .map(|e| e.spec.id.clone())
+    }
+
+    /// Queues `spec`; 429 when the queue (or the owner's share of it) is full, 503 after
+    /// shutdown began.
+    pub fn submit(&self, spec: JobSpec) -> Result<JobRecord, AppError> {
+        let mut t = self.table();
+        if t.closed {
+            return Err(AppError::shutting_down(
+                "the server is shutting down and takes no new jobs",
+            ));
+        }
+        let cfg = &self.inner.config;
+        if t.queued.len() >= cfg.queue {
+            return Err(AppError::queue_full(
+                format!(
+                    "the precompute queue is full ({} jobs waiting); retry later",
+                    cfg.queue
+                ),
+                30,
+            ));
+        }
+        let mine = t
+            .queued
+            .iter()
+            .filter(|id| t.jobs.get(*id).is_some_and(|e| e.spec.owner == spec.owner))
+            .count();
+        if mine >= cfg.per_owner {
+            return Err(AppError::queue_full(
+                format!(
+                    "{:?} already has {mine} jobs waiting, the most one token may queue; \
+                     retry when one has started",
+                    spec.owner
+                ),
+                30,
+            ));
+        }
+        if let Some(other) = t
+            .jobs
+            .values()
+            .find(|e| e.spec.scene == spec.scene && !e.lock().state.is_final())
+        {
+            return Err(AppError::new(
+                StatusCode::CONFLICT,
+                "conflict",
+                format!(
+                    "job {} is already making scene {:?}",
+                    other.spec.id, spec.scene
+                ),
+            ));
+        }
+        let record = JobRecord {
+            id: spec.id.clone(),
+            scene: spec.scene.clone(),
+            owner: spec.owner.clone(),
+            state: JobState::Queued,
+            stage: None,
+            stage_percent: 0.0,
+            percent: 0.0,
+            error: None,
+            patches: spec.patches,
+            max_edge: spec.max_edge,
+            created: now_unix(),
+            started: None,
+            finished: None,
+            result: None,
+        };
+        write_record(&cfg.jobs_dir, &record)
+            .map_err(|e| AppError::internal(format!("cannot save the job record: {e:#}")))?;
+        let id = spec.id.clone();
+        t.jobs
+            .insert(id.clone(), Arc::new(Entry::new(spec, record.clone())));
+        t.queued.push(id);
+        drop(t);
+        self.inner.wake.notify_one();
+        tracing::info!(job = %record.id, scene = %record.scene, owner = %record.owner, "job queued");
+        Ok(record)
+    }
+
+    /// The record of job `id`.
+    pub fn get(&self, id: &str) -> Option<JobRecord> {
+        self.table().jobs.get(id).map(|e| e.lock().clone())
+    }
+
+    /// Every job, newest first.
+    pub fn list(&self) -> Vec<JobRecord> {
+        let mut v: Vec<JobRecord> = self
+            .table()
+            .jobs
+            .values()
+            .map(|e| e.lock().clone())
+            .collect();
+        v.sort_by(|a, b| b.id.cmp(&a.id));
+        v
+    }
+
+    /// A receiver that sees every published change of job `id`.
+    pub fn watch(&self, id: &str) -> Option<watch::Receiver<JobRecord>> {
+        self.table().jobs.get(id).map(|e| e.tx.subscribe())
+    }
+
+    /// Cancels job `id`: a queued job at once, a running one at its next check. Returns the
+    /// record after the request (a final job is left as it is).
+    pub fn cancel(&self, id: &str) -> Option<JobRecord> {
+        let mut t = self.table();
+        let entry = t.jobs.get(id)?.clone();
+        entry.cancel.store(true, Ordering::Relaxed);
+        if let Some(k) = t.queued.iter().position(|q| q == id) {
+            t.queued.remove(k);
+            drop(t);
+            entry.update(&self.inner.config.jobs_dir, true, |r| {
+                r.state = JobState::Cancelled;
+                r.error = Some("cancelled before it started".into());
+                r.finished = Some(now_unix());
+            });
+            remove_quietly(&self.upload_dir(id));
+            tracing::info!(job = %id, "job cancelled while queued");
+        }
+        Some(entry.lock().clone())
+    }
+
+    /// Takes no new jobs; cancels the queued ones and asks running ones to stop.
+    pub fn close(&self) {
+        let ids: Vec<String> = {
+            let mut t = self.table();
+            t.closed = true;
+            t.jobs.keys().cloned().collect()
+        };
+        for id in ids {
+            self.cancel(&id);
+        }
+        self.inner.wake.notify_all();
+    }
+
+    /// The next job to run: among queued jobs, the owner with the fewest running jobs, then
+    /// the oldest.
+    fn next(&self) -> Option<Arc<Entry>> {
+        let mut t = self.table();
+        loop {
+            if t.closed {
+                return None;
+            }
+            let pick = t
+                .queued
+                .iter()
+                .enumerate()
+                .filter_map(|(k, id)| t.jobs.get(id).map(|e| (k, e)))
+                .min_by_key(|(k, e)| (t.running.get(&e.spec.owner).copied().unwrap_or(0), *k))
+                .map(|(k, e)| (k, e.clone()));
+            if let Some((k, e)) = pick {
+                t.queued.remove(k);
+                *t.running.entry(e.spec.owner.clone()).or_default() += 1;
+                return Some(e);
+            }
+            t = self.inner.wake.wait(t).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+
+    fn worker(&self) {
+        while let Some(entry) = self.next() {
+            let owner = entry.spec.owner.clone();
+            self.run(&entry);
+            let mut t = self.table();
+            if let Some(n) = t.running.get_mut(&owner) {
+                *n = n.saturating_sub(1);
+            }
+        }
+    }
+
+    fn run(&self, entry: &Arc<Entry>) {
+        let cfg = &self.inner.config;
+        let spec = &entry.spec;
+        entry.update(&cfg.jobs_dir, true, |r| {
+            r.state = JobState::Running;
+            r.started = Some(now_unix());
+            r.stage = Some("load".into());
+        });
+        tracing::info!(job = %spec.id, scene = %spec.scene, "job started");
+        let t = Instant::now();
+        let out = cfg.bundles.join(&spec.scene);
+        let observer = Arc::new(JobObserver {
+            entry: entry.clone(),
+            jobs_dir: cfg.jobs_dir.clone(),
+        });
+        let result: Result<JobResult, String> = (|| {
+            if entry.cancel.load(Ordering::Relaxed) {
+                return Err("cancelled".to_string());
+            }
+            let scene = load_scene_file(&spec.scene_file)
+                .map_err(|e| strip_dir(&e.to_string(), &self.upload_dir(&spec.id)))?;
+            let params = PrecomputeParams {
+                patches: spec.patches,
+                max_edge: spec.max_edge,
+                progress: false,
+                observer: Some(observer.clone()),
+                ..Default::default()
+            };
+            let report = self
+                .inner
+                .rayon
+                .install(|| precompute(&scene, &out, &params))
+                .map_err(|e| match e {
+                    PrecomputeError::Cancelled => "cancelled".to_string(),
+                    e => e.to_string(),
+                })?;
+            Ok(JobResult {
+                patches: report.patch_count as u64,
+                vertices: report.vertex_count as u64,
+                nnz_f: report.nnz_f,
+                bundle_bytes: report.bundle_bytes,
+                seconds: t.elapsed().as_secs_f64(),
+            })
+        })();
+        remove_quietly(&self.upload_dir(&spec.id));
+        match result {
+            Ok(res) => {
+                (self.inner.on_done)(&spec.scene, &out);
+                tracing::info!(
+                    job = %spec.id,
+                    scene = %spec.scene,
+                    "job done in {:.1} s: {} patches, {:.1} MB",
+                    res.seconds,
+                    res.patches,
+                    res.bundle_bytes as f64 / 1e6
+                );
+                entry.update(&cfg.jobs_dir, true, |r| {
+                    r.state = JobState::Done;
+                    r.percent = 100.0;
+                    r.stage_percent = 100.0;
+                    r.finished = Some(now_unix());
+                    r.result = Some(res);
+                });
+            }
+            Err(msg) => {
+                let cancelled = entry.cancel.load(Ordering::Relaxed) && msg == "cancelled";
+                tracing::info!(job = %spec.id, scene = %spec.scene, "job ended: {msg}");
+                entry.update(&cfg.jobs_dir, true, |r| {
+                    r.state = if cancelled {
+                        JobState::Cancelled
+                    } else {
+                        JobState::Failed
+                    };
+                    r.error = Some(msg);
+                    r.finished = Some(now_unix());
+                });
+            }
+        }
+    }
+}
+
+impl Entry {
+    fn new(spec: JobSpec, record: JobRecord) -> Entry {
+        Entry {
+            spec,
+            tx: watch::channel(record.clone()).0,
+            record: Mutex::new(record),
+            cancel: AtomicBool::new(false),
+            last_percent: AtomicU64::new(u64::MAX),
+        }
+    }
+}
+
+/// Replaces `dir/` in a message by nothing: clients see file names, not server paths.
+pub fn strip_dir(message: &str, dir: &Path) -> String {
+    message.replace(&format!("{}/", dir.display()), "")
+}
+
+fn remove_quietly(dir: &Path) {
+    if dir.exists()
+        && let Err(e) = std::fs::remove_dir_all(dir)
+    {
+        tracing::warn!("cannot remove {}: {e}", dir.display());
+    }
+}
+
+fn record_path(jobs_dir: &Path, id: &str) -> PathBuf {
+    jobs_dir.join(format!("{id}.json"))
+}
+
+/// Writes the record next to its place and renames it there.
+fn write_record(jobs_dir: &Path, r: &JobRecord) -> anyhow::Result<()> {
+    let path = record_path(jobs_dir, &r.id);
+    let tmp = jobs_dir.join(format!(".{}.json.tmp", r.id));
+    let text = serde_json::to_vec_pretty(r)?;
+    std::fs::write(&tmp, text).with_context(|| format!("cannot write {}", tmp.display()))?;
+    std::fs::rename(&tmp, &path).with_context(|| format!("cannot rename to {}", path.display()))?;
+    Ok(())
+}
+
+/// Reads the records an earlier run left; fails the unfinished ones and removes their
+/// temporary bundle folders; removes upload folders that belong to no waiting job.
+fn recover(cfg: &JobsConfig) -> anyhow::Result<(Vec<JobRecord>, Vec<String>)> {
+    let mut records = Vec::new();
+    let mut notes = Vec::new();
+    let entries = std::fs::read_dir(&cfg.jobs_dir)
+        .with_context(|| format!("cannot read {}", cfg.jobs_dir.display()))?;
+    for e in entries.flatten() {
+        let path = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') {
+            // A record being written when the server stopped.
+            remove_file_quietly(&path);
+            continue;
+        }
+        let Some(id) = name.strip_suffix(".json") else {
+            continue;
+        };
+        if !Jobs::valid_id(id) {
+            continue;
+        }
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) => {
+                notes.push(format!("cannot read job record {}: {e}", path.display()));
+                continue;
+            }
+        };
+        let mut r: JobRecord = match translux_proto::parse_json(&text) {
+            Ok(r) => r,
+            Err(e) => {
+                notes.push(format!("skipping job record {}: {e}", path.display()));
+                continue;
+            }
+        };
+        if !r.state.is_final() {
+            let was = r.state;
+            r.state = JobState::Failed;
+            r.error = Some(format!(
+                "the server stopped before the job finished (it was {}); upload the scene again",
+                match was {
+                    JobState::Queued => "queued",
+                    _ => "running",
+                }
+            ));
+            r.finished = Some(now_unix());
+            let removed = remove_temporaries(&cfg.bundles, &r.scene);
+            write_record(&cfg.jobs_dir, &r)?;
+            notes.push(format!(
+                "job {} (scene {:?}) did not finish before the last stop: marked failed{}",
+                r.id,
+                r.scene,
+                if removed > 0 {
+                    format!(", {removed} temporary bundle folder(s) removed")
+                } else {
+                    String::new()
+                }
+            ));
+        }
+        records.push(r);
+    }
+    // No job waits after a restart: every upload folder is left over.
+    if let Ok(entries) = std::fs::read_dir(&cfg.uploads_dir) {
+        for e in entries.flatten() {
+            remove_quietly(&e.path());
+        }
+    }
+    Ok((records, notes))
+}
+
+/// Removes `bundles/.SCENE.tmp-*` (the precompute's temporary folders for this scene).
+fn remove_temporaries(bundles: &Path, scene: &str) -> usize {
+    let prefix = format!(".{scene}.tmp-");
+    let mut n = 0;
+    if let Ok(entries) = std::fs::read_dir(bundles) {
+        for e in entries.flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) && e.path().is_dir() {
+                remove_quietly(&e.path());
+                n += 1;
+            }
+        }
+    }
+    n
+}
+
+fn remove_file_quietly(p: &Path) {
+    let _ = std::fs::remove_file(p);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ids_and_percentages() {
+        let a = Jobs::new_id();
+        let b = Jobs::new_id();
+        assert!(Jobs::valid_id(&a), "{a}");
+        assert_ne!(a, b);
+        for bad in [
+            "",
+            "j",
+            "../etc",
+            "jZZZZZZZZZZZZZZZZZZZZ",
+            "j0000000000000000000/",
+        ] {
+            assert!(!Jobs::valid_id(bad), "{bad}");
+        }
+        assert_eq!(overall_percent("load", 0.0), 0.0);
+        assert!((overall_percent("write bundle", 1.0) - 100.0).abs() < 1e-9);
+        let mid = overall_percent("form factors", 0.5);
+        assert!((mid - 42.0).abs() < 1e-9, "{mid}");
+    }
+
+    #[test]
+    fn restart_fails_unfinished_jobs_and_removes_temporaries() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = JobsConfig::in_bundles(dir.path());
+        std::fs::create_dir_all(&cfg.jobs_dir).unwrap();
+        std::fs::create_dir_all(cfg.uploads_dir.join("jleftover")).unwrap();
+        let mut r = JobRecord {
+            id: Jobs::new_id(),
+            scene: "cup".into(),
+            owner: "alice".into(),
+            state: JobState::Running,
+            stage: Some("form factors".into()),
+            stage_percent: 40.0,
+            percent: 30.0,
+            error: None,
+            patches: Some(200),
+            max_edge: None,
+            created: 1,
+            started: Some(2),
+            finished: None,
+            result: None,
+        };
+        write_record(&cfg.jobs_dir, &r).unwrap();
+        let done_id = Jobs::new_id();
+        r = JobRecord {
+            id: done_id.clone(),
+            state: JobState::Done,
+            scene: "old".into(),
+            ..r
+        };
+        write_record(&cfg.jobs_dir, &r).unwrap();
+        let tmp = dir.path().join(".cup.tmp-1-2-3");
+        std::fs::create_dir_all(&tmp).unwrap();
+        std::fs::write(tmp.join("ff_val.f32"), [0u8; 8]).unwrap();
+        let other = dir.path().join(".other.tmp-1-2-3");
+        std::fs::create_dir_all(&other).unwrap();
+
+        let (jobs, notes) = Jobs::start(cfg.clone(), Arc::new(|_, _| {})).unwrap();
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert!(notes[0].contains("cup"), "{notes:?}");
+        assert!(!tmp.exists(), "the half-written bundle is still there");
+        assert!(
+            other.exists(),
+            "another scene's temporary folder was removed"
+        );
+        assert!(!cfg.uploads_dir.join("jleftover").exists());
+        let list = jobs.list();
+        assert_eq!(list.len(), 2);
+        let failed = list.iter().find(|j| j.scene == "cup").unwrap();
+        assert_eq!(failed.state, JobState::Failed);
+        assert!(
+            failed.error.as_deref().unwrap().contains("stopped"),
+            "{failed:?}"
+        );
+        assert_eq!(jobs.get(&done_id).unwrap().state, JobState::Done);
+        // The change is on disk too.
+        let text = std::fs::read_to_string(record_path(&cfg.jobs_dir, &failed.id)).unwrap();
+        assert!(text.contains("\"failed\""), "{text}");
+        jobs.close();
+    }
+}

@@ -1,0 +1,524 @@
+//! One server for a team: access control ([`crate::auth`]), uploads and precompute jobs
+//! ([`crate::upload`], [`crate::jobs`]), scene deletion, and the memory budget
+//! ([`crate::budget`]) — put around the API of [`crate::routes`] by [`app`].
+//!
+//! In: [`TeamArgs`] (flags and `TRANSLUX_*` variables), the bundles folder, the
+//! [`AppState`]. Out: a router with these routes added —
+//!
+//! | route | role | answer |
+//! | --- | --- | --- |
+//! | `POST /api/v1/scenes` | editor | 202, the job record, `Location: /api/v1/jobs/{id}` |
+//! | `GET /api/v1/jobs` | editor | `{"jobs":[...]}`: yours (an admin sees all), newest first |
+//! | `GET /api/v1/jobs/{id}` | editor | the job record |
+//! | `GET /api/v1/jobs/{id}/events` | editor | Server-Sent Events: `progress` per change, then `done`, `failed` or `cancelled` |
+//! | `DELETE /api/v1/jobs/{id}` | editor | cancels; the record |
+//! | `DELETE /api/v1/scenes/{id}` | admin | unloads the scene and deletes its bundle folder |
+//! | `GET /api/v1/whoami` | viewer | `{"name","role","auth"}` |
+//!
+//! — and two middlewares around everything: [`crate::auth::middleware`] (outermost: 401,
+//! 403, 429), then the residency middleware, which makes the scene of a
+//! `/api/v1/scenes/{id}...` request resident before its handler runs (reopening an evicted
+//! scene) and evicts least-recently-used scenes when the budget is exceeded.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::extract::{DefaultBodyLimit, Path as UrlPath, Request, State};
+use axum::http::{Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{delete, get, post};
+use axum::{Extension, Json, Router};
+use serde_json::json;
+use translux_proto::api::SceneSummary;
+use translux_proto::bundle::{Bundle, OpenOptions};
+
+use crate::auth::{Auth, Identity, RateLimit, Role};
+use crate::budget::{EvictedScene, MemoryBudget, parse_bytes};
+use crate::error::AppError;
+use crate::jobs::{JobRecord, Jobs, JobsConfig};
+use crate::state::{AppState, Scene, SceneState};
+use crate::upload::{UploadLimits, check_scene_id};
+
+/// The team settings of `translux-server` (flags, or the `TRANSLUX_*` variables named).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct TeamArgs {
+    /// Tokens file (TOML, hashed tokens with roles; see `translux-server token add`).
+    /// Without it the server serves loopback only.
+    #[arg(long, value_name = "FILE", env = "TRANSLUX_TOKENS")]
+    pub tokens: Option<PathBuf>,
+    /// Requests per second per token (a token's own `rate` overrides it) [default: 50].
+    #[arg(long, value_name = "N", env = "TRANSLUX_RATE_LIMIT")]
+    pub rate_limit: Option<f64>,
+    /// Requests a token may make at once above its rate [default: 100].
+    #[arg(long, value_name = "N", env = "TRANSLUX_RATE_BURST")]
+    pub rate_burst: Option<f64>,
+    /// Memory the resident scenes may hold (e.g. 8GiB); least recently used scenes are
+    /// evicted beyond it and reopened on their next request [default: no limit].
+    #[arg(long, value_name = "SIZE", env = "TRANSLUX_MEMORY_BUDGET", value_parser = parse_bytes)]
+    pub memory_budget: Option<u64>,
+    /// Precompute jobs run at once [default: 1].
+    #[arg(long, value_name = "N", env = "TRANSLUX_JOBS")]
+    pub jobs: Option<usize>,
+    /// Threads of the precompute pool [default: half the cores].
+    #[arg(long, value_name = "N", env = "TRANSLUX_JOB_THREADS")]
+    pub job_threads: Option<usize>,
+    /// Precompute jobs that may wait [default: 16; 4 per token].
+    #[arg(long, value_name = "N", env = "TRANSLUX_JOB_QUEUE")]
+    pub job_queue: Option<usize>,
+    /// Largest upload, all files together [default: 256MiB].
+    #[arg(long, value_name = "SIZE", env = "TRANSLUX_UPLOAD_LIMIT", value_parser = parse_bytes)]
+    pub upload_limit: Option<u64>,
+    /// Largest file of an upload [default: 64MiB].
+    #[arg(long, value_name = "SIZE", env = "TRANSLUX_UPLOAD_FILE_LIMIT", value_parser = parse_bytes)]
+    pub upload_file_limit: Option<u64>,
+    /// Most patches an uploaded scene may ask for [default: 50000].
+    #[arg(long, value_name = "N", env = "TRANSLUX_MAX_UPLOAD_PATCHES")]
+    pub max_upload_patches: Option<u64>,
+}
+
+/// Everything the team routes need; cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Team {
+    pub auth: Arc<Auth>,
+    pub jobs: Jobs,
+    pub budget: Arc<MemoryBudget>,
+    pub limits: UploadLimits,
+    pub state: AppState,
+    pub bundles: PathBuf,
+    /// Per-scene locks so that concurrent requests reopen an evicted scene once.
+    reloading: Arc<Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>>,
+}
+
+impl Team {
+    /// Reads the tokens, settles the jobs an earlier run left, starts the job pool.
+    pub fn start(args: &TeamArgs, bundles: &Path, state: AppState) -> anyhow::Result<Team> {
+        let defaults = RateLimit::default();
+        let rate = RateLimit {
+            per_second: args.rate_limit.unwrap_or(defaults.per_second),
+            burst: args.rate_burst.unwrap_or(defaults.burst),
+        };
+        let auth = match &args.tokens {
+            Some(path) => Auth::from_file(path, rate)?,
+            None => Auth::open(),
+        };
+        let d = UploadLimits::default();
+        let limits = UploadLimits {
+            file_bytes: args.upload_file_limit.unwrap_or(d.file_bytes),
+            total_bytes: args.upload_limit.unwrap_or(d.total_bytes),
+            files: d.files,
+            patches: args.max_upload_patches.unwrap_or(d.patches),
+        };
+        let mut cfg = JobsConfig::in_bundles(bundles);
+        cfg.workers = args.jobs.unwrap_or(cfg.workers);
+        cfg.threads = args.job_threads.unwrap_or(cfg.threads);
+        cfg.queue = args.job_queue.unwrap_or(cfg.queue);
+        cfg.per_owner = cfg.per_owner.min(cfg.queue);
+        let budget = Arc::new(MemoryBudget::new(args.memory_budget));
+        let hook_state = state.clone();
+        let hook_budget = budget.clone();
+        let (jobs, notes) = Jobs::start(
+            cfg,
+            Arc::new(move |id: &str, dir: &Path| {
+                hook_state.load_one(id, dir);
+                if let Some(scene) = hook_state.scene(id) {
+                    hook_budget.charge(id, "host", host_bytes(&scene));
+                    evict(&hook_state, &hook_budget, id);
+                }
+            }),
+        )?;
+        for n in notes {
+            tracing::warn!("{n}");
+        }
+        Ok(Team {
+            auth: Arc::new(auth),
+            jobs,
+            budget,
+            limits,
+            state,
+            bundles: bundles.to_path_buf(),
+            reloading: Default::default(),
+        })
+    }
+
+    /// The start-up log line about access.
+    pub fn describe(&self) -> String {
+        let mut s = if self.auth.enabled() {
+            format!("access control on: {}", self.auth.summary())
+        } else {
+            "no tokens configured: every route is open to this machine only (loopback); \
+             give --tokens FILE to serve a network"
+                .to_string()
+        };
+        if let Some(b) = self.budget.limit() {
+            s.push_str(&format!(
+                "; memory budget {:.1} MiB",
+                b as f64 / (1 << 20) as f64
+            ));
+        }
+        s
+    }
+
+    /// 409 unless `id` is free for a new scene.
+    pub fn check_scene_free(&self, id: &str) -> Result<(), AppError> {
+        let conflict = |m: String| AppError::new(StatusCode::CONFLICT, "conflict", m);
+        if let Some(s) = self.state.scene_state(id) {
+            return Err(conflict(format!(
+                "scene {id:?} already exists ({}); an admin can DELETE /api/v1/scenes/{id} \
+                 first, or upload under another id",
+                s.as_str()
+            )));
+        }
+        if self.bundles.join(id).exists() {
+            return Err(conflict(format!(
+                "the bundles folder already holds {id:?}; upload under another id"
+            )));
+        }
+        if let Some(job) = self.jobs.busy_scene(id) {
+            return Err(conflict(format!(
+                "job {job} is already making scene {id:?}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Makes scene `id` resident (reopening it if evicted) and charges it to the budget.
+    async fn make_resident(&self, id: &str) -> Result<(), AppError> {
+        let lock = {
+            let mut map = self.reloading.lock().unwrap_or_else(|e| e.into_inner());
+            map.entry(id.to_string()).or_default().clone()
+        };
+        let _held = lock.lock().await;
+        match self.state.scene_state(id) {
+            Some(SceneState::Evicted(e)) => {
+                let dir = e.dir.clone();
+                let sid = id.to_string();
+                let t = std::time::Instant::now();
+                let opened = tokio::task::spawn_blocking(move || {
+                    // Verified when first opened; the folder is replaced only by a rename.
+                    Bundle::open_with(
+                        &dir,
+                        OpenOptions {
+                            verify_checksums: false,
+                        },
+                    )
+                    .map(|b| Scene::from_bundle(sid, b))
+                })
+                .await
+                .map_err(|e| AppError::internal(format!("the reload task failed: {e}")))?;
+                match opened {
+                    Ok(scene) => {
+                        tracing::info!(
+                            scene = %id,
+                            "reopened after eviction in {:.1} ms",
+                            t.elapsed().as_secs_f64() * 1e3
+                        );
+                        let bytes = host_bytes(&scene);
+                        self.state.insert_ready(scene);
+                        self.budget.charge(id, "host", bytes);
+                    }
+                    Err(err) => {
+                        let msg = format!("cannot reopen the evicted bundle: {err}");
+                        self.state.set_failed(id, msg.clone());
+                        return Err(AppError::not_found(format!(
+                            "scene {id:?} is not served: {msg}"
+                        )));
+                    }
+                }
+            }
+            Some(SceneState::Ready(scene)) => {
+                self.budget.charge(id, "host", host_bytes(&scene));
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+/// Evicts what the budget says, keeping `keep`.
+fn evict(state: &AppState, budget: &MemoryBudget, keep: &str) {
+    for victim in budget.victims(keep) {
+        if let Some(SceneState::Ready(scene)) = state.scene_state(&victim) {
+            let m = scene.bundle.manifest();
+            let summary = SceneSummary {
+                id: scene.id.clone(),
+                name: m.name.clone(),
+                patches: m.patch_count,
+                vertices: m.vertex_count,
+                objects: m.objects.len(),
+            };
+            let dir = scene.bundle.dir().to_path_buf();
+            state.set_evicted(victim.clone(), Arc::new(EvictedScene { dir, summary }));
+            tracing::info!(scene = %victim, "evicted to stay within the memory budget");
+        }
+    }
+}
+
+/// Bytes scene `scene` holds on the host: the mapped bundle, the shadow-ray BVH (estimated
+/// at twice its triangles), centroids and normals, the mesh JSON once made, and the S
+/// matrix and materials of the cached override set.
+pub fn host_bytes(scene: &Scene) -> u64 {
+    let b = &scene.bundle;
+    let occluder = b.manifest().occluder_count * 36 * 2;
+    let patches = b.manifest().patch_count * 24;
+    let mesh = scene.mesh_json.get().map_or(0, |m| m.len() as u64);
+    let materials = scene
+        .material_cache
+        .lock()
+        .ok()
+        .and_then(|c| {
+            c.as_ref().map(|(_, m)| {
+                (m.s.row_ptr.len() * 8 + m.s.col.len() * 4 + m.s.val.len() * 12) as u64
+                    + m.albedo.len() as u64 * 24
+            })
+        })
+        .unwrap_or(0);
+    b.total_bytes() + occluder + patches + mesh + materials
+}
+
+/// The scene id of a request the residency middleware looks after: `GET`/`POST` under
+/// `/api/v1/scenes/{id}`.
+fn scene_of(method: &Method, path: &str) -> Option<String> {
+    if *method == Method::DELETE {
+        return None;
+    }
+    let rest = path.strip_prefix("/api/v1/scenes/")?;
+    let id = rest.split('/').next()?;
+    check_scene_id(id).ok()?;
+    Some(id.to_string())
+}
+
+/// Unpins a scene when the request ends (also when its future is dropped), charging what
+/// its caches grew to and evicting beyond the budget.
+struct Pin {
+    team: Team,
+    id: String,
+}
+
+impl Drop for Pin {
+    fn drop(&mut self) {
+        self.team.budget.unpin(&self.id);
+        if let Some(scene) = self.team.state.scene(&self.id) {
+            self.team
+                .budget
+                .charge(&self.id, "host", host_bytes(&scene));
+        }
+        evict(&self.team.state, &self.team.budget, &self.id);
+    }
+}
+
+async fn residency(State(team): State<Team>, req: Request, next: Next) -> Response {
+    let Some(id) = scene_of(req.method(), req.uri().path()) else {
+        return next.run(req).await;
+    };
+    if team.budget.limit().is_none() {
+        return next.run(req).await;
+    }
+    if let Err(e) = team.make_resident(&id).await {
+        return e.into_response();
+    }
+    team.budget.pin(&id);
+    let _pin = Pin {
+        team: team.clone(),
+        id: id.clone(),
+    };
+    evict(&team.state, &team.budget, &id);
+    next.run(req).await
+}
+
+/// `(method, path)` of the routes this module adds.
+pub fn routes() -> Vec<(Method, &'static str)> {
+    vec![
+        (Method::POST, "/api/v1/scenes"),
+        (Method::DELETE, "/api/v1/scenes/{id}"),
+        (Method::GET, "/api/v1/jobs"),
+        (Method::GET, "/api/v1/jobs/{id}"),
+        (Method::GET, "/api/v1/jobs/{id}/events"),
+        (Method::DELETE, "/api/v1/jobs/{id}"),
+        (Method::GET, "/api/v1/whoami"),
+    ]
+}
+
+/// The whole API: [`crate::router`] and this module's routes, behind the residency and
+/// access middlewares.
+pub fn app(state: AppState, team: Team) -> Router {
+    let body_limit = (team.limits.total_bytes as usize).saturating_add(1 << 20);
+    let ours = Router::new()
+        .route(
+            "/api/v1/scenes",
+            post(crate::upload::upload).layer(DefaultBodyLimit::max(body_limit)),
+        )
+        .route("/api/v1/scenes/{id}", delete(delete_scene))
+        .route("/api/v1/jobs", get(list_jobs))
+        .route("/api/v1/jobs/{id}", get(get_job).delete(cancel_job))
+        .route("/api/v1/jobs/{id}/events", get(job_events))
+        .route("/api/v1/whoami", get(whoami))
+        .with_state(team.clone());
+    crate::router(state)
+        .merge(ours)
+        .layer(middleware::from_fn_with_state(team.clone(), residency))
+        .layer(middleware::from_fn_with_state(
+            team.auth.clone(),
+            crate::auth::middleware,
+        ))
+}
+
+/// Whether `who` may see job `r`: its owner, or an admin.
+fn visible(r: &JobRecord, who: &Option<Extension<Identity>>) -> bool {
+    match who {
+        Some(Extension(i)) => i.role == Some(Role::Admin) || *i.name == *r.owner,
+        None => true,
+    }
+}
+
+fn job_or_404(
+    team: &Team,
+    id: &str,
+    who: &Option<Extension<Identity>>,
+) -> Result<JobRecord, AppError> {
+    let missing = || AppError::not_found(format!("no job {id:?}"));
+    if !Jobs::valid_id(id) {
+        return Err(missing());
+    }
+    let r = team.jobs.get(id).ok_or_else(missing)?;
+    if !visible(&r, who) {
+        return Err(missing());
+    }
+    Ok(r)
+}
+
+async fn list_jobs(
+    State(team): State<Team>,
+    who: Option<Extension<Identity>>,
+) -> Json<serde_json::Value> {
+    let jobs: Vec<JobRecord> = team
+        .jobs
+        .list()
+        .into_iter()
+        .filter(|r| visible(r, &who))
+        .collect();
+    Json(json!({ "jobs": jobs }))
+}
+
+async fn get_job(
+    State(team): State<Team>,
+    UrlPath(id): UrlPath<String>,
+    who: Option<Extension<Identity>>,
+) -> Result<Json<JobRecord>, AppError> {
+    Ok(Json(job_or_404(&team, &id, &who)?))
+}
+
+async fn cancel_job(
+    State(team): State<Team>,
+    UrlPath(id): UrlPath<String>,
+    who: Option<Extension<Identity>>,
+) -> Result<Json<JobRecord>, AppError> {
+    job_or_404(&team, &id, &who)?;
+    let r = team
+        .jobs
+        .cancel(&id)
+        .ok_or_else(|| AppError::not_found(format!("no job {id:?}")))?;
+    Ok(Json(r))
+}
+
+/// `GET /api/v1/jobs/{id}/events`: an SSE stream; each event's data is the job record,
+/// named `progress` while the job is queued or running and by the final state at the end.
+async fn job_events(
+    State(team): State<Team>,
+    UrlPath(id): UrlPath<String>,
+    who: Option<Extension<Identity>>,
+) -> Result<Response, AppError> {
+    job_or_404(&team, &id, &who)?;
+    let rx = team
+        .jobs
+        .watch(&id)
+        .ok_or_else(|| AppError::not_found(format!("no job {id:?}")))?;
+    // (receiver, whether the first event was sent, finished)
+    let stream =
+        futures_util::stream::unfold((rx, false, false), |(mut rx, started, ended)| async move {
+            if ended {
+                return None;
+            }
+            if started && rx.changed().await.is_err() {
+                return None;
+            }
+            let r = rx.borrow_and_update().clone();
+            let name = if r.state.is_final() {
+                serde_json::to_value(r.state)
+                    .ok()
+                    .and_then(|v| v.as_str().map(str::to_string))
+                    .unwrap_or_else(|| "done".into())
+            } else {
+                "progress".to_string()
+            };
+            let event = Event::default()
+                .event(name)
+                .json_data(&r)
+                .unwrap_or_else(|_| Event::default().comment("unserialisable record"));
+            let end = r.state.is_final();
+            Some((Ok::<_, std::convert::Infallible>(event), (rx, true, end)))
+        });
+    Ok(Sse::new(stream)
+        .keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
+        .into_response())
+}
+
+/// `DELETE /api/v1/scenes/{id}` (admin): stops serving the scene and deletes its bundle
+/// folder (renamed aside first, so the id is free at once). Requests already running on it
+/// finish with the data they have mapped.
+async fn delete_scene(
+    State(team): State<Team>,
+    UrlPath(id): UrlPath<String>,
+) -> Result<Json<serde_json::Value>, AppError> {
+    check_scene_id(&id).map_err(|_| AppError::not_found(format!("no scene {id:?}")))?;
+    if let Some(job) = team.jobs.busy_scene(&id) {
+        return Err(AppError::new(
+            StatusCode::CONFLICT,
+            "conflict",
+            format!(
+                "job {job} is making scene {id:?}; cancel it first (DELETE /api/v1/jobs/{job})"
+            ),
+        ));
+    }
+    let old = team
+        .state
+        .remove(&id)
+        .ok_or_else(|| AppError::not_found(format!("no scene {id:?}")))?;
+    team.budget.forget(&id);
+    let dir = team.bundles.join(&id);
+    let from_here = match &old {
+        SceneState::Ready(s) => s.bundle.dir() == dir.as_path(),
+        SceneState::Evicted(e) => e.dir == dir,
+        _ => true,
+    };
+    let mut deleted = false;
+    if from_here && dir.is_dir() {
+        let aside = team
+            .bundles
+            .join(format!(".{id}.deleted-{}", crate::jobs::Jobs::new_id()));
+        std::fs::rename(&dir, &aside)
+            .map_err(|e| AppError::internal(format!("cannot move {id:?} aside: {e}")))?;
+        tokio::task::spawn_blocking(move || std::fs::remove_dir_all(aside))
+            .await
+            .map_err(|e| AppError::internal(format!("the delete task failed: {e}")))?
+            .map_err(|e| AppError::internal(format!("cannot delete the bundle: {e}")))?;
+        deleted = true;
+    }
+    tracing::info!(scene = %id, deleted, "scene removed");
+    Ok(Json(
+        json!({ "id": id, "unloaded": true, "deleted": deleted }),
+    ))
+}
+
+async fn whoami(
+    State(team): State<Team>,
+    who: Option<Extension<Identity>>,
+) -> Json<serde_json::Value> {
+    let (name, role) = match who {
+        Some(Extension(i)) => (i.name.to_string(), i.role.map(Role::as_str)),
+        None => (crate::auth::LOCAL_NAME.to_string(), Some("admin")),
+    };
+    Json(json!({ "name": name, "role": role, "auth": team.auth.enabled() }))
+}

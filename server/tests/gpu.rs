@@ -1,0 +1,627 @@
+//! The wgpu backend against its references: every kernel against its CPU twin (and the
+//! sparse products against the precompute's own CPU product) on random, non-zero inputs,
+//! matrices forced into many row blocks by a tiny binding cap, and whole solves against the
+//! CPU solver on a precomputed Cornell box with a translucent block.
+//!
+//! These tests need a GPU adapter; without a GPU, Mesa's lavapipe (`apt-get install
+//! mesa-vulkan-drivers libvulkan1`, `.ci/run` does it) is one. With no adapter they fail,
+//! saying so, unless `TRANSLUX_SKIP_GPU_TESTS=1`.
+
+use std::sync::OnceLock;
+
+use translux_precompute::radiosity::{Method, Rgb, SolveParams, SparseScatter, solve, spmv_rgb};
+use translux_proto::csr::CsrView;
+use translux_server::gpu::cpu_twin::{self, DenseData};
+use translux_server::gpu::system::{jacobi_update_once, reduce_sum_once};
+use translux_server::gpu::{GpuContext, GpuCsr, GpuDense, GpuOptions, GpuSystem, SystemParams};
+
+/// The shared context (adapter limits), or `None` when skipping is allowed and no adapter
+/// exists.
+fn ctx() -> Option<&'static GpuContext> {
+    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
+    CTX.get_or_init(|| open(None)).as_ref()
+}
+
+/// A context whose matrix buffers hold at most 4 KiB: everything is split into blocks.
+fn tiny_ctx() -> Option<&'static GpuContext> {
+    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
+    CTX.get_or_init(|| open(Some(4096))).as_ref()
+}
+
+fn open(cap: Option<u64>) -> Option<GpuContext> {
+    let opts = GpuOptions {
+        allow_software: true,
+        max_binding_bytes: cap,
+        budget_bytes: None,
+    };
+    match GpuContext::new(&opts) {
+        Ok(c) => {
+            eprintln!("GPU tests on {:?}", c.adapter());
+            Some(c)
+        }
+        Err(e) if std::env::var("TRANSLUX_SKIP_GPU_TESTS").as_deref() == Ok("1") => {
+            eprintln!("GPU tests skipped (TRANSLUX_SKIP_GPU_TESTS=1): {e}");
+            None
+        }
+        Err(e) => panic!(
+            "the GPU tests need a GPU adapter and found none: {e}\n\
+             Install Mesa's software Vulkan (apt-get install -y mesa-vulkan-drivers libvulkan1) \
+             or set TRANSLUX_SKIP_GPU_TESTS=1 to skip them"
+        ),
+    }
+}
+
+/// A seeded xorshift generator: reproducible random inputs without a crate.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    /// Uniform in [lo, hi).
+    fn f(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * ((self.next() >> 40) as f32 / (1u64 << 24) as f32)
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+    fn rgb(&mut self) -> Rgb {
+        [self.f(0.1, 1.0), self.f(0.1, 1.0), self.f(0.1, 1.0)]
+    }
+}
+
+/// A random CSR pattern: row lengths from 0 to `max_len` (some past 32 lanes), sorted
+/// distinct columns.
+fn pattern(rng: &mut Rng, rows: usize, cols: usize, max_len: usize) -> (Vec<u64>, Vec<u32>) {
+    let mut row_ptr = vec![0u64];
+    let mut col = Vec::new();
+    for r in 0..rows {
+        let len = if r % 17 == 5 {
+            0
+        } else {
+            rng.below(max_len + 1)
+        };
+        let mut c: Vec<u32> = (0..len).map(|_| rng.below(cols) as u32).collect();
+        c.sort_unstable();
+        c.dedup();
+        col.extend(c);
+        row_ptr.push(col.len() as u64);
+    }
+    (row_ptr, col)
+}
+
+/// |a − b| ≤ tol · max(|b|, floor) componentwise, with the worst index in the message.
+fn assert_close(what: &str, got: &[Rgb], want: &[Rgb], tol: f32) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let scale = want
+        .iter()
+        .flat_map(|v| v.iter())
+        .fold(0.0f32, |m, v| m.max(v.abs()));
+    let floor = 1e-6 * scale.max(1e-30);
+    let mut worst = (0.0f32, 0usize);
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        for c in 0..3 {
+            let rel = (g[c] - w[c]).abs() / w[c].abs().max(floor);
+            if rel > worst.0 {
+                worst = (rel, i);
+            }
+        }
+    }
+    assert!(
+        worst.0 <= tol,
+        "{what}: relative error {:.3e} at {} (got {:?}, want {:?})",
+        worst.0,
+        worst.1,
+        got[worst.1],
+        want[worst.1]
+    );
+}
+
+fn spmv_case(ctx: &GpuContext, rows: usize, max_len: usize, seed: u64) -> (usize, usize) {
+    let mut rng = Rng(seed);
+    let cols = rows + 7;
+    let (row_ptr, col) = pattern(&mut rng, rows, cols, max_len);
+    let x: Vec<Rgb> = (0..cols).map(|_| rng.rgb()).collect();
+    // F: scalar values.
+    let fv: Vec<f32> = col.iter().map(|_| rng.f(0.01, 1.0)).collect();
+    let f = CsrView::new_checked(rows, cols, &row_ptr, &col, &fv).unwrap();
+    let gf = GpuCsr::upload_f32(ctx, "F", &f).unwrap();
+    let got = gf.multiply(ctx, &x).unwrap();
+    let mut twin = vec![[0.0; 3]; rows];
+    cpu_twin::csr_spmv_rgb(&row_ptr, &col, &fv, &x, &mut twin);
+    assert_close("csr_spmv_rgb (f32 values) vs twin", &got, &twin, 1e-4);
+    // The precompute's own product (an independent CPU reference, other summation order).
+    // It is square-only in spirit but takes any CSR view.
+    let mut cpu = vec![[0.0; 3]; rows];
+    spmv_rgb(&f, &x, &mut cpu);
+    assert_close(
+        "csr_spmv_rgb (f32 values) vs radiosity::spmv_rgb",
+        &got,
+        &cpu,
+        1e-4,
+    );
+    // S: RGB values.
+    let sv: Vec<Rgb> = col.iter().map(|_| rng.rgb()).collect();
+    let s = CsrView::new_checked(rows, cols, &row_ptr, &col, &sv).unwrap();
+    let gs = GpuCsr::upload_rgb(ctx, "S", &s).unwrap();
+    let got = gs.multiply(ctx, &x).unwrap();
+    let mut twin = vec![[0.0; 3]; rows];
+    cpu_twin::csr_spmv_rgb(&row_ptr, &col, &sv, &x, &mut twin);
+    assert_close("csr_spmv_rgb (RGB values) vs twin", &got, &twin, 1e-4);
+    (gf.blocks(), gs.blocks())
+}
+
+#[test]
+fn csr_spmv_rgb_matches_its_twin() {
+    let Some(ctx) = ctx() else { return };
+    for (rows, max_len, seed) in [(1, 40, 1), (257, 3, 2), (1000, 300, 3), (3001, 70, 4)] {
+        let (bf, bs) = spmv_case(ctx, rows, max_len, seed);
+        assert_eq!(
+            (bf, bs),
+            (1, 1),
+            "the adapter's binding holds these matrices whole"
+        );
+    }
+}
+
+#[test]
+fn csr_spmv_rgb_matches_its_twin_when_tiled() {
+    let Some(ctx) = tiny_ctx() else { return };
+    let (bf, bs) = spmv_case(ctx, 2000, 120, 11);
+    // 4 KiB tiles: F's ~120k column indices need dozens of blocks, S's more.
+    assert!(bf > 20 && bs > bf, "blocks: F {bf}, S {bs}");
+}
+
+fn dense_case(ctx: &GpuContext, rows: usize, cols: usize, k: usize, f16: bool, seed: u64) -> usize {
+    let mut rng = Rng(seed);
+    let vals: Vec<f32> = (0..rows * cols * 3).map(|_| rng.f(0.0, 1.0)).collect();
+    let halves: Vec<u16> = vals
+        .iter()
+        .map(|&v| half::f16::from_f32(v).to_bits())
+        .collect();
+    let t = if f16 {
+        DenseData::F16(&halves)
+    } else {
+        DenseData::F32(&vals)
+    };
+    let g = GpuDense::upload(ctx, "T", rows, cols, t, None).unwrap();
+    let xs: Vec<Vec<Rgb>> = (0..k)
+        .map(|_| (0..cols).map(|_| rng.rgb()).collect())
+        .collect();
+    let refs: Vec<&[Rgb]> = xs.iter().map(|v| v.as_slice()).collect();
+    let got = g.multiply(ctx, &refs).unwrap();
+    // The twin takes X as [col][vector].
+    let mut x = vec![[0.0f32; 3]; cols * k];
+    for (v, xv) in xs.iter().enumerate() {
+        for (i, e) in xv.iter().enumerate() {
+            x[i * k + v] = *e;
+        }
+    }
+    let mut y = vec![[0.0f32; 3]; rows * k];
+    cpu_twin::dense_matmul_rgb(t, rows, cols, &x, k, &mut y);
+    for v in 0..k {
+        let want: Vec<Rgb> = (0..rows).map(|j| y[j * k + v]).collect();
+        assert_close(
+            &format!("dense_matmul_rgb {rows}×{cols} f16={f16} k={k} vector {v}"),
+            &got[v],
+            &want,
+            1e-4,
+        );
+    }
+    g.blocks()
+}
+
+#[test]
+fn dense_matmul_rgb_matches_its_twin() {
+    let Some(ctx) = ctx() else { return };
+    // Odd column counts put triples across u32 boundaries; k crosses the lane widths.
+    for (rows, cols, k, f16, seed) in [
+        (5, 3, 1, true, 1),
+        (129, 127, 1, true, 2),
+        (130, 301, 3, true, 3),
+        (64, 255, 8, false, 4),
+        (37, 513, 64, true, 5),
+        (200, 200, 17, false, 6),
+    ] {
+        assert_eq!(dense_case(ctx, rows, cols, k, f16, seed), 1);
+    }
+}
+
+#[test]
+fn dense_matmul_rgb_matches_its_twin_when_tiled() {
+    let Some(ctx) = tiny_ctx() else { return };
+    // 4 KiB tiles: 111 f16 RGB columns are 666 bytes a row, so 6 rows a block.
+    let blocks = dense_case(ctx, 101, 111, 5, true, 7);
+    assert!(blocks >= 17, "blocks: {blocks}");
+    let blocks = dense_case(ctx, 60, 50, 64, false, 8);
+    assert!(blocks >= 10, "blocks: {blocks}");
+}
+
+#[test]
+fn jacobi_update_and_reduce_sum_match_their_twins() {
+    let Some(ctx) = ctx() else { return };
+    let mut rng = Rng(21);
+    for n in [1usize, 255, 256, 1000, 70_001] {
+        let b: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();
+        let sfx: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();
+        let x: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();
+        let (gx, gp) = jacobi_update_once(ctx, &b, &sfx, &x).unwrap();
+        let mut tx = x.clone();
+        let tp = cpu_twin::jacobi_update(&b, &sfx, &mut tx);
+        assert_close(&format!("jacobi_update x, n = {n}"), &gx, &tx, 1e-6);
+        let gp3: Vec<Rgb> = gp.iter().map(|&v| [v; 3]).collect();
+        let tp3: Vec<Rgb> = tp.iter().map(|&v| [v; 3]).collect();
+        assert_close(
+            &format!("jacobi_update partials, n = {n}"),
+            &gp3,
+            &tp3,
+            1e-4,
+        );
+        // reduce_sum on those partials, three times: the history gets three equal slots.
+        let h = reduce_sum_once(ctx, &gp, 3).unwrap();
+        let want = cpu_twin::reduce_sum(&gp);
+        for (k, v) in h.iter().enumerate() {
+            assert!(
+                (v - want).abs() <= 1e-4 * want.abs(),
+                "reduce_sum slot {k}, n = {n}: {v} vs twin {want}"
+            );
+        }
+    }
+}
+
+/// A random transport system with a known contraction: F rows sum to ≤ 0.9, S columns
+/// (Σ_j S_ji) to ≤ 0.9 per channel.
+struct System {
+    n: usize,
+    f_ptr: Vec<u64>,
+    f_col: Vec<u32>,
+    f_val: Vec<f32>,
+    s_ptr: Vec<u64>,
+    s_col: Vec<u32>,
+    s_val: Vec<Rgb>,
+}
+
+fn random_system(n: usize, seed: u64) -> System {
+    let mut rng = Rng(seed);
+    let (f_ptr, f_col) = pattern(&mut rng, n, n, 60);
+    let mut f_val: Vec<f32> = f_col.iter().map(|_| rng.f(0.1, 1.0)).collect();
+    for r in 0..n {
+        let (a, b) = (f_ptr[r] as usize, f_ptr[r + 1] as usize);
+        let sum: f32 = f_val[a..b].iter().sum();
+        let target = rng.f(0.3, 0.9);
+        for v in &mut f_val[a..b] {
+            *v *= target / sum.max(1e-9);
+        }
+    }
+    // S: a diagonal plus a few neighbours, then columns scaled to ≤ 0.9.
+    let mut s_ptr = vec![0u64];
+    let mut s_col = Vec::new();
+    let mut s_val = Vec::new();
+    for j in 0..n {
+        let mut c: Vec<u32> = vec![j as u32];
+        for _ in 0..rng.below(6) {
+            c.push(rng.below(n) as u32);
+        }
+        c.sort_unstable();
+        c.dedup();
+        for &i in &c {
+            s_col.push(i);
+            s_val.push(rng.rgb());
+        }
+        s_ptr.push(s_col.len() as u64);
+    }
+    let mut colsum = vec![[0.0f32; 3]; n];
+    for (k, &i) in s_col.iter().enumerate() {
+        for c in 0..3 {
+            colsum[i as usize][c] += s_val[k][c];
+        }
+    }
+    for (k, &i) in s_col.iter().enumerate() {
+        for c in 0..3 {
+            s_val[k][c] *= 0.9 / colsum[i as usize][c].max(0.9);
+        }
+    }
+    System {
+        n,
+        f_ptr,
+        f_col,
+        f_val,
+        s_ptr,
+        s_col,
+        s_val,
+    }
+}
+
+fn solve_both(ctx: &GpuContext, sys: &System, seed: u64) -> (usize, usize) {
+    let mut rng = Rng(seed);
+    let n = sys.n;
+    let f = CsrView::new_checked(n, n, &sys.f_ptr, &sys.f_col, &sys.f_val).unwrap();
+    let s = CsrView::new_checked(n, n, &sys.s_ptr, &sys.s_col, &sys.s_val).unwrap();
+    let e: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();
+    let be: Vec<Rgb> = (0..n)
+        .map(|i| if i % 50 == 0 { rng.rgb() } else { [0.0; 3] })
+        .collect();
+    let params = SolveParams {
+        method: Method::Jacobi,
+        tolerance: 1e-6,
+        max_iterations: 400,
+    };
+    let gpu = GpuSystem::new(ctx, "random", &f, &s, params.max_iterations).unwrap();
+    let (gb, gs) = gpu
+        .solve(ctx, &be, &e, &params, &SystemParams::default(), None)
+        .unwrap();
+    assert!(gs.stats.converged, "{gs:?}");
+    assert!(gs.readbacks < gs.stats.iterations, "{gs:?}");
+    for method in [Method::Jacobi, Method::BiCgStab] {
+        let p = SolveParams { method, ..params };
+        let (cb, cs) = solve(&f, &SparseScatter(s), &be, &e, &p, None).unwrap();
+        assert!(cs.converged, "{cs:?}");
+        assert_close(&format!("GPU Jacobi vs CPU {method:?}"), &gb, &cb, 1e-4);
+    }
+    let (bf, bs) = (gpu.matrices().0.blocks(), gpu.matrices().1.blocks());
+    gpu.release(ctx);
+    (bf, bs)
+}
+
+#[test]
+fn device_solve_matches_the_cpu_solvers_on_a_random_system() {
+    let Some(ctx) = ctx() else { return };
+    solve_both(ctx, &random_system(3000, 31), 32);
+}
+
+#[test]
+fn device_solve_matches_the_cpu_solvers_when_tiled() {
+    let Some(ctx) = tiny_ctx() else { return };
+    let (bf, bs) = solve_both(ctx, &random_system(800, 41), 42);
+    assert!(bf > 10 && bs > 1, "blocks: F {bf}, S {bs}");
+}
+
+#[test]
+fn auto_takes_only_hardware_and_gpu_takes_any_adapter() {
+    use translux_server::backend::{Backend, BackendChoice};
+    let Some(ctx) = ctx() else { return };
+    let auto = Backend::start(BackendChoice::Auto).unwrap();
+    let health = auto.gpu_health();
+    if ctx.adapter().software {
+        // lavapipe/llvmpipe: a CPU in disguise; auto serves from the CPU and says why.
+        assert_eq!(auto.name(), "cpu");
+        assert!(!health.available);
+        let reason = health.reason.unwrap();
+        assert!(reason.contains("software"), "{reason}");
+    } else {
+        assert_eq!(auto.name(), "gpu");
+        assert!(health.available && health.reason.is_none());
+    }
+    let gpu = Backend::start(BackendChoice::Gpu).unwrap();
+    let health = gpu.gpu_health();
+    let adapter = health.adapter.unwrap();
+    assert_eq!(gpu.name(), "gpu");
+    assert_eq!(adapter.software, ctx.adapter().software);
+    assert_eq!(adapter.name, ctx.adapter().name);
+    assert!(gpu.describe().contains(&adapter.name));
+    assert_eq!(Backend::start(BackendChoice::Cpu).unwrap().name(), "cpu");
+}
+
+mod relight_on_both_backends {
+    use std::path::Path;
+
+    use super::*;
+    use translux_precompute::pipeline::{PrecomputeParams, precompute};
+    use translux_precompute::scene::load_scene;
+    use translux_proto::api::RelightRequest;
+    use translux_server::backend::{self, Backend};
+    use translux_server::gpu::GpuOptions;
+    use translux_server::relight;
+    use translux_server::state::Scene;
+
+    fn radiance(dir: &Path, body: &str) -> (Vec<Rgb>, String) {
+        // A fresh scene each time: no warm start carried over from the other backend.
+        let scene = Scene::open("cornell", dir).unwrap();
+        let req: RelightRequest = serde_json::from_str(body).unwrap();
+        let mut plan = relight::plan(&scene, req).unwrap();
+        plan.tolerance = 1e-6;
+        let out = relight::run(&scene, &plan).unwrap();
+        assert!(out.stats.converged, "{:?}", out.stats);
+        (out.radiance, out.stats.solver)
+    }
+
+    /// Whole relights (shadowed direct light on the CPU, the solve on the device) agree with
+    /// the CPU backend on a Cornell box with its marble block, with the bundle's S and with a
+    /// translucency override (S rebuilt from the stored distances); a scene over the memory
+    /// budget is served from the CPU, with its reason in the health report.
+    #[test]
+    fn whole_relights_agree_and_a_scene_over_budget_stays_on_the_cpu() {
+        let Some(_) = ctx() else { return };
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("cornell");
+        let params = PrecomputeParams {
+            patches: Some(400),
+            inverse: true,
+            ..Default::default()
+        };
+        precompute(&load_scene("builtin:cornell").unwrap(), &dir, &params).unwrap();
+        let bodies = [
+            r#"{"solver":"iterative"}"#,
+            r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
+                "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":2}}}}"#,
+            r#"{"solver":"inverse","lights":[{"type":"point","position":[-0.2,0.6,0.1],"intensity":[1,2,1]}]}"#,
+        ];
+        // A batch of 3 relights: one pass over T on the device for all of them.
+        let batch: Vec<String> = (0..3)
+            .map(|i| {
+                format!(
+                    r#"{{"solver":"inverse","lights":[{{"type":"point","position":[{},0.5,0.1],"intensity":[1,1,1]}}]}}"#,
+                    0.1 * i as f32 - 0.1
+                )
+            })
+            .collect();
+        let run_batch = |dir: &Path| -> Vec<Vec<Rgb>> {
+            let scene = Scene::open("cornell", dir).unwrap();
+            let plans: Vec<_> = batch
+                .iter()
+                .map(|b| relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap())
+                .collect();
+            relight::run_batch(&scene, &plans)
+                .into_iter()
+                .map(|r| {
+                    let r = r.unwrap();
+                    assert_eq!((r.stats.solver.as_str(), r.stats.batch), ("inverse", 3));
+                    r.radiance
+                })
+                .collect()
+        };
+        // The CPU first (no backend installed yet), then the GPU.
+        let cpu_batch = run_batch(&dir);
+        let cpu: Vec<(Vec<Rgb>, String)> = bodies.iter().map(|b| radiance(&dir, b)).collect();
+        assert_eq!(cpu[2].1, "inverse");
+        assert_eq!(backend::current().name(), "cpu");
+        let gpu_backend = Backend::on_gpu(
+            GpuContext::new(&GpuOptions {
+                allow_software: true,
+                ..Default::default()
+            })
+            .unwrap(),
+        );
+        assert!(backend::install(gpu_backend).is_ok());
+        for (body, (want, cpu_solver)) in bodies.iter().zip(&cpu) {
+            let (got, solver) = radiance(&dir, body);
+            if cpu_solver == "inverse" {
+                // The same stored f16 T on both: only the summation order differs.
+                assert_eq!(solver, "inverse");
+                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-4);
+            } else {
+                assert_eq!(
+                    solver, "jacobi",
+                    "the device solves by Jacobi (CPU: {cpu_solver})"
+                );
+                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-3);
+            }
+        }
+        let gpu_batch = run_batch(&dir);
+        for (v, (got, want)) in gpu_batch.iter().zip(&cpu_batch).enumerate() {
+            assert_close(&format!("GPU vs CPU batched relight {v}"), got, want, 1e-4);
+        }
+        let h = backend::current().gpu_health();
+        assert_eq!(h.scenes.len(), 1, "{h:?}");
+        assert_eq!(h.scenes[0].on, "gpu");
+        assert!(
+            h.scenes[0].bytes > 0 && h.bytes >= h.scenes[0].bytes,
+            "{h:?}"
+        );
+
+        // 1 MiB of budget: the scene does not fit, the CPU serves it and says why.
+        let small = Backend::on_gpu(
+            GpuContext::new(&GpuOptions {
+                allow_software: true,
+                max_binding_bytes: None,
+                budget_bytes: Some(1 << 10),
+            })
+            .unwrap(),
+        );
+        let scene = Scene::open("cornell", &dir).unwrap();
+        let n = scene.bundle.patch_areas().len();
+        let e = vec![[1.0f32; 3]; n];
+        assert!(!small.prepare(&scene));
+        assert!(
+            small
+                .solve(&scene, None, &e, &e, &SolveParams::default())
+                .is_none()
+        );
+        let h = small.gpu_health();
+        assert_eq!(h.scenes[0].on, "cpu");
+        let reason = h.scenes[0].reason.clone().unwrap();
+        assert!(
+            reason.contains("does not fit") && reason.contains("budget"),
+            "{reason}"
+        );
+        assert_eq!(h.bytes, 0, "nothing stays reserved: {h:?}");
+    }
+}
+
+mod server_start {
+    use std::io::{BufRead, BufReader, Read, Write};
+    use std::process::{Command, Stdio};
+
+    const BIN: &str = env!("CARGO_BIN_EXE_translux-server");
+
+    /// `--backend gpu` without any adapter (the Vulkan loader pointed at no driver) stops at
+    /// start-up with a message that says what to install.
+    #[test]
+    fn backend_gpu_without_an_adapter_is_a_start_up_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = Command::new(BIN)
+            .args(["--bundles", dir.path().to_str().unwrap()])
+            .args(["--addr", "127.0.0.1:0", "--backend", "gpu"])
+            .env("VK_ICD_FILENAMES", "/nonexistent-icd.json")
+            .env("VK_DRIVER_FILES", "/nonexistent-icd.json")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{err}");
+        assert!(
+            err.contains("--backend gpu: no GPU adapter found")
+                && err.contains("mesa-vulkan-drivers"),
+            "{err}"
+        );
+    }
+
+    /// `--backend auto` passes over a software adapter: the server runs on the CPU and
+    /// `/healthz` says why; with lavapipe, `--backend gpu` takes it and says "software".
+    #[test]
+    fn healthz_names_the_backend_and_the_adapter() {
+        let Some(ctx) = super::ctx() else { return };
+        let software = ctx.adapter().software;
+        for choice in ["auto", "gpu"] {
+            let dir = tempfile::tempdir().unwrap();
+            let mut child = Command::new(BIN)
+                .args(["--bundles", dir.path().to_str().unwrap()])
+                .args(["--addr", "127.0.0.1:0", "--backend", choice])
+                .env("RUST_LOG", "info")
+                .stderr(Stdio::piped())
+                .stdout(Stdio::null())
+                .spawn()
+                .unwrap();
+            let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+            let mut log = String::new();
+            let addr = loop {
+                let Some(Ok(line)) = lines.next() else {
+                    let _ = child.kill();
+                    panic!("the server stopped before listening:\n{log}");
+                };
+                log.push_str(&line);
+                log.push('\n');
+                if let Some(rest) = line.split("listening on http://").nth(1) {
+                    break rest.split('/').next().unwrap().to_string();
+                }
+            };
+            let mut s = std::net::TcpStream::connect(&addr).unwrap();
+            write!(s, "GET /healthz HTTP/1.0\r\nHost: {addr}\r\n\r\n").unwrap();
+            let mut resp = String::new();
+            s.read_to_string(&mut resp).unwrap();
+            let _ = child.kill();
+            let _ = child.wait();
+            let body = resp.split("\r\n\r\n").nth(1).unwrap_or("");
+            let h: serde_json::Value = serde_json::from_str(body).unwrap();
+            let gpu = &h["gpu"];
+            if choice == "auto" && software {
+                assert_eq!(h["backend"], "cpu", "{h}");
+                assert_eq!(gpu["available"], false, "{h}");
+                let reason = gpu["reason"].as_str().unwrap();
+                assert!(reason.contains("only software adapters"), "{reason}");
+                assert!(log.contains("backend cpu: --backend auto"), "{log}");
+            } else {
+                assert_eq!(h["backend"], "gpu", "{h}");
+                assert_eq!(gpu["available"], true, "{h}");
+                assert_eq!(gpu["adapter"]["software"], software, "{h}");
+                assert_eq!(gpu["bytes"], 0, "no scene yet: {h}");
+                assert!(log.contains("backend gpu:"), "{log}");
+                if software {
+                    assert!(log.contains("software adapter"), "{log}");
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,395 @@
+//! The relight transport through the server's own code (no sockets): the transfer matrix T
+//! against a tight iterative solve, the light components against their definitions, area
+//! lights, batching, and the errors for what cannot be done.
+
+use std::path::{Path, PathBuf};
+
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::radiosity::Rgb;
+use translux_precompute::scene::{load_scene, load_scene_file};
+use translux_proto::api::{Components, RelightRequest, Solver};
+use translux_proto::bundle::{Bundle, BundleError, arrays};
+use translux_server::relight::{self, RelightOutput, RelightPlan};
+use translux_server::state::Scene;
+
+fn build(spec: &str, dir: &Path, name: &str, patches: u64, inverse: bool) -> PathBuf {
+    let scene = if spec.starts_with("builtin:") {
+        load_scene(spec).unwrap()
+    } else {
+        load_scene_file(Path::new(spec)).unwrap()
+    };
+    let out = dir.join(name);
+    let params = PrecomputeParams {
+        patches: Some(patches),
+        inverse,
+        ..Default::default()
+    };
+    precompute(&scene, &out, &params).unwrap();
+    out
+}
+
+fn request(json: &str) -> RelightRequest {
+    translux_proto::parse_json(json).unwrap()
+}
+
+fn plan(scene: &Scene, json: &str) -> RelightPlan {
+    relight::plan(scene, request(json)).unwrap()
+}
+
+/// Runs `json` with the iterative solver at a tight tolerance.
+fn tight(scene: &Scene, json: &str) -> RelightOutput {
+    let mut p = plan(scene, json);
+    p.solver = Solver::Iterative;
+    p.tolerance = 1e-6;
+    let out = relight::run(scene, &p).unwrap();
+    assert!(out.stats.converged, "{:?}", out.stats);
+    out
+}
+
+fn peak(v: &[Rgb]) -> f32 {
+    v.iter().flatten().fold(0.0f32, |a, &x| a.max(x))
+}
+
+/// Largest |a − b| / max(|b|, floor·peak(b)) over every vertex and channel.
+fn worst_rel(a: &[Rgb], b: &[Rgb], floor: f32) -> f32 {
+    let p = peak(b);
+    a.iter()
+        .zip(b)
+        .flat_map(|(x, y)| (0..3).map(move |c| (x[c] - y[c]).abs() / y[c].abs().max(floor * p)))
+        .fold(0.0f32, f32::max)
+}
+
+#[test]
+fn relight_with_t_equals_a_tight_iterative_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 900, true)).unwrap();
+    let t = scene.bundle.manifest().transfer.clone().unwrap();
+    assert!(t.relight_max_rel_error < 1e-3, "{t:?}");
+    for lights in [
+        r#"{}"#,
+        r#"{"lights":[{"type":"point","position":[0.1,0.3,0.1],"intensity":[1,0.5,0.2]}]}"#,
+        r#"{"lights":[{"type":"spot","position":[0,0.5,0.2],"direction":[0,-1,-0.3],"intensity":[2,2,2],"inner_deg":20,"outer_deg":35}]}"#,
+    ] {
+        let auto = relight::run(&scene, &plan(&scene, lights)).unwrap();
+        assert_eq!(auto.stats.solver, "inverse", "{:?}", auto.stats);
+        assert!(auto.stats.note.is_none());
+        let reference = tight(&scene, lights);
+        let w = worst_rel(&auto.radiance, &reference.radiance, 1e-3);
+        eprintln!("{lights}: T vs iterative (1e-6): worst {w:.2e}");
+        assert!(w < 0.005, "T differs from the iterative solve by {w}");
+        // The default 0.5% iterative solve is close too.
+        let it = relight::run(
+            &scene,
+            &plan(
+                &scene,
+                &lights
+                    .replacen('{', r#"{"solver":"iterative","#, 1)
+                    .replacen(",}", "}", 1),
+            ),
+        )
+        .unwrap();
+        assert_eq!(
+            it.stats.solver, "jacobi",
+            "auto picks Jacobi in the Cornell box"
+        );
+        assert!(worst_rel(&it.radiance, &reference.radiance, 1e-2) < 0.05);
+    }
+
+    // A translucency change makes T stale: auto takes the iterative path and says why, and
+    // an explicit "inverse" is refused.
+    let marble2 = r#"{"materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":2}}}}"#;
+    let out = relight::run(&scene, &plan(&scene, marble2)).unwrap();
+    assert_ne!(out.stats.solver, "inverse");
+    assert!(
+        out.stats.note.as_deref().unwrap().contains("tall_block"),
+        "{:?}",
+        out.stats.note
+    );
+    let e = relight::plan(
+        &scene,
+        request(&marble2.replacen('{', r#"{"solver":"inverse","#, 1)),
+    )
+    .unwrap_err();
+    assert_eq!((e.status.as_u16(), e.code), (400, "unsupported"), "{e:?}");
+    assert!(e.message.contains("stale"), "{}", e.message);
+    // Components T does not hold are refused with "inverse", served iteratively by auto.
+    let e = relight::plan(
+        &scene,
+        request(r#"{"solver":"inverse","components":"heuristic_a"}"#),
+    )
+    .unwrap_err();
+    assert!(e.message.contains("heuristic_a"), "{}", e.message);
+    let out = relight::run(&scene, &plan(&scene, r#"{"components":"heuristic_a"}"#)).unwrap();
+    assert_ne!(out.stats.solver, "inverse");
+}
+
+#[test]
+fn batches_equal_single_relights_on_both_paths() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 700, true)).unwrap();
+    let reqs = [
+        r#"{"lights":[{"type":"point","position":[0.1,0.3,0.1],"intensity":[1,0.5,0.2]}]}"#,
+        r#"{"lights":[{"type":"point","position":[-0.1,0.4,0.0],"intensity":[0.3,0.5,1]}]}"#,
+        r#"{"solver":"iterative","lights":[{"type":"point","position":[0.0,0.45,0.1],"intensity":[1,1,1]}]}"#,
+        r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.45,-0.1],"intensity":[1,2,1]}]}"#,
+        r#"{"components":"direct"}"#,
+    ];
+    // A tight tolerance, so that batched and single solves must agree closely.
+    let plans: Vec<RelightPlan> = reqs
+        .iter()
+        .map(|r| RelightPlan {
+            tolerance: 1e-6,
+            ..plan(&scene, r)
+        })
+        .collect();
+    let batch = relight::run_batch(&scene, &plans);
+    assert_eq!(batch.len(), plans.len());
+    for (p, b) in plans.iter().zip(&batch) {
+        let b = b.as_ref().unwrap();
+        let single = relight::run(&scene, p).unwrap();
+        assert_eq!(b.stats.solver, single.stats.solver);
+        let w = worst_rel(&b.radiance, &single.radiance, 1e-3);
+        assert!(w < 1e-3, "{}: {w}", b.stats.solver);
+    }
+    let inverse: Vec<_> = batch
+        .iter()
+        .filter_map(|b| b.as_ref().ok())
+        .filter(|b| b.stats.solver == "inverse")
+        .collect();
+    assert!(inverse.len() >= 2 && inverse.iter().all(|b| b.stats.batch >= 2));
+}
+
+#[test]
+fn inverse_without_t_is_a_clear_400_and_a_truncated_t_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let plain = Scene::open("p", &build("builtin:cornell", dir.path(), "p", 400, false)).unwrap();
+    let e = relight::plan(&plain, request(r#"{"solver":"inverse"}"#)).unwrap_err();
+    assert_eq!((e.status.as_u16(), e.code), (400, "unsupported"), "{e:?}");
+    assert!(e.message.contains("--inverse"), "{}", e.message);
+    // auto says why it solved.
+    let out = relight::run(&plain, &plan(&plain, "{}")).unwrap();
+    assert!(out.stats.note.unwrap().contains("no transfer matrix"));
+
+    let with_t = build("builtin:cornell", dir.path(), "t", 400, true);
+    let file = with_t.join("transfer.f16");
+    let len = std::fs::metadata(&file).unwrap().len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&file)
+        .unwrap()
+        .set_len(len - 2)
+        .unwrap();
+    match Bundle::open(&with_t) {
+        Err(BundleError::Truncated { file, .. }) => assert_eq!(file, "transfer.f16"),
+        other => panic!("{other:?}"),
+    }
+    // A manifest that claims T without listing the arrays is refused too.
+    let with_t2 = build("builtin:cornell", dir.path(), "t2", 400, true);
+    let mpath = with_t2.join("manifest.json");
+    let mut m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&mpath).unwrap()).unwrap();
+    m["arrays"]
+        .as_object_mut()
+        .unwrap()
+        .remove(arrays::TRANSFER_SCALE);
+    std::fs::write(&mpath, m.to_string()).unwrap();
+    let e = Bundle::open(&with_t2).unwrap_err();
+    assert!(e.to_string().contains("transfer_scale.f32"), "{e}");
+}
+
+#[test]
+fn components_match_their_definitions() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 900, false)).unwrap();
+    let m = scene.bundle.manifest();
+    let block = m.objects.iter().find(|o| o.name == "tall_block").unwrap();
+    let rho = block.albedo;
+    let run = |json: &str| tight(&scene, json).radiance;
+
+    // All-diffuse (the block made diffuse): every inter-reflecting component is classical
+    // radiosity.
+    let diffuse = format!(
+        r#""materials":{{"tall_block":{{"type":"diffuse","albedo":[{},{},{}]}}}}"#,
+        rho[0], rho[1], rho[2]
+    );
+    let full_d = run(&format!(r#"{{{diffuse}}}"#));
+    for c in ["interreflection_only", "heuristic_a", "heuristic_b"] {
+        let other = run(&format!(r#"{{"components":"{c}",{diffuse}}}"#));
+        let w = worst_rel(&other, &full_d, 1e-3);
+        eprintln!("all diffuse: {c} vs full {w:.2e}");
+        assert!(w < 1e-3, "{c}: {w}");
+    }
+    // Inter-reflection only = the full solve with the block opaque at its ρ̄.
+    let io = run(r#"{"components":"interreflection_only"}"#);
+    assert!(worst_rel(&io, &full_d, 1e-3) < 1e-3);
+
+    // Translucent: full ≥ subsurface_only (S F B ≥ 0), and strictly more somewhere.
+    let full = run("{}");
+    let sub = run(r#"{"components":"subsurface_only"}"#);
+    let p = peak(&full);
+    assert!(
+        full.iter()
+            .zip(&sub)
+            .all(|(f, s)| (0..3).all(|c| f[c] >= s[c] - 1e-4 * p))
+    );
+    assert!(
+        full.iter()
+            .zip(&sub)
+            .any(|(f, s)| f[0] > 1.5 * s[0] + 1e-3 * p)
+    );
+    // The heuristics are not the full model in a translucent scene, and B ≥ S E holds for
+    // heuristic B by construction.
+    let ha = run(r#"{"components":"heuristic_a"}"#);
+    let hb = run(r#"{"components":"heuristic_b"}"#);
+    assert!(worst_rel(&ha, &full, 1e-2) > 1e-3);
+    assert!(worst_rel(&hb, &full, 1e-2) > 1e-3);
+    assert!(
+        hb.iter()
+            .zip(&sub)
+            .all(|(h, s)| (0..3).all(|c| h[c] >= s[c] - 1e-4 * p))
+    );
+    // Direct: B = Bₑ + ρ̄E, below subsurface-only nowhere near the block... and equal to it
+    // on opaque patches (S = diag ρ there). Vertices on the walls far from the block agree.
+    let direct = run(r#"{"components":"direct"}"#);
+    let agree = direct
+        .iter()
+        .zip(&sub)
+        .filter(|(d, s)| (0..3).all(|c| (d[c] - s[c]).abs() <= 1e-5 * p))
+        .count();
+    assert!(agree > direct.len() / 2, "{agree} of {}", direct.len());
+}
+
+#[test]
+fn subsurface_only_equals_full_when_nothing_sees_anything() {
+    // One convex translucent box: no patch sees another (F = 0), so the full transport is
+    // B = Bₑ + S E exactly.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cube.json");
+    std::fs::write(
+        &file,
+        r#"{"objects":[{"name":"cube","mesh":{"shape":"box","size":[0.1,0.1,0.1]},
+            "material":{"type":"translucent","profile":{"type":"dipole","preset":"skimmilk"}}}],
+           "lights":[{"type":"point","position":[0.1,0.3,0.2],"intensity":[1,1,1]}]}"#,
+    )
+    .unwrap();
+    let scene = Scene::open(
+        "cube",
+        &build(file.to_str().unwrap(), dir.path(), "cube", 600, true),
+    )
+    .unwrap();
+    assert_eq!(scene.bundle.manifest().form_factors.nnz, 0);
+    let full = tight(&scene, "{}").radiance;
+    let sub = relight::run(&scene, &plan(&scene, r#"{"components":"subsurface_only"}"#))
+        .unwrap()
+        .radiance;
+    let via_t = relight::run(&scene, &plan(&scene, "{}")).unwrap();
+    assert_eq!(via_t.stats.solver, "inverse");
+    assert!(worst_rel(&full, &sub, 1e-4) < 1e-5);
+    assert!(worst_rel(&via_t.radiance, &sub, 1e-4) < 1e-5);
+    // Light went through the cube: faces the light does not reach glow.
+    assert!(peak(&sub) > 0.0);
+}
+
+#[test]
+fn an_area_light_scales_the_radiosity_on_both_paths() {
+    // A closed room lit only by an emitter panel, with a translucent block.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("room.json");
+    std::fs::write(
+        &file,
+        r#"{"objects":[
+            {"name":"room","mesh":{"shape":"box","size":[1,1,1],"inward":true},
+             "material":{"type":"diffuse","albedo":[0.7,0.6,0.5]}},
+            {"name":"panel","mesh":{"shape":"quad","size":[0.3,0.3]},
+             "transform":{"rotate_deg":[180,0,0],"translate":[0,0.49,0]},
+             "material":{"type":"emitter","radiance":[2,2,2]}},
+            {"name":"block","mesh":{"shape":"box","size":[0.2,0.3,0.2]},
+             "transform":{"translate":[0,-0.35,0]},
+             "material":{"type":"translucent","profile":{"type":"dipole","preset":"marble"}}}],
+           "lights":[]}"#,
+    )
+    .unwrap();
+    let scene = Scene::open(
+        "room",
+        &build(file.to_str().unwrap(), dir.path(), "room", 900, true),
+    )
+    .unwrap();
+    let base = tight(&scene, "{}").radiance;
+    assert!(peak(&base) > 0.0);
+    let doubled = r#"{"materials":{"panel":{"type":"emitter","radiance":[4,4,4]}}}"#;
+    let twice = tight(&scene, doubled).radiance;
+    let scaled: Vec<Rgb> = base.iter().map(|v| v.map(|x| 2.0 * x)).collect();
+    assert!(worst_rel(&twice, &scaled, 1e-3) < 1e-4);
+    // With T: an emitter's radiance does not make T stale.
+    let via_t = relight::run(&scene, &plan(&scene, doubled)).unwrap();
+    assert_eq!(via_t.stats.solver, "inverse", "{:?}", via_t.stats);
+    let w = worst_rel(&via_t.radiance, &twice, 1e-3);
+    eprintln!("area light: T vs iterative {w:.2e}");
+    assert!(w < 0.005);
+    // Red panel: the room turns red, the B ratio per channel follows.
+    let red = relight::run(
+        &scene,
+        &plan(
+            &scene,
+            r#"{"materials":{"panel":{"type":"emitter","radiance":[2,0,0]}}}"#,
+        ),
+    )
+    .unwrap()
+    .radiance;
+    assert!(red.iter().all(|v| v[1] == 0.0 && v[2] == 0.0));
+    assert!(
+        worst_rel(
+            &red.iter().map(|v| [v[0], 0.0, 0.0]).collect::<Vec<_>>(),
+            &base.iter().map(|v| [v[0], 0.0, 0.0]).collect::<Vec<_>>(),
+            1e-3
+        ) < 0.005
+    );
+    let _ = Components::Full;
+}
+
+#[test]
+fn the_server_solve_equals_the_library_solve() {
+    use glam::Vec3;
+    use translux_precompute::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
+    use translux_precompute::raycast::Occluder;
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 400, false)).unwrap();
+    let b = &scene.bundle;
+    let tris: Vec<[Vec3; 3]> = b
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let occ = Occluder::new(&tris);
+    let centroid: Vec<Vec3> = b
+        .patch_corners()
+        .iter()
+        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+        .collect();
+    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
+    let geo = PatchGeometry {
+        centroid: &centroid,
+        normal: &normal,
+    };
+    let e = radiosity::direct_irradiance(geo, &occ, &b.manifest().lights, b.manifest().unit_mm)
+        .unwrap();
+    let (x, st) = radiosity::solve(
+        &b.form_factors(),
+        &SparseScatter(b.subsurface()),
+        b.patch_emission(),
+        &e,
+        &SolveParams::default(),
+        None,
+    )
+    .unwrap();
+    let want = translux_precompute::radiosity::vertex_radiance(
+        b.triangle_vertices(),
+        b.patch_areas(),
+        b.vertex_positions().len(),
+        &x,
+    );
+    let got = relight::run(&scene, &plan(&scene, "{}")).unwrap();
+    eprintln!("{st:?} / {:?}", got.stats);
+    assert_eq!(got.stats.iterations, st.iterations);
+    assert!(worst_rel(&got.radiance, &want, 1e-3) < 1e-5);
+}

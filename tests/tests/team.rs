@@ -1,0 +1,994 @@
+//! End-to-end tests of the team features: tokens and roles on every route, uploads and
+//! precompute jobs, cancellation, the memory budget, and logs free of tokens. Each test
+//! starts its own server (the full router of `translux_server::team::app`) on 127.0.0.1:0.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use reqwest::StatusCode;
+use reqwest::header::{ACCEPT, AUTHORIZATION, CONTENT_TYPE, LOCATION, WWW_AUTHENTICATE};
+use reqwest::multipart::{Form, Part};
+use serde_json::{Value, json};
+use tokio::sync::oneshot;
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene;
+use translux_proto::api::{RelightResponse, SceneList};
+use translux_server::auth::{Role, hash_token, required_role};
+use translux_server::state::discover;
+use translux_server::team::{Team, TeamArgs};
+use translux_server::{AppState, ServerParams};
+
+const VIEWER: &str = "tlx_viewer_0000000000000000000000000000";
+const EDITOR: &str = "tlx_editor_1111111111111111111111111111";
+const ADMIN: &str = "tlx_admin_22222222222222222222222222222";
+const BAD: &str = "tlx_unknown_333333333333333333333333333";
+
+// ---------------------------------------------------------------------------------------
+// Log capture: every test's server logs into one buffer, at debug level for every crate.
+
+#[derive(Clone, Default)]
+struct Captured(Arc<Mutex<Vec<u8>>>);
+
+impl Write for Captured {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(b);
+        Ok(b.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+fn logs() -> &'static Captured {
+    static LOGS: OnceLock<Captured> = OnceLock::new();
+    LOGS.get_or_init(|| {
+        let c = Captured::default();
+        let w = c.clone();
+        tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::new("debug"))
+            .with_ansi(false)
+            .with_writer(move || w.clone())
+            .try_init()
+            .expect("the test binary's log subscriber");
+        c
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// Fixtures.
+
+/// A small Cornell-box bundle, built once per test binary.
+fn cornell_bundle() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let root = tempfile::Builder::new()
+            .prefix("team-fixture-")
+            .tempdir_in(env!("CARGO_TARGET_TMPDIR"))
+            .unwrap()
+            .keep();
+        let scene = load_scene("builtin:cornell").unwrap();
+        let params = PrecomputeParams {
+            patches: Some(300),
+            ..Default::default()
+        };
+        precompute(&scene, &root.join("cornell"), &params).unwrap();
+        root.join("cornell")
+    })
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+}
+
+/// A bundles folder holding the Cornell bundle under each of `ids`.
+fn bundles_with(ids: &[&str]) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    for id in ids {
+        copy_dir(cornell_bundle(), &dir.path().join(id));
+    }
+    dir
+}
+
+fn tokens_file(dir: &Path) -> PathBuf {
+    let path = dir.join("tokens.toml");
+    let mut text = String::new();
+    for (name, role, token) in [
+        ("vic", "viewer", VIEWER),
+        ("eddie", "editor", EDITOR),
+        ("ada", "admin", ADMIN),
+    ] {
+        text.push_str(&format!(
+            "[[tokens]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n\n",
+            hash_token(token).unwrap()
+        ));
+    }
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+struct Server {
+    base: String,
+    client: reqwest::Client,
+    bundles: PathBuf,
+    _stop: oneshot::Sender<()>,
+}
+
+impl Server {
+    /// A server on `bundles` with the team settings `args` (tokens added unless `open`).
+    async fn start(bundles: &Path, mut args: TeamArgs, open: bool) -> Server {
+        logs();
+        if !open && args.tokens.is_none() {
+            let secrets = tempfile::tempdir().unwrap().keep();
+            args.tokens = Some(tokens_file(&secrets));
+        }
+        let state = AppState::with_params(ServerParams::default());
+        let (found, errors) = discover(bundles).unwrap();
+        assert!(errors.is_empty(), "{errors:?}");
+        for (id, dir) in found {
+            state.load_one(&id, &dir);
+        }
+        let team = Team::start(&args, bundles, state.clone()).unwrap();
+        let app = translux_server::team::app(state.clone(), team);
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = oneshot::channel::<()>();
+        tokio::spawn(translux_server::serve_router(
+            listener,
+            state,
+            app,
+            async move {
+                let _ = rx.await;
+            },
+        ));
+        Server {
+            base: format!("http://{addr}"),
+            client: reqwest::Client::new(),
+            bundles: bundles.to_path_buf(),
+            _stop: tx,
+        }
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    fn req(
+        &self,
+        method: reqwest::Method,
+        path: &str,
+        token: Option<&str>,
+    ) -> reqwest::RequestBuilder {
+        let r = self.client.request(method, self.url(path));
+        match token {
+            Some(t) => r.header(AUTHORIZATION, format!("Bearer {t}")),
+            None => r,
+        }
+    }
+
+    async fn get_json(&self, path: &str, token: Option<&str>) -> Value {
+        let r = self
+            .req(reqwest::Method::GET, path, token)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "GET {path}");
+        r.json().await.unwrap()
+    }
+
+    async fn relight(&self, id: &str, token: Option<&str>) -> RelightResponse {
+        let r = self
+            .req(
+                reqwest::Method::POST,
+                &format!("/api/v1/scenes/{id}/relight"),
+                token,
+            )
+            .header(ACCEPT, "application/json")
+            .header(CONTENT_TYPE, "application/json")
+            .body("{}")
+            .send()
+            .await
+            .unwrap();
+        let status = r.status();
+        let text = r.text().await.unwrap();
+        assert_eq!(status, StatusCode::OK, "relight {id}: {text}");
+        serde_json::from_str(&text).unwrap()
+    }
+
+    /// Waits (polling) until job `id` is final; its record.
+    async fn wait_job(&self, id: &str, token: &str) -> Value {
+        let t = Instant::now();
+        loop {
+            let r = self
+                .get_json(&format!("/api/v1/jobs/{id}"), Some(token))
+                .await;
+            let s = r["state"].as_str().unwrap().to_string();
+            if matches!(s.as_str(), "done" | "failed" | "cancelled") {
+                return r;
+            }
+            assert!(
+                t.elapsed() < Duration::from_secs(240),
+                "job {id} never ended: {r}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+}
+
+const CUBE_OBJ: &str = "\
+v -1 -1 -1\nv 1 -1 -1\nv 1 1 -1\nv -1 1 -1\nv -1 -1 1\nv 1 -1 1\nv 1 1 1\nv -1 1 1\n\
+f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n";
+
+fn scene_json(mesh: &str) -> String {
+    json!({
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [2, 2]},
+             "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+            {"name": "cube", "mesh": mesh,
+             "transform": {"scale": 0.2, "translate": [0, 0.2, 0]},
+             "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]}}
+        ],
+        "lights": [{"type": "point", "position": [0, 1.5, 0], "intensity": [5, 5, 5]}]
+    })
+    .to_string()
+}
+
+fn upload_form(
+    scene_name: &str,
+    scene: String,
+    meshes: &[(&str, Vec<u8>)],
+    fields: &[(&str, &str)],
+) -> Form {
+    let mut form = Form::new().part(
+        "scene",
+        Part::bytes(scene.into_bytes()).file_name(scene_name.to_string()),
+    );
+    for (name, bytes) in meshes {
+        form = form.part(
+            "mesh",
+            Part::bytes(bytes.clone()).file_name(name.to_string()),
+        );
+    }
+    for (k, v) in fields {
+        form = form.text(k.to_string(), v.to_string());
+    }
+    form
+}
+
+async fn post_upload(
+    s: &Server,
+    token: Option<&str>,
+    form: Form,
+) -> (StatusCode, Value, Option<String>) {
+    let r = s
+        .req(reqwest::Method::POST, "/api/v1/scenes", token)
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    let status = r.status();
+    let location = r
+        .headers()
+        .get(LOCATION)
+        .map(|v| v.to_str().unwrap().to_string());
+    let body: Value = r.json().await.unwrap_or(Value::Null);
+    (status, body, location)
+}
+
+fn leftovers(bundles: &Path) -> Vec<String> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(bundles).unwrap().flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.contains(".tmp-") || name.contains(".old-") {
+            out.push(name);
+        }
+    }
+    if let Ok(entries) = std::fs::read_dir(bundles.join(".uploads")) {
+        for e in entries.flatten() {
+            out.push(format!(".uploads/{}", e.file_name().to_string_lossy()));
+        }
+    }
+    out
+}
+
+// ---------------------------------------------------------------------------------------
+// Tests.
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_protected_route_answers_401_and_403() {
+    let bundles = bundles_with(&["cornell"]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let mut routes = translux_server::routes::routes();
+    routes.extend(translux_server::team::routes());
+    let fake_job = "j000000000000aaaaaaaa";
+    let mut protected = 0;
+    for (method, template) in routes {
+        let path = template
+            .replace("/api/v1/jobs/{id}", &format!("/api/v1/jobs/{fake_job}"))
+            .replace("{id}", "cornell")
+            .replace("{*path}", "app.js");
+        let method = reqwest::Method::from_bytes(method.as_str().as_bytes()).unwrap();
+        let Some(needs) = required_role(&method, &path) else {
+            // Open routes answer without a token.
+            let r = s.req(method.clone(), &path, None).send().await.unwrap();
+            assert!(
+                !matches!(r.status(), StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN),
+                "{method} {path} is open but answered {}",
+                r.status()
+            );
+            continue;
+        };
+        protected += 1;
+        for token in [None, Some(BAD), Some("")] {
+            let r = s.req(method.clone(), &path, token).send().await.unwrap();
+            assert_eq!(
+                r.status(),
+                StatusCode::UNAUTHORIZED,
+                "{method} {path} with {token:?}"
+            );
+            let challenge = r.headers().get(WWW_AUTHENTICATE).unwrap().to_str().unwrap();
+            assert!(challenge.starts_with("Bearer"), "{challenge}");
+            let body: Value = r.json().await.unwrap();
+            assert_eq!(body["error"]["code"], "unauthorized", "{body}");
+        }
+        for (role, token) in [
+            (Role::Viewer, VIEWER),
+            (Role::Editor, EDITOR),
+            (Role::Admin, ADMIN),
+        ] {
+            if role >= needs && method == reqwest::Method::DELETE {
+                // Allowed deletes are tried below, once.
+                continue;
+            }
+            let r = s
+                .req(method.clone(), &path, Some(token))
+                .send()
+                .await
+                .unwrap();
+            if role < needs {
+                assert_eq!(
+                    r.status(),
+                    StatusCode::FORBIDDEN,
+                    "{method} {path} as {role}"
+                );
+                let body: Value = r.json().await.unwrap();
+                assert!(
+                    body["error"]["message"]
+                        .as_str()
+                        .unwrap()
+                        .contains(needs.as_str()),
+                    "{body}"
+                );
+            } else {
+                assert!(
+                    !matches!(r.status(), StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN),
+                    "{method} {path} as {role}: {}",
+                    r.status()
+                );
+            }
+        }
+    }
+    assert!(
+        protected >= 12,
+        "only {protected} protected routes were checked"
+    );
+    // The token in the query (for WebSockets) works on GET only.
+    let r = s
+        .client
+        .get(s.url(&format!("/api/v1/scenes?access_token={VIEWER}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let r = s
+        .client
+        .post(s.url(&format!(
+            "/api/v1/scenes/cornell/relight?access_token={VIEWER}"
+        )))
+        .header(CONTENT_TYPE, "application/json")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    // Admin deletes; the scene is gone from the registry and the disk.
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            "/api/v1/scenes/cornell",
+            Some(ADMIN),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(!s.bundles.join("cornell").exists());
+    let r = s
+        .req(reqwest::Method::GET, "/api/v1/scenes/cornell", Some(VIEWER))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    let who = s.get_json("/api/v1/whoami", Some(EDITOR)).await;
+    assert_eq!(
+        who,
+        json!({"name": "eddie", "role": "editor", "auth": true})
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rate_limits_are_per_token() {
+    let bundles = bundles_with(&["cornell"]);
+    let args = TeamArgs {
+        rate_limit: Some(0.5),
+        rate_burst: Some(3.0),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    for _ in 0..3 {
+        let r = s
+            .req(reqwest::Method::GET, "/api/v1/scenes", Some(VIEWER))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+    }
+    let r = s
+        .req(reqwest::Method::GET, "/api/v1/scenes", Some(VIEWER))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::TOO_MANY_REQUESTS);
+    let wait: u64 = r.headers()["retry-after"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((1..=2).contains(&wait), "{wait}");
+    // Another token has its own bucket; open routes are not limited.
+    let r = s
+        .req(reqwest::Method::GET, "/api/v1/scenes", Some(EDITOR))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let r = s
+        .req(reqwest::Method::GET, "/healthz", Some(VIEWER))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_refuse_traversal_bad_names_and_oversize() {
+    let bundles = bundles_with(&[]);
+    let args = TeamArgs {
+        upload_file_limit: Some(4096),
+        upload_limit: Some(10_000),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    let cube = CUBE_OBJ.as_bytes().to_vec();
+    let cases: Vec<(&str, Form, StatusCode, &str)> = vec![
+        (
+            "scene mesh path with ..",
+            upload_form(
+                "a.json",
+                scene_json("../cube.obj"),
+                &[("cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "objects[1].mesh",
+        ),
+        (
+            "absolute mesh path",
+            upload_form(
+                "a.json",
+                scene_json("/etc/passwd"),
+                &[("cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "objects[1].mesh",
+        ),
+        (
+            "mesh in a sub-folder",
+            upload_form(
+                "a.json",
+                scene_json("sub/cube.obj"),
+                &[("cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "objects[1].mesh",
+        ),
+        (
+            "file name with ..",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[("../../cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "is a path",
+        ),
+        (
+            "absolute file name",
+            upload_form(
+                "/tmp/a.json",
+                scene_json("cube.obj"),
+                &[("cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "is a path",
+        ),
+        (
+            "hidden file",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[(".cube.obj", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "hidden",
+        ),
+        (
+            "missing mesh",
+            upload_form("a.json", scene_json("cube.obj"), &[], &[]),
+            StatusCode::BAD_REQUEST,
+            "was not uploaded",
+        ),
+        (
+            "wrong extension",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[("cube.exe", cube.clone())],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            ".obj",
+        ),
+        (
+            "bad id",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[("cube.obj", cube.clone())],
+                &[("id", "../x")],
+            ),
+            StatusCode::BAD_REQUEST,
+            "scene id",
+        ),
+        (
+            "too many patches",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[("cube.obj", cube.clone())],
+                &[("patches", "400000")],
+            ),
+            StatusCode::BAD_REQUEST,
+            "patches",
+        ),
+        (
+            "file over the per-file limit",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[("cube.obj", vec![b'#'; 5000])],
+                &[],
+            ),
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "per file",
+        ),
+        (
+            "upload over the total limit",
+            upload_form(
+                "a.json",
+                scene_json("cube.obj"),
+                &[
+                    ("cube.obj", cube.clone()),
+                    ("b.mtl", vec![b'#'; 4000]),
+                    ("c.mtl", vec![b'#'; 4000]),
+                    ("d.mtl", vec![b'#'; 4000]),
+                ],
+                &[],
+            ),
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "in all",
+        ),
+    ];
+    for (what, form, status, needle) in cases {
+        let (got, body, _) = post_upload(&s, Some(EDITOR), form).await;
+        assert_eq!(got, status, "{what}: {body}");
+        let msg = body["error"]["message"].as_str().unwrap_or_default();
+        assert!(msg.contains(needle), "{what}: {msg}");
+        assert!(
+            !msg.contains(&*s.bundles.to_string_lossy()),
+            "{what} leaks a server path: {msg}"
+        );
+    }
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+    assert!(!s.bundles.parent().unwrap().join("cube.obj").exists());
+    // Not multipart at all.
+    let r = s
+        .req(reqwest::Method::POST, "/api/v1/scenes", Some(EDITOR))
+        .header(CONTENT_TYPE, "application/json")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::UNSUPPORTED_MEDIA_TYPE);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_uploaded_scene_becomes_a_served_bundle() {
+    let bundles = bundles_with(&[]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let form = upload_form(
+        "cube-scene.json",
+        scene_json("cube.obj"),
+        &[
+            ("cube.obj", CUBE_OBJ.as_bytes().to_vec()),
+            ("cube.mtl", b"newmtl x\n".to_vec()),
+        ],
+        &[("id", "cube"), ("patches", "200")],
+    );
+    let (status, job, location) = post_upload(&s, Some(EDITOR), form).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    assert_eq!(
+        location.as_deref(),
+        Some(format!("/api/v1/jobs/{id}").as_str())
+    );
+    assert_eq!(job["scene"], "cube");
+    assert_eq!(job["owner"], "eddie");
+
+    // Follow the SSE stream to the end: percentages never go down, the last event is done.
+    let mut r = s
+        .req(
+            reqwest::Method::GET,
+            &format!("/api/v1/jobs/{id}/events"),
+            Some(EDITOR),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(
+        r.headers()[CONTENT_TYPE]
+            .to_str()
+            .unwrap()
+            .starts_with("text/event-stream")
+    );
+    let mut text = String::new();
+    let t = Instant::now();
+    while let Some(chunk) = tokio::time::timeout(Duration::from_secs(240), r.chunk())
+        .await
+        .expect("the event stream stalled")
+        .unwrap()
+    {
+        text.push_str(&String::from_utf8_lossy(&chunk));
+        assert!(t.elapsed() < Duration::from_secs(240));
+    }
+    let mut events = Vec::new();
+    for block in text.split("\n\n") {
+        let name = block.lines().find_map(|l| l.strip_prefix("event: "));
+        let data = block.lines().find_map(|l| l.strip_prefix("data: "));
+        if let (Some(n), Some(d)) = (name, data) {
+            events.push((n.to_string(), serde_json::from_str::<Value>(d).unwrap()));
+        }
+    }
+    let (last, record) = events.last().expect("no events");
+    assert_eq!(last, "done", "{text}");
+    assert_eq!(record["state"], "done");
+    let mut prev = -1.0;
+    for (_, r) in &events {
+        let p = r["percent"].as_f64().unwrap();
+        assert!(p >= prev, "percent went down: {text}");
+        prev = p;
+    }
+    assert!(
+        events.iter().any(|(_, r)| r["stage"] == "form factors"),
+        "{text}"
+    );
+    let patches = record["result"]["patches"].as_u64().unwrap();
+    assert!((150..=260).contains(&patches), "{patches} patches");
+
+    // Served without a restart; relight answers one colour per mesh vertex, lit.
+    let list: SceneList =
+        serde_json::from_value(s.get_json("/api/v1/scenes", Some(VIEWER)).await).unwrap();
+    assert!(list.scenes.iter().any(|x| x.id == "cube"), "{list:?}");
+    let mesh = s.get_json("/api/v1/scenes/cube/mesh", Some(VIEWER)).await;
+    let vertices = mesh["positions"].as_array().unwrap().len() / 3;
+    let out = s.relight("cube", Some(VIEWER)).await;
+    assert_eq!(out.vertex_count, vertices);
+    assert!(out.radiance.iter().all(|v| v.is_finite() && *v >= 0.0));
+    assert!(
+        out.radiance.iter().any(|v| *v > 1e-3),
+        "the uploaded scene is black"
+    );
+    assert!(s.bundles.join("cube/manifest.json").is_file());
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+
+    // The id is now taken; a viewer cannot see jobs; the editor sees theirs.
+    let form = upload_form(
+        "x.json",
+        scene_json("cube.obj"),
+        &[("cube.obj", CUBE_OBJ.as_bytes().to_vec())],
+        &[("id", "cube")],
+    );
+    let (status, body, _) = post_upload(&s, Some(EDITOR), form).await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    let jobs = s.get_json("/api/v1/jobs", Some(EDITOR)).await;
+    assert_eq!(jobs["jobs"].as_array().unwrap().len(), 1);
+    let jobs = s.get_json("/api/v1/jobs", Some(ADMIN)).await;
+    assert_eq!(jobs["jobs"].as_array().unwrap().len(), 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelled_jobs_leave_no_bundle() {
+    let bundles = bundles_with(&[]);
+    let args = TeamArgs {
+        jobs: Some(1),
+        max_upload_patches: Some(60_000),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    let upload = |id: &'static str, patches: &'static str| {
+        upload_form(
+            "s.json",
+            scene_json("cube.obj"),
+            &[("cube.obj", CUBE_OBJ.as_bytes().to_vec())],
+            &[("id", id), ("patches", patches)],
+        )
+    };
+    // A long job, and one queued behind it (one worker).
+    let (st, big, _) = post_upload(&s, Some(EDITOR), upload("big", "12000")).await;
+    assert_eq!(st, StatusCode::ACCEPTED, "{big}");
+    let (st, queued, _) = post_upload(&s, Some(ADMIN), upload("later", "200")).await;
+    assert_eq!(st, StatusCode::ACCEPTED, "{queued}");
+    let big_id = big["id"].as_str().unwrap();
+    let queued_id = queued["id"].as_str().unwrap();
+
+    // Wait for the big one to run, then cancel both.
+    let t = Instant::now();
+    loop {
+        let r = s
+            .get_json(&format!("/api/v1/jobs/{big_id}"), Some(EDITOR))
+            .await;
+        if r["state"] == "running" {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "{r}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // Another editor's job is not visible to this editor (404), but the admin may cancel it.
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            &format!("/api/v1/jobs/{queued_id}"),
+            Some(EDITOR),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            &format!("/api/v1/jobs/{queued_id}"),
+            Some(ADMIN),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let rec: Value = r.json().await.unwrap();
+    assert_eq!(rec["state"], "cancelled", "{rec}");
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            &format!("/api/v1/jobs/{big_id}"),
+            Some(EDITOR),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let t = Instant::now();
+    let done = s.wait_job(big_id, EDITOR).await;
+    assert_eq!(done["state"], "cancelled", "{done}");
+    assert!(
+        t.elapsed() < Duration::from_secs(30),
+        "cancelling took {:?}",
+        t.elapsed()
+    );
+    for id in ["big", "later"] {
+        assert!(!s.bundles.join(id).exists(), "{id} has a bundle");
+        let r = s
+            .req(
+                reqwest::Method::GET,
+                &format!("/api/v1/scenes/{id}"),
+                Some(VIEWER),
+            )
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    }
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_after_a_killed_job_reports_it_failed_and_serves_no_half_bundle() {
+    let bundles = bundles_with(&["cornell"]);
+    // What a killed server leaves: a record saying running, a half-written temporary bundle,
+    // an upload folder.
+    let jobs = bundles.path().join(".jobs");
+    std::fs::create_dir_all(&jobs).unwrap();
+    let id = "j0190000000001234abcd";
+    std::fs::write(
+        jobs.join(format!("{id}.json")),
+        json!({
+            "id": id, "scene": "mug", "owner": "eddie", "state": "running",
+            "stage": "form factors", "stage_percent": 40.0, "percent": 30.0, "error": null,
+            "patches": 200, "max_edge": null, "created": 1, "started": 2, "finished": null,
+            "result": null
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let tmp = bundles.path().join(".mug.tmp-1234-5678-0");
+    std::fs::create_dir_all(&tmp).unwrap();
+    std::fs::copy(
+        cornell_bundle().join("manifest.json"),
+        tmp.join("manifest.json"),
+    )
+    .unwrap();
+    std::fs::create_dir_all(bundles.path().join(".uploads").join(id)).unwrap();
+
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let r = s.get_json(&format!("/api/v1/jobs/{id}"), Some(ADMIN)).await;
+    assert_eq!(r["state"], "failed", "{r}");
+    assert!(r["error"].as_str().unwrap().contains("stopped"), "{r}");
+    assert!(!tmp.exists());
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+    let list = s.get_json("/api/v1/scenes", Some(VIEWER)).await;
+    assert_eq!(list["scenes"].as_array().unwrap().len(), 1, "{list}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tiny_memory_budget_evicts_and_still_answers_correctly() {
+    let bundles = bundles_with(&["a", "b", "c"]);
+    // Reference answers from a server without a budget.
+    let reference = Server::start(bundles.path(), TeamArgs::default(), true).await;
+    let want = reference.relight("a", None).await.radiance;
+    let want_mesh = reference.get_json("/api/v1/scenes/a/mesh", None).await;
+    drop(reference);
+
+    let args = TeamArgs {
+        memory_budget: Some(1),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, true).await;
+    for round in 0..3 {
+        for id in ["a", "b", "c"] {
+            let got = s.relight(id, None).await;
+            assert_eq!(got.radiance, want, "round {round}, scene {id}");
+            let mesh = s.get_json(&format!("/api/v1/scenes/{id}/mesh"), None).await;
+            assert_eq!(mesh, want_mesh, "round {round}, scene {id}");
+            // Only the scene just used is resident; every scene is still listed.
+            let health = s.get_json("/healthz", None).await;
+            let states: Vec<(String, String)> = health["scene_states"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| {
+                    (
+                        x["id"].as_str().unwrap().into(),
+                        x["state"].as_str().unwrap().into(),
+                    )
+                })
+                .collect();
+            for (sid, st) in &states {
+                let expect = if sid == id { "ready" } else { "evicted" };
+                if round > 0 || sid == id {
+                    assert_eq!(st, expect, "round {round} after {id}: {states:?}");
+                }
+            }
+            let list = s.get_json("/api/v1/scenes", None).await;
+            assert_eq!(list["scenes"].as_array().unwrap().len(), 3, "{list}");
+        }
+    }
+    // Concurrent requests on all scenes at once, each answered right.
+    let mut tasks = Vec::new();
+    for k in 0..12 {
+        let id = ["a", "b", "c"][k % 3];
+        let c = s.client.clone();
+        let url = s.url(&format!("/api/v1/scenes/{id}/relight"));
+        tasks.push(tokio::spawn(async move {
+            let r = c
+                .post(url)
+                .header(ACCEPT, "application/json")
+                .header(CONTENT_TYPE, "application/json")
+                .body("{}")
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), StatusCode::OK);
+            r.json::<RelightResponse>().await.unwrap().radiance
+        }));
+    }
+    for t in tasks {
+        assert_eq!(t.await.unwrap(), want);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tokens_never_reach_the_log() {
+    let bundles = bundles_with(&["cornell"]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    for token in [VIEWER, EDITOR, ADMIN, BAD] {
+        for path in [
+            "/api/v1/scenes",
+            "/api/v1/scenes/cornell",
+            "/api/v1/jobs",
+            "/api/v1/nothing",
+        ] {
+            let _ = s
+                .req(reqwest::Method::GET, path, Some(token))
+                .send()
+                .await
+                .unwrap();
+            let _ = s
+                .client
+                .get(s.url(&format!("{path}?access_token={token}")))
+                .send()
+                .await
+                .unwrap();
+        }
+        let _ = s
+            .req(reqwest::Method::DELETE, "/api/v1/scenes/none", Some(token))
+            .send()
+            .await
+            .unwrap();
+    }
+    let text = String::from_utf8_lossy(&logs().0.lock().unwrap()).into_owned();
+    // The log is there (this test can fail) and holds none of the tokens.
+    assert!(text.contains("/api/v1/scenes"), "nothing was logged");
+    for token in [VIEWER, EDITOR, ADMIN, BAD] {
+        assert!(!text.contains(token), "a token is in the log");
+        assert!(
+            !text.contains(&hash_token(token).unwrap()),
+            "a token hash is in the log"
+        );
+    }
+}

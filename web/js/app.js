@@ -1,0 +1,944 @@
+// The translux viewer: loads a scene's mesh, streams relit per-vertex radiance from the
+// server while lights, materials and the transport components are edited, and draws it with
+// WebGL2. See docs/viewer.md.
+
+import { Renderer } from "./renderer.js";
+import { OrbitCamera } from "./camera.js";
+import { Link } from "./link.js";
+import { buildGlb } from "./glb.js";
+import { encodeHash, decodeHash, COMPONENTS } from "./hashstate.js";
+import {
+  el, slider, picker, vec3Input, splitColour, joinColour, logPos, fromLogPos, download, fmt,
+} from "./ui.js";
+import {
+  add, sub, scale, normalize, length, project, closestOnLine, rayPlane, dirFromAngles,
+  anglesFromDir,
+} from "./math.js";
+
+/** Jensen et al. 2001's media, as proto/src/scene.rs DIPOLE_PRESETS names them. */
+const PRESETS = [
+  "apple", "chicken1", "chicken2", "cream", "ketchup", "marble", "potato", "skimmilk",
+  "skin1", "skin2", "wholemilk",
+];
+const COMPONENT_LABELS = {
+  full: "full", direct: "direct", subsurface_only: "subsurface", interreflection_only: "inter-refl.",
+  heuristic_a: "heuristic A", heuristic_b: "heuristic B",
+};
+const COMPONENT_NOTES = {
+  full: "B = Bₑ + S(E + F B): everything.",
+  direct: "B = Bₑ + ρE: direct light on each patch, nothing scattered on.",
+  subsurface_only: "Subsurface scattering of direct light only (S E).",
+  interreflection_only: "Inter-reflection without subsurface transport.",
+  heuristic_a: "The paper's first heuristic.",
+  heuristic_b: "The paper's second heuristic.",
+};
+const $ = (id) => document.getElementById(id);
+
+// ---- metrics (read by the browser tests and shown in the overlay) ---------------------
+
+const metrics = {
+  firstLitMs: null, // performance.now() of the first frame drawn with server radiance
+  frames: [], // { seq, t, ms (server), transport } per radiance frame drawn
+  inputs: [], // { seq, t } per state change not yet shown
+  latencies: [], // input-to-photon, ms, one per input event
+  draws: 0,
+  drawTimes: [],
+};
+
+// ---- state --------------------------------------------------------------------------
+
+const app = {
+  renderer: null,
+  camera: new OrbitCamera(),
+  scenes: [],
+  detail: null,
+  mesh: null,
+  radiance: null,
+  link: null,
+  seq: 0,
+  shownSeq: 0,
+  lastInfo: null,
+  selected: 0,
+  gizmo: true,
+  needDraw: true,
+  newFrame: false,
+  bbox: null,
+  errors: { conn: null, request: null, notice: null, app: null },
+  state: {
+    scene: null,
+    camera: null,
+    lights: [],
+    env: { on: false, map: "builtin:sky", rotation_deg: 0, scale: 1 },
+    materials: {},
+    components: "full",
+    exposure: 0,
+    tone: "filmic",
+    cull: true,
+  },
+  matUi: {},
+  hashProblems: [],
+  autoExposure: true,
+};
+window.translux = { app, metrics };
+
+// ---- banners ------------------------------------------------------------------------
+
+function setBanner(kind, message) {
+  app.errors[kind] = message;
+  const box = $("banners");
+  box.replaceChildren();
+  for (const k of ["conn", "app", "request", "notice"]) {
+    const m = app.errors[k];
+    if (!m) continue;
+    const title = { conn: "Connection", app: "Viewer", request: "Server", notice: "Note" }[k];
+    const close = el("button", { title: "Dismiss", onclick: () => setBanner(k, null) }, "×");
+    box.append(el("div", { class: "banner" + (k === "notice" ? " notice" : ""), "data-kind": k, role: "alert" },
+      el("span", { class: "msg" }, el("b", {}, title + ": "), m), close));
+  }
+}
+
+// ---- requests -----------------------------------------------------------------------
+
+function relightRequest() {
+  const s = app.state;
+  const lights = s.lights.map((l) => ({ ...l }));
+  if (s.env.on) {
+    lights.push({ type: "environment", map: s.env.map, scale: s.env.scale, rotation_deg: s.env.rotation_deg });
+  }
+  const req = { lights, components: s.components };
+  if (Object.keys(s.materials).length) req.materials = s.materials;
+  return req;
+}
+
+/** A state change that needs a new solve; `t` is the input event's time stamp. */
+function changed(t) {
+  if (!app.link) return;
+  app.seq += 1;
+  metrics.inputs.push({ seq: app.seq, t: t ?? performance.now() });
+  if (metrics.inputs.length > 2000) metrics.inputs.splice(0, 1000);
+  app.link.submit(app.seq, relightRequest());
+  scheduleHash();
+  app.needDraw = true;
+}
+
+let hashTimer = null;
+function scheduleHash() {
+  clearTimeout(hashTimer);
+  hashTimer = setTimeout(() => {
+    app.state.camera = app.camera.toJSON();
+    const s = { ...app.state };
+    if (app.detail && JSON.stringify(s.lights) === JSON.stringify(defaultLights())) s.lights = null;
+    history.replaceState(null, "", encodeHash(s));
+  }, 250);
+}
+
+// ---- link handlers ------------------------------------------------------------------
+
+function onFrame(radiance, info) {
+  if (info.seq < app.shownSeq) return; // an older answer overtaken by a newer one
+  try {
+    app.renderer.setRadiance(radiance);
+  } catch (e) {
+    // The server's mesh changed under us (restarted with another bundle): reload the scene.
+    setBanner("app", `${e.message}; reloading the scene`);
+    loadScene(app.state.scene, false);
+    return;
+  }
+  app.radiance = radiance;
+  app.shownSeq = info.seq;
+  app.lastInfo = info;
+  app.newFrame = true;
+  app.needDraw = true;
+  if (app.errors.request && info.seq >= (app.errorSeq ?? 0)) setBanner("request", null);
+  if (app.errors.app) setBanner("app", null);
+  metrics.frames.push({ seq: info.seq, t: performance.now(), ms: info.stats ? info.stats.ms : null, transport: info.transport });
+  if (metrics.frames.length > 5000) metrics.frames.splice(0, 2500);
+  if (app.autoExposure) {
+    app.autoExposure = false;
+    autoExposure();
+  }
+}
+
+function onRequestError(seq, code, message) {
+  app.errorSeq = seq ?? app.seq;
+  setBanner("request", `${message} (${code})`);
+  // The inputs of a refused state will never be shown: they have no latency.
+  if (seq != null) metrics.inputs = metrics.inputs.filter((i) => i.seq > seq);
+  app.needDraw = true;
+}
+
+function onConnection({ state, transport, message }) {
+  const chip = $("conn");
+  chip.className = "chip " + (state === "open" ? (transport === "rest" ? "rest" : "open") : state);
+  chip.textContent = state === "open" ? (transport === "rest" ? "REST (no stream)" : "live stream")
+    : state === "offline" ? "offline" : state;
+  setBanner("conn", state === "offline" ? message : null);
+  $("stage").classList.toggle("offline", state === "offline");
+  app.needDraw = true;
+}
+
+function onInFlight(busy) {
+  $("solving").hidden = !busy;
+}
+
+// ---- scenes -------------------------------------------------------------------------
+
+async function getJson(url) {
+  const res = await fetch(url, { headers: { Accept: "application/json" } });
+  const body = await res.json().catch(() => null);
+  if (!res.ok) {
+    const m = body && body.error ? body.error.message : res.statusText;
+    throw new Error(`GET ${url} answered ${res.status}: ${m}`);
+  }
+  return body;
+}
+
+function defaultLights() {
+  return app.detail.lights.filter((l) => l.type !== "environment");
+}
+
+async function loadScene(id, fromHash) {
+  if (app.link) app.link.close();
+  app.link = null;
+  app.radiance = null;
+  app.shownSeq = 0;
+  app.seq = 0;
+  const hash = fromHash ? decodeHash(location.hash).state : {};
+  let detail, mesh;
+  try {
+    [detail, mesh] = await Promise.all([
+      getJson(`/api/v1/scenes/${encodeURIComponent(id)}`),
+      getJson(`/api/v1/scenes/${encodeURIComponent(id)}/mesh`),
+    ]);
+  } catch (e) {
+    setBanner("app", `Cannot load scene “${id}”: ${e.message}`);
+    return;
+  }
+  app.detail = detail;
+  app.mesh = mesh;
+  app.renderer.setMesh(mesh.positions, mesh.normals, mesh.indices);
+  app.bbox = bbox(mesh.positions);
+  app.camera.sceneRadius = length(sub(app.bbox.max, app.bbox.min)) / 2;
+  const s = app.state;
+  s.scene = id;
+  const cam = hash.camera || detail.camera;
+  app.camera.setLookAt(cam.position, cam.target, cam.fov_deg);
+  s.lights = structuredClone(hash.lights ? hash.lights.filter((l) => l.type !== "environment") : defaultLights());
+  const env = (hash.lights || detail.lights).find((l) => l.type === "environment");
+  s.env = hash.env || (env ? { on: true, map: env.map, rotation_deg: env.rotation_deg ?? 0, scale: env.scale ?? 1 }
+    : { on: false, map: "builtin:sky", rotation_deg: 0, scale: 1 });
+  s.materials = hash.materials || {};
+  for (const k of ["components", "exposure", "tone", "cull"]) if (hash[k] !== undefined) s[k] = hash[k];
+  app.autoExposure = hash.exposure === undefined;
+  app.selected = 0;
+  $("scene").value = id;
+  buildPanels();
+  app.link = new Link(id, { onFrame, onRequestError, onConnection, onInFlight, onNotice: (m) => {
+    app.restNotice = m;
+    setBanner("notice", m);
+  } });
+  setBanner("app", app.hashProblems.length ? `Parts of the link were not understood: ${app.hashProblems.join("; ")}` : null);
+  app.hashProblems = [];
+  changed();
+}
+
+function bbox(p) {
+  const min = [Infinity, Infinity, Infinity], max = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < p.length; i += 3) {
+    for (let k = 0; k < 3; k++) {
+      min[k] = Math.min(min[k], p[i + k]);
+      max[k] = Math.max(max[k], p[i + k]);
+    }
+  }
+  return { min, max };
+}
+
+/** Sets the exposure so the 95th percentile of vertex luminance lands near 0.8. */
+function autoExposure() {
+  const r = app.radiance;
+  if (!r) return;
+  const lum = [];
+  for (let i = 0; i < r.length; i += 3) lum.push(0.2126 * r[i] + 0.7152 * r[i + 1] + 0.0722 * r[i + 2]);
+  lum.sort((a, b) => a - b);
+  const p = lum[Math.floor(lum.length * 0.95)];
+  if (p > 0) {
+    app.state.exposure = Math.round(Math.log2(0.8 / p) * 10) / 10;
+    if (app.exposureRow) app.exposureRow.set(app.state.exposure);
+    scheduleHash();
+  }
+}
+
+// ---- panels -------------------------------------------------------------------------
+
+function buildPanels() {
+  buildComponents();
+  buildLights();
+  buildEnv();
+  buildMaterials();
+  buildDisplay();
+}
+
+function buildComponents() {
+  const box = $("components");
+  box.replaceChildren(...COMPONENTS.map((c) => el("button", {
+    id: `comp-${c}`, role: "radio", class: c === app.state.components ? "on" : "",
+    "aria-checked": String(c === app.state.components), title: COMPONENT_NOTES[c],
+    onclick: (ev) => {
+      app.state.components = c;
+      buildComponents();
+      changed(ev.timeStamp);
+    },
+  }, COMPONENT_LABELS[c])));
+  $("comp-note").textContent = COMPONENT_NOTES[app.state.components];
+}
+
+function lightLabel(l, i) {
+  return { point: "Point", spot: "Spot", directional: "Sun" }[l.type] + " " + (i + 1);
+}
+
+function lightPower(l) {
+  return l.type === "directional" ? l.irradiance : l.intensity;
+}
+
+function buildLights() {
+  const list = $("lights");
+  const lights = app.state.lights;
+  if (app.selected >= lights.length) app.selected = lights.length - 1;
+  list.replaceChildren(...lights.map((l, i) => {
+    const { hex, power } = splitColour(lightPower(l));
+    const unit = l.type === "directional" ? "W/m²" : "W/sr";
+    return el("li", { class: i === app.selected ? "sel" : "", "data-index": String(i), onclick: () => {
+      app.selected = i;
+      buildLights();
+      app.needDraw = true;
+    } },
+    el("span", { class: "sw", style: `background:${hex}` }),
+    el("span", { class: "name" }, lightLabel(l, i), " ", el("span", { class: "sub" }, `${fmt(power)} ${unit}`)),
+    el("button", { class: "del", title: "Remove this light", "aria-label": `Remove ${lightLabel(l, i)}`, onclick: (ev) => {
+      ev.stopPropagation();
+      lights.splice(i, 1);
+      buildLights();
+      changed(ev.timeStamp);
+    } }, "×"));
+  }));
+  if (!lights.length) list.append(el("li", { class: "sub" }, "No lights: add one above (or turn on the environment)."));
+  buildLightEditor();
+}
+
+function buildLightEditor() {
+  const box = $("light-editor");
+  const l = app.state.lights[app.selected];
+  if (!l) {
+    box.replaceChildren();
+    app.editor = null;
+    return;
+  }
+  const rows = [];
+  const refreshList = () => {
+    const li = $("lights").children[app.selected];
+    if (li) {
+      const { hex, power } = splitColour(lightPower(l));
+      li.querySelector(".sw").style.background = hex;
+      li.querySelector(".sub").textContent = `${fmt(power)} ${l.type === "directional" ? "W/m²" : "W/sr"}`;
+    }
+  };
+  const key = l.type === "directional" ? "irradiance" : "intensity";
+  let { hex, power } = splitColour(l[key]);
+  const colour = el("input", { type: "color", value: hex, "aria-label": "Light colour" });
+  colour.addEventListener("input", (ev) => {
+    hex = colour.value;
+    l[key] = joinColour(hex, power);
+    refreshList();
+    changed(ev.timeStamp);
+  });
+  const range = l.type === "directional" ? [-2, 3] : [-3, 2];
+  const pow = slider({
+    id: "light-power", label: key === "irradiance" ? "Irradiance" : "Intensity",
+    min: range[0], max: range[1], step: 0.01, value: logPos(power || 1e-3),
+    format: (v) => fmt(+fromLogPos(v).toPrecision(3)),
+    title: key === "irradiance" ? "W/m² on a surface facing the light" : "W/sr",
+    oninput: (v, ev) => {
+      power = +fromLogPos(v).toPrecision(4);
+      l[key] = joinColour(hex, power);
+      refreshList();
+      changed(ev.timeStamp);
+    },
+  });
+  rows.push(el("div", { class: "row" }, el("span", { class: "lab" }, "Colour"), colour));
+  rows.push(pow);
+  let posRow = null;
+  if (l.position) {
+    posRow = vec3Input("Position", l.position, (v) => {
+      l.position = v;
+      changed();
+    });
+    rows.push(posRow);
+  }
+  if (l.direction) {
+    const a = anglesFromDir(l.direction);
+    const set = (ev) => {
+      l.direction = dirFromAngles(a.yaw, a.pitch).map((x) => +x.toFixed(5));
+      changed(ev.timeStamp);
+    };
+    rows.push(slider({ id: "light-yaw", label: "Aim yaw", min: -180, max: 180, step: 1, value: Math.round(a.yaw),
+      format: (v) => `${v}°`, oninput: (v, ev) => { a.yaw = v; set(ev); } }));
+    rows.push(slider({ id: "light-pitch", label: "Aim pitch", min: -90, max: 90, step: 1, value: Math.round(a.pitch),
+      format: (v) => `${v}°`, oninput: (v, ev) => { a.pitch = v; set(ev); } }));
+  }
+  if (l.type === "spot") {
+    let inner, outer;
+    inner = slider({ id: "light-inner", label: "Inner cone", min: 0, max: 90, step: 1, value: l.inner_deg,
+      format: (v) => `${v}°`, oninput: (v, ev) => {
+        l.inner_deg = v;
+        if (l.outer_deg < v) { l.outer_deg = v; outer.set(v); }
+        changed(ev.timeStamp);
+      } });
+    outer = slider({ id: "light-outer", label: "Outer cone", min: 1, max: 90, step: 1, value: l.outer_deg,
+      format: (v) => `${v}°`, oninput: (v, ev) => {
+        l.outer_deg = v;
+        if (l.inner_deg > v) { l.inner_deg = v; inner.set(v); }
+        changed(ev.timeStamp);
+      } });
+    rows.push(inner, outer);
+  }
+  box.replaceChildren(...rows);
+  app.editor = { posRow };
+}
+
+function addLight(type, t) {
+  const c = scale(add(app.bbox.min, app.bbox.max), 0.5);
+  const above = [c[0], app.bbox.min[1] + (app.bbox.max[1] - app.bbox.min[1]) * 0.8, c[2]];
+  const light = type === "point" ? { type, position: above, intensity: [0.5, 0.5, 0.5] }
+    : type === "spot" ? { type, position: above, intensity: [2, 2, 2], direction: [0, -1, 0], inner_deg: 20, outer_deg: 35 }
+      : { type: "directional", direction: normalize([-0.4, -1, -0.3]), irradiance: [2, 2, 2] };
+  if (light.position) light.position = light.position.map((x) => +x.toFixed(4));
+  app.state.lights.push(light);
+  app.selected = app.state.lights.length - 1;
+  buildLights();
+  changed(t);
+}
+
+function buildEnv() {
+  const e = app.state.env;
+  const on = el("input", { type: "checkbox", id: "env-on", checked: e.on });
+  on.addEventListener("change", (ev) => {
+    e.on = on.checked;
+    changed(ev.timeStamp);
+  });
+  const rot = slider({ id: "env-rot", label: "Rotation", min: -180, max: 180, step: 1, value: e.rotation_deg,
+    format: (v) => `${v}°`, oninput: (v, ev) => { e.rotation_deg = v; if (e.on) changed(ev.timeStamp); } });
+  const sc = slider({ id: "env-scale", label: "Strength", min: -2, max: 1, step: 0.01, value: logPos(e.scale),
+    format: (v) => fmt(+fromLogPos(v).toPrecision(3)), oninput: (v, ev) => {
+      e.scale = +fromLogPos(v).toPrecision(4);
+      if (e.on) changed(ev.timeStamp);
+    } });
+  $("env").replaceChildren(
+    el("label", { class: "row" }, el("span", { class: "lab" }, "Map"), on,
+      el("span", {}, "sky (", el("code", {}, e.map), ")")),
+    rot, sc);
+}
+
+// Per translucent object: which profile is scaled (the scene's or a preset) and by how much.
+function describeProfile(p) {
+  if (p.type === "dipole") return p.preset ? `dipole ${p.preset}` : "dipole (σ values)";
+  return p.type;
+}
+
+function materialOverride(name) {
+  const o = app.detail.objects.find((x) => x.name === name);
+  const u = app.matUi[name];
+  const scaled = (p) => (p.type === "dipole" ? { ...p, scale: +((p.scale ?? 1) * u.scale).toPrecision(4) } : p);
+  if (o.material.type === "translucent") {
+    const base = u.choice === "scene" ? o.material.profile : { type: "dipole", preset: u.choice };
+    if (u.choice === "scene" && u.scale === 1) return null;
+    return { type: "translucent", profile: scaled(base) };
+  }
+  const media = o.material.materials.map((p, k) => (u.media[k] === "scene" ? p : { type: "dipole", preset: u.media[k] }));
+  if (u.media.every((m) => m === "scene") && u.scale === 1) return null;
+  return { type: "heterogeneous", materials: media.map(scaled), pattern: o.material.pattern };
+}
+
+function applyMaterial(name, t) {
+  const m = materialOverride(name);
+  if (m) app.state.materials[name] = m;
+  else delete app.state.materials[name];
+  changed(t);
+}
+
+/** The UI state of an object from its override in the URL (or none). */
+function matUiFrom(o, override) {
+  const fromProfile = (p, orig) => {
+    if (!p || JSON.stringify(p) === JSON.stringify(orig)) return { choice: "scene", scale: 1 };
+    if (p.type === "dipole" && p.preset && PRESETS.includes(p.preset)) {
+      const { scale: s, ...rest } = p;
+      if (JSON.stringify(rest) === JSON.stringify({ type: "dipole", preset: p.preset })) {
+        return { choice: p.preset, scale: s ?? 1 };
+      }
+    }
+    if (p.type === "dipole" && orig.type === "dipole") {
+      const { scale: s, ...rest } = p;
+      const { scale: s0, ...rest0 } = orig;
+      if (JSON.stringify(rest) === JSON.stringify(rest0)) return { choice: "scene", scale: (s ?? 1) / (s0 ?? 1) };
+    }
+    return { choice: "scene", scale: 1 };
+  };
+  if (o.material.type === "translucent") {
+    const p = override && override.type === "translucent" ? override.profile : null;
+    return fromProfile(p, o.material.profile);
+  }
+  const media = o.material.materials.map((p, k) => {
+    const q = override && override.type === "heterogeneous" ? override.materials[k] : null;
+    return fromProfile(q, p);
+  });
+  return { media: media.map((m) => m.choice), scale: media.find((m) => m.scale !== 1)?.scale ?? 1 };
+}
+
+function buildMaterials() {
+  const box = $("materials");
+  const rows = [];
+  app.matUi = {};
+  for (const o of app.detail.objects) {
+    const kind = o.material.type;
+    if (kind !== "translucent" && kind !== "heterogeneous") continue;
+    const u = matUiFrom(o, app.state.materials[o.name]);
+    app.matUi[o.name] = u;
+    const head = el("div", { class: "oname" }, o.name, " ", el("span", { class: "kind" },
+      kind === "translucent" ? describeProfile(o.material.profile) : `heterogeneous, ${o.material.materials.length} media`));
+    const parts = [head];
+    const presetOptions = (orig) => [["scene", `scene: ${describeProfile(orig)}`], ...PRESETS.map((p) => [p, p])];
+    const scalable = () => (kind === "translucent"
+      ? (u.choice !== "scene" || o.material.profile.type === "dipole")
+      : o.material.materials.some((p, k) => u.media[k] !== "scene" || p.type === "dipole"));
+    const sl = slider({
+      id: `mat-${o.name}-scale`, label: "Translucency", min: -3, max: 3, step: 0.05, value: Math.log2(u.scale),
+      format: (v) => `×${Math.pow(2, v).toFixed(2)}`,
+      title: "Scales the dipole's mean free path (the profile's `scale`): right is more translucent",
+      oninput: (v, ev) => {
+        u.scale = +Math.pow(2, v).toPrecision(4);
+        applyMaterial(o.name, ev.timeStamp);
+      },
+    });
+    const syncScalable = () => {
+      sl.input.disabled = !scalable();
+      sl.title = sl.input.disabled ? "Only dipole profiles can be scaled; pick a preset" : "";
+    };
+    if (kind === "translucent") {
+      parts.push(picker({
+        id: `mat-${o.name}-preset`, label: "Medium", value: u.choice, options: presetOptions(o.material.profile),
+        title: "Jensen et al. 2001's measured media",
+        onchange: (v) => { u.choice = v; syncScalable(); applyMaterial(o.name); },
+      }));
+    } else {
+      o.material.materials.forEach((p, k) => parts.push(picker({
+        id: `mat-${o.name}-medium${k}`, label: `Medium ${k + 1}`, value: u.media[k], options: presetOptions(p),
+        onchange: (v) => { u.media[k] = v; syncScalable(); applyMaterial(o.name); },
+      })));
+    }
+    parts.push(sl);
+    syncScalable();
+    rows.push(el("div", { class: "obj", "data-object": o.name }, parts));
+  }
+  if (!rows.length) rows.push(el("p", { class: "note" }, "This scene has no translucent objects."));
+  box.replaceChildren(...rows);
+}
+
+function buildDisplay() {
+  const s = app.state;
+  app.exposureRow = slider({ id: "exposure", label: "Exposure", min: -10, max: 10, step: 0.1, value: s.exposure,
+    format: (v) => `${v > 0 ? "+" : ""}${v.toFixed(1)} EV`, oninput: (v) => {
+      s.exposure = v;
+      app.needDraw = true;
+      scheduleHash();
+    } });
+  const auto = el("button", { id: "auto-exposure", title: "Expose for the brightest 5% of the mesh", onclick: () => {
+    autoExposure();
+    app.needDraw = true;
+  } }, "Auto");
+  const tone = picker({ id: "tone", label: "Tone map", value: s.tone,
+    options: [["filmic", "filmic (ACES fit)"], ["srgb", "sRGB (clip)"]], onchange: (v) => {
+      s.tone = v;
+      app.needDraw = true;
+      scheduleHash();
+    } });
+  const cull = el("input", { type: "checkbox", id: "cull", checked: s.cull });
+  cull.addEventListener("change", () => {
+    s.cull = cull.checked;
+    app.needDraw = true;
+    scheduleHash();
+  });
+  const giz = el("input", { type: "checkbox", id: "gizmo", checked: app.gizmo });
+  giz.addEventListener("change", () => {
+    app.gizmo = giz.checked;
+    app.needDraw = true;
+  });
+  app.gizmoBox = giz;
+  app.exposureRow.append(auto);
+  $("display").replaceChildren(
+    app.exposureRow,
+    tone,
+    el("label", { class: "row" }, el("span", { class: "lab" }, "Near walls"), cull, "hide back faces (see inside)"),
+    el("label", { class: "row" }, el("span", { class: "lab" }, "Gizmo"), giz, "show light handles"),
+  );
+}
+
+// ---- gizmo --------------------------------------------------------------------------
+
+const AXES = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+const AXIS_COLOURS = [[0.95, 0.33, 0.33, 1], [0.45, 0.86, 0.4, 1], [0.35, 0.6, 1, 1]];
+
+function handleLength() {
+  return app.camera.sceneRadius * 0.22;
+}
+
+/** Screen-space handles of the lights: centres, axis tips and spot aim tips (CSS pixels). */
+function handles(viewProj, w, h) {
+  const out = [];
+  app.state.lights.forEach((l, i) => {
+    if (!l.position) return;
+    const c = project(viewProj, l.position, w, h);
+    if (c.w <= 0) return;
+    out.push({ kind: "centre", i, x: c.x, y: c.y });
+    if (i !== app.selected) return;
+    const L = handleLength();
+    AXES.forEach((a, k) => {
+      const tip = project(viewProj, add(l.position, scale(a, L)), w, h);
+      if (tip.w > 0) out.push({ kind: "axis", i, k, x: tip.x, y: tip.y, x0: c.x, y0: c.y });
+    });
+    if (l.direction) {
+      const tip = project(viewProj, add(l.position, scale(normalize(l.direction), L * 1.3)), w, h);
+      if (tip.w > 0) out.push({ kind: "aim", i, x: tip.x, y: tip.y });
+    }
+  });
+  return out;
+}
+
+function segDist(px, py, x0, y0, x1, y1) {
+  const dx = x1 - x0, dy = y1 - y0;
+  const t = Math.max(0, Math.min(1, ((px - x0) * dx + (py - y0) * dy) / (dx * dx + dy * dy || 1)));
+  return Math.hypot(px - (x0 + t * dx), py - (y0 + t * dy));
+}
+
+function pick(x, y) {
+  if (!app.gizmo) return null;
+  const { w, h } = cssSize();
+  const { viewProj } = app.camera.matrices(w / h);
+  let best = null;
+  for (const hd of handles(viewProj, w, h)) {
+    let d = Math.hypot(x - hd.x, y - hd.y);
+    let limit = hd.kind === "centre" ? 14 : 11;
+    if (hd.kind === "axis") {
+      // The whole shaft, but the centre disc wins near the light.
+      d = Math.min(d, segDist(x, y, hd.x0, hd.y0, hd.x, hd.y) + 3);
+      limit = 8;
+    }
+    const score = d - (hd.kind === "centre" ? 4 : 0);
+    if (d <= limit && (!best || score < best.score)) best = { ...hd, score };
+  }
+  return best;
+}
+
+function gizmoGeometry() {
+  const lines = [];
+  const points = [[], [], []]; // light discs, axis tips, selected disc
+  const L = handleLength();
+  const push = (arr, p, c) => arr.push(p[0], p[1], p[2], c[0], c[1], c[2], c[3]);
+  app.state.lights.forEach((l, i) => {
+    const { hex } = splitColour(lightPower(l));
+    const col = [1, 3, 5].map((j) => parseInt(hex.slice(j, j + 2), 16) / 255).concat(1);
+    if (l.position) {
+      push(i === app.selected ? points[2] : points[0], l.position, col);
+      if (l.direction) {
+        const tip = add(l.position, scale(normalize(l.direction), L * 1.3));
+        const yellow = [1, 0.82, 0.35, i === app.selected ? 1 : 0.55];
+        push(lines, l.position, yellow);
+        push(lines, tip, yellow);
+        if (i === app.selected) push(points[1], tip, yellow);
+      }
+      if (i === app.selected) {
+        AXES.forEach((a, k) => {
+          const tip = add(l.position, scale(a, L));
+          push(lines, l.position, AXIS_COLOURS[k]);
+          push(lines, tip, AXIS_COLOURS[k]);
+          push(points[1], tip, AXIS_COLOURS[k]);
+        });
+      }
+    }
+  });
+  return {
+    lines: new Float32Array(lines),
+    points: [
+      { data: new Float32Array(points[0]), size: 16 },
+      { data: new Float32Array(points[1]), size: 10 },
+      { data: new Float32Array(points[2]), size: 22 },
+    ],
+  };
+}
+
+// ---- input --------------------------------------------------------------------------
+
+function cssSize() {
+  const c = app.renderer.canvas;
+  return { w: c.clientWidth, h: c.clientHeight };
+}
+
+let drag = null;
+
+function onPointerDown(ev) {
+  const canvas = app.renderer.canvas;
+  canvas.focus();
+  canvas.setPointerCapture(ev.pointerId);
+  const x = ev.offsetX, y = ev.offsetY;
+  const hit = ev.button === 0 && !ev.shiftKey ? pick(x, y) : null;
+  if (hit) {
+    const l = app.state.lights[hit.i];
+    if (app.selected !== hit.i) {
+      app.selected = hit.i;
+      buildLights();
+    }
+    const { w, h } = cssSize();
+    const ray = app.camera.ray(x, y, w, h);
+    const { f } = app.camera.basis();
+    drag = { mode: hit.kind, i: hit.i, k: hit.k, start: [...l.position], x, y };
+    if (hit.kind === "axis") {
+      drag.s0 = closestOnLine(l.position, AXES[hit.k], ray.o, ray.d);
+    } else if (hit.kind === "aim") {
+      drag.plane = add(l.position, scale(normalize(l.direction), handleLength() * 1.3));
+      drag.normal = f;
+    } else {
+      const p = rayPlane(ray.o, ray.d, l.position, f);
+      drag.offset = p ? sub(l.position, p) : [0, 0, 0];
+      drag.normal = f;
+    }
+  } else {
+    drag = { mode: ev.button === 2 || ev.button === 1 || ev.shiftKey ? "pan" : "orbit", x, y };
+  }
+  canvas.classList.add("dragging");
+  app.needDraw = true;
+}
+
+function onPointerMove(ev) {
+  const x = ev.offsetX, y = ev.offsetY;
+  const canvas = app.renderer.canvas;
+  if (!drag) {
+    canvas.classList.toggle("grab", !!pick(x, y));
+    return;
+  }
+  const { w, h } = cssSize();
+  if (drag.mode === "orbit") {
+    app.camera.orbit(x - drag.x, y - drag.y);
+  } else if (drag.mode === "pan") {
+    app.camera.pan(x - drag.x, y - drag.y, h);
+  } else {
+    const l = app.state.lights[drag.i];
+    if (!l) return;
+    const ray = app.camera.ray(x, y, w, h);
+    if (drag.mode === "axis") {
+      const s = closestOnLine(drag.start, AXES[drag.k], ray.o, ray.d);
+      if (s !== null && drag.s0 !== null) l.position = add(drag.start, scale(AXES[drag.k], s - drag.s0));
+    } else if (drag.mode === "aim") {
+      const p = rayPlane(ray.o, ray.d, drag.plane, drag.normal);
+      if (p && length(sub(p, l.position)) > 1e-6) l.direction = normalize(sub(p, l.position)).map((v) => +v.toFixed(5));
+    } else {
+      const p = rayPlane(ray.o, ray.d, drag.start, drag.normal);
+      if (p) l.position = add(p, drag.offset);
+    }
+    if (l.position) l.position = l.position.map((v) => +v.toFixed(5));
+    if (app.editor && app.editor.posRow && l.position) app.editor.posRow.set(l.position);
+    changed(ev.timeStamp);
+  }
+  drag.x = x;
+  drag.y = y;
+  app.needDraw = true;
+  if (drag.mode === "orbit" || drag.mode === "pan") scheduleHash();
+}
+
+function onPointerUp() {
+  if (drag && drag.mode === "aim") buildLightEditor();
+  drag = null;
+  app.renderer.canvas.classList.remove("dragging");
+}
+
+function onWheel(ev) {
+  ev.preventDefault();
+  app.camera.zoom(Math.exp(ev.deltaY * 0.0012));
+  app.needDraw = true;
+  scheduleHash();
+}
+
+function fit() {
+  const { w, h } = cssSize();
+  app.camera.fit(app.bbox.min, app.bbox.max, w / h);
+  app.needDraw = true;
+  scheduleHash();
+}
+
+// ---- drawing ------------------------------------------------------------------------
+
+function draw(withGizmo = app.gizmo) {
+  const r = app.renderer;
+  r.resize();
+  const { w, h } = cssSize();
+  const m = app.camera.matrices(w / Math.max(h, 1));
+  r.draw(m, {
+    exposure: app.state.exposure,
+    tone: app.state.tone,
+    cullBackfaces: app.state.cull,
+    background: [0.031, 0.035, 0.043],
+    gizmo: withGizmo && app.detail ? gizmoGeometry() : null,
+  });
+}
+
+function frame() {
+  requestAnimationFrame(frame);
+  const c = app.renderer.canvas;
+  const sizeChanged = c.width !== Math.round(c.clientWidth * Math.min(devicePixelRatio || 1, 2));
+  if (!app.needDraw && !sizeChanged) return;
+  app.needDraw = false;
+  draw();
+  const t = performance.now();
+  metrics.draws += 1;
+  metrics.drawTimes.push(t);
+  if (metrics.drawTimes.length > 600) metrics.drawTimes.splice(0, 300);
+  if (app.newFrame) {
+    app.newFrame = false;
+    if (metrics.firstLitMs === null) {
+      metrics.firstLitMs = t;
+      performance.mark("translux:first-lit-frame");
+    }
+    // Input-to-photon: every input whose state (or a newer one) is now on screen.
+    const keep = [];
+    for (const i of metrics.inputs) {
+      if (i.seq <= app.shownSeq) metrics.latencies.push(t - i.t);
+      else keep.push(i);
+    }
+    metrics.inputs = keep;
+    if (metrics.latencies.length > 5000) metrics.latencies.splice(0, 2500);
+  }
+  updateStats(t);
+}
+
+function rate(times, now, windowMs = 2000) {
+  const recent = times.filter((x) => now - x <= windowMs);
+  return recent.length / (windowMs / 1000);
+}
+
+function updateStats(now) {
+  const info = app.lastInfo;
+  const s = info && info.stats;
+  const f = (v, d = 1) => (v === null || v === undefined ? "—" : Number(v).toFixed(d));
+  const lat = metrics.latencies.slice(-20).sort((a, b) => a - b);
+  const med = lat.length ? lat[Math.floor(lat.length / 2)] : null;
+  const lines = [
+    `draw ${rate(metrics.drawTimes, now).toFixed(0)} fps · lit ${rate(metrics.frames.map((x) => x.t), now).toFixed(1)}/s`,
+    `server ${f(s && s.ms)} ms  (direct ${f(s && s.direct_ms)}, solve ${f(s && s.solve_ms)}${s && s.materials_ms ? `, S ${f(s.materials_ms)}` : ""})`,
+    `solver ${s ? s.solver ?? "n/a over REST" : "—"} · ${s && s.iterations != null ? s.iterations + " it" : "— it"} · residual ${s && s.residual != null ? Number(s.residual).toExponential(1) : "—"}`,
+    `shown ${s ? s.components : "—"} · seq ${app.shownSeq}${info && info.dropped != null ? ` · dropped ${info.dropped}` : ""}`,
+    `input→photon ${f(med, 0)} ms (median of ${lat.length})`,
+    app.detail ? `${app.detail.patches} patches · ${app.detail.vertices} vertices` : "",
+  ];
+  $("stats").textContent = lines.filter(Boolean).join("\n");
+}
+
+// ---- keep and share -----------------------------------------------------------------
+
+function snapshot() {
+  draw(false);
+  app.renderer.canvas.toBlob((blob) => {
+    download(`translux-${app.state.scene}-${app.state.components}.png`, blob);
+    app.needDraw = true;
+  }, "image/png");
+}
+
+function glb() {
+  if (!app.radiance) {
+    setBanner("app", "No relit frame yet: the .glb needs the server's radiance");
+    return;
+  }
+  const bytes = buildGlb(app.mesh, app.radiance, app.state.exposure, app.state.tone, "translux viewer");
+  download(`translux-${app.state.scene}-${app.state.components}.glb`, new Blob([bytes], { type: "model/gltf-binary" }));
+}
+
+// ---- boot ---------------------------------------------------------------------------
+
+async function boot() {
+  try {
+    app.renderer = new Renderer($("view"));
+  } catch (e) {
+    setBanner("app", e.message);
+    return;
+  }
+  const canvas = app.renderer.canvas;
+  canvas.addEventListener("pointerdown", onPointerDown);
+  canvas.addEventListener("pointermove", onPointerMove);
+  canvas.addEventListener("pointerup", onPointerUp);
+  canvas.addEventListener("pointercancel", onPointerUp);
+  canvas.addEventListener("wheel", onWheel, { passive: false });
+  canvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
+  window.addEventListener("keydown", (ev) => {
+    if (ev.target.closest && ev.target.closest("input, select, textarea")) return;
+    if (ev.key === "f" || ev.key === "F") fit();
+    if (ev.key === "g" || ev.key === "G") {
+      app.gizmo = !app.gizmo;
+      if (app.gizmoBox) app.gizmoBox.checked = app.gizmo;
+      app.needDraw = true;
+    }
+    if ((ev.key === "Delete" || ev.key === "Backspace") && app.state.lights[app.selected]) {
+      app.state.lights.splice(app.selected, 1);
+      buildLights();
+      changed(ev.timeStamp);
+    }
+  });
+  new ResizeObserver(() => { app.needDraw = true; }).observe(canvas);
+  $("fit").onclick = fit;
+  $("snap").onclick = snapshot;
+  $("glb").onclick = glb;
+  $("share").onclick = async () => {
+    app.state.camera = app.camera.toJSON();
+    history.replaceState(null, "", encodeHash(app.state));
+    try {
+      await navigator.clipboard.writeText(location.href);
+      setBanner("notice", "Link to this view copied.");
+    } catch {
+      setBanner("notice", "The browser refused the clipboard: the link to this view is in the address bar.");
+    }
+    setTimeout(() => setBanner("notice", app.link && app.link.transport === "rest" ? app.restNotice : null), 2500);
+  };
+  $("add-point").onclick = (ev) => addLight("point", ev.timeStamp);
+  $("add-spot").onclick = (ev) => addLight("spot", ev.timeStamp);
+  $("add-dir").onclick = (ev) => addLight("directional", ev.timeStamp);
+  $("scene").onchange = () => {
+    history.replaceState(null, "", "#scene=" + encodeURIComponent($("scene").value));
+    loadScene($("scene").value, false);
+  };
+  window.addEventListener("hashchange", () => {
+    // A pasted link: reload the view it describes.
+    const { state, problems } = decodeHash(location.hash);
+    app.hashProblems = problems;
+    if (state.scene && app.scenes.some((s) => s.id === state.scene)) loadScene(state.scene, true);
+  });
+  requestAnimationFrame(frame);
+
+  const { state: fromHash, problems } = decodeHash(location.hash);
+  app.hashProblems = problems;
+  let list;
+  try {
+    list = await getJson("/api/v1/scenes");
+  } catch (e) {
+    setBanner("conn", `Cannot list the scenes: ${e.message}. Reload the page when the server is back.`);
+    return;
+  }
+  app.scenes = list.scenes;
+  $("scene").replaceChildren(...list.scenes.map((s) => el("option", { value: s.id }, `${s.name} (${s.patches} patches)`)));
+  if (!list.scenes.length) {
+    setBanner("app", "The server holds no scenes (start it with --bundles DIR or --demo).");
+    return;
+  }
+  let id = list.scenes[0].id;
+  if (fromHash.scene) {
+    if (list.scenes.some((s) => s.id === fromHash.scene)) id = fromHash.scene;
+    else app.hashProblems.push(`the server has no scene “${fromHash.scene}”`);
+  }
+  await loadScene(id, true);
+}
+
+boot();

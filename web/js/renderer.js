@@ -1,0 +1,262 @@
+// WebGL2 drawing: the patch mesh with per-vertex linear radiance, exposed and tone mapped in
+// the fragment shader (the same curves as the server's render route), and the light gizmos.
+//
+// Hand-written WebGL2 rather than three.js: one mesh, one colour attribute and a few lines
+// need ~300 lines, the served files stay self-contained (no npm build inside `cargo build`),
+// and nothing has to be vendored or kept up to date.
+
+const MESH_VS = `#version 300 es
+layout(location = 0) in vec3 aPos;
+layout(location = 1) in vec3 aNormal;
+layout(location = 2) in vec3 aRadiance;
+uniform mat4 uViewProj;
+out vec3 vRadiance;
+out vec3 vNormal;
+out vec3 vPos;
+void main() {
+  vRadiance = aRadiance;
+  vNormal = aNormal;
+  vPos = aPos;
+  gl_Position = uViewProj * vec4(aPos, 1.0);
+}`;
+
+const MESH_FS = `#version 300 es
+precision highp float;
+in vec3 vRadiance;
+in vec3 vNormal;
+in vec3 vPos;
+uniform float uExposure;   // 2^EV
+uniform int uTone;         // 0: clamp (sRGB), 1: ACES filmic (Narkowicz 2016)
+uniform int uLit;          // 0: no radiance yet, shade the geometry so it can be seen
+uniform vec3 uEye;
+out vec4 outColour;
+
+float srgbOetf(float v) {
+  v = clamp(v, 0.0, 1.0);
+  return v <= 0.0031308 ? 12.92 * v : 1.055 * pow(v, 1.0 / 2.4) - 0.055;
+}
+vec3 aces(vec3 x) {
+  x = clamp(x, 0.0, 1e4);
+  return clamp((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0);
+}
+void main() {
+  vec3 c;
+  if (uLit == 1) {
+    vec3 x = max(vRadiance, vec3(0.0)) * uExposure;
+    c = uTone == 1 ? aces(x) : min(x, vec3(1.0));
+  } else {
+    vec3 n = normalize(vNormal);
+    float k = abs(dot(n, normalize(uEye - vPos)));
+    c = vec3(0.05 + 0.12 * k);
+  }
+  outColour = vec4(srgbOetf(c.r), srgbOetf(c.g), srgbOetf(c.b), 1.0);
+}`;
+
+// Gizmo lines and handles: positions with display colours (already sRGB), no depth test.
+const LINE_VS = `#version 300 es
+layout(location = 0) in vec3 aPos;
+layout(location = 1) in vec4 aColour;
+uniform mat4 uViewProj;
+uniform float uPointSize;
+out vec4 vColour;
+void main() {
+  vColour = aColour;
+  gl_Position = uViewProj * vec4(aPos, 1.0);
+  gl_PointSize = uPointSize;
+}`;
+
+const LINE_FS = `#version 300 es
+precision mediump float;
+in vec4 vColour;
+uniform int uRound;
+out vec4 outColour;
+void main() {
+  if (uRound == 1) {
+    vec2 p = gl_PointCoord * 2.0 - 1.0;
+    float r = dot(p, p);
+    if (r > 1.0) discard;
+    // A dark ring around a bright disc: visible on light and dark walls alike.
+    outColour = r > 0.55 ? vec4(0.05, 0.05, 0.06, 1.0) : vColour;
+  } else {
+    outColour = vColour;
+  }
+}`;
+
+function compile(gl, vs, fs) {
+  const prog = gl.createProgram();
+  for (const [type, src] of [[gl.VERTEX_SHADER, vs], [gl.FRAGMENT_SHADER, fs]]) {
+    const s = gl.createShader(type);
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) {
+      throw new Error("shader does not compile: " + gl.getShaderInfoLog(s));
+    }
+    gl.attachShader(prog, s);
+  }
+  gl.linkProgram(prog);
+  if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) {
+    throw new Error("shader does not link: " + gl.getProgramInfoLog(prog));
+  }
+  const uniforms = {};
+  const n = gl.getProgramParameter(prog, gl.ACTIVE_UNIFORMS);
+  for (let i = 0; i < n; i++) {
+    const name = gl.getActiveUniform(prog, i).name;
+    uniforms[name] = gl.getUniformLocation(prog, name);
+  }
+  return { prog, uniforms };
+}
+
+export class Renderer {
+  constructor(canvas) {
+    this.canvas = canvas;
+    const gl = canvas.getContext("webgl2", {
+      antialias: true,
+      // Kept so snapshots and the browser tests read what is shown.
+      preserveDrawingBuffer: true,
+    });
+    if (!gl) {
+      throw new Error("this browser has no WebGL2; the viewer needs it to draw the mesh");
+    }
+    this.gl = gl;
+    this.mesh = compile(gl, MESH_VS, MESH_FS);
+    this.lines = compile(gl, LINE_VS, LINE_FS);
+    this.meshVao = null;
+    this.indexCount = 0;
+    this.vertexCount = 0;
+    this.lit = false;
+    this.gizmoVao = gl.createVertexArray();
+    this.gizmoBuf = gl.createBuffer();
+    gl.bindVertexArray(this.gizmoVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.gizmoBuf);
+    gl.enableVertexAttribArray(0);
+    gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 28, 0);
+    gl.enableVertexAttribArray(1);
+    gl.vertexAttribPointer(1, 4, gl.FLOAT, false, 28, 12);
+    gl.bindVertexArray(null);
+  }
+
+  /** Uploads a mesh: flat positions, normals (3 per vertex) and triangle indices. */
+  setMesh(positions, normals, indices) {
+    const gl = this.gl;
+    if (this.meshVao) {
+      gl.deleteVertexArray(this.meshVao);
+      for (const b of this.meshBuffers) gl.deleteBuffer(b);
+    }
+    const vao = gl.createVertexArray();
+    gl.bindVertexArray(vao);
+    const buf = (data, loc) => {
+      const b = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, b);
+      gl.bufferData(gl.ARRAY_BUFFER, data, loc === 2 ? gl.DYNAMIC_DRAW : gl.STATIC_DRAW);
+      gl.enableVertexAttribArray(loc);
+      gl.vertexAttribPointer(loc, 3, gl.FLOAT, false, 0, 0);
+      return b;
+    };
+    const n = positions.length / 3;
+    const pos = buf(new Float32Array(positions), 0);
+    const nor = buf(new Float32Array(normals), 1);
+    const rad = buf(new Float32Array(n * 3), 2);
+    const ib = gl.createBuffer();
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, new Uint32Array(indices), gl.STATIC_DRAW);
+    gl.bindVertexArray(null);
+    this.meshVao = vao;
+    this.meshBuffers = [pos, nor, rad, ib];
+    this.radianceBuf = rad;
+    this.indexCount = indices.length;
+    this.vertexCount = n;
+    this.lit = false;
+  }
+
+  /** New per-vertex linear radiance (Float32Array, 3 per vertex). */
+  setRadiance(radiance) {
+    if (radiance.length !== this.vertexCount * 3) {
+      throw new Error(
+        `the server sent ${radiance.length / 3} vertex colours for a mesh of ${this.vertexCount} vertices`,
+      );
+    }
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.radianceBuf);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, radiance);
+    this.lit = true;
+  }
+
+  /** Matches the drawing buffer to the canvas's CSS size × devicePixelRatio. */
+  resize() {
+    const dpr = Math.min(window.devicePixelRatio || 1, 2);
+    const w = Math.max(1, Math.round(this.canvas.clientWidth * dpr));
+    const h = Math.max(1, Math.round(this.canvas.clientHeight * dpr));
+    if (this.canvas.width !== w || this.canvas.height !== h) {
+      this.canvas.width = w;
+      this.canvas.height = h;
+    }
+  }
+
+  /**
+   * Draws a frame. `view`: { viewProj, eye }; `opts`: { exposure (EV), tone, cullBackfaces,
+   * background [r,g,b] display values, gizmo: { lines: Float32Array, points: Float32Array } }.
+   */
+  draw(view, opts) {
+    const gl = this.gl;
+    gl.viewport(0, 0, this.canvas.width, this.canvas.height);
+    const bg = opts.background;
+    gl.clearColor(bg[0], bg[1], bg[2], 1);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    if (this.meshVao) {
+      gl.enable(gl.DEPTH_TEST);
+      gl.depthFunc(gl.LEQUAL);
+      if (opts.cullBackfaces) gl.enable(gl.CULL_FACE);
+      else gl.disable(gl.CULL_FACE);
+      gl.cullFace(gl.BACK);
+      gl.frontFace(gl.CCW);
+      const { prog, uniforms: u } = this.mesh;
+      gl.useProgram(prog);
+      gl.uniformMatrix4fv(u.uViewProj, false, view.viewProj);
+      gl.uniform1f(u.uExposure, Math.pow(2, opts.exposure));
+      gl.uniform1i(u.uTone, opts.tone === "filmic" ? 1 : 0);
+      gl.uniform1i(u.uLit, this.lit ? 1 : 0);
+      gl.uniform3fv(u.uEye, view.eye);
+      gl.bindVertexArray(this.meshVao);
+      gl.drawElements(gl.TRIANGLES, this.indexCount, gl.UNSIGNED_INT, 0);
+      gl.bindVertexArray(null);
+    }
+    if (opts.gizmo) this.drawGizmo(view, opts.gizmo);
+  }
+
+  drawGizmo(view, gizmo) {
+    const gl = this.gl;
+    gl.disable(gl.DEPTH_TEST);
+    gl.disable(gl.CULL_FACE);
+    gl.enable(gl.BLEND);
+    gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA);
+    const { prog, uniforms: u } = this.lines;
+    gl.useProgram(prog);
+    gl.uniformMatrix4fv(u.uViewProj, false, view.viewProj);
+    gl.bindVertexArray(this.gizmoVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.gizmoBuf);
+    if (gizmo.lines.length) {
+      gl.bufferData(gl.ARRAY_BUFFER, gizmo.lines, gl.STREAM_DRAW);
+      gl.uniform1i(u.uRound, 0);
+      gl.drawArrays(gl.LINES, 0, gizmo.lines.length / 7);
+    }
+    const dpr = this.canvas.width / Math.max(1, this.canvas.clientWidth);
+    for (const group of gizmo.points) {
+      if (!group.data.length) continue;
+      gl.bufferData(gl.ARRAY_BUFFER, group.data, gl.STREAM_DRAW);
+      gl.uniform1i(u.uRound, 1);
+      gl.uniform1f(u.uPointSize, group.size * dpr);
+      gl.drawArrays(gl.POINTS, 0, group.data.length / 7);
+    }
+    gl.bindVertexArray(null);
+    gl.disable(gl.BLEND);
+  }
+
+  /** A w×h downsampled copy of the drawing buffer as sRGB bytes (RGBA), for tests. */
+  readPixels() {
+    const gl = this.gl;
+    const w = this.canvas.width, h = this.canvas.height;
+    const px = new Uint8Array(w * h * 4);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    return { w, h, px };
+  }
+}

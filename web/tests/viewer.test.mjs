@@ -1,0 +1,398 @@
+// Drives the translux viewer in Debian's chromium (headless, SwiftShader WebGL2) against a
+// running translux-server. Run by tests/tests/browser.rs, which starts and stops the server:
+//
+//   node web/tests/viewer.test.mjs URL OUT_DIR
+//
+// Talks to its harness by lines: it prints {"event":"stop-server"} / {"event":"start-server"}
+// on stdout and waits for "stopped" / "started" on stdin; its last line is
+// {"event":"result", ...measurements}. Screenshots, the downloaded .glb and .png and the data
+// to check them go to OUT_DIR. Any failed check throws: exit code 1 with the reason.
+
+import { chromium } from "playwright-core";
+import { mkdirSync, writeFileSync } from "node:fs";
+import { createInterface } from "node:readline";
+import { join } from "node:path";
+
+const [url, outDir] = process.argv.slice(2);
+if (!url || !outDir) {
+  console.error("usage: node viewer.test.mjs URL OUT_DIR");
+  process.exit(2);
+}
+mkdirSync(outDir, { recursive: true });
+const executablePath = process.env.CHROMIUM || "/usr/bin/chromium";
+
+// ---- harness protocol ----------------------------------------------------------------
+
+const stdinLines = createInterface({ input: process.stdin });
+const waiting = [];
+stdinLines.on("line", (l) => {
+  const w = waiting.shift();
+  if (w) w(l.trim());
+});
+function ask(event) {
+  return new Promise((resolve) => {
+    waiting.push(resolve);
+    console.log(JSON.stringify({ event }));
+  });
+}
+const log = (...a) => console.error("[viewer.test]", ...a);
+
+function check(cond, message) {
+  if (!cond) throw new Error("check failed: " + message);
+}
+
+// ---- page helpers ----------------------------------------------------------------------
+
+/** Pixel statistics of the drawing buffer, optionally inside a CSS-pixel rect. */
+async function pixels(page, rect = null) {
+  return page.evaluate((rect) => {
+    const r = window.translux.app.renderer;
+    const { w, h, px } = r.readPixels();
+    const dpr = w / r.canvas.clientWidth;
+    const x0 = rect ? Math.max(0, Math.floor(rect.x0 * dpr)) : 0;
+    const x1 = rect ? Math.min(w, Math.ceil(rect.x1 * dpr)) : w;
+    // readPixels rows start at the bottom.
+    const y0 = rect ? Math.max(0, h - Math.ceil(rect.y1 * dpr)) : 0;
+    const y1 = rect ? Math.min(h, h - Math.floor(rect.y0 * dpr)) : h;
+    // A 48×36 grid of cell means, to compare frames.
+    const GX = 48, GY = 36;
+    const grid = new Float64Array(GX * GY * 3);
+    const count = new Float64Array(GX * GY);
+    let n = 0, sum = 0, sum2 = 0, lit = 0;
+    for (let y = y0; y < y1; y++) {
+      for (let x = x0; x < x1; x++) {
+        const i = (y * w + x) * 4;
+        const l = 0.2126 * px[i] + 0.7152 * px[i + 1] + 0.0722 * px[i + 2];
+        n++; sum += l; sum2 += l * l;
+        if (l > 24) lit++;
+        const gx = Math.min(GX - 1, Math.floor(((x - x0) / (x1 - x0)) * GX));
+        const gy = Math.min(GY - 1, Math.floor(((y - y0) / (y1 - y0)) * GY));
+        const g = gy * GX + gx;
+        grid[3 * g] += px[i]; grid[3 * g + 1] += px[i + 1]; grid[3 * g + 2] += px[i + 2];
+        count[g]++;
+      }
+    }
+    for (let g = 0; g < GX * GY; g++) for (let k = 0; k < 3; k++) grid[3 * g + k] /= Math.max(1, count[g]);
+    const mean = sum / n;
+    return { mean, std: Math.sqrt(Math.max(0, sum2 / n - mean * mean)), litFraction: lit / n, grid: Array.from(grid) };
+  }, rect);
+}
+
+/** Mean absolute difference of two pixel grids, 0–255. */
+function diff(a, b) {
+  let s = 0;
+  for (let i = 0; i < a.grid.length; i++) s += Math.abs(a.grid[i] - b.grid[i]);
+  return s / a.grid.length;
+}
+
+/** Waits until no relight is in flight or pending and the last frame is drawn. */
+async function idle(page, timeout = 30000) {
+  await page.waitForFunction(() => {
+    const a = window.translux.app;
+    return a.link && a.link.state === "open" && !a.link.inFlight && !a.link.pending && !a.needDraw;
+  }, null, { timeout, polling: 50 });
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+}
+
+async function shot(page, name) {
+  await page.screenshot({ path: join(outDir, name) });
+  log("screenshot", join(outDir, name));
+}
+
+/** The screen rect (CSS pixels, canvas-relative) of an object's projected vertices. */
+async function objectRect(page, name) {
+  return page.evaluate((name) => {
+    const { app } = window.translux;
+    const o = app.mesh.objects.find((x) => x.name === name);
+    const c = app.renderer.canvas;
+    const { viewProj } = app.camera.matrices(c.clientWidth / c.clientHeight);
+    const r = { x0: Infinity, y0: Infinity, x1: -Infinity, y1: -Infinity };
+    for (let t = o.first_triangle; t < o.first_triangle + o.triangle_count; t++) {
+      for (let k = 0; k < 3; k++) {
+        const v = app.mesh.indices[3 * t + k];
+        const p = [app.mesh.positions[3 * v], app.mesh.positions[3 * v + 1], app.mesh.positions[3 * v + 2]];
+        const x = viewProj[0] * p[0] + viewProj[4] * p[1] + viewProj[8] * p[2] + viewProj[12];
+        const y = viewProj[1] * p[0] + viewProj[5] * p[1] + viewProj[9] * p[2] + viewProj[13];
+        const w = viewProj[3] * p[0] + viewProj[7] * p[1] + viewProj[11] * p[2] + viewProj[15];
+        const sx = ((x / w + 1) / 2) * c.clientWidth, sy = ((1 - y / w) / 2) * c.clientHeight;
+        r.x0 = Math.min(r.x0, sx); r.x1 = Math.max(r.x1, sx);
+        r.y0 = Math.min(r.y0, sy); r.y1 = Math.max(r.y1, sy);
+      }
+    }
+    return r;
+  }, name);
+}
+
+const median = (a) => (a.length ? [...a].sort((x, y) => x - y)[Math.floor(a.length / 2)] : null);
+const pct = (a, q) => (a.length ? [...a].sort((x, y) => x - y)[Math.min(a.length - 1, Math.floor(a.length * q))] : null);
+
+// ---- the test ------------------------------------------------------------------------
+
+const browser = await chromium.launch({
+  executablePath,
+  headless: true,
+  args: [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+  ],
+});
+const result = { event: "result" };
+const pageErrors = [];
+try {
+  const context = await browser.newContext({ viewport: { width: 1280, height: 760 }, acceptDownloads: true });
+  const page = await context.newPage();
+  page.on("pageerror", (e) => pageErrors.push(e.message));
+  page.on("console", (m) => {
+    if (m.type() === "error") log("console error:", m.text());
+  });
+
+  // 1. Load, first lit frame, not blank.
+  await page.goto(url);
+  await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
+  await idle(page);
+  result.first_lit_ms = await page.evaluate(() => performance.getEntriesByName("translux:first-lit-frame")[0].startTime);
+  result.renderer = await page.evaluate(() => {
+    const gl = window.translux.app.renderer.gl;
+    const d = gl.getExtension("WEBGL_debug_renderer_info");
+    return gl.getParameter(d ? d.UNMASKED_RENDERER_WEBGL : gl.RENDERER);
+  });
+  result.transport = await page.evaluate(() => window.translux.app.link.transport);
+  // What one frame costs the browser (SwiftShader rasterises on the CPU): 10 draws, each
+  // finished by a 1-pixel read-back.
+  result.draw_ms = await page.evaluate(() => {
+    const { app } = window.translux;
+    const r = app.renderer, c = r.canvas, gl = r.gl;
+    const m = app.camera.matrices(c.clientWidth / c.clientHeight);
+    const opts = { exposure: app.state.exposure, tone: app.state.tone, cullBackfaces: true, background: [0, 0, 0], gizmo: null };
+    const px = new Uint8Array(4);
+    const t0 = performance.now();
+    for (let i = 0; i < 10; i++) {
+      r.draw(m, opts);
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    }
+    app.needDraw = true;
+    return +((performance.now() - t0) / 10).toFixed(1);
+  });
+  result.canvas = await page.evaluate(() => [window.translux.app.renderer.canvas.width, window.translux.app.renderer.canvas.height]);
+  log("first lit frame", result.first_lit_ms.toFixed(0), "ms;", result.renderer, ";", result.transport);
+  await shot(page, "01-loaded.png");
+  const loaded = await pixels(page);
+  check(loaded.std > 20 && loaded.litFraction > 0.3,
+    `the canvas looks blank: luminance mean ${loaded.mean.toFixed(1)}, std ${loaded.std.toFixed(1)}, lit ${(loaded.litFraction * 100).toFixed(0)}%`);
+  const transportText = await page.textContent("#conn");
+  check(result.transport === "stream" ? /stream/.test(transportText) : /REST/.test(transportText),
+    `the connection chip says "${transportText}" for transport ${result.transport}`);
+  if (result.transport === "rest") {
+    const note = await page.textContent("#banners");
+    check(/Streaming is unavailable/.test(note), `REST fallback without a visible note: "${note}"`);
+  }
+
+  // 2. Drag the light with its gizmo; measure lit frames per second and input-to-photon latency.
+  const box = await page.locator("#view").boundingBox();
+  const light0 = await page.evaluate(() => window.translux.app.state.lights[0].position.slice());
+  const centre = await page.evaluate(() => {
+    const { app } = window.translux;
+    const c = app.renderer.canvas;
+    const { viewProj } = app.camera.matrices(c.clientWidth / c.clientHeight);
+    const p = app.state.lights[0].position;
+    const x = viewProj[0] * p[0] + viewProj[4] * p[1] + viewProj[8] * p[2] + viewProj[12];
+    const y = viewProj[1] * p[0] + viewProj[5] * p[1] + viewProj[9] * p[2] + viewProj[13];
+    const w = viewProj[3] * p[0] + viewProj[7] * p[1] + viewProj[11] * p[2] + viewProj[15];
+    return { x: ((x / w + 1) / 2) * c.clientWidth, y: ((1 - y / w) / 2) * c.clientHeight };
+  });
+  const before = await pixels(page);
+  await page.evaluate(() => {
+    const m = window.translux.metrics;
+    m.latencies.length = 0;
+    m.dragStart = performance.now();
+    m.dragFrames0 = m.frames.length;
+    m.dragDraws0 = m.draws;
+  });
+  await page.mouse.move(box.x + centre.x, box.y + centre.y);
+  await page.mouse.down();
+  const STEPS = 90;
+  for (let i = 1; i <= STEPS; i++) {
+    // Down and to the left, then along the floor: a 3 s drag at about 30 moves a second.
+    const t = i / STEPS;
+    const dx = -170 * Math.sin(t * Math.PI * 0.5), dy = 190 * t;
+    await page.mouse.move(box.x + centre.x + dx, box.y + centre.y + dy);
+    await page.waitForTimeout(33);
+  }
+  await page.mouse.up();
+  const dragEnd = await page.evaluate(() => performance.now());
+  await idle(page);
+  const drag = await page.evaluate((dragEnd) => {
+    const m = window.translux.metrics;
+    const secs = (dragEnd - m.dragStart) / 1000;
+    return {
+      seconds: secs,
+      lit_frames: m.frames.filter((f) => f.t >= m.dragStart && f.t <= dragEnd).length,
+      draws: m.draws - m.dragDraws0,
+      server_ms: m.frames.slice(m.dragFrames0).map((f) => f.ms).filter((x) => x != null),
+      latencies: m.latencies.slice(),
+    };
+  }, dragEnd);
+  const light1 = await page.evaluate(() => window.translux.app.state.lights[0].position.slice());
+  const moved = Math.hypot(light1[0] - light0[0], light1[1] - light0[1], light1[2] - light0[2]);
+  check(moved > 0.05, `dragging the light's handle moved it by ${moved} scene units only`);
+  const dragged = await pixels(page);
+  const dragDiff = diff(before, dragged);
+  check(dragDiff > 3, `moving the light changed the picture by ${dragDiff.toFixed(2)} / 255 only`);
+  result.drag = {
+    seconds: +drag.seconds.toFixed(2),
+    lit_fps: +(drag.lit_frames / drag.seconds).toFixed(1),
+    draw_fps: +(drag.draws / drag.seconds).toFixed(1),
+    input_events: drag.latencies.length,
+    latency_ms_median: +median(drag.latencies).toFixed(1),
+    latency_ms_p95: +pct(drag.latencies, 0.95).toFixed(1),
+    latency_ms_max: +Math.max(...drag.latencies).toFixed(1),
+    server_ms_median: +median(drag.server_ms).toFixed(1),
+    light_moved: +moved.toFixed(3),
+    pixel_change: +dragDiff.toFixed(1),
+  };
+  check(drag.latencies.length >= STEPS / 2, `only ${drag.latencies.length} of ${STEPS} drag moves reached the screen`);
+  log("drag", JSON.stringify(result.drag));
+  await shot(page, "02-light-dragged.png");
+
+  // 3. The translucency slider re-solves and changes the block.
+  const blockName = await page.evaluate(() => window.translux.app.detail.objects.find((o) => o.material.type === "translucent").name);
+  const rect = await objectRect(page, blockName);
+  const blockBefore = await pixels(page, rect);
+  await page.evaluate(() => {
+    window.translux.metrics.solvingSeen = 0;
+    new MutationObserver(() => {
+      if (!document.getElementById("solving").hidden) window.translux.metrics.solvingSeen++;
+    }).observe(document.getElementById("solving"), { attributes: true });
+  });
+  const sliderSel = `#mat-${blockName}-scale`;
+  for (const v of ["0.5", "1", "1.5", "2", "2.5", "3"]) {
+    await page.locator(sliderSel).fill(v);
+    await page.waitForTimeout(40);
+  }
+  await idle(page);
+  const blockAfter = await pixels(page, rect);
+  const blockDiff = diff(blockBefore, blockAfter);
+  check(blockDiff > 2, `translucency ×8 changed the block by ${blockDiff.toFixed(2)} / 255 only`);
+  const solvingSeen = await page.evaluate(() => window.translux.metrics.solvingSeen);
+  check(solvingSeen > 0, "no visible 'solving…' state while the material re-solved");
+  const override = await page.evaluate((n) => window.translux.app.state.materials[n], blockName);
+  check(override && override.profile && Math.abs(override.profile.scale - 8) < 0.01,
+    `the override sent is ${JSON.stringify(override)}`);
+  result.translucency = { object: blockName, pixel_change: +blockDiff.toFixed(1) };
+  await shot(page, "03-translucency-x8.png");
+
+  // 4. Components: direct differs from full; the others draw or show the server's refusal.
+  const full = await pixels(page);
+  result.components = {};
+  for (const c of ["direct", "subsurface_only", "interreflection_only", "heuristic_a", "heuristic_b"]) {
+    await page.click(`#comp-${c}`);
+    await idle(page);
+    const banner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+    const shown = await page.evaluate(() => window.translux.app.lastInfo.stats.components);
+    if (banner) {
+      check(shown !== c, `${c} was refused but the overlay says it is shown`);
+      result.components[c] = "refused: " + banner.replace(/^Server: /, "").replace(/×$/, "");
+    } else {
+      check(shown === c, `${c}: the overlay shows ${shown}`);
+      const p = await pixels(page);
+      const d = diff(full, p);
+      if (c === "direct") check(d > 2, `direct differs from full by ${d.toFixed(2)} / 255 only`);
+      result.components[c] = `drawn, differs from full by ${d.toFixed(1)}/255`;
+    }
+    await shot(page, `04-component-${c}.png`);
+  }
+  check(result.components.direct.startsWith("drawn"), "the server refused components=direct");
+  await page.click("#comp-full");
+  await idle(page);
+
+  // 5. The environment map: drawn, or the server's refusal in the banner (never hidden).
+  await page.check("#env-on");
+  await idle(page);
+  const envBanner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+  result.environment = envBanner ? "refused: " + envBanner.replace(/^Server: /, "").replace(/×$/, "") : "drawn";
+  if (envBanner) check(/environment/i.test(envBanner), `the environment refusal does not say why: ${envBanner}`);
+  await shot(page, "05-environment.png");
+  await page.uncheck("#env-on");
+  await idle(page);
+
+  // 6. Add and remove a spot light.
+  const nLights = await page.evaluate(() => window.translux.app.state.lights.length);
+  await page.click("#add-spot");
+  await idle(page);
+  check(await page.evaluate((n) => window.translux.app.state.lights.length === n + 1, nLights), "+ spot added no light");
+  await shot(page, "06-spot-added.png");
+  await page.click(`#lights li[data-index="${nLights}"] .del`);
+  await idle(page);
+  check(await page.evaluate((n) => window.translux.app.state.lights.length === n, nLights), "× did not remove the light");
+
+  // 7. The view state is in the URL: a fresh page with the same URL shows the same state.
+  await page.click("#comp-direct");
+  await idle(page);
+  await page.waitForTimeout(400); // the hash is written 250 ms after the last change
+  const shared = page.url();
+  check(/comp=direct/.test(shared) && /lights=/.test(shared) && /mat=/.test(shared), `the URL lacks the state: ${shared}`);
+  const page2 = await context.newPage();
+  await page2.goto(shared);
+  await page2.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
+  await idle(page2);
+  const restored = await page2.evaluate(() => {
+    const a = window.translux.app;
+    return { comp: a.state.components, light: a.state.lights[0].position, mat: a.state.materials, ev: a.state.exposure };
+  });
+  check(restored.comp === "direct", `restored components ${restored.comp}`);
+  check(JSON.stringify(restored.light.map((x) => x.toFixed(4))) === JSON.stringify(light1.map((x) => x.toFixed(4))),
+    `restored light ${restored.light} != ${light1}`);
+  check(JSON.stringify(restored.mat) === JSON.stringify(await page.evaluate(() => window.translux.app.state.materials)),
+    "restored materials differ");
+  const a1 = await pixels(page), a2 = await pixels(page2);
+  check(diff(a1, a2) < 1.5, `the shared link draws a different picture (${diff(a1, a2).toFixed(2)} / 255)`);
+  await page2.close();
+
+  // 8. PNG snapshot and .glb download.
+  const [png] = await Promise.all([page.waitForEvent("download"), page.click("#snap")]);
+  const pngPath = join(outDir, "snapshot.png");
+  await png.saveAs(pngPath);
+  const [glb] = await Promise.all([page.waitForEvent("download"), page.click("#glb")]);
+  await glb.saveAs(join(outDir, "viewer.glb"));
+  const source = await page.evaluate(() => {
+    const a = window.translux.app;
+    return {
+      scene: a.state.scene,
+      exposure: a.state.exposure,
+      tone: a.state.tone,
+      request: a.link.latest.request,
+      radiance: Array.from(a.radiance),
+    };
+  });
+  writeFileSync(join(outDir, "viewer-glb-source.json"), JSON.stringify(source));
+  result.downloads = { png: png.suggestedFilename(), glb: glb.suggestedFilename() };
+
+  // 9. Stop the server: the banner says so. Start it again: the viewer reconnects.
+  await page.click("#comp-full");
+  await idle(page);
+  check(await ask("stop-server") === "stopped", "harness did not stop the server");
+  const tStop = Date.now();
+  await page.waitForSelector('#banners [data-kind="conn"]', { timeout: 15000 });
+  result.banner_after_stop_ms = Date.now() - tStop;
+  const connBanner = await page.textContent('#banners [data-kind="conn"]');
+  check(/Lost the connection/.test(connBanner), `banner: ${connBanner}`);
+  check((await page.textContent("#conn")) === "offline", "the chip does not say offline");
+  result.banner = connBanner.replace(/×$/, "");
+  await shot(page, "07-server-stopped.png");
+  const framesBefore = await page.evaluate(() => window.translux.metrics.frames.length);
+  check(await ask("start-server") === "started", "harness did not start the server");
+  const tStart = Date.now();
+  await page.waitForFunction((n) => {
+    const a = window.translux.app;
+    return window.translux.metrics.frames.length > n && !a.errors.conn;
+  }, framesBefore, { timeout: 30000 });
+  result.reconnect_ms = Date.now() - tStart;
+  await idle(page);
+  await shot(page, "08-reconnected.png");
+
+  check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
+} finally {
+  await browser.close();
+}
+console.log(JSON.stringify(result));
+process.exit(0);
