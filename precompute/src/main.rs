@@ -17,7 +17,7 @@ use translux_precompute::scene;
 #[derive(Debug, Parser)]
 #[command(name = "translux-precompute", version)]
 struct Cli {
-    /// A scene file (JSON) or `builtin:NAME` (cornell, bowls, flower).
+    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_checker, bowls, flower).
     scene: String,
     /// Folder to write the bundle to (replaced atomically if it exists).
     #[arg(long)]

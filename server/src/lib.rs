@@ -1,21 +1,21 @@
 //! # translux-server
 //!
 //! In: a folder of bundles written by `translux-precompute` (each sub-folder one bundle,
-//! served under its folder name), opened and memory-mapped once at start-up. Out: an HTTP
-//! API (axum) that relights them per request — lights in, linear per-vertex radiance B/π
-//! out — plus the scene metadata and viewer mesh a client needs to show it, and the viewer
-//! page at `/`. This version relights on the CPU (shadowed direct light from point, spot and
-//! directional lights, then the diffuse solve B = Bₑ + ρ(E + F B)).
+//! served under its folder name), memory-mapped and verified lazily; uploaded scenes become
+//! bundles through precompute jobs. Out: an HTTP and WebSocket API (axum) that relights
+//! them per request — lights in (point, spot, directional, environment, emitters), linear
+//! per-vertex radiance B/π out — on the GPU through wgpu ([`gpu`], [`backend`]) or on the
+//! CPU, with the transfer matrix T when the bundle has it, else the warm-started iterative
+//! solve of B = Bₑ + S(E + F B); plus the scene metadata and mesh a client needs, the viewer
+//! at `/`, `/healthz`, `/metrics` and the OpenAPI document.
 //!
-//! | route | answer |
+//! | part | modules |
 //! | --- | --- |
-//! | `GET /` | the viewer page (`web/index.html`) |
-//! | `GET /healthz` | status, backend, GPU availability, scene ids |
-//! | `GET /api/v1/scenes` | `{"scenes":[{"id","name","patches","vertices","objects"}]}` |
-//! | `GET /api/v1/scenes/{id}` | counts, objects and materials, default lights, camera, F info |
-//! | `GET /api/v1/scenes/{id}/mesh` | flat `positions`, `normals`, `indices`, object ranges |
-//! | `POST /api/v1/scenes/{id}/relight` | JSON (`Accept: application/json`) or n×3 LE `f32` |
-//! | `POST /api/v1/scenes/{id}/render` | `image/png`: the relit scene from a camera ([`picture`]) |
+//! | routes and bodies | [`routes`] (REST; the full list is `openapi.json` and `docs/api.md`), [`ws`] (the stream, `docs/stream.md`) |
+//! | a relight | [`relight`] (plan, then run or run a batch), [`environment`] (environment lights) |
+//! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction) |
+//! | team use | [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads, precompute jobs) |
+//! | backends | [`backend`] (CPU or GPU, chosen at start-up), [`gpu`] (wgpu kernels, one WGSL file each) |
 //!
 //! The same binary works offline, without HTTP: `translux-server render | export | relight
 //! --bundle DIR [--request REQ.json] --out FILE` writes a PNG, a `.glb`/`.ply` with baked

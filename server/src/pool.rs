@@ -267,14 +267,14 @@ impl Pool {
             ));
         }
         if q.len >= s.params.queue {
-            let retry = retry_after(s, q.len);
+            let (waiting, retry) = (q.len, retry_after(s, q.len));
             drop(q);
             s.metrics.outcome("rejected", 1);
             return Err(AppError::queue_full(
                 format!(
                     "the relight queue is full ({} requests waiting, the limit is {}); retry \
                      after {retry} s",
-                    s.params.queue, s.params.queue
+                    waiting, s.params.queue
                 ),
                 retry,
             ));

@@ -34,11 +34,8 @@ pub const INDEX_HTML: &str = include_str!("../../web/index.html");
 #[path = "../../web/assets.rs"]
 pub mod web_assets;
 
-/// Why `/healthz` reports no GPU.
-pub const NO_GPU_REASON: &str = "this build has no GPU backend yet";
-
 /// The OpenAPI 3 document of every route, written by hand (a generator such as utoipa
-/// would add a proc-macro dependency and annotations on every handler for ten routes).
+/// would add a proc-macro dependency and annotations on every handler for a few routes).
 pub const OPENAPI_JSON: &str = include_str!("openapi.json");
 
 /// Records each route's method and path while building the router.

@@ -11,8 +11,8 @@
 //! relight. The same results go to `bench/results/table1-DATE.{md,json}`.
 //!
 //! ```sh
-//! cargo run --release -p translux-tests --example table1            # ~10 min on 2 cores
-//! cargo run --release -p translux-tests --example table1 -- --quick # ~2 min, small sizes
+//! cargo run --release -p translux-tests --example table1            # ~15 min on 2 cores
+//! cargo run --release -p translux-tests --example table1 -- --quick # ~4 min, small sizes
 //! ```
 //!
 //! Flags: `--quick`, `--scenes cornell,bowls,flower,horses`, `--backend auto|cpu|gpu`,
