@@ -7,12 +7,8 @@
 
 use std::time::Instant;
 
-use glam::Vec3;
 use translux_precompute::inverse;
-use translux_precompute::radiosity::{
-    self, Method, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter,
-};
-use translux_precompute::raycast::Occluder;
+use translux_precompute::radiosity::{self, Method, Rgb, Scatter, SolveParams, SparseScatter};
 use translux_precompute::solver::{solve_system, spmv_multi};
 use translux_proto::bundle::Bundle;
 
@@ -35,24 +31,10 @@ fn main() {
     for path in std::env::args().skip(1) {
         let b = Bundle::open(std::path::Path::new(&path)).expect("a bundle");
         let n = b.patch_areas().len();
-        let tris: Vec<[Vec3; 3]> = b
-            .occluder_triangles()
-            .iter()
-            .map(|t| t.map(Vec3::from))
-            .collect();
-        let occ = Occluder::new(&tris);
-        let centroid: Vec<Vec3> = b
-            .patch_corners()
-            .iter()
-            .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-            .collect();
-        let normal: Vec<Vec3> = b.patch_normals().iter().map(|&v| Vec3::from(v)).collect();
-        let geo = PatchGeometry {
-            centroid: &centroid,
-            normal: &normal,
-        };
         let lights = b.manifest().lights.clone();
-        let e = radiosity::direct_irradiance(geo, &occ, &lights, b.manifest().unit_mm).unwrap();
+        let e = radiosity::BundleLighting::new(&b)
+            .irradiance(&lights)
+            .unwrap();
         // A nearby light for the warm start: every E 3% brighter.
         let e2: Vec<Rgb> = e.iter().map(|x| x.map(|v| v * 1.03)).collect();
         let f = b.form_factors();

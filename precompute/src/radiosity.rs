@@ -38,6 +38,48 @@ pub struct PatchGeometry<'a> {
     pub normal: &'a [Vec3],
 }
 
+/// What direct lighting needs of a bundle, built from its arrays: the shadow-ray BVH over
+/// the scene's source triangles, and each patch's centroid and normal.
+#[derive(Debug)]
+pub struct BundleLighting {
+    pub occluder: Occluder,
+    pub centroid: Vec<Vec3>,
+    pub normal: Vec<Vec3>,
+    unit_mm: f64,
+}
+
+impl BundleLighting {
+    pub fn new(b: &translux_proto::bundle::Bundle) -> BundleLighting {
+        let tris: Vec<[Vec3; 3]> = b
+            .occluder_triangles()
+            .iter()
+            .map(|t| t.map(Vec3::from))
+            .collect();
+        BundleLighting {
+            occluder: Occluder::new(&tris),
+            centroid: b
+                .patch_corners()
+                .iter()
+                .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+                .collect(),
+            normal: b.patch_normals().iter().map(|&n| Vec3::from(n)).collect(),
+            unit_mm: b.manifest().unit_mm,
+        }
+    }
+
+    pub fn geometry(&self) -> PatchGeometry<'_> {
+        PatchGeometry {
+            centroid: &self.centroid,
+            normal: &self.normal,
+        }
+    }
+
+    /// [`direct_irradiance`] of `lights` on the bundle's patches.
+    pub fn irradiance(&self, lights: &[Light]) -> Result<Vec<Rgb>, LightError> {
+        direct_irradiance(self.geometry(), &self.occluder, lights, self.unit_mm)
+    }
+}
+
 /// Direct irradiance E at each patch centroid (W·m⁻²), with shadow rays through `occ`.
 ///
 /// Point: E = I cos θ / r² (r in metres: scene length × `unit_mm` / 1000). Spot: the same

@@ -9,9 +9,7 @@ use glam::Vec3;
 use translux_precompute::formfactor::{self, FormFactorParams};
 use translux_precompute::patch::{self, Density, Patches};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::{
-    self, Albedo, Method, PatchGeometry, Rgb, SolveParams, SparseScatter,
-};
+use translux_precompute::radiosity::{self, Albedo, Method, Rgb, SolveParams, SparseScatter};
 use translux_precompute::raycast::Occluder;
 use translux_precompute::scene::load_scene;
 use translux_proto::bundle::Bundle;
@@ -74,23 +72,9 @@ fn translucent_cornell(patches: u64) -> (tempfile::TempDir, Bundle, Vec<Rgb>) {
 }
 
 fn direct(b: &Bundle) -> Vec<Rgb> {
-    let tris: Vec<[Vec3; 3]> = b
-        .occluder_triangles()
-        .iter()
-        .map(|t| t.map(Vec3::from))
-        .collect();
-    let occ = Occluder::new(&tris);
-    let centroid: Vec<Vec3> = b
-        .patch_corners()
-        .iter()
-        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-        .collect();
-    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
-    let geo = PatchGeometry {
-        centroid: &centroid,
-        normal: &normal,
-    };
-    radiosity::direct_irradiance(geo, &occ, &b.manifest().lights, b.manifest().unit_mm).unwrap()
+    radiosity::BundleLighting::new(b)
+        .irradiance(&b.manifest().lights)
+        .unwrap()
 }
 
 fn params(method: Method, tolerance: f32) -> SolveParams {

@@ -349,29 +349,12 @@ fn an_area_light_scales_the_radiosity_on_both_paths() {
 
 #[test]
 fn the_server_solve_equals_the_library_solve() {
-    use glam::Vec3;
-    use translux_precompute::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
-    use translux_precompute::raycast::Occluder;
+    use translux_precompute::radiosity::{self, SolveParams, SparseScatter};
     let dir = tempfile::tempdir().unwrap();
     let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 400, false)).unwrap();
     let b = &scene.bundle;
-    let tris: Vec<[Vec3; 3]> = b
-        .occluder_triangles()
-        .iter()
-        .map(|t| t.map(Vec3::from))
-        .collect();
-    let occ = Occluder::new(&tris);
-    let centroid: Vec<Vec3> = b
-        .patch_corners()
-        .iter()
-        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-        .collect();
-    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
-    let geo = PatchGeometry {
-        centroid: &centroid,
-        normal: &normal,
-    };
-    let e = radiosity::direct_irradiance(geo, &occ, &b.manifest().lights, b.manifest().unit_mm)
+    let e = radiosity::BundleLighting::new(b)
+        .irradiance(&b.manifest().lights)
         .unwrap();
     let (x, st) = radiosity::solve(
         &b.form_factors(),

@@ -41,25 +41,9 @@ fn build(file: SceneFile, dir: &Path, name: &str, patches: u64) -> Scene {
 type PatchSolution = (Vec<Rgb>, Vec<[f32; 3]>, Vec<[f32; 3]>);
 
 fn patch_radiance(b: &Bundle, lights: &[translux_proto::light::Light]) -> PatchSolution {
-    use glam::Vec3;
-    use translux_precompute::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
-    let tris: Vec<[Vec3; 3]> = b
-        .occluder_triangles()
-        .iter()
-        .map(|t| t.map(Vec3::from))
-        .collect();
-    let occ = translux_precompute::raycast::Occluder::new(&tris);
-    let centroid: Vec<Vec3> = b
-        .patch_corners()
-        .iter()
-        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-        .collect();
-    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
-    let geo = PatchGeometry {
-        centroid: &centroid,
-        normal: &normal,
-    };
-    let e = radiosity::direct_irradiance(geo, &occ, lights, b.manifest().unit_mm).unwrap();
+    use translux_precompute::radiosity::{self, BundleLighting, SolveParams, SparseScatter};
+    let lit = BundleLighting::new(b);
+    let e = lit.irradiance(lights).unwrap();
     let params = SolveParams {
         tolerance: 1e-6,
         ..Default::default()
@@ -71,8 +55,8 @@ fn patch_radiance(b: &Bundle, lights: &[translux_proto::light::Light]) -> PatchS
     let inv_pi = std::f32::consts::FRAC_1_PI;
     (
         x.iter().map(|c| c.map(|v| v * inv_pi)).collect(),
-        centroid.iter().map(|c| c.to_array()).collect(),
-        normal.iter().map(|n| n.to_array()).collect(),
+        lit.centroid.iter().map(|c| c.to_array()).collect(),
+        lit.normal.iter().map(|n| n.to_array()).collect(),
     )
 }
 
