@@ -6,10 +6,8 @@
 //! Every source triangle becomes at least one patch and F is O(N²), so a 70k-triangle scan
 //! alone would need 70k patches; simplifying first lets such a mesh take part in a scene of
 //! any patch budget. The edge collapses are meshoptimizer's (the `meshopt` crate): quadric
-//! error metric, open borders locked in place so a scan's open bottom keeps its outline.
-//! The only code here welds the soup into an indexed mesh, which meshoptimizer needs.
-
-use std::collections::HashMap;
+//! error metric, open borders locked in place so a scan's open bottom keeps its outline;
+//! welding the soup into the indexed mesh it needs is meshoptimizer's too.
 
 use glam::Vec3;
 
@@ -36,20 +34,11 @@ pub fn simplify(tris: &[[Vec3; 3]], target: usize) -> Simplified {
             relative_error: 0.0,
         };
     }
-    // Weld corners with bit-identical positions (the OBJ loader de-indexed them).
-    let mut index_of: HashMap<[u32; 3], u32> = HashMap::with_capacity(tris.len());
-    let mut positions: Vec<[f32; 3]> = Vec::with_capacity(tris.len() / 2);
-    let mut indices: Vec<u32> = Vec::with_capacity(tris.len() * 3);
-    for t in tris {
-        for v in t {
-            let key = v.to_array().map(f32::to_bits);
-            let id = *index_of.entry(key).or_insert_with(|| {
-                positions.push(v.to_array());
-                (positions.len() - 1) as u32
-            });
-            indices.push(id);
-        }
-    }
+    // Weld corners with bit-identical positions (the OBJ loader de-indexed them): with no
+    // index buffer, remap[k] is the welded index of corner k, i.e. the new index buffer.
+    let corners: Vec<[f32; 3]> = tris.iter().flatten().map(|v| v.to_array()).collect();
+    let (count, indices) = meshopt::generate_vertex_remap(&corners, None);
+    let positions = meshopt::remap_vertex_buffer(&corners, count, &indices);
     let bytes: &[u8] = bytemuck::cast_slice(&positions);
     let adapter = meshopt::VertexDataAdapter::new(bytes, 12, 0)
         .expect("a [f32; 3] slice is a valid vertex stream of stride 12");

@@ -106,9 +106,8 @@ pub fn objects(b: &Bundle) -> Vec<Value> {
 /// at their profile's albedo, the volumetric test a medium of the same coefficients.
 pub fn objects_with(b: &Bundle, overrides: &[(String, Value)]) -> Vec<Value> {
     let m = b.manifest();
-    // Light positions go to Mitsuba as they are: keep validation scenes in metres.
+    // Positions and lights go to Mitsuba as they are: keep validation scenes in metres.
     assert_eq!(m.unit_mm, 1000.0, "validation scenes are in metres");
-    let to_m = 1.0f32;
     let corners = b.patch_corners();
     m.objects
         .iter()
@@ -117,7 +116,7 @@ pub fn objects_with(b: &Bundle, overrides: &[(String, Value)]) -> Vec<Value> {
             let tris = &corners[first..first + o.patch_count as usize];
             let positions: Vec<[f32; 3]> = tris
                 .iter()
-                .flat_map(|t| t.iter().map(|p| p.map(|x| x * to_m)))
+                .flat_map(|t| t.iter().copied())
                 .collect();
             let indices: Vec<[usize; 3]> =
                 (0..tris.len()).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect();
