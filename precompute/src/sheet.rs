@@ -76,7 +76,9 @@ use translux_proto::scene::Profile;
 
 use crate::profile::{ProfileError, ProfileEval};
 use crate::smatrix::{AssemblyReport, DistanceReport, SParams};
-use crate::subsurface::{self, DistanceView, ObjectPatches, ObjectS, SubsurfaceParams, Tabulated};
+use crate::subsurface::{
+    self, DistanceView, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated,
+};
 
 /// `dist_kind` of a pair on one side of a sheet (or inside an ordinary translucent object).
 pub const KIND_SAME: u32 = 0;
@@ -676,38 +678,34 @@ pub fn sheet_distances(
     })
 }
 
-/// S_ji of a pair at sheet distance `r` (< the table's reach) through profile `tab` (R for
-/// the same side, T for the other), by the quadrature of the module docs. `xs` are patch i's
-/// sample points.
-fn pair_term(
+/// The plan for S_ji of a pair at sheet distance `r` through either profile (R for the same
+/// side, T for the other), by the quadrature of the module docs: far pairs by A_i P(r_ij),
+/// near pairs by polar integration over j projected onto i's plane (far again when the
+/// projection is edge-on).
+pub fn pair_plan(
     p: &ObjectPatches<'_>,
     (i, j): (usize, usize),
     r: f32,
-    xs: &[Vec3],
-    tab: &Tabulated,
     params: &SubsurfaceParams,
-) -> [f32; 3] {
+) -> Quadrature {
     // Far: S_ji ≈ A_i P(r_ij).
-    let far = || tab.r(r).map(|v| v * p.area[i]);
+    let far = Quadrature::Far { area_i: p.area[i] };
     if r >= params.near_factor * p.size[i].max(p.size[j]) {
-        return far();
+        return far;
     }
     // Near: j projected onto i's plane, y′ = y − n_i ((y − c_i)·n_i).
     let (ci, ni) = (p.centroid[i], p.normal[i]);
     let proj = p.corners[j].map(|y| y - ni * (y - ci).dot(ni));
     let a_proj = 0.5 * (proj[1] - proj[0]).cross(proj[2] - proj[0]).length();
     if a_proj < 0.5 * p.area[j] {
-        return far();
+        return far;
     }
     // S_ji = A_i · mean_x (1/A_j′) ∫_j′ P(|x − y′|) dA_y′.
-    let mut acc = [0.0f32; 3];
-    for &x in xs {
-        let v = subsurface::polar_integral(x, &proj, ni, tab, params.directions);
-        for c in 0..3 {
-            acc[c] += v[c];
-        }
+    Quadrature::Polar {
+        tri: proj,
+        normal: ni,
+        factor: p.area[i] / a_proj,
     }
-    acc.map(|v| v / xs.len() as f32 * p.area[i] / a_proj)
 }
 
 /// S of one thin-sheet object in local indices. `kind[e]` is the kind of distance entry e
@@ -738,7 +736,7 @@ pub fn assemble(
                 if dist >= tab.r_max() {
                     continue;
                 }
-                let s = pair_term(&p, (i, j), dist, &xs, tab, params);
+                let s = pair_plan(&p, (i, j), dist, params).eval(dist, &xs, tab, params);
                 if s.iter().any(|&v| v > 0.0) {
                     col.push((j as u32, s));
                 }
@@ -806,6 +804,33 @@ pub fn object_distances(
     ))
 }
 
+/// A thin sheet's reflectance and transmittance profiles tabulated out to their truncation
+/// radii, each capped by `reach` (how far the stored distances go), and the radius wanted
+/// when the cap bites.
+pub fn tables(
+    name: &str,
+    (reflectance, transmittance): (&Profile, &Profile),
+    reach: f32,
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<(Tabulated, Tabulated, Option<f32>), SheetError> {
+    let (er, et) = (
+        eval(name, "reflectance", reflectance, unit_mm)?,
+        eval(name, "transmittance", transmittance, unit_mm)?,
+    );
+    let e = params.truncation_energy;
+    let (want_r, want_t) = (er.truncation_radius(e), et.truncation_radius(e));
+    let radius_r = want_r.min(reach.max(f32::MIN_POSITIVE));
+    let radius_t = want_t.min(reach.max(f32::MIN_POSITIVE));
+    let wanted = want_r.max(want_t);
+    let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+    Ok((
+        Tabulated::new(&er, radius_r, 4096),
+        Tabulated::new(&et, radius_t, 4096),
+        capped_from,
+    ))
+}
+
 /// Stage 2 for one thin-sheet object whose patches are `range` of the scene: S from the
 /// stored distances (`distances`, global) and their kinds (`kinds`, parallel to the stored
 /// values), which reach `reach` scene units. Returns S in local indices and the report.
@@ -822,16 +847,8 @@ pub fn object_s(
     params: &SParams,
 ) -> Result<(ObjectS, AssemblyReport), SheetError> {
     let start = Instant::now();
-    let (er, et) = (
-        eval(name, "reflectance", reflectance, unit_mm)?,
-        eval(name, "transmittance", transmittance, unit_mm)?,
-    );
-    let e = params.truncation_energy;
-    let (want_r, want_t) = (er.truncation_radius(e), et.truncation_radius(e));
-    let radius_r = want_r.min(reach.max(f32::MIN_POSITIVE));
-    let radius_t = want_t.min(reach.max(f32::MIN_POSITIVE));
-    let wanted = want_r.max(want_t);
-    let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+    let (tr, tt, capped_from) = tables(name, (reflectance, transmittance), reach, unit_mm, params)?;
+    let (radius_r, radius_t) = (tr.r_max(), tt.r_max());
     // The object's block of the stored distances, in local indices, with kinds.
     let (base, len) = (range.start as u64, range.len() as u64);
     let mut row_ptr = vec![0u64];
@@ -854,10 +871,6 @@ pub fn object_s(
         }
         row_ptr.push(col.len() as u64);
     }
-    let (tr, tt) = (
-        Tabulated::new(&er, radius_r, 4096),
-        Tabulated::new(&et, radius_t, 4096),
-    );
     let dv = DistanceView {
         row_ptr: &row_ptr,
         col: &col,

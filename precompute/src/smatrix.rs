@@ -505,14 +505,10 @@ pub fn assemble_scene(
             }
             Material::Translucent { profile } => {
                 let t = Instant::now();
-                let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
-                    object: o.name.to_string(),
-                    error,
-                })?;
-                let wanted = eval.truncation_radius(params.truncation_energy);
                 let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
-                let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+                let (tab, capped_from) =
+                    translucent_table(o.name, profile, reach, unit_mm, params)?;
+                let radius = tab.r_max();
                 // Local CSR view of this object's block of the distances.
                 let base = r.start as u64;
                 let mut row_ptr = vec![0u64];
@@ -527,7 +523,6 @@ pub fn assemble_scene(
                     }
                     row_ptr.push(col.len() as u64);
                 }
-                let tab = Tabulated::new(&eval, radius, 4096);
                 let op = ObjectPatches {
                     corners: &g.corners[r.clone()],
                     centroid: &g.centroid[r.clone()],
@@ -561,6 +556,26 @@ pub fn assemble_scene(
     Ok((CsrOwned::from_rows(rows), reports))
 }
 
+/// A homogeneous translucent object's profile tabulated out to its truncation radius,
+/// capped by `reach` (how far its stored distances go), and the radius wanted when the cap
+/// bites.
+pub fn translucent_table(
+    name: &str,
+    profile: &Profile,
+    reach: f32,
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<(Tabulated, Option<f32>), SError> {
+    let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
+        object: name.to_string(),
+        error,
+    })?;
+    let wanted = eval.truncation_radius(params.truncation_energy);
+    let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
+    let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+    Ok((Tabulated::new(&eval, radius, 4096), capped_from))
+}
+
 /// The manifest's per-object record, from both stages' reports.
 pub fn subsurface_objects(
     d: &[DistanceReport],
@@ -586,20 +601,14 @@ pub fn subsurface_objects(
         .collect()
 }
 
-/// Rebuilds S for a bundle with some objects' materials replaced (by object index), from
-/// the stored distances: no voxels, no rays. Objects not overridden keep their material.
-pub fn rebuild_from_bundle(
+/// The bundle's materials with `overrides` applied (by object index), and how far each
+/// object's stored distances reach (0 for objects without any). Refuses a heterogeneous
+/// override the stored per-medium lengths cannot serve.
+pub fn bundle_materials(
     bundle: &Bundle,
     overrides: &[(usize, Material)],
-    params: &SParams,
-) -> Result<(CsrOwned<[f32; 3]>, Vec<AssemblyReport>), SError> {
+) -> Result<(Vec<Material>, Vec<f32>), SError> {
     let m = bundle.manifest();
-    let corners: Vec<[Vec3; 3]> = bundle
-        .patch_corners()
-        .iter()
-        .map(|c| c.map(Vec3::from))
-        .collect();
-    let g = PatchGeometry::from_corners(corners);
     let materials: Vec<Material> = m
         .objects
         .iter()
@@ -610,16 +619,6 @@ pub fn rebuild_from_bundle(
                 .find(|(i, _)| *i == k)
                 .map(|(_, mat)| mat.clone())
                 .unwrap_or_else(|| o.material.clone())
-        })
-        .collect();
-    let objects: Vec<ObjectMaterial<'_>> = m
-        .objects
-        .iter()
-        .zip(&materials)
-        .map(|(o, mat)| ObjectMaterial {
-            name: &o.name,
-            material: mat,
-            patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
         })
         .collect();
     let stored: Vec<f32> = m
@@ -657,6 +656,40 @@ pub fn rebuild_from_bundle(
             });
         }
     }
+    Ok((materials, stored))
+}
+
+/// The bundle's patch geometry as S assembly takes it.
+pub fn bundle_geometry(bundle: &Bundle) -> PatchGeometry {
+    PatchGeometry::from_corners(
+        bundle
+            .patch_corners()
+            .iter()
+            .map(|c| c.map(Vec3::from))
+            .collect(),
+    )
+}
+
+/// Rebuilds S for a bundle with some objects' materials replaced (by object index), from
+/// the stored distances: no voxels, no rays. Objects not overridden keep their material.
+pub fn rebuild_from_bundle(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    params: &SParams,
+) -> Result<(CsrOwned<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    let m = bundle.manifest();
+    let g = bundle_geometry(bundle);
+    let (materials, stored) = bundle_materials(bundle, overrides)?;
+    let objects: Vec<ObjectMaterial<'_>> = m
+        .objects
+        .iter()
+        .zip(&materials)
+        .map(|(o, mat)| ObjectMaterial {
+            name: &o.name,
+            material: mat,
+            patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
+        })
+        .collect();
     let material_len: &[MediaLen] =
         bytemuck::try_cast_slice(bundle.f32s(arrays::DIST_MATERIAL_LEN)).unwrap_or(&[]);
     assemble_scene(

@@ -168,10 +168,16 @@ impl Tabulated {
     pub fn r_max(&self) -> f32 {
         self.r_max
     }
+
+    /// The grid radii r_k = r_max (k / N)², and R and W at them (N + 1 each): what the GPU
+    /// rebuild of S uploads to interpolate exactly as [`Tabulated::r`] and [`Tabulated::w`] do.
+    pub fn grid(&self) -> (&[f32], &[[f32; 3]], &[[f32; 3]]) {
+        (&self.radii, &self.r, &self.w)
+    }
 }
 
 /// Points at the centroids of a triangle's m² regular sub-triangles (equal areas).
-pub(crate) fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
+pub fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
     let m = m.max(1) as usize;
     let (a, e1, e2) = (c[0], (c[1] - c[0]) / m as f32, (c[2] - c[0]) / m as f32);
     let mut out = Vec::with_capacity(m * m);
@@ -189,7 +195,7 @@ pub(crate) fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
 
 /// ∫ over triangle `t` of R(|x − y|) dA_y for x in t's plane: polar integration with K
 /// directions, exact along each direction through W.
-pub(crate) fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
+pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
     // An orthonormal frame (u, v) in the plane.
     let u = (t[1] - t[0]).normalize_or_zero();
     let v = n.cross(u);
@@ -278,8 +284,118 @@ pub fn assemble(
 }
 
 /// Tolerance of the coplanarity test: 1e-4 × the object's largest patch.
-pub(crate) fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
+pub fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
     1e-4 * p.size.iter().cloned().fold(0.0f32, f32::max)
+}
+
+/// How one entry S_ji is integrated: decided from geometry alone (which pair, how near, in
+/// which plane), then evaluated against a profile table. The GPU rebuild of S stores these
+/// plans per entry and evaluates them in WGSL (`server/src/gpu/kernels/s_entries.wgsl`), so
+/// the CPU and the device share one decision.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Quadrature {
+    /// S_ji ≈ A_i R(r_ij): pairs far apart compared with their size.
+    Far { area_i: f32 },
+    /// S_ji = `factor` · mean over x ∈ patch i's samples of ∫_tri R(|x − y|) dA_y, with `tri`
+    /// in the plane of normal `normal` through the samples: the self term (tri = patch i,
+    /// factor 1), a coplanar near pair (tri = patch j, factor A_i / A_j), a thin sheet's near
+    /// pair (tri = j projected onto i's plane, factor A_i / A_j′).
+    Polar {
+        tri: [Vec3; 3],
+        normal: Vec3,
+        factor: f32,
+    },
+    /// S_ji = A_i · mean over sample pairs (x, y) of R(|x − y| + excess): near pairs in
+    /// different planes; `excess` is the optical path's excess over the centroid distance.
+    Points {
+        tri_j: [Vec3; 3],
+        excess: f32,
+        area_i: f32,
+    },
+}
+
+impl Quadrature {
+    /// The self term S_ii = (1/A_i) ∫_Ai ∫_Ai R.
+    pub fn self_term(p: &ObjectPatches<'_>, i: usize) -> Quadrature {
+        Quadrature::Polar {
+            tri: p.corners[i],
+            normal: p.normal[i],
+            factor: 1.0,
+        }
+    }
+
+    /// The plan for S_ji of a pair at optical distance r through one homogeneous medium
+    /// (the module docs' rules); `eps` is [`coplanar_eps`] of the object.
+    pub fn pair(
+        p: &ObjectPatches<'_>,
+        i: usize,
+        j: usize,
+        r: f32,
+        params: &SubsurfaceParams,
+        eps: f32,
+    ) -> Quadrature {
+        let near = r < params.near_factor * p.size[i].max(p.size[j]);
+        if !near {
+            Quadrature::Far { area_i: p.area[i] }
+        } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
+            Quadrature::Polar {
+                tri: p.corners[j],
+                normal: p.normal[j],
+                factor: p.area[i] / p.area[j],
+            }
+        } else {
+            Quadrature::Points {
+                tri_j: p.corners[j],
+                excess: (r - p.centroid[i].distance(p.centroid[j])).max(0.0),
+                area_i: p.area[i],
+            }
+        }
+    }
+
+    /// Evaluates the plan at distance `r` with patch i's sample points `xs`.
+    pub fn eval(
+        &self,
+        r: f32,
+        xs: &[Vec3],
+        tab: &Tabulated,
+        params: &SubsurfaceParams,
+    ) -> [f32; 3] {
+        match *self {
+            Quadrature::Far { area_i } => tab.r(r).map(|v| v * area_i),
+            Quadrature::Polar {
+                tri,
+                normal,
+                factor,
+            } => {
+                let mut acc = [0.0f32; 3];
+                for &x in xs {
+                    let v = polar_integral(x, &tri, normal, tab, params.directions);
+                    for c in 0..3 {
+                        acc[c] += v[c];
+                    }
+                }
+                acc.map(|v| v / xs.len() as f32 * factor)
+            }
+            Quadrature::Points {
+                tri_j,
+                excess,
+                area_i,
+            } => {
+                let ys = samples(&tri_j, params.samples);
+                let mut acc = [0.0f32; 3];
+                for &x in xs {
+                    for &y in &ys {
+                        let v = tab.r(x.distance(y) + excess);
+                        for c in 0..3 {
+                            acc[c] += v[c];
+                        }
+                    }
+                }
+                let k = (xs.len() * ys.len()) as f32;
+                acc.map(|v| v / k * area_i)
+            }
+        }
+    }
 }
 
 /// The self term S_ii = (1/A_i) ∫_Ai ∫_Ai R = mean over x ∈ A_i of ∫_Ai R(|x − y|) dA_y,
@@ -291,14 +407,7 @@ pub(crate) fn self_term(
     tab: &Tabulated,
     params: &SubsurfaceParams,
 ) -> [f32; 3] {
-    let mut s_ii = [0.0f32; 3];
-    for &x in xs {
-        let v = polar_integral(x, &p.corners[i], p.normal[i], tab, params.directions);
-        for c in 0..3 {
-            s_ii[c] += v[c] / xs.len() as f32;
-        }
-    }
-    s_ii
+    Quadrature::self_term(p, i).eval(0.0, xs, tab, params)
 }
 
 /// S_ji of a pair at optical distance r (< the table's reach) through one homogeneous
@@ -314,37 +423,7 @@ pub(crate) fn pair_term(
     params: &SubsurfaceParams,
     eps: f32,
 ) -> [f32; 3] {
-    let near = r < params.near_factor * p.size[i].max(p.size[j]);
-    if !near {
-        // S_ji ≈ A_i R(r_ij).
-        tab.r(r).map(|v| v * p.area[i])
-    } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
-        // S_ji = (A_i / A_j) · mean_{x∈A_i} ∫_Aj R(|x − y|) dA_y.
-        let mut acc = [0.0f32; 3];
-        for &x in xs {
-            let v = polar_integral(x, &p.corners[j], p.normal[j], tab, params.directions);
-            for c in 0..3 {
-                acc[c] += v[c];
-            }
-        }
-        acc.map(|v| v / xs.len() as f32 * p.area[i] / p.area[j])
-    } else {
-        // Point samples on both sides; the optical path's excess over the straight line
-        // between centroids carries over to every sample pair.
-        let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
-        let ys = samples(&p.corners[j], params.samples);
-        let mut acc = [0.0f32; 3];
-        for &x in xs {
-            for &y in &ys {
-                let v = tab.r(x.distance(y) + excess);
-                for c in 0..3 {
-                    acc[c] += v[c];
-                }
-            }
-        }
-        let k = (xs.len() * ys.len()) as f32;
-        acc.map(|v| v / k * p.area[i])
-    }
+    Quadrature::pair(p, i, j, r, params, eps).eval(r, xs, tab, params)
 }
 
 /// Enforces Σ_j A_j S_ji / A_i ≤ 1 per column `columns[i]` = [(j, S_ji)] and channel

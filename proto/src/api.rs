@@ -274,6 +274,11 @@ pub struct RelightStats {
     /// overrides were applied just before and S came from the cache).
     #[serde(default)]
     pub materials_ms: f64,
+    /// Where S for the material overrides was rebuilt: `gpu` (the device kernels) or `cpu`
+    /// (the CPU backend, or what the device cannot do, e.g. heterogeneous objects; the
+    /// server's log says why). Absent without overrides.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub materials_on: Option<String>,
     pub lights: usize,
     /// Passes over F and S (or over T) the transport made.
     #[serde(default)]

@@ -25,11 +25,24 @@ use std::sync::{Arc, Mutex, OnceLock};
 use serde::Serialize;
 use translux_precompute::radiosity::{Rgb, SolveParams, SolveStats};
 
+use translux_precompute::smatrix::{self, CsrOwned, SError, SParams};
+use translux_proto::scene::Material;
+
+use crate::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
 use crate::gpu::{
     AdapterSummary, DenseData, GpuContext, GpuCsr, GpuDense, GpuError, GpuOptions, GpuSystem,
     SystemParams,
 };
 use crate::state::{OverrideMaterials, Scene};
+
+/// Where S for a set of material overrides was built ([`Backend::rebuild_s`]).
+#[derive(Debug)]
+pub enum SBuild {
+    /// On the device; its values, read back once, for the CPU's products.
+    Device(CsrOwned<Rgb>),
+    /// Build it on the CPU; why, when the backend is the GPU.
+    Cpu(Option<String>),
+}
 
 /// `--backend`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -58,9 +71,12 @@ enum Slot {
 #[derive(Debug)]
 struct GpuScene {
     base: GpuSystem,
-    /// The last material override's system, keyed by its materials (held, so the pointer
-    /// cannot be reused).
-    over: Mutex<Option<(Arc<OverrideMaterials>, GpuSystem)>>,
+    /// The last material override's system, keyed by its overrides
+    /// ([`OverrideMaterials::key`]).
+    over: Mutex<Option<(String, GpuSystem)>>,
+    /// The structure of S and its quadrature plans, for rebuilding S on the device
+    /// ([`crate::gpu::subsurface`]); made on the first translucency change.
+    s_template: Mutex<Option<GpuSTemplate>>,
     /// The bundle's transfer matrix R = T − S, uploaded on first use; `Err`: it did not fit
     /// (the CPU computes the product).
     transfer: Mutex<Option<Result<Arc<GpuDense>, String>>>,
@@ -72,7 +88,12 @@ impl GpuScene {
             Some(Some(Ok(t))) => t.bytes(),
             _ => 0,
         };
-        t + self.base.bytes()
+        let template = match self.s_template.lock().ok().as_deref() {
+            Some(Some(t)) => t.bytes(),
+            _ => 0,
+        };
+        t + template
+            + self.base.bytes()
             + self
                 .over
                 .lock()
@@ -348,6 +369,7 @@ impl Backend {
                 let g = Arc::new(GpuScene {
                     base: sys,
                     over: Mutex::new(None),
+                    s_template: Mutex::new(None),
                     transfer: Mutex::new(None),
                 });
                 scenes.insert(key, (scene.id.clone(), Slot::Gpu(g.clone())));
@@ -394,8 +416,85 @@ impl Backend {
         }
     }
 
-    /// The system of `scene` for `over`'s S (uploaded once per override set) or the
-    /// bundle's S, run through `f`.
+    /// Rebuilds S for `overrides` on the device ([`crate::gpu::subsurface`]) and makes it
+    /// the scene's override system under `key`; answers S's values for the CPU's products.
+    /// [`SBuild::Cpu`] (with the reason, on the GPU backend) when the CPU must build it: the
+    /// CPU backend, a scene served from the CPU, a heterogeneous object, a template that
+    /// does not fit, or a device error (logged). Errors are the materials' own (a bad
+    /// profile), the same as the CPU rebuild's.
+    pub fn rebuild_s(
+        &self,
+        scene: &Scene,
+        key: &str,
+        overrides: &[(usize, Material)],
+    ) -> Result<SBuild, SError> {
+        let Some(ctx) = self.inner.gpu.as_ref() else {
+            return Ok(SBuild::Cpu(None));
+        };
+        let Some(g) = self.scene(scene) else {
+            return Ok(SBuild::Cpu(Some("the scene is served from the CPU".into())));
+        };
+        let b = &scene.bundle;
+        let sp = SParams::default();
+        let (materials, stored) = smatrix::bundle_materials(b, overrides)?;
+        let m = match SMaterials::plan(b, &materials, &stored, &sp)? {
+            Plan::Device(m) => m,
+            Plan::Cpu(why) => return Ok(SBuild::Cpu(Some(why))),
+        };
+        let cpu = |what: &str, e: &GpuError| {
+            tracing::warn!(scene = %scene.id, "S is rebuilt on the CPU: {what}: {e}");
+            Ok(SBuild::Cpu(Some(format!("{what}: {e}"))))
+        };
+        let mut slot = g.s_template.lock().unwrap_or_else(|p| p.into_inner());
+        if !slot.as_ref().is_some_and(|t| t.template.covers(&m)) {
+            if let Some(old) = slot.take() {
+                old.release(ctx);
+            }
+            let t0 = std::time::Instant::now();
+            let geo = smatrix::bundle_geometry(b);
+            let t = STemplate::build(b, &geo, &m, &stored, &sp.quadrature);
+            match GpuSTemplate::upload(ctx, &format!("{} S template", scene.id), t) {
+                Ok(t) => {
+                    tracing::info!(
+                        scene = %scene.id,
+                        "S template on the GPU: {} entries, {} MiB, in {:.0} ms",
+                        t.template.nnz(),
+                        t.bytes() >> 20,
+                        t0.elapsed().as_secs_f64() * 1e3
+                    );
+                    *slot = Some(t);
+                }
+                Err(e) => return cpu("its S template does not fit on the GPU", &e),
+            }
+        }
+        let template = slot.as_ref().expect("set above");
+        let built = match template.assemble(ctx, &format!("{} S", scene.id), &m, &sp.quadrature) {
+            Ok(d) => d,
+            Err(e) => return cpu("the device rebuild of S failed", &e),
+        };
+        drop(slot);
+        let csr = built.csr;
+        let sys = match GpuSystem::with_f(
+            ctx,
+            &scene.id,
+            g.base.f().clone(),
+            built.s,
+            SolveParams::default().max_iterations.max(1000),
+        ) {
+            Ok(sys) => sys,
+            Err(e) => return cpu("binding the rebuilt S failed", &e),
+        };
+        let mut over = g.over.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((_, old)) = over.take() {
+            old.release(ctx);
+        }
+        *over = Some((key.to_string(), sys));
+        Ok(SBuild::Device(csr))
+    }
+
+    /// The system of `scene` for `over`'s S (rebuilt on the device by
+    /// [`Backend::rebuild_s`], or uploaded once per override set) or the bundle's S, run
+    /// through `f`.
     fn with_system<T>(
         &self,
         ctx: &GpuContext,
@@ -408,7 +507,7 @@ impl Backend {
             return f(&g.base);
         };
         let mut slot = g.over.lock().unwrap_or_else(|p| p.into_inner());
-        if !slot.as_ref().is_some_and(|(k, _)| Arc::ptr_eq(k, m)) {
+        if slot.as_ref().is_none_or(|(k, _)| *k != m.key) {
             if let Some((_, old)) = slot.take() {
                 old.release(ctx);
             }
@@ -420,7 +519,7 @@ impl Backend {
                 s,
                 SolveParams::default().max_iterations.max(1000),
             )?;
-            *slot = Some((m.clone(), sys));
+            *slot = Some((m.key.clone(), sys));
         }
         let (_, sys) = slot.as_ref().expect("set above");
         f(sys)

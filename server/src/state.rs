@@ -18,6 +18,7 @@ use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, arrays};
 use translux_proto::csr::CsrView;
 use translux_proto::scene::Material;
 
+use crate::backend::SBuild;
 use crate::config::ServerParams;
 use crate::error::AppError;
 use crate::metrics::Metrics;
@@ -45,9 +46,13 @@ pub struct Scene {
 /// S, ρ and Bₑ for a set of material overrides.
 #[derive(Debug)]
 pub struct OverrideMaterials {
+    /// The overrides, as JSON: which override set this is (the backend's key too).
+    pub key: String,
     pub s: CsrOwned<[f32; 3]>,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
+    /// Where S was rebuilt: `gpu` or `cpu`.
+    pub built_on: &'static str,
 }
 
 impl OverrideMaterials {
@@ -76,8 +81,23 @@ impl Scene {
         {
             return Ok(Some((m.clone(), false)));
         }
-        let (s, _) = smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
-            .map_err(|e| AppError::invalid(format!("materials: {e}")))?;
+        // On the device when the backend can (crate::gpu::subsurface), else on the CPU.
+        let invalid = |e: smatrix::SError| AppError::invalid(format!("materials: {e}"));
+        let (s, built_on) = match crate::backend::current()
+            .rebuild_s(self, &key, overrides)
+            .map_err(invalid)?
+        {
+            SBuild::Device(s) => (s, "gpu"),
+            SBuild::Cpu(why) => {
+                if let Some(why) = why {
+                    tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
+                }
+                let (s, _) =
+                    smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
+                        .map_err(invalid)?;
+                (s, "cpu")
+            }
+        };
         let mut albedo = self.bundle.patch_albedo().to_vec();
         let mut emission = self.bundle.patch_emission().to_vec();
         for (k, m) in overrides {
@@ -95,9 +115,11 @@ impl Scene {
             }
         }
         let m = Arc::new(OverrideMaterials {
+            key: key.clone(),
             s,
             albedo,
             emission,
+            built_on,
         });
         if let Ok(mut cache) = self.material_cache.lock() {
             *cache = Some((key, m.clone()));

@@ -417,7 +417,8 @@ mod relight_on_both_backends {
     use translux_server::relight;
     use translux_server::state::Scene;
 
-    fn radiance(dir: &Path, body: &str) -> (Vec<Rgb>, String) {
+    /// The radiance, the solver, and where S for the overrides was built.
+    fn radiance(dir: &Path, body: &str) -> (Vec<Rgb>, String, Option<String>) {
         // A fresh scene each time: no warm start carried over from the other backend.
         let scene = Scene::open("cornell", dir).unwrap();
         let req: RelightRequest = serde_json::from_str(body).unwrap();
@@ -425,7 +426,7 @@ mod relight_on_both_backends {
         plan.tolerance = 1e-6;
         let out = relight::run(&scene, &plan).unwrap();
         assert!(out.stats.converged, "{:?}", out.stats);
-        (out.radiance, out.stats.solver)
+        (out.radiance, out.stats.solver, out.stats.materials_on)
     }
 
     /// Whole relights (shadowed direct light on the CPU, the solve on the device) agree with
@@ -475,7 +476,13 @@ mod relight_on_both_backends {
         };
         // The CPU first (no backend installed yet), then the GPU.
         let cpu_batch = run_batch(&dir);
-        let cpu: Vec<(Vec<Rgb>, String)> = bodies.iter().map(|b| radiance(&dir, b)).collect();
+        let cpu: Vec<(Vec<Rgb>, String, Option<String>)> =
+            bodies.iter().map(|b| radiance(&dir, b)).collect();
+        assert_eq!(
+            cpu[1].2.as_deref(),
+            Some("cpu"),
+            "the CPU backend rebuilds S"
+        );
         assert_eq!(cpu[2].1, "inverse");
         assert_eq!(backend::current().name(), "cpu");
         let gpu_backend = Backend::on_gpu(
@@ -486,8 +493,12 @@ mod relight_on_both_backends {
             .unwrap(),
         );
         assert!(backend::install(gpu_backend).is_ok());
-        for (body, (want, cpu_solver)) in bodies.iter().zip(&cpu) {
-            let (got, solver) = radiance(&dir, body);
+        for (body, (want, cpu_solver, _)) in bodies.iter().zip(&cpu) {
+            let (got, solver, on) = radiance(&dir, body);
+            // A translucency change rebuilds S on the device (s_entries, s_column_bound).
+            if body.contains("materials") {
+                assert_eq!(on.as_deref(), Some("gpu"), "{body}");
+            }
             if cpu_solver == "inverse" {
                 // The same stored f16 T on both: only the summation order differs.
                 assert_eq!(solver, "inverse");
@@ -623,5 +634,263 @@ mod server_start {
                 }
             }
         }
+    }
+}
+
+/// S rebuilt on the device for a translucency change: `s_entries` and `s_column_bound`
+/// against their twins, and the whole rebuild against the CPU's own
+/// `smatrix::rebuild_from_bundle` (the precompute's reference path), on a Cornell box with
+/// its marble block and on the flower's thin-sheet petals, with overrides drawn at random.
+mod s_rebuild {
+    use std::collections::HashMap;
+
+    use super::*;
+    use translux_precompute::pipeline::{PrecomputeParams, precompute};
+    use translux_precompute::scene::load_scene;
+    use translux_precompute::smatrix::{self, SParams};
+    use translux_proto::bundle::Bundle;
+    use translux_proto::scene::{ExpTerm, Material, Profile};
+    use translux_server::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
+
+    fn bundle(scene: &str, patches: u64) -> (tempfile::TempDir, Bundle) {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join(scene);
+        let params = PrecomputeParams {
+            patches: Some(patches),
+            ..Default::default()
+        };
+        precompute(
+            &load_scene(&format!("builtin:{scene}")).unwrap(),
+            &dir,
+            &params,
+        )
+        .unwrap();
+        let b = Bundle::open(&dir).unwrap();
+        (tmp, b)
+    }
+
+    /// The built material of object `name`, its profile(s) scaled by `scale`.
+    fn scaled(b: &Bundle, name: &str, scale: f32) -> (usize, Material) {
+        let k = b
+            .manifest()
+            .objects
+            .iter()
+            .position(|o| o.name == name)
+            .unwrap_or_else(|| panic!("no object {name}"));
+        // A dipole's mean free path × scale; an exponential sum's decay lengths × scale
+        // (b / scale) at the same total reflectance (a / scale²).
+        let with_scale = |p: &Profile| -> Profile {
+            match p.clone() {
+                Profile::Dipole {
+                    preset,
+                    sigma_a,
+                    sigma_s_prime,
+                    eta,
+                    scale: old,
+                } => Profile::Dipole {
+                    preset,
+                    sigma_a,
+                    sigma_s_prime,
+                    eta,
+                    scale: Some(old.unwrap_or(1.0) * scale),
+                },
+                Profile::Exponentials { terms } => Profile::Exponentials {
+                    terms: terms
+                        .into_iter()
+                        .map(|t| ExpTerm {
+                            a: t.a.map(|a| a / (scale * scale)),
+                            b: t.b.map(|b| b / scale),
+                        })
+                        .collect(),
+                },
+                other => panic!("no scaling for {other:?}"),
+            }
+        };
+        let m = match &b.manifest().objects[k].material {
+            Material::Translucent { profile } => Material::Translucent {
+                profile: with_scale(profile),
+            },
+            Material::ThinSheet {
+                reflectance,
+                transmittance,
+                thickness_mm,
+            } => Material::ThinSheet {
+                reflectance: with_scale(reflectance),
+                transmittance: with_scale(transmittance),
+                thickness_mm: *thickness_mm,
+            },
+            other => panic!("{name} is {}", other.kind()),
+        };
+        (k, m)
+    }
+
+    /// Relative difference of a and b against a floor `1e-4 · scale` (entries far below
+    /// the matrix's scale count by their absolute error).
+    fn worst(got: &[Rgb], want: &[Rgb]) -> f32 {
+        let scale = want.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs()));
+        got.iter()
+            .flatten()
+            .zip(want.iter().flatten())
+            .map(|(g, w)| (g - w).abs() / w.abs().max(1e-4 * scale))
+            .fold(0.0f32, f32::max)
+    }
+
+    fn device_materials(b: &Bundle, overrides: &[(usize, Material)]) -> (SMaterials, Vec<f32>) {
+        let (materials, stored) = smatrix::bundle_materials(b, overrides).unwrap();
+        match SMaterials::plan(b, &materials, &stored, &SParams::default()).unwrap() {
+            Plan::Device(m) => (m, stored),
+            Plan::Cpu(why) => panic!("the device should rebuild S: {why}"),
+        }
+    }
+
+    /// Holds the device rebuild of one scene to the twins and to the CPU rebuild for
+    /// `overrides`; returns (entries, worst relative error vs the CPU rebuild).
+    fn check(ctx: &GpuContext, b: &Bundle, overrides: &[(usize, Material)]) -> (usize, f32) {
+        let sp = SParams::default();
+        let (m, stored) = device_materials(b, overrides);
+        let g = smatrix::bundle_geometry(b);
+        let t = STemplate::build(b, &g, &m, &stored, &sp.quadrature);
+        let dev = GpuSTemplate::upload(ctx, "test S", t.clone()).unwrap();
+        // s_entries against its twin.
+        let mut twin = cpu_twin::s_entries(&t, &m, &sp.quadrature);
+        let got = dev.entries_once(ctx, &m, &sp.quadrature).unwrap();
+        let e = worst(&got, &twin);
+        assert!(e < 1e-4, "s_entries vs its twin: worst relative error {e}");
+        assert!(twin.iter().flatten().any(|v| *v > 0.0), "an all-zero S");
+        // The whole rebuild against the twins and against the CPU's rebuild.
+        let twin_reports = cpu_twin::s_column_bound(&t, &m, &mut twin);
+        let s = dev.assemble(ctx, "test S", &m, &sp.quadrature).unwrap();
+        let e = worst(&s.csr.val, &twin);
+        assert!(e < 1e-4, "bounded S vs the twins: worst relative error {e}");
+        for (g, w) in s.reports.iter().zip(&twin_reports) {
+            assert_eq!(
+                g.scaled_columns, w.scaled_columns,
+                "{:?} vs {:?}",
+                s.reports, twin_reports
+            );
+            assert!((g.max_column - w.max_column).abs() <= 1e-4 * w.max_column.max(1.0));
+        }
+        let (cpu, _) = smatrix::rebuild_from_bundle(b, overrides, &sp).unwrap();
+        let mut want: HashMap<(usize, u32), Rgb> = HashMap::new();
+        for j in 0..cpu.row_ptr.len() - 1 {
+            for e in cpu.row_ptr[j] as usize..cpu.row_ptr[j + 1] as usize {
+                want.insert((j, cpu.col[e]), cpu.val[e]);
+            }
+        }
+        let (mut gv, mut wv) = (Vec::new(), Vec::new());
+        for j in 0..s.csr.row_ptr.len() - 1 {
+            for e in s.csr.row_ptr[j] as usize..s.csr.row_ptr[j + 1] as usize {
+                let w = want.remove(&(j, s.csr.col[e])).unwrap_or([0.0; 3]);
+                gv.push(s.csr.val[e]);
+                wv.push(w);
+            }
+        }
+        assert!(
+            want.is_empty(),
+            "{} entries of the CPU's S are missing on the device, e.g. {:?}",
+            want.len(),
+            want.iter().next()
+        );
+        let e = worst(&gv, &wv);
+        assert!(
+            e < 1e-4,
+            "device S vs the CPU rebuild: worst relative error {e}"
+        );
+        let nnz = s.csr.val.len();
+        s.release(ctx);
+        dev.release(ctx);
+        (nnz, e)
+    }
+
+    #[test]
+    fn s_entries_and_s_column_bound_match_their_twins_and_the_cpu_rebuild() {
+        let Some(ctx) = ctx() else { return };
+        let (_tmp, b) = bundle("cornell", 600);
+        let mut rng = Rng(0x5eed_0005);
+        // As built, then translucencies drawn at random (more and less translucent).
+        let mut cases = vec![Vec::new()];
+        for _ in 0..3 {
+            cases.push(vec![scaled(&b, "tall_block", rng.f(0.4, 2.0))]);
+        }
+        for overrides in &cases {
+            let (nnz, e) = check(ctx, &b, overrides);
+            eprintln!("cornell {overrides:?}: {nnz} entries, worst {e:.2e}");
+        }
+    }
+
+    #[test]
+    fn thin_sheets_rebuild_on_the_device_like_the_cpu() {
+        let Some(ctx) = ctx() else { return };
+        let (_tmp, b) = bundle("flower", 1500);
+        let names: Vec<String> = b
+            .manifest()
+            .objects
+            .iter()
+            .filter(|o| matches!(o.material, Material::ThinSheet { .. }))
+            .map(|o| o.name.clone())
+            .collect();
+        assert!(!names.is_empty());
+        let mut rng = Rng(0x5eed_0006);
+        let overrides: Vec<(usize, Material)> = names
+            .iter()
+            .take(3)
+            .map(|n| scaled(&b, n, rng.f(0.5, 1.8)))
+            .collect();
+        let (nnz, e) = check(ctx, &b, &overrides);
+        eprintln!("flower: {nnz} entries, worst {e:.2e}");
+    }
+
+    /// `s_column_bound` on random values (many columns past 1) against its twin.
+    #[test]
+    fn s_column_bound_matches_its_twin_on_random_values() {
+        let Some(ctx) = ctx() else { return };
+        let (_tmp, b) = bundle("cornell", 400);
+        let sp = SParams::default();
+        let (m, stored) = device_materials(&b, &[]);
+        let g = smatrix::bundle_geometry(&b);
+        let t = STemplate::build(&b, &g, &m, &stored, &sp.quadrature);
+        let dev = GpuSTemplate::upload(ctx, "test S", t.clone()).unwrap();
+        let mut rng = Rng(0x5eed_0007);
+        let mut val: Vec<Rgb> = (0..t.nnz()).map(|_| rng.rgb()).collect();
+        let (got, reports) = dev.column_bound_once(ctx, &m, &val).unwrap();
+        let want_reports = cpu_twin::s_column_bound(&t, &m, &mut val);
+        let e = worst(&got, &val);
+        assert!(e < 1e-5, "s_column_bound vs its twin: {e}");
+        assert_eq!(reports.len(), want_reports.len());
+        assert!(want_reports.iter().any(|r| r.scaled_columns > 0));
+        for (g, w) in reports.iter().zip(&want_reports) {
+            assert_eq!(g.scaled_columns, w.scaled_columns);
+            assert!((g.max_column - w.max_column).abs() <= 1e-5 * w.max_column.max(1.0));
+        }
+        dev.release(ctx);
+    }
+}
+
+/// A heterogeneous object (eq. 9 over per-medium lengths) is rebuilt on the CPU, and the
+/// plan says so rather than building a wrong S on the device.
+#[test]
+fn heterogeneous_objects_are_rebuilt_on_the_cpu_and_say_so() {
+    use translux_precompute::pipeline::{PrecomputeParams, precompute};
+    use translux_precompute::scene::load_scene;
+    use translux_precompute::smatrix::{self, SParams};
+    use translux_proto::bundle::Bundle;
+    use translux_server::gpu::subsurface::{Plan, SMaterials};
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("checker");
+    let params = PrecomputeParams {
+        patches: Some(400),
+        ..Default::default()
+    };
+    precompute(
+        &load_scene("builtin:cornell_checker").unwrap(),
+        &dir,
+        &params,
+    )
+    .unwrap();
+    let b = Bundle::open(&dir).unwrap();
+    let (materials, stored) = smatrix::bundle_materials(&b, &[]).unwrap();
+    match SMaterials::plan(&b, &materials, &stored, &SParams::default()).unwrap() {
+        Plan::Cpu(why) => assert!(why.contains("heterogeneous"), "{why}"),
+        Plan::Device(_) => panic!("a heterogeneous object planned for the device"),
     }
 }

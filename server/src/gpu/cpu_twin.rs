@@ -196,3 +196,80 @@ pub fn reduce_sum(partial: &[f32]) -> f32 {
     }
     part[0]
 }
+
+/// Twin of `s_entries.wgsl`: every entry of the template's S for the materials `m`, each
+/// plan evaluated by the precompute's own [`Quadrature::eval`](translux_precompute::subsurface::Quadrature::eval)
+/// — the CPU assembly's arithmetic — with patch i's sample points.
+pub fn s_entries(
+    t: &super::subsurface::STemplate,
+    m: &super::subsurface::SMaterials,
+    params: &translux_precompute::subsurface::SubsurfaceParams,
+) -> Vec<Rgb> {
+    use rayon::prelude::*;
+    use translux_precompute::subsurface::samples;
+    (0..t.nnz())
+        .into_par_iter()
+        .map(|e| {
+            let [i, j, r, meta] = t.entries[e];
+            let r = f32::from_bits(r);
+            let o = &m.objects[t.object(i as usize)];
+            let Some(plan) = t.plan(e) else {
+                return o.albedo;
+            };
+            let slot = if (meta >> 2) & 1 == 1 {
+                o.slot_t
+            } else {
+                o.slot_r
+            };
+            let tab = &m.tables[slot as usize];
+            if i != j && r >= tab.r_max() {
+                return [0.0; 3];
+            }
+            let corners: [glam::Vec3; 3] = std::array::from_fn(|k| {
+                glam::Vec3::from_slice(&t.patches[4 * i as usize + k][..3])
+            });
+            plan.eval(r, &samples(&corners, params.samples), tab, params)
+        })
+        .collect()
+}
+
+/// Twin of `s_column_bound.wgsl`: per column of a translucent object or thin sheet,
+/// total_c = Σ_j A_j S_ji,c / A_i in the template's column order; channels past 1 are
+/// divided by their total. Returns, per object, the largest total and the scaled columns.
+pub fn s_column_bound(
+    t: &super::subsurface::STemplate,
+    m: &super::subsurface::SMaterials,
+    val: &mut [Rgb],
+) -> Vec<super::subsurface::ColumnReport> {
+    use super::subsurface::{Class, ColumnReport};
+    let mut reports = vec![ColumnReport::default(); m.objects.len()];
+    let area = |p: usize| t.patches[4 * p][3];
+    for i in 0..t.n {
+        let obj = t.object(i);
+        if !matches!(m.objects[obj].class, Class::Translucent | Class::Sheet) {
+            continue;
+        }
+        let range = t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize;
+        let mut total = [0.0f32; 3];
+        for &e in &t.perm[range.clone()] {
+            let j = t.entries[e as usize][1] as usize;
+            for c in 0..3 {
+                total[c] += area(j) * val[e as usize][c] / area(i);
+            }
+        }
+        let worst = total.iter().cloned().fold(0.0f32, f32::max);
+        let rep = &mut reports[obj];
+        rep.max_column = rep.max_column.max(worst);
+        if worst > 1.0 {
+            rep.scaled_columns += 1;
+            for &e in &t.perm[range] {
+                for c in 0..3 {
+                    if total[c] > 1.0 {
+                        val[e as usize][c] /= total[c];
+                    }
+                }
+            }
+        }
+    }
+    reports
+}

@@ -10,6 +10,8 @@ pub const CSR_SPMV_RGB: &str = include_str!("kernels/csr_spmv_rgb.wgsl");
 pub const DENSE_MATMUL_RGB: &str = include_str!("kernels/dense_matmul_rgb.wgsl");
 pub const JACOBI_UPDATE: &str = include_str!("kernels/jacobi_update.wgsl");
 pub const REDUCE_SUM: &str = include_str!("kernels/reduce_sum.wgsl");
+pub const S_ENTRIES: &str = include_str!("kernels/s_entries.wgsl");
+pub const S_COLUMN_BOUND: &str = include_str!("kernels/s_column_bound.wgsl");
 
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
@@ -126,6 +128,10 @@ pub struct Kernels {
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
     pub(crate) jacobi_update: wgpu::ComputePipeline,
     pub(crate) reduce_sum: wgpu::ComputePipeline,
+    pub(crate) s_entries: Kernel,
+    pub(crate) s_column_bound: Kernel,
+    pub(crate) s_entries_pipeline: wgpu::ComputePipeline,
+    pub(crate) s_column_bound_pipeline: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -157,7 +163,23 @@ impl Kernels {
             REDUCE_SUM,
             &[Read, ReadWrite, ReadWrite],
         );
+        let s_entries = Kernel::new(
+            device,
+            "s_entries",
+            S_ENTRIES,
+            &[Read, Read, Read, Read, Read, Read, ReadWrite],
+        );
+        let s_column_bound = Kernel::new(
+            device,
+            "s_column_bound",
+            S_COLUMN_BOUND,
+            &[Read, Read, Read, Read, Read, ReadWrite, ReadWrite],
+        );
         Kernels {
+            s_entries_pipeline: s_entries.pipeline(device, &[]),
+            s_column_bound_pipeline: s_column_bound.pipeline(device, &[]),
+            s_entries,
+            s_column_bound,
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
             jacobi_update: jacobi.pipeline(device, &[]),

@@ -11,17 +11,20 @@
 //! | `dense_matmul_rgb` | Y = T X, T dense f16/f32 RGB, k ≤ 64 vectors per pass | same name |
 //! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup | same name |
 //! | `reduce_sum` | appends Σ of the partials to a residual history | same name |
+//! | `s_entries` | every entry of S from its stored quadrature plan and the profile tables | same name |
+//! | `s_column_bound` | Σ_j A_j S_ji ≤ A_i per column, offending columns scaled | same name |
 //!
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage
-//! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one
-//! scene's buffers and bind groups, built once and reused by every request. Nothing is read
-//! back per iteration: the residual history is read every [`SystemParams::readback_every`]
-//! iterations.
+//! binding (the adapter's real limit, or a smaller forced one for tests); [`subsurface`]
+//! rebuilds S on the device for a translucency change; [`system`] holds one scene's buffers
+//! and bind groups, built once and reused by every request. Nothing is read back per
+//! iteration: the residual history is read every [`SystemParams::readback_every`] iterations.
 
 pub mod cpu_twin;
 pub mod kernels;
 pub mod matrix;
+pub mod subsurface;
 pub mod system;
 
 use std::sync::{Arc, Mutex};

@@ -1,0 +1,775 @@
+//! S rebuilt on the device for a translucency change.
+//!
+//! In: a bundle (patch corners, the stored optical distances and their kinds) and the
+//! scene's materials with a request's overrides applied. Out: S on the device as a
+//! [`GpuCsr`] ready for the solve, and its values read back once for the CPU's products
+//! (S E for the right-hand side and the `subsurface_only` / heuristic components).
+//!
+//! Two stages, the same split as the CPU's [`translux_precompute::smatrix`]:
+//!
+//! 1. [`STemplate`] (CPU, once per scene and per object radii): which entries S has —
+//!    the self term and every stored pair within the radius of each translucent object or
+//!    thin sheet, the diagonal of opaque patches — laid out in receiver rows (the SpMV's
+//!    CSR), with the column order of the CPU's assembly (`perm`), and per entry its
+//!    quadrature plan ([`Quadrature`]: far, polar or point samples), which depends on
+//!    geometry alone. It is kept with headroom (1.5× the radius asked for, up to what the
+//!    bundle stores), so a translucency slider moving back and forth reuses it; entries
+//!    beyond a profile's current truncation radius come out as explicit zeros.
+//! 2. Per override set, two kernels: `s_entries` evaluates every entry's plan against the
+//!    objects' tabulated profiles (uploaded: 2 × 4097 RGB rows a profile), and
+//!    `s_column_bound` enforces Σ_j A_j S_ji ≤ A_i per column as the CPU does. Nothing
+//!    geometric is recomputed, nothing is uploaded but the tables.
+//!
+//! Heterogeneous objects (eq. 9 over per-medium lengths) are rebuilt on the CPU: [`Plan`]
+//! says so, and the relight reports where S was built (`stats.materials_on`).
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use translux_precompute::radiosity::Rgb;
+use translux_precompute::sheet::{self, KIND_OPPOSITE};
+use translux_precompute::smatrix::{self, CsrOwned, PatchGeometry, SError, SParams};
+use translux_precompute::subsurface::{
+    self, ObjectPatches, Quadrature, SubsurfaceParams, Tabulated,
+};
+use translux_proto::bundle::Bundle;
+use translux_proto::scene::Material;
+
+use super::matrix::{alloc_size, staging, storage_init, storage_zeroed, uniform};
+use super::{GpuContext, GpuCsr, GpuError, grid};
+
+/// Entry modes (the low two bits of an entry's meta word; `s_entries.wgsl`).
+pub const MODE_DIAG: u32 = 0;
+pub const MODE_FAR: u32 = 1;
+pub const MODE_POLAR: u32 = 2;
+pub const MODE_POINTS: u32 = 3;
+
+/// The most sample points per patch the kernel holds (`MAX_SAMPLES`): m ≤ 8.
+pub const MAX_SAMPLES: u32 = 64;
+
+/// Threads per workgroup of both kernels.
+const WG: u32 = 256;
+
+/// What an object contributes to S (the kernels' class codes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Class {
+    /// Nothing (an emitter).
+    Emitter = 0,
+    /// ρ on the diagonal.
+    Diffuse = 1,
+    /// A homogeneous translucent object: its profile over its stored pairs.
+    Translucent = 2,
+    /// A thin sheet: reflectance within a side, transmittance across.
+    Sheet = 3,
+}
+
+/// One object as the kernels read it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ObjectParams {
+    pub class: Class,
+    /// Table of the profile (a sheet's reflectance).
+    pub slot_r: u32,
+    /// Table of a sheet's transmittance (= `slot_r` otherwise).
+    pub slot_t: u32,
+    /// ρ of a diffuse object.
+    pub albedo: Rgb,
+}
+
+/// S's materials as the device rebuild takes them: per object its class, tables and the
+/// radius its entries must reach.
+#[derive(Debug, Clone)]
+pub struct SMaterials {
+    pub objects: Vec<ObjectParams>,
+    pub tables: Vec<Tabulated>,
+    /// Per object: the largest radius its tables reach (0 without tables).
+    pub reach: Vec<f32>,
+}
+
+/// Where S is to be rebuilt.
+#[derive(Debug)]
+pub enum Plan {
+    Device(SMaterials),
+    /// On the CPU, and why.
+    Cpu(String),
+}
+
+impl SMaterials {
+    /// The materials' classes and tables, the tables cut as the CPU's assembly cuts them
+    /// (truncation radius, capped by the stored distances `stored`).
+    pub fn plan(
+        bundle: &Bundle,
+        materials: &[Material],
+        stored: &[f32],
+        params: &SParams,
+    ) -> Result<Plan, SError> {
+        let m = bundle.manifest();
+        if params.quadrature.samples.pow(2) > MAX_SAMPLES {
+            return Ok(Plan::Cpu(format!(
+                "{} sample points per patch; the device kernel holds at most {MAX_SAMPLES}",
+                params.quadrature.samples.pow(2)
+            )));
+        }
+        let mut out = SMaterials {
+            objects: Vec::with_capacity(materials.len()),
+            tables: Vec::new(),
+            reach: Vec::with_capacity(materials.len()),
+        };
+        for (k, (o, mat)) in m.objects.iter().zip(materials).enumerate() {
+            let reach = stored.get(k).copied().unwrap_or(0.0);
+            let slot = out.tables.len() as u32;
+            let (class, albedo, radius, slots) = match mat {
+                Material::Emitter { .. } => (Class::Emitter, [0.0; 3], 0.0, (0, 0)),
+                Material::Diffuse { albedo } => (Class::Diffuse, *albedo, 0.0, (0, 0)),
+                Material::Translucent { profile } => {
+                    let (tab, _) =
+                        smatrix::translucent_table(&o.name, profile, reach, m.unit_mm, params)?;
+                    let r = tab.r_max();
+                    out.tables.push(tab);
+                    (Class::Translucent, [0.0; 3], r, (slot, slot))
+                }
+                Material::ThinSheet {
+                    reflectance,
+                    transmittance,
+                    ..
+                } => {
+                    let (tr, tt, _) = sheet::tables(
+                        &o.name,
+                        (reflectance, transmittance),
+                        reach,
+                        m.unit_mm,
+                        params,
+                    )?;
+                    let r = tr.r_max().max(tt.r_max());
+                    out.tables.push(tr);
+                    out.tables.push(tt);
+                    (Class::Sheet, [0.0; 3], r, (slot, slot + 1))
+                }
+                Material::Heterogeneous { .. } => {
+                    return Ok(Plan::Cpu(format!(
+                        "'{}' is heterogeneous (eq. 9 is rebuilt on the CPU)",
+                        o.name
+                    )));
+                }
+            };
+            out.objects.push(ObjectParams {
+                class,
+                slot_r: slots.0,
+                slot_t: slots.1,
+                albedo,
+            });
+            out.reach.push(radius);
+        }
+        Ok(Plan::Device(out))
+    }
+}
+
+/// The structure of S for per-object classes and radii, and every entry's quadrature
+/// plan: built once on the CPU ([`STemplate::build`]), then reused by every override set
+/// it [covers](STemplate::covers).
+#[derive(Debug, Clone)]
+pub struct STemplate {
+    pub n: usize,
+    pub classes: Vec<Class>,
+    /// Per object: entries kept for pairs closer than this (translucent objects, sheets).
+    pub radius: Vec<f32>,
+    /// Receiver rows j (the SpMV's CSR); `col` holds the source i.
+    pub row_ptr: Vec<u64>,
+    pub col: Vec<u32>,
+    /// Per entry (row order): (i, j, r as bits, mode | opposite << 2 | aux << 3).
+    pub entries: Vec<[u32; 4]>,
+    /// Polar plans: 4 rows (corner 0 and the factor, corner 1, corner 2, the plane's
+    /// normal); point plans: 1 row (the excess path).
+    pub aux: Vec<[f32; 4]>,
+    /// Columns (sources i): `perm[col_ptr[i]..col_ptr[i + 1]]` are the positions of column
+    /// i's entries in row order, in the CPU assembly's order (self term first).
+    pub col_ptr: Vec<u32>,
+    pub perm: Vec<u32>,
+    /// Per patch 4 rows: (corner 0, area), (corner 1, size), (corner 2, 0), (normal, object
+    /// index as a float).
+    pub patches: Vec<[f32; 4]>,
+}
+
+/// One entry of a column while the template is built: (j, r, mode | opposite << 2, aux).
+type ColumnEntry = (u32, f32, u32, Vec<[f32; 4]>);
+
+impl STemplate {
+    /// Headroom on the radius a template is built for, so that nearby translucencies reuse it.
+    pub const HEADROOM: f32 = 1.5;
+
+    /// Whether this template serves `m`: the same classes, and every translucent object's
+    /// radius within the template's.
+    pub fn covers(&self, m: &SMaterials) -> bool {
+        self.classes.len() == m.objects.len()
+            && self
+                .classes
+                .iter()
+                .zip(&m.objects)
+                .all(|(c, o)| *c == o.class)
+            && self
+                .radius
+                .iter()
+                .zip(&m.reach)
+                .all(|(have, want)| want <= have)
+    }
+
+    /// The template for `m`'s classes, with radii `HEADROOM` × `m`'s (at most what the
+    /// bundle stores, `stored`).
+    pub fn build(
+        bundle: &Bundle,
+        g: &PatchGeometry,
+        m: &SMaterials,
+        stored: &[f32],
+        params: &SubsurfaceParams,
+    ) -> STemplate {
+        let man = bundle.manifest();
+        let n = g.corners.len();
+        let classes: Vec<Class> = m.objects.iter().map(|o| o.class).collect();
+        let radius: Vec<f32> = m
+            .reach
+            .iter()
+            .enumerate()
+            .map(|(k, r)| {
+                (r * Self::HEADROOM)
+                    .min(stored.get(k).copied().unwrap_or(0.0))
+                    .max(*r)
+            })
+            .collect();
+        let mut object_of = vec![0u32; n];
+        let mut columns: Vec<Vec<ColumnEntry>> = vec![Vec::new(); n];
+        let distances = bundle.distances();
+        let kinds = bundle.distance_kinds();
+        for (k, o) in man.objects.iter().enumerate() {
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            object_of[range.clone()].fill(k as u32);
+            let base = range.start;
+            let p = ObjectPatches {
+                corners: &g.corners[range.clone()],
+                centroid: &g.centroid[range.clone()],
+                normal: &g.normal[range.clone()],
+                area: &g.area[range.clone()],
+                size: &g.size[range.clone()],
+            };
+            let eps = subsurface::coplanar_eps(&p);
+            let class = classes[k];
+            let cut = radius[k];
+            columns[range.clone()]
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(li, col)| {
+                    let i = base + li;
+                    match class {
+                        Class::Emitter => {}
+                        Class::Diffuse => col.push((i as u32, 0.0, MODE_DIAG, Vec::new())),
+                        Class::Translucent | Class::Sheet => {
+                            let (mode, aux) = encode(&Quadrature::self_term(&p, li));
+                            col.push((i as u32, 0.0, mode, aux));
+                            let first = distances.row_ptr()[i] as usize;
+                            let (cols, ds) = distances.row(i);
+                            for (e, (&j, &r)) in cols.iter().zip(ds).enumerate() {
+                                let j = j as usize;
+                                if j < range.start || j >= range.end || r >= cut {
+                                    continue;
+                                }
+                                let lj = j - base;
+                                let (plan, opposite) = if class == Class::Sheet {
+                                    let kd = kinds.get(first + e).copied().unwrap_or(0);
+                                    (
+                                        sheet::pair_plan(&p, (li, lj), r, params),
+                                        kd == KIND_OPPOSITE,
+                                    )
+                                } else {
+                                    (Quadrature::pair(&p, li, lj, r, params, eps), false)
+                                };
+                                let (mode, aux) = encode(&plan);
+                                col.push((j as u32, r, mode | (opposite as u32) << 2, aux));
+                            }
+                        }
+                    }
+                });
+        }
+        // Rows: entries of row j sorted by source, as the CPU's transpose leaves them.
+        let mut row_ptr = vec![0u64; n + 1];
+        for col in &columns {
+            for e in col {
+                row_ptr[e.0 as usize + 1] += 1;
+            }
+        }
+        for j in 0..n {
+            row_ptr[j + 1] += row_ptr[j];
+        }
+        let nnz = row_ptr[n] as usize;
+        let mut next: Vec<u64> = row_ptr[..n].to_vec();
+        let mut col = vec![0u32; nnz];
+        let mut entries = vec![[0u32; 4]; nnz];
+        let mut aux = Vec::new();
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut perm = Vec::with_capacity(nnz);
+        col_ptr.push(0u32);
+        for (i, column) in columns.into_iter().enumerate() {
+            for (j, r, mode, a) in column {
+                let pos = next[j as usize] as usize;
+                next[j as usize] += 1;
+                let meta = mode | ((aux.len() as u32) << 3);
+                aux.extend(a);
+                col[pos] = i as u32;
+                entries[pos] = [i as u32, j, r.to_bits(), meta];
+                perm.push(pos as u32);
+            }
+            col_ptr.push(perm.len() as u32);
+        }
+        let mut patches = Vec::with_capacity(4 * n);
+        for (i, obj) in object_of.iter().enumerate() {
+            let c = g.corners[i];
+            patches.push([c[0].x, c[0].y, c[0].z, g.area[i]]);
+            patches.push([c[1].x, c[1].y, c[1].z, g.size[i]]);
+            patches.push([c[2].x, c[2].y, c[2].z, 0.0]);
+            // The object's index as a float: exact below 2²⁴ objects.
+            patches.push([g.normal[i].x, g.normal[i].y, g.normal[i].z, *obj as f32]);
+        }
+        STemplate {
+            n,
+            classes,
+            radius,
+            row_ptr,
+            col,
+            entries,
+            aux,
+            col_ptr,
+            perm,
+            patches,
+        }
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Entry `e`'s plan, decoded from the template (the CPU twin evaluates it with the
+    /// precompute's own [`Quadrature::eval`]); `None` for a diagonal ρ entry.
+    pub fn plan(&self, e: usize) -> Option<Quadrature> {
+        let [i, j, _, meta] = self.entries[e];
+        let a = (meta >> 3) as usize;
+        let corners = |p: u32| -> [glam::Vec3; 3] {
+            std::array::from_fn(|k| glam::Vec3::from_slice(&self.patches[4 * p as usize + k][..3]))
+        };
+        match meta & 3 {
+            MODE_FAR => Some(Quadrature::Far {
+                area_i: self.patches[4 * i as usize][3],
+            }),
+            MODE_POLAR => Some(Quadrature::Polar {
+                tri: std::array::from_fn(|k| glam::Vec3::from_slice(&self.aux[a + k][..3])),
+                normal: glam::Vec3::from_slice(&self.aux[a + 3][..3]),
+                factor: self.aux[a][3],
+            }),
+            MODE_POINTS => Some(Quadrature::Points {
+                tri_j: corners(j),
+                excess: self.aux[a][0],
+                area_i: self.patches[4 * i as usize][3],
+            }),
+            _ => None,
+        }
+    }
+
+    /// The object patch `i` belongs to.
+    pub fn object(&self, i: usize) -> usize {
+        self.patches[4 * i + 3][3] as usize
+    }
+
+    /// Bytes the template holds on the device.
+    fn device_bytes(&self) -> u64 {
+        let nnz = self.nnz() as u64;
+        alloc_size(16 * nnz)
+            + alloc_size(16 * self.aux.len() as u64)
+            + alloc_size(4 * self.col_ptr.len() as u64)
+            + alloc_size(4 * nnz)
+            + alloc_size(16 * self.patches.len() as u64)
+            + alloc_size(4 * (self.n as u64 + 1))
+            + alloc_size(4 * nnz)
+            + 16
+    }
+}
+
+/// A plan as the template stores it: (mode, aux rows).
+fn encode(q: &Quadrature) -> (u32, Vec<[f32; 4]>) {
+    match *q {
+        Quadrature::Far { .. } => (MODE_FAR, Vec::new()),
+        Quadrature::Polar {
+            tri,
+            normal,
+            factor,
+        } => (
+            MODE_POLAR,
+            vec![
+                [tri[0].x, tri[0].y, tri[0].z, factor],
+                [tri[1].x, tri[1].y, tri[1].z, 0.0],
+                [tri[2].x, tri[2].y, tri[2].z, 0.0],
+                [normal.x, normal.y, normal.z, 0.0],
+            ],
+        ),
+        Quadrature::Points { excess, .. } => (MODE_POINTS, vec![[excess, 0.0, 0.0, 0.0]]),
+    }
+}
+
+/// The tables as `s_entries.wgsl` reads them: per slot 2 (N + 1) rows, (R, r_k), (W, 0).
+pub fn table_rows(tables: &[Tabulated]) -> Result<(Vec<[f32; 4]>, u32), GpuError> {
+    let n = tables.first().map_or(8, |t| t.grid().0.len() - 1);
+    let mut rows = Vec::with_capacity(tables.len() * 2 * (n + 1));
+    for t in tables {
+        let (radii, r, w) = t.grid();
+        if radii.len() != n + 1 {
+            return Err(GpuError::Invalid(
+                "profile tables of different sizes in one rebuild".into(),
+            ));
+        }
+        for k in 0..=n {
+            rows.push([r[k][0], r[k][1], r[k][2], radii[k]]);
+            rows.push([w[k][0], w[k][1], w[k][2], 0.0]);
+        }
+    }
+    Ok((rows, n as u32))
+}
+
+/// The objects as both kernels read them: (class, slot_r, slot_t, 0), (albedo bits, 0).
+pub fn object_rows(objects: &[ObjectParams]) -> Vec<[u32; 4]> {
+    objects
+        .iter()
+        .flat_map(|o| {
+            [
+                [o.class as u32, o.slot_r, o.slot_t, 0],
+                [
+                    o.albedo[0].to_bits(),
+                    o.albedo[1].to_bits(),
+                    o.albedo[2].to_bits(),
+                    0,
+                ],
+            ]
+        })
+        .collect()
+}
+
+/// (cos θ_k, sin θ_k) of the polar integration's K directions, as
+/// [`subsurface::polar_integral`] computes them.
+pub fn directions(k: u32) -> Vec<[f32; 2]> {
+    (0..k)
+        .map(|dir| {
+            let th = (dir as f32 + 0.5) * std::f32::consts::TAU / k as f32;
+            [th.cos(), th.sin()]
+        })
+        .collect()
+}
+
+/// Keep in sync with `Params` in `s_entries.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct EntryParams {
+    count: u32,
+    groups_x: u32,
+    m: u32,
+    directions: u32,
+    table_n: u32,
+    _pad: [u32; 3],
+}
+
+/// Keep in sync with `Params` in `s_column_bound.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ColumnParams {
+    n: u32,
+    groups_x: u32,
+    _pad: [u32; 2],
+}
+
+/// Per object, how its columns stood against energy conservation: the largest
+/// Σ_j A_j S_ji / A_i before scaling, and how many columns were scaled down.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ColumnReport {
+    pub max_column: f32,
+    pub scaled_columns: u32,
+}
+
+/// A template on the device.
+#[derive(Debug)]
+pub struct GpuSTemplate {
+    pub template: STemplate,
+    entries: wgpu::Buffer,
+    aux: wgpu::Buffer,
+    col_ptr: wgpu::Buffer,
+    perm: wgpu::Buffer,
+    patches: wgpu::Buffer,
+    row_ptr: wgpu::Buffer,
+    col: wgpu::Buffer,
+    bytes: u64,
+}
+
+/// What one device rebuild produced.
+#[derive(Debug)]
+pub struct DeviceS {
+    /// S on the device, bound by the solve.
+    pub s: GpuCsr,
+    /// The same values on the CPU (explicit zeros kept: the template's structure).
+    pub csr: CsrOwned<Rgb>,
+    pub reports: Vec<ColumnReport>,
+    /// Milliseconds on the device (both kernels and the read-back).
+    pub device_ms: f64,
+}
+
+impl DeviceS {
+    /// Returns the values' bytes to the budget when S is dropped unused.
+    pub fn release(self, ctx: &GpuContext) {
+        ctx.release(self.s.bytes());
+    }
+}
+
+impl GpuSTemplate {
+    /// Uploads `t`; refuses one whose entries do not fit one storage binding (the kernels
+    /// see the whole matrix at once) or the budget.
+    pub fn upload(ctx: &GpuContext, what: &str, t: STemplate) -> Result<GpuSTemplate, GpuError> {
+        let largest = (16 * t.nnz() as u64)
+            .max(16 * t.aux.len() as u64)
+            .max(16 * t.patches.len() as u64);
+        if largest > ctx.tile_bytes() {
+            return Err(GpuError::MatrixTooLarge {
+                what: format!("{what}: S's {} entries", t.nnz()),
+                requested: largest,
+                max_binding: ctx.tile_bytes(),
+            });
+        }
+        let bytes = t.device_bytes();
+        ctx.reserve(what, bytes)?;
+        let rel: Vec<u32> = t.row_ptr.iter().map(|&p| p as u32).collect();
+        let made = ctx.scoped(|| {
+            Ok((
+                storage_init(ctx, what, bytemuck::cast_slice(&t.entries)),
+                storage_init(ctx, what, bytemuck::cast_slice(&t.aux)),
+                storage_init(ctx, what, bytemuck::cast_slice(&t.col_ptr)),
+                storage_init(ctx, what, bytemuck::cast_slice(&t.perm)),
+                storage_init(ctx, what, bytemuck::cast_slice(&t.patches)),
+                storage_init(ctx, what, bytemuck::cast_slice(&rel)),
+                storage_init(ctx, what, bytemuck::cast_slice(&t.col)),
+            ))
+        });
+        match made {
+            Ok((entries, aux, col_ptr, perm, patches, row_ptr, col)) => Ok(GpuSTemplate {
+                template: t,
+                entries,
+                aux,
+                col_ptr,
+                perm,
+                patches,
+                row_ptr,
+                col,
+                bytes,
+            }),
+            Err(e) => {
+                ctx.release(bytes);
+                Err(e)
+            }
+        }
+    }
+
+    /// GPU bytes held by the template (the values of each rebuild are the [`GpuCsr`]'s).
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Returns the template's bytes to the budget (its buffers go with it).
+    pub fn release(self, ctx: &GpuContext) {
+        ctx.release(self.bytes);
+    }
+
+    /// S for `m` (which the template must cover): `s_entries`, then `s_column_bound`, then
+    /// one read-back of the values and the per-object reports.
+    pub fn assemble(
+        &self,
+        ctx: &GpuContext,
+        what: &str,
+        m: &SMaterials,
+        params: &SubsurfaceParams,
+    ) -> Result<DeviceS, GpuError> {
+        let start = Instant::now();
+        let (val, values, reports, val_bytes) = self.dispatch(ctx, what, m, params, None, true)?;
+        let device_ms = start.elapsed().as_secs_f64() * 1e3;
+        let t = &self.template;
+        let s = GpuCsr::from_device(
+            ctx,
+            what,
+            (t.n, t.n, t.nnz()),
+            (self.row_ptr.clone(), self.col.clone(), val),
+            val_bytes,
+        );
+        Ok(DeviceS {
+            s,
+            csr: CsrOwned {
+                row_ptr: t.row_ptr.clone(),
+                col: t.col.clone(),
+                val: values,
+            },
+            reports,
+            device_ms,
+        })
+    }
+
+    /// `s_entries` alone: the values before the column bound (tests hold it to its twin).
+    pub fn entries_once(
+        &self,
+        ctx: &GpuContext,
+        m: &SMaterials,
+        params: &SubsurfaceParams,
+    ) -> Result<Vec<Rgb>, GpuError> {
+        let (val, values, _, bytes) = self.dispatch(ctx, "s_entries", m, params, None, false)?;
+        drop(val);
+        ctx.release(bytes);
+        Ok(values)
+    }
+
+    /// `s_column_bound` alone on the values `val` (row order): the bounded values and the
+    /// per-object reports.
+    pub fn column_bound_once(
+        &self,
+        ctx: &GpuContext,
+        m: &SMaterials,
+        val: &[Rgb],
+    ) -> Result<(Vec<Rgb>, Vec<ColumnReport>), GpuError> {
+        let params = SubsurfaceParams::default();
+        let (buf, values, reports, bytes) =
+            self.dispatch(ctx, "s_column_bound", m, &params, Some(val), true)?;
+        drop(buf);
+        ctx.release(bytes);
+        Ok((values, reports))
+    }
+
+    /// Runs `s_entries` (or starts from `input`) and, when `bound`, `s_column_bound`; reads
+    /// the values and reports back. Returns the value buffer and its reserved bytes.
+    #[allow(clippy::type_complexity)]
+    fn dispatch(
+        &self,
+        ctx: &GpuContext,
+        what: &str,
+        m: &SMaterials,
+        params: &SubsurfaceParams,
+        input: Option<&[Rgb]>,
+        bound: bool,
+    ) -> Result<(wgpu::Buffer, Vec<Rgb>, Vec<ColumnReport>, u64), GpuError> {
+        if !self.template.covers(m) {
+            return Err(GpuError::Invalid(format!(
+                "{what}: the S template does not cover these materials"
+            )));
+        }
+        let t = &self.template;
+        let nnz = t.nnz();
+        if input.is_some_and(|v| v.len() != nnz) {
+            return Err(GpuError::Invalid(format!(
+                "{what}: {} values for {nnz} entries",
+                input.map_or(0, |v| v.len())
+            )));
+        }
+        let val_bytes = alloc_size(12 * nnz as u64);
+        let (rows, table_n) = table_rows(&m.tables)?;
+        let objects = object_rows(&m.objects);
+        let report_bytes = alloc_size(8 * m.objects.len() as u64);
+        ctx.reserve(what, val_bytes)?;
+        let made = ctx.scoped(|| {
+            let k = &ctx.kernels;
+            let val = match input {
+                Some(v) => storage_init(ctx, what, bytemuck::cast_slice(v)),
+                None => storage_zeroed(ctx, what, 12 * nnz as u64),
+            };
+            let tables = storage_init(ctx, what, bytemuck::cast_slice(&rows));
+            let objs = storage_init(ctx, what, bytemuck::cast_slice(&objects));
+            let dirs = storage_init(
+                ctx,
+                what,
+                bytemuck::cast_slice(&directions(params.directions.max(1))),
+            );
+            let report = storage_zeroed(ctx, what, report_bytes);
+            let eg = grid((nnz as u32).div_ceil(WG));
+            let ep = uniform(
+                ctx,
+                what,
+                &EntryParams {
+                    count: nnz as u32,
+                    groups_x: eg.0,
+                    m: params.samples.max(1),
+                    directions: params.directions.max(1),
+                    table_n,
+                    _pad: [0; 3],
+                },
+            );
+            let cg = grid((t.n as u32).div_ceil(WG));
+            let cp = uniform(
+                ctx,
+                what,
+                &ColumnParams {
+                    n: t.n as u32,
+                    groups_x: cg.0,
+                    _pad: [0; 2],
+                },
+            );
+            let val_read = staging(ctx, "S read", val_bytes);
+            let report_read = staging(ctx, "S report read", report_bytes);
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            if input.is_none() {
+                let bg = k.s_entries.bind(
+                    &ctx.device,
+                    &ep,
+                    &[
+                        &self.entries,
+                        &self.patches,
+                        &self.aux,
+                        &tables,
+                        &objs,
+                        &dirs,
+                        &val,
+                    ],
+                );
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_entries_pipeline);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(eg.0, eg.1, 1);
+            }
+            if bound {
+                let bg = k.s_column_bound.bind(
+                    &ctx.device,
+                    &cp,
+                    &[
+                        &self.col_ptr,
+                        &self.perm,
+                        &self.entries,
+                        &self.patches,
+                        &objs,
+                        &val,
+                        &report,
+                    ],
+                );
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_column_bound_pipeline);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(cg.0, cg.1, 1);
+            }
+            enc.copy_buffer_to_buffer(&val, 0, &val_read, 0, val_bytes);
+            enc.copy_buffer_to_buffer(&report, 0, &report_read, 0, report_bytes);
+            ctx.queue.submit([enc.finish()]);
+            let values = ctx.read_back(&val_read, val_bytes)?;
+            let report = ctx.read_back(&report_read, report_bytes)?;
+            Ok((val, values, report))
+        });
+        let (val, values, report) = match made {
+            Ok(v) => v,
+            Err(e) => {
+                ctx.release(val_bytes);
+                return Err(e);
+            }
+        };
+        let flat: Vec<f32> = bytemuck::pod_collect_to_vec(&values[..12 * nnz]);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&report[..8 * m.objects.len()]);
+        let reports = words
+            .chunks_exact(2)
+            .map(|w| ColumnReport {
+                max_column: f32::from_bits(w[0]),
+                scaled_columns: w[1],
+            })
+            .collect();
+        let values = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        Ok((val, values, reports, val_bytes))
+    }
+}
