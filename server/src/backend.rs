@@ -17,7 +17,9 @@
 //! relight that uses it). A scene that does not fit — a row larger than one binding, the
 //! device refusing memory, or more than the budget
 //! `TRANSLUX_GPU_MEMORY_MIB` — is served from the CPU, with a warning in the log and its
-//! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU.
+//! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU. A translucency
+//! change rebuilds S on the device ([`Backend::rebuild_s`], [`crate::gpu::subsurface`]; its
+//! template counts in the scene's bytes), except for heterogeneous objects.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
