@@ -840,6 +840,21 @@ mod s_rebuild {
         eprintln!("flower: {nnz} entries, worst {e:.2e}");
     }
 
+    /// A template built for a profile serves translucencies within its 1.5× headroom (a
+    /// slider moving back and forth) and not past it.
+    #[test]
+    fn the_template_is_reused_within_its_headroom() {
+        let (_tmp, b) = bundle("cornell", 400);
+        let sp = SParams::default();
+        let (m, stored) = device_materials(&b, &[]);
+        let g = smatrix::bundle_geometry(&b);
+        let t = STemplate::build(&b, &g, &m, &stored, &sp.quadrature);
+        for (scale, covered) in [(0.8, true), (1.4, true), (1.9, false)] {
+            let (m2, _) = device_materials(&b, &[scaled(&b, "tall_block", scale)]);
+            assert_eq!(t.covers(&m2), covered, "scale {scale}");
+        }
+    }
+
     /// `s_column_bound` on random values (many columns past 1) against its twin.
     #[test]
     fn s_column_bound_matches_its_twin_on_random_values() {

@@ -64,37 +64,18 @@ fn sample(c0: vec3<f32>, e1: vec3<f32>, e2: vec3<f32>, i: u32, j: u32, second: b
     return c0 + e1 * (fi + 1.0 / 3.0) + e2 * (fj + 1.0 / 3.0);
 }
 
-// The m² sample points of a triangle into xs, in `subsurface::samples` order.
-fn samples_into(c0: vec3<f32>, c1: vec3<f32>, c2: vec3<f32>) -> u32 {
+// The m² sample points of a triangle into `out` (xs or ys), in `subsurface::samples` order.
+fn samples_into(c0: vec3<f32>, c1: vec3<f32>, c2: vec3<f32>, out: ptr<private, array<vec3<f32>, MAX_SAMPLES>>) -> u32 {
     let m = p.m;
     let e1 = (c1 - c0) / f32(m);
     let e2 = (c2 - c0) / f32(m);
     var n = 0u;
     for (var i = 0u; i < m; i++) {
         for (var j = 0u; j < m - i; j++) {
-            xs[n] = sample(c0, e1, e2, i, j, false);
+            (*out)[n] = sample(c0, e1, e2, i, j, false);
             n++;
             if (i + j + 2u <= m) {
-                xs[n] = sample(c0, e1, e2, i, j, true);
-                n++;
-            }
-        }
-    }
-    return n;
-}
-
-// The same into ys.
-fn samples_into_ys(c0: vec3<f32>, c1: vec3<f32>, c2: vec3<f32>) -> u32 {
-    let m = p.m;
-    let e1 = (c1 - c0) / f32(m);
-    let e2 = (c2 - c0) / f32(m);
-    var n = 0u;
-    for (var i = 0u; i < m; i++) {
-        for (var j = 0u; j < m - i; j++) {
-            ys[n] = sample(c0, e1, e2, i, j, false);
-            n++;
-            if (i + j + 2u <= m) {
-                ys[n] = sample(c0, e1, e2, i, j, true);
+                (*out)[n] = sample(c0, e1, e2, i, j, true);
                 n++;
             }
         }
@@ -215,7 +196,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             if (mode == 1u) {
                 out = lookup(slot, r, 0u) * area_i;
             } else {
-                let nx = samples_into(corner(src, 0u), corner(src, 1u), corner(src, 2u));
+                let nx = samples_into(corner(src, 0u), corner(src, 1u), corner(src, 2u), &xs);
                 if (mode == 2u) {
                     let t0 = aux[a];
                     let t1 = aux[a + 1u].xyz;
@@ -228,7 +209,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     out = acc / f32(nx) * t0.w;
                 } else {
                     let excess = aux[a].x;
-                    let ny = samples_into_ys(corner(dst, 0u), corner(dst, 1u), corner(dst, 2u));
+                    let ny = samples_into(corner(dst, 0u), corner(dst, 1u), corner(dst, 2u), &ys);
                     var acc = vec3<f32>(0.0);
                     for (var k = 0u; k < nx; k++) {
                         for (var l = 0u; l < ny; l++) {
