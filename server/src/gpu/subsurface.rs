@@ -23,8 +23,6 @@
 //! Heterogeneous objects (eq. 9 over per-medium lengths) are rebuilt on the CPU: [`Plan`]
 //! says so, and the relight reports where S was built (`stats.materials_on`).
 
-use std::time::Instant;
-
 use rayon::prelude::*;
 use translux_precompute::radiosity::Rgb;
 use translux_precompute::sheet::{self, KIND_OPPOSITE};
@@ -509,8 +507,6 @@ pub struct DeviceS {
     /// The same values on the CPU (explicit zeros kept: the template's structure).
     pub csr: CsrOwned<Rgb>,
     pub reports: Vec<ColumnReport>,
-    /// Milliseconds on the device (both kernels and the read-back).
-    pub device_ms: f64,
 }
 
 impl DeviceS {
@@ -586,9 +582,7 @@ impl GpuSTemplate {
         m: &SMaterials,
         params: &SubsurfaceParams,
     ) -> Result<DeviceS, GpuError> {
-        let start = Instant::now();
         let (val, values, reports, val_bytes) = self.dispatch(ctx, what, m, params, None, true)?;
-        let device_ms = start.elapsed().as_secs_f64() * 1e3;
         let t = &self.template;
         let s = GpuCsr::from_device(
             ctx,
@@ -605,7 +599,6 @@ impl GpuSTemplate {
                 val: values,
             },
             reports,
-            device_ms,
         })
     }
 
