@@ -49,6 +49,7 @@ fn object(
         material,
         crease_deg: None,
         simplify_to: None,
+        orientation: Default::default(),
     }
 }
 

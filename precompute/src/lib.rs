@@ -7,7 +7,8 @@
 //! Stages, each in its own module:
 //! 1. [`scene`] — load and validate the scene; [`shapes`] and [`builtin`] make procedural
 //!    geometry and the built-in scenes.
-//!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`).
+//!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`);
+//!    [`orient`] turns closed parts wound inside out outward (`orientation`).
 //! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
 //! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
 //! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
@@ -39,6 +40,7 @@ pub mod export;
 pub mod formfactor;
 pub mod hetero;
 pub mod inverse;
+pub mod orient;
 pub mod patch;
 pub mod pipeline;
 pub mod profile;

@@ -104,6 +104,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     println!("  patches            {}", report.patch_count);
     println!("  viewer vertices    {}", report.vertex_count);
     println!("  source triangles   {}", report.occluder_count);
+    let turned: Vec<&str> = loaded
+        .objects
+        .iter()
+        .filter(|o| o.reoriented)
+        .map(|o| o.name.as_str())
+        .collect();
+    if !turned.is_empty() {
+        println!(
+            "  orientation        turned over: {} (see the notes above; \"orientation\" in \
+             the scene file decides)",
+            turned.join(", ")
+        );
+    }
     println!(
         "  nnz(F)             {} ({:.1}% of N²)",
         report.nnz_f,

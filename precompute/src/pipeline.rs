@@ -353,12 +353,8 @@ pub fn precompute(
     let mut stages = Vec::new();
     let progress = params.progress;
     for (k, o) in scene.objects.iter().enumerate() {
-        if o.reoriented {
-            eprintln!(
-                "note: objects[{k}] {:?}: its faces were wound inside out (negative volume); \
-                 flipped to face outward",
-                o.name
-            );
+        for note in &o.orientation_notes {
+            eprintln!("note: objects[{k}] {:?}: {note}", o.name);
         }
         let loaded = o.triangles.len() + o.dropped_degenerate;
         if o.source_triangles > loaded {

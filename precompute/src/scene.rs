@@ -42,9 +42,12 @@ pub struct LoadedObject {
     /// Triangles the mesh had before `simplify_to` (equal to the loaded count plus
     /// `dropped_degenerate` when it was not simplified).
     pub source_triangles: usize,
-    /// The OBJ's faces were wound inside out (negative enclosed volume) and were flipped to
-    /// face outward.
+    /// Some closed parts of the mesh were turned over by its `orientation` (see
+    /// [`crate::orient`]); `orientation_notes` says which and why.
     pub reoriented: bool,
+    /// What the orientation pass decided, one line per decision (empty when it had nothing
+    /// to decide).
+    pub orientation_notes: Vec<String>,
     /// For a heterogeneous object with media by OBJ material (`by_obj_material`): the medium
     /// of each triangle (the index of its `usemtl` name in the pattern's `names`), aligned
     /// with `triangles`. `None` for every other object.
@@ -199,7 +202,8 @@ pub fn resolve_scene(
         .enumerate()
         .map(|(i, desc)| load_object(i, desc, base_dir, &source))
         .collect();
-    let objects = results.into_iter().collect::<Result<Vec<_>, _>>()?;
+    let mut objects = results.into_iter().collect::<Result<Vec<_>, _>>()?;
+    orient_objects(&file, &mut objects);
     Ok(LoadedScene {
         name,
         source,
@@ -283,16 +287,7 @@ fn load_object(
             keep[k - 1]
         });
     }
-    let (mut triangles, dropped) = drop_degenerate(transformed);
-    // Scanned meshes are often wound inside out (horse.obj is): every normal then points
-    // into the object, so lights outside never reach it and a translucent object has no
-    // inside. A mesh that encloses clearly negative volume is turned outward.
-    let reoriented = matches!(desc.mesh, MeshRef::Path(_)) && inside_out(&triangles);
-    if reoriented {
-        for t in &mut triangles {
-            t.swap(1, 2);
-        }
-    }
+    let (triangles, dropped) = drop_degenerate(transformed);
     if triangles.is_empty() {
         return Err(SceneError::MeshEmpty {
             scene: scene.to_owned(),
@@ -308,23 +303,64 @@ fn load_object(
         triangles,
         dropped_degenerate: dropped,
         source_triangles,
-        reoriented,
+        reoriented: false,
+        orientation_notes: Vec::new(),
         face_material,
     })
 }
 
-/// Whether `tris` enclose a negative volume of more than 1% of their bounding box: a closed
-/// (or nearly closed, like a scan with an open bottom) mesh wound inside out. Open sheets
-/// enclose about nothing and are left as they are.
-fn inside_out(tris: &[[Vec3; 3]]) -> bool {
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for v in tris.iter().flatten() {
-        lo = lo.min(*v);
-        hi = hi.max(*v);
-    }
-    let size = (hi - lo).as_dvec3();
-    let volume = crate::shapes::signed_volume(tris);
-    volume < -0.01 * size.x * size.y * size.z
+/// Applies each object's `orientation` (see [`crate::orient`]). Scanned meshes are often
+/// wound inside out (horse.obj is): every normal then points into the object, so lights
+/// outside never reach it and a translucent object has no inside. `auto` turns such closed
+/// parts outward, but never an open surface (a wall, a floor, a sheet), and never a closed
+/// part that encloses a light, the camera or another object (a room modelled from inside).
+/// Built-in shapes are made facing the right way and are only touched by an explicit mode.
+fn orient_objects(file: &SceneFile, objects: &mut [LoadedObject]) {
+    use rayon::prelude::*;
+    use translux_proto::light::Light;
+    use translux_proto::scene::Orientation;
+    let mut scene_points: Vec<Vec3> = file
+        .lights
+        .iter()
+        .filter_map(|l| match l {
+            Light::Point { position, .. } | Light::Spot { position, .. } => {
+                Some(Vec3::from(*position))
+            }
+            _ => None,
+        })
+        .collect();
+    scene_points.extend(file.camera.as_ref().map(|c| Vec3::from(c.position)));
+    // A point on each object (a face's centroid near the middle of its list).
+    let on_object: Vec<Vec3> = objects
+        .iter()
+        .map(|o| {
+            let [a, b, c] = o.triangles[o.triangles.len() / 2];
+            (a + b + c) / 3.0
+        })
+        .collect();
+    objects
+        .par_iter_mut()
+        .zip(&file.objects)
+        .enumerate()
+        .for_each(|(k, (o, desc))| {
+            if desc.orientation == Orientation::Auto && !matches!(desc.mesh, MeshRef::Path(_)) {
+                return;
+            }
+            let witnesses: Vec<Vec3> = scene_points
+                .iter()
+                .copied()
+                .chain(
+                    on_object
+                        .iter()
+                        .enumerate()
+                        .filter(|(j, _)| *j != k)
+                        .map(|(_, p)| *p),
+                )
+                .collect();
+            let report = crate::orient::orient(&mut o.triangles, desc.orientation, &witnesses);
+            o.reoriented = report.flipped_triangles > 0;
+            o.orientation_notes = report.notes;
+        });
 }
 
 /// The medium of each face from its `usemtl` group: `names[k]` is medium k. Every face must
@@ -754,6 +790,81 @@ mod tests {
         write(dir.path(), "tri.obj", TRI_OBJ);
         let p = write(dir.path(), "t.json", &scene_with("\"tri.obj\"", GREY, ""));
         assert!(!load_scene_file(&p).expect("loads").objects[1].reoriented);
+        // `as_is` keeps even a closed inside-out mesh.
+        let p = write(
+            dir.path(),
+            "a.json",
+            &scene_with("\"tet.obj\"", GREY, r#", "orientation": "as_is""#),
+        );
+        let s = load_scene_file(&p).expect("loads");
+        assert!(!s.objects[1].reoriented);
+        assert!(crate::shapes::signed_volume(&s.objects[1].triangles) < 0.0);
+    }
+
+    #[test]
+    fn orientation_must_be_one_of_the_documented_modes() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write(dir.path(), "tet.obj", INSIDE_OUT_TET);
+        let msg = error_of(
+            dir.path(),
+            &scene_with("\"tet.obj\"", GREY, r#", "orientation": "sideways""#),
+        );
+        assert!(
+            msg.contains("objects[1].orientation")
+                && ["auto", "as_is", "outward", "inward"]
+                    .iter()
+                    .all(|m| msg.contains(m)),
+            "{msg}"
+        );
+    }
+
+    fn shared_mesh(name: &str) -> String {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data")
+            .join(name);
+        assert!(
+            p.exists(),
+            "{} is missing: the tests read the scanned meshes from ../shared/data",
+            p.display()
+        );
+        format!("{:?}", p.display().to_string())
+    }
+
+    #[test]
+    fn the_inside_out_horse_turns_outward_and_the_open_bunny_does_not() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let p = write(
+            dir.path(),
+            "h.json",
+            &scene_with(&shared_mesh("horse.obj"), GREY, ""),
+        );
+        let s = load_scene_file(&p).expect("loads");
+        let horse = &s.objects[1];
+        assert!(horse.reoriented, "{:?}", horse.orientation_notes);
+        assert!(crate::shapes::signed_volume(&horse.triangles) > 0.0);
+        assert!(
+            horse
+                .orientation_notes
+                .iter()
+                .any(|n| n.contains("flipped to face outward")),
+            "{:?}",
+            horse.orientation_notes
+        );
+        // The bunny has holes in its base and is wound outward: left alone, wherever it is.
+        for translate in ["[0, 0, 0]", "[-3, 1, 7]"] {
+            let extra = format!(r#", "transform": {{"translate": {translate}}}"#);
+            let p = write(
+                dir.path(),
+                "b.json",
+                &scene_with(&shared_mesh("stanford-bunny.obj"), GREY, &extra),
+            );
+            let s = load_scene_file(&p).expect("loads");
+            assert!(
+                !s.objects[1].reoriented,
+                "{:?}",
+                s.objects[1].orientation_notes
+            );
+        }
     }
 
     #[test]

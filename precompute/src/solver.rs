@@ -115,6 +115,13 @@ pub enum SolveError {
     Length { got: usize, expected: usize },
     #[error("channels must be a positive multiple of 3 (RGB systems), got {0}")]
     Channels(usize),
+    /// The right-hand side or the iterates left f32's range: the lights are too strong for
+    /// the scene. Never answered with a warm start or any other stale vector.
+    #[error(
+        "the solve overflows (values beyond f32's range); use smaller intensities or \
+         irradiances"
+    )]
+    Overflow,
 }
 
 /// y = F x for `ch` channels per patch: one pass over F serves every channel.
@@ -253,6 +260,9 @@ pub fn solve_system(
     if params.method == Method::GaussSeidel && k.diagonal().is_none() {
         return Err(SolveError::GaussSeidelNeedsDiagonal);
     }
+    if !b.iter().all(|v| v.is_finite()) {
+        return Err(SolveError::Overflow);
+    }
     // A warm start of another length, or one that is not finite (a previous answer that
     // overflowed), would poison every iterate: start cold instead.
     let warm = warm.filter(|w| w.len() == b.len() && w.iter().all(|v| v.is_finite()));
@@ -327,6 +337,11 @@ pub fn solve_system(
             }
         }
     };
+    // An overflow mid-solve makes the residual NaN or infinite; x may then still be the
+    // warm start (another request's answer), which must never be returned as this one's.
+    if !residual.is_finite() || !x.iter().all(|v| v.is_finite()) {
+        return Err(SolveError::Overflow);
+    }
     let stats = SolveStats {
         method,
         iterations,

@@ -443,7 +443,7 @@ pub struct ErrorDetail {
     /// `payload_too_large`, `unsupported_media_type`, `not_acceptable`,
     /// `method_not_allowed`, `internal`.
     pub code: String,
-    /// What was wrong and where (`lights[0].intensity[1] must be finite and >= 0`).
+    /// What was wrong and where (`lights[0].intensity[1] must be finite and in [0, 1000000000000]`).
     pub message: String,
 }
 

@@ -64,7 +64,19 @@ impl std::error::Error for JsonError {}
 /// Parses JSON into `T`, reporting the path of the field that failed.
 pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, JsonError> {
     let de = &mut serde_json::Deserializer::from_str(text);
-    match serde_path_to_error::deserialize(de) {
+    let parsed = serde_path_to_error::deserialize(&mut *de);
+    // `end` refuses anything but whitespace after the value: `{} xyz` is not a JSON body.
+    if parsed.is_ok()
+        && let Err(e) = de.end()
+    {
+        return Err(JsonError {
+            path: String::new(),
+            line: e.line(),
+            column: e.column(),
+            message: "trailing characters after the JSON value".to_owned(),
+        });
+    }
+    match parsed {
         Ok(v) => Ok(v),
         Err(e) => {
             let mut path = e.path().to_string();
@@ -100,6 +112,16 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, JsonE
 mod tests {
     use super::*;
     use crate::scene::{Material, MeshRef, SceneFile, Shape};
+
+    #[test]
+    fn trailing_garbage_after_a_json_value_is_refused() {
+        let e = parse_json::<SceneFile>(r#"{"objects": []} xyz"#).unwrap_err();
+        assert!(e.message.contains("trailing characters"), "{e}");
+        assert_eq!((e.line, e.column), (1, 17), "{e}");
+        // Whitespace after the value is fine.
+        assert!(parse_json::<serde_json::Value>("{\"a\": 1}\n  \n").is_ok());
+        assert!(parse_json::<serde_json::Value>("{} {}").is_err());
+    }
 
     #[test]
     fn unknown_field_and_wrong_type_name_the_path() {
@@ -182,7 +204,7 @@ mod tests {
         };
         assert_eq!(
             s.validate().unwrap_err().to_string(),
-            "lights[0].intensity[1] must be finite and >= 0"
+            "lights[0].intensity[1] must be finite and in [0, 1000000000000]"
         );
         // NaN is not JSON at all.
         assert!(parse_json::<SceneFile>(r#"{"objects":[],"unit_mm":NaN}"#).is_err());

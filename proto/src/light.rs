@@ -42,6 +42,12 @@ tagged_enum! {
 }
 }
 
+/// The largest intensity (W·sr⁻¹), irradiance (W·m⁻²) or environment scale a light may
+/// have. Far beyond any real light, and small enough that E = I cos θ / r² and the
+/// inter-reflected sums stay finite in f32 (3.4e38) for patches down to a micrometre away:
+/// a larger value would overflow to infinity and give no answer at all.
+pub const MAX_POWER: f32 = 1e12;
+
 fn one() -> f32 {
     1.0
 }
@@ -60,7 +66,7 @@ impl Light {
     /// Checks ranges; `at` is the field path of this light (`lights[0]`).
     pub fn validate(&self, at: &str) -> Result<(), FieldError> {
         let power =
-            |name: &str, v: &[f32; 3]| check_vec_range(&format!("{at}.{name}"), v, 0.0, f32::MAX);
+            |name: &str, v: &[f32; 3]| check_vec_range(&format!("{at}.{name}"), v, 0.0, MAX_POWER);
         match self {
             Light::Point {
                 position,
@@ -102,7 +108,7 @@ impl Light {
                 if map.trim().is_empty() {
                     return Err(FieldError::new(format!("{at}.map"), "must name a map"));
                 }
-                check_range(&format!("{at}.scale"), *scale, 0.0, f32::MAX)?;
+                check_range(&format!("{at}.scale"), *scale, 0.0, MAX_POWER)?;
                 check_range(
                     &format!("{at}.rotation_deg"),
                     *rotation_deg,

@@ -92,7 +92,47 @@ pub struct ObjectDesc {
     /// least one patch. Ignored when the mesh already has no more triangles.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simplify_to: Option<u64>,
+    /// Which way the mesh's faces point (default `auto`). See [`Orientation`].
+    #[serde(default, skip_serializing_if = "Orientation::is_auto")]
+    pub orientation: Orientation,
 }
+
+/// Which way an object's faces are made to point. A face's front is the side its corners
+/// run counter-clockwise around; light arrives and leaves on that side only.
+///
+/// Only a *closed* surface (or a nearly closed one, like a scan with a small hole) has an
+/// inside and an outside; an open surface (a wall, a floor, a sheet, a petal) has neither
+/// and is never turned over by `auto`, `outward` or `inward`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Orientation {
+    /// Turn a closed part outward when it is provably wound inside out, unless it encloses
+    /// a light, the camera or another object (then it is a room seen from inside and is
+    /// kept facing inward). Open parts are kept as they are. The default.
+    #[default]
+    Auto,
+    /// Keep every face as the file winds it.
+    AsIs,
+    /// Every closed part faces outward (an object seen from outside).
+    Outward,
+    /// Every closed part faces inward (a room or a container seen from inside).
+    Inward,
+}
+
+impl Orientation {
+    /// Whether this is the default, `auto`.
+    pub fn is_auto(&self) -> bool {
+        *self == Orientation::Auto
+    }
+}
+
+/// The largest absorption or reduced scattering coefficient (mm⁻¹): a mean free path of
+/// 0.1 µm, far denser than any measured medium (Jensen et al.'s are below 10 mm⁻¹).
+pub const MAX_SIGMA: f32 = 1e4;
+
+/// Bounds of a dipole's `scale` (the factor on its mean free path).
+pub const MIN_DIPOLE_SCALE: f32 = 1e-3;
+pub const MAX_DIPOLE_SCALE: f32 = 1e3;
 
 /// Bounds of [`ObjectDesc::simplify_to`].
 pub const MIN_SIMPLIFY_TO: u64 = 4;
@@ -507,9 +547,12 @@ impl Material {
             Material::Diffuse { albedo } => {
                 check_vec_range(&format!("{at}.albedo"), albedo, 0.0, 1.0)
             }
-            Material::Emitter { radiance } => {
-                check_vec_range(&format!("{at}.radiance"), radiance, 0.0, f32::MAX)
-            }
+            Material::Emitter { radiance } => check_vec_range(
+                &format!("{at}.radiance"),
+                radiance,
+                0.0,
+                crate::light::MAX_POWER,
+            ),
             Material::Translucent { profile } => profile.validate(&format!("{at}.profile")),
             Material::ThinSheet {
                 reflectance,
@@ -611,8 +654,8 @@ impl Profile {
                         }
                     }
                     (None, Some(sa), Some(ss)) => {
-                        check_vec_range(&format!("{at}.sigma_a"), sa, 0.0, f32::MAX)?;
-                        check_vec_range(&format!("{at}.sigma_s_prime"), ss, 0.0, f32::MAX)?;
+                        check_vec_range(&format!("{at}.sigma_a"), sa, 0.0, MAX_SIGMA)?;
+                        check_vec_range(&format!("{at}.sigma_s_prime"), ss, 0.0, MAX_SIGMA)?;
                         for k in 0..3 {
                             if sa[k] + ss[k] <= 0.0 {
                                 return Err(FieldError::new(
@@ -639,10 +682,14 @@ impl Profile {
                     check_range(&format!("{at}.eta"), *e, 1.0, 3.0)?;
                 }
                 if let Some(s) = scale {
-                    check_finite(&format!("{at}.scale"), *s)?;
-                    if *s <= 0.0 {
-                        return Err(FieldError::new(format!("{at}.scale"), "must be > 0"));
-                    }
+                    // Beyond these the profile underflows to zero or overflows (1e-20 made
+                    // the solver panic).
+                    check_range(
+                        &format!("{at}.scale"),
+                        *s,
+                        MIN_DIPOLE_SCALE,
+                        MAX_DIPOLE_SCALE,
+                    )?;
                 }
                 Ok(())
             }

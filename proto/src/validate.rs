@@ -1,4 +1,4 @@
-//! Field-path validation errors: `lights[0].intensity[1] must be finite and >= 0`.
+//! Field-path validation errors: `lights[0].intensity[1] must be finite and in [0, 1000000000000]`.
 
 use std::fmt;
 

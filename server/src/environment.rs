@@ -205,7 +205,7 @@ pub fn direct_irradiance(
     )
     .map_err(|e| AppError::unsupported(e.to_string()))?;
     if env.is_empty() {
-        return Ok(e);
+        return finite(e);
     }
     let Some(vis) = scene.bundle.environment_visibility() else {
         return Err(AppError::unsupported(format!(
@@ -241,7 +241,20 @@ pub fn direct_irradiance(
         }
     }
     add_from_bits(vis, &total, &mut e);
-    Ok(e)
+    finite(e)
+}
+
+/// E must be finite: lights within the validated bounds can still overflow f32 next to a
+/// surface, and an infinite right-hand side has no solution (a solver would stop at once
+/// and return whatever it was warm-started from).
+fn finite(e: Vec<Rgb>) -> Result<Vec<Rgb>, AppError> {
+    match e.iter().position(|v| !v.iter().all(|x| x.is_finite())) {
+        None => Ok(e),
+        Some(i) => Err(AppError::invalid(format!(
+            "lights: the irradiance overflows at patch {i}; use smaller intensities (or a \
+             light farther from the surfaces)"
+        ))),
+    }
 }
 
 /// e_i += Σ_k V_ik L_k with V as half-float bits (converted a row at a time).

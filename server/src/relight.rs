@@ -11,7 +11,7 @@ use translux_precompute::inverse;
 use translux_precompute::radiosity::{
     Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
 };
-use translux_precompute::solver::{solve_system, spmv_multi};
+use translux_precompute::solver::{SolveError, solve_system, spmv_multi};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
@@ -575,8 +575,10 @@ fn transport(
         .flatten();
     let (mut x, st) = match on_gpu {
         Some(r) => r,
-        None => solve_system(&f, kop, &rhs, ch, params, warm.as_deref())
-            .map_err(|e| AppError::internal(e.to_string()))?,
+        None => solve_system(&f, kop, &rhs, ch, params, warm.as_deref()).map_err(|e| match e {
+            SolveError::Overflow => AppError::invalid(format!("lights: {e}")),
+            e => AppError::internal(e.to_string()),
+        })?,
     };
     // Keep the last system's answer for the next relight with these materials (never one
     // that overflowed: it would poison the next solve).

@@ -489,7 +489,7 @@ async fn log_request(State(state): State<AppState>, req: Request, next: Next) ->
     state
         .metrics()
         .http_duration
-        .with_label_values(&[route.as_str(), method.as_str(), status.as_str()])
+        .with_label_values(&[route.as_str(), method_label(&method), status.as_str()])
         .observe(elapsed.as_secs_f64());
     let ms = elapsed.as_secs_f64() * 1e3;
     if status.is_client_error() || status.is_server_error() {
@@ -498,4 +498,25 @@ async fn log_request(State(state): State<AppState>, req: Request, next: Next) ->
         tracing::debug!(%method, %path, status = status.as_u16(), ms = format_args!("{ms:.1}"), "request");
     }
     response
+}
+
+/// The `method` label of a request: a standard method's name, else `other`. Clients choose
+/// the method string freely, and every distinct label value is a new series held forever,
+/// so an unauthenticated client could otherwise grow `/metrics` without bound.
+pub fn method_label(method: &Method) -> &'static str {
+    const KNOWN: [Method; 9] = [
+        Method::GET,
+        Method::HEAD,
+        Method::POST,
+        Method::PUT,
+        Method::DELETE,
+        Method::PATCH,
+        Method::OPTIONS,
+        Method::CONNECT,
+        Method::TRACE,
+    ];
+    KNOWN
+        .iter()
+        .find(|m| *m == method)
+        .map_or("other", |m| m.as_str())
 }

@@ -196,6 +196,7 @@ fn obj(name: &str, file: &str, translate: [f32; 3], rotate: [f32; 3], scale: f32
         },
         crease_deg: Some(60.0),
         simplify_to: None,
+        orientation: Default::default(),
     }
 }
 
@@ -296,6 +297,7 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                     },
                     crease_deg: None,
                     simplify_to: None,
+                    orientation: Default::default(),
                 }];
                 for (name, x, yaw) in [("horse_left", -0.13, 10.0), ("horse_right", 0.13, -15.0)] {
                     let mut h = obj(

@@ -4,4 +4,8 @@
 //! materials) plus lights and query points. Out: Mitsuba 3's path-traced radiance at those
 //! points, and per-point error statistics of translux's answer against it.
 
+//! [`rooms`]: rooms modelled the way users model them (one OBJ per wall, or one inward
+//! box), written as OBJ files and a scene file.
+
 pub mod mitsuba;
+pub mod rooms;

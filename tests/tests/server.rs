@@ -518,6 +518,93 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
     s.stop().await;
 }
 
+/// After one client relights, another client's finite but overflowing intensity must be a
+/// 400 naming the field, as on a cold server — never the first client's answer (the solver's
+/// warm start) with `iterations: 0`.
+#[tokio::test]
+async fn overflowing_intensity_is_a_400_and_never_another_clients_answer() {
+    let s = TestServer::cornell().await;
+    let a = json!({"lights":[{"type":"point","position":[0.0,0.4,0.0],"intensity":[1,1,1]}],
+                   "solver":"iterative"});
+    let first = s.relight_json(&a).await;
+    assert!(first.stats.iterations > 0);
+    for huge in [3.4e38f32, 1e37, 1e13] {
+        let b = json!({"lights":[{"type":"point","position":[0.0,0.4,0.0],
+                                  "intensity":[huge,huge,huge]}], "solver":"iterative"});
+        let r = s.relight(ID, &b, Some("application/json")).await;
+        expect_error(
+            r,
+            StatusCode::BAD_REQUEST,
+            "invalid",
+            &["lights[0].intensity[0]"],
+        )
+        .await;
+    }
+    // The largest accepted intensity is answered for real: its radiance scales with it.
+    let big = json!({"lights":[{"type":"point","position":[0.0,0.4,0.0],
+                                "intensity":[1e12,1e12,1e12]}], "solver":"iterative"});
+    let answer = s.relight_json(&big).await;
+    let ratio = answer.radiance.iter().sum::<f32>() / first.radiance.iter().sum::<f32>();
+    assert!((ratio / 1e12 - 1.0).abs() < 0.02, "{ratio}");
+    s.stop().await;
+}
+
+/// Out-of-range material parameters are a 400 naming the field, not a 500 from a caught
+/// panic; a body with anything after its JSON value is refused.
+#[tokio::test]
+async fn absurd_dipole_scale_and_trailing_garbage_are_400s() {
+    let s = TestServer::cornell().await;
+    for scale in [1e-20, 1e20, 0.0] {
+        let body = json!({"materials":{"tall_block":{"type":"translucent",
+            "profile":{"type":"dipole","preset":"marble","scale":scale}}}});
+        let r = s.relight(ID, &body, Some("application/json")).await;
+        expect_error(
+            r,
+            StatusCode::BAD_REQUEST,
+            "invalid",
+            &["materials.tall_block.profile.scale", "[0.001, 1000]"],
+        )
+        .await;
+    }
+    let r = s
+        .client
+        .post(s.url(&format!("/api/v1/scenes/{ID}/relight")))
+        .header(CONTENT_TYPE, "application/json")
+        .body("{} xyz")
+        .send()
+        .await
+        .unwrap();
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["trailing characters"],
+    )
+    .await;
+    s.stop().await;
+}
+
+/// Method names are the client's to choose: only standard ones become label values, the
+/// rest count as `other`, so random methods cannot grow `/metrics` without bound.
+#[tokio::test]
+async fn random_http_methods_do_not_become_metric_labels() {
+    let s = TestServer::cornell().await;
+    for k in 0..40 {
+        let m = reqwest::Method::from_bytes(format!("ATTACK{k}").as_bytes()).unwrap();
+        let r = s.client.request(m, s.url("/healthz")).send().await.unwrap();
+        assert!(r.status().is_client_error(), "{}", r.status());
+    }
+    let text = s.get("/metrics").await.text().await.unwrap();
+    assert!(!text.contains("ATTACK"), "a method name became a label");
+    assert!(text.contains("method=\"other\""), "{text}");
+    let series = text
+        .lines()
+        .filter(|l| l.starts_with("translux_http_request_duration_seconds_count"))
+        .count();
+    assert!(series < 10, "{series} series after 40 odd methods");
+    s.stop().await;
+}
+
 #[tokio::test]
 async fn direct_differs_from_full_and_full_is_never_darker() {
     let s = TestServer::cornell().await;
@@ -602,7 +689,7 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         r,
         StatusCode::BAD_REQUEST,
         "invalid",
-        &["lights[0].intensity[0] must be finite and >= 0"],
+        &["lights[0].intensity[0] must be finite and in [0, 1000000000000]"],
     )
     .await;
     let body = json!({"lights":[
@@ -613,7 +700,7 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         r,
         StatusCode::BAD_REQUEST,
         "invalid",
-        &["lights[1].intensity[1] must be finite and >= 0"],
+        &["lights[1].intensity[1] must be finite and in [0, 1000000000000]"],
     )
     .await;
     let body = json!({"lights":[{"type":"directional","direction":[0,0,0],"irradiance":[1,1,1]}]});
@@ -631,7 +718,13 @@ async fn bad_input_gets_its_status_and_a_message_naming_the_problem() {
         {"type":"point","position":[1e30,-1e30,3e38],"intensity":[3e38,3e38,3e38]},
         {"type":"point","position":[0,0.3,0],"intensity":[3e38,3e38,3e38]}]});
     let r = s.relight(ID, &body, None).await;
-    expect_error(r, StatusCode::BAD_REQUEST, "invalid", &["not finite"]).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["lights[0].intensity[0] must be finite and in [0, 1000000000000]"],
+    )
+    .await;
     // That overflow must not poison the next relight (the solver warm-starts from the last
     // answer with the same materials): an ordinary light still gets the library's answer.
     let lights = json!([{"type":"point","position":[0.05,0.4,0.02],"intensity":[1,1,1]}]);
@@ -1005,7 +1098,7 @@ async fn render_rejects_bad_input_in_the_json_error_format() {
             json!({"lights": [{"type": "point", "position": [0, 0.5, 0], "intensity": [1, -1, 1]}]}),
             400,
             "invalid",
-            &["lights[0].intensity[1] must be finite and >= 0"],
+            &["lights[0].intensity[1] must be finite and in [0, 1000000000000]"],
         ),
         (
             json!({"solver": "inverse"}),

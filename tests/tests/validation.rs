@@ -16,12 +16,13 @@ use serde_json::json;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::radiosity::Rgb;
-use translux_precompute::scene::resolve_scene;
+use translux_precompute::scene::{LoadedScene, load_scene_file, resolve_scene};
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::{Material, SceneFile};
 use translux_server::relight;
 use translux_server::state::Scene;
 use translux_tests::mitsuba::{self, Errors, errors, every, slice, vertex_queries};
+use translux_tests::rooms::{self, RoomSpec, Walls};
 
 /// Precomputes `file` into `dir/name` at about `patches` patches and opens it as the
 /// server does.
@@ -88,16 +89,47 @@ fn a_closed_diffuse_room_matches_mitsuba_per_vertex() {
     }
     let dir = tempfile::tempdir().unwrap();
     let scene = build(file, dir.path(), "diffuse_cornell", 4000);
-    let b = &scene.bundle;
     // The light at mid-height: the box's default light sits 5.5 cm under the ceiling, and
     // the hot spot it makes there lights the room through a small bright area that a path
     // tracer's BSDF-sampled bounces rarely find (the reference would need far more samples).
     let lights =
         json!([{"type": "point", "position": [0.0, 0.3, 0.05], "intensity": [0.8, 0.8, 0.8]}]);
+    closed_room_against_mitsuba(&scene, &lights, "diffuse Cornell box", 400);
+}
+
+/// A room modelled the way users model one: six OBJ files of one quad each, facing into
+/// the room, with the scene's origin outside the room, and a box (one closed OBJ) on the
+/// floor. Nothing may be turned over, and the light must match Mitsuba's as closely as in
+/// the built-in box.
+#[test]
+fn a_room_of_separate_wall_objs_matches_mitsuba_per_vertex() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = RoomSpec::metres([2.0, -0.5, 3.0]);
+    spec.patches = 3000;
+    let path = rooms::write_room(dir.path(), &spec);
+    let loaded = load_scene_file(&path).unwrap();
+    for o in &loaded.objects {
+        assert!(!o.reoriented, "{}: {:?}", o.name, o.orientation_notes);
+    }
+    let scene = build_loaded(&loaded, dir.path(), "walls");
+    let lights = json!([spec.light()]);
+    closed_room_against_mitsuba(&scene, &lights, "room of six wall OBJs", 300);
+}
+
+/// Relights `scene` (a closed diffuse room) with `lights` through the server's relight path
+/// and compares with Mitsuba at about `points` viewer vertices and as many patch centroids:
+/// median error under 3% and the total within 3% at both.
+fn closed_room_against_mitsuba(
+    scene: &Scene,
+    lights: &serde_json::Value,
+    what: &str,
+    points: usize,
+) {
+    let b = &scene.bundle;
     let request = json!({ "lights": lights }).to_string();
-    let plan = relight::plan(&scene, translux_proto::parse_json(&request).unwrap()).unwrap();
+    let plan = relight::plan(scene, translux_proto::parse_json(&request).unwrap()).unwrap();
     let t0 = std::time::Instant::now();
-    let ours = relight::run(&scene, &plan).unwrap();
+    let ours = relight::run(scene, &plan).unwrap();
     let ours_ms = t0.elapsed().as_secs_f64() * 1e3;
     let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
     let (patch_l, centroids, patch_normals) = patch_radiance(b, &parsed);
@@ -105,8 +137,8 @@ fn a_closed_diffuse_room_matches_mitsuba_per_vertex() {
     // About 400 of each: a converged reference (8192 paths per point, 0.6% noise) costs
     // what 1600 points at 2048 paths would, and a median over 400 points is as telling.
     let (vp, vn) = vertex_queries(b);
-    let vstep = (vp.len() / 400).max(1);
-    let pstep = (centroids.len() / 400).max(1);
+    let vstep = (vp.len() / points).max(1);
+    let pstep = (centroids.len() / points).max(1);
     let (vp, vn, vours) = (
         every(&vp, vstep),
         every(&vn, vstep),
@@ -132,7 +164,7 @@ fn a_closed_diffuse_room_matches_mitsuba_per_vertex() {
     let ev = errors(&vours, &slice(&reference, 0, nv), 0.05);
     let ep = errors(&pours, &slice(&reference, nv, points.len()), 0.05);
     println!(
-        "diffuse Cornell box, {} patches, point light; translux relight {ours_ms:.0} ms, \
+        "{what}, {} patches, point light; translux relight {ours_ms:.0} ms, \
          Mitsuba {:.1} s for {} points x 8192 paths\n\
          | compared at | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
          |---|---|---|---|---|---|\n{}\n{}",
@@ -165,6 +197,157 @@ fn a_closed_diffuse_room_matches_mitsuba_per_vertex() {
             "{what}: Σ ours / Σ Mitsuba = {:.4}",
             e.total_ratio
         );
+    }
+}
+
+/// F row sums of the patches of objects `names` whose centroids lie at least 10% of the
+/// room's side from every edge of its wall and from the block: (min, max, count).
+fn wall_row_sums(b: &Bundle, spec: &RoomSpec, names: &[&str]) -> (f64, f64, usize) {
+    let objects: Vec<u32> = b
+        .manifest()
+        .objects
+        .iter()
+        .enumerate()
+        .filter(|(_, o)| names.contains(&o.name.as_str()))
+        .map(|(k, _)| k as u32)
+        .collect();
+    let f = b.form_factors();
+    let (mut lo, mut hi, mut n) = (f64::INFINITY, f64::NEG_INFINITY, 0);
+    for (i, corners) in b.patch_corners().iter().enumerate() {
+        if !objects.contains(&b.patch_objects()[i]) {
+            continue;
+        }
+        let c: Vec<f32> = (0..3)
+            .map(|k| {
+                let mean = (corners[0][k] + corners[1][k] + corners[2][k]) / 3.0;
+                (mean - spec.corner[k]) / spec.size
+            })
+            .collect();
+        // On a wall one coordinate is 0 or 1; the other two must be inside [0.1, 0.9].
+        let inner = c.iter().filter(|x| (0.1..=0.9).contains(*x)).count();
+        if inner < 2 {
+            continue;
+        }
+        // The block's contact with the floor is an edge too: floor patches under it or
+        // straddling its outline see less than everything.
+        let (blo, bhi) = spec.block();
+        let near_block = (0..3).all(|k| {
+            let (a, z) = (
+                (blo[k] - spec.corner[k]) / spec.size,
+                (bhi[k] - spec.corner[k]) / spec.size,
+            );
+            c[k] >= a - 0.1 && c[k] <= z + 0.1
+        });
+        if near_block {
+            continue;
+        }
+        let sum: f64 = f.row(i).1.iter().map(|&v| v as f64).sum();
+        lo = lo.min(sum);
+        hi = hi.max(sum);
+        n += 1;
+    }
+    (lo, hi, n)
+}
+
+/// Precomputes a loaded scene into `dir/name` and opens it as the server does.
+fn build_loaded(loaded: &LoadedScene, dir: &Path, name: &str) -> Scene {
+    let out = dir.join(name);
+    precompute(loaded, &out, &PrecomputeParams::default()).unwrap();
+    Scene::open(name, &out).unwrap()
+}
+
+/// A closed room gives every wall patch F row sums near 1, wherever the scene's origin is
+/// and whatever the unit — which needs every wall kept facing into the room. The old rule
+/// (negative signed volume) flipped walls depending on the origin.
+#[test]
+fn rooms_of_wall_objs_keep_their_walls_facing_in_wherever_the_origin_is() {
+    let cases = [
+        ("origin at a corner, metres", [0.0, 0.0, 0.0], 1.0, 1000.0),
+        (
+            "origin at the centre, metres",
+            [-0.5, -0.5, -0.5],
+            1.0,
+            1000.0,
+        ),
+        ("origin outside, metres", [2.0, -3.0, 1.5], 1.0, 1000.0),
+        (
+            "origin at the centre, millimetres",
+            [-2000.0, -2000.0, -2000.0],
+            4000.0,
+            1.0,
+        ),
+    ];
+    for (what, corner, size, unit_mm) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        let spec = RoomSpec {
+            size,
+            corner,
+            unit_mm,
+            ..RoomSpec::metres(corner)
+        };
+        let loaded = load_scene_file(&rooms::write_room(dir.path(), &spec)).unwrap();
+        for o in &loaded.objects {
+            assert!(
+                !o.reoriented,
+                "{what}: {} flipped: {:?}",
+                o.name, o.orientation_notes
+            );
+        }
+        let scene = build_loaded(&loaded, dir.path(), "room");
+        let (lo, hi, n) = wall_row_sums(&scene.bundle, &spec, &spec.surface_names());
+        println!("{what}: {n} wall patches away from edges, F row sums in [{lo:.4}, {hi:.4}]");
+        assert!(n > 300, "{what}: {n}");
+        assert!(lo > 0.98 && hi < 1.02, "{what}: row sums in [{lo}, {hi}]");
+    }
+}
+
+/// The same room as one closed OBJ box facing inward. `auto` keeps it (it encloses the
+/// light and the block), `inward` and `as_is` keep it, `outward` turns it into a box seen
+/// from outside (row sums 0 inside: the walls face away from everything).
+#[test]
+fn a_room_as_one_inward_box_follows_its_orientation() {
+    for (mode, kept) in [
+        (None, true),
+        (Some("inward"), true),
+        (Some("as_is"), true),
+        (Some("outward"), false),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let spec = RoomSpec {
+            walls: Walls::OneClosedBox,
+            orientation: mode,
+            patches: 1200,
+            ..RoomSpec::metres([-0.5, 0.0, -0.5])
+        };
+        let loaded = load_scene_file(&rooms::write_room(dir.path(), &spec)).unwrap();
+        let room = &loaded.objects[0];
+        assert_eq!(
+            room.reoriented, !kept,
+            "{mode:?}: {:?}",
+            room.orientation_notes
+        );
+        assert!(
+            !loaded.objects[1].reoriented,
+            "the block faces outward already"
+        );
+        if mode.is_none() {
+            assert!(
+                room.orientation_notes.iter().any(|n| n.contains("room")),
+                "{:?}",
+                room.orientation_notes
+            );
+        }
+        let scene = build_loaded(&loaded, dir.path(), "room");
+        let (lo, hi, n) = wall_row_sums(&scene.bundle, &spec, &["room"]);
+        assert!(n > 200, "{mode:?}: {n}");
+        if kept {
+            assert!(lo > 0.98 && hi < 1.02, "{mode:?}: row sums in [{lo}, {hi}]");
+        } else {
+            assert!(
+                hi < 0.02,
+                "{mode:?}: an outward room sees nothing: max {hi}"
+            );
+        }
     }
 }
 
@@ -280,6 +463,7 @@ fn a_convex_translucent_cube_matches_the_integrated_dipole() {
             },
             crease_deg: None,
             simplify_to: None,
+            orientation: Default::default(),
         }],
         lights: vec![],
         unit_mm: 1000.0,
