@@ -65,8 +65,21 @@ pub trait Observer: Send + Sync + std::fmt::Debug {
     }
 }
 
+/// Every stage a precompute reports to its observer, in order (`inverse T` only with
+/// [`PrecomputeParams::inverse`]).
+pub const STAGES: [&str; 7] = [
+    "patches",
+    "bvh",
+    "form factors",
+    "environment",
+    "subsurface",
+    "inverse T",
+    "write bundle",
+];
+
 /// Reports the start of `stage` to the observer, or stops if it asks to.
 fn stage_start(params: &PrecomputeParams, stage: &str) -> Result<(), PrecomputeError> {
+    debug_assert!(STAGES.contains(&stage), "{stage} is not listed in STAGES");
     if let Some(o) = &params.observer {
         if o.cancelled() {
             return Err(PrecomputeError::Cancelled);
@@ -344,6 +357,26 @@ fn default_camera(p: &Patches) -> Camera {
     }
 }
 
+/// The patch density a precompute uses: `patches` (the command line's or an upload's), else
+/// `max_edge`, else the scene file's `patches`, else [`DEFAULT_PATCHES`]. The patch count
+/// it gives is `patch::plan(…, density).1`: never fewer patches than triangles.
+pub fn density_for(
+    patches: Option<u64>,
+    max_edge: Option<f32>,
+    file: Option<translux_proto::scene::PatchDensity>,
+) -> Density {
+    match (patches, max_edge, file) {
+        (Some(n), _, _) => Density::Target(n),
+        (None, Some(e), _) => Density::MaxEdge(e),
+        (None, None, Some(d)) => match (d.target, d.max_edge) {
+            (Some(t), _) => Density::Target(t),
+            (None, Some(e)) => Density::MaxEdge(e),
+            (None, None) => Density::Target(DEFAULT_PATCHES),
+        },
+        (None, None, None) => Density::Target(DEFAULT_PATCHES),
+    }
+}
+
 /// Runs every stage and writes the bundle to `out` (atomically).
 pub fn precompute(
     scene: &LoadedScene,
@@ -366,17 +399,10 @@ pub fn precompute(
     }
 
     // Plan: density and the patch count it gives, checked before anything big is made.
-    let density = match (params.patches, params.max_edge, scene.file.patches) {
-        (Some(0), _, _) => return Err(PrecomputeError::ZeroPatches),
-        (Some(n), _, _) => Density::Target(n),
-        (None, Some(e), _) => Density::MaxEdge(e),
-        (None, None, Some(d)) => match (d.target, d.max_edge) {
-            (Some(t), _) => Density::Target(t),
-            (None, Some(e)) => Density::MaxEdge(e),
-            (None, None) => Density::Target(DEFAULT_PATCHES),
-        },
-        (None, None, None) => Density::Target(DEFAULT_PATCHES),
-    };
+    if params.patches == Some(0) {
+        return Err(PrecomputeError::ZeroPatches);
+    }
+    let density = density_for(params.patches, params.max_edge, scene.file.patches);
     if let Density::MaxEdge(e) = density
         && !(e.is_finite() && e > 0.0)
     {

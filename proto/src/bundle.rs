@@ -557,6 +557,23 @@ impl MappedArray {
     }
 }
 
+/// `path` must be a regular file (after symlinks) before it is opened: opening a FIFO for
+/// reading blocks until some writer appears, which would hang the loader (and every bundle
+/// queued behind it); a device or socket is no bundle file either.
+fn check_regular(path: &Path, name: &str) -> Result<(), BundleError> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => Ok(()),
+        Ok(_) => Err(invalid(name, "is not a regular file")),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(BundleError::Missing {
+            file: name.to_string(),
+        }),
+        Err(error) => Err(BundleError::Io {
+            file: name.to_string(),
+            error,
+        }),
+    }
+}
+
 /// Maps `file` read-only.
 ///
 /// # Safety
@@ -688,6 +705,7 @@ fn map_array(
         error,
     };
     let path = dir.join(file_name);
+    check_regular(&path, file_name)?;
     let file = match std::fs::File::open(&path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -793,6 +811,7 @@ impl Bundle {
                 file: dir.display().to_string(),
             });
         }
+        check_regular(&dir.join(MANIFEST_FILE), MANIFEST_FILE)?;
         let text = match std::fs::read_to_string(dir.join(MANIFEST_FILE)) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -1774,6 +1793,31 @@ mod tests {
             e.starts_with("dist_kind.u32: shape [1] does not match"),
             "{e}"
         );
+    }
+
+    /// A FIFO where a bundle file should be: opening it for reading would block until a
+    /// writer appears, hanging the loader. It must be an error at once.
+    #[test]
+    fn a_fifo_in_a_bundle_folder_is_an_error_not_a_hang() {
+        for file in ["ff_val.f32", MANIFEST_FILE] {
+            let tmp = tempfile::tempdir().unwrap();
+            let (m, a) = two_patches();
+            write(tmp.path(), m, &a);
+            let path = tmp.path().join(file);
+            std::fs::remove_file(&path).unwrap();
+            let made = std::process::Command::new("mkfifo").arg(&path).status();
+            assert!(made.is_ok_and(|s| s.success()), "mkfifo {}", path.display());
+            let dir = tmp.path().to_path_buf();
+            let (tx, rx) = std::sync::mpsc::channel();
+            std::thread::spawn(move || {
+                let _ = tx.send(Bundle::open(&dir).map(|_| ()).map_err(|e| e.to_string()));
+            });
+            let got = rx
+                .recv_timeout(std::time::Duration::from_secs(10))
+                .expect("Bundle::open hung on a FIFO");
+            let e = got.unwrap_err();
+            assert!(e.contains(file) && e.contains("not a regular file"), "{e}");
+        }
     }
 
     #[test]

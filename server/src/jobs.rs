@@ -197,25 +197,31 @@ impl std::fmt::Debug for Entry {
     }
 }
 
-/// Stage weights for the overall percent: (stage, share of the job's time, typical).
-const STAGES: [(&str, f64); 6] = [
+/// Stage weights for the overall percent: (stage, share of the job's time, typical). Every
+/// stage the precompute reports is listed (a test checks it against
+/// `translux_precompute::pipeline::STAGES`), so no stage jumps the job to 100%.
+const STAGES: [(&str, f64); 8] = [
     ("load", 0.02),
     ("patches", 0.03),
     ("bvh", 0.02),
-    ("form factors", 0.70),
+    ("form factors", 0.62),
+    ("environment", 0.06),
     ("subsurface", 0.18),
+    ("inverse T", 0.02),
     ("write bundle", 0.05),
 ];
 
-fn overall_percent(stage: &str, stage_fraction: f64) -> f64 {
+/// The whole job's percent when `stage` is `stage_fraction` done; `None` for a stage not
+/// in [`STAGES`] (the percent then stays where it was).
+fn overall_percent(stage: &str, stage_fraction: f64) -> Option<f64> {
     let mut before = 0.0;
     for (name, w) in STAGES {
         if name == stage {
-            return 100.0 * (before + w * stage_fraction.clamp(0.0, 1.0));
+            return Some(100.0 * (before + w * stage_fraction.clamp(0.0, 1.0)));
         }
         before += w;
     }
-    100.0 * before
+    None
 }
 
 fn now_unix() -> u64 {
@@ -257,7 +263,8 @@ impl Observer for JobObserver {
         } else {
             done as f64 / total as f64
         };
-        let percent = overall_percent(stage, fraction);
+        // 100 is for a finished job only; an unknown stage leaves the percent as it was.
+        let percent = overall_percent(stage, fraction).map_or(0.0, |p| p.min(99.0));
         let stage_changed = self.entry.lock().stage.as_deref() != Some(stage);
         // Publish only when the stage or the whole stage percent changes: the form-factor
         // stage reports once per row.
@@ -571,8 +578,15 @@ impl Jobs {
             if entry.cancel.load(Ordering::Relaxed) {
                 return Err("cancelled".to_string());
             }
-            let scene = load_scene_file(&spec.scene_file)
+            let mut scene = load_scene_file(&spec.scene_file)
                 .map_err(|e| strip_dir(&e.to_string(), &self.upload_dir(&spec.id)))?;
+            // The bundle's `source` is shown to every viewer: name the upload, not the
+            // server's folder it was unpacked into.
+            let file = spec
+                .scene_file
+                .file_name()
+                .map_or_else(|| "scene.json".into(), |f| f.to_string_lossy().into_owned());
+            scene.source = format!("upload:{}/{file}", spec.id);
             let params = PrecomputeParams {
                 patches: spec.patches,
                 max_edge: spec.max_edge,
@@ -780,10 +794,32 @@ mod tests {
         ] {
             assert!(!Jobs::valid_id(bad), "{bad}");
         }
-        assert_eq!(overall_percent("load", 0.0), 0.0);
-        assert!((overall_percent("write bundle", 1.0) - 100.0).abs() < 1e-9);
-        let mid = overall_percent("form factors", 0.5);
-        assert!((mid - 42.0).abs() < 1e-9, "{mid}");
+        assert_eq!(overall_percent("load", 0.0), Some(0.0));
+        assert!((overall_percent("write bundle", 1.0).unwrap() - 100.0).abs() < 1e-9);
+        let mid = overall_percent("form factors", 0.5).unwrap();
+        assert!((mid - 38.0).abs() < 1e-9, "{mid}");
+        assert_eq!(overall_percent("no such stage", 0.5), None);
+    }
+
+    /// The environment stage used to be missing from the weights, so it counted as 100%
+    /// and `max()` kept 100 while the subsurface stage ran. Every stage the precompute
+    /// reports has a weight, and the percent rises through them without reaching 100.
+    #[test]
+    fn job_progress_covers_every_precompute_stage_in_order() {
+        let mut last = 0.0;
+        for stage in translux_precompute::pipeline::STAGES {
+            let start = overall_percent(stage, 0.0)
+                .unwrap_or_else(|| panic!("stage {stage:?} has no weight in STAGES"));
+            let end = overall_percent(stage, 1.0).unwrap();
+            assert!(
+                start >= last && end > start,
+                "{stage}: {start}..{end} after {last}"
+            );
+            last = end;
+        }
+        assert!((last - 100.0).abs() < 1e-9, "{last}");
+        let subsurface = overall_percent("subsurface", 1.0).unwrap();
+        assert!(subsurface < 95.0, "{subsurface}");
     }
 
     #[test]

@@ -512,6 +512,9 @@ pub fn load_bundles(dir: &Path) -> (AppState, Vec<(String, String)>) {
 /// [`load_bundles`] with the given settings.
 pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(String, String)>) {
     let state = AppState::with_params(params);
+    for removed in remove_abandoned_temporaries(dir) {
+        tracing::info!("removed {removed}: a precompute's temporary folder whose process is gone");
+    }
     let (found, mut errors) = match discover(dir) {
         Ok(x) => x,
         Err(e) => return (state, vec![(dir.display().to_string(), e)]),
@@ -523,6 +526,39 @@ pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(St
         }
     }
     (state, errors)
+}
+
+/// Removes the temporary folders (`.ID.tmp-PID-NANOS-SEQ`) that a precompute which
+/// crashed or was killed left in `dir`: those whose process no longer runs and that have not
+/// changed for ten minutes (a reused PID cannot keep a live writer's folder from aging).
+/// Returns the names removed. Folders of running precomputes are never touched.
+pub fn remove_abandoned_temporaries(dir: &Path) -> Vec<String> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let mut removed = Vec::new();
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name
+            .strip_prefix('.')
+            .and_then(|n| n.split_once(".tmp-"))
+            .and_then(|(_, rest)| rest.split('-').next())
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        let alive = pid == std::process::id() || Path::new(&format!("/proc/{pid}")).exists();
+        let idle = e
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age.as_secs() >= 600);
+        if !alive && idle && e.path().is_dir() && std::fs::remove_dir_all(e.path()).is_ok() {
+            removed.push(name);
+        }
+    }
+    removed
 }
 
 /// The last component of `dir` (after resolving `.` and `..`).

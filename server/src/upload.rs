@@ -28,7 +28,7 @@ use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
 use translux_precompute::patch::{Density, plan};
-use translux_precompute::pipeline::{DEFAULT_PATCHES, MAX_PATCHES};
+use translux_precompute::pipeline::{MAX_PATCHES, density_for};
 use translux_precompute::scene::load_scene_file;
 use translux_proto::scene::{MeshRef, SceneFile};
 
@@ -320,35 +320,24 @@ fn check_scene(
     }
     let loaded =
         load_scene_file(&path).map_err(|e| AppError::invalid(strip_dir(&e.to_string(), dir)))?;
-    let density = match (got_patches, max_edge, file.patches) {
-        (Some(n), _, _) => Density::Target(n),
-        (None, Some(e), _) => Density::MaxEdge(e),
-        (None, None, Some(d)) => match (d.target, d.max_edge) {
-            (Some(t), _) => Density::Target(t),
-            (None, Some(e)) => Density::MaxEdge(e),
-            (None, None) => Density::Target(DEFAULT_PATCHES),
-        },
-        (None, None, None) => Density::Target(DEFAULT_PATCHES),
-    };
+    let density = density_for(got_patches, max_edge, file.patches);
     if let Density::Target(0) = density {
         return Err(AppError::invalid("patches must be at least 1"));
     }
-    let count = match density {
-        Density::Target(t) => t,
-        Density::MaxEdge(_) => {
-            let sources: Vec<&[[glam::Vec3; 3]]> = loaded
-                .objects
-                .iter()
-                .map(|o| o.triangles.as_slice())
-                .collect();
-            plan(&sources, density).1
-        }
-    };
+    // The count the precompute will make, not the one asked for: every triangle becomes at
+    // least one patch, so a 60k-triangle mesh with `patches=100` is 60k patches.
+    let sources: Vec<&[[glam::Vec3; 3]]> = loaded
+        .objects
+        .iter()
+        .map(|o| o.triangles.as_slice())
+        .collect();
+    let count = plan(&sources, density).1;
     let most = limits.patches.min(MAX_PATCHES);
     if count > most {
         return Err(AppError::invalid(format!(
-            "{count} patches is more than this server precomputes for an upload ({most}); \
-             ask for fewer with the patches field"
+            "the scene would make {count} patches, more than this server precomputes for an \
+             upload ({most}); ask for fewer with the patches field, or simplify the meshes \
+             (every triangle is at least one patch; `simplify_to` in the scene file)"
         )));
     }
     Ok(())

@@ -605,6 +605,34 @@ async fn random_http_methods_do_not_become_metric_labels() {
     s.stop().await;
 }
 
+/// A precompute that crashed leaves `.ID.tmp-PID-…`; the server removes such folders when
+/// their process is gone and they are idle, and never a live writer's.
+#[test]
+fn abandoned_precompute_temporaries_are_removed_and_live_ones_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let aged = |name: &str, age_s: u64| {
+        let p = dir.path().join(name);
+        std::fs::create_dir(&p).unwrap();
+        std::fs::write(p.join("ff_val.f32"), [0u8; 16]).unwrap();
+        let then = std::time::SystemTime::now() - std::time::Duration::from_secs(age_s);
+        std::fs::File::open(&p).unwrap().set_modified(then).unwrap();
+    };
+    // PIDs above Linux's largest pid_max (2^22) never run.
+    aged(".cup.tmp-4294000-1-1", 3600);
+    aged(".fresh.tmp-4294001-1-1", 5);
+    aged(&format!(".mine.tmp-{}-1-1", std::process::id()), 3600);
+    aged(".notes.d", 3600);
+    let (_state, errors) = translux_server::load_bundles(dir.path());
+    assert!(errors.is_empty(), "{errors:?}");
+    let mut left: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    let mine = format!(".mine.tmp-{}-1-1", std::process::id());
+    assert_eq!(left, vec![".fresh.tmp-4294001-1-1", &mine, ".notes.d"]);
+}
+
 #[tokio::test]
 async fn direct_differs_from_full_and_full_is_never_darker() {
     let s = TestServer::cornell().await;

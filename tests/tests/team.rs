@@ -636,6 +636,53 @@ async fn uploads_refuse_traversal_bad_names_and_oversize() {
     assert_eq!(r.status(), StatusCode::UNSUPPORTED_MEDIA_TYPE);
 }
 
+/// The upload limit is on the patches the precompute will make, not the number asked for:
+/// every triangle is at least one patch, so a mesh of many triangles with `patches=50` is
+/// refused up front, with the real count.
+#[tokio::test]
+async fn the_upload_patch_limit_counts_every_triangle() {
+    let bundles = bundles_with(&[]);
+    let args = TeamArgs {
+        max_upload_patches: Some(150),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    // A 12 × 12 grid of quads: 288 triangles.
+    let mut grid = String::new();
+    for i in 0..13 {
+        for j in 0..13 {
+            grid += &format!("v {} 0 {}\n", i as f32 / 12.0, j as f32 / 12.0);
+        }
+    }
+    for i in 0..12 {
+        for j in 0..12 {
+            let v = |a: usize, b: usize| 1 + a * 13 + b;
+            grid += &format!(
+                "f {} {} {} {}\n",
+                v(i, j),
+                v(i, j + 1),
+                v(i + 1, j + 1),
+                v(i + 1, j)
+            );
+        }
+    }
+    let form = upload_form(
+        "grid.json",
+        scene_json("grid.obj"),
+        &[("grid.obj", grid.into_bytes())],
+        &[("id", "grid"), ("patches", "50")],
+    );
+    let (status, body, _) = post_upload(&s, Some(EDITOR), form).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    let text = body.to_string();
+    assert!(
+        text.contains("would make") && text.contains("(150)"),
+        "{text}"
+    );
+    let jobs = s.get_json("/api/v1/jobs", Some(ADMIN)).await;
+    assert!(jobs["jobs"].as_array().unwrap().is_empty(), "{jobs}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_uploaded_scene_becomes_a_served_bundle() {
     let bundles = bundles_with(&[]);
@@ -716,6 +763,15 @@ async fn an_uploaded_scene_becomes_a_served_bundle() {
     assert!(list.scenes.iter().any(|x| x.id == "cube"), "{list:?}");
     let mesh = s.get_json("/api/v1/scenes/cube/mesh", Some(VIEWER)).await;
     let vertices = mesh["positions"].as_array().unwrap().len() / 3;
+    // Viewers see where the scene came from, never the server's folders.
+    let detail = s.get_json("/api/v1/scenes/cube", Some(VIEWER)).await;
+    let source = detail["source"].as_str().unwrap();
+    assert!(
+        source.starts_with("upload:j") && source.ends_with(".json"),
+        "{source}"
+    );
+    let root = s.bundles.display().to_string();
+    assert!(!detail.to_string().contains(&root), "{detail}");
     let out = s.relight("cube", Some(VIEWER)).await;
     assert_eq!(out.vertex_count, vertices);
     assert!(out.radiance.iter().all(|v| v.is_finite() && *v >= 0.0));
