@@ -17,6 +17,7 @@ use crate::error::AppError;
 pub const FILES: &[(&str, &str, &[u8])] = &[
     ("style.css", CSS, include_bytes!("style.css")),
     ("js/app.js", JS, include_bytes!("js/app.js")),
+    ("js/auth.js", JS, include_bytes!("js/auth.js")),
     ("js/camera.js", JS, include_bytes!("js/camera.js")),
     ("js/glb.js", JS, include_bytes!("js/glb.js")),
     ("js/hashstate.js", JS, include_bytes!("js/hashstate.js")),

@@ -110,6 +110,7 @@ const HORIZON_SUB: u32 = 4;
 pub fn visibility(
     centroid: &[Vec3],
     normal: &[Vec3],
+    owner: Option<&[u32]>,
     occ: &Occluder,
     bins: Bins,
     params: &EnvVisParams,
@@ -157,6 +158,13 @@ pub fn visibility(
         .map(|(i, row)| {
             let n = normal[i];
             let origin = centroid[i] + n * offset;
+            // A face pressed against another (a block's base on the floor) sees nothing of
+            // the sky; its offset origin would be below the floor, outside the room.
+            let own = owner.and_then(|o| o.get(i)).copied().unwrap_or(u32::MAX);
+            if occ.buried(centroid[i], n, occ.contact_step(), own) {
+                progress(1);
+                return 0;
+            }
             let mut rays = 0u64;
             let mut cos = vec![0.0f32; lat];
             let mut cell = vec![0.0f32; g * g];
@@ -262,13 +270,14 @@ pub fn visibility(
 pub fn stage(
     centroid: &[Vec3],
     normal: &[Vec3],
+    owner: Option<&[u32]>,
     occ: &Occluder,
     params: &EnvVisParams,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)> {
     let bins = params.bins?;
     let t = std::time::Instant::now();
-    let (v, stats) = visibility(centroid, normal, occ, bins, params, progress);
+    let (v, stats) = visibility(centroid, normal, owner, occ, bins, params, progress);
     let bits = v
         .par_iter()
         .map(|&x| half::f16::from_f32(x).to_bits())
@@ -323,13 +332,26 @@ mod tests {
         [[a, c, b], [a, d, c]]
     }
 
+    /// V for patches at `c` facing `n`, all of one object, among `tris` (all of it too).
     fn vis(tris: &[[Vec3; 3]], c: &[Vec3], n: &[Vec3], bins: Bins) -> Vec<f32> {
-        let occ = Occluder::new(tris);
+        vis_owned(tris, &vec![0; tris.len()], c, n, &vec![0; c.len()], bins)
+    }
+
+    /// V with the object of every triangle and patch given.
+    fn vis_owned(
+        tris: &[[Vec3; 3]],
+        tri_owner: &[u32],
+        c: &[Vec3],
+        n: &[Vec3],
+        owner: &[u32],
+        bins: Bins,
+    ) -> Vec<f32> {
+        let occ = Occluder::with_owners(tris, tri_owner);
         let p = EnvVisParams {
             bins: Some(bins),
             ..Default::default()
         };
-        visibility(c, n, &occ, bins, &p, &|_| {}).0
+        visibility(c, n, Some(owner), &occ, bins, &p, &|_| {}).0
     }
 
     #[test]
@@ -371,6 +393,62 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A face pressed against another (a block's base on the floor, and the floor under
+    /// it) sees no sky: its offset ray origin lies beyond the other surface. It used to
+    /// see the whole lower hemisphere, which lit the blocks of the closed Cornell box.
+    #[test]
+    fn faces_pressed_together_see_no_sky() {
+        let floor: Vec<_> = quad(0.0, 1.0).into_iter().collect();
+        let base: Vec<_> = quad(0.0, 0.2).iter().map(|t| [t[0], t[2], t[1]]).collect();
+        let tris: Vec<_> = floor.iter().chain(&base).copied().collect();
+        let centroids = [
+            Vec3::new(0.05, 0.0, 0.05), // the base, facing down onto the floor
+            Vec3::new(-0.05, 0.0, 0.1), // the floor under the base, facing up
+            Vec3::new(0.6, 0.0, 0.6),   // the floor in the open
+        ];
+        let normals = [-Vec3::Y, Vec3::Y, Vec3::Y];
+        // The floor is object 0, the block's base object 1.
+        let tri_owner = [0, 0, 1, 1];
+        let v = vis_owned(
+            &tris,
+            &tri_owner,
+            &centroids,
+            &normals,
+            &[1, 0, 0],
+            DEFAULT_BINS,
+        );
+        let k = DEFAULT_BINS.count();
+        let sum = |i: usize| v[i * k..(i + 1) * k].iter().sum::<f32>();
+        assert_eq!(sum(0), 0.0);
+        assert_eq!(sum(1), 0.0);
+        assert!((sum(2) / PI - 1.0).abs() < 0.01, "{}", sum(2));
+        // The same base lifted off the floor sees the sky below it (past the floor's edge).
+        let lifted: Vec<_> = base
+            .iter()
+            .map(|t| t.map(|p| p + Vec3::Y * 0.05))
+            .chain(floor.iter().copied())
+            .collect();
+        let v = vis_owned(
+            &lifted,
+            &tri_owner,
+            &[Vec3::new(0.05, 0.05, 0.05)],
+            &[-Vec3::Y],
+            &[1],
+            DEFAULT_BINS,
+        );
+        assert!(v.iter().sum::<f32>() > 0.0);
+        // A zero-thickness two-sided sheet (both faces one object) is not pressed against
+        // itself: its faces see the sky on both sides.
+        let v = vis(
+            &tris[2..],
+            &[Vec3::new(0.05, 0.0, 0.05); 2],
+            &[Vec3::Y, -Vec3::Y],
+            DEFAULT_BINS,
+        );
+        let k = DEFAULT_BINS.count();
+        assert!(v[..k].iter().sum::<f32>() > 3.0 && v[k..].iter().sum::<f32>() > 3.0);
     }
 
     #[test]
@@ -537,7 +615,7 @@ mod tests {
                 rays,
                 ..Default::default()
             };
-            let (v, stats) = visibility(&c, &n, &occ, bins, &p, &|_| {});
+            let (v, stats) = visibility(&c, &n, None, &occ, bins, &p, &|_| {});
             let mean = bin_radiance(&sky, rotation, bins);
             let mut e = vec![[0.0f32; 3]; c.len()];
             environment_irradiance(&v, &mean, 1.0, &mut e);

@@ -1,35 +1,62 @@
 //! Mesh export with baked vertex colours: binary glTF 2.0 (`.glb`) and binary PLY.
 //!
-//! In: vertex positions and normals, triangles (indices, counter-clockwise seen from the
-//! front), linear radiance B/π per vertex (a relight's answer), an exposure in EV stops and a
-//! [`ToneMap`]. Out: the bytes of a file.
+//! In: an [`ExportMesh`] (vertex positions and normals, triangles counter-clockwise seen from
+//! the front, linear radiance B/π per vertex as a relight answers it, the scene's unit and its
+//! objects as named runs of triangles), an exposure in EV stops and a [`ToneMap`]. Out: the
+//! bytes of a file.
 //!
 //! Colours: c = tone(L · 2^EV) per channel, with the tone curve of [`crate::render`] (clamp
 //! to [0, 1], or the ACES filmic fit). Then:
 //!
 //! - **glTF** stores `COLOR_0` as float RGB **in linear space**: the glTF 2.0 specification
-//!   defines vertex colours as linear and multiplies them into the base colour, and viewers
-//!   apply the display encoding (the sRGB OETF) to their output themselves. So the export
-//!   applies the exposure and the tone curve but **not** the sRGB OETF; applying it here
-//!   would brighten every mid-tone twice. The material is white, non-metallic, fully rough
-//!   and carries `KHR_materials_unlit`, so viewers that know the extension show the baked
-//!   colours as they are (no lighting on top); others fall back to a lit white PBR
-//!   material tinted by the colours. `doubleSided` is false, like the renderer's default
-//!   back-face culling: a closed room is seen from outside through its near wall.
+//!   defines vertex colours as a linear multiplier of the base colour, and viewers apply the
+//!   display encoding (the sRGB OETF) to their output themselves. So the export applies the
+//!   exposure and the tone curve but **not** the sRGB OETF; applying it here would brighten
+//!   every mid-tone twice. The material is white, non-metallic, fully rough and carries
+//!   `KHR_materials_unlit`, so viewers that know the extension show the baked colours as
+//!   they are (no lighting on top); others fall back to a lit white PBR material tinted by
+//!   the colours. `doubleSided` is false, like the renderer's default back-face culling: a
+//!   closed room is seen from outside through its near wall.
 //! - **PLY** stores red, green, blue as `uchar` **sRGB-encoded** (the MeshLab / CloudCompare
 //!   convention: 8-bit colours are display values): round(255 · OETF(c)), exactly the pixel
 //!   values [`crate::render::render`] would show for the same vertex.
 //!
+//! Units. glTF lengths are metres (specification §3.4), and a bundle's positions are in
+//! scene units of `unit_mm` millimetres, so the `.glb` multiplies positions by
+//! unit_mm / 1000 (a centimetre scene, unit_mm = 10, by 0.01; a metre scene is written
+//! unchanged). Normals need no change: the scale is uniform. PLY has no unit convention: it
+//! keeps scene units and its header says what one is.
+//!
+//! Objects. The `.glb` has one mesh (one primitive) and one node per [`MeshPart`], both named
+//! after it, so a modelling tool lists `tall_block` rather than one anonymous mesh. Each
+//! primitive has its own vertices: those its triangles use, in ascending order of their input
+//! index, with the indices rebased (a vertex that two parts share is written in both). A part
+//! without triangles becomes a node without a mesh (glTF accessors need count ≥ 1), so every
+//! object's name is still there. PLY has no standard grouping and writes the whole mesh.
+//!
+//! Readers. `COLOR_0` as float `VEC3` is one of the three encodings the specification allows
+//! and is read as written by Blender's importer and by trimesh. (Normalized `u16`, also
+//! allowed, is not: trimesh 5.2 casts the raw 0..65535 values to 8 bits.) trimesh hands a
+//! primitive's `COLOR_0` to `visual.vertex_colors` only when the primitive has no material;
+//! with one it keeps them as `visual.vertex_attributes["color"]`, or gives `vertex_colors` when
+//! loaded with `skip_materials=True`. The material stays nonetheless: without one, glTF's
+//! default material is fully metallic, which most viewers show nearly black.
+//!
 //! The `.glb` layout (glTF 2.0 §4.4): a 12-byte header (`glTF`, version 2, total length),
 //! a JSON chunk padded with spaces to a multiple of 4 bytes, and a BIN chunk padded with
-//! zeros, holding in order positions, normals and colours (V × 12 bytes each, `f32` × 3) and
-//! the indices (F × 12 bytes, `u32` × 3). `POSITION` has the `min`/`max` the specification
-//! requires. Normals are written unit length (glTF requires it); a zero normal is written as +Z.
+//! zeros, holding in order the positions of every part (part after part), then their
+//! normals, then their colours (`f32` × 3 per vertex each), then their indices (`u32` × 3 per
+//! triangle); each part's run of each has its own buffer view and accessor. `POSITION` has the
+//! `min`/`max` the specification requires. Normals are written unit length (glTF requires
+//! it); a zero normal is written as +Z.
 //!
-//! The PLY layout: an ASCII header ([`ply_header`]), then per vertex x y z nx ny nz (`float`)
-//! and red green blue (`uchar`), 27 bytes, then per face a `uchar` count 3 and three `int`
-//! indices, 13 bytes, little-endian.
+//! The PLY layout: an ASCII header ([`ply_header_in`]), then per vertex x y z nx ny nz
+//! (`float`) and red green blue (`uchar`), 27 bytes, then per face a `uchar` count 3 and three
+//! `int` indices, 13 bytes, little-endian.
 
+use std::ops::Range;
+
+use serde_json::{Value, json};
 use translux_proto::api::ToneMap;
 
 use crate::render::{exposure_scale, srgb_oetf, to_u8, tone_map};
@@ -37,7 +64,8 @@ use crate::render::{exposure_scale, srgb_oetf, to_u8, tone_map};
 /// Why an export failed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ExportError {
-    /// The arrays disagree, an index is out of range, or a value is not finite.
+    /// The arrays disagree, an index is out of range, a value is not finite, a part's
+    /// triangles are out of range, or the unit is not a positive number.
     #[error("bad mesh: {0}")]
     Mesh(String),
     /// `exposure` is not finite or out of range.
@@ -59,22 +87,75 @@ pub const GLB_CHUNK_JSON: u32 = 0x4E4F_534A;
 /// Chunk type "BIN\0".
 pub const GLB_CHUNK_BIN: u32 = 0x004E_4942;
 
-/// Checks the arrays and exposure; returns 2^exposure.
-fn check(
-    positions: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    triangles: &[[u32; 3]],
-    vertex_radiance: &[[f32; 3]],
-    exposure: f32,
-) -> Result<f32, ExportError> {
+/// Millimetres in a metre: the `unit_mm` of a scene in metres, glTF's unit.
+pub const METRE_MM: f64 = 1000.0;
+
+/// The name of the one part of a mesh exported without parts.
+pub const DEFAULT_PART: &str = "mesh";
+
+/// One named part of an exported mesh: a scene object and its run of triangles.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MeshPart {
+    /// The node's and the mesh's name in the `.glb` (the object's name).
+    pub name: String,
+    /// Its triangles, as indices into [`ExportMesh::triangles`].
+    pub triangles: Range<usize>,
+}
+
+/// A mesh to export. Build it with [`ExportMesh::new`] and set `unit_mm` and `parts`.
+#[derive(Debug, Clone, Copy)]
+pub struct ExportMesh<'a> {
+    /// Scene units.
+    pub positions: &'a [[f32; 3]],
+    /// One per vertex, any length (the `.glb` normalizes them, PLY writes them as given).
+    pub normals: &'a [[f32; 3]],
+    /// Indices into the vertices, counter-clockwise seen from the front.
+    pub triangles: &'a [[u32; 3]],
+    /// Linear radiance B/π per vertex.
+    pub vertex_radiance: &'a [[f32; 3]],
+    /// Millimetres per scene unit (a bundle manifest's `unit_mm`; [`METRE_MM`] for metres).
+    pub unit_mm: f64,
+    /// The objects, each one mesh and node of the `.glb`; they should cover every triangle
+    /// (a bundle's objects do: their patch ranges partition the viewer triangles). Empty:
+    /// one part named [`DEFAULT_PART`] with every triangle. PLY ignores them.
+    pub parts: &'a [MeshPart],
+}
+
+impl<'a> ExportMesh<'a> {
+    /// A mesh in metres, without parts.
+    pub fn new(
+        positions: &'a [[f32; 3]],
+        normals: &'a [[f32; 3]],
+        triangles: &'a [[u32; 3]],
+        vertex_radiance: &'a [[f32; 3]],
+    ) -> Self {
+        ExportMesh {
+            positions,
+            normals,
+            triangles,
+            vertex_radiance,
+            unit_mm: METRE_MM,
+            parts: &[],
+        }
+    }
+}
+
+/// Checks the arrays, the unit and the exposure; returns 2^exposure.
+fn check(mesh: &ExportMesh, exposure: f32) -> Result<f32, ExportError> {
     let limit = crate::render::MAX_EXPOSURE;
     if !(exposure.is_finite() && (-limit..=limit).contains(&exposure)) {
         return Err(ExportError::Exposure(exposure.to_string()));
     }
-    let n = positions.len();
+    if !(mesh.unit_mm.is_finite() && mesh.unit_mm > 0.0) {
+        return Err(ExportError::Mesh(format!(
+            "unit_mm must be finite and > 0 (got {})",
+            mesh.unit_mm
+        )));
+    }
+    let n = mesh.positions.len();
     for (name, len) in [
-        ("normals", normals.len()),
-        ("vertex_radiance", vertex_radiance.len()),
+        ("normals", mesh.normals.len()),
+        ("vertex_radiance", mesh.vertex_radiance.len()),
     ] {
         if len != n {
             return Err(ExportError::Mesh(format!(
@@ -83,9 +164,9 @@ fn check(
         }
     }
     for (name, arr) in [
-        ("positions", positions),
-        ("normals", normals),
-        ("vertex_radiance", vertex_radiance),
+        ("positions", mesh.positions),
+        ("normals", mesh.normals),
+        ("vertex_radiance", mesh.vertex_radiance),
     ] {
         if let Some(k) = arr.iter().position(|v| !v.iter().all(|x| x.is_finite())) {
             return Err(ExportError::Mesh(format!(
@@ -94,7 +175,8 @@ fn check(
             )));
         }
     }
-    if let Some((k, t)) = triangles
+    if let Some((k, t)) = mesh
+        .triangles
         .iter()
         .enumerate()
         .find(|(_, t)| t.iter().any(|&i| i as usize >= n))
@@ -126,172 +208,230 @@ fn unit(n: [f32; 3]) -> [f32; 3] {
     }
 }
 
-/// A binary glTF 2.0 file of the mesh with baked linear vertex colours; see the module
-/// documentation for what goes where.
-pub fn to_glb(
-    positions: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    triangles: &[[u32; 3]],
-    vertex_radiance: &[[f32; 3]],
-    exposure: f32,
-    tone: ToneMap,
-) -> Result<Vec<u8>, ExportError> {
-    use gltf_json as json;
-    use json::validation::{Checked::Valid, USize64};
+/// The factor from scene units to metres: unit_mm / 1000.
+pub fn metres_per_unit(unit_mm: f64) -> f64 {
+    unit_mm / METRE_MM
+}
 
-    let scale = check(positions, normals, triangles, vertex_radiance, exposure)?;
-    if positions.is_empty() || triangles.is_empty() {
+/// glTF 2.0 enum values: accessor component types, buffer-view targets.
+const FLOAT: u32 = 5126;
+const UNSIGNED_INT: u32 = 5125;
+const ARRAY_BUFFER: u32 = 34962;
+const ELEMENT_ARRAY_BUFFER: u32 = 34963;
+/// Primitive mode TRIANGLES.
+const TRIANGLES: u32 = 4;
+
+/// A part's vertices: the input indices its triangles use, ascending.
+fn part_vertices(triangles: &[[u32; 3]], stamp: &mut [u32], id: u32) -> Vec<u32> {
+    let mut used = Vec::new();
+    for &i in triangles.iter().flatten() {
+        // `stamp[i] == id` marks a vertex already taken for this part, so one array serves
+        // every part without being cleared between them.
+        if stamp[i as usize] != id {
+            stamp[i as usize] = id;
+            used.push(i);
+        }
+    }
+    used.sort_unstable();
+    used
+}
+
+/// A binary glTF 2.0 file of the mesh with baked linear vertex colours, positions in metres
+/// and one named node per part; see the module documentation for what goes where.
+pub fn to_glb(mesh: &ExportMesh, exposure: f32, tone: ToneMap) -> Result<Vec<u8>, ExportError> {
+    let scale = check(mesh, exposure)?;
+    let (nv, nf) = (mesh.positions.len(), mesh.triangles.len());
+    if nv == 0 || nf == 0 {
         // glTF accessors need count ≥ 1.
         return Err(ExportError::Mesh(
             "the mesh is empty (glTF needs at least one vertex and one triangle)".into(),
         ));
     }
-    let nv = positions.len();
-    let nf = triangles.len();
-    let attr_bytes = nv as u64 * 12;
-    let index_bytes = nf as u64 * 12;
-    let bin_len = 3 * attr_bytes + index_bytes; // a multiple of 4 already
+    let whole = [MeshPart {
+        name: DEFAULT_PART.into(),
+        triangles: 0..nf,
+    }];
+    let parts = if mesh.parts.is_empty() {
+        &whole[..]
+    } else {
+        mesh.parts
+    };
+    if let Some(p) = parts
+        .iter()
+        .find(|p| p.triangles.start > p.triangles.end || p.triangles.end > nf)
+    {
+        return Err(ExportError::Mesh(format!(
+            "part {:?} has triangles {:?}, outside 0..{nf}",
+            p.name, p.triangles
+        )));
+    }
+    let metres = metres_per_unit(mesh.unit_mm);
+
+    // Each part's vertices, and the buffer's size before anything is written.
+    let mut stamp = vec![u32::MAX; nv];
+    let vertices: Vec<Vec<u32>> = parts
+        .iter()
+        .enumerate()
+        .map(|(k, p)| part_vertices(&mesh.triangles[p.triangles.clone()], &mut stamp, k as u32))
+        .collect();
+    let vertex_total: u64 = vertices.iter().map(|v| v.len() as u64).sum();
+    let triangle_total: u64 = parts.iter().map(|p| p.triangles.len() as u64).sum();
+    let attr_bytes = vertex_total * 12;
+    let bin_len = 3 * attr_bytes + triangle_total * 12; // a multiple of 4 already
     if bin_len > u32::MAX as u64 / 2 {
         return Err(ExportError::TooLarge(format!(
-            "{nv} vertices and {nf} triangles need {bin_len} bytes of buffer; a .glb holds \
-             under 4 GiB"
+            "{vertex_total} vertices and {triangle_total} triangles need {bin_len} bytes of \
+             buffer; a .glb holds under 4 GiB"
         )));
     }
 
-    // BIN: positions | normals | colours | indices.
-    let mut bin = Vec::with_capacity(bin_len as usize);
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for p in positions {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-            bin.extend_from_slice(&p[k].to_le_bytes());
-        }
-    }
-    for n in normals {
-        for x in unit(*n) {
+    // BIN: positions | normals | colours | indices, each part after part. `runs[k]` holds
+    // part k's (offset, length) in each of the four sections.
+    let mut bin: Vec<u8> = Vec::with_capacity(bin_len as usize);
+    let mut runs = vec![[(0usize, 0usize); 4]; parts.len()];
+    let mut bounds = vec![([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]); parts.len()];
+    let put = |bin: &mut Vec<u8>, v: [f32; 3]| {
+        for x in v {
             bin.extend_from_slice(&x.to_le_bytes());
         }
-    }
-    for c in vertex_radiance {
-        for x in linear_colour(*c, scale, tone) {
-            bin.extend_from_slice(&x.to_le_bytes());
+    };
+    for (k, vs) in vertices.iter().enumerate() {
+        let at = bin.len();
+        let (lo, hi) = &mut bounds[k];
+        for &i in vs {
+            // In f64, so that the product is rounded once.
+            let p = mesh.positions[i as usize].map(|x| (f64::from(x) * metres) as f32);
+            for c in 0..3 {
+                lo[c] = lo[c].min(p[c]);
+                hi[c] = hi[c].max(p[c]);
+            }
+            put(&mut bin, p);
         }
-    }
-    for t in triangles {
-        for i in t {
-            bin.extend_from_slice(&i.to_le_bytes());
+        if !vs.is_empty() && !lo.iter().chain(hi.iter()).all(|x| x.is_finite()) {
+            return Err(ExportError::Mesh(format!(
+                "part {:?}: positions overflow when scaled to metres (unit_mm {})",
+                parts[k].name, mesh.unit_mm
+            )));
         }
+        runs[k][0] = (at, bin.len() - at);
+    }
+    for (k, vs) in vertices.iter().enumerate() {
+        let at = bin.len();
+        for &i in vs {
+            put(&mut bin, unit(mesh.normals[i as usize]));
+        }
+        runs[k][1] = (at, bin.len() - at);
+    }
+    for (k, vs) in vertices.iter().enumerate() {
+        let at = bin.len();
+        for &i in vs {
+            put(
+                &mut bin,
+                linear_colour(mesh.vertex_radiance[i as usize], scale, tone),
+            );
+        }
+        runs[k][2] = (at, bin.len() - at);
+    }
+    // `local[i]`: vertex i's index within the part being written (`stamp` is free again).
+    let local = &mut stamp;
+    for (k, (p, vs)) in parts.iter().zip(&vertices).enumerate() {
+        for (j, &i) in vs.iter().enumerate() {
+            local[i as usize] = j as u32;
+        }
+        let at = bin.len();
+        for &i in mesh.triangles[p.triangles.clone()].iter().flatten() {
+            bin.extend_from_slice(&local[i as usize].to_le_bytes());
+        }
+        runs[k][3] = (at, bin.len() - at);
     }
     debug_assert_eq!(bin.len() as u64, bin_len);
 
-    let mut root = json::Root {
-        asset: json::Asset {
-            copyright: None,
-            extensions: None,
-            extras: Default::default(),
-            generator: Some(format!(
-                "translux {} (COLOR_0: linear B/pi, exposure {exposure} EV, tone {})",
+    // JSON: per part one buffer view and accessor for each section, a mesh and a node.
+    let mut views = Vec::new();
+    let mut accessors = Vec::new();
+    let mut accessor = |(offset, len): (usize, usize), target: u32, mut a: Value| {
+        views.push(json!({
+            "buffer": 0, "byteOffset": offset, "byteLength": len, "target": target,
+        }));
+        a["bufferView"] = json!(views.len() - 1);
+        accessors.push(a);
+        accessors.len() - 1
+    };
+    let mut meshes = Vec::new();
+    let mut nodes = Vec::new();
+    for (k, (p, vs)) in parts.iter().zip(&vertices).enumerate() {
+        if vs.is_empty() {
+            nodes.push(json!({ "name": p.name }));
+            continue;
+        }
+        let count = vs.len();
+        let (lo, hi) = bounds[k];
+        let vec3 = |extra: Value| {
+            let mut a = json!({ "componentType": FLOAT, "count": count, "type": "VEC3" });
+            if let (Value::Object(a), Value::Object(extra)) = (&mut a, extra) {
+                a.extend(extra);
+            }
+            a
+        };
+        let position = accessor(
+            runs[k][0],
+            ARRAY_BUFFER,
+            vec3(json!({ "min": lo, "max": hi })),
+        );
+        let normal = accessor(runs[k][1], ARRAY_BUFFER, vec3(json!({})));
+        let colour = accessor(runs[k][2], ARRAY_BUFFER, vec3(json!({})));
+        let indices = accessor(
+            runs[k][3],
+            ELEMENT_ARRAY_BUFFER,
+            json!({
+                "componentType": UNSIGNED_INT,
+                "count": 3 * p.triangles.len(),
+                "type": "SCALAR",
+            }),
+        );
+        meshes.push(json!({
+            "name": p.name,
+            "primitives": [{
+                "attributes": { "POSITION": position, "NORMAL": normal, "COLOR_0": colour },
+                "indices": indices,
+                "material": 0,
+                "mode": TRIANGLES,
+            }],
+        }));
+        nodes.push(json!({ "name": p.name, "mesh": meshes.len() - 1 }));
+    }
+    let root = json!({
+        "asset": {
+            "version": "2.0",
+            "generator": format!(
+                "translux {} (COLOR_0: linear B/pi, exposure {exposure} EV, tone {}; \
+                 positions in metres, 1 scene unit = {} mm)",
                 env!("CARGO_PKG_VERSION"),
-                tone.as_str()
-            )),
-            min_version: None,
-            version: "2.0".into(),
+                tone.as_str(),
+                mesh.unit_mm
+            ),
         },
-        extensions_used: vec!["KHR_materials_unlit".into()],
-        ..Default::default()
-    };
-    let buffer = root.push(json::Buffer {
-        byte_length: USize64(bin_len),
-        extensions: None,
-        extras: Default::default(),
-        uri: None,
-    });
-    let view = |root: &mut json::Root, offset: u64, len: u64, target| {
-        root.push(json::buffer::View {
-            buffer,
-            byte_length: USize64(len),
-            byte_offset: Some(USize64(offset)),
-            byte_stride: None,
-            extensions: None,
-            extras: Default::default(),
-            target: Some(Valid(target)),
-        })
-    };
-    let accessor = |root: &mut json::Root,
-                    view: json::Index<json::buffer::View>,
-                    count: usize,
-                    component: json::accessor::ComponentType,
-                    type_: json::accessor::Type,
-                    min_max: Option<([f32; 3], [f32; 3])>| {
-        root.push(json::Accessor {
-            buffer_view: Some(view),
-            byte_offset: None,
-            count: USize64(count as u64),
-            component_type: Valid(json::accessor::GenericComponentType(component)),
-            extensions: None,
-            extras: Default::default(),
-            type_: Valid(type_),
-            min: min_max.map(|(lo, _)| serde_json::json!(lo)),
-            max: min_max.map(|(_, hi)| serde_json::json!(hi)),
-            normalized: false,
-            sparse: None,
-        })
-    };
-    use json::accessor::{ComponentType::F32, ComponentType::U32, Type};
-    use json::buffer::Target::{ArrayBuffer, ElementArrayBuffer};
-    let v_pos = view(&mut root, 0, attr_bytes, ArrayBuffer);
-    let v_nrm = view(&mut root, attr_bytes, attr_bytes, ArrayBuffer);
-    let v_col = view(&mut root, 2 * attr_bytes, attr_bytes, ArrayBuffer);
-    let v_idx = view(&mut root, 3 * attr_bytes, index_bytes, ElementArrayBuffer);
-    let a_pos = accessor(&mut root, v_pos, nv, F32, Type::Vec3, Some((lo, hi)));
-    let a_nrm = accessor(&mut root, v_nrm, nv, F32, Type::Vec3, None);
-    let a_col = accessor(&mut root, v_col, nv, F32, Type::Vec3, None);
-    let a_idx = accessor(&mut root, v_idx, 3 * nf, U32, Type::Scalar, None);
-
-    let material = root.push(json::Material {
-        pbr_metallic_roughness: json::material::PbrMetallicRoughness {
-            base_color_factor: json::material::PbrBaseColorFactor([1.0; 4]),
-            metallic_factor: json::material::StrengthFactor(0.0),
-            roughness_factor: json::material::StrengthFactor(1.0),
-            ..Default::default()
-        },
-        double_sided: false,
-        extensions: Some(unlit()),
-        ..Default::default()
-    });
-    let mut attributes = std::collections::BTreeMap::new();
-    attributes.insert(Valid(json::mesh::Semantic::Positions), a_pos);
-    attributes.insert(Valid(json::mesh::Semantic::Normals), a_nrm);
-    attributes.insert(Valid(json::mesh::Semantic::Colors(0)), a_col);
-    let mesh = root.push(json::Mesh {
-        extensions: None,
-        extras: Default::default(),
-        primitives: vec![json::mesh::Primitive {
-            attributes,
-            extensions: None,
-            extras: Default::default(),
-            indices: Some(a_idx),
-            material: Some(material),
-            mode: Valid(json::mesh::Mode::Triangles),
-            targets: None,
+        "extensionsUsed": ["KHR_materials_unlit"],
+        "scene": 0,
+        "scenes": [{ "nodes": (0..nodes.len()).collect::<Vec<_>>() }],
+        "nodes": nodes,
+        "meshes": meshes,
+        "materials": [{
+            "name": "translux baked colours",
+            "pbrMetallicRoughness": {
+                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                "metallicFactor": 0.0,
+                "roughnessFactor": 1.0,
+            },
+            "doubleSided": false,
+            "extensions": { "KHR_materials_unlit": {} },
         }],
-        weights: None,
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{ "byteLength": bin_len }],
     });
-    let node = root.push(json::Node {
-        mesh: Some(mesh),
-        ..Default::default()
-    });
-    let scene = root.push(json::Scene {
-        extensions: None,
-        extras: Default::default(),
-        nodes: vec![node],
-    });
-    root.scene = Some(scene);
 
-    let mut text = root
-        .to_vec()
-        .map_err(|e| ExportError::Json(e.to_string()))?;
+    let mut text = serde_json::to_vec(&root).map_err(|e| ExportError::Json(e.to_string()))?;
     // Chunks start and end on 4-byte boundaries: JSON padded with spaces, BIN with zeros.
     text.resize(text.len().next_multiple_of(4), b' ');
     let total = 12 + 8 + text.len() as u64 + 8 + bin.len() as u64;
@@ -318,22 +458,27 @@ pub fn to_glb(
     Ok(out)
 }
 
-/// The material extensions with `KHR_materials_unlit` set (through `Default`, so that other
-/// extensions' fields, present when a crate enables their features, stay absent; a struct
-/// literal would stop compiling when feature unification adds a field).
-#[allow(clippy::field_reassign_with_default)]
-fn unlit() -> gltf_json::extensions::material::Material {
-    let mut ext = gltf_json::extensions::material::Material::default();
-    ext.unlit = Some(gltf_json::extensions::material::Unlit {});
-    ext
+/// The PLY header for `vertices` vertices and `faces` faces of a scene in metres
+/// ([`ply_header_in`] with unit_mm = 1000, the built-in scenes' unit).
+pub fn ply_header(vertices: usize, faces: usize, exposure: f32, tone: ToneMap) -> String {
+    ply_header_in(vertices, faces, exposure, tone, METRE_MM)
 }
 
-/// The PLY header for `vertices` vertices and `faces` faces (ASCII, `\n` line ends).
-pub fn ply_header(vertices: usize, faces: usize, exposure: f32, tone: ToneMap) -> String {
+/// The PLY header for `vertices` vertices and `faces` faces (ASCII, `\n` line ends); a
+/// comment says what the colours are and how long a scene unit is, as positions stay in
+/// scene units.
+pub fn ply_header_in(
+    vertices: usize,
+    faces: usize,
+    exposure: f32,
+    tone: ToneMap,
+    unit_mm: f64,
+) -> String {
     format!(
         "ply\n\
          format binary_little_endian 1.0\n\
          comment translux: colours are sRGB-encoded B/pi, exposure {exposure} EV, tone {}\n\
+         comment translux: positions in scene units, 1 unit = {unit_mm} mm\n\
          element vertex {vertices}\n\
          property float x\n\
          property float y\n\
@@ -351,17 +496,11 @@ pub fn ply_header(vertices: usize, faces: usize, exposure: f32, tone: ToneMap) -
     )
 }
 
-/// A binary little-endian PLY of the mesh with 8-bit sRGB vertex colours; see the module
-/// documentation. Normals are written as given.
-pub fn to_ply(
-    positions: &[[f32; 3]],
-    normals: &[[f32; 3]],
-    triangles: &[[u32; 3]],
-    vertex_radiance: &[[f32; 3]],
-    exposure: f32,
-    tone: ToneMap,
-) -> Result<Vec<u8>, ExportError> {
-    let scale = check(positions, normals, triangles, vertex_radiance, exposure)?;
+/// A binary little-endian PLY of the mesh with 8-bit sRGB vertex colours, positions in scene
+/// units; see the module documentation. Normals are written as given; parts are ignored.
+pub fn to_ply(mesh: &ExportMesh, exposure: f32, tone: ToneMap) -> Result<Vec<u8>, ExportError> {
+    let scale = check(mesh, exposure)?;
+    let (positions, triangles) = (mesh.positions, mesh.triangles);
     // Face indices are PLY `int` (i32).
     if positions.len() > i32::MAX as usize {
         return Err(ExportError::TooLarge(format!(
@@ -370,10 +509,16 @@ pub fn to_ply(
             i32::MAX
         )));
     }
-    let header = ply_header(positions.len(), triangles.len(), exposure, tone);
+    let header = ply_header_in(
+        positions.len(),
+        triangles.len(),
+        exposure,
+        tone,
+        mesh.unit_mm,
+    );
     let mut out = Vec::with_capacity(header.len() + 27 * positions.len() + 13 * triangles.len());
     out.extend_from_slice(header.as_bytes());
-    for ((p, n), c) in positions.iter().zip(normals).zip(vertex_radiance) {
+    for ((p, n), c) in positions.iter().zip(mesh.normals).zip(mesh.vertex_radiance) {
         for x in p.iter().chain(n) {
             out.extend_from_slice(&x.to_le_bytes());
         }
@@ -412,6 +557,10 @@ mod tests {
         )
     }
 
+    fn mesh(m: &TestMesh) -> ExportMesh<'_> {
+        ExportMesh::new(&m.0, &m.1, &m.2, &m.3)
+    }
+
     fn u32_at(b: &[u8], at: usize) -> u32 {
         u32::from_le_bytes(b[at..at + 4].try_into().unwrap())
     }
@@ -422,108 +571,295 @@ mod tests {
             .collect()
     }
 
+    /// A parsed `.glb`: the JSON as gltf-json reads it (validated), the raw JSON (gltf-json
+    /// without its `names` feature drops names), and the BIN chunk.
+    struct Glb {
+        root: json::Root,
+        raw: Value,
+        bin: Vec<u8>,
+    }
+
+    impl Glb {
+        /// Checks the header, the chunks and their padding, and the JSON against the
+        /// specification's rules (gltf-json's validation).
+        fn parse(glb: &[u8]) -> Glb {
+            assert_eq!(&glb[..4], b"glTF");
+            assert_eq!(u32_at(glb, 4), 2);
+            assert_eq!(u32_at(glb, 8) as usize, glb.len());
+            let json_len = u32_at(glb, 12) as usize;
+            assert_eq!(&glb[16..20], b"JSON");
+            assert_eq!(json_len % 4, 0);
+            let text = &glb[20..20 + json_len];
+            assert!(
+                text.iter()
+                    .rev()
+                    .take_while(|&&b| b != b'}')
+                    .all(|&b| b == b' '),
+                "JSON padding must be spaces"
+            );
+            let root = json::Root::from_slice(text).unwrap();
+            let mut errors = Vec::new();
+            json::validation::Validate::validate(
+                &root,
+                &root,
+                json::Path::new,
+                &mut |path: &dyn Fn() -> json::Path, e| errors.push(format!("{}: {e}", path())),
+            );
+            assert!(errors.is_empty(), "{errors:?}");
+            let bin_at = 20 + json_len;
+            assert_eq!(bin_at % 4, 0);
+            let bin_len = u32_at(glb, bin_at) as usize;
+            assert_eq!(&glb[bin_at + 4..bin_at + 8], b"BIN\0");
+            assert_eq!(bin_len % 4, 0);
+            assert_eq!(bin_at + 8 + bin_len, glb.len());
+            assert_eq!(root.buffers.len(), 1);
+            assert_eq!(root.buffers[0].byte_length.0 as usize, bin_len);
+            Glb {
+                root,
+                raw: serde_json::from_slice(text).unwrap(),
+                bin: glb[bin_at + 8..].to_vec(),
+            }
+        }
+
+        /// The bytes of accessor `k`.
+        fn data(&self, k: usize) -> &[u8] {
+            let a = &self.root.accessors[k];
+            let v = &self.root.buffer_views[a.buffer_view.unwrap().value()];
+            let at = v.byte_offset.unwrap().0 as usize + a.byte_offset.map_or(0, |o| o.0 as usize);
+            &self.bin[at..at + v.byte_length.0 as usize]
+        }
+
+        /// Mesh `m`'s (POSITION, NORMAL, COLOR_0, indices) accessors.
+        fn accessors(&self, m: usize) -> [usize; 4] {
+            let prim = &self.root.meshes[m].primitives[0];
+            let get = |s: json::mesh::Semantic| {
+                prim.attributes[&json::validation::Checked::Valid(s)].value()
+            };
+            [
+                get(json::mesh::Semantic::Positions),
+                get(json::mesh::Semantic::Normals),
+                get(json::mesh::Semantic::Colors(0)),
+                prim.indices.unwrap().value(),
+            ]
+        }
+
+        fn indices(&self, k: usize) -> Vec<u32> {
+            self.data(k)
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+                .collect()
+        }
+    }
+
     #[test]
     fn glb_is_valid_gltf_with_linear_colours() {
-        let (p, n, t, c) = quad();
-        let glb = to_glb(&p, &n, &t, &c, 0.0, ToneMap::Srgb).unwrap();
-        // Header.
-        assert_eq!(&glb[..4], b"glTF");
-        assert_eq!(u32_at(&glb, 4), 2);
-        assert_eq!(u32_at(&glb, 8) as usize, glb.len());
-        // JSON chunk: aligned, space-padded, parses with gltf-json and validates.
-        let json_len = u32_at(&glb, 12) as usize;
-        assert_eq!(&glb[16..20], b"JSON");
-        assert_eq!(json_len % 4, 0);
-        let text = &glb[20..20 + json_len];
-        assert!(
-            text.iter()
-                .rev()
-                .take_while(|&&b| b != b'}')
-                .all(|&b| b == b' '),
-            "JSON padding must be spaces"
-        );
-        let root = json::Root::from_slice(text).unwrap();
-        let mut errors = Vec::new();
-        json::validation::Validate::validate(
-            &root,
-            &root,
-            json::Path::new,
-            &mut |path: &dyn Fn() -> json::Path, e| errors.push(format!("{}: {e}", path())),
-        );
-        assert!(errors.is_empty(), "{errors:?}");
-        // BIN chunk: right after, aligned, the buffer's length.
-        let bin_at = 20 + json_len;
-        assert_eq!(bin_at % 4, 0);
-        let bin_len = u32_at(&glb, bin_at) as usize;
-        assert_eq!(&glb[bin_at + 4..bin_at + 8], b"BIN\0");
-        assert_eq!(bin_len % 4, 0);
-        assert_eq!(bin_at + 8 + bin_len, glb.len());
-        assert_eq!(root.buffers.len(), 1);
-        assert_eq!(root.buffers[0].byte_length.0 as usize, bin_len);
-        assert_eq!(bin_len, 4 * 36 + 2 * 12);
-        let bin = &glb[bin_at + 8..];
+        let q = quad();
+        let (p, _, _, _) = &q;
+        let glb = Glb::parse(&to_glb(&mesh(&q), 0.0, ToneMap::Srgb).unwrap());
+        let root = &glb.root;
+        assert_eq!(glb.bin.len(), 4 * 36 + 2 * 12);
 
-        // Accessors: counts, types, POSITION min/max.
+        // Without parts: one mesh and one node, both named "mesh".
         assert_eq!(root.accessors.len(), 4);
         assert_eq!(root.meshes.len(), 1);
         assert_eq!(root.nodes.len(), 1);
+        assert_eq!(glb.raw["nodes"][0]["name"], "mesh");
+        assert_eq!(glb.raw["meshes"][0]["name"], "mesh");
         assert_eq!(
             root.extensions_used,
             vec!["KHR_materials_unlit".to_string()]
         );
+        let [pos, nrm, col, idx] = glb.accessors(0);
+        let pos_a = &root.accessors[pos];
+        assert_eq!(pos_a.count.0, 4);
+        assert_eq!(pos_a.min, Some(serde_json::json!([0.0, 0.0, -0.5])));
+        assert_eq!(pos_a.max, Some(serde_json::json!([1.0, 2.0, 0.0])));
+        assert_eq!(root.accessors[nrm].count.0, 4);
+        assert_eq!(root.accessors[col].count.0, 4);
+        assert_eq!(root.accessors[idx].count.0, 6);
         let prim = &root.meshes[0].primitives[0];
-        let get = |s: json::mesh::Semantic| {
-            let k = prim.attributes[&json::validation::Checked::Valid(s)].value();
-            &root.accessors[k]
-        };
-        let pos = get(json::mesh::Semantic::Positions);
-        assert_eq!(pos.count.0, 4);
-        assert_eq!(pos.min, Some(serde_json::json!([0.0, 0.0, -0.5])));
-        assert_eq!(pos.max, Some(serde_json::json!([1.0, 2.0, 0.0])));
-        assert_eq!(get(json::mesh::Semantic::Normals).count.0, 4);
-        let col = get(json::mesh::Semantic::Colors(0));
-        assert_eq!(col.count.0, 4);
-        let idx = &root.accessors[prim.indices.unwrap().value()];
-        assert_eq!(idx.count.0, 6);
         let m = &root.materials[prim.material.unwrap().value()];
         assert!(m.extensions.as_ref().unwrap().unlit.is_some());
+        assert_eq!(m.pbr_metallic_roughness.metallic_factor.0, 0.0);
 
-        // Data: normals unit length, colours linear (no OETF), indices as given.
-        let view = |a: &json::Accessor| {
-            let v = &root.buffer_views[a.buffer_view.unwrap().value()];
-            let at = v.byte_offset.unwrap().0 as usize;
-            &bin[at..at + v.byte_length.0 as usize]
-        };
-        assert_eq!(f32s(view(pos)), p.concat());
-        assert_eq!(
-            f32s(view(get(json::mesh::Semantic::Normals)))[..3],
-            [0.0, 0.0, 1.0]
-        );
-        let colours = f32s(view(col));
+        // Data: positions as given (a metre scene), normals unit length, colours linear (no
+        // OETF), indices as given.
+        assert_eq!(f32s(glb.data(pos)), p.concat());
+        assert_eq!(f32s(glb.data(nrm))[..3], [0.0, 0.0, 1.0]);
+        let colours = f32s(glb.data(col));
         assert_eq!(colours[..3], [0.5, 0.5, 0.5]);
         assert_eq!(colours[3..6], [0.25, 0.5, 1.0]);
         assert_eq!(colours[9..12], [1.0, 1.0, 1.0]); // 2.0 clamped
-        let idx_bytes = view(idx);
-        let ids: Vec<u32> = idx_bytes
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
-            .collect();
-        assert_eq!(ids, [0, 1, 2, 0, 2, 3]);
+        assert_eq!(glb.indices(idx), [0, 1, 2, 0, 2, 3]);
 
         // Exposure +1 and the filmic curve: 0.5 · 2 = 1 → 0.8038 (still linear).
-        let glb = to_glb(&p, &n, &t, &c, 1.0, ToneMap::Filmic).unwrap();
-        let bin = &glb[glb.len() - bin_len..];
-        let col0 = f32s(&bin[96..108]);
+        let glb = Glb::parse(&to_glb(&mesh(&q), 1.0, ToneMap::Filmic).unwrap());
+        let col0 = f32s(glb.data(glb.accessors(0)[2]));
         assert!((col0[0] - 2.54 / 3.16).abs() < 1e-6, "{col0:?}");
     }
 
     #[test]
+    fn glb_positions_are_metres_and_ply_stays_in_scene_units() {
+        // A centimetre scene: 1 unit = 10 mm, so glTF positions are 0.01 × the scene's.
+        let q = quad();
+        let m = ExportMesh {
+            unit_mm: 10.0,
+            ..mesh(&q)
+        };
+        let glb = Glb::parse(&to_glb(&m, 0.0, ToneMap::Srgb).unwrap());
+        let [pos, nrm, _, _] = glb.accessors(0);
+        let want: Vec<f32> = q.0.concat().iter().map(|&x| x * 0.01).collect();
+        let got = f32s(glb.data(pos));
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() <= 1e-7, "{got:?} vs {want:?}");
+        }
+        // min/max are the written values (the specification requires them exact).
+        let a = &glb.root.accessors[pos];
+        assert_eq!(a.max, Some(serde_json::json!([got[3], got[7], got[2]])));
+        assert_eq!(a.min, Some(serde_json::json!([got[0], got[1], got[11]])));
+        // Normals are directions: unchanged.
+        assert_eq!(f32s(glb.data(nrm))[..3], [0.0, 0.0, 1.0]);
+        let generator = glb.raw["asset"]["generator"].as_str().unwrap();
+        assert!(generator.contains("1 scene unit = 10 mm"), "{generator}");
+
+        // A millimetre scene: × 0.001; a metre scene: bit for bit.
+        let m = ExportMesh {
+            unit_mm: 1.0,
+            ..mesh(&q)
+        };
+        let glb = Glb::parse(&to_glb(&m, 0.0, ToneMap::Srgb).unwrap());
+        assert!((f32s(glb.data(glb.accessors(0)[0]))[7] - 0.002).abs() < 1e-9);
+
+        // PLY keeps scene units and says so.
+        let m = ExportMesh {
+            unit_mm: 10.0,
+            ..mesh(&q)
+        };
+        let ply = to_ply(&m, 0.0, ToneMap::Srgb).unwrap();
+        let header = ply_header_in(4, 2, 0.0, ToneMap::Srgb, 10.0);
+        assert!(ply.starts_with(header.as_bytes()));
+        assert!(header.contains("comment translux: positions in scene units, 1 unit = 10 mm\n"));
+        assert_eq!(f32s(&ply[header.len() + 27..header.len() + 39]), q.0[1]);
+
+        let e = to_glb(
+            &ExportMesh {
+                unit_mm: 0.0,
+                ..mesh(&q)
+            },
+            0.0,
+            ToneMap::Srgb,
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("unit_mm must be finite and > 0"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn glb_has_one_named_mesh_and_node_per_part() {
+        // Two quads side by side (vertices 0–3 and 4–7) and a part without triangles.
+        let (mut p, mut n, mut t, mut c) = quad();
+        let q2 = quad();
+        p.extend(q2.0.iter().map(|v| [v[0] + 2.0, v[1], v[2]]));
+        n.extend(&q2.1);
+        t.extend(q2.2.iter().map(|t| t.map(|i| i + 4)));
+        c.extend(q2.3.iter().rev());
+        let parts = [
+            MeshPart {
+                name: "short_box".into(),
+                triangles: 0..2,
+            },
+            MeshPart {
+                name: "lamp".into(),
+                triangles: 2..2,
+            },
+            MeshPart {
+                name: "tall_block".into(),
+                triangles: 2..4,
+            },
+        ];
+        let m = ExportMesh {
+            parts: &parts,
+            ..ExportMesh::new(&p, &n, &t, &c)
+        };
+        let glb = Glb::parse(&to_glb(&m, 0.0, ToneMap::Srgb).unwrap());
+        // Every part is a node named after it, in order; the empty one has no mesh.
+        let names: Vec<&str> = glb.raw["nodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|n| n["name"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["short_box", "lamp", "tall_block"]);
+        assert!(glb.raw["nodes"][1].get("mesh").is_none());
+        assert_eq!(glb.raw["scenes"][0]["nodes"], serde_json::json!([0, 1, 2]));
+        assert_eq!(glb.root.meshes.len(), 2);
+        assert_eq!(glb.raw["meshes"][1]["name"], "tall_block");
+        assert_eq!(glb.raw["nodes"][2]["mesh"], 1);
+        // The buffer holds each vertex once, each triangle once.
+        assert_eq!(glb.bin.len(), 8 * 36 + 4 * 12);
+        // Each mesh has its own four vertices, indices rebased to them, its own colours.
+        for (mesh_k, first) in [(0, 0), (1, 4)] {
+            let [pos, _, col, idx] = glb.accessors(mesh_k);
+            assert_eq!(glb.root.accessors[pos].count.0, 4);
+            assert_eq!(f32s(glb.data(pos)), p[first..first + 4].concat());
+            let want: Vec<f32> = c[first..first + 4]
+                .iter()
+                .flat_map(|&r| linear_colour(r, 1.0, ToneMap::Srgb))
+                .collect();
+            assert_eq!(f32s(glb.data(col)), want);
+            assert_eq!(glb.indices(idx), [0, 1, 2, 0, 2, 3]);
+        }
+        // A vertex two parts share is written in each; unused vertices are left out.
+        let parts = [
+            MeshPart {
+                name: "a".into(),
+                triangles: 0..1,
+            },
+            MeshPart {
+                name: "b".into(),
+                triangles: 1..2,
+            },
+        ];
+        let q = quad();
+        let m = ExportMesh {
+            parts: &parts,
+            ..mesh(&q)
+        };
+        let glb = Glb::parse(&to_glb(&m, 0.0, ToneMap::Srgb).unwrap());
+        let [pos_b, _, _, idx_b] = glb.accessors(1);
+        assert_eq!(
+            f32s(glb.data(pos_b)),
+            [q.0[0], q.0[2], q.0[3]].concat(),
+            "part b uses vertices 0, 2, 3"
+        );
+        assert_eq!(glb.indices(idx_b), [0, 1, 2]);
+        // A part past the triangles is an error naming it.
+        let parts = [MeshPart {
+            name: "ghost".into(),
+            triangles: 1..3,
+        }];
+        let e = to_glb(
+            &ExportMesh {
+                parts: &parts,
+                ..mesh(&q)
+            },
+            0.0,
+            ToneMap::Srgb,
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("\"ghost\""), "{e}");
+    }
+
+    #[test]
     fn ply_header_is_exact_and_sizes_add_up() {
-        let (p, n, t, c) = quad();
-        let ply = to_ply(&p, &n, &t, &c, 0.0, ToneMap::Srgb).unwrap();
+        let q = quad();
+        let ply = to_ply(&mesh(&q), 0.0, ToneMap::Srgb).unwrap();
         let header = "ply\n\
                       format binary_little_endian 1.0\n\
                       comment translux: colours are sRGB-encoded B/pi, exposure 0 EV, tone srgb\n\
+                      comment translux: positions in scene units, 1 unit = 1000 mm\n\
                       element vertex 4\n\
                       property float x\n\
                       property float y\n\
@@ -538,6 +874,7 @@ mod tests {
                       property list uchar int vertex_indices\n\
                       end_header\n";
         assert!(ply.starts_with(header.as_bytes()));
+        assert_eq!(header, ply_header(4, 2, 0.0, ToneMap::Srgb));
         assert_eq!(ply.len(), header.len() + 4 * 27 + 2 * 13);
         let body = &ply[header.len()..];
         // Vertex 0: position, normal as given, then sRGB 188 for radiance 0.5.
@@ -560,7 +897,7 @@ mod tests {
             .collect();
         assert_eq!(ids, [0, 1, 2, 0, 2, 3]);
         // A different exposure changes the header line and the colours.
-        let ply = to_ply(&p, &n, &t, &c, -1.0, ToneMap::Filmic).unwrap();
+        let ply = to_ply(&mesh(&q), -1.0, ToneMap::Filmic).unwrap();
         let text = String::from_utf8_lossy(&ply[..200]);
         assert!(text.contains("exposure -1 EV, tone filmic"), "{text}");
     }
@@ -593,19 +930,25 @@ mod tests {
     #[test]
     fn bad_input_is_an_error() {
         let (p, n, t, c) = quad();
-        let e = to_glb(&p, &n[..3], &t, &c, 0.0, ToneMap::Srgb).unwrap_err();
+        let e = to_glb(&ExportMesh::new(&p, &n[..3], &t, &c), 0.0, ToneMap::Srgb).unwrap_err();
         assert!(e.to_string().contains("normals has 3 entries"), "{e}");
-        let e = to_ply(&p, &n, &[[0, 1, 4]], &c, 0.0, ToneMap::Srgb).unwrap_err();
+        let e = to_ply(
+            &ExportMesh::new(&p, &n, &[[0, 1, 4]], &c),
+            0.0,
+            ToneMap::Srgb,
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("triangles[0]"), "{e}");
-        let e = to_ply(&p, &n, &t, &c, f32::NAN, ToneMap::Srgb).unwrap_err();
+        let e = to_ply(&ExportMesh::new(&p, &n, &t, &c), f32::NAN, ToneMap::Srgb).unwrap_err();
         assert!(e.to_string().starts_with("exposure"), "{e}");
         let mut bad = c.clone();
         bad[2][1] = f32::INFINITY;
-        let e = to_glb(&p, &n, &t, &bad, 0.0, ToneMap::Srgb).unwrap_err();
+        let e = to_glb(&ExportMesh::new(&p, &n, &t, &bad), 0.0, ToneMap::Srgb).unwrap_err();
         assert!(e.to_string().contains("vertex_radiance[2]"), "{e}");
-        assert!(to_glb(&[], &[], &[], &[], 0.0, ToneMap::Srgb).is_err());
+        let empty = ExportMesh::new(&[], &[], &[], &[]);
+        assert!(to_glb(&empty, 0.0, ToneMap::Srgb).is_err());
         // An empty PLY is fine.
-        let ply = to_ply(&[], &[], &[], &[], 0.0, ToneMap::Srgb).unwrap();
+        let ply = to_ply(&empty, 0.0, ToneMap::Srgb).unwrap();
         assert_eq!(ply.len(), ply_header(0, 0, 0.0, ToneMap::Srgb).len());
     }
 }

@@ -9,6 +9,7 @@
 //!    geometry and the built-in scenes.
 //!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`);
 //!    [`orient`] turns closed parts wound inside out outward (`orientation`).
+//!    [`meshio`] picks a mesh file's format by extension and reads PLY and glTF 2.0.
 //! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
 //! 3. [`raycast`] — a BVH over the source triangles for occlusion queries.
 //! 4. [`formfactor`] — F with visibility, point-to-polygon, near-pair sub-sampling.
@@ -40,6 +41,7 @@ pub mod export;
 pub mod formfactor;
 pub mod hetero;
 pub mod inverse;
+pub mod meshio;
 pub mod orient;
 pub mod patch;
 pub mod pipeline;

@@ -123,6 +123,22 @@ pub enum PrecomputeError {
     )]
     TooManyPatches { requested: u64, pairs: f64 },
     #[error(
+        "the subsurface stage would need about {} (~{paths:.2e} stored optical paths in \
+         {object:?}, every patch pair within {radius:.4} scene units, {} bytes each while \
+         building, with F), more than the {} allowed; use fewer patches (simplify_to for a \
+         scanned mesh) or a less translucent profile",
+        human_bytes(*estimate),
+        smatrix::PEAK_BYTES_PER_PATH,
+        human_bytes(*limit)
+    )]
+    SubsurfaceOutOfMemory {
+        object: String,
+        paths: u64,
+        radius: f32,
+        estimate: u64,
+        limit: u64,
+    },
+    #[error(
         "{patches} patches would need about {} (F has ~{nnz:.2e} non-zeros, {bytes_per_nnz} \
          bytes each while building), more than the {} allowed; use fewer patches",
         human_bytes(*estimate),
@@ -465,6 +481,43 @@ pub fn precompute(
             .into());
         }
     }
+    // The subsurface stage comes after F (which it keeps) and can outgrow it: a large
+    // translucent object stores every path within its profile's radius. Refused up front.
+    let early: Vec<ObjectMaterial<'_>> = scene
+        .objects
+        .iter()
+        .zip(&patches.object_ranges)
+        .map(|(o, r)| ObjectMaterial {
+            name: &o.name,
+            material: &o.material,
+            patches: r.clone(),
+        })
+        .collect();
+    let paths = smatrix::estimate_paths(
+        &patches.centroid,
+        &early,
+        scene.file.unit_mm,
+        &params.subsurface,
+    )?;
+    let f_kept = (nnz_est * 8.0) as u64 + patches.len() as u64 * 200;
+    let path_total: u64 = paths.iter().map(|p| p.1).sum();
+    let subsurface_estimate =
+        f_kept.saturating_add(path_total.saturating_mul(smatrix::PEAK_BYTES_PER_PATH));
+    if subsurface_estimate > limit {
+        let (object, most, radius) = paths
+            .iter()
+            .max_by_key(|p| p.1)
+            .cloned()
+            .unwrap_or_default();
+        return Err(PrecomputeError::SubsurfaceOutOfMemory {
+            object,
+            paths: most,
+            radius,
+            estimate: subsurface_estimate,
+            limit,
+        });
+    }
+    let memory_estimate = memory_estimate.max(subsurface_estimate);
     if memory_estimate > limit {
         return Err(PrecomputeError::OutOfMemory {
             patches: patches.len() as u64,
@@ -480,7 +533,12 @@ pub fn precompute(
     stage_start(params, "bvh")?;
     let bar = stage_bar(progress, 1, "bvh");
     let occluder_tris: Vec<[Vec3; 3]> = sources.iter().flat_map(|s| s.iter().copied()).collect();
-    let occ = Occluder::new(&occluder_tris);
+    let owners: Vec<u32> = sources
+        .iter()
+        .enumerate()
+        .flat_map(|(k, s)| std::iter::repeat_n(k as u32, s.len()))
+        .collect();
+    let occ = Occluder::with_owners(&occluder_tris, &owners);
     bar.inc(1);
     finish(bar, progress, "bvh", t, &mut stages);
 
@@ -517,6 +575,7 @@ pub fn precompute(
     let environment = crate::envvis::stage(
         &patches.centroid,
         &patches.normal,
+        Some(&patches.object),
         &occ,
         &params.environment,
         &|k| bar.inc(k),
@@ -550,6 +609,19 @@ pub fn precompute(
     let (dist, dist_len, dist_kind, dist_reports) =
         smatrix::scene_distances(&geometry, &materials, &sources, &media, unit_mm, sp)?;
     bar.inc(1);
+    // The estimate was an upper bound; should the stored paths still outgrow the budget,
+    // stop here, before S (the larger half) is assembled.
+    let grown =
+        f_kept.saturating_add((dist.col.len() as u64).saturating_mul(smatrix::PEAK_BYTES_PER_PATH));
+    if grown > limit {
+        return Err(PrecomputeError::SubsurfaceOutOfMemory {
+            object: "all translucent objects".into(),
+            paths: dist.col.len() as u64,
+            radius: 0.0,
+            estimate: grown,
+            limit,
+        });
+    }
     let stored: Vec<f32> = materials
         .iter()
         .map(|o| {

@@ -4,7 +4,9 @@
 //! seen from the front: the front normal is (b − a) × (c − a), the winding every translux mesh
 //! uses), linear outgoing radiance B/π per vertex (what a relight answers), a pinhole
 //! [`Camera`] and [`RenderParams`]. Out: an [`RgbImage`] of `width × height` pixels, row 0 at
-//! the top; [`encode_png`] turns it into PNG bytes.
+//! the top; [`encode_png`] turns it into PNG bytes. [`render_linear`] stops before step 7 and
+//! gives the exposed linear radiance as an [`Rgb32FImage`], which [`encode_exr`] writes as
+//! OpenEXR (for compositing).
 //!
 //! The pipeline, per triangle and then per pixel:
 //!
@@ -43,7 +45,7 @@
 //! panics.
 
 use glam::Vec3;
-use image::RgbImage;
+use image::{Rgb32FImage, RgbImage};
 use rayon::prelude::*;
 use translux_proto::light::Camera;
 use translux_proto::validate::{FieldError, check_range, check_vec_range};
@@ -127,8 +129,8 @@ pub enum RenderError {
     /// array of the wrong length).
     #[error("bad mesh: {0}")]
     Mesh(String),
-    /// The PNG encoder failed.
-    #[error("cannot encode the PNG: {0}")]
+    /// The PNG or EXR encoder failed.
+    #[error("cannot encode the image: {0}")]
     Encode(String),
 }
 
@@ -267,6 +269,60 @@ pub fn render(
     camera: &Camera,
     params: &RenderParams,
 ) -> Result<RgbImage, RenderError> {
+    let scale = exposure_scale(params.exposure);
+    let background = params.background.map(|v| to_u8(srgb_oetf(v)));
+    let pixels = rasterize(
+        positions,
+        triangles,
+        vertex_radiance,
+        camera,
+        params,
+        |c| match c {
+            Some(c) => display_rgb8(c, scale, params.tone),
+            None => background,
+        },
+    )?;
+    RgbImage::from_raw(params.width, params.height, pixels)
+        .ok_or_else(|| RenderError::Encode("the pixel buffer does not match the size".into()))
+}
+
+/// Renders the mesh as [`render`] does but stops before display: each pixel is the linear
+/// radiance (B/π, W·m⁻²·sr⁻¹) × 2^`params.exposure`, with no tone curve and no OETF;
+/// pixels where no triangle is seen are `params.background` as given (linear, not exposed).
+/// `params.tone` is ignored. Same errors as [`render`]. For [`encode_exr`].
+pub fn render_linear(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+    camera: &Camera,
+    params: &RenderParams,
+) -> Result<Rgb32FImage, RenderError> {
+    let scale = exposure_scale(params.exposure);
+    let pixels = rasterize(
+        positions,
+        triangles,
+        vertex_radiance,
+        camera,
+        params,
+        |c| match c {
+            Some(c) => c.map(|v| v * scale),
+            None => params.background,
+        },
+    )?;
+    Rgb32FImage::from_raw(params.width, params.height, pixels)
+        .ok_or_else(|| RenderError::Encode("the pixel buffer does not match the size".into()))
+}
+
+/// Steps 1–6 of the module documentation, then `pixel` turns each pixel's interpolated
+/// linear radiance (`None` where no triangle is seen) into its 3 channels; row-major.
+fn rasterize<T: Copy + Default + Send>(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+    camera: &Camera,
+    params: &RenderParams,
+    pixel: impl Fn(Option<[f32; 3]>) -> [T; 3] + Sync,
+) -> Result<Vec<T>, RenderError> {
     params.validate()?;
     let (width, height) = (params.width, params.height);
     let view = frame(camera, width as f32 / height as f32)?;
@@ -299,11 +355,9 @@ pub fn render(
     }
 
     // 5–7: each band rasterizes its triangles into its own depth and colour buffers, then
-    // writes display values into its rows of the image.
-    let scale = exposure_scale(params.exposure);
-    let background = params.background.map(|v| to_u8(srgb_oetf(v)));
+    // writes `pixel`'s values into its rows of the image.
     let row_bytes = width as usize * 3;
-    let mut pixels = vec![0u8; row_bytes * height as usize];
+    let mut pixels = vec![T::default(); row_bytes * height as usize];
     pixels
         .par_chunks_mut(row_bytes * BAND_ROWS as usize)
         .zip(bins.par_iter())
@@ -325,16 +379,10 @@ pub fn render(
                 );
             }
             for (i, px) in out.chunks_exact_mut(3).enumerate() {
-                let rgb = if depth[i] > 0.0 {
-                    display_rgb8(colour[i], scale, params.tone)
-                } else {
-                    background
-                };
-                px.copy_from_slice(&rgb);
+                px.copy_from_slice(&pixel((depth[i] > 0.0).then_some(colour[i])));
             }
         });
-    RgbImage::from_raw(width, height, pixels)
-        .ok_or_else(|| RenderError::Encode("the pixel buffer does not match the size".into()))
+    Ok(pixels)
 }
 
 /// Indices in range, positions and radiance finite, one radiance per position.
@@ -529,6 +577,48 @@ fn raster(
     }
 }
 
+/// The luminance percentile [`auto_exposure`] exposes for.
+pub const AUTO_EXPOSURE_PERCENTILE: f64 = 0.95;
+
+/// The display value [`auto_exposure`] puts that percentile at.
+pub const AUTO_EXPOSURE_TARGET: f64 = 0.8;
+
+/// The exposure in EV stops that puts the 95th percentile of vertex luminance
+/// (0.2126 R + 0.7152 G + 0.0722 B, Rec. 709) near 0.8, rounded to 0.1 EV: what the viewer
+/// picks when it opens a scene. **This mirrors `autoExposure` in web/js/app.js**; change both
+/// together, so that a render, an export and the viewer agree on a scene's brightness.
+///
+/// Exactly as there: the percentile is the value at index ⌊0.95 n⌋ of the luminances sorted
+/// ascending, the sums are in f64 (JavaScript numbers), and the rounding is JavaScript's
+/// `Math.round` (halves toward +∞, so −2.45 → −2.4, where Rust's `round` gives −2.5). Where
+/// that luminance is not positive (no vertices, or under 5% of them lit) the viewer keeps
+/// its exposure of 0, and so does this. The answer is clamped to ±[`MAX_EXPOSURE`], the range
+/// renders and exports accept, which matters only for luminances under 2⁻⁶⁴.
+pub fn auto_exposure(vertex_radiance: &[[f32; 3]]) -> f32 {
+    let mut lum: Vec<f64> = vertex_radiance
+        .iter()
+        .map(|c| 0.2126 * f64::from(c[0]) + 0.7152 * f64::from(c[1]) + 0.0722 * f64::from(c[2]))
+        .collect();
+    if lum.is_empty() {
+        return 0.0;
+    }
+    // ⌊0.95 n⌋ < n for every n ≥ 1; only the one order statistic is needed, not a full sort.
+    let k = ((lum.len() as f64 * AUTO_EXPOSURE_PERCENTILE).floor() as usize).min(lum.len() - 1);
+    let (_, &mut p, _) = lum.select_nth_unstable_by(k, f64::total_cmp);
+    if !(p > 0.0 && p.is_finite()) {
+        return 0.0;
+    }
+    let tenths = (AUTO_EXPOSURE_TARGET / p).log2() * 10.0;
+    let rounded = js_round(tenths) / 10.0;
+    (rounded as f32).clamp(-MAX_EXPOSURE, MAX_EXPOSURE)
+}
+
+/// JavaScript's `Math.round`: the nearest integer, halves toward +∞.
+fn js_round(x: f64) -> f64 {
+    let down = x.floor();
+    if x - down >= 0.5 { down + 1.0 } else { down }
+}
+
 /// 2^ev: the factor an exposure of `ev` stops applies to radiance.
 pub fn exposure_scale(ev: f32) -> f32 {
     ev.exp2()
@@ -604,6 +694,26 @@ pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>, RenderError> {
     Ok(bytes)
 }
 
+/// The linear image as OpenEXR bytes: RGB, one part, no alpha, RLE-compressed, linear
+/// values as given (no transfer function). Written by the `image` crate's encoder (which
+/// writes through the `exr` crate); that encoder stores **32-bit float** channels (it has no
+/// half-float output) in 64 × 64 tiles, so the file is an f32 tiled EXR, which every EXR
+/// reader (OpenEXR, Nuke, Blender, `exr`) opens.
+pub fn encode_exr(img: &Rgb32FImage) -> Result<Vec<u8>, RenderError> {
+    use image::ImageEncoder;
+    use image::codecs::openexr::OpenExrEncoder;
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    OpenExrEncoder::new(&mut bytes)
+        .write_image(
+            bytemuck::cast_slice(img.as_raw()),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb32F,
+        )
+        .map_err(|e| RenderError::Encode(e.to_string()))?;
+    Ok(bytes.into_inner())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -670,6 +780,46 @@ mod tests {
             display_rgb8([0.25, 0.5, 1.0], 2.0, ToneMap::Srgb),
             [188, 255, 255]
         );
+    }
+
+    #[test]
+    fn auto_exposure_follows_the_viewers_rule() {
+        // 100 vertices of luminance k/100 (grey): index ⌊0.95 · 100⌋ = 95 holds 0.95, and
+        // log2(0.8 / 0.95) = −0.2479 → −0.2.
+        let grey: Vec<[f32; 3]> = (0..100).rev().map(|k| [k as f32 / 100.0; 3]).collect();
+        assert_eq!(auto_exposure(&grey), -0.2);
+        // Luminance weights: pure green 0.1 has luminance 0.07152; log2(0.8 / 0.07152) =
+        // 3.4834 → 3.5.
+        assert_eq!(auto_exposure(&[[0.0, 0.1, 0.0]; 7]), 3.5);
+        // A bright top 4% (past index 95 of 100) does not count; a top 5% does.
+        let mut v = vec![[0.1f32; 3]; 96];
+        v.extend([[1000.0; 3]; 4]);
+        assert_eq!(auto_exposure(&v), 3.0);
+        v[95] = [1000.0; 3];
+        assert_eq!(auto_exposure(&v), -10.3);
+        v[95] = [0.1; 3];
+        v.reverse(); // order does not matter
+        assert_eq!(auto_exposure(&v), 3.0);
+        // Halves round toward +∞, as JavaScript's Math.round does.
+        assert_eq!(js_round(-24.5), -24.0);
+        assert_eq!(js_round(24.5), 25.0);
+        assert_eq!(js_round(-24.6), -25.0);
+        // Nothing lit at the percentile, or nothing at all: 0, as the viewer keeps it.
+        assert_eq!(auto_exposure(&[]), 0.0);
+        let mut dark = vec![[0.0f32; 3]; 96];
+        dark.extend([[1.0; 3]; 4]);
+        assert_eq!(auto_exposure(&dark), 0.0);
+        // Clamped to what a render accepts.
+        assert_eq!(auto_exposure(&[[1e-30; 3]]), MAX_EXPOSURE);
+        assert_eq!(auto_exposure(&[[f32::MAX; 3]]), -MAX_EXPOSURE);
+        // The answer exposes the percentile to about 0.8 (within the 0.1 EV rounding).
+        let v: Vec<[f32; 3]> = (1..=1000)
+            .map(|k| [k as f32 * 0.37, k as f32, 0.1])
+            .collect();
+        let ev = auto_exposure(&v);
+        let p = 0.2126 * 951.0 * 0.37 + 0.7152 * 951.0 + 0.0722 * 0.1;
+        let shown = p * 2f64.powf(f64::from(ev));
+        assert!((shown / 0.8).log2().abs() <= 0.05 + 1e-6, "{ev} {shown}");
     }
 
     #[test]
@@ -791,6 +941,43 @@ mod tests {
             .to_rgb8();
         assert_eq!(back.dimensions(), (37, 23));
         assert_eq!(back.as_raw(), img.as_raw());
+    }
+
+    #[test]
+    fn linear_render_matches_the_png_and_round_trips_as_exr() {
+        let pos = facing_triangle(-2.0, 1.0);
+        let rad = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let p = RenderParams {
+            exposure: 1.5,
+            tone: ToneMap::Filmic,
+            background: [0.25, 0.5, 0.75],
+            ..params(37, 23)
+        };
+        let lin = render_linear(&pos, &[[0, 1, 2]], &rad, &cam(), &p).unwrap();
+        let png = render(&pos, &[[0, 1, 2]], &rad, &cam(), &p).unwrap();
+        let scale = exposure_scale(p.exposure);
+        let mut covered = 0;
+        for (l, d) in lin.pixels().zip(png.pixels()) {
+            if l.0 == p.background {
+                assert_eq!(d.0, p.background.map(|v| to_u8(srgb_oetf(v))));
+            } else {
+                covered += 1;
+                // The PNG pixel is the linear one (already × 2^EV) through tone and OETF.
+                assert_eq!(d.0, display_rgb8(l.0.map(|v| v / scale), scale, p.tone));
+            }
+        }
+        assert!(covered > 0);
+        // The centre is the exposed radiance, no tone curve: its channels sum to 2^1.5.
+        let c = lin.get_pixel(18, 11).0;
+        assert!((c.iter().sum::<f32>() - scale).abs() < 1e-4, "{c:?}");
+
+        let bytes = encode_exr(&lin).unwrap();
+        assert_eq!(&bytes[..4], &[0x76, 0x2f, 0x31, 0x01], "EXR magic");
+        let back = image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+            .unwrap()
+            .to_rgb32f();
+        assert_eq!(back.dimensions(), (37, 23));
+        assert_eq!(back.as_raw(), lin.as_raw());
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! Loading a scene: from a spec to validated objects with triangles in scene units.
 //!
 //! In: a spec — `builtin:NAME` or the path of a JSON scene file (see
-//! `translux_proto::scene`) whose OBJ meshes are given relative to the scene file's folder.
+//! `translux_proto::scene`) whose mesh files are given relative to the scene file's folder:
+//! OBJ (read here), PLY or glTF 2.0 (`.gltf`, `.glb`; read by [`crate::meshio`]), by
+//! extension. Media by OBJ material (`by_obj_material`) need an OBJ mesh.
 //! Out: a [`LoadedScene`]: the validated [`SceneFile`] and, per object, its material, crease
 //! angle and triangles in scene units with the object's transform applied (scale, then
 //! rotate about X, Y, Z, then translate). Geometry is never rescaled: `unit_mm` stays in
@@ -10,10 +12,10 @@
 //! Every failure is a [`SceneError`] whose message names the scene, and the field, or the
 //! object and the mesh file: `scenes/box.json: objects[1].material.albedo[0] must be finite
 //! and in [0, 1]`, `scenes/box.json: objects[2] "bunny": mesh file "bunny.obj"
-//! (scenes/bunny.obj): line 7: face index 99 is out of range (the file has 3 vertices)`.
+//! (scenes/bunny.obj) is not a valid OBJ: line 7: face index 99 is out of range (the file
+//! has 3 vertices)`.
 //! Bad input never panics.
 
-use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
@@ -22,6 +24,7 @@ use translux_proto::scene::{Material, MeshRef, ObjectDesc, Pattern, SceneFile, S
 use translux_proto::{FieldError, JsonError};
 
 use crate::builtin::{BUILTIN_SCENES, builtin_scene};
+use crate::meshio::{MeshError, MeshFormat};
 use crate::shapes::shape_triangles;
 
 /// Default crease angle between smoothed and creased edges (degrees).
@@ -112,9 +115,19 @@ pub enum SceneError {
         #[source]
         source: std::io::Error,
     },
-    /// An object's mesh file is not a valid OBJ (or holds unusable values).
-    #[error("{scene}: {object}: mesh file \"{mesh}\" ({}) is not a valid OBJ: {detail}", .path.display())]
+    /// An object's mesh file is not a valid file of its format (OBJ, PLY, glTF: by the
+    /// path's extension), or holds unusable values.
+    #[error("{scene}: {object}: mesh file \"{mesh}\" ({}) is not a valid {}: {detail}", .path.display(), format_name(.path))]
     MeshMalformed {
+        scene: String,
+        object: String,
+        mesh: String,
+        path: PathBuf,
+        detail: String,
+    },
+    /// An object's mesh file has no extension or one of no format translux reads.
+    #[error("{scene}: {object}: mesh file \"{mesh}\" ({}) {detail}", .path.display())]
+    MeshFormat {
         scene: String,
         object: String,
         mesh: String,
@@ -136,6 +149,11 @@ pub enum SceneError {
         object: String,
         mesh: String,
     },
+}
+
+/// `OBJ`, `PLY` or `glTF` for a mesh file's path (see [`MeshFormat::name`]).
+fn format_name(path: &Path) -> &'static str {
+    MeshFormat::from_path(path).map_or("mesh file", MeshFormat::name)
 }
 
 fn json_detail(e: &JsonError) -> String {
@@ -182,7 +200,7 @@ pub fn load_scene_file(path: &Path) -> Result<LoadedScene, SceneError> {
     resolve_scene(file, base_dir, name, scene)
 }
 
-/// Validates `file` and builds every object's triangles; OBJ paths are relative to
+/// Validates `file` and builds every object's triangles; mesh paths are relative to
 /// `base_dir`. `source` names the scene in error messages.
 pub fn resolve_scene(
     file: SceneFile,
@@ -241,8 +259,33 @@ fn load_object(
         }
         MeshRef::Path(rel) => {
             let path = base_dir.join(rel);
-            let (tris, groups) = load_obj_triangles(&path, media_names.is_some())
-                .map_err(|e| e.into_error(scene, &object, rel, path))?;
+            let format = MeshFormat::from_path(&path).map_err(|detail| SceneError::MeshFormat {
+                scene: scene.to_owned(),
+                object: object.clone(),
+                mesh: rel.clone(),
+                path: path.clone(),
+                detail,
+            })?;
+            if media_names.is_some() && format != MeshFormat::Obj {
+                return Err(SceneError::Invalid {
+                    scene: scene.to_owned(),
+                    error: FieldError::new(
+                        format!("objects[{index}].material.pattern"),
+                        format!(
+                            "by_obj_material reads the media from an OBJ mesh's `usemtl` \
+                             groups; mesh \"{rel}\" is {}, which has none translux reads \
+                             (convert it to OBJ with `usemtl` groups, or use another pattern)",
+                            format.name()
+                        ),
+                    ),
+                });
+            }
+            let loaded = match format {
+                MeshFormat::Obj => load_obj_triangles(&path, media_names.is_some()),
+                MeshFormat::Ply => crate::meshio::read_ply(&path).map(|t| (t, None)),
+                MeshFormat::Gltf => crate::meshio::read_gltf(&path).map(|t| (t, None)),
+            };
+            let (tris, groups) = loaded.map_err(|e| mesh_error(e, scene, &object, rel, path))?;
             if let (Some(names), Some(groups)) = (media_names, groups) {
                 face_material =
                     Some(
@@ -475,39 +518,30 @@ fn non_degenerate(tris: &[[Vec3; 3]]) -> Vec<bool> {
         .collect()
 }
 
-/// An OBJ loading failure before it is given the scene and object names.
-#[derive(Debug)]
-enum ObjError {
-    Missing,
-    Io(std::io::Error),
-    Malformed(String),
-}
-
-impl ObjError {
-    fn into_error(self, scene: &str, object: &str, mesh: &str, path: PathBuf) -> SceneError {
-        let (scene, object, mesh) = (scene.to_owned(), object.to_owned(), mesh.to_owned());
-        match self {
-            ObjError::Missing => SceneError::MeshMissing {
-                scene,
-                object,
-                mesh,
-                path,
-            },
-            ObjError::Io(source) => SceneError::MeshRead {
-                scene,
-                object,
-                mesh,
-                path,
-                source,
-            },
-            ObjError::Malformed(detail) => SceneError::MeshMalformed {
-                scene,
-                object,
-                mesh,
-                path,
-                detail,
-            },
-        }
+/// A mesh file's failure with the scene, the object and the file named.
+fn mesh_error(e: MeshError, scene: &str, object: &str, mesh: &str, path: PathBuf) -> SceneError {
+    let (scene, object, mesh) = (scene.to_owned(), object.to_owned(), mesh.to_owned());
+    match e {
+        MeshError::Missing => SceneError::MeshMissing {
+            scene,
+            object,
+            mesh,
+            path,
+        },
+        MeshError::Io(source) => SceneError::MeshRead {
+            scene,
+            object,
+            mesh,
+            path,
+            source,
+        },
+        MeshError::Malformed(detail) => SceneError::MeshMalformed {
+            scene,
+            object,
+            mesh,
+            path,
+            detail,
+        },
     }
 }
 
@@ -525,17 +559,11 @@ type ObjTriangles = (Vec<[Vec3; 3]>, Option<Vec<Option<String>>>);
 /// a library, so for `groups` the file is fed to it behind one synthetic line,
 /// `mtllib <GROUPS_LIBRARY>`, whose "library" (answered here, never read from disk) defines
 /// one empty material per `usemtl` name the file uses.
-fn load_obj_triangles(path: &Path, groups: bool) -> Result<ObjTriangles, ObjError> {
+fn load_obj_triangles(path: &Path, groups: bool) -> Result<ObjTriangles, MeshError> {
     /// The file name of the synthetic material library (a control character keeps it from
     /// ever naming a real file).
     const GROUPS_LIBRARY: &str = "\u{1}translux-usemtl-groups";
-    let file = File::open(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => ObjError::Missing,
-        _ => ObjError::Io(e),
-    })?;
-    if path.is_dir() {
-        return Err(ObjError::Io(std::io::Error::other("it is a directory")));
-    }
+    let file = crate::meshio::open(path)?;
     let options = tobj::LoadOptions {
         triangulate: true,
         ignore_points: true,
@@ -580,7 +608,7 @@ fn load_obj_triangles(path: &Path, groups: bool) -> Result<ObjTriangles, ObjErro
             Err(tobj::LoadError::GenericFailure)
         }
     })
-    .map_err(|e| ObjError::Malformed(explain_tobj_error(path, &e)))?;
+    .map_err(|e| MeshError::Malformed(explain_tobj_error(path, &e)))?;
     let mut tris = Vec::new();
     let mut face_groups = Vec::new();
     for model in &models {
@@ -592,18 +620,18 @@ fn load_obj_triangles(path: &Path, groups: bool) -> Result<ObjTriangles, ObjErro
         let group = model.mesh.material_id.and_then(|k| names.get(k).cloned());
         for idx in model.mesh.indices.chunks(3) {
             let [a, b, c] = idx else {
-                return Err(ObjError::Malformed(
+                return Err(MeshError::Malformed(
                     "a face has fewer than 3 vertices".to_owned(),
                 ));
             };
             let (Some(a), Some(b), Some(c)) = (vertex(*a), vertex(*b), vertex(*c)) else {
-                return Err(ObjError::Malformed(with_location(
+                return Err(MeshError::Malformed(with_location(
                     path,
                     "a face index is out of range".to_owned(),
                 )));
             };
             if !(a.is_finite() && b.is_finite() && c.is_finite()) {
-                return Err(ObjError::Malformed(with_location(
+                return Err(MeshError::Malformed(with_location(
                     path,
                     "a vertex coordinate is not a finite number".to_owned(),
                 )));
@@ -713,6 +741,7 @@ fn diagnose_obj(bytes: &[u8]) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::fs::File;
     use std::io::Write;
 
     const BUNNY: &str = concat!(
@@ -1262,5 +1291,670 @@ mod tests {
             .map(|v| v.y)
             .fold(f32::MAX, f32::min);
         assert!(low.abs() < 2e-3, "{low}");
+    }
+
+    // --- PLY and glTF meshes -----------------------------------------------------------
+
+    /// An axis-aligned box [0.5, 2.5] × [−1, 0] × [1, 1.5] (volume 1, area 7) as 8 corners
+    /// (corner k = x bit 0, y bit 1, z bit 2) and 6 outward quads.
+    fn box_mesh() -> (Vec<[f32; 3]>, Vec<[u32; 4]>) {
+        let corners = (0..8)
+            .map(|k| {
+                [
+                    [0.5, 2.5][k & 1],
+                    [-1.0, 0.0][(k >> 1) & 1],
+                    [1.0, 1.5][(k >> 2) & 1],
+                ]
+            })
+            .collect();
+        let quads = vec![
+            [0, 4, 6, 2],
+            [1, 3, 7, 5],
+            [0, 1, 5, 4],
+            [2, 6, 7, 3],
+            [0, 2, 3, 1],
+            [4, 5, 7, 6],
+        ];
+        (corners, quads)
+    }
+
+    fn obj_text(v: &[[f32; 3]], faces: &[Vec<u32>]) -> String {
+        let mut s = String::new();
+        for p in v {
+            s += &format!("v {} {} {}\n", p[0], p[1], p[2]);
+        }
+        for f in faces {
+            s += "f";
+            for i in f {
+                s += &format!(" {}", i + 1);
+            }
+            s += "\n";
+        }
+        s
+    }
+
+    fn ply_ascii(v: &[[f32; 3]], faces: &[Vec<u32>]) -> String {
+        let mut s = format!(
+            "ply\nformat ascii 1.0\ncomment a box\nelement vertex {}\nproperty float x\n\
+             property float y\nproperty float z\nproperty uchar red\nelement face {}\n\
+             property list uchar int vertex_indices\nend_header\n",
+            v.len(),
+            faces.len()
+        );
+        for p in v {
+            s += &format!("{} {} {} 200\n", p[0], p[1], p[2]);
+        }
+        for f in faces {
+            s += &f.len().to_string();
+            for i in f {
+                s += &format!(" {i}");
+            }
+            s += "\n";
+        }
+        s
+    }
+
+    /// Binary PLY: little endian with float coordinates, an extra `uchar` per vertex and
+    /// `int` indices; big endian with double coordinates, `uint` indices and a trailing
+    /// `edge` element (both only to be read past).
+    fn ply_binary(v: &[[f32; 3]], faces: &[Vec<u32>], big_endian: bool) -> Vec<u8> {
+        let (format, coord, index) = if big_endian {
+            ("binary_big_endian", "double", "uint")
+        } else {
+            ("binary_little_endian", "float", "int")
+        };
+        let extra = if big_endian {
+            ""
+        } else {
+            "property uchar quality\n"
+        };
+        let edges = if big_endian {
+            "element edge 1\nproperty int vertex1\nproperty int vertex2\n"
+        } else {
+            ""
+        };
+        let mut out = format!(
+            "ply\nformat {format} 1.0\nelement vertex {}\nproperty {coord} x\n\
+             property {coord} y\nproperty {coord} z\n{extra}element face {}\n\
+             property list uchar {index} vertex_indices\n{edges}end_header\n",
+            v.len(),
+            faces.len()
+        )
+        .into_bytes();
+        for p in v {
+            for c in p {
+                if big_endian {
+                    out.extend(f64::from(*c).to_be_bytes());
+                } else {
+                    out.extend(c.to_le_bytes());
+                }
+            }
+            if !big_endian {
+                out.push(7);
+            }
+        }
+        for f in faces {
+            out.push(f.len() as u8);
+            for i in f {
+                if big_endian {
+                    out.extend(i.to_be_bytes());
+                } else {
+                    out.extend((*i as i32).to_le_bytes());
+                }
+            }
+        }
+        if big_endian {
+            out.extend(0i32.to_be_bytes());
+            out.extend(1i32.to_be_bytes());
+        }
+        out
+    }
+
+    /// A binary glTF: the 12-byte header, the JSON chunk (padded with spaces) and the BIN
+    /// chunk (padded with zeros).
+    fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
+        let mut j = json.as_bytes().to_vec();
+        while !j.len().is_multiple_of(4) {
+            j.push(b' ');
+        }
+        let mut b = bin.to_vec();
+        while !b.len().is_multiple_of(4) {
+            b.push(0);
+        }
+        let mut out = b"glTF".to_vec();
+        out.extend(2u32.to_le_bytes());
+        out.extend(((12 + 8 + j.len() + 8 + b.len()) as u32).to_le_bytes());
+        out.extend((j.len() as u32).to_le_bytes());
+        out.extend(0x4E4F_534Au32.to_le_bytes());
+        out.extend(j);
+        out.extend((b.len() as u32).to_le_bytes());
+        out.extend(0x004E_4942u32.to_le_bytes());
+        out.extend(b);
+        out
+    }
+
+    /// The box's glTF buffer (8 float positions, then 36 u16 indices fanning each quad as
+    /// the other formats do) and a document using it through `buffer` (a JSON object
+    /// without `byteLength`, which is added).
+    fn box_gltf(buffer: &str) -> (String, Vec<u8>) {
+        let (v, quads) = box_mesh();
+        let mut bin = Vec::new();
+        for c in v.iter().flatten() {
+            bin.extend(c.to_le_bytes());
+        }
+        for q in &quads {
+            for i in [q[0], q[1], q[2], q[0], q[2], q[3]] {
+                bin.extend((i as u16).to_le_bytes());
+            }
+        }
+        let json = format!(
+            r#"{{
+  "asset": {{"version": "2.0"}},
+  "scene": 0,
+  "scenes": [{{"nodes": [0]}}],
+  "nodes": [{{"mesh": 0, "name": "box"}}],
+  "meshes": [{{"name": "Box", "primitives": [{{"attributes": {{"POSITION": 0}}, "indices": 1}}]}}],
+  "accessors": [
+    {{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+      "min": [0.5, -1, 1], "max": [2.5, 0, 1.5]}},
+    {{"bufferView": 1, "componentType": 5123, "count": 36, "type": "SCALAR"}}
+  ],
+  "bufferViews": [
+    {{"buffer": 0, "byteOffset": 0, "byteLength": 96}},
+    {{"buffer": 0, "byteOffset": 96, "byteLength": 72}}
+  ],
+  "buffers": [{}"byteLength": {}}}]
+}}"#,
+            buffer.trim_end_matches('}'),
+            bin.len()
+        );
+        (json, bin)
+    }
+
+    fn area_and_volume(tris: &[[Vec3; 3]]) -> (f64, f64) {
+        let area = tris
+            .iter()
+            .map(|[a, b, c]| 0.5 * f64::from((*b - *a).cross(*c - *a).length()))
+            .sum();
+        (area, crate::shapes::signed_volume(tris))
+    }
+
+    /// Loads `mesh` as object 1 of a scene (kept as wound), or returns the error message
+    /// (which names the scene file).
+    fn load_mesh(dir: &Path, mesh: &str) -> Result<Vec<[Vec3; 3]>, String> {
+        let text = scene_with(&format!("{mesh:?}"), GREY, r#", "orientation": "as_is""#);
+        let p = write(dir, "m.json", &text);
+        match load_scene_file(&p) {
+            Ok(s) => Ok(s.objects[1].triangles.clone()),
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.starts_with(&p.display().to_string()), "{msg}");
+                assert!(msg.contains("objects[1] \"thing\""), "{msg}");
+                Err(msg)
+            }
+        }
+    }
+
+    #[test]
+    fn the_same_box_as_obj_ply_and_gltf_loads_to_the_same_triangles() {
+        use base64::Engine as _;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let d = dir.path();
+        let (v, quads) = box_mesh();
+        let faces: Vec<Vec<u32>> = quads.iter().map(|q| q.to_vec()).collect();
+        write(d, "box.obj", &obj_text(&v, &faces));
+        write(d, "box.ply", &ply_ascii(&v, &faces));
+        std::fs::write(d.join("box-le.ply"), ply_binary(&v, &faces, false)).expect("write");
+        std::fs::write(d.join("box-be.PLY"), ply_binary(&v, &faces, true)).expect("write");
+        let (json, bin) = box_gltf("{}");
+        std::fs::write(d.join("box.glb"), glb(&json, &bin)).expect("write");
+        // .gltf with the buffer in a file beside it (its name percent-encoded) …
+        std::fs::write(d.join("box data.bin"), &bin).expect("write");
+        write(d, "box.gltf", &box_gltf(r#"{"uri": "box%20data.bin", }"#).0);
+        // … and embedded as a base64 data URI.
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&bin)
+        );
+        write(
+            d,
+            "embedded.GLTF",
+            &box_gltf(&format!(r#"{{"uri": "{uri}", }}"#)).0,
+        );
+
+        let reference = load_mesh(d, "box.obj").expect("the OBJ loads");
+        assert_eq!(reference.len(), 12);
+        let (area, volume) = area_and_volume(&reference);
+        assert!((area - 7.0).abs() < 1e-5, "{area}");
+        assert!((volume - 1.0).abs() < 1e-5, "{volume}");
+        for mesh in [
+            "box.ply",
+            "box-le.ply",
+            "box-be.PLY",
+            "box.glb",
+            "box.gltf",
+            "embedded.GLTF",
+        ] {
+            let tris = load_mesh(d, mesh).unwrap_or_else(|e| panic!("{mesh}: {e}"));
+            let (a, vol) = area_and_volume(&tris);
+            assert!(
+                (a - area).abs() < 1e-9 && (vol - volume).abs() < 1e-9,
+                "{mesh}"
+            );
+            assert_eq!(tris, reference, "{mesh}");
+        }
+    }
+
+    #[test]
+    fn gltf_node_transforms_and_strips_and_fans_are_applied() {
+        use base64::Engine as _;
+        // One triangle facing +Z, then a unit quad as a strip and as a fan.
+        let mut bin = Vec::new();
+        for c in [
+            [0f32, 0., 0.],
+            [1., 0., 0.],
+            [0., 1., 0.],
+            [0., 0., 0.],
+            [1., 0., 0.],
+            [0., 1., 0.],
+            [1., 1., 0.],
+            [0., 0., 0.],
+            [1., 0., 0.],
+            [1., 1., 0.],
+            [0., 1., 0.],
+        ]
+        .iter()
+        .flatten()
+        {
+            bin.extend(c.to_le_bytes());
+        }
+        let uri = base64::engine::general_purpose::STANDARD.encode(&bin);
+        let (s, c) = (45f32.to_radians().sin(), 45f32.to_radians().cos());
+        let doc = |scene: &str| {
+            format!(
+                r#"{{
+  "asset": {{"version": "2.0"}}, {scene}
+  "scenes": [{{"nodes": [0, 2]}}],
+  "nodes": [
+    {{"translation": [10, 0, 0], "children": [1]}},
+    {{"rotation": [0, {s}, 0, {c}], "scale": [2, 2, 2], "mesh": 0}},
+    {{"matrix": [-1,0,0,0, 0,1,0,0, 0,0,1,0, 0,5,0,1], "mesh": 0}},
+    {{"translation": [100, 0, 0], "mesh": 1}}
+  ],
+  "meshes": [
+    {{"primitives": [{{"attributes": {{"POSITION": 0}}}}]}},
+    {{"primitives": [{{"attributes": {{"POSITION": 1}}, "mode": 5}},
+                     {{"attributes": {{"POSITION": 2}}, "mode": 6}}]}}
+  ],
+  "accessors": [
+    {{"bufferView": 0, "byteOffset": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+      "min": [0, 0, 0], "max": [1, 1, 0]}},
+    {{"bufferView": 0, "byteOffset": 36, "componentType": 5126, "count": 4, "type": "VEC3",
+      "min": [0, 0, 0], "max": [1, 1, 0]}},
+    {{"bufferView": 0, "byteOffset": 84, "componentType": 5126, "count": 4, "type": "VEC3",
+      "min": [0, 0, 0], "max": [1, 1, 0]}}
+  ],
+  "bufferViews": [{{"buffer": 0, "byteLength": {n}}}],
+  "buffers": [{{"byteLength": {n}, "uri": "data:application/gltf-buffer;base64,{uri}"}}]
+}}"#,
+                n = bin.len()
+            )
+        };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let p = write(dir.path(), "nodes.gltf", &doc(r#""scene": 0,"#));
+        let tris = crate::meshio::read_gltf(&p).expect("loads");
+        // Only the default scene's nodes 0 (with child 1) and 2; node 3 is in no scene.
+        assert_eq!(tris.len(), 2, "{tris:?}");
+        let close = |a: Vec3, b: Vec3| a.distance(b) < 1e-5;
+        // Node 1 under node 0: scale 2, 90° about Y, then + (10, 0, 0) from its parent:
+        // (1, 0, 0) → (2, 0, 0) → (0, 0, −2) → (10, 0, −2).
+        let t = tris[0];
+        assert!(close(t[0], Vec3::new(10.0, 0.0, 0.0)), "{t:?}");
+        assert!(close(t[1], Vec3::new(10.0, 0.0, -2.0)), "{t:?}");
+        assert!(close(t[2], Vec3::new(10.0, 2.0, 0.0)), "{t:?}");
+        assert!((normal(&t) - Vec3::X).length() < 1e-5, "{t:?}");
+        // Node 2 mirrors x and lifts by 5: the corners swap so the face still faces +Z.
+        let t = tris[1];
+        assert!(close(t[0], Vec3::new(0.0, 5.0, 0.0)), "{t:?}");
+        assert!(close(t[1], Vec3::new(0.0, 6.0, 0.0)), "{t:?}");
+        assert!(close(t[2], Vec3::new(-1.0, 5.0, 0.0)), "{t:?}");
+        assert!((normal(&t) - Vec3::Z).length() < 1e-5, "{t:?}");
+
+        // No default scene: every root node (0, 2 and 3), with the strip and the fan, each
+        // a unit quad of two triangles facing +Z.
+        let p = write(dir.path(), "roots.gltf", &doc(""));
+        let tris = crate::meshio::read_gltf(&p).expect("loads");
+        assert_eq!(tris.len(), 6, "{tris:?}");
+        let quads = &tris[2..];
+        for t in quads {
+            assert!((normal(t) - Vec3::Z).length() < 1e-6, "{t:?}");
+            assert!(t.iter().all(|v| (100.0..=101.0).contains(&v.x)), "{t:?}");
+        }
+        let (area, _) = area_and_volume(quads);
+        assert!((area - 2.0).abs() < 1e-5, "{area}");
+        // Through a scene file, the scene's transform comes after the node's.
+        let text = scene_with(
+            "\"nodes.gltf\"",
+            GREY,
+            r#", "transform": {"translate": [0, 0, 1]}"#,
+        );
+        let p = write(dir.path(), "s.json", &text);
+        let s = load_scene_file(&p).expect("loads");
+        assert!(close(
+            s.objects[1].triangles[0][1],
+            Vec3::new(10.0, 0.0, -1.0)
+        ));
+    }
+
+    /// The Stanford bunny's OBJ (35,947 vertices, 69,451 faces) written as binary PLY.
+    fn bunny_as_binary_ply() -> Vec<u8> {
+        let text = std::fs::read_to_string(BUNNY).expect("the bunny (../shared/data)");
+        let mut v: Vec<[f32; 3]> = Vec::new();
+        let mut f: Vec<Vec<u32>> = Vec::new();
+        for line in text.lines() {
+            let mut w = line.split_whitespace();
+            match w.next() {
+                Some("v") => {
+                    let c: Vec<f32> = w.take(3).map(|x| x.parse().expect("number")).collect();
+                    v.push([c[0], c[1], c[2]]);
+                }
+                Some("f") => f.push(w.map(|x| x.parse::<u32>().expect("index") - 1).collect()),
+                _ => {}
+            }
+        }
+        assert_eq!((v.len(), f.len()), (35_947, 69_451));
+        ply_binary(&v, &f, false)
+    }
+
+    #[test]
+    fn the_bunny_as_binary_ply_loads_to_the_same_triangles_as_its_obj() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let p = dir.path().join("bunny.ply");
+        std::fs::write(&p, bunny_as_binary_ply()).expect("write");
+        let from_ply = crate::meshio::read_ply(&p).expect("the PLY loads");
+        let (from_obj, _) = load_obj_triangles(Path::new(BUNNY), false).expect("the OBJ loads");
+        assert_eq!(from_ply.len(), 69_451);
+        assert!(
+            from_ply == from_obj,
+            "the PLY's triangles differ from the OBJ's"
+        );
+        // Through a scene file, as the OBJ bunny does.
+        let text = scene_with("\"bunny.ply\"", GREY, "");
+        let s = load_scene_file(&write(dir.path(), "b.json", &text)).expect("loads");
+        let o = &s.objects[1];
+        assert_eq!(o.source_triangles, 69_451);
+        assert_eq!(o.triangles.len() + o.dropped_degenerate, 69_451);
+        assert!(!o.reoriented);
+    }
+
+    #[test]
+    fn bad_ply_files_name_the_file_and_the_problem() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let d = dir.path();
+        let (v, quads) = box_mesh();
+        let faces: Vec<Vec<u32>> = quads.iter().map(|q| q.to_vec()).collect();
+        let mut cases: Vec<(Vec<u8>, &str)> = Vec::new();
+        // Truncated binary: the last face cut short, and the file cut inside the vertices
+        // (8 × 13 bytes, then 6 × 17 bytes of faces).
+        let full = ply_binary(&v, &faces, false);
+        cases.push((
+            full[..full.len() - 3].to_vec(),
+            "ends early (truncated?): Unexpected end of file while reading binary element \
+             'face' (expected 6, got 5)",
+        ));
+        cases.push((full[..full.len() - 150].to_vec(), "element 'vertex'"));
+        let be = ply_binary(&v, &faces, true);
+        cases.push((be[..be.len() - 20].to_vec(), "ends early"));
+        // No faces at all: a point cloud.
+        let cloud = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+                     property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n";
+        cases.push((cloud.into(), "no `face` element"));
+        // A face index past the vertices, and a negative one.
+        let mut bad = faces.clone();
+        bad[2][1] = 99;
+        cases.push((
+            ply_ascii(&v, &bad).into(),
+            "face 2: vertex index 99 is out of range (the file has 8 vertices",
+        ));
+        cases.push((
+            ply_binary(&v, &bad, false),
+            "face 2: vertex index 99 is out of range",
+        ));
+        bad[2][1] = u32::MAX;
+        cases.push((
+            ply_binary(&v, &bad, true),
+            "face 2: vertex index 4294967295 is out of range",
+        ));
+        let mut bad = faces.clone();
+        bad[4].truncate(2);
+        cases.push((ply_ascii(&v, &bad).into(), "face 4 has 2 vertex indices"));
+        // Coordinates that are no number, or not finite.
+        let text = ply_ascii(&v, &faces).replace("\n2.5 0 1.5 200\n", "\n2.5 zero 1.5 200\n");
+        cases.push((text.into(), "zero"));
+        let text = ply_ascii(&v, &faces).replace("\n2.5 0 1.5 200\n", "\n2.5 1e39 1.5 200\n");
+        cases.push((text.into(), "vertex 7"));
+        // Headers without what a surface needs.
+        let text = ply_ascii(&v, &faces).replace("property float z\n", "");
+        cases.push((text.into(), "no `z` property"));
+        let text = ply_ascii(&v, &faces).replace("list uchar int", "list uchar float");
+        cases.push((text.into(), "floating-point"));
+        cases.push((b"solid box\nfacet normal 0 0 1\n".to_vec(), "PLY"));
+        cases.push((Vec::new(), "PLY"));
+        for (bytes, what) in cases {
+            std::fs::write(d.join("bad.ply"), &bytes).expect("write");
+            let msg = load_mesh(d, "bad.ply").expect_err("refused");
+            assert!(
+                msg.contains("mesh file \"bad.ply\"") && msg.contains("is not a valid PLY"),
+                "{msg}"
+            );
+            assert!(msg.contains(what), "wanted {what:?}: {msg}");
+            assert!(!msg.contains('\n'), "one line: {msg}");
+        }
+        // Faces declared but none there: no triangles.
+        let empty = ply_ascii(&v, &[]);
+        write(d, "empty.ply", &empty);
+        let msg = load_mesh(d, "empty.ply").expect_err("refused");
+        assert!(
+            msg.contains("empty.ply") && msg.contains("no triangles"),
+            "{msg}"
+        );
+        // Missing, and a directory.
+        let msg = load_mesh(d, "gone.ply").expect_err("refused");
+        assert!(
+            msg.contains("\"gone.ply\"") && msg.contains("not found"),
+            "{msg}"
+        );
+        std::fs::create_dir(d.join("dir.ply")).expect("mkdir");
+        let msg = load_mesh(d, "dir.ply").expect_err("refused");
+        assert!(
+            msg.contains("\"dir.ply\"") && msg.contains("directory"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn bad_gltf_files_name_the_file_and_the_problem() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let d = dir.path();
+        let (json, bin) = box_gltf("{}");
+        let glb_with = |from: &str, to: &str| {
+            assert!(json.contains(from), "{from}");
+            glb(&json.replacen(from, to, 1), &bin)
+        };
+        let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+            // The positions' accessor claims more than its view holds.
+            (
+                "bad.glb",
+                glb_with(r#""count": 8"#, r#""count": 80"#),
+                "accessor 0: 80 items from byte 0 run past the end of buffer view 0",
+            ),
+            (
+                "bad.glb",
+                glb_with(
+                    r#""bufferView": 1, "componentType": 5123"#,
+                    r#""bufferView": 1, "byteOffset": 70, "componentType": 5123"#,
+                ),
+                "indices accessor 1: 36 items from byte 70 run past",
+            ),
+            // A view past the end of the buffer.
+            (
+                "bad.glb",
+                glb_with(
+                    r#""byteOffset": 96, "byteLength": 72"#,
+                    r#""byteOffset": 160, "byteLength": 72"#,
+                ),
+                "runs past the end of buffer 0",
+            ),
+            // Positions of the wrong type, indices of a float type.
+            (
+                "bad.glb",
+                glb_with(
+                    r#""count": 8, "type": "VEC3""#,
+                    r#""count": 8, "type": "VEC2""#,
+                ),
+                "POSITION accessor 0 is Vec2",
+            ),
+            (
+                "bad.glb",
+                glb_with(r#""componentType": 5123"#, r#""componentType": 5126"#),
+                "indices accessor 1 is Scalar of F32",
+            ),
+            // A byteStride smaller than a position.
+            (
+                "bad.glb",
+                glb_with(
+                    r#""byteOffset": 0, "byteLength": 96"#,
+                    r#""byteOffset": 0, "byteLength": 96, "byteStride": 4"#,
+                ),
+                "byteStride 4",
+            ),
+            // POSITION names an accessor that does not exist (gltf-json would panic).
+            (
+                "bad.glb",
+                glb_with(r#""POSITION": 0"#, r#""POSITION": 7"#),
+                "names accessor 7, but the file has 2 accessors",
+            ),
+            // An index past the vertices.
+            (
+                "bad.glb",
+                {
+                    let mut b = bin.clone();
+                    b[96..98].copy_from_slice(&9u16.to_le_bytes());
+                    glb(&json, &b)
+                },
+                "vertex index 9 is out of range (POSITION has 8 vertices)",
+            ),
+            // Lines are no surface.
+            (
+                "bad.glb",
+                glb_with(r#""indices": 1}"#, r#""indices": 1, "mode": 1}"#),
+                "mesh 0 \"Box\" primitive 0: mode LINES draws no surface",
+            ),
+            // A node that is its own child.
+            (
+                "bad.glb",
+                glb_with(r#""name": "box"}"#, r#""name": "box", "children": [0]}"#),
+                "node 0 is reached twice",
+            ),
+            // The GLB says its buffer is the BIN chunk but has none.
+            ("bad.glb", glb(&json, &[]), "binary chunk"),
+            // Truncated and garbage containers, and bad JSON.
+            ("bad.glb", glb(&json, &bin)[..40].to_vec(), "GLB"),
+            ("bad.gltf", b"{\"asset\": ".to_vec(), "bad glTF JSON"),
+            ("bad.gltf", b"\x00\x01binary".to_vec(), "bad glTF JSON"),
+            // Validation: a required field missing.
+            (
+                "bad.gltf",
+                box_gltf(r#"{"uri": "box.bin", }"#)
+                    .0
+                    .replace(r#""min": [0.5, -1, 1], "#, "")
+                    .into_bytes(),
+                "min",
+            ),
+            // The buffer file beside the .gltf is missing, or short.
+            (
+                "bad.gltf",
+                box_gltf(r#"{"uri": "gone.bin", }"#).0.into_bytes(),
+                "buffer 0: file \"gone.bin\"",
+            ),
+            (
+                "bad.gltf",
+                box_gltf(r#"{"uri": "short.bin", }"#).0.into_bytes(),
+                "buffer 0 (file \"short.bin\") has 100 bytes but declares byteLength 168",
+            ),
+            (
+                "bad.gltf",
+                box_gltf(r#"{"uri": "data:application/octet-stream;base64,@@@", }"#)
+                    .0
+                    .into_bytes(),
+                "bad base64",
+            ),
+            (
+                "bad.gltf",
+                box_gltf(r#"{"uri": "https://example.com/box.bin", }"#)
+                    .0
+                    .into_bytes(),
+                "not a file path relative to the glTF file",
+            ),
+        ];
+        std::fs::write(d.join("box.bin"), &bin).expect("write");
+        std::fs::write(d.join("short.bin"), &bin[..100]).expect("write");
+        for (name, bytes, what) in cases {
+            std::fs::write(d.join(name), &bytes).expect("write");
+            let msg = load_mesh(d, name).expect_err("refused");
+            assert!(
+                msg.contains(&format!("mesh file \"{name}\""))
+                    && msg.contains("is not a valid glTF"),
+                "{msg}"
+            );
+            assert!(msg.contains(what), "wanted {what:?}: {msg}");
+        }
+        // A missing buffer file is named with its path.
+        write(d, "bad.gltf", &box_gltf(r#"{"uri": "gone.bin", }"#).0);
+        let msg = load_mesh(d, "bad.gltf").expect_err("refused");
+        assert!(
+            msg.contains(&d.join("gone.bin").display().to_string()) && msg.contains("not found"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn mesh_formats_go_by_extension_and_by_obj_material_needs_an_obj() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let d = dir.path();
+        let (v, quads) = box_mesh();
+        let faces: Vec<Vec<u32>> = quads.iter().map(|q| q.to_vec()).collect();
+        write(d, "box.stl", "solid box\n");
+        for mesh in ["box.stl", "box", "box.obj.bak"] {
+            let msg = load_mesh(d, mesh).expect_err("refused");
+            assert!(msg.contains(&format!("\"{mesh}\"")), "{msg}");
+            assert!(msg.contains(".obj, .ply, .gltf and .glb"), "{msg}");
+        }
+        assert!(
+            load_mesh(d, "box.stl")
+                .unwrap_err()
+                .contains("unknown mesh format \".stl\"")
+        );
+        // Case does not matter.
+        write(d, "BOX.Obj", &obj_text(&v, &faces));
+        assert_eq!(load_mesh(d, "BOX.Obj").expect("loads").len(), 12);
+        // PLY content under a .glb name is read as glTF, and says so.
+        write(d, "box.glb", &ply_ascii(&v, &faces));
+        let msg = load_mesh(d, "box.glb").expect_err("refused");
+        assert!(msg.contains("not a valid glTF"), "{msg}");
+
+        // Media by OBJ material need the OBJ's `usemtl` groups.
+        write(d, "box.ply", &ply_ascii(&v, &faces));
+        let material = r#"{"type": "heterogeneous",
+            "materials": [{"type": "dipole", "preset": "marble"},
+                          {"type": "dipole", "preset": "skin1"}],
+            "pattern": {"type": "by_obj_material", "names": ["a", "b"]}}"#;
+        let msg = error_of(d, &scene_with("\"box.ply\"", material, ""));
+        assert!(
+            msg.contains("objects[1].material.pattern")
+                && msg.contains("by_obj_material")
+                && msg.contains("\"box.ply\" is PLY"),
+            "{msg}"
+        );
     }
 }

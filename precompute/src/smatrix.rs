@@ -193,6 +193,63 @@ fn object_patches(g: &PatchGeometry, r: Range<usize>) -> ObjectPatches<'_> {
 /// kinds (both aligned with the CSR entries), and a report per translucent object.
 pub type SceneDistances = (CsrOwned<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
 
+/// Bytes the subsurface stage holds per stored path at its peak, counted from its buffers:
+/// the path as a row entry (column and length, 8) and its kind (4) while the rows are
+/// built, the same in the CSR they become (12), S's column and RGB value (16) and the
+/// assembly's row buffers (about as much again), rounded up. With
+/// [`estimate_paths`]'s upper bound this refused the unsimplified bunny as marble
+/// (69k patches: ~1.5e9 paths, ~93 GiB) at once; it used to run for 12 minutes and be
+/// killed by the kernel at 24 GB.
+pub const PEAK_BYTES_PER_PATH: u64 = 64;
+
+/// An upper bound on the paths stage 1 will store, per translucent (or heterogeneous)
+/// object, before any of it runs: each object's patch pairs whose centroids lie within
+/// its radius (an optical path is never shorter than the straight line), counted on up to
+/// 256 evenly spaced rows. `(object name, paths, radius)` in scene units. Thin sheets are
+/// not counted (their paths run along the sheet, two sides, far fewer).
+pub fn estimate_paths(
+    centroid: &[Vec3],
+    objects: &[ObjectMaterial<'_>],
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<Vec<(String, u64, f32)>, SError> {
+    use rayon::prelude::*;
+    let mut out = Vec::new();
+    for o in objects {
+        let profiles: Vec<Profile> = match o.material {
+            Material::Translucent { profile } => vec![profile.clone()],
+            Material::Heterogeneous { materials, .. } => materials.clone(),
+            _ => continue,
+        };
+        let mut wanted = 0.0f32;
+        for profile in &profiles {
+            let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
+                object: o.name.to_string(),
+                error,
+            })?;
+            wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+        }
+        let radius = wanted * params.radius_margin.max(1.0);
+        let cen = &centroid[o.patches.clone()];
+        let n = cen.len();
+        if n == 0 {
+            continue;
+        }
+        let rows = n.min(256);
+        let r2 = radius * radius;
+        let near: u64 = (0..rows)
+            .into_par_iter()
+            .map(|k| {
+                let c = cen[k * n / rows];
+                cen.iter().filter(|p| p.distance_squared(c) <= r2).count() as u64
+            })
+            .sum();
+        let paths = (near as f64 / rows as f64 * n as f64) as u64;
+        out.push((o.name.to_string(), paths, radius));
+    }
+    Ok(out)
+}
+
 /// Stage 1: optical distances of every translucent object (global indices; rows of other
 /// patches empty). `triangles[o]` are object o's source triangles (for the inside test).
 /// Also returns the kind of every stored distance (`dist_kind`: [`sheet::KIND_OPPOSITE`]

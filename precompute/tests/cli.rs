@@ -228,3 +228,222 @@ fn an_existing_folder_that_is_not_a_bundle_is_not_overwritten() {
     let n = Bundle::open(&out).unwrap().manifest().patch_count;
     assert!(n > 250, "{n}");
 }
+
+/// The memory guard covers the subsurface stage, not only F: the unsimplified bunny as one
+/// marble object has almost no F (a lone, nearly convex object sees little of itself) but
+/// stores every path within marble's radius, which grew to 24 GB and was killed by the
+/// kernel. It is now refused up front, naming the stage, the object and the figure.
+#[test]
+fn a_subsurface_stage_too_big_for_memory_is_refused_up_front() {
+    let dir = tempfile::tempdir().unwrap();
+    let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/stanford-bunny.obj");
+    assert!(
+        bunny.exists(),
+        "{} is missing (../shared/data)",
+        bunny.display()
+    );
+    write(
+        &dir.path().join("scene.json"),
+        &format!(
+            r#"{{"objects": [{{"name": "bunny", "mesh": {:?},
+                 "material": {{"type": "translucent",
+                              "profile": {{"type": "dipole", "preset": "marble"}}}}}}]}}"#,
+            bunny.display().to_string()
+        ),
+    );
+    let out = dir.path().join("bunny");
+    let t0 = std::time::Instant::now();
+    let o = precompute(&[
+        dir.path().join("scene.json").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--max-memory-gib",
+        "2",
+        "--quiet",
+    ]);
+    let t = text(&o);
+    assert!(!o.status.success(), "{t}");
+    assert!(
+        t.contains("the subsurface stage would need")
+            && t.contains("\"bunny\"")
+            && t.contains("GiB"),
+        "{t}"
+    );
+    assert!(!out.exists(), "a refused precompute left a bundle");
+    // Refused before any stage ran, not after minutes of work.
+    assert!(t0.elapsed().as_secs() < 60, "{:?}", t0.elapsed());
+}
+
+/// A binary little-endian PLY with float coordinates and `int` index lists.
+fn binary_ply(v: &[[f32; 3]], faces: &[&[u32]]) -> Vec<u8> {
+    let mut out = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\n\
+         property float y\nproperty float z\nelement face {}\n\
+         property list uchar int vertex_indices\nend_header\n",
+        v.len(),
+        faces.len()
+    )
+    .into_bytes();
+    for c in v.iter().flatten() {
+        out.extend(c.to_le_bytes());
+    }
+    for f in faces {
+        out.push(f.len() as u8);
+        for i in *f {
+            out.extend((*i as i32).to_le_bytes());
+        }
+    }
+    out
+}
+
+/// A binary glTF of a box from `lo` to `hi` (one node, u16 indices), written by hand: the
+/// 12-byte header, the JSON chunk padded with spaces, the BIN chunk.
+fn box_glb(lo: [f32; 3], hi: [f32; 3]) -> Vec<u8> {
+    let mut bin = Vec::new();
+    for k in 0..8 {
+        for (a, (l, h)) in lo.iter().zip(hi).enumerate() {
+            let c = if (k >> a) & 1 == 1 { h } else { *l };
+            bin.extend(c.to_le_bytes());
+        }
+    }
+    let quads = [
+        [0u16, 4, 6, 2],
+        [1, 3, 7, 5],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+    ];
+    for q in quads {
+        for i in [q[0], q[1], q[2], q[0], q[2], q[3]] {
+            bin.extend(i.to_le_bytes());
+        }
+    }
+    let json = format!(
+        r#"{{"asset": {{"version": "2.0"}}, "scene": 0, "scenes": [{{"nodes": [0]}}],
+  "nodes": [{{"mesh": 0}}],
+  "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}, "indices": 1}}]}}],
+  "accessors": [
+    {{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+      "min": {lo:?}, "max": {hi:?}}},
+    {{"bufferView": 1, "componentType": 5123, "count": 36, "type": "SCALAR"}}],
+  "bufferViews": [{{"buffer": 0, "byteLength": 96}},
+                  {{"buffer": 0, "byteOffset": 96, "byteLength": 72}}],
+  "buffers": [{{"byteLength": 168}}]}}"#
+    );
+    let mut j = json.into_bytes();
+    while !j.len().is_multiple_of(4) {
+        j.push(b' ');
+    }
+    let mut out = b"glTF".to_vec();
+    out.extend(2u32.to_le_bytes());
+    out.extend(((12 + 8 + j.len() + 8 + bin.len()) as u32).to_le_bytes());
+    out.extend((j.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(j);
+    out.extend((bin.len() as u32).to_le_bytes());
+    out.extend(b"BIN\0");
+    out.extend(bin);
+    out
+}
+
+#[test]
+fn a_scene_with_ply_and_glb_meshes_becomes_a_bundle() {
+    let dir = tempfile::tempdir().unwrap();
+    // The OBJ test's tetrahedron as binary PLY, and a box as .glb, on a floor.
+    let tet = binary_ply(
+        &[
+            [0.0, 0.0, 0.0],
+            [100.0, 0.0, 0.0],
+            [0.0, 0.0, 100.0],
+            [0.0, 100.0, 0.0],
+        ],
+        &[&[0, 1, 2], &[0, 3, 1], &[0, 2, 3], &[1, 3, 2]],
+    );
+    std::fs::write(dir.path().join("tet.ply"), tet).unwrap();
+    std::fs::write(
+        dir.path().join("block.glb"),
+        box_glb([60.0, 0.0, 20.0], [120.0, 50.0, 80.0]),
+    )
+    .unwrap();
+    write(
+        &dir.path().join("scene.json"),
+        r#"{
+          "unit_mm": 1,
+          "patches": {"target": 500},
+          "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [400, 400]},
+             "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+            {"name": "tet", "mesh": "tet.ply", "transform": {"translate": [-90, 0, -30]},
+             "material": {"type": "diffuse", "albedo": [0.8, 0.2, 0.2]}},
+            {"name": "block", "mesh": "block.glb",
+             "material": {"type": "diffuse", "albedo": [0.2, 0.2, 0.8]}}
+          ],
+          "lights": [{"type": "point", "position": [0, 300, 0], "intensity": [1, 1, 1]}]
+        }"#,
+    );
+    let out = dir.path().join("bundle");
+    let o = precompute(&[
+        dir.path().join("scene.json").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let b = Bundle::open(&out).unwrap();
+    let m = b.manifest();
+    let names: Vec<_> = m.objects.iter().map(|o| o.name.as_str()).collect();
+    assert_eq!(names, ["floor", "tet", "block"]);
+    assert!(m.form_factors.nnz > 0);
+}
+
+#[test]
+fn a_truncated_ply_or_a_gltf_without_its_buffer_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let tet = binary_ply(
+        &[
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0],
+        ],
+        &[&[0, 1, 2], &[0, 3, 1], &[0, 2, 3], &[1, 3, 2]],
+    );
+    std::fs::write(dir.path().join("cut.ply"), &tet[..tet.len() - 6]).unwrap();
+    write(
+        &dir.path().join("lost.gltf"),
+        r#"{"asset": {"version": "2.0"}, "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 0]}],
+            "bufferViews": [{"buffer": 0, "byteLength": 36}],
+            "buffers": [{"byteLength": 36, "uri": "lost.bin"}]}"#,
+    );
+    let out = dir.path().join("out");
+    for (mesh, problem) in [
+        ("cut.ply", "ends early"),
+        ("lost.gltf", "buffer 0: file \"lost.bin\""),
+        ("mesh.stl", "unknown mesh format \".stl\""),
+    ] {
+        write(
+            &dir.path().join("s.json"),
+            &format!(
+                r#"{{"objects":[{{"name":"thing","mesh":"{mesh}",
+                   "material":{{"type":"diffuse","albedo":[0.5,0.5,0.5]}}}}]}}"#
+            ),
+        );
+        let o = precompute(&[
+            dir.path().join("s.json").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(
+            t.contains("s.json") && t.contains("\"thing\"") && t.contains(mesh),
+            "{t}"
+        );
+        assert!(t.contains(problem), "wanted {problem:?}: {t}");
+        assert!(!t.contains("panicked"), "{t}");
+        assert!(!out.exists());
+    }
+}

@@ -137,6 +137,115 @@ impl std::str::FromStr for ToneMap {
     }
 }
 
+/// How bright a render or export is: a number of EV stops (radiance × 2^EV before the tone
+/// curve), or `"auto"`: the exposure the viewer picks, computed from the relit radiance
+/// (`translux_precompute::render::auto_exposure`: the 95th percentile of vertex luminance
+/// near 0.8, rounded to 0.1 EV). In JSON a number or the string `"auto"`; on the command
+/// line `auto` or a number.
+///
+/// ```
+/// use translux_proto::api::Exposure;
+/// assert_eq!(translux_proto::parse_json::<Exposure>("-1.5").unwrap(), Exposure::Ev(-1.5));
+/// assert_eq!(translux_proto::parse_json::<Exposure>(r#""auto""#).unwrap(), Exposure::Auto);
+/// assert_eq!("auto".parse::<Exposure>(), Ok(Exposure::Auto));
+/// assert_eq!("-2".parse::<Exposure>(), Ok(Exposure::Ev(-2.0)));
+/// assert_eq!(serde_json::to_string(&Exposure::Auto).unwrap(), r#""auto""#);
+/// ```
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub enum Exposure {
+    /// The viewer's automatic exposure for the relit scene (the default).
+    #[default]
+    Auto,
+    /// EV stops, as given (checked where used: finite and within ±64).
+    Ev(f32),
+}
+
+impl Exposure {
+    /// `Some(ev)` for a number, `None` for `auto`.
+    pub fn ev(self) -> Option<f32> {
+        match self {
+            Exposure::Auto => None,
+            Exposure::Ev(ev) => Some(ev),
+        }
+    }
+}
+
+impl From<f32> for Exposure {
+    fn from(ev: f32) -> Self {
+        Exposure::Ev(ev)
+    }
+}
+
+impl std::fmt::Display for Exposure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Exposure::Auto => f.write_str("auto"),
+            Exposure::Ev(ev) => write!(f, "{ev}"),
+        }
+    }
+}
+
+impl std::str::FromStr for Exposure {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim();
+        if s == "auto" {
+            return Ok(Exposure::Auto);
+        }
+        s.parse::<f32>()
+            .map(Exposure::Ev)
+            .map_err(|_| format!("exposure {s:?} is neither \"auto\" nor a number of EV stops"))
+    }
+}
+
+impl Serialize for Exposure {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Exposure::Auto => s.serialize_str("auto"),
+            Exposure::Ev(ev) => s.serialize_f32(*ev),
+        }
+    }
+}
+
+/// Hand-written rather than `#[serde(untagged)]`: untagged enums answer any mismatch with
+/// "data did not match any variant", which names neither choice.
+impl<'de> Deserialize<'de> for Exposure {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = Exposure;
+
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a number of EV stops or \"auto\"")
+            }
+
+            // Numbers become f32 as serde's own f32 does (`as`): out-of-range values turn
+            // infinite and are refused by the range check where the exposure is used.
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Exposure, E> {
+                Ok(Exposure::Ev(v as f32))
+            }
+
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Exposure, E> {
+                Ok(Exposure::Ev(v as f32))
+            }
+
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<Exposure, E> {
+                Ok(Exposure::Ev(v as f32))
+            }
+
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<Exposure, E> {
+                if v == "auto" {
+                    Ok(Exposure::Auto)
+                } else {
+                    Err(E::invalid_value(serde::de::Unexpected::Str(v), &self))
+                }
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
+}
+
 /// Default `width` of a render, in pixels.
 pub const DEFAULT_RENDER_WIDTH: u32 = 800;
 /// Default `height` of a render, in pixels.
@@ -144,7 +253,7 @@ pub const DEFAULT_RENDER_HEIGHT: u32 = 600;
 
 /// `POST /api/v1/scenes/{id}/render`: a relight request plus how to picture it; the answer
 /// is a PNG. Every field is optional; `{}` renders the bundle's default lights from its
-/// camera at 800 × 600.
+/// camera at 800 × 600, auto-exposed as the viewer would.
 ///
 /// The relight fields (`lights`, `materials`, `components`, `solver`) sit at the top level,
 /// next to the picture's, and mean what they mean in [`RelightRequest`];
@@ -154,12 +263,13 @@ pub const DEFAULT_RENDER_HEIGHT: u32 = 600;
 /// path in error messages. A test checks that every relight request is also a render request.
 ///
 /// ```
-/// use translux_proto::api::{RenderRequest, ToneMap};
+/// use translux_proto::api::{Exposure, RenderRequest, ToneMap};
 /// let req: RenderRequest = translux_proto::parse_json(
 ///     r#"{"components":"direct","width":320,"height":240,"tone":"filmic","exposure":1,
 ///         "camera":{"position":[0,0.3,1.3],"target":[0,0.3,0]}}"#,
 /// ).unwrap();
 /// assert_eq!((req.width, req.height, req.tone), (320, 240, ToneMap::Filmic));
+/// assert_eq!(req.exposure, Exposure::Ev(1.0));
 /// assert_eq!(req.relight().components.as_str(), "direct");
 /// assert!(translux_proto::parse_json::<RenderRequest>(r#"{"widht":3}"#).is_err());
 /// ```
@@ -185,9 +295,11 @@ pub struct RenderRequest {
     /// Pixels, 1..=8192.
     #[serde(default = "default_height")]
     pub height: u32,
-    /// EV stops: radiance × 2^exposure before the tone curve.
+    /// EV stops (radiance × 2^exposure before the tone curve), or `"auto"` (the default):
+    /// the viewer's automatic exposure for this relight. The answer's `X-Exposure` header
+    /// says which number was used.
     #[serde(default)]
-    pub exposure: f32,
+    pub exposure: Exposure,
     #[serde(default)]
     pub tone: ToneMap,
     /// Where nothing is seen: linear display RGB in [0, 1] (sRGB-encoded, not exposed or
@@ -220,7 +332,7 @@ impl Default for RenderRequest {
             camera: None,
             width: DEFAULT_RENDER_WIDTH,
             height: DEFAULT_RENDER_HEIGHT,
-            exposure: 0.0,
+            exposure: Exposure::Auto,
             tone: ToneMap::default(),
             background: [0.0; 3],
             cull_backfaces: true,
@@ -512,6 +624,53 @@ mod tests {
         };
         let back: RenderRequest = parse_json(&serde_json::to_string(&full).unwrap()).unwrap();
         assert_eq!(back, full);
+    }
+
+    #[test]
+    fn render_exposure_is_a_number_or_auto_and_auto_by_default() {
+        assert_eq!(
+            parse_json::<RenderRequest>("{}").unwrap().exposure,
+            Exposure::Auto
+        );
+        assert_eq!(RenderRequest::default().exposure, Exposure::Auto);
+        for (text, want) in [
+            (r#"{"exposure":"auto"}"#, Exposure::Auto),
+            (r#"{"exposure":-2.4}"#, Exposure::Ev(-2.4)),
+            (r#"{"exposure":3}"#, Exposure::Ev(3.0)),
+            (r#"{"exposure":0}"#, Exposure::Ev(0.0)),
+        ] {
+            let req = parse_json::<RenderRequest>(text).unwrap();
+            assert_eq!(req.exposure, want, "{text}");
+            // Round trip: auto as "auto", a number as a number.
+            let back: RenderRequest = parse_json(&serde_json::to_string(&req).unwrap()).unwrap();
+            assert_eq!(back, req);
+        }
+        let text = serde_json::to_string(&RenderRequest {
+            exposure: Exposure::Ev(-1.5),
+            ..Default::default()
+        })
+        .unwrap();
+        assert!(text.contains(r#""exposure":-1.5"#), "{text}");
+        // Anything else is refused at the field, naming both choices.
+        for bad in [
+            r#"{"exposure":"bright"}"#,
+            r#"{"exposure":null}"#,
+            r#"{"exposure":[1]}"#,
+        ] {
+            let e = parse_json::<RenderRequest>(bad).unwrap_err();
+            assert_eq!(e.path, "exposure", "{bad}: {e}");
+            assert!(
+                e.message.contains(r#"a number of EV stops or "auto""#),
+                "{e}"
+            );
+        }
+        // The command line's form.
+        assert_eq!("auto".parse::<Exposure>(), Ok(Exposure::Auto));
+        assert_eq!("-0.5".parse::<Exposure>(), Ok(Exposure::Ev(-0.5)));
+        assert!("bright".parse::<Exposure>().unwrap_err().contains("bright"));
+        assert_eq!(Exposure::Ev(-2.4).to_string(), "-2.4");
+        assert_eq!(Exposure::Auto.ev(), None);
+        assert_eq!(Exposure::from(1.0).ev(), Some(1.0));
     }
 
     #[test]

@@ -544,16 +544,41 @@ impl Default for OpenOptions {
     }
 }
 
-/// One mapped array file. An empty file cannot be mapped and has no mapping.
+/// Array files up to this size are read into memory when a bundle opens instead of being
+/// mapped: a private copy cannot change under the server, so truncating or rewriting such a
+/// file in place cannot bring the process down with `SIGBUS`. Larger arrays (F, S, T of a
+/// real scene: gigabytes) stay memory-mapped; see [`map_file`] for what that asks of
+/// operators.
+pub const COPY_ON_OPEN_BYTES: u64 = 16 << 20;
+
+/// One array file's bytes: mapped, or (small files) a private copy. An empty file has
+/// neither.
+#[derive(Debug)]
+enum ArrayBytes {
+    Empty,
+    Mapped(memmap2::Mmap),
+    /// `u64` words so the bytes are 8-aligned for every dtype; the length in bytes.
+    Copied(Vec<u64>, usize),
+}
+
 #[derive(Debug)]
 struct MappedArray {
     dtype: DType,
-    map: Option<memmap2::Mmap>,
+    data: ArrayBytes,
 }
 
 impl MappedArray {
     fn bytes(&self) -> &[u8] {
-        self.map.as_deref().unwrap_or(&[])
+        match &self.data {
+            ArrayBytes::Empty => &[],
+            ArrayBytes::Mapped(m) => m,
+            ArrayBytes::Copied(words, len) => &bytemuck::cast_slice(words)[..*len],
+        }
+    }
+
+    /// Whether the bytes are a private copy (not mapped).
+    fn is_copied(&self) -> bool {
+        matches!(self.data, ArrayBytes::Copied(..))
     }
 }
 
@@ -583,7 +608,10 @@ fn check_regular(path: &Path, name: &str) -> Result<(), BundleError> {
 /// are immutable once they are in place: the writer fills a temporary folder and renames it
 /// into place, and replaces a bundle by renaming the old folder aside before deleting it, so
 /// a mapped file is never written to. Editing a bundle's files by hand while a server maps
-/// them would break this assumption.
+/// them would break this assumption: operators must never truncate, rewrite or `cp` over
+/// a served bundle's files in place (replace the folder by a rename; deleting a file or
+/// the folder is safe, its pages stay until unmapped). Only arrays over
+/// [`COPY_ON_OPEN_BYTES`] are mapped; smaller ones are private copies.
 #[expect(
     unsafe_code,
     reason = "memory-mapping a file is unsafe; bundles are immutable once renamed into place"
@@ -734,8 +762,27 @@ fn map_array(
             expected: bytes,
         });
     }
-    let map = if got == 0 {
-        None
+    let data = if got == 0 {
+        ArrayBytes::Empty
+    } else if got <= COPY_ON_OPEN_BYTES {
+        use std::io::Read;
+        let len = got as usize;
+        let mut words = vec![0u64; len.div_ceil(8)];
+        let buf: &mut [u8] = bytemuck::cast_slice_mut(&mut words);
+        let mut reader = &file;
+        // `read_exact` fails if the file shrank since the length check.
+        reader.read_exact(&mut buf[..len]).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                BundleError::Truncated {
+                    file: file_name.to_string(),
+                    got: 0,
+                    expected: bytes,
+                }
+            } else {
+                io(e)
+            }
+        })?;
+        ArrayBytes::Copied(words, len)
     } else {
         let map = map_file(&file).map_err(io)?;
         if map.len() as u64 != bytes {
@@ -746,11 +793,11 @@ fn map_array(
                 expected: bytes,
             });
         }
-        Some(map)
+        ArrayBytes::Mapped(map)
     };
     let mapped = MappedArray {
         dtype: entry.dtype,
-        map,
+        data,
     };
     if verify_checksum {
         let sum = checksum(mapped.bytes());
@@ -1335,6 +1382,16 @@ impl Bundle {
         )
     }
 
+    /// Bytes of the arrays that are memory-mapped (those over [`COPY_ON_OPEN_BYTES`]); the
+    /// rest are private copies read when the bundle opened.
+    pub fn mapped_bytes(&self) -> u64 {
+        self.arrays
+            .values()
+            .filter(|a| !a.is_copied())
+            .map(|a| a.bytes().len() as u64)
+            .sum()
+    }
+
     /// Bytes on disk: `manifest.json` plus every array file it lists.
     pub fn total_bytes(&self) -> u64 {
         self.manifest_bytes + self.manifest.arrays.values().map(|e| e.bytes).sum::<u64>()
@@ -1793,6 +1850,31 @@ mod tests {
             e.starts_with("dist_kind.u32: shape [1] does not match"),
             "{e}"
         );
+    }
+
+    /// Small arrays are private copies: truncating one in place (what an operator must not
+    /// do, but might) changes nothing the server reads and cannot raise SIGBUS.
+    #[test]
+    fn small_arrays_survive_being_truncated_in_place() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = two_patches();
+        write(tmp.path(), m, &a);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert_eq!(b.mapped_bytes(), 0, "a tiny bundle is copied, not mapped");
+        for e in std::fs::read_dir(tmp.path()).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x != "json") {
+                std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(&p)
+                    .unwrap()
+                    .set_len(0)
+                    .unwrap();
+            }
+        }
+        let f = b.form_factors();
+        assert_eq!((f.get(0, 1), f.get(1, 0)), (0.25, 0.125));
+        assert_eq!(b.patch_areas(), &[0.5, 0.5]);
     }
 
     /// A FIFO where a bundle file should be: opening it for reading would block until a

@@ -84,12 +84,14 @@ impl MemoryBudget {
         }
     }
 
-    /// Marks `id` as used now.
+    /// Marks `id` as used now (if the budget knows it).
     pub fn touch(&self, id: &str) {
         let mut g = self.lock();
         g.clock += 1;
         let clock = g.clock;
-        g.scenes.entry(id.to_string()).or_default().last_use = clock;
+        if let Some(r) = g.scenes.get_mut(id) {
+            r.last_use = clock;
+        }
     }
 
     /// A request starts using `id` (it cannot be evicted until [`MemoryBudget::unpin`]).
@@ -102,10 +104,21 @@ impl MemoryBudget {
         r.last_use = clock;
     }
 
+    /// The request using `id` ended. An entry that holds no bytes and no pins is dropped, so
+    /// the table never outgrows the scenes that are resident or in use.
     pub fn unpin(&self, id: &str) {
-        if let Some(r) = self.lock().scenes.get_mut(id) {
+        let mut g = self.lock();
+        if let Some(r) = g.scenes.get_mut(id) {
             r.pins = r.pins.saturating_sub(1);
+            if r.pins == 0 && r.total() == 0 {
+                g.scenes.remove(id);
+            }
         }
+    }
+
+    /// Scenes the table holds (resident, or pinned by a request in flight).
+    pub fn tracked(&self) -> usize {
+        self.lock().scenes.len()
     }
 
     /// Scene `id` is no longer resident (evicted, deleted): its bytes are no longer counted.
@@ -229,6 +242,28 @@ mod tests {
         free.charge("a", "host", u64::MAX / 4);
         free.charge("b", "host", u64::MAX / 4);
         assert!(free.victims("a").is_empty());
+    }
+
+    /// Requests for ids that hold nothing (made-up ids from an attacker) must not grow the
+    /// table that every eviction scans.
+    #[test]
+    fn unknown_scene_ids_do_not_leak_budget_entries() {
+        let b = MemoryBudget::new(Some(1000));
+        b.charge("real", "host", 100);
+        for k in 0..10_000 {
+            let id = format!("nope{k}");
+            b.pin(&id);
+            b.touch(&id);
+            b.unpin(&id);
+            b.touch(&format!("other{k}"));
+        }
+        assert_eq!(b.tracked(), 1);
+        // A real scene pinned twice stays until both requests end, and keeps its bytes.
+        b.pin("real");
+        b.pin("real");
+        b.unpin("real");
+        b.unpin("real");
+        assert_eq!((b.tracked(), b.used()), (1, 100));
     }
 
     #[test]

@@ -19,7 +19,7 @@ use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
-use translux_proto::api::ToneMap;
+use translux_proto::api::{Exposure, ToneMap};
 use translux_proto::bundle::Bundle;
 
 use crate::config::{FileConfig, ServerParams};
@@ -185,8 +185,10 @@ pub struct RenderArgs {
     /// JSON render request (`-`: standard input); default `{}`: the bundle's lights and camera.
     #[arg(long, value_name = "REQ.json")]
     pub request: Option<PathBuf>,
-    /// The PNG to write.
-    #[arg(long, value_name = "FILE.png")]
+    /// The picture to write, by extension (any case): `.png` (8-bit sRGB, exposed and tone
+    /// mapped) or `.exr` (linear radiance B/π in W·m⁻²·sr⁻¹, 32-bit float RGB, no tone
+    /// curve; a numeric exposure scales it by 2^EV, `auto` leaves it unscaled).
+    #[arg(long, value_name = "FILE.png|FILE.exr")]
     pub out: PathBuf,
     /// Image width in pixels (1..=8192; default 800).
     #[arg(long)]
@@ -194,9 +196,10 @@ pub struct RenderArgs {
     /// Image height in pixels (1..=8192; default 600).
     #[arg(long)]
     pub height: Option<u32>,
-    /// Exposure in EV stops (radiance × 2^EV; default 0).
-    #[arg(long, allow_negative_numbers = true)]
-    pub exposure: Option<f32>,
+    /// Exposure: EV stops (radiance × 2^EV) or `auto` (the viewer's automatic exposure);
+    /// default: the request's `exposure`, else auto.
+    #[arg(long, value_name = "auto|EV", allow_negative_numbers = true)]
+    pub exposure: Option<Exposure>,
     /// Tone curve: srgb (clamp) or filmic (ACES fit); default srgb.
     #[arg(long, value_name = "srgb|filmic")]
     pub tone: Option<ToneMap>,
@@ -218,9 +221,10 @@ pub struct ExportArgs {
     /// The file to write: FILE.glb (binary glTF 2.0) or FILE.ply (binary PLY).
     #[arg(long, value_name = "FILE.glb|FILE.ply")]
     pub out: PathBuf,
-    /// Exposure in EV stops applied to the baked colours.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0)]
-    pub exposure: f32,
+    /// Exposure of the baked colours: EV stops or `auto` (the viewer's automatic exposure
+    /// for this relight); default auto.
+    #[arg(long, value_name = "auto|EV", allow_negative_numbers = true)]
+    pub exposure: Option<Exposure>,
     /// Tone curve for the baked colours: srgb (clamp) or filmic (ACES fit); default srgb.
     #[arg(long, value_name = "srgb|filmic")]
     pub tone: Option<ToneMap>,
@@ -366,7 +370,16 @@ pub async fn run(
     crate::serve_router(listener, state, app, shutdown)
         .await
         .context("the server failed")?;
-    jobs.close();
+    let settled = tokio::task::spawn_blocking(move || {
+        jobs.close_and_wait(std::time::Duration::from_secs(30))
+    })
+    .await
+    .unwrap_or(false);
+    if !settled {
+        tracing::warn!(
+            "a precompute job did not stop within 30 s; it is marked failed on the next start"
+        );
+    }
     tracing::info!("stopped");
     Ok(())
 }
@@ -569,7 +582,7 @@ mod tests {
         assert_eq!(r.bundle, PathBuf::from("b/cornell"));
         assert_eq!(r.out, PathBuf::from("x.png"));
         assert_eq!((r.width, r.height), (Some(64), None));
-        assert_eq!(r.exposure, Some(-1.5));
+        assert_eq!(r.exposure, Some(Exposure::Ev(-1.5)));
         assert_eq!(r.tone, Some(ToneMap::Filmic));
         assert!(r.request.is_none());
 
@@ -588,7 +601,35 @@ mod tests {
             panic!("{a:?}")
         };
         assert_eq!(e.request, Some(PathBuf::from("r.json")));
-        assert_eq!((e.exposure, e.tone), (0.0, None));
+        assert_eq!((e.exposure, e.tone), (None, None));
+        let a = Args::try_parse_from([
+            "translux-server",
+            "export",
+            "--bundle",
+            "b",
+            "--out",
+            "m.glb",
+            "--exposure",
+            "auto",
+        ])
+        .unwrap();
+        let Some(Command::Export(e)) = a.command else {
+            panic!("{a:?}")
+        };
+        assert_eq!(e.exposure, Some(Exposure::Auto));
+        let e = Args::try_parse_from([
+            "translux-server",
+            "render",
+            "--bundle",
+            "b",
+            "--out",
+            "x.png",
+            "--exposure",
+            "bright",
+        ])
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("bright") && e.contains("auto"), "{e}");
 
         let a = Args::try_parse_from([
             "translux-server",

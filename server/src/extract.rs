@@ -10,6 +10,7 @@ use axum::http::{HeaderMap, HeaderValue};
 use serde::de::DeserializeOwned;
 
 use crate::error::AppError;
+use crate::picture::PictureFormat;
 
 /// Largest request body accepted, in bytes (1 MiB).
 pub const BODY_LIMIT: usize = 1 << 20;
@@ -211,9 +212,12 @@ pub fn negotiate(headers: &HeaderMap) -> Result<Format, AppError> {
     }
 }
 
-/// Whether `Accept` allows `image/png` (the render endpoint's only format): absent, empty,
-/// or an entry `image/png`, `image/*` or `*/*` with q > 0; otherwise 406.
-pub fn accept_png(headers: &HeaderMap) -> Result<(), AppError> {
+/// The render endpoint's format from `Accept`: `image/x-exr` → OpenEXR; `image/png`,
+/// `image/*`, `*/*`, an absent or empty `Accept` → PNG. The highest `q` (> 0) wins; on a tie
+/// an exact type beats a wildcard, then the earlier entry. Nothing acceptable → 406 naming
+/// both types.
+pub fn accept_picture(headers: &HeaderMap) -> Result<PictureFormat, AppError> {
+    let mut best: Option<(f32, u8, PictureFormat)> = None;
     let mut seen = Vec::new();
     for value in headers.get_all(ACCEPT) {
         let Ok(value) = value.to_str() else {
@@ -233,19 +237,29 @@ pub fn accept_png(headers: &HeaderMap) -> Result<(), AppError> {
                     q = v.trim().parse().unwrap_or(0.0);
                 }
             }
-            if q > 0.0 && matches!(media.as_str(), "image/png" | "image/*" | "*/*") {
-                return Ok(());
-            }
+            let candidate = match media.as_str() {
+                "image/png" => Some((2, PictureFormat::Png)),
+                "image/x-exr" => Some((2, PictureFormat::Exr)),
+                "image/*" | "*/*" => Some((1, PictureFormat::Png)),
+                _ => None,
+            };
             seen.push(media);
+            if let Some((specificity, format)) = candidate
+                && q > 0.0
+                && best.is_none_or(|(bq, bs, _)| q > bq || (q == bq && specificity > bs))
+            {
+                best = Some((q, specificity, format));
+            }
         }
     }
-    if seen.is_empty() {
-        return Ok(());
+    match best {
+        Some((_, _, f)) => Ok(f),
+        None if seen.is_empty() => Ok(PictureFormat::Png),
+        None => Err(AppError::not_acceptable(format!(
+            "Accept: {} is not available; this endpoint answers image/png or image/x-exr",
+            seen.join(", ")
+        ))),
     }
-    Err(AppError::not_acceptable(format!(
-        "Accept: {} is not available; this endpoint answers image/png",
-        seen.join(", ")
-    )))
 }
 
 #[cfg(test)]
@@ -283,26 +297,43 @@ mod tests {
     }
 
     #[test]
-    fn png_acceptance() {
-        let accept_png_for = |v: &str| {
+    fn picture_acceptance() {
+        let pick = |v: &str| {
             let mut h = HeaderMap::new();
             h.insert(ACCEPT, HeaderValue::from_str(v).unwrap());
-            accept_png(&h)
+            accept_picture(&h)
         };
-        assert!(accept_png(&HeaderMap::new()).is_ok());
+        assert_eq!(accept_picture(&HeaderMap::new()), Ok(PictureFormat::Png));
         for ok in [
             "image/png",
             "image/*",
             "*/*",
             "text/html, image/png;q=0.5",
             "",
+            "image/x-exr;q=0.5, image/png",
+            "*/*, image/x-exr;q=0",
         ] {
-            assert!(accept_png_for(ok).is_ok(), "{ok}");
+            assert_eq!(pick(ok), Ok(PictureFormat::Png), "{ok}");
         }
-        for bad in ["application/json", "image/png;q=0", "image/jpeg"] {
-            let e = accept_png_for(bad).unwrap_err();
+        for exr in [
+            "image/x-exr",
+            "Image/X-EXR",
+            "image/png;q=0.5, image/x-exr",
+            "*/*, image/x-exr",
+            "image/*;q=1, image/x-exr",
+        ] {
+            assert_eq!(pick(exr), Ok(PictureFormat::Exr), "{exr}");
+        }
+        for bad in [
+            "application/json",
+            "image/png;q=0",
+            "image/jpeg",
+            "image/x-exr;q=0",
+        ] {
+            let e = pick(bad).unwrap_err();
             assert_eq!(e.status.as_u16(), 406, "{bad}");
             assert!(e.message.contains("image/png"), "{e}");
+            assert!(e.message.contains("image/x-exr"), "{e}");
         }
     }
 

@@ -524,6 +524,28 @@ impl Jobs {
         self.inner.wake.notify_all();
     }
 
+    /// [`Jobs::close`], then waits up to `limit` for running jobs to stop (they check for
+    /// cancellation between form-factor rows and before each stage), so a graceful stop
+    /// leaves every record final (`cancelled`), never `running`. Returns whether all did.
+    pub fn close_and_wait(&self, limit: std::time::Duration) -> bool {
+        self.close();
+        let t0 = Instant::now();
+        loop {
+            let busy = self
+                .table()
+                .jobs
+                .values()
+                .any(|e| !e.lock().state.is_final());
+            if !busy {
+                return true;
+            }
+            if t0.elapsed() >= limit {
+                return false;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+
     /// The next job to run: among queued jobs, the owner with the fewest running jobs, then
     /// the oldest.
     fn next(&self) -> Option<Arc<Entry>> {
@@ -820,6 +842,46 @@ mod tests {
         assert!((last - 100.0).abs() < 1e-9, "{last}");
         let subsurface = overall_percent("subsurface", 1.0).unwrap();
         assert!(subsurface < 95.0, "{subsurface}");
+    }
+
+    /// A graceful stop must leave no job `running`: `close_and_wait` cancels the running
+    /// precompute and returns once its record is final.
+    #[test]
+    fn a_graceful_stop_leaves_no_job_running() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = JobsConfig::in_bundles(dir.path());
+        let (jobs, _) = Jobs::start(cfg.clone(), Arc::new(|_: &str, _: &Path| {})).unwrap();
+        let id = Jobs::new_id();
+        let upload = cfg.uploads_dir.join(&id);
+        std::fs::create_dir_all(&upload).unwrap();
+        let scene = upload.join("s.json");
+        std::fs::write(
+            &scene,
+            r#"{"objects": [{"name": "ball", "mesh": {"shape": "sphere", "radius": 1},
+                 "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}"#,
+        )
+        .unwrap();
+        jobs.submit(JobSpec {
+            id: id.clone(),
+            scene: "ball".into(),
+            owner: "alice".into(),
+            scene_file: scene,
+            patches: Some(40_000),
+            max_edge: None,
+        })
+        .unwrap();
+        let t0 = Instant::now();
+        while jobs.get(&id).unwrap().state != JobState::Running {
+            assert!(t0.elapsed().as_secs() < 60, "the job never started");
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        assert!(jobs.close_and_wait(std::time::Duration::from_secs(60)));
+        let r = jobs.get(&id).unwrap();
+        assert!(r.state.is_final() && r.state != JobState::Done, "{r:?}");
+        assert!(
+            !dir.path().join("ball").exists(),
+            "a cancelled job left a bundle"
+        );
     }
 
     #[test]

@@ -77,25 +77,106 @@ pub async fn serve(
     serve_router(listener, state, app, shutdown).await
 }
 
+/// How long a client may take to send a request's head; a connection that sends half a
+/// header and stops is closed after this (hyper's header-read timeout).
+pub const HEADER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(15);
+/// The longest pause allowed between two pieces of a request body (an upload that stalls
+/// is answered 408 and closed, instead of holding a connection forever).
+pub const BODY_IDLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+/// After shutdown begins, requests in flight get this long to finish; connections still
+/// open then are closed, so a stop always ends.
+pub const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(20);
+
 /// [`serve`] with a router built on `state` by the caller (the team routes of
 /// [`team::app`] around [`router`]).
+///
+/// The accept loop is written here rather than with `axum::serve`, which offers no
+/// header-read timeout: HTTP/1.1 connections (with upgrades, for WebSockets) from hyper's
+/// own builder with [`HEADER_TIMEOUT`], the body idle timeout of `tower-http`, and a
+/// graceful stop bounded by [`SHUTDOWN_GRACE`].
 pub async fn serve_router(
     listener: tokio::net::TcpListener,
     state: AppState,
     app: axum::Router,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    let signal_state = state.clone();
-    let result = axum::serve(
-        listener,
-        app.into_make_service_with_connect_info::<std::net::SocketAddr>(),
-    )
-    .with_graceful_shutdown(async move {
-        shutdown.await;
-        signal_state.begin_shutdown();
+    use axum::extract::ConnectInfo;
+    use hyper_util::rt::{TokioIo, TokioTimer};
+    use tower::ServiceExt;
+
+    let app = routes::with_request_log(app, state.clone()).layer(
+        tower_http::timeout::RequestBodyTimeoutLayer::new(BODY_IDLE_TIMEOUT),
+    );
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut connections = tokio::task::JoinSet::new();
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        tokio::select! {
+            () = &mut shutdown => break,
+            Some(_) = connections.join_next(), if !connections.is_empty() => {}
+            accepted = listener.accept() => {
+                let (stream, addr) = match accepted {
+                    Ok(x) => x,
+                    Err(e) => {
+                        // Out of file descriptors and the like: wait a little, keep serving.
+                        tracing::warn!("accepting a connection failed: {e}");
+                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                        continue;
+                    }
+                };
+                let _ = stream.set_nodelay(true);
+                let app = app.clone();
+                let mut stop = stop_rx.clone();
+                connections.spawn(async move {
+                    let service = hyper::service::service_fn(
+                        move |mut req: hyper::Request<hyper::body::Incoming>| {
+                            req.extensions_mut().insert(ConnectInfo(addr));
+                            app.clone().oneshot(req.map(axum::body::Body::new))
+                        },
+                    );
+                    let mut builder = hyper::server::conn::http1::Builder::new();
+                    builder.timer(TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT);
+                    let conn = builder
+                        .serve_connection(TokioIo::new(stream), service)
+                        .with_upgrades();
+                    let mut conn = std::pin::pin!(conn);
+                    let mut stopping = false;
+                    loop {
+                        tokio::select! {
+                            result = conn.as_mut() => {
+                                if let Err(e) = result {
+                                    tracing::debug!("connection from {addr}: {e}");
+                                }
+                                break;
+                            }
+                            changed = stop.wait_for(|s| *s), if !stopping => {
+                                stopping = true;
+                                if changed.is_ok() {
+                                    conn.as_mut().graceful_shutdown();
+                                }
+                            }
+                        }
+                    }
+                });
+            }
+        }
+    }
+    drop(listener);
+    state.begin_shutdown();
+    let _ = stop_tx.send(true);
+    let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
+        while connections.join_next().await.is_some() {}
     })
     .await;
+    if drained.is_err() {
+        tracing::warn!(
+            "{} connections still open {} s after the stop began; closing them",
+            connections.len(),
+            SHUTDOWN_GRACE.as_secs()
+        );
+        connections.abort_all();
+    }
     let pool = state.pool().clone();
     let _ = tokio::task::spawn_blocking(move || pool.join()).await;
-    result
+    Ok(())
 }

@@ -17,6 +17,7 @@
 //! | `translux_ws_dropped_total` | counter | — stream requests superseded before computing |
 //! | `translux_scenes` | gauge | `state`: `loading`, `ready`, `failed` |
 //! | `translux_resident_memory_bytes`, `translux_mapped_bundle_bytes` | gauge | — |
+//! | `translux_build_info` | gauge, always 1 | `version`, `bundle_format` (the bundle version this build reads) |
 //!
 //! Each [`AppState`](crate::AppState) has its own registry, so several servers in one process
 //! (tests) count separately.
@@ -48,6 +49,8 @@ pub struct Metrics {
     pub mapped_bytes: IntGauge,
     /// GPU bytes held by the scenes (0 on the CPU backend).
     pub gpu_bytes: IntGauge,
+    /// 1, labelled with what this build is (so dashboards can tell servers apart).
+    pub build_info: IntGaugeVec,
 }
 
 /// Latency buckets in seconds: 0.5 ms to 60 s.
@@ -77,7 +80,7 @@ impl Metrics {
                 .expect("valid histogram")
         };
         let g = |name: &str, help: &str| IntGauge::new(name, help).expect("valid gauge");
-        Metrics {
+        let m = Metrics {
             http_duration: reg(
                 &registry,
                 HistogramVec::new(
@@ -204,8 +207,26 @@ impl Metrics {
                     "GPU memory held by the scenes' matrices and vectors (0 on the CPU backend).",
                 ),
             ),
+            build_info: reg(
+                &registry,
+                IntGaugeVec::new(
+                    Opts::new(
+                        "translux_build_info",
+                        "Always 1; the labels say which build answers.",
+                    ),
+                    &["version", "bundle_format"],
+                )
+                .expect("valid gauge"),
+            ),
             registry,
-        }
+        };
+        m.build_info
+            .with_label_values(&[
+                env!("CARGO_PKG_VERSION"),
+                &translux_proto::bundle::FORMAT_VERSION.to_string(),
+            ])
+            .set(1);
+        m
     }
 
     /// Counts a relight's outcome.

@@ -6,8 +6,12 @@
 //!
 //! | command | request file | `--out` |
 //! | --- | --- | --- |
-//! | `render` | a render request (`POST /render`'s body: relight fields plus `camera`, `width`, `height`, `exposure`, `tone`, `background`, `cull_backfaces`); flags override its fields | `.png` |
-//! | `export` | a relight request (`POST /relight`'s body); `--exposure`, `--tone` | `.glb` (linear float colours) or `.ply` (8-bit sRGB colours) |
+//! | `render` | a render request (`POST /render`'s body: relight fields plus `camera`, `width`, `height`, `exposure`, `tone`, `background`, `cull_backfaces`); flags override its fields | `.png` (8-bit sRGB) or `.exr` (linear radiance, 32-bit float RGB: no tone curve or OETF; `auto` exposure leaves it unscaled) |
+//! | `export` | a relight request (`POST /relight`'s body); `--exposure`, `--tone` | `.glb` (linear float colours, metres, one node per object) or `.ply` (8-bit sRGB colours, scene units) |
+//!
+//! Exposure: `render` auto-exposes unless the request or `--exposure` gives a number, with
+//! the viewer's rule ([`picture::resolve_exposure`]); so does `export` unless `--exposure`
+//! gives a number. The log line of each says which EV was used and whether it was automatic.
 //! | `relight` | a relight request | `.f32` (n × 3 little-endian `f32`, the binary API answer) or `.json` (the JSON API answer) |
 //!
 //! The work is the server's own ([`crate::relight`], [`crate::picture`]), so an offline answer
@@ -18,10 +22,10 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use serde::de::DeserializeOwned;
-use translux_proto::api::{RelightRequest, RelightResponse, RenderRequest, ToneMap};
+use translux_proto::api::{Exposure, RelightRequest, RelightResponse, RenderRequest, ToneMap};
 
 use crate::cli::{Command, ExportArgs, RelightArgs, RenderArgs};
-use crate::picture::{self, MeshFormat};
+use crate::picture::{self, MeshFormat, PictureFormat};
 use crate::relight;
 use crate::state::Scene;
 
@@ -113,7 +117,10 @@ fn write_file(out: &Path, bytes: &[u8]) -> anyhow::Result<()> {
 }
 
 fn render(a: &RenderArgs) -> anyhow::Result<()> {
-    extension(&a.out, &["png"])?;
+    let format = match extension(&a.out, &["png", "exr"])?.as_str() {
+        "exr" => PictureFormat::Exr,
+        _ => PictureFormat::Png,
+    };
     let mut req: RenderRequest = read_request(a.request.as_deref())?;
     if let Some(w) = a.width {
         req.width = w;
@@ -129,18 +136,24 @@ fn render(a: &RenderArgs) -> anyhow::Result<()> {
     }
     let scene = open_scene(&a.bundle)?;
     let plan = picture::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
+    let plan = picture::RenderPlan { format, ..plan };
     let out = picture::run(&scene, &plan).map_err(|e| anyhow::anyhow!("{}", e.message))?;
-    write_file(&a.out, &out.png)?;
+    write_file(&a.out, &out.bytes)?;
     tracing::info!(
-        "wrote {} ({}×{}, {} bytes): relight {:.0} ms ({} iterations), raster {:.0} ms, \
-         PNG {:.0} ms",
+        "wrote {} ({}×{}, {} bytes, exposure {}): relight {:.0} ms ({} iterations), \
+         raster {:.0} ms, {} {:.0} ms",
         a.out.display(),
         plan.params.width,
         plan.params.height,
-        out.png.len(),
+        out.bytes.len(),
+        match (format, plan.exposure) {
+            (PictureFormat::Exr, Exposure::Auto) => "none (auto: EXR radiance unscaled)".into(),
+            _ => exposure_note(plan.exposure, out.exposure),
+        },
         out.stats.ms,
         out.stats.iterations,
         out.raster_ms,
+        format.name(),
         out.encode_ms
     );
     Ok(())
@@ -155,18 +168,30 @@ fn export(a: &ExportArgs) -> anyhow::Result<()> {
     let scene = open_scene(&a.bundle)?;
     let plan = relight::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let tone = a.tone.unwrap_or(ToneMap::Srgb);
-    let (bytes, stats) = picture::export(&scene, &plan, a.exposure, tone, format)
+    let exposure = a.exposure.unwrap_or_default();
+    let out = picture::export(&scene, &plan, exposure, tone, format)
         .map_err(|e| anyhow::anyhow!("{}", e.message))?;
-    write_file(&a.out, &bytes)?;
+    write_file(&a.out, &out.bytes)?;
     tracing::info!(
-        "wrote {} ({} bytes, {} triangles): relight {:.0} ms ({} iterations)",
+        "wrote {} ({} bytes, {} triangles, {} objects, exposure {}): relight {:.0} ms \
+         ({} iterations)",
         a.out.display(),
-        bytes.len(),
+        out.bytes.len(),
         scene.bundle.triangle_vertices().len(),
-        stats.ms,
-        stats.iterations
+        scene.bundle.manifest().objects.len(),
+        exposure_note(exposure, out.exposure),
+        out.stats.ms,
+        out.stats.iterations
     );
     Ok(())
+}
+
+/// "-2.4 EV (auto)" or "-1 EV": the exposure used, and whether the viewer's rule chose it.
+fn exposure_note(asked: Exposure, used: f32) -> String {
+    match asked {
+        Exposure::Auto => format!("{used} EV (auto)"),
+        Exposure::Ev(_) => format!("{used} EV"),
+    }
 }
 
 fn relight_command(a: &RelightArgs) -> anyhow::Result<()> {

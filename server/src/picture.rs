@@ -5,14 +5,29 @@
 //! tone for exports). [`plan`] checks it (cheap; the picture's fields first, then
 //! [`relight::plan`]); [`run`] relights through [`relight::run`] — the same path as the
 //! relight route, nothing duplicated — and rasterizes the per-vertex radiance with
-//! [`translux_precompute::render`]. Out: PNG bytes ([`run`]), or `.glb` / `.ply` bytes
-//! ([`export`]), with the relight's statistics and timings.
+//! [`translux_precompute::render`]. Out: PNG or OpenEXR bytes ([`run`], by
+//! [`RenderPlan::format`]), or `.glb` / `.ply` bytes ([`export`]), with the relight's
+//! statistics and timings and the exposure used.
+//!
+//! Exposure: a number of EV stops is used as given; [`Exposure::Auto`] (the default) is
+//! [`auto_exposure`] of the relit radiance, the rule the viewer applies when it opens a
+//! scene, so a default render or export looks like the viewer's first frame instead of
+//! clipping a scene whose radiance is well above 1 (the Cornell box's lit walls are).
+//!
+//! OpenEXR ([`PictureFormat::Exr`]) is for compositing: linear radiance B/π in
+//! W·m⁻²·sr⁻¹, no tone curve, no sRGB OETF, background pixels the requested `background`
+//! as linear values (black by default). A numeric exposure multiplies the values by 2^EV;
+//! `auto` does **not** scale them (the file holds physical radiance; exposing is the
+//! compositor's job), so the exposure reported for an EXR with `auto` is 0, the EV applied.
 
 use std::time::Instant;
 
-use translux_precompute::export::{ExportError, to_glb, to_ply};
-use translux_precompute::render::{RenderError, RenderParams, check_camera, encode_png, render};
-use translux_proto::api::{RelightStats, RenderRequest, ToneMap};
+use translux_precompute::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
+use translux_precompute::render::{
+    RenderError, RenderParams, auto_exposure, check_camera, encode_exr, encode_png, render,
+    render_linear,
+};
+use translux_proto::api::{Exposure, RelightStats, RenderRequest, ToneMap};
 use translux_proto::light::Camera;
 
 use crate::error::AppError;
@@ -24,7 +39,42 @@ use crate::state::Scene;
 pub struct RenderPlan {
     pub relight: RelightPlan,
     pub camera: Camera,
+    /// The picture's parameters; `params.exposure` is the requested number, or 0 until
+    /// [`run`] replaces it with the automatic one.
     pub params: RenderParams,
+    /// What the request asked for.
+    pub exposure: Exposure,
+    /// The file to make; [`plan`] picks PNG, a caller that negotiated EXR sets it.
+    pub format: PictureFormat,
+}
+
+/// The picture file formats of a render.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PictureFormat {
+    /// 8-bit sRGB RGB PNG: exposed, tone mapped, sRGB OETF.
+    #[default]
+    Png,
+    /// OpenEXR, RGB 32-bit float (the `image` crate's encoder writes no half floats), linear
+    /// radiance; see the module documentation for exposure.
+    Exr,
+}
+
+impl PictureFormat {
+    /// The media type of the answer.
+    pub fn media_type(self) -> &'static str {
+        match self {
+            PictureFormat::Png => "image/png",
+            PictureFormat::Exr => "image/x-exr",
+        }
+    }
+
+    /// The short name for logs: `PNG`, `EXR`.
+    pub fn name(self) -> &'static str {
+        match self {
+            PictureFormat::Png => "PNG",
+            PictureFormat::Exr => "EXR",
+        }
+    }
 }
 
 /// Checks `req` for `scene`: picture fields (`width`, `height`, `exposure`, `background`,
@@ -34,7 +84,9 @@ pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, AppError> {
     let params = RenderParams {
         width: req.width,
         height: req.height,
-        exposure: req.exposure,
+        // An explicit number is checked here, before any work; `auto` is computed in `run`
+        // and is always in range.
+        exposure: req.exposure.ev().unwrap_or(0.0),
         tone: req.tone,
         background: req.background,
         cull_backfaces: req.cull_backfaces,
@@ -61,20 +113,34 @@ pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, AppError> {
         relight,
         camera,
         params,
+        exposure: req.exposure,
+        format: PictureFormat::Png,
     })
+}
+
+/// The exposure in EV stops for `exposure` and the relit radiance: the number as given, or
+/// for `auto` the viewer's rule ([`auto_exposure`]). (Not used for EXR with `auto`, which is
+/// unscaled.)
+pub fn resolve_exposure(exposure: Exposure, vertex_radiance: &[[f32; 3]]) -> f32 {
+    exposure
+        .ev()
+        .unwrap_or_else(|| auto_exposure(vertex_radiance))
 }
 
 /// A rendered picture and what it took.
 #[derive(Debug, Clone)]
 pub struct RenderOutput {
-    /// The PNG file.
-    pub png: Vec<u8>,
+    /// The file, in [`RenderPlan::format`].
+    pub bytes: Vec<u8>,
+    /// The exposure used, in EV stops (the automatic one when the request asked for `auto`;
+    /// 0 for an EXR with `auto`, whose values are not scaled).
+    pub exposure: f32,
     pub stats: RelightStats,
     /// Vertices relit.
     pub vertex_count: usize,
     /// Milliseconds rasterizing.
     pub raster_ms: f64,
-    /// Milliseconds encoding the PNG.
+    /// Milliseconds encoding the file.
     pub encode_ms: f64,
     /// Milliseconds in all (relight, raster, encode).
     pub total_ms: f64,
@@ -86,19 +152,39 @@ pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, AppError> {
     let relit = relight::run(scene, &plan.relight)?;
     let b = &scene.bundle;
     let t1 = Instant::now();
-    let img = render(
+    let exposure = match plan.format {
+        PictureFormat::Png => resolve_exposure(plan.exposure, &relit.radiance),
+        // Linear output: `auto` writes the radiance as it is.
+        PictureFormat::Exr => plan.exposure.ev().unwrap_or(0.0),
+    };
+    let params = RenderParams {
+        exposure,
+        ..plan.params
+    };
+    let args = (
         b.vertex_positions(),
         b.triangle_vertices(),
-        &relit.radiance,
+        &relit.radiance[..],
         &plan.camera,
-        &plan.params,
-    )
-    .map_err(render_error)?;
-    let t2 = Instant::now();
-    let png = encode_png(&img).map_err(render_error)?;
+        &params,
+    );
+    let (bytes, t2) = match plan.format {
+        PictureFormat::Png => {
+            let img = render(args.0, args.1, args.2, args.3, args.4).map_err(render_error)?;
+            let t2 = Instant::now();
+            (encode_png(&img).map_err(render_error)?, t2)
+        }
+        PictureFormat::Exr => {
+            let img =
+                render_linear(args.0, args.1, args.2, args.3, args.4).map_err(render_error)?;
+            let t2 = Instant::now();
+            (encode_exr(&img).map_err(render_error)?, t2)
+        }
+    };
     let t3 = Instant::now();
     Ok(RenderOutput {
-        png,
+        bytes,
+        exposure: params.exposure,
         stats: relit.stats,
         vertex_count: relit.radiance.len(),
         raster_ms: (t2 - t1).as_secs_f64() * 1e3,
@@ -110,39 +196,74 @@ pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, AppError> {
 /// Mesh file formats with baked colours.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MeshFormat {
-    /// Binary glTF 2.0, linear float colours.
+    /// Binary glTF 2.0: linear float colours, metres, one named node per object.
     Glb,
-    /// Binary PLY, 8-bit sRGB colours.
+    /// Binary PLY: 8-bit sRGB colours, scene units, one mesh.
     Ply,
 }
 
+/// An exported mesh file and what it took.
+#[derive(Debug, Clone)]
+pub struct ExportOutput {
+    /// The file.
+    pub bytes: Vec<u8>,
+    /// The exposure baked in, in EV stops (the automatic one for `auto`).
+    pub exposure: f32,
+    pub stats: RelightStats,
+}
+
+/// The scene's objects as named triangle runs of the viewer mesh: triangle k is patch k, so
+/// an object's triangles are its patch range (as in the `/mesh` route's `objects`).
+pub fn mesh_parts(scene: &Scene) -> Vec<MeshPart> {
+    scene
+        .bundle
+        .manifest()
+        .objects
+        .iter()
+        .map(|o| MeshPart {
+            name: o.name.clone(),
+            triangles: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
+        })
+        .collect()
+}
+
 /// Relights the scene and writes its viewer mesh with baked colours (exposure in EV stops,
-/// then the tone curve; see [`translux_precompute::export`]). Returns the file's bytes and
-/// the relight's statistics.
+/// or `auto` as in [`resolve_exposure`], then the tone curve; the `.glb` in metres with one
+/// node per object; see [`translux_precompute::export`]).
 pub fn export(
     scene: &Scene,
     plan: &RelightPlan,
-    exposure: f32,
+    exposure: Exposure,
     tone: ToneMap,
     format: MeshFormat,
-) -> Result<(Vec<u8>, RelightStats), AppError> {
+) -> Result<ExportOutput, AppError> {
     let relit = relight::run(scene, plan)?;
     let b = &scene.bundle;
-    let args = (
-        b.vertex_positions(),
-        b.vertex_normals(),
-        b.triangle_vertices(),
-        relit.radiance.as_slice(),
-    );
+    let ev = resolve_exposure(exposure, &relit.radiance);
+    let parts = mesh_parts(scene);
+    let mesh = ExportMesh {
+        unit_mm: b.manifest().unit_mm,
+        parts: &parts,
+        ..ExportMesh::new(
+            b.vertex_positions(),
+            b.vertex_normals(),
+            b.triangle_vertices(),
+            &relit.radiance,
+        )
+    };
     let bytes = match format {
-        MeshFormat::Glb => to_glb(args.0, args.1, args.2, args.3, exposure, tone),
-        MeshFormat::Ply => to_ply(args.0, args.1, args.2, args.3, exposure, tone),
+        MeshFormat::Glb => to_glb(&mesh, ev, tone),
+        MeshFormat::Ply => to_ply(&mesh, ev, tone),
     }
     .map_err(|e| match e {
         ExportError::Exposure(_) => AppError::invalid(e.to_string()),
         other => AppError::internal(format!("cannot export the mesh: {other}")),
     })?;
-    Ok((bytes, relit.stats))
+    Ok(ExportOutput {
+        bytes,
+        exposure: ev,
+        stats: relit.stats,
+    })
 }
 
 /// A render error as an answer: bad parameters are the client's (400 `invalid`), the rest

@@ -22,7 +22,7 @@ use translux_proto::api::{
 };
 
 use crate::error::AppError;
-use crate::extract::{BODY_LIMIT, ClientKey, Format, JsonBody, SceneId, accept_png, negotiate};
+use crate::extract::{BODY_LIMIT, ClientKey, Format, JsonBody, SceneId, accept_picture, negotiate};
 use crate::pool::{Done, Work};
 use crate::state::{AppState, Scene, SceneState};
 use crate::{picture, relight, ws};
@@ -89,15 +89,22 @@ pub fn routes() -> Vec<(Method, &'static str)> {
     table().routes
 }
 
-/// The whole API over `state`.
+/// The whole API over `state`, without the request log (see [`with_request_log`], which
+/// `serve` puts around everything, the team routes and the access checks included).
 pub fn router(state: AppState) -> Router {
     table()
         .router
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(BODY_LIMIT))
-        .layer(middleware::from_fn_with_state(state.clone(), log_request))
         .with_state(state)
+}
+
+/// `app` with the request log and the latency histogram as its outermost layer, so every
+/// route is counted — uploads, jobs, deletes — and every answer, the 401/403/429 of the
+/// access layer too: operators of a shared box must see failed-login bursts and deletions.
+pub fn with_request_log(app: Router, state: AppState) -> Router {
+    app.layer(middleware::from_fn_with_state(state, log_request))
 }
 
 /// A pre-serialised JSON answer.
@@ -418,8 +425,11 @@ async fn relight(
 }
 
 /// `POST /api/v1/scenes/{id}/render`: the relight request's fields plus a camera and the
-/// picture's size, exposure and tone curve; answers `image/png`. The relight runs through
-/// the same [`relight::plan`] / [`relight::run`] as `/relight`.
+/// picture's size, exposure (EV, or `auto`, the default: the viewer's rule on the relit
+/// radiance) and tone curve; answers `image/png` with the EV used in `X-Exposure`, or, for
+/// `Accept: image/x-exr`, a linear OpenEXR (see [`picture`]: `auto` leaves it unscaled and
+/// `X-Exposure` is then 0). The relight runs through the same [`relight::plan`] /
+/// [`relight::run`] as `/relight`.
 async fn render(
     State(state): State<AppState>,
     SceneId(id): SceneId,
@@ -428,9 +438,12 @@ async fn render(
     body: Result<JsonBody<RenderRequest>, AppError>,
 ) -> Result<Response, AppError> {
     let scene = find_scene(&state, &id)?;
-    accept_png(&headers)?;
+    let format = accept_picture(&headers)?;
     let JsonBody(req) = body?;
-    let plan = picture::plan(&scene, req)?;
+    let plan = picture::RenderPlan {
+        format,
+        ..picture::plan(&scene, req)?
+    };
     let answer = state
         .pool()
         .run(scene.clone(), Work::Render(Box::new(plan)), client)
@@ -448,17 +461,25 @@ async fn render(
         relight_ms = format_args!("{:.1}", s.ms),
         raster_ms = format_args!("{:.1}", out.raster_ms),
         encode_ms = format_args!("{:.1}", out.encode_ms),
-        bytes = out.png.len(),
+        format = format.name(),
+        bytes = out.bytes.len(),
+        exposure = out.exposure,
         "rendered"
     );
     let timing = format!(
         "direct;dur={:.3}, solve;dur={:.3}, raster;dur={:.3}, encode;dur={:.3}, total;dur={:.3}",
         s.direct_ms, s.solve_ms, out.raster_ms, out.encode_ms, out.total_ms
     );
-    let mut response = Body::from(out.png).into_response();
+    let mut response = Body::from(out.bytes).into_response();
     let h = response.headers_mut();
-    h.insert(CONTENT_TYPE, HeaderValue::from_static("image/png"));
+    h.insert(CONTENT_TYPE, HeaderValue::from_static(format.media_type()));
+    h.insert(VARY, HeaderValue::from_static("accept"));
     h.insert("x-vertex-count", HeaderValue::from(out.vertex_count));
+    // The EV actually used, so a client that asked for `auto` (or nothing) can repeat the
+    // picture with a fixed exposure, or show the number as the viewer does.
+    if let Ok(v) = HeaderValue::from_str(&out.exposure.to_string()) {
+        h.insert("x-exposure", v);
+    }
     if let Ok(v) = HeaderValue::from_str(&timing) {
         h.insert("server-timing", v);
     }

@@ -90,6 +90,26 @@ pub struct Team {
     pub bundles: PathBuf,
     /// Per-scene locks so that concurrent requests reopen an evicted scene once.
     reloading: Arc<Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>>,
+    /// Scene ids of uploads accepted but not yet queued as jobs (see [`Team::reserve`]).
+    reserved: Arc<Mutex<std::collections::HashSet<String>>>,
+}
+
+/// An upload's hold on a scene id, from the first check until its job is queued (then the
+/// job table holds the id until the job ends, and the served scene after that). Dropping it
+/// releases the id.
+#[derive(Debug)]
+pub struct Reservation {
+    set: Arc<Mutex<std::collections::HashSet<String>>>,
+    id: String,
+}
+
+impl Drop for Reservation {
+    fn drop(&mut self) {
+        self.set
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&self.id);
+    }
 }
 
 impl Team {
@@ -140,6 +160,7 @@ impl Team {
             state,
             bundles: bundles.to_path_buf(),
             reloading: Default::default(),
+            reserved: Default::default(),
         })
     }
 
@@ -159,6 +180,28 @@ impl Team {
             ));
         }
         s
+    }
+
+    /// Reserves `id` for an upload: 409 unless it is free and no other upload holds it. The
+    /// check and the hold are one step, so two uploads of one id cannot both pass while
+    /// their files are checked (which takes a while) and then both be queued.
+    pub fn reserve(&self, id: &str) -> Result<Reservation, AppError> {
+        let mut held = self.reserved.lock().unwrap_or_else(|e| e.into_inner());
+        if held.contains(id) {
+            return Err(AppError::new(
+                StatusCode::CONFLICT,
+                "conflict",
+                format!(
+                    "another upload of scene {id:?} is being accepted; upload under another id"
+                ),
+            ));
+        }
+        self.check_scene_free(id)?;
+        held.insert(id.to_string());
+        Ok(Reservation {
+            set: self.reserved.clone(),
+            id: id.to_string(),
+        })
     }
 
     /// 409 unless `id` is free for a new scene.
@@ -186,6 +229,16 @@ impl Team {
 
     /// Makes scene `id` resident (reopening it if evicted) and charges it to the budget.
     async fn make_resident(&self, id: &str) -> Result<(), AppError> {
+        // Only an evicted scene needs the reload lock; a lock per id asked for would let
+        // requests for made-up ids grow the map without bound.
+        match self.state.scene_state(id) {
+            Some(SceneState::Evicted(_)) => {}
+            Some(SceneState::Ready(scene)) => {
+                self.budget.charge(id, "host", host_bytes(&scene));
+                return Ok(());
+            }
+            _ => return Ok(()),
+        }
         let lock = {
             let mut map = self.reloading.lock().unwrap_or_else(|e| e.into_inner());
             map.entry(id.to_string()).or_default().clone()
@@ -313,7 +366,9 @@ async fn residency(State(team): State<Team>, req: Request, next: Next) -> Respon
     let Some(id) = scene_of(req.method(), req.uri().path()) else {
         return next.run(req).await;
     };
-    if team.budget.limit().is_none() {
+    // Unknown ids (404 from the route) are never accounted: the budget's table holds only
+    // scenes that exist.
+    if team.budget.limit().is_none() || team.state.scene_state(&id).is_none() {
         return next.run(req).await;
     }
     if let Err(e) = team.make_resident(&id).await {

@@ -388,7 +388,8 @@ pub async fn upload(
         None => scene_name.trim_end_matches(".json").to_string(),
     };
     check_scene_id(&id).map_err(AppError::invalid)?;
-    team.check_scene_free(&id)?;
+    // Held until the job is queued (or the upload is refused): see `Team::reserve`.
+    let _reservation = team.reserve(&id)?;
 
     let (d, meshes, patches, max_edge) =
         (dir.clone(), got.meshes.clone(), got.patches, got.max_edge);

@@ -466,17 +466,51 @@ pub async fn run_stream<S>(
     metrics.ws_connections.inc();
     let id = state.next_stream_id();
     tracing::debug!(scene = %scene.id, stream = id, "stream opened");
+    let stall = stall_limit(state.params().ping_interval);
     let outcome = drive(&mut socket, state, scene, settings, id).await;
     match &outcome {
         Ok(Some(close)) => {
             tracing::debug!(stream = id, code = close.code, reason = %close.reason, "stream closed");
-            let _ = socket.send(close_message(close)).await;
+            let _ = send_within(&mut socket, close_message(close), stall).await;
         }
         Ok(None) => tracing::debug!(stream = id, "stream closed by the client"),
         Err(e) => tracing::debug!(stream = id, "stream failed: {e}"),
     }
-    let _ = socket.close().await;
+    let _ = tokio::time::timeout(stall, socket.close()).await;
     metrics.ws_connections.dec();
+}
+
+/// How long one send may wait for the client to read: four ping intervals, the same
+/// patience as for a client that stops answering pings. A client that never reads would
+/// otherwise block the stream's only task in `send`, where no ping timeout can fire.
+fn stall_limit(ping_every: std::time::Duration) -> std::time::Duration {
+    4 * ping_every
+}
+
+/// `socket.send(m)`, failing once it has waited `limit` for the client to take it.
+async fn send_within<S>(
+    socket: &mut S,
+    m: Message,
+    limit: std::time::Duration,
+) -> Result<(), axum::Error>
+where
+    S: Sink<Message, Error = axum::Error> + Unpin,
+{
+    match tokio::time::timeout(limit, socket.send(m)).await {
+        Ok(r) => r,
+        Err(_) => Err(axum::Error::new(format!(
+            "the client read nothing for {} s; dropping the stream",
+            limit.as_secs_f32()
+        ))),
+    }
+}
+
+/// Whether a read error is tungstenite's "message (or frame) over the size limit".
+fn is_too_big(e: &axum::Error) -> bool {
+    // axum wraps tungstenite's `Error::Capacity` without exposing its type; its message
+    // is the stable part ("Space limit exceeded: Message too long: …").
+    let text = e.to_string();
+    text.contains("Space limit exceeded") || text.contains("too long")
 }
 
 /// The stream's loop. `Ok(Some(close))`: close with that; `Ok(None)`: the client closed.
@@ -491,6 +525,7 @@ where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message, Error = axum::Error> + Unpin,
 {
     let ping_every = state.params().ping_interval;
+    let stall = stall_limit(ping_every);
     let mut shutdown = state.shutdown_watch();
     let mut closing = *shutdown.borrow();
     let mut conn = Conn {
@@ -503,14 +538,13 @@ where
         retry_at: None,
         dropped: 0,
     };
-    socket
-        .send(text(&json!({
-            "type": "ready",
-            "scene": conn.scene.id,
-            "vertex_count": conn.scene.bundle.vertex_positions().len(),
-            "format": conn.settings.format.as_str(),
-        })))
-        .await?;
+    let ready = text(&json!({
+        "type": "ready",
+        "scene": conn.scene.id,
+        "vertex_count": conn.scene.bundle.vertex_positions().len(),
+        "format": conn.settings.format.as_str(),
+    }));
+    send_within(socket, ready, stall).await?;
     let mut ping = tokio::time::interval_at(tokio::time::Instant::now() + ping_every, ping_every);
     let mut heard = Instant::now();
     loop {
@@ -533,10 +567,10 @@ where
                     AppError::internal("a relight worker stopped without answering")
                 });
                 for m in conn.answer(seq, answer) {
-                    socket.send(m).await?;
+                    send_within(socket, m, stall).await?;
                 }
                 if let Some(m) = conn.pump() {
-                    socket.send(m).await?;
+                    send_within(socket, m, stall).await?;
                 }
             }
             _ = async {
@@ -547,17 +581,29 @@ where
             }, if retry_at.is_some() => {
                 conn.retry_at = None;
                 if let Some(m) = conn.pump() {
-                    socket.send(m).await?;
+                    send_within(socket, m, stall).await?;
                 }
             }
             msg = socket.next(), if !closing => {
                 heard = Instant::now();
                 let Some(msg) = msg else { return Ok(None) };
-                match msg? {
+                let msg = match msg {
+                    Ok(m) => m,
+                    // A message over the limit: say so with 1009 instead of dropping the
+                    // connection (the client would see 1005, no reason).
+                    Err(e) if is_too_big(&e) => {
+                        return Ok(Some(Close::new(
+                            close_code::SIZE,
+                            format!("message too big: at most {BODY_LIMIT} bytes"),
+                        )));
+                    }
+                    Err(e) => return Err(e),
+                };
+                match msg {
                     Message::Text(t) => match parse_message(t.as_str()) {
                         Ok(ClientMessage::Relight { seq, request }) => {
                             if let Some(m) = conn.relight(seq, request) {
-                                socket.send(m).await?;
+                                send_within(socket, m, stall).await?;
                             }
                         }
                         Ok(ClientMessage::Config { format, exposure, tone }) => {
@@ -585,7 +631,7 @@ where
                         format!("no answer to pings for {} s", heard.elapsed().as_secs()),
                     )));
                 }
-                socket.send(Message::Ping(axum::body::Bytes::new())).await?;
+                send_within(socket, Message::Ping(axum::body::Bytes::new()), stall).await?;
             }
             _ = shutdown.changed(), if !closing => {
                 closing = true;

@@ -152,9 +152,9 @@ fn render_writes_the_png_the_library_renders() {
     .unwrap();
     assert_eq!(img.as_raw(), want.as_raw());
 
-    // No request: the bundle's lights and camera, 800 × 600.
+    // No request: the bundle's lights and camera, 800 × 600, auto-exposed.
     let default_png = tmp.path().join("default.png");
-    ok(&[
+    let log = ok(&[
         "render",
         "--bundle",
         s(bundle_dir()),
@@ -163,6 +163,21 @@ fn render_writes_the_png_the_library_renders() {
     ]);
     let img = image::open(&default_png).unwrap();
     assert_eq!((img.width(), img.height()), (800, 600));
+    assert!(log.contains("EV (auto)"), "{log}");
+    let log = ok(&[
+        "render",
+        "--bundle",
+        s(bundle_dir()),
+        "--out",
+        s(&default_png),
+        "--width",
+        "8",
+        "--height",
+        "8",
+        "--exposure",
+        "auto",
+    ]);
+    assert!(log.contains("EV (auto)"), "{log}");
 
     // Errors name the problem and write nothing.
     let bad = tmp.path().join("bad.png");
@@ -253,8 +268,17 @@ fn export_writes_glb_and_ply() {
     let bin_len = u32_at(&glb, 20 + json_len) as usize;
     assert_eq!(root.buffers[0].byte_length.0 as usize, bin_len);
     assert_eq!(bin_len, 36 * nv + 12 * nf);
+    // One mesh per object (POSITION, NORMAL, COLOR_0, indices each): every vertex and every
+    // triangle once. (The names are checked in tests/tests/server.rs.)
+    let objects = bundle.manifest().objects.len();
+    assert_eq!((root.meshes.len(), root.nodes.len()), (objects, objects));
     let counts: Vec<u64> = root.accessors.iter().map(|a| a.count.0).collect();
-    assert_eq!(counts, [nv as u64, nv as u64, nv as u64, 3 * nf as u64]);
+    assert_eq!(counts.len(), 4 * objects);
+    let sum = |k: usize| counts.iter().skip(k).step_by(4).sum::<u64>();
+    assert_eq!(
+        [sum(0), sum(1), sum(2), sum(3)],
+        [nv as u64, nv as u64, nv as u64, 3 * nf as u64]
+    );
     // COLOR_0 is linear: tone(L · 2^1), no OETF.
     let (_, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
     let bin = &glb[20 + json_len + 8..];
@@ -269,8 +293,9 @@ fn export_writes_glb_and_ply() {
         }
     }
 
+    // Without --exposure: the viewer's automatic exposure for the relit radiance, logged.
     let ply_path = tmp.path().join("cornell.ply");
-    ok(&[
+    let log = ok(&[
         "export",
         "--bundle",
         s(bundle_dir()),
@@ -279,8 +304,10 @@ fn export_writes_glb_and_ply() {
         "--out",
         s(&ply_path),
     ]);
+    let auto = translux_precompute::render::auto_exposure(&radiance);
+    assert!(log.contains(&format!("exposure {auto} EV (auto)")), "{log}");
     let ply = std::fs::read(&ply_path).unwrap();
-    let header = translux_precompute::export::ply_header(nv, nf, 0.0, ToneMap::Srgb);
+    let header = translux_precompute::export::ply_header(nv, nf, auto, ToneMap::Srgb);
     assert!(ply.starts_with(header.as_bytes()));
     assert_eq!(ply.len(), header.len() + 27 * nv + 13 * nf);
 
@@ -395,4 +422,74 @@ fn help_lists_the_subcommands_and_the_server_flags_still_work() {
     let _ = child.wait();
     assert!(listening, "{log:#?}");
     assert!(serving, "{log:#?}");
+}
+
+#[test]
+fn render_writes_a_linear_exr_by_extension_and_rejects_other_extensions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let req = tmp.path().join("req.json");
+    std::fs::write(&req, REQUEST).unwrap();
+    let (scene, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
+    let b = &scene.bundle;
+    let linear = |exposure: f32| {
+        translux_precompute::render::render_linear(
+            b.vertex_positions(),
+            b.triangle_vertices(),
+            &radiance,
+            &b.manifest().camera,
+            &RenderParams {
+                width: 96,
+                height: 72,
+                exposure,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    // `.EXR` in any case; an explicit exposure scales, `auto` (the default) does not.
+    for (name, exposure, ev) in [("cornell.EXR", Some("-0.5"), -0.5), ("auto.exr", None, 0.0)] {
+        let exr = tmp.path().join(name);
+        let mut args = vec![
+            "render",
+            "--bundle",
+            s(bundle_dir()),
+            "--request",
+            s(&req),
+            "--out",
+            s(&exr),
+            "--width",
+            "96",
+            "--height",
+            "72",
+        ];
+        if let Some(e) = exposure {
+            args.extend(["--exposure", e]);
+        }
+        let log = ok(&args);
+        assert!(log.contains("wrote") && log.contains("EXR"), "{log}");
+        let bytes = std::fs::read(&exr).unwrap();
+        assert_eq!(
+            &bytes[..4],
+            &[0x76, 0x2f, 0x31, 0x01],
+            "OpenEXR magic number"
+        );
+        let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+            .unwrap()
+            .to_rgb32f();
+        assert_eq!(img.dimensions(), (96, 72));
+        let want = linear(ev);
+        for (k, (g, w)) in img.as_raw().iter().zip(want.as_raw()).enumerate() {
+            assert!(
+                (g - w).abs() <= 1e-3 * w.abs() + 1e-6,
+                "{name} value {k}: {g} vs {w}"
+            );
+        }
+        assert!(img.as_raw().iter().any(|&v| v > 0.0), "{name}: all black");
+    }
+
+    for bad in ["x.jpg", "x.png.tmp", "x"] {
+        let e = fails(&["render", "--bundle", s(bundle_dir()), "--out", bad]);
+        assert!(e.contains(".png or .exr"), "{bad}: {e}");
+    }
+    assert!(!tmp.path().join("x.jpg").exists());
 }

@@ -296,3 +296,54 @@ fn sigterm_right_after_start_exits_cleanly() {
     server.sigterm();
     assert!(server.wait_exit(), "{:#?}", server.log);
 }
+
+/// A client that sends half a request head and stops is disconnected after the header
+/// timeout (it used to be kept open forever), and open connections cannot keep SIGTERM
+/// from ending the process.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn half_sent_headers_time_out_and_sigterm_still_ends_the_process() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let root = bundles();
+    let mut server = Server::start(&root, &[]);
+    let addr = server.base.trim_start_matches("http://").to_string();
+    let half = |mut s: tokio::net::TcpStream| async move {
+        s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+            .await
+            .unwrap();
+        s
+    };
+    let mut slow = half(tokio::net::TcpStream::connect(&addr).await.unwrap()).await;
+    let t0 = Instant::now();
+    let limit = translux_server::HEADER_TIMEOUT;
+    let mut buf = [0u8; 512];
+    // Closed (EOF or reset), or answered 408 and then closed: anything but silence.
+    let ended = tokio::time::timeout(limit + Duration::from_secs(20), async {
+        loop {
+            match slow.read(&mut buf).await {
+                Ok(0) | Err(_) => break,
+                Ok(_) => continue,
+            }
+        }
+    })
+    .await;
+    assert!(ended.is_ok(), "a half-sent header held its connection open");
+    let waited = t0.elapsed();
+    assert!(
+        waited + Duration::from_secs(1) >= limit,
+        "closed after {waited:?}, before the {limit:?} header timeout"
+    );
+
+    // Two more half-open connections and an idle keep-alive one: SIGTERM still ends the
+    // process, within the shutdown grace.
+    let _a = half(tokio::net::TcpStream::connect(&addr).await.unwrap()).await;
+    let _b = half(tokio::net::TcpStream::connect(&addr).await.unwrap()).await;
+    let _idle = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    let t0 = Instant::now();
+    server.sigterm();
+    assert!(server.wait_exit(), "{:#?}", server.log);
+    assert!(
+        t0.elapsed() < translux_server::SHUTDOWN_GRACE + Duration::from_secs(10),
+        "exit took {:?}",
+        t0.elapsed()
+    );
+}

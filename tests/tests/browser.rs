@@ -6,7 +6,12 @@
 //! light and changes the picture, that the translucency slider re-solves and changes the
 //! block (with a visible "solving…" state), that `direct` differs from `full` and the other
 //! components are either drawn or refused in the banner, that the URL restores the view,
-//! that stopping the server shows the banner and restarting it reconnects. It measures the
+//! that stopping the server shows the banner and restarting it reconnects. Then the first-use
+//! checks: on a second server with `--tokens` the page asks for a token, says when one is
+//! refused, signs in (form, `?access_token=`, `#token=`) without the token reaching the
+//! address bar or the console, and tells apart two scenes of one name; a link to a missing
+//! scene says so; a picked medium shows in its caption; at 800×600 nothing overlaps and on a
+//! 390×844 phone the panel leaves the view most of the screen. It measures the
 //! time to the first lit frame, lit frames per second and input-to-photon latency while
 //! dragging. This test then checks its downloads: the `.glb` against the bundle's mesh and
 //! the export's colour definition, and the radiance the page showed against the server's
@@ -31,12 +36,17 @@ use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::ToneMap;
 use translux_proto::bundle::Bundle;
+use translux_server::auth::hash_token;
 use translux_server::load_bundles;
+use translux_server::team::{Team, TeamArgs};
 
 /// Patches of the test bundle: enough for a picture worth looking at, quick to precompute.
 const PATCHES: u64 = 1200;
 /// The whole browser session may take this long before it is killed.
-const SESSION_LIMIT: Duration = Duration::from_secs(300);
+const SESSION_LIMIT: Duration = Duration::from_secs(420);
+/// The viewer token of the team server (a test value: 24 characters or more, as
+/// `translux-server token hash` wants).
+const VIEWER_TOKEN: &str = "tlx_browser_test_viewer_0123456789abcdef0123456789abcdef";
 
 fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -87,9 +97,11 @@ struct ServerThread {
 }
 
 impl ServerThread {
-    /// Serves `root` on `addr` (port 0 for any free port).
-    fn start(root: &Path, addr: SocketAddr) -> ServerThread {
+    /// Serves `root` on `addr` (port 0 for any free port); with `tokens`, as a team server
+    /// (`--tokens FILE`: every API route wants a token).
+    fn start(root: &Path, addr: SocketAddr, tokens: Option<&Path>) -> ServerThread {
         let root = root.to_path_buf();
+        let tokens = tokens.map(Path::to_path_buf);
         let (tx_addr, rx_addr) = mpsc::channel();
         let (stop, rx_stop) = tokio::sync::oneshot::channel::<()>();
         let thread = std::thread::spawn(move || {
@@ -113,8 +125,19 @@ impl ServerThread {
                 };
                 let (state, errors) = load_bundles(&root);
                 assert!(errors.is_empty(), "{errors:?}");
+                let app = match tokens {
+                    None => translux_server::router(state.clone()),
+                    Some(file) => {
+                        let args = TeamArgs {
+                            tokens: Some(file),
+                            ..Default::default()
+                        };
+                        let team = Team::start(&args, &root, state.clone()).expect("team");
+                        translux_server::team::app(state.clone(), team)
+                    }
+                };
                 tx_addr.send(listener.local_addr().unwrap()).unwrap();
-                translux_server::serve(listener, state, async move {
+                translux_server::serve_router(listener, state, app, async move {
                     let _ = rx_stop.await;
                 })
                 .await
@@ -187,14 +210,23 @@ fn viewer_in_a_real_browser() {
     let _ = std::fs::remove_dir_all(&out);
     std::fs::create_dir_all(&out).unwrap();
 
-    let mut server = ServerThread::start(bundles.path(), "127.0.0.1:0".parse().unwrap());
+    let mut server = ServerThread::start(bundles.path(), "127.0.0.1:0".parse().unwrap(), None);
     let addr = server.addr;
     let url = format!("http://{addr}/");
+    let (team_dir, tokens) = team_bundles(&bundles.path().join("cornell"));
+    let mut team = ServerThread::start(
+        &team_dir.path().join("bundles"),
+        "127.0.0.1:0".parse().unwrap(),
+        Some(&tokens),
+    );
+    let team_url = format!("http://{}/", team.addr);
 
     let mut child = Command::new("node")
         .arg("web/tests/viewer.test.mjs")
         .arg(&url)
         .arg(&out)
+        .arg(&team_url)
+        .env("TRANSLUX_TEST_TOKEN", VIEWER_TOKEN)
         .current_dir(workspace_root())
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
@@ -235,7 +267,7 @@ fn viewer_in_a_real_browser() {
                 writeln!(stdin, "stopped").unwrap();
             }
             Some("start-server") => {
-                server = ServerThread::start(bundles.path(), addr);
+                server = ServerThread::start(bundles.path(), addr, None);
                 writeln!(stdin, "started").unwrap();
             }
             Some("result") => result = Some(msg),
@@ -244,6 +276,7 @@ fn viewer_in_a_real_browser() {
     }
     let status = child.wait().unwrap();
     let _ = done_tx.send(());
+    team.stop();
     let killed = watchdog.join().unwrap();
     let log = log.join().unwrap();
     println!("{log}");
@@ -289,6 +322,33 @@ fn viewer_in_a_real_browser() {
     check_radiance_matches_server(&server, &source);
     check_snapshot(&out.join("snapshot.png"));
     server.stop();
+}
+
+/// The team server's folder: `bundles/` with the Cornell bundle under two ids (`cornell` and
+/// `cornell-copy`, one scene name), and `tokens.toml` with [`VIEWER_TOKEN`]'s hash.
+fn team_bundles(cornell: &Path) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::Builder::new()
+        .prefix("browser-team-")
+        .tempdir_in(env!("CARGO_TARGET_TMPDIR"))
+        .unwrap();
+    for id in ["cornell", "cornell-copy"] {
+        let to = dir.path().join("bundles").join(id);
+        std::fs::create_dir_all(&to).unwrap();
+        for e in std::fs::read_dir(cornell).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+    let tokens = dir.path().join("tokens.toml");
+    std::fs::write(
+        &tokens,
+        format!(
+            "[[tokens]]\nname = \"viewer\"\nrole = \"viewer\"\nsha256 = \"{}\"\n",
+            hash_token(VIEWER_TOKEN).unwrap()
+        ),
+    )
+    .unwrap();
+    (dir, tokens)
 }
 
 fn floats(v: &Value) -> Vec<f32> {

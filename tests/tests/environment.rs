@@ -372,3 +372,44 @@ async fn unusable_maps_are_clear_400s() {
     assert!(sky.iter().any(|c| c[2] > 0.1));
     server.stop();
 }
+
+/// The built-in Cornell box is closed: a sky-only relight must leave every vertex at
+/// exactly zero. The bases of the blocks resting on the floor used to see the sky below
+/// the floor (their offset ray origins lay under it) and S carried that into the block.
+#[test]
+fn no_sky_reaches_inside_the_closed_cornell_box() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = load_scene("builtin:cornell").unwrap();
+    let params = PrecomputeParams {
+        patches: Some(1500),
+        ..Default::default()
+    };
+    precompute(&scene, &dir.path().join("cornell"), &params).unwrap();
+    let scene =
+        translux_server::state::Scene::open("cornell", &dir.path().join("cornell")).unwrap();
+    for components in ["direct", "full"] {
+        let request = json!({
+            "lights": [{"type": "environment", "map": "builtin:sky", "scale": 10}],
+            "components": components,
+        });
+        let plan = translux_server::relight::plan(
+            &scene,
+            translux_proto::parse_json(&request.to_string()).unwrap(),
+        )
+        .unwrap();
+        let out = translux_server::relight::run(&scene, &plan).unwrap();
+        let lit: Vec<(usize, f32)> = out
+            .radiance
+            .iter()
+            .enumerate()
+            .map(|(k, c)| (k, c.iter().fold(0.0f32, |m, &x| m.max(x))))
+            .filter(|(_, m)| *m != 0.0)
+            .collect();
+        assert!(
+            lit.is_empty(),
+            "{components}: {} vertices lit, e.g. {:?}",
+            lit.len(),
+            &lit[..lit.len().min(5)]
+        );
+    }
+}

@@ -1162,3 +1162,561 @@ async fn render_rejects_bad_input_in_the_json_error_format() {
     .await;
     s.stop().await;
 }
+
+// ---- Exposure by default, and the exported .glb (metres, named objects, trimesh) -------------
+//
+// Renders and exports default to the viewer's automatic exposure (the Cornell box's lit walls
+// are well above 1, so EV 0 clips most of the picture); the .glb is in metres and has one
+// named node per scene object; an independent reader (Python's trimesh) sees its colours.
+
+/// Fraction of the lit pixels (not the black background) with a channel at 255, and how many
+/// pixels are lit.
+fn clipped_fraction(img: &image::RgbImage) -> (f64, usize) {
+    let lit: Vec<&image::Rgb<u8>> = img.pixels().filter(|p| p.0 != [0, 0, 0]).collect();
+    let clipped = lit.iter().filter(|p| p.0.contains(&255)).count();
+    (clipped as f64 / lit.len().max(1) as f64, lit.len())
+}
+
+/// A render's `X-Exposure` header as a number.
+fn exposure_header(r: &reqwest::Response) -> f32 {
+    r.headers()
+        .get("x-exposure")
+        .expect("the render answer has X-Exposure")
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+#[tokio::test]
+async fn render_defaults_to_the_viewers_auto_exposure() {
+    let s = TestServer::cornell().await;
+    // The viewer's rule on the relight route's radiance (relit first, so that the render's
+    // own relight starts from this converged solution and answers the same radiance).
+    let relit = s.relight_json(&json!({})).await;
+    let radiance: Vec<[f32; 3]> = relit
+        .radiance
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let want = translux_precompute::render::auto_exposure(&radiance);
+    assert!(
+        want < -1.0,
+        "the Cornell box needs a negative exposure, got {want}"
+    );
+
+    // `{}`: auto, 800 × 600, and the answer says which EV it used.
+    let r = post_render(&s, &json!({}), None).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(exposure_header(&r), want);
+    let auto = image::load_from_memory(&r.bytes().await.unwrap())
+        .unwrap()
+        .to_rgb8();
+    let (auto_clipped, lit) = clipped_fraction(&auto);
+    assert!(
+        lit > (800 * 600) / 4,
+        "{lit} lit pixels: the box fills the view"
+    );
+    assert!(
+        auto_clipped < 0.10,
+        "{:.1}% of the lit pixels clip at EV {want}",
+        100.0 * auto_clipped
+    );
+
+    // "auto" is the default spelled out; the number it chose gives the same picture.
+    for body in [json!({"exposure": "auto"}), json!({"exposure": want})] {
+        let r = post_render(&s, &body, None).await;
+        assert_eq!(r.status(), StatusCode::OK, "{body}");
+        assert_eq!(exposure_header(&r), want, "{body}");
+        let img = image::load_from_memory(&r.bytes().await.unwrap())
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(img.as_raw(), auto.as_raw(), "{body}");
+    }
+
+    // An explicit number is used as given, as before: EV 0 clips most of the box.
+    let r = post_render(&s, &json!({"exposure": 0}), None).await;
+    assert_eq!(exposure_header(&r), 0.0);
+    let ev0 = image::load_from_memory(&r.bytes().await.unwrap())
+        .unwrap()
+        .to_rgb8();
+    let (ev0_clipped, _) = clipped_fraction(&ev0);
+    assert!(ev0_clipped > 0.5, "{ev0_clipped}");
+    eprintln!(
+        "Cornell box ({PATCHES} patches), 800 × 600: auto exposure {want} EV clips {:.1}% of \
+         the lit pixels; EV 0 clips {:.1}%",
+        100.0 * auto_clipped,
+        100.0 * ev0_clipped
+    );
+
+    // Neither a string other than "auto" nor null is an exposure.
+    for bad in [json!({"exposure": "bright"}), json!({"exposure": null})] {
+        let r = post_render(&s, &bad, None).await;
+        expect_error(
+            r,
+            StatusCode::BAD_REQUEST,
+            "bad_request",
+            &["exposure", "\"auto\""],
+        )
+        .await;
+    }
+    s.stop().await;
+}
+
+/// A Cornell box precomputed as a centimetre scene (unit_mm 10, the same coordinates), kept
+/// outside the served fixture folder so that the other tests still see one scene.
+fn centimetre_bundle() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
+        let root = tempfile::Builder::new()
+            .prefix(FIXTURE_PREFIX)
+            .tempdir_in(parent)
+            .expect("temp dir")
+            .keep();
+        let mut scene = load_scene("builtin:cornell").expect("builtin:cornell loads");
+        scene.file.unit_mm = 10.0;
+        let params = PrecomputeParams {
+            patches: Some(200),
+            ..Default::default()
+        };
+        let dir = root.join("cornell_cm");
+        precompute(&scene, &dir, &params).expect("precompute");
+        dir
+    })
+}
+
+/// A .glb's JSON and BIN chunks.
+fn glb_chunks(glb: &[u8]) -> (Value, &[u8]) {
+    let word = |at: usize| u32::from_le_bytes(glb[at..at + 4].try_into().unwrap()) as usize;
+    assert_eq!(&glb[..4], b"glTF");
+    assert_eq!(word(8), glb.len());
+    let json_len = word(12);
+    assert_eq!(&glb[16..20], b"JSON");
+    let json: Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bin_at = 20 + json_len;
+    assert_eq!(&glb[bin_at + 4..bin_at + 8], b"BIN\0");
+    (json, &glb[bin_at + 8..bin_at + 8 + word(bin_at)])
+}
+
+/// Accessor `k`'s data as little-endian 4-byte words (f32 or u32 alike).
+fn accessor_words(json: &Value, bin: &[u8], k: &Value) -> Vec<[u8; 4]> {
+    let a = &json["accessors"][k.as_u64().unwrap() as usize];
+    let v = &json["bufferViews"][a["bufferView"].as_u64().unwrap() as usize];
+    let at = v["byteOffset"].as_u64().unwrap_or(0) + a["byteOffset"].as_u64().unwrap_or(0);
+    let per = if a["type"] == "VEC3" { 3 } else { 1 };
+    let n = a["count"].as_u64().unwrap() as usize * per;
+    bin[at as usize..at as usize + 4 * n]
+        .chunks_exact(4)
+        .map(|c| c.try_into().unwrap())
+        .collect()
+}
+
+fn accessor_f32s(json: &Value, bin: &[u8], k: &Value) -> Vec<f32> {
+    accessor_words(json, bin, k)
+        .into_iter()
+        .map(f32::from_le_bytes)
+        .collect()
+}
+
+fn accessor_u32s(json: &Value, bin: &[u8], k: &Value) -> Vec<u32> {
+    accessor_words(json, bin, k)
+        .into_iter()
+        .map(u32::from_le_bytes)
+        .collect()
+}
+
+/// Opens a bundle as the server does and relights it with its own lights.
+fn relit_scene(
+    dir: &Path,
+) -> (
+    translux_server::state::Scene,
+    translux_server::relight::RelightPlan,
+    Vec<[f32; 3]>,
+) {
+    let scene = translux_server::state::Scene::open("cm", dir).unwrap();
+    let plan = translux_server::relight::plan(&scene, Default::default()).unwrap();
+    let radiance = translux_server::relight::run(&scene, &plan)
+        .unwrap()
+        .radiance;
+    (scene, plan, radiance)
+}
+
+#[test]
+fn export_glb_is_in_metres_with_one_named_node_per_object() {
+    use translux_precompute::export::linear_colour;
+    use translux_proto::api::{Exposure, ToneMap};
+    use translux_server::picture::{MeshFormat, export};
+
+    let (scene, plan, radiance) = relit_scene(centimetre_bundle());
+    let b = &scene.bundle;
+    let m = b.manifest();
+    assert_eq!(m.unit_mm, 10.0);
+    let out = export(
+        &scene,
+        &plan,
+        Exposure::Auto,
+        ToneMap::Srgb,
+        MeshFormat::Glb,
+    )
+    .unwrap();
+    // The viewer's rule on the relit radiance.
+    assert_eq!(
+        out.exposure,
+        translux_precompute::render::auto_exposure(&radiance)
+    );
+    let scale = 2f32.powf(out.exposure);
+    let (json, bin) = glb_chunks(&out.bytes);
+
+    // One node per object, named after it, in the manifest's order, each with its own mesh.
+    let names: Vec<&str> = json["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["name"].as_str().unwrap())
+        .collect();
+    let want: Vec<&str> = m.objects.iter().map(|o| o.name.as_str()).collect();
+    assert_eq!(names, want);
+    assert!(names.contains(&"tall_block"));
+    let mut triangles = 0;
+    let mut clipped = 0;
+    let mut vertices = 0;
+    for (node, o) in json["nodes"].as_array().unwrap().iter().zip(&m.objects) {
+        let mesh = &json["meshes"][node["mesh"].as_u64().unwrap() as usize];
+        assert_eq!(mesh["name"], o.name.as_str());
+        let prim = &mesh["primitives"][0];
+        let indices = accessor_u32s(&json, bin, &prim["indices"]);
+        // Its triangles are its patch range: the same corners, rebased to its own vertices.
+        let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+        assert_eq!(indices.len(), 3 * range.len(), "{}", o.name);
+        triangles += range.len();
+        let mut used: Vec<u32> = b.triangle_vertices()[range.clone()]
+            .iter()
+            .flatten()
+            .copied()
+            .collect();
+        used.sort_unstable();
+        used.dedup();
+        let positions = accessor_f32s(&json, bin, &prim["attributes"]["POSITION"]);
+        let colours = accessor_f32s(&json, bin, &prim["attributes"]["COLOR_0"]);
+        assert_eq!(positions.len(), 3 * used.len(), "{}", o.name);
+        for (t, local) in b.triangle_vertices()[range].iter().zip(indices.chunks(3)) {
+            for (&v, &l) in t.iter().zip(local) {
+                assert_eq!(used[l as usize], v, "{}", o.name);
+            }
+        }
+        for (j, &v) in used.iter().enumerate() {
+            // Metres: a centimetre scene's coordinates × 0.01.
+            let p = b.vertex_positions()[v as usize];
+            for c in 0..3 {
+                let want = (f64::from(p[c]) * 0.01) as f32;
+                assert_eq!(positions[3 * j + c], want, "{} vertex {v}", o.name);
+            }
+            let want = linear_colour(radiance[v as usize], scale, ToneMap::Srgb);
+            assert_eq!(colours[3 * j..3 * j + 3], want, "{} vertex {v}", o.name);
+            clipped += usize::from(want.contains(&1.0));
+        }
+        vertices += used.len();
+    }
+    assert_eq!(triangles, b.triangle_vertices().len());
+    assert_eq!(vertices, b.vertex_positions().len());
+    // Auto exposure clips few vertices; EV 0 (the old default) clips most of them.
+    let auto_clipped = clipped as f64 / vertices as f64;
+    assert!(auto_clipped < 0.10, "{:.1}% clipped", 100.0 * auto_clipped);
+    let ev0 = export(
+        &scene,
+        &plan,
+        Exposure::Ev(0.0),
+        ToneMap::Srgb,
+        MeshFormat::Glb,
+    )
+    .unwrap();
+    assert_eq!(ev0.exposure, 0.0);
+    let (json0, bin0) = glb_chunks(&ev0.bytes);
+    let (mut clipped0, mut n0) = (0, 0);
+    for mesh in json0["meshes"].as_array().unwrap() {
+        let c = accessor_f32s(
+            &json0,
+            bin0,
+            &mesh["primitives"][0]["attributes"]["COLOR_0"],
+        );
+        n0 += c.len() / 3;
+        clipped0 += c.chunks(3).filter(|c| c.contains(&1.0)).count();
+    }
+    let ev0_clipped = clipped0 as f64 / n0 as f64;
+    assert!(ev0_clipped > 0.5, "{ev0_clipped}");
+    eprintln!(
+        ".glb of the centimetre Cornell box: auto exposure {} EV, {:.1}% of vertices with a \
+         channel at 1.0; EV 0: {:.1}%",
+        out.exposure,
+        100.0 * auto_clipped,
+        100.0 * ev0_clipped
+    );
+
+    // PLY keeps scene units and says how long one is.
+    let ply = export(
+        &scene,
+        &plan,
+        Exposure::Auto,
+        ToneMap::Srgb,
+        MeshFormat::Ply,
+    )
+    .unwrap();
+    let header = translux_precompute::export::ply_header_in(
+        b.vertex_positions().len(),
+        b.triangle_vertices().len(),
+        ply.exposure,
+        ToneMap::Srgb,
+        10.0,
+    );
+    assert!(ply.bytes.starts_with(header.as_bytes()));
+    assert!(header.contains("1 unit = 10 mm"), "{header}");
+    let first: Vec<f32> = ply.bytes[header.len()..header.len() + 12]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert_eq!(first, b.vertex_positions()[0]);
+}
+
+/// Loads a .glb with trimesh and prints, per geometry, its vertex count and colours, and per
+/// node its geometry. Exit status 3: python3 has no trimesh (or numpy).
+const TRIMESH_SCRIPT: &str = r#"
+import json, sys
+try:
+    import numpy as np
+    import trimesh
+except ImportError as e:
+    print(f"cannot import: {e}", file=sys.stderr)
+    sys.exit(3)
+path = sys.argv[1]
+out = {"version": trimesh.__version__, "colors": {}, "attributes": {}, "vertices": {}, "nodes": {}}
+# As a plain load sees it: the primitives carry the unlit material, so trimesh keeps COLOR_0
+# as the "color" vertex attribute of its TextureVisuals.
+scene = trimesh.load(path, force="scene")
+for name, g in scene.geometry.items():
+    out["attributes"][name] = np.asarray(g.visual.vertex_attributes["color"]).tolist()
+# Without materials: ColorVisuals, whose vertex_colors are 8-bit RGBA.
+scene = trimesh.load(path, force="scene", skip_materials=True)
+for name, g in scene.geometry.items():
+    out["colors"][name] = np.asarray(g.visual.vertex_colors)[:, :3].tolist()
+    out["vertices"][name] = len(g.vertices)
+for node in scene.graph.nodes_geometry:
+    out["nodes"][node] = scene.graph[node][1]
+json.dump(out, sys.stdout)
+"#;
+
+#[test]
+fn trimesh_reads_the_exported_vertex_colours() {
+    use translux_proto::api::{Exposure, ToneMap};
+    use translux_server::picture::{MeshFormat, export};
+
+    let (scene, plan, _) = relit_scene(centimetre_bundle());
+    let out = export(
+        &scene,
+        &plan,
+        Exposure::Auto,
+        ToneMap::Srgb,
+        MeshFormat::Glb,
+    )
+    .unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("cornell_cm.glb");
+    std::fs::write(&path, &out.bytes).unwrap();
+
+    const INSTALL: &str = "`bash scripts/test` installs it (pip install trimesh)";
+    let run = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(TRIMESH_SCRIPT)
+        .arg(&path)
+        .output()
+        .unwrap_or_else(|e| {
+            panic!("cannot run python3 ({e}); this test needs python3 with trimesh: {INSTALL}")
+        });
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        run.status.code() != Some(3),
+        "python3 has no trimesh ({}); {INSTALL}",
+        stderr.trim()
+    );
+    assert!(
+        run.status.success(),
+        "trimesh failed to load the .glb: {stderr}"
+    );
+    let seen: Value = serde_json::from_slice(&run.stdout).unwrap();
+
+    // What the file says: per mesh (named after its object), the float COLOR_0.
+    let (json, bin) = glb_chunks(&out.bytes);
+    let meshes = json["meshes"].as_array().unwrap();
+    assert_eq!(meshes.len(), scene.bundle.manifest().objects.len());
+    assert_eq!(
+        seen["colors"].as_object().unwrap().len(),
+        meshes.len(),
+        "{seen}"
+    );
+    for (node, mesh) in json["nodes"].as_array().unwrap().iter().zip(meshes) {
+        let name = mesh["name"].as_str().unwrap();
+        // trimesh names the node and its geometry after the object.
+        assert_eq!(seen["nodes"][node["name"].as_str().unwrap()], name);
+        let colours = accessor_f32s(&json, bin, &mesh["primitives"][0]["attributes"]["COLOR_0"]);
+        let n = colours.len() / 3;
+        assert_eq!(seen["vertices"][name], n, "{name}");
+        let got = seen["colors"][name].as_array().unwrap();
+        let attrs = seen["attributes"][name].as_array().unwrap();
+        assert_eq!((got.len(), attrs.len()), (n, n), "{name}");
+        for (k, want) in colours.chunks(3).enumerate() {
+            for c in 0..3 {
+                // vertex_colors: 8-bit, within rounding of 255 × the linear value.
+                let byte = got[k][c].as_f64().unwrap();
+                let exact = 255.0 * f64::from(want[c]);
+                assert!(
+                    (byte - exact).abs() <= 0.5 + 1e-6,
+                    "{name} vertex {k}: trimesh {byte}, file {exact}"
+                );
+                // The plain load's attribute: the float itself.
+                let attr = attrs[k][c].as_f64().unwrap();
+                assert!(
+                    (attr - f64::from(want[c])).abs() < 1e-6,
+                    "{name} vertex {k}"
+                );
+            }
+        }
+    }
+    eprintln!(
+        "trimesh {} read {} geometries with their vertex colours",
+        seen["version"],
+        meshes.len()
+    );
+}
+
+/// Renders as OpenEXR, asserting a 200 `image/x-exr` answer; the image and `X-Exposure`.
+async fn render_exr(s: &TestServer, body: &Value, accept: &str) -> (image::Rgb32FImage, f32) {
+    let r = post_render(s, body, Some(accept)).await;
+    let status = r.status();
+    let ct = content_type(&r);
+    let ev = exposure_header(&r);
+    let bytes = r.bytes().await.unwrap();
+    assert_eq!(
+        status,
+        StatusCode::OK,
+        "{}",
+        String::from_utf8_lossy(&bytes)
+    );
+    assert_eq!(ct, "image/x-exr");
+    assert_eq!(
+        &bytes[..4],
+        &[0x76, 0x2f, 0x31, 0x01],
+        "OpenEXR magic number"
+    );
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+        .expect("the answer decodes as OpenEXR")
+        .to_rgb32f();
+    (img, ev)
+}
+
+#[tokio::test]
+async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
+    let s = TestServer::cornell().await;
+    let bundle = Bundle::open(&bundle_dir()).unwrap();
+    let relit = s.relight_json(&json!({})).await;
+    let radiance: Vec<[f32; 3]> = relit
+        .radiance
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let linear = |params: &translux_precompute::render::RenderParams| {
+        translux_precompute::render::render_linear(
+            bundle.vertex_positions(),
+            bundle.triangle_vertices(),
+            &radiance,
+            &bundle.manifest().camera,
+            params,
+        )
+        .unwrap()
+    };
+    let mean = |img: &image::Rgb32FImage| {
+        img.as_raw().iter().map(|&v| f64::from(v)).sum::<f64>() / img.as_raw().len() as f64
+    };
+    let close = |got: &image::Rgb32FImage, want: &image::Rgb32FImage| {
+        assert_eq!(got.dimensions(), want.dimensions());
+        for (k, (g, w)) in got.as_raw().iter().zip(want.as_raw()).enumerate() {
+            // Half-float precision (the file holds f32, which is tighter still).
+            assert!(
+                (g - w).abs() <= 1e-3 * w.abs() + 1e-6,
+                "value {k}: {g} vs {w}"
+            );
+        }
+        let (g, w) = (mean(got), mean(want));
+        assert!((g - w).abs() <= 1e-3 * w.abs(), "mean {g} vs {w}");
+    };
+
+    // An explicit exposure scales the radiance by 2^EV; the background is linear as asked;
+    // the tone curve does not apply.
+    let body = json!({"width": 160, "height": 120, "exposure": -1.0, "tone": "filmic",
+        "background": [0.2, 0.4, 0.6]});
+    let (exr, ev) = render_exr(&s, &body, "image/x-exr").await;
+    assert_eq!(exr.dimensions(), (160, 120));
+    assert_eq!(ev, -1.0);
+    let params = translux_precompute::render::RenderParams {
+        width: 160,
+        height: 120,
+        exposure: -1.0,
+        tone: translux_precompute::render::ToneMap::Filmic,
+        background: [0.2, 0.4, 0.6],
+        ..Default::default()
+    };
+    let want = linear(&params);
+    close(&exr, &want);
+    assert_eq!(exr.get_pixel(0, 0).0, [0.2, 0.4, 0.6]);
+    let centre = exr.get_pixel(80, 60).0;
+    assert!(centre.iter().all(|&v| v > 0.0), "{centre:?}");
+    // Linear, not display values: the lit walls of the Cornell box exceed 1 somewhere at
+    // EV 0, which no PNG value can.
+    let unexposed = linear(&translux_precompute::render::RenderParams {
+        exposure: 0.0,
+        ..params
+    });
+    assert!(unexposed.as_raw().iter().any(|&v| v > 1.0));
+
+    // The PNG of the same request is these values through the tone curve and the OETF.
+    let png = render_png(&s, &body).await;
+    let mut covered = 0;
+    for (l, d) in exr.pixels().zip(png.pixels()) {
+        if l.0 == params.background {
+            continue;
+        }
+        covered += 1;
+        let want = translux_precompute::render::display_rgb8(l.0, 1.0, params.tone);
+        for c in 0..3 {
+            assert!(d.0[c].abs_diff(want[c]) <= 1, "{:?} vs {want:?}", d.0);
+        }
+    }
+    assert!(covered > 1000, "{covered} covered pixels");
+
+    // `auto` (the default) writes the radiance unscaled and says EV 0; EXR wins over PNG when
+    // preferred by q; the default background is black.
+    let body = json!({"width": 96, "height": 72});
+    let (exr, ev) = render_exr(&s, &body, "image/png;q=0.5, image/x-exr").await;
+    assert_eq!(ev, 0.0);
+    close(
+        &exr,
+        &linear(&translux_precompute::render::RenderParams {
+            width: 96,
+            height: 72,
+            ..Default::default()
+        }),
+    );
+    assert_eq!(exr.get_pixel(0, 0).0, [0.0; 3]);
+
+    // Neither type acceptable: 406 naming both.
+    for accept in ["image/jpeg", "image/x-exr;q=0, image/png;q=0", "text/html"] {
+        let r = post_render(&s, &json!({}), Some(accept)).await;
+        expect_error(
+            r,
+            StatusCode::NOT_ACCEPTABLE,
+            "not_acceptable",
+            &["image/png", "image/x-exr"],
+        )
+        .await;
+    }
+    s.stop().await;
+}

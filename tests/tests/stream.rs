@@ -424,3 +424,72 @@ async fn the_server_pings_and_closes_streams_with_1001_on_shutdown() {
         .expect("the server stops once its streams are closed")
         .unwrap();
 }
+
+/// A message over the size limit closes the stream with 1009 and a reason (it used to drop
+/// the connection, which clients see as 1005 with no reason).
+#[tokio::test]
+async fn an_oversized_message_closes_with_1009() {
+    let s = TestServer::cornell(ServerParams::default()).await;
+    let (mut ws, _) = connect(&s, "").await;
+    let big = format!(
+        "{{\"type\":\"relight\",\"seq\":1,\"pad\":\"{}\"}}",
+        "x".repeat(2 << 20)
+    );
+    ws.send(Message::text(big)).await.unwrap();
+    let (code, reason) = close_of(&mut ws).await;
+    assert_eq!(code, 1009, "{reason}");
+    assert!(reason.contains("too big"), "{reason}");
+    s.stop().await;
+}
+
+/// A client that sends relights but never reads its socket: once the server's sends have
+/// waited four ping intervals the stream is dropped (a blocked send used to keep it, and
+/// its worker slot, forever — the ping timeout cannot fire while `send` waits).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_never_reads_is_dropped() {
+    let params = ServerParams {
+        ping_interval: Duration::from_millis(250),
+        ..Default::default()
+    };
+    let s = TestServer::cornell(params).await;
+    let (mut ws, _) = connect(&s, "?format=f32").await;
+    // Each answer is a full frame; enough of them fill both sides' socket buffers.
+    let mut sent = 0u64;
+    let t0 = std::time::Instant::now();
+    let dropped = loop {
+        let r = tokio::time::timeout(
+            Duration::from_secs(2),
+            ws.send(Message::text(relight_msg(sent, &json!({})).to_string())),
+        )
+        .await;
+        sent += 1;
+        if !matches!(r, Ok(Ok(()))) {
+            // Our own send blocked or failed: the server stopped reading too.
+            break false;
+        }
+        let open = metric(&s.metrics().await, "translux_ws_connections", &[]);
+        if open == Some(0.0) {
+            break true;
+        }
+        assert!(
+            t0.elapsed() < WAIT,
+            "the stream was never dropped ({sent} relights sent)"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    };
+    if !dropped {
+        let t1 = std::time::Instant::now();
+        loop {
+            if metric(&s.metrics().await, "translux_ws_connections", &[]) == Some(0.0) {
+                break;
+            }
+            assert!(
+                t1.elapsed() < WAIT,
+                "a client that never reads kept its stream"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+    drop(ws);
+    s.stop().await;
+}

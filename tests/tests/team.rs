@@ -636,6 +636,55 @@ async fn uploads_refuse_traversal_bad_names_and_oversize() {
     assert_eq!(r.status(), StatusCode::UNSUPPORTED_MEDIA_TYPE);
 }
 
+/// Uploads of one scene id at the same time: the id is reserved when the first is
+/// accepted, so exactly one is queued and the others get 409 — never two jobs where the
+/// later silently replaces the earlier's served scene.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_uploads_of_one_id_queue_exactly_one_job() {
+    let bundles = bundles_with(&[]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let cube = CUBE_OBJ.as_bytes().to_vec();
+    let uploads = (0..4).map(|_| {
+        let form = upload_form(
+            "race.json",
+            scene_json("cube.obj"),
+            &[("cube.obj", cube.clone())],
+            &[("id", "race"), ("patches", "150")],
+        );
+        post_upload(&s, Some(EDITOR), form)
+    });
+    let results = futures_util::future::join_all(uploads).await;
+    let accepted = results
+        .iter()
+        .filter(|(st, _, _)| *st == StatusCode::ACCEPTED)
+        .count();
+    assert_eq!(accepted, 1, "{results:?}");
+    for (st, body, _) in &results {
+        assert!(
+            *st == StatusCode::ACCEPTED || *st == StatusCode::CONFLICT,
+            "{st}: {body}"
+        );
+    }
+    // Once that job is done the id is a served scene, and a new upload is still refused.
+    let job = results
+        .iter()
+        .find(|(st, _, _)| *st == StatusCode::ACCEPTED)
+        .map(|(_, b, _)| b["id"].as_str().unwrap().to_string())
+        .unwrap();
+    let record = s.wait_job(&job, EDITOR).await;
+    assert_eq!(record["state"], "done", "{record}");
+    let form = upload_form(
+        "race.json",
+        scene_json("cube.obj"),
+        &[("cube.obj", cube.clone())],
+        &[("id", "race")],
+    );
+    assert_eq!(
+        post_upload(&s, Some(EDITOR), form).await.0,
+        StatusCode::CONFLICT
+    );
+}
+
 /// The upload limit is on the patches the precompute will make, not the number asked for:
 /// every triangle is at least one patch, so a mesh of many triangles with `patches=50` is
 /// refused up front, with the real count.
@@ -1006,6 +1055,81 @@ async fn a_tiny_memory_budget_evicts_and_still_answers_correctly() {
     for t in tasks {
         assert_eq!(t.await.unwrap(), want);
     }
+}
+
+/// The team routes and the access layer's refusals are in `/metrics` and the request log,
+/// not only the core routes: failed-login bursts and deletions must be visible.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn team_routes_and_refusals_are_counted_and_logged() {
+    logs();
+    let bundles = bundles_with(&["cornell"]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    for _ in 0..3 {
+        let r = s
+            .req(reqwest::Method::GET, "/api/v1/jobs", Some(BAD))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    }
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            "/api/v1/scenes/cornell",
+            Some(VIEWER),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::FORBIDDEN);
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            "/api/v1/scenes/cornell",
+            Some(ADMIN),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "{}", r.status());
+    let _ = s.get_json("/api/v1/whoami", Some(VIEWER)).await;
+    let text = s
+        .req(reqwest::Method::GET, "/metrics", Some(VIEWER))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let count = |route: &str, method: &str, status: &str| {
+        let want = format!(
+            "translux_http_request_duration_seconds_count{{method=\"{method}\",route=\"{route}\",status=\"{status}\"}}"
+        );
+        text.lines()
+            .find(|l| l.starts_with(&want))
+            .and_then(|l| l.rsplit(' ').next())
+            .map_or(0, |n| n.parse::<u64>().unwrap())
+    };
+    assert_eq!(count("/api/v1/jobs", "GET", "401"), 3, "{text}");
+    assert_eq!(count("/api/v1/scenes/{id}", "DELETE", "403"), 1, "{text}");
+    assert_eq!(count("/api/v1/scenes/{id}", "DELETE", "200"), 1, "{text}");
+    assert_eq!(count("/api/v1/whoami", "GET", "200"), 1, "{text}");
+    assert!(
+        text.lines()
+            .any(|l| l.starts_with("translux_build_info{") && l.ends_with(" 1")),
+        "{text}"
+    );
+    let log = String::from_utf8_lossy(&logs().0.lock().unwrap()).into_owned();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("/api/v1/jobs") && l.contains("401")),
+        "no 401 in the log"
+    );
+    assert!(
+        log.lines()
+            .any(|l| l.contains("DELETE") && l.contains("/api/v1/scenes/cornell")),
+        "no DELETE in the log"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -7,6 +7,7 @@ import { OrbitCamera } from "./camera.js";
 import { Link } from "./link.js";
 import { buildGlb } from "./glb.js";
 import { encodeHash, decodeHash, COMPONENTS } from "./hashstate.js";
+import { token, setToken, takeTokenFromUrl, apiFetch, isDenial, denialMessage } from "./auth.js";
 import {
   el, slider, picker, vec3Input, splitColour, joinColour, logPos, fromLogPos, download, fmt,
 } from "./ui.js";
@@ -63,7 +64,7 @@ const app = {
   needDraw: true,
   newFrame: false,
   bbox: null,
-  errors: { conn: null, request: null, notice: null, app: null },
+  errors: { auth: null, conn: null, link: null, request: null, notice: null, app: null },
   state: {
     scene: null,
     camera: null,
@@ -77,6 +78,7 @@ const app = {
   },
   matUi: {},
   hashProblems: [],
+  linkNotes: [], // sentences about the opened link, shown with the hash problems
   autoExposure: true,
 };
 window.translux = { app, metrics };
@@ -87,10 +89,12 @@ function setBanner(kind, message) {
   app.errors[kind] = message;
   const box = $("banners");
   box.replaceChildren();
-  for (const k of ["conn", "app", "request", "notice"]) {
+  for (const k of ["auth", "conn", "link", "app", "request", "notice"]) {
     const m = app.errors[k];
     if (!m) continue;
-    const title = { conn: "Connection", app: "Viewer", request: "Server", notice: "Note" }[k];
+    const title = {
+      auth: "Sign-in", conn: "Connection", link: "Link", app: "Viewer", request: "Server", notice: "Note",
+    }[k];
     const close = el("button", { title: "Dismiss", onclick: () => setBanner(k, null) }, "×");
     box.append(el("div", { class: "banner" + (k === "notice" ? " notice" : ""), "data-kind": k, role: "alert" },
       el("span", { class: "msg" }, el("b", {}, title + ": "), m), close));
@@ -183,14 +187,55 @@ function onInFlight(busy) {
 
 // ---- scenes -------------------------------------------------------------------------
 
+/** GET a JSON answer; a failure throws an Error with the `status` and the server's message. */
 async function getJson(url) {
-  const res = await fetch(url, { headers: { Accept: "application/json" } });
+  const res = await apiFetch(url, { headers: { Accept: "application/json" } });
   const body = await res.json().catch(() => null);
   if (!res.ok) {
     const m = body && body.error ? body.error.message : res.statusText;
-    throw new Error(`GET ${url} answered ${res.status}: ${m}`);
+    throw Object.assign(new Error(`GET ${url} answered ${res.status}: ${m}`), { status: res.status, serverMessage: m });
   }
   return body;
+}
+
+// ---- sign-in ------------------------------------------------------------------------
+
+/**
+ * The server turned the token (or its absence) down: that is no lost connection, so say
+ * what it wants and show the sign-in form instead of retrying.
+ */
+function askForToken(status, message) {
+  if (app.link) app.link.close();
+  app.link = null;
+  onInFlight(false);
+  const chip = $("conn");
+  chip.className = "chip offline";
+  chip.textContent = status === 401 && !token() ? "sign-in needed" : "token refused";
+  $("stage").classList.remove("offline");
+  setBanner("conn", null);
+  setBanner("auth", denialMessage(status, message));
+  $("signin").hidden = false;
+  $("token-input").focus();
+}
+
+/** Keeps the token for this tab and starts again with it. */
+function signIn(ev) {
+  ev.preventDefault();
+  const input = $("token-input");
+  const t = input.value.trim();
+  if (!t) return;
+  input.value = "";
+  setToken(t);
+  signedIn();
+}
+
+/** A token is in the session (from the form or a pasted link): start again with it. */
+function signedIn() {
+  $("signin").hidden = true;
+  setBanner("auth", null);
+  $("conn").className = "chip";
+  $("conn").textContent = "connecting…";
+  start();
 }
 
 function defaultLights() {
@@ -211,7 +256,8 @@ async function loadScene(id, fromHash) {
       getJson(`/api/v1/scenes/${encodeURIComponent(id)}/mesh`),
     ]);
   } catch (e) {
-    setBanner("app", `Cannot load scene “${id}”: ${e.message}`);
+    if (isDenial(e.status)) askForToken(e.status, e.serverMessage);
+    else setBanner("app", `Cannot load scene “${id}”: ${e.message}`);
     return;
   }
   app.detail = detail;
@@ -233,12 +279,18 @@ async function loadScene(id, fromHash) {
   app.selected = 0;
   $("scene").value = id;
   buildPanels();
-  app.link = new Link(id, { onFrame, onRequestError, onConnection, onInFlight, onNotice: (m) => {
+  app.link = new Link(id, { onFrame, onRequestError, onConnection, onInFlight, onDenied: askForToken, onNotice: (m) => {
     app.restNotice = m;
     setBanner("notice", m);
   } });
-  setBanner("app", app.hashProblems.length ? `Parts of the link were not understood: ${app.hashProblems.join("; ")}` : null);
+  // What the link asked for and did not get stays on screen until dismissed: the first
+  // frame clears the viewer's own banner, which would hide it.
+  const notes = app.linkNotes.slice();
+  if (app.hashProblems.length) notes.push(`Parts of the link were not understood: ${app.hashProblems.join("; ")}.`);
+  setBanner("link", notes.length ? notes.join(" ") : null);
+  setBanner("app", null);
   app.hashProblems = [];
+  app.linkNotes = [];
   changed();
 }
 
@@ -444,6 +496,15 @@ function describeProfile(p) {
   return p.type;
 }
 
+/** An object's caption: the media it is drawn with, the picked ones where a preset is picked. */
+function materialCaption(o, u) {
+  if (o.material.type === "translucent") {
+    return u.choice === "scene" ? describeProfile(o.material.profile) : `dipole ${u.choice}`;
+  }
+  const media = o.material.materials.map((p, k) => (u.media[k] === "scene" ? describeProfile(p) : u.media[k]));
+  return `heterogeneous: ${media.join(", ")}`;
+}
+
 function materialOverride(name) {
   const o = app.detail.objects.find((x) => x.name === name);
   const u = app.matUi[name];
@@ -502,9 +563,8 @@ function buildMaterials() {
     if (kind !== "translucent" && kind !== "heterogeneous") continue;
     const u = matUiFrom(o, app.state.materials[o.name]);
     app.matUi[o.name] = u;
-    const head = el("div", { class: "oname" }, o.name, " ", el("span", { class: "kind" },
-      kind === "translucent" ? describeProfile(o.material.profile) : `heterogeneous, ${o.material.materials.length} media`));
-    const parts = [head];
+    const caption = el("span", { class: "kind" }, materialCaption(o, u));
+    const parts = [el("div", { class: "oname" }, o.name, " ", caption)];
     const presetOptions = (orig) => [["scene", `scene: ${describeProfile(orig)}`], ...PRESETS.map((p) => [p, p])];
     const scalable = () => (kind === "translucent"
       ? (u.choice !== "scene" || o.material.profile.type === "dipole")
@@ -518,9 +578,11 @@ function buildMaterials() {
         applyMaterial(o.name, ev.timeStamp);
       },
     });
+    // After a medium is picked: the slider's state, and the caption names the medium shown.
     const syncScalable = () => {
       sl.input.disabled = !scalable();
       sl.title = sl.input.disabled ? "Only dipole profiles can be scaled; pick a preset" : "";
+      caption.textContent = materialCaption(o, u);
     };
     if (kind === "translucent") {
       parts.push(picker({
@@ -861,6 +923,8 @@ function glb() {
 // ---- boot ---------------------------------------------------------------------------
 
 async function boot() {
+  // First of all, so that no later step (nor a failure) leaves the token in the address bar.
+  takeTokenFromUrl();
   try {
     app.renderer = new Renderer($("view"));
   } catch (e) {
@@ -911,34 +975,67 @@ async function boot() {
     loadScene($("scene").value, false);
   };
   window.addEventListener("hashchange", () => {
-    // A pasted link: reload the view it describes.
+    // A pasted link: take the token it carries, then show the view it describes.
+    if (takeTokenFromUrl()) {
+      signedIn();
+      return;
+    }
     const { state, problems } = decodeHash(location.hash);
     app.hashProblems = problems;
-    if (state.scene && app.scenes.some((s) => s.id === state.scene)) loadScene(state.scene, true);
+    if (!state.scene) return;
+    if (app.scenes.some((s) => s.id === state.scene)) loadScene(state.scene, true);
+    else setBanner("link", `Scene “${state.scene}” does not exist on this server; still showing “${app.state.scene}”.`);
   });
+  $("signin").addEventListener("submit", signIn);
+  $("panel-toggle").onclick = togglePanel;
   requestAnimationFrame(frame);
+  await start();
+}
 
+/** A scene's line in the picker: with its id where another scene has the same name. */
+function sceneLabel(s, all) {
+  const twin = all.some((o) => o !== s && o.name === s.name);
+  return `${twin ? `${s.name} (${s.id})` : s.name} · ${s.patches} patches`;
+}
+
+/** Lists the scenes and loads the one the URL names, or the first (saying so). */
+async function start() {
   const { state: fromHash, problems } = decodeHash(location.hash);
   app.hashProblems = problems;
+  app.linkNotes = [];
   let list;
   try {
     list = await getJson("/api/v1/scenes");
   } catch (e) {
-    setBanner("conn", `Cannot list the scenes: ${e.message}. Reload the page when the server is back.`);
+    if (isDenial(e.status)) askForToken(e.status, e.serverMessage);
+    else setBanner("conn", `Cannot list the scenes: ${e.message}. Reload the page when the server is back.`);
     return;
   }
   app.scenes = list.scenes;
-  $("scene").replaceChildren(...list.scenes.map((s) => el("option", { value: s.id }, `${s.name} (${s.patches} patches)`)));
+  $("scene").replaceChildren(...list.scenes.map((s) => el("option", { value: s.id, title: `id: ${s.id}` },
+    sceneLabel(s, list.scenes))));
   if (!list.scenes.length) {
     setBanner("app", "The server holds no scenes (start it with --bundles DIR or --demo).");
     return;
   }
   let id = list.scenes[0].id;
-  if (fromHash.scene) {
-    if (list.scenes.some((s) => s.id === fromHash.scene)) id = fromHash.scene;
-    else app.hashProblems.push(`the server has no scene “${fromHash.scene}”`);
+  let useHash = true;
+  if (fromHash.scene && list.scenes.some((s) => s.id === fromHash.scene)) {
+    id = fromHash.scene;
+  } else if (fromHash.scene) {
+    // The rest of the link describes a view of that scene, not of this one.
+    app.linkNotes.push(`Scene “${fromHash.scene}” does not exist on this server; showing “${id}” instead.`);
+    useHash = false;
   }
-  await loadScene(id, true);
+  await loadScene(id, useHash);
+}
+
+/** On a narrow screen the panel is a drawer under the view, closed until asked for. */
+function togglePanel() {
+  const open = $("panel").classList.toggle("open");
+  $("panel-toggle").setAttribute("aria-expanded", String(open));
+  $("panel-toggle").classList.toggle("on", open);
+  app.needDraw = true;
 }
 
 boot();

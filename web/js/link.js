@@ -10,6 +10,12 @@
 // Latest wins: at most one request is in flight; a newer state replaces the pending one, so
 // dragging never builds a queue. A lost connection is retried with exponential back-off
 // (0.5 s doubling to 8 s); after reconnecting, the newest state is sent again.
+//
+// On a team server (docs/team.md) every request carries the tab's token (auth.js). A 401 or
+// 403 is not a lost connection: retrying cannot help, so the link stops and hands the
+// answer to `onDenied`, and the viewer asks for a token.
+
+import { apiFetch, withAccessToken, isDenial } from "./auth.js";
 
 const MAGIC = "TLXF";
 const BACKOFF_MS = [500, 1000, 2000, 4000, 8000];
@@ -19,14 +25,14 @@ export class Link {
   /**
    * `handlers`: onFrame(radiance: Float32Array, info: {seq, stats, dropped, transport}),
    * onRequestError(seq, code, message), onConnection({state, transport, message}),
-   * onNotice(message|null), onInFlight(bool).
+   * onNotice(message|null), onInFlight(bool), onDenied(status, message).
    */
   constructor(sceneId, handlers) {
     this.sceneId = sceneId;
     this.h = handlers;
     this.base = "/api/v1/scenes/" + encodeURIComponent(sceneId);
     this.transport = null; // "stream" | "rest" while connected
-    this.state = "connecting"; // "connecting" | "open" | "offline" | "closed"
+    this.state = "connecting"; // "connecting" | "open" | "offline" | "denied" | "closed"
     this.latest = null; // { seq, request }: the newest state, resent after a reconnect
     this.pending = null; // not yet sent
     this.inFlight = null; // { seq, t0 }
@@ -65,7 +71,7 @@ export class Link {
     if (this.state === "closed") return;
     clearTimeout(this.timer);
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    const url = `${proto}//${location.host}${this.base}/stream?format=f32`;
+    const url = withAccessToken(`${proto}//${location.host}${this.base}/stream?format=f32`);
     let opened = false;
     let ws;
     try {
@@ -98,7 +104,7 @@ export class Link {
   async probe() {
     let res, body = null;
     try {
-      res = await fetch(`${this.base}/stream`, { headers: { Accept: "application/json" } });
+      res = await apiFetch(`${this.base}/stream`, { headers: { Accept: "application/json" } });
       body = await res.json().catch(() => null);
     } catch (e) {
       this.lost(`the server does not answer (${e.message})`);
@@ -106,7 +112,9 @@ export class Link {
     }
     if (this.state === "closed") return;
     const msg = body && body.error ? body.error.message : res.statusText;
-    if (res.status === 404 && /^no route/.test(msg)) {
+    if (isDenial(res.status)) {
+      this.denied(res.status, msg);
+    } else if (res.status === 404 && /^no route/.test(msg)) {
       this.startRest(
         `Streaming is unavailable: GET ${this.base}/stream answered 404 (“${msg}”). ` +
           `Relighting over POST ${this.base}/relight instead (one request at a time).`,
@@ -130,6 +138,19 @@ export class Link {
     );
     this.h.onInFlight(false);
     this.timer = setTimeout(() => this.connect(), delay);
+  }
+
+  /** The server turned the token down: stop (no retry can help) and let the viewer ask. */
+  denied(status, message) {
+    if (this.state === "closed") return;
+    clearTimeout(this.timer);
+    clearInterval(this.heartbeat);
+    this.transport = null;
+    this.pending = null;
+    this.inFlight = null;
+    this.state = "denied";
+    this.h.onInFlight(false);
+    this.h.onDenied(status, message);
   }
 
   connected(transport, notice) {
@@ -189,7 +210,7 @@ export class Link {
   async restRelight(seq, request) {
     let res;
     try {
-      res = await fetch(`${this.base}/relight`, {
+      res = await apiFetch(`${this.base}/relight`, {
         method: "POST",
         headers: { "Content-Type": "application/json", Accept: "application/octet-stream" },
         body: JSON.stringify(request),
@@ -204,6 +225,10 @@ export class Link {
     if (!res.ok) {
       const body = await res.json().catch(() => null);
       const err = body && body.error ? body.error : { code: String(res.status), message: res.statusText };
+      if (isDenial(res.status)) {
+        this.denied(res.status, err.message);
+        return;
+      }
       this.h.onRequestError(seq, err.code, err.message);
       this.done();
       return;

@@ -1,7 +1,12 @@
 // Drives the translux viewer in Debian's chromium (headless, SwiftShader WebGL2) against a
 // running translux-server. Run by tests/tests/browser.rs, which starts and stops the server:
 //
-//   node web/tests/viewer.test.mjs URL OUT_DIR
+//   TRANSLUX_TEST_TOKEN=T node web/tests/viewer.test.mjs URL OUT_DIR TEAM_URL
+//
+// URL is an open server; TEAM_URL a server with `--tokens` that accepts the viewer token T
+// and serves the same bundle under two ids (two scenes with one name). With
+// TRANSLUX_WEB_DIR=DIR the pages get the viewer's files from DIR instead of the server, to
+// try a change to web/ without rebuilding the server.
 //
 // Talks to its harness by lines: it prints {"event":"stop-server"} / {"event":"start-server"}
 // on stdout and waits for "stopped" / "started" on stdin; its last line is
@@ -9,17 +14,19 @@
 // to check them go to OUT_DIR. Any failed check throws: exit code 1 with the reason.
 
 import { chromium } from "playwright-core";
-import { mkdirSync, writeFileSync } from "node:fs";
+import { mkdirSync, readFileSync, writeFileSync } from "node:fs";
 import { createInterface } from "node:readline";
 import { join } from "node:path";
 
-const [url, outDir] = process.argv.slice(2);
-if (!url || !outDir) {
-  console.error("usage: node viewer.test.mjs URL OUT_DIR");
+const [url, outDir, teamUrl] = process.argv.slice(2);
+const teamToken = process.env.TRANSLUX_TEST_TOKEN;
+if (!url || !outDir || !teamUrl || !teamToken) {
+  console.error("usage: TRANSLUX_TEST_TOKEN=T node viewer.test.mjs URL OUT_DIR TEAM_URL");
   process.exit(2);
 }
 mkdirSync(outDir, { recursive: true });
 const executablePath = process.env.CHROMIUM || "/usr/bin/chromium";
+const webDir = process.env.TRANSLUX_WEB_DIR;
 
 // ---- harness protocol ----------------------------------------------------------------
 
@@ -94,6 +101,67 @@ async function idle(page, timeout = 30000) {
   await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
 }
 
+/** A browser context; with TRANSLUX_WEB_DIR, its pages load the viewer's files from there. */
+async function newContext(browser, options) {
+  const context = await browser.newContext({ acceptDownloads: true, ...options });
+  if (webDir) {
+    await context.route((u) => u.pathname === "/" || u.pathname.startsWith("/web/"), (route) => {
+      const path = new URL(route.request().url()).pathname;
+      const file = path === "/" ? "index.html" : path.slice("/web/".length);
+      const type = file.endsWith(".js") ? "text/javascript" : file.endsWith(".css") ? "text/css" : "text/html";
+      route.fulfill({ status: 200, contentType: type, body: readFileSync(join(webDir, file)) });
+    });
+  }
+  return context;
+}
+
+/** Waits for a page's first lit frame and for it to settle. */
+async function firstLit(page) {
+  await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
+  await idle(page);
+}
+
+/** Page rects (CSS pixels) of the visible elements matching `selector`. */
+async function rects(page, selector) {
+  return page.$$eval(selector, (els) => els.map((e) => {
+    const r = e.getBoundingClientRect();
+    const name = e.id ? "#" + e.id : e.className ? `${e.tagName.toLowerCase()}.${e.className}` : e.tagName.toLowerCase();
+    return { name, x0: r.left, y0: r.top, x1: r.right, y1: r.bottom };
+  }).filter((r) => r.x1 - r.x0 > 0.5 && r.y1 - r.y0 > 0.5));
+}
+
+/** Pairs of rects that overlap by more than a pixel either way. */
+function overlaps(list) {
+  const out = [];
+  for (let i = 0; i < list.length; i++) {
+    for (let j = i + 1; j < list.length; j++) {
+      const a = list[i], b = list[j];
+      const w = Math.min(a.x1, b.x1) - Math.max(a.x0, b.x0), h = Math.min(a.y1, b.y1) - Math.max(a.y0, b.y0);
+      if (w > 1 && h > 1) out.push(`${a.name} and ${b.name} overlap by ${w.toFixed(0)}×${h.toFixed(0)} px`);
+    }
+  }
+  return out;
+}
+
+/**
+ * The share of the window where the canvas is what a tap or click would hit (a 30×60 grid):
+ * the header, the panel, banners and forms cover it; the stats and the hint let the pointer
+ * through and do not.
+ */
+async function canvasShare(page) {
+  return page.evaluate(() => {
+    const canvas = document.getElementById("view");
+    let hit = 0, n = 0;
+    for (let i = 0; i < 30; i++) {
+      for (let j = 0; j < 60; j++) {
+        n++;
+        if (document.elementFromPoint(((i + 0.5) / 30) * innerWidth, ((j + 0.5) / 60) * innerHeight) === canvas) hit++;
+      }
+    }
+    return hit / n;
+  });
+}
+
 async function shot(page, name) {
   await page.screenshot({ path: join(outDir, name) });
   log("screenshot", join(outDir, name));
@@ -123,6 +191,203 @@ async function objectRect(page, name) {
   }, name);
 }
 
+// ---- first use -------------------------------------------------------------------------
+
+/** Pages of `context` report their errors into `pageErrors`. */
+function watchErrors(context) {
+  context.on("page", (p) => p.on("pageerror", (e) => pageErrors.push(`${p.url()}: ${e.message}`)));
+}
+
+/**
+ * 10. A team server (`--tokens`): the page asks for a token and says why (not "lost the
+ * connection"), says when one is refused (401 unknown, 403), signs in from its form, from
+ * `?access_token=` and from `#token=`, keeps the token for the tab, sends it as
+ * `Authorization` and on the WebSocket only, and never puts it in the address bar, a log
+ * line or the Referer. The server holds one bundle under two ids: the picker tells them apart.
+ */
+async function checkSignIn(browser) {
+  const context = await newContext(browser, { viewport: { width: 1280, height: 760 } });
+  watchErrors(context);
+  const leaks = [], consoleLines = [], apiAuth = [], sockets = [];
+  context.on("console", (m) => consoleLines.push(m.text()));
+  context.on("request", (r) => {
+    const h = r.headers();
+    // The one URL that may carry the token is the page address the user typed it into.
+    if (r.resourceType() !== "document" && r.url().includes(teamToken)) leaks.push(`URL ${r.url()}`);
+    if ((h.referer || "").includes(teamToken)) leaks.push(`Referer of ${r.url()}`);
+    if (new URL(r.url()).pathname.startsWith("/api/")) apiAuth.push(h.authorization || null);
+  });
+  context.on("page", (p) => p.on("websocket", (ws) => sockets.push(ws.url())));
+  const authBanner = (p) => p.textContent('#banners [data-kind="auth"]');
+  const out = {};
+
+  const page = await context.newPage();
+  await page.goto(teamUrl);
+  await page.waitForSelector("#signin:not([hidden])", { timeout: 15000 });
+  out.no_token = (await authBanner(page)).replace(/×$/, "");
+  check(/wants an access token/.test(out.no_token) && /401/.test(out.no_token), `no token: the banner says "${out.no_token}"`);
+  const all = await page.textContent("#banners");
+  check(!/Lost the connection|server is back|restart/i.test(all), `no token: a banner blames the connection: "${all}"`);
+  const chip = await page.textContent("#conn");
+  check(chip !== "connecting…", "no token: the chip still says connecting…");
+  await shot(page, "10-sign-in.png");
+
+  // An unknown token: refused, and the form stays for another.
+  await page.fill("#token-input", "tlx_not_a_token_" + "0".repeat(48));
+  await page.click('#signin button[type="submit"]');
+  await page.waitForFunction(() => /does not accept this token/.test(
+    document.querySelector('#banners [data-kind="auth"]')?.textContent || ""), null, { timeout: 15000 });
+  out.unknown_token = (await authBanner(page)).replace(/×$/, "");
+  check(!(await page.locator("#signin").isHidden()), "an unknown token hid the sign-in form");
+
+  // The viewer's token: the scene draws over the stream; the prompt and banner are gone.
+  await page.fill("#token-input", teamToken);
+  await page.click('#signin button[type="submit"]');
+  await firstLit(page);
+  check(await page.locator("#signin").isHidden(), "signed in, the sign-in form is still shown");
+  check((await page.locator('#banners [data-kind="auth"]').count()) === 0, "signed in, the sign-in banner is still shown");
+  check(await page.evaluate(() => window.translux.app.link.transport) === "stream",
+    "signed in, the viewer did not open the stream");
+  check(await page.evaluate(() => sessionStorage.getItem("translux.token")) === teamToken,
+    "the token is not kept in sessionStorage");
+
+  // Two scenes named alike: the picker shows their ids, and the second one loads.
+  const options = await page.$$eval("#scene option", (os) => os.map((o) => ({ id: o.value, text: o.textContent })));
+  out.picker = options.map((o) => o.text);
+  check(options.length === 2 && options[0].text !== options[1].text && options.every((o) => o.text.includes(o.id)),
+    `scenes with one name are not told apart in the picker: ${JSON.stringify(options)}`);
+  await page.selectOption("#scene", options[1].id);
+  await page.waitForFunction((id) => window.translux.app.state.scene === id && window.translux.app.radiance, options[1].id);
+  await idle(page);
+  await page.waitForTimeout(400); // the hash is written 250 ms after the last change
+  check(/scene=cornell-copy/.test(page.url()) && !page.url().includes(teamToken), `the view's link: ${page.url()}`);
+
+  // A reload keeps the sign-in (sessionStorage).
+  await page.reload();
+  await firstLit(page);
+  check(await page.locator("#signin").isHidden(), "after a reload the viewer asks for the token again");
+
+  // 403 (no viewer route answers it to a known token, so the answer is staged here).
+  await page.route("**/api/v1/scenes", (r) => r.fulfill({
+    status: 403, contentType: "application/json",
+    body: JSON.stringify({ error: { code: "forbidden", message: "this route needs the admin role; the token has viewer" } }),
+  }));
+  await page.reload();
+  await page.waitForSelector("#signin:not([hidden])", { timeout: 15000 });
+  out.forbidden = (await authBanner(page)).replace(/×$/, "");
+  check(/refuses this token/.test(out.forbidden) && /403/.test(out.forbidden), `403: the banner says "${out.forbidden}"`);
+  await page.unroute("**/api/v1/scenes");
+  await page.close();
+
+  // The token in the page URL, in a new tab each (no sessionStorage yet).
+  for (const link of [`${teamUrl}?access_token=${encodeURIComponent(teamToken)}#scene=cornell-copy`,
+    `${teamUrl}#token=${encodeURIComponent(teamToken)}&scene=cornell-copy`]) {
+    const p = await context.newPage();
+    await p.goto(link);
+    await firstLit(p);
+    const s = await p.evaluate(() => ({ scene: window.translux.app.state.scene, href: location.href }));
+    check(s.scene === "cornell-copy", `${link.replace(teamToken, "T")} showed ${s.scene}`);
+    check(!s.href.includes(teamToken) && !/access_token|token=/.test(s.href),
+      `the token stays in the address bar: ${s.href.replace(teamToken, "T")}`);
+    check(await p.locator("#signin").isHidden(), "a token in the URL did not sign in");
+    await p.close();
+  }
+
+  check(apiAuth.some((a) => a === `Bearer ${teamToken}`), "no API request carried Authorization: Bearer");
+  check(sockets.length > 0 && sockets.every((u) => new URL(u).searchParams.get("access_token") === teamToken),
+    `the WebSocket URLs do not carry the token: ${sockets.length} opened`);
+  check(leaks.length === 0, `the token leaked: ${leaks.join("; ").replaceAll(teamToken, "T")}`);
+  const logged = consoleLines.filter((l) => l.includes(teamToken));
+  check(logged.length === 0, `the token is in ${logged.length} console line(s)`);
+  await context.close();
+  return out;
+}
+
+/**
+ * 11. At 800×600: a link to a scene that does not exist says so (and stays said after the
+ * first frame); picking a medium shows it in the material's caption; the overlays, the
+ * header and the panel do not overlap (with a banner and the solving badge up).
+ */
+async function checkLinkMaterialLayout(browser) {
+  const context = await newContext(browser, { viewport: { width: 800, height: 600 } });
+  watchErrors(context);
+  const page = await context.newPage();
+  const out = {};
+  await page.goto(url + "#scene=nope");
+  await firstLit(page);
+  const linkBanner = () => page.locator('#banners [data-kind="link"]').textContent({ timeout: 2000 }).catch(() => "");
+  out.missing_scene = (await linkBanner()).replace(/×$/, "");
+  check(/“nope” does not exist/.test(out.missing_scene), `#scene=nope: the banner says "${out.missing_scene}"`);
+  check(await page.evaluate(() => window.translux.app.state.scene) === "cornell", "#scene=nope: no scene shown instead");
+  // A link pasted into an open page.
+  await page.evaluate(() => { location.hash = "#scene=nope2"; });
+  await page.waitForFunction(() => /“nope2” does not exist/.test(
+    document.querySelector('#banners [data-kind="link"]')?.textContent || ""), null, { timeout: 5000 });
+
+  // The caption follows the picked medium.
+  const block = await page.evaluate(() => window.translux.app.detail.objects.find((o) => o.material.type === "translucent").name);
+  const caption = page.locator(`#materials [data-object="${block}"] .kind`);
+  const before = await caption.textContent();
+  const medium = ["ketchup", "apple"].find((m) => !before.includes(m));
+  await page.selectOption(`#mat-${block}-preset`, medium);
+  await idle(page);
+  out.caption = { before, after: await caption.textContent() };
+  check(out.caption.after.includes(medium), `picked ${medium}, the caption says "${out.caption.after}"`);
+
+  // Layout, with the link banner and the solving badge shown.
+  await page.evaluate(() => { document.getElementById("solving").hidden = false; });
+  const overlays = await rects(page, "#stats, #hint, #solving, #banners .banner");
+  const stage = (await rects(page, "#stage"))[0];
+  const laid = [...overlays, ...(await rects(page, "header.top > *, #panel"))];
+  const bad = overlaps(laid);
+  for (const r of overlays) {
+    if (r.x0 < stage.x0 - 1 || r.x1 > stage.x1 + 1 || r.y0 < stage.y0 - 1 || r.y1 > stage.y1 + 1) bad.push(`${r.name} sticks out of the view`);
+  }
+  await shot(page, "11-800x600.png");
+  await page.evaluate(() => { document.getElementById("solving").hidden = true; });
+  check(overlays.length >= 4, `at 800×600 only ${overlays.map((r) => r.name).join(", ")} are shown`);
+  check(bad.length === 0, `at 800×600: ${bad.join("; ")}`);
+  out.checked_800x600 = laid.map((r) => r.name);
+  await context.close();
+  return out;
+}
+
+/**
+ * 12. A 390×844 phone: the panel does not cover the view (a drawer, closed at first); open,
+ * its controls work and the view still has a good part of the screen.
+ */
+async function checkPhone(browser) {
+  const context = await newContext(browser, { viewport: { width: 390, height: 844 }, hasTouch: true });
+  watchErrors(context);
+  const page = await context.newPage();
+  const out = {};
+  await page.goto(url);
+  await firstLit(page);
+  out.canvas_share_closed = +(await canvasShare(page)).toFixed(2);
+  const header = (await rects(page, "header.top"))[0];
+  const headerBad = overlaps(await rects(page, "header.top > *"));
+  await shot(page, "12-phone.png");
+  check(out.canvas_share_closed >= 0.7, `at 390×844 the view is ${(out.canvas_share_closed * 100).toFixed(0)}% of the screen`);
+  check(header.y1 - header.y0 <= 0.15 * 844, `at 390×844 the header is ${(header.y1 - header.y0).toFixed(0)} px tall`);
+  check(headerBad.length === 0, `at 390×844: ${headerBad.join("; ")}`);
+
+  await page.click("#panel-toggle");
+  await idle(page);
+  out.canvas_share_open = +(await canvasShare(page)).toFixed(2);
+  const [canvas] = await rects(page, "#view");
+  const [panel] = await rects(page, "#panel");
+  check(panel && overlaps([canvas, panel]).length === 0, "at 390×844 the open panel covers the view");
+  check(out.canvas_share_open >= 0.4, `with the panel open the view is ${(out.canvas_share_open * 100).toFixed(0)}% of the screen`);
+  await page.locator("#comp-direct").scrollIntoViewIfNeeded();
+  await page.click("#comp-direct");
+  await idle(page);
+  check(await page.evaluate(() => window.translux.app.lastInfo.stats.components) === "direct",
+    "at 390×844 the panel's controls do not work");
+  await shot(page, "13-phone-panel.png");
+  await context.close();
+  return out;
+}
+
 const median = (a) => (a.length ? [...a].sort((x, y) => x - y)[Math.floor(a.length / 2)] : null);
 const pct = (a, q) => (a.length ? [...a].sort((x, y) => x - y)[Math.min(a.length - 1, Math.floor(a.length * q))] : null);
 
@@ -134,12 +399,15 @@ const browser = await chromium.launch({
   args: [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    // A page fulfilled by the test (TRANSLUX_WEB_DIR) has no address: chromium would count
+    // it as public and block its WebSocket to 127.0.0.1.
+    ...(webDir ? ["--disable-features=LocalNetworkAccessChecks"] : []),
   ],
 });
 const result = { event: "result" };
 const pageErrors = [];
 try {
-  const context = await browser.newContext({ viewport: { width: 1280, height: 760 }, acceptDownloads: true });
+  const context = await newContext(browser, { viewport: { width: 1280, height: 760 } });
   const page = await context.newPage();
   page.on("pageerror", (e) => pageErrors.push(e.message));
   page.on("console", (m) => {
@@ -389,6 +657,10 @@ try {
   result.reconnect_ms = Date.now() - tStart;
   await idle(page);
   await shot(page, "08-reconnected.png");
+
+  result.sign_in = await checkSignIn(browser);
+  result.link_and_layout = await checkLinkMaterialLayout(browser);
+  result.phone = await checkPhone(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {
