@@ -483,7 +483,7 @@ pub fn precompute(
     }
     // The subsurface stage comes after F (which it keeps) and can outgrow it: a large
     // translucent object stores every path within its profile's radius. Refused up front.
-    let early: Vec<ObjectMaterial<'_>> = scene
+    let materials: Vec<ObjectMaterial<'_>> = scene
         .objects
         .iter()
         .zip(&patches.object_ranges)
@@ -495,7 +495,7 @@ pub fn precompute(
         .collect();
     let paths = smatrix::estimate_paths(
         &patches.centroid,
-        &early,
+        &materials,
         scene.file.unit_mm,
         &params.subsurface,
     )?;
@@ -593,16 +593,6 @@ pub fn precompute(
         area: patches.area.clone(),
         size: patches.size.clone(),
     };
-    let materials: Vec<ObjectMaterial<'_>> = scene
-        .objects
-        .iter()
-        .zip(&patches.object_ranges)
-        .map(|(o, r)| ObjectMaterial {
-            name: &o.name,
-            material: &o.material,
-            patches: r.clone(),
-        })
-        .collect();
     let unit_mm = scene.file.unit_mm;
     let sp = &params.subsurface;
     let media = scene_media(scene, &patches, h);

@@ -216,20 +216,9 @@ pub fn estimate_paths(
     use rayon::prelude::*;
     let mut out = Vec::new();
     for o in objects {
-        let profiles: Vec<Profile> = match o.material {
-            Material::Translucent { profile } => vec![profile.clone()],
-            Material::Heterogeneous { materials, .. } => materials.clone(),
-            _ => continue,
+        let Some(radius) = stored_radius(o, unit_mm, params)? else {
+            continue;
         };
-        let mut wanted = 0.0f32;
-        for profile in &profiles {
-            let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
-                object: o.name.to_string(),
-                error,
-            })?;
-            wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
-        }
-        let radius = wanted * params.radius_margin.max(1.0);
         let cen = &centroid[o.patches.clone()];
         let n = cen.len();
         if n == 0 {
@@ -248,6 +237,30 @@ pub fn estimate_paths(
         out.push((o.name.to_string(), paths, radius));
     }
     Ok(out)
+}
+
+/// How far stage 1 stores paths inside a translucent or heterogeneous object (scene
+/// units): the profile's truncation radius with the margin; a heterogeneous object keeps
+/// pairs out to the largest of its media's radii. `None` for other materials.
+fn stored_radius(
+    o: &ObjectMaterial<'_>,
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<Option<f32>, SError> {
+    let profiles: &[Profile] = match o.material {
+        Material::Translucent { profile } => std::slice::from_ref(profile),
+        Material::Heterogeneous { materials, .. } => materials,
+        _ => return Ok(None),
+    };
+    let mut wanted = 0.0f32;
+    for profile in profiles {
+        let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
+            object: o.name.to_string(),
+            error,
+        })?;
+        wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+    }
+    Ok(Some(wanted * params.radius_margin.max(1.0)))
 }
 
 /// Stage 1: optical distances of every translucent object (global indices; rows of other
@@ -291,22 +304,10 @@ pub fn scene_distances(
             reports.push(report);
             continue;
         }
-        let profiles: &[Profile] = match o.material {
-            Material::Translucent { profile } => std::slice::from_ref(profile),
-            Material::Heterogeneous { materials, .. } => materials,
-            _ => continue,
+        let Some(radius) = stored_radius(o, unit_mm, params)? else {
+            continue;
         };
         let t = Instant::now();
-        // A heterogeneous object keeps pairs out to the largest of its media's radii.
-        let mut wanted = 0.0f32;
-        for profile in profiles {
-            let eval = ProfileEval::new(profile, unit_mm).map_err(|error| SError::Profile {
-                object: o.name.to_string(),
-                error,
-            })?;
-            wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
-        }
-        let radius = wanted * params.radius_margin.max(1.0);
         let r = o.patches.clone();
         let (cen, nor) = (&g.centroid[r.clone()], &g.normal[r.clone()]);
         let local_media = media.patch_material.get(r.clone()).unwrap_or(&[]);
