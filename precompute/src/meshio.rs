@@ -92,6 +92,18 @@ pub enum MeshError {
     Malformed(String),
 }
 
+impl std::fmt::Display for MeshError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MeshError::Missing => f.write_str("the file does not exist"),
+            MeshError::Io(e) => write!(f, "cannot read the file: {e}"),
+            MeshError::Malformed(m) => f.write_str(m),
+        }
+    }
+}
+
+impl std::error::Error for MeshError {}
+
 /// Opens a mesh file: a missing file and a directory are told apart from other failures.
 pub fn open(path: &Path) -> Result<File, MeshError> {
     let file = File::open(path).map_err(|e| match e.kind() {
@@ -472,6 +484,37 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
         }));
     }
     Ok(tris)
+}
+
+/// The files a glTF file's buffers name: every buffer URI that is not a `data:` URI,
+/// percent-decoded where it decodes (as written otherwise), in buffer order. Empty for a
+/// `.glb` whose only buffer is its binary chunk, and for any file that is not glTF.
+///
+/// [`read_gltf`] reads such a file relative to the glTF file, wherever it points; a caller
+/// that must keep reads inside one folder (the server's uploads) checks these names first.
+pub fn referenced_files(path: &Path) -> Result<Vec<String>, MeshError> {
+    if !matches!(MeshFormat::from_path(path), Ok(MeshFormat::Gltf)) {
+        return Ok(Vec::new());
+    }
+    let mut bytes = Vec::new();
+    open(path)?.read_to_end(&mut bytes).map_err(MeshError::Io)?;
+    let gltf = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| match e {
+        gltf::Error::Binary(e) => malformed(format!("bad GLB container: {e}")),
+        gltf::Error::Deserialize(e) => malformed(format!("bad glTF JSON: {e}")),
+        e => malformed(e.to_string()),
+    })?;
+    Ok(gltf
+        .as_json()
+        .buffers
+        .iter()
+        .filter_map(|b| b.uri.as_deref())
+        .filter(|uri| !uri.starts_with("data:"))
+        .map(|uri| {
+            percent_encoding::percent_decode_str(uri)
+                .decode_utf8()
+                .map_or_else(|_| uri.to_owned(), |d| d.into_owned())
+        })
+        .collect())
 }
 
 /// Every buffer's bytes, in order (see [`read_gltf`]).

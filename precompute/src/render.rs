@@ -6,7 +6,7 @@
 //! [`Camera`] and [`RenderParams`]. Out: an [`RgbImage`] of `width × height` pixels, row 0 at
 //! the top; [`encode_png`] turns it into PNG bytes. [`render_linear`] stops before step 7 and
 //! gives the exposed linear radiance as an [`Rgb32FImage`], which [`encode_exr`] writes as
-//! OpenEXR (for compositing).
+//! OpenEXR (half float, for compositing).
 //!
 //! The pipeline, per triangle and then per pixel:
 //!
@@ -694,22 +694,35 @@ pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>, RenderError> {
     Ok(bytes)
 }
 
-/// The linear image as OpenEXR bytes: RGB, one part, no alpha, RLE-compressed, linear
-/// values as given (no transfer function). Written by the `image` crate's encoder (which
-/// writes through the `exr` crate); that encoder stores **32-bit float** channels (it has no
-/// half-float output) in 64 × 64 tiles, so the file is an f32 tiled EXR, which every EXR
-/// reader (OpenEXR, Nuke, Blender, `exr`) opens.
+/// The largest finite half float; brighter linear values are stored as it, not as infinity.
+pub const EXR_HALF_MAX: f32 = 65504.0;
+
+/// The linear image as OpenEXR bytes, as compositing tools expect a render pass: one RGB
+/// layer, **half-float** channels, increasing scan lines, ZIP-compressed (16 lines a block),
+/// linear values as given (no transfer function). A value above [`EXR_HALF_MAX`] is stored
+/// as that, so no pixel is infinite.
+///
+/// Written with the `exr` crate directly: the `image` crate's OpenEXR encoder stores only
+/// 32-bit floats in tiles.
 pub fn encode_exr(img: &Rgb32FImage) -> Result<Vec<u8>, RenderError> {
-    use image::ImageEncoder;
-    use image::codecs::openexr::OpenExrEncoder;
+    use exr::prelude::{
+        Blocks, Compression, Encoding, Image, LineOrder, SpecificChannels, Vec2, WritableImage, f16,
+    };
+    let half = |v: f32| f16::from_f32(v.clamp(-EXR_HALF_MAX, EXR_HALF_MAX));
+    let channels = SpecificChannels::rgb(|p: Vec2<usize>| {
+        let [r, g, b] = img.get_pixel(p.x() as u32, p.y() as u32).0;
+        (half(r), half(g), half(b))
+    });
+    let mut image = Image::from_channels((img.width() as usize, img.height() as usize), channels);
+    image.layer_data.encoding = Encoding {
+        compression: Compression::ZIP16,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    };
     let mut bytes = std::io::Cursor::new(Vec::new());
-    OpenExrEncoder::new(&mut bytes)
-        .write_image(
-            bytemuck::cast_slice(img.as_raw()),
-            img.width(),
-            img.height(),
-            image::ExtendedColorType::Rgb32F,
-        )
+    image
+        .write()
+        .to_buffered(&mut bytes)
         .map_err(|e| RenderError::Encode(e.to_string()))?;
     Ok(bytes.into_inner())
 }
@@ -973,11 +986,48 @@ mod tests {
 
         let bytes = encode_exr(&lin).unwrap();
         assert_eq!(&bytes[..4], &[0x76, 0x2f, 0x31, 0x01], "EXR magic");
+        // The header, read by the `exr` crate: half floats in scan lines.
+        let meta = exr::meta::MetaData::read_from_buffered(&bytes[..], true).unwrap();
+        let header = &meta.headers[0];
+        assert_eq!(header.layer_size, exr::math::Vec2(37, 23));
+        assert!(matches!(
+            header.blocks,
+            exr::meta::BlockDescription::ScanLines
+        ));
+        let names: Vec<String> = header
+            .channels
+            .list
+            .iter()
+            .map(|c| c.name.to_string())
+            .collect();
+        assert_eq!(names, ["B", "G", "R"]);
+        for c in &header.channels.list {
+            assert_eq!(c.sample_type, exr::meta::attribute::SampleType::F16);
+        }
+        // The pixels, read by another decoder (`image`'s), within half precision.
         let back = image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
             .unwrap()
             .to_rgb32f();
         assert_eq!(back.dimensions(), (37, 23));
-        assert_eq!(back.as_raw(), lin.as_raw());
+        for (b, l) in back.as_raw().iter().zip(lin.as_raw()) {
+            assert!((b - l).abs() <= l.abs() / 1024.0 + 1e-7, "{b} vs {l}");
+        }
+    }
+
+    #[test]
+    fn exr_clamps_what_half_floats_cannot_hold() {
+        let mut img = Rgb32FImage::new(2, 1);
+        img.put_pixel(0, 0, image::Rgb([1e6, 0.5, 70000.0]));
+        img.put_pixel(1, 0, image::Rgb([0.0, 65504.0, 1e-3]));
+        let back = image::load_from_memory_with_format(
+            &encode_exr(&img).unwrap(),
+            image::ImageFormat::OpenExr,
+        )
+        .unwrap()
+        .to_rgb32f();
+        assert_eq!(back.get_pixel(0, 0).0, [EXR_HALF_MAX, 0.5, EXR_HALF_MAX]);
+        assert_eq!(back.get_pixel(1, 0).0[1], EXR_HALF_MAX);
+        assert!((back.get_pixel(1, 0).0[2] - 1e-3).abs() < 1e-6);
     }
 
     #[test]

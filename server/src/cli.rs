@@ -186,7 +186,7 @@ pub struct RenderArgs {
     #[arg(long, value_name = "REQ.json")]
     pub request: Option<PathBuf>,
     /// The picture to write, by extension (any case): `.png` (8-bit sRGB, exposed and tone
-    /// mapped) or `.exr` (linear radiance B/π in W·m⁻²·sr⁻¹, 32-bit float RGB, no tone
+    /// mapped) or `.exr` (linear radiance B/π in W·m⁻²·sr⁻¹, half-float RGB, no tone
     /// curve; a numeric exposure scales it by 2^EV, `auto` leaves it unscaled).
     #[arg(long, value_name = "FILE.png|FILE.exr")]
     pub out: PathBuf,

@@ -6,7 +6,7 @@
 //!
 //! | command | request file | `--out` |
 //! | --- | --- | --- |
-//! | `render` | a render request (`POST /render`'s body: relight fields plus `camera`, `width`, `height`, `exposure`, `tone`, `background`, `cull_backfaces`); flags override its fields | `.png` (8-bit sRGB) or `.exr` (linear radiance, 32-bit float RGB: no tone curve or OETF; `auto` exposure leaves it unscaled) |
+//! | `render` | a render request (`POST /render`'s body: relight fields plus `camera`, `width`, `height`, `exposure`, `tone`, `background`, `cull_backfaces`); flags override its fields | `.png` (8-bit sRGB) or `.exr` (linear radiance, half-float RGB: no tone curve or OETF; `auto` exposure leaves it unscaled) |
 //! | `export` | a relight request (`POST /relight`'s body); `--exposure`, `--tone` | `.glb` (linear float colours, metres, one node per object) or `.ply` (8-bit sRGB colours, scene units) |
 //!
 //! Exposure: `render` auto-exposes unless the request or `--exposure` gives a number, with

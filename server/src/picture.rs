@@ -54,7 +54,7 @@ pub enum PictureFormat {
     /// 8-bit sRGB RGB PNG: exposed, tone mapped, sRGB OETF.
     #[default]
     Png,
-    /// OpenEXR, RGB 32-bit float (the `image` crate's encoder writes no half floats), linear
+    /// OpenEXR, RGB half float in scan lines, linear
     /// radiance; see the module documentation for exposure.
     Exr,
 }

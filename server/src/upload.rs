@@ -2,8 +2,9 @@
 //!
 //! In: the form's parts —
 //! - `scene`: the scene file (JSON, as for `translux-precompute`; file name ending `.json`),
-//! - `mesh`: its OBJ meshes (and MTL files, kept but not read: media by OBJ material come
-//!   from the OBJ's `usemtl` names), any number,
+//! - `mesh`: its meshes — `.obj`, `.ply`, `.gltf` (with the `.bin` buffer files it names)
+//!   or `.glb` — and MTL files (kept but not read: media by OBJ material come from the OBJ's
+//!   `usemtl` names), any number,
 //! - `id` (text, optional): the scene id to serve it under (default: the scene file's stem),
 //! - `patches` or `max_edge` (text, optional): the patch density, overriding the file's.
 //!
@@ -27,6 +28,7 @@ use axum::http::header::LOCATION;
 use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
+use translux_precompute::meshio::referenced_files;
 use translux_precompute::patch::{Density, plan};
 use translux_precompute::pipeline::{MAX_PATCHES, density_for};
 use translux_precompute::scene::load_scene_file;
@@ -115,6 +117,10 @@ pub fn check_scene_id(id: &str) -> Result<(), String> {
         ))
     }
 }
+
+/// The extensions a `mesh` part may have: the mesh formats `translux-precompute` reads,
+/// MTL files beside OBJs, and the `.bin` buffers a `.gltf` file names.
+const MESH_EXTENSIONS: &[&str] = &["obj", "ply", "gltf", "glb", "mtl", "bin"];
 
 fn extension(name: &str) -> String {
     name.rsplit_once('.')
@@ -220,7 +226,7 @@ async fn receive(
                 let allowed: &[&str] = if part == "scene" {
                     &["json"]
                 } else {
-                    &["obj", "mtl"]
+                    MESH_EXTENSIONS
                 };
                 if !allowed.contains(&ext.as_str()) {
                     return Err(AppError::invalid(format!(
@@ -314,6 +320,26 @@ fn check_scene(
                     } else {
                         meshes.join(", ")
                     }
+                )));
+            }
+        }
+    }
+    // A glTF file's buffers are read relative to it, wherever they point: each must be
+    // the plain name of an uploaded file, like the scene's meshes.
+    for m in meshes {
+        let refs = referenced_files(&dir.join(m))
+            .map_err(|e| AppError::invalid(strip_dir(&format!("{m}: {e}"), dir)))?;
+        for r in refs {
+            if check_file_name(&r).is_err() {
+                return Err(AppError::invalid(format!(
+                    "{m}: buffer file \"{}\" must be the plain name of an uploaded file (no \
+                     folders, no '..', no absolute path, no URL)",
+                    r.escape_debug()
+                )));
+            }
+            if !meshes.iter().any(|n| *n == r) {
+                return Err(AppError::invalid(format!(
+                    "{m}: its buffer file {r:?} was not uploaded (send it as a mesh part)"
                 )));
             }
         }

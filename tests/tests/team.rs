@@ -224,6 +224,70 @@ const CUBE_OBJ: &str = "\
 v -1 -1 -1\nv 1 -1 -1\nv 1 1 -1\nv -1 1 -1\nv -1 -1 1\nv 1 -1 1\nv 1 1 1\nv -1 1 1\n\
 f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n";
 
+/// [`CUBE_OBJ`]'s corners and triangles (its quads fanned).
+fn cube_mesh() -> (Vec<[f32; 3]>, Vec<[u16; 3]>) {
+    let mut v = Vec::new();
+    let mut t = Vec::new();
+    for line in CUBE_OBJ.lines() {
+        let mut w = line.split_whitespace();
+        match w.next() {
+            Some("v") => v.push([0, 1, 2].map(|_| w.next().unwrap().parse::<f32>().unwrap())),
+            Some("f") => {
+                let q: Vec<u16> = w.map(|x| x.parse::<u16>().unwrap() - 1).collect();
+                t.push([q[0], q[1], q[2]]);
+                t.push([q[0], q[2], q[3]]);
+            }
+            _ => {}
+        }
+    }
+    (v, t)
+}
+
+/// The cube as an ASCII PLY file, as a scanner's tools write one.
+fn cube_ply() -> Vec<u8> {
+    let (v, t) = cube_mesh();
+    let mut s = format!(
+        "ply\nformat ascii 1.0\ncomment made by a test\nelement vertex {}\nproperty float x\n\
+         property float y\nproperty float z\nelement face {}\n\
+         property list uchar int vertex_indices\nend_header\n",
+        v.len(),
+        t.len()
+    );
+    for p in &v {
+        s += &format!("{} {} {}\n", p[0], p[1], p[2]);
+    }
+    for f in &t {
+        s += &format!("3 {} {} {}\n", f[0], f[1], f[2]);
+    }
+    s.into_bytes()
+}
+
+/// The cube as a `.gltf` whose one buffer is the file `uri`, and that buffer's bytes.
+fn cube_gltf(uri: &str) -> (Vec<u8>, Vec<u8>) {
+    let (v, t) = cube_mesh();
+    let mut bin: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+    let vbytes = bin.len();
+    bin.extend(t.iter().flatten().flat_map(|i| i.to_le_bytes()));
+    let doc = json!({
+        "asset": {"version": "2.0", "generator": "translux test"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "cube"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "buffers": [{"uri": uri, "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": vbytes},
+            {"buffer": 0, "byteOffset": vbytes, "byteLength": bin.len() - vbytes}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": v.len(), "type": "VEC3",
+             "min": [-1, -1, -1], "max": [1, 1, 1]},
+            {"bufferView": 1, "componentType": 5123, "count": 3 * t.len(), "type": "SCALAR"}
+        ]
+    });
+    (doc.to_string().into_bytes(), bin)
+}
+
 fn scene_json(mesh: &str) -> String {
     json!({
         "objects": [
@@ -560,6 +624,39 @@ async fn uploads_refuse_traversal_bad_names_and_oversize() {
             ".obj",
         ),
         (
+            "glTF buffer outside the upload",
+            upload_form(
+                "a.json",
+                scene_json("cube.gltf"),
+                &[("cube.gltf", cube_gltf("../secret.bin").0)],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "buffer file \"../secret.bin\" must be the plain name",
+        ),
+        (
+            "glTF buffer as an absolute path",
+            upload_form(
+                "a.json",
+                scene_json("cube.gltf"),
+                &[("cube.gltf", cube_gltf("/etc/passwd").0)],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "must be the plain name",
+        ),
+        (
+            "glTF buffer not uploaded",
+            upload_form(
+                "a.json",
+                scene_json("cube.gltf"),
+                &[("cube.gltf", cube_gltf("cube.bin").0)],
+                &[],
+            ),
+            StatusCode::BAD_REQUEST,
+            "buffer file \"cube.bin\" was not uploaded",
+        ),
+        (
             "bad id",
             upload_form(
                 "a.json",
@@ -730,6 +827,52 @@ async fn the_upload_patch_limit_counts_every_triangle() {
     );
     let jobs = s.get_json("/api/v1/jobs", Some(ADMIN)).await;
     assert!(jobs["jobs"].as_array().unwrap().is_empty(), "{jobs}");
+}
+
+/// Meshes as people have them: a scan's PLY and a glTF with its buffer file beside it
+/// (named with a percent-escape, as exporters write spaces), uploaded with the scene file,
+/// become a served scene with both objects.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ply_and_gltf_meshes_can_be_uploaded() {
+    let bundles = bundles_with(&[]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let (gltf, bin) = cube_gltf("cube%2Ddata.bin");
+    let scene = json!({
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [2, 2]},
+             "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+            {"name": "scan", "mesh": "cube.ply",
+             "transform": {"scale": 0.2, "translate": [-0.4, 0.2, 0]},
+             "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]}},
+            {"name": "exported", "mesh": "cube.gltf",
+             "transform": {"scale": 0.2, "translate": [0.4, 0.2, 0]},
+             "material": {"type": "diffuse", "albedo": [0.2, 0.3, 0.8]}}
+        ],
+        "lights": [{"type": "point", "position": [0, 1.5, 0], "intensity": [5, 5, 5]}]
+    })
+    .to_string();
+    let form = upload_form(
+        "formats.json",
+        scene,
+        &[
+            ("cube.ply", cube_ply()),
+            ("cube.gltf", gltf),
+            ("cube-data.bin", bin),
+        ],
+        &[("id", "formats"), ("patches", "300")],
+    );
+    let (status, job, _) = post_upload(&s, Some(EDITOR), form).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let record = s.wait_job(job["id"].as_str().unwrap(), EDITOR).await;
+    assert_eq!(record["state"], "done", "{record}");
+    let detail = s.get_json("/api/v1/scenes/formats", Some(EDITOR)).await;
+    let text = detail.to_string();
+    for name in ["\"scan\"", "\"exported\""] {
+        assert!(text.contains(name), "{name} missing from {text}");
+    }
+    let lit = s.relight("formats", Some(EDITOR)).await;
+    assert!(lit.vertex_count > 0);
+    assert!(lit.radiance.iter().all(|x| x.is_finite()));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
