@@ -44,8 +44,8 @@ use bvh::bvh::Bvh;
 use bvh::ray::Ray;
 use glam::Vec3;
 use rayon::prelude::*;
+use translux_engine::raycast::Occluder;
 use translux_precompute::patch::{Density, plan, subdivide};
-use translux_precompute::raycast::Occluder;
 use translux_precompute::scene::load_scene;
 
 /// Seeded xorshift64 (no `rand` crate).

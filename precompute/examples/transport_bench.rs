@@ -7,9 +7,9 @@
 
 use std::time::Instant;
 
-use translux_precompute::inverse;
-use translux_precompute::radiosity::{self, Method, Rgb, Scatter, SolveParams, SparseScatter};
-use translux_precompute::solver::{solve_system, spmv_multi};
+use translux_engine::inverse;
+use translux_engine::radiosity::{self, Method, Rgb, Scatter, SolveParams, SparseScatter};
+use translux_engine::solver::{solve_system, spmv_multi};
 use translux_proto::bundle::Bundle;
 
 fn best_ms(reps: usize, mut f: impl FnMut()) -> f64 {

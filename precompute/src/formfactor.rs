@@ -28,7 +28,7 @@ use translux_proto::bundle::FormFactorInfo;
 use translux_proto::csr::Csr;
 
 use crate::patch::Patches;
-use crate::raycast::Occluder;
+use translux_engine::raycast::Occluder;
 
 /// Parameters of [`compute`], with the defaults documented on each field.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -85,8 +85,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         inverse: cli.inverse,
         environment: match cli.env_bins.as_deref() {
             None => Default::default(),
-            Some(text) => translux_precompute::envvis::EnvVisParams {
-                bins: translux_precompute::envvis::parse_bins(text).map_err(anyhow::Error::msg)?,
+            Some(text) => translux_engine::envvis::EnvVisParams {
+                bins: translux_engine::envvis::parse_bins(text).map_err(anyhow::Error::msg)?,
                 ..Default::default()
             },
         },
@@ -171,7 +171,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         let n = report.patch_count as u64;
         println!(
             "  transfer T         {} ({}), {:.2} s, LU residual {:.1e}",
-            human_bytes(translux_precompute::inverse::stored_bytes(n)),
+            human_bytes(translux_engine::inverse::stored_bytes(n)),
             t.storage,
             t.seconds,
             t.lu_residual

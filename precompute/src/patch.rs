@@ -14,6 +14,7 @@
 
 use std::collections::HashMap;
 use std::ops::Range;
+pub use translux_engine::radiosity::vertex_values;
 
 use glam::Vec3;
 
@@ -258,37 +259,6 @@ pub fn viewer_mesh(p: &Patches, crease_deg: &[f32]) -> ViewerMesh {
         }
     }
     mesh
-}
-
-/// Vertex values from patch values: the area-weighted mean of the patches that use the
-/// vertex (its smoothing group). Vertices no patch uses get 0.
-pub fn vertex_values(
-    triangles: &[[u32; 3]],
-    areas: &[f32],
-    vertex_count: usize,
-    patch_values: &[[f32; 3]],
-) -> Vec<[f32; 3]> {
-    let mut sum = vec![[0.0f64; 3]; vertex_count];
-    let mut weight = vec![0.0f64; vertex_count];
-    for ((tri, &a), v) in triangles.iter().zip(areas).zip(patch_values) {
-        for &vi in tri {
-            let s = &mut sum[vi as usize];
-            for c in 0..3 {
-                s[c] += a as f64 * v[c] as f64;
-            }
-            weight[vi as usize] += a as f64;
-        }
-    }
-    sum.iter()
-        .zip(&weight)
-        .map(|(s, &w)| {
-            if w > 0.0 {
-                [(s[0] / w) as f32, (s[1] / w) as f32, (s[2] / w) as f32]
-            } else {
-                [0.0; 3]
-            }
-        })
-        .collect()
 }
 
 #[cfg(test)]

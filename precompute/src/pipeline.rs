@@ -23,9 +23,9 @@ use crate::formfactor::{self, FormFactorParams};
 use crate::hetero::{self, PatternFrame};
 use crate::patch::{self, Density, Patches};
 use crate::profile;
-use crate::raycast::Occluder;
 use crate::scene::LoadedScene;
 use crate::smatrix::{self, ObjectMaterial, SError, SParams};
+use translux_engine::raycast::Occluder;
 
 /// Patch target for scene files that name no density.
 pub const DEFAULT_PATCHES: u64 = 10_000;
@@ -48,10 +48,10 @@ pub struct PrecomputeParams {
     pub progress: bool,
     /// Told each stage's progress and asked whether to stop (a server's precompute jobs).
     pub observer: Option<std::sync::Arc<dyn Observer>>,
-    /// Also compute the transfer matrix T = (I − S F)⁻¹ S ([`crate::inverse`]).
+    /// Also compute the transfer matrix T = (I − S F)⁻¹ S ([`translux_engine::inverse`]).
     pub inverse: bool,
-    /// Per-patch environment visibility ([`crate::envvis`]); `bins: None` skips it.
-    pub environment: crate::envvis::EnvVisParams,
+    /// Per-patch environment visibility ([`translux_engine::envvis`]); `bins: None` skips it.
+    pub environment: translux_engine::envvis::EnvVisParams,
 }
 
 /// Watches a [`precompute`]: progress per stage, and a way to stop it.
@@ -156,7 +156,7 @@ pub enum PrecomputeError {
     #[error(transparent)]
     Subsurface(#[from] SError),
     #[error("--inverse: {0}")]
-    Inverse(#[from] crate::inverse::InverseError),
+    Inverse(#[from] translux_engine::inverse::InverseError),
     #[error(transparent)]
     Write(#[from] BundleWriteError),
     #[error("cancelled")]
@@ -469,11 +469,11 @@ pub fn precompute(
         .unwrap_or(u64::MAX);
     // The dense LU of the inverse comes after F is built and dominates: refuse it up front.
     if params.inverse {
-        let need = crate::inverse::memory_estimate(patches.len() as u64)
+        let need = translux_engine::inverse::memory_estimate(patches.len() as u64)
             + (nnz_est * 8.0) as u64
             + patches.len() as u64 * 200;
         if need > limit {
-            return Err(crate::inverse::InverseError::OutOfMemory {
+            return Err(translux_engine::inverse::InverseError::OutOfMemory {
                 n: patches.len() as u64,
                 need,
                 limit,
@@ -568,11 +568,11 @@ pub fn precompute(
     let ff_seconds = t.elapsed().as_secs_f64();
     finish(bar, progress, "form factors", t, &mut stages);
 
-    // Environment visibility per patch and direction bin ([`crate::envvis`]).
+    // Environment visibility per patch and direction bin ([`translux_engine::envvis`]).
     let t = Instant::now();
     stage_start(params, "environment")?;
     let bar = stage_bar(progress, n, "environment");
-    let environment = crate::envvis::stage(
+    let environment = translux_engine::envvis::stage(
         &patches.centroid,
         &patches.normal,
         Some(&patches.object),
@@ -673,21 +673,24 @@ pub fn precompute(
         }
         // The probe: v = E + F Bₑ for the scene's lights (uniform E = 1 W/m² where they
         // cannot be evaluated here), to report what f16 storage does to a relight.
-        let geo = crate::radiosity::PatchGeometry {
+        let geo = translux_engine::radiosity::PatchGeometry {
             centroid: &patches.centroid,
             normal: &patches.normal,
         };
-        let mut probe = crate::radiosity::direct_irradiance(geo, &occ, &scene.file.lights, unit_mm)
-            .unwrap_or_else(|_| vec![[1.0; 3]; patches.len()]);
+        let mut probe =
+            translux_engine::radiosity::direct_irradiance(geo, &occ, &scene.file.lights, unit_mm)
+                .unwrap_or_else(|_| vec![[1.0; 3]; patches.len()]);
         let mut fbe = vec![[0.0f32; 3]; patches.len()];
-        crate::radiosity::spmv_rgb(&f_view, &emission, &mut fbe);
+        translux_engine::radiosity::spmv_rgb(&f_view, &emission, &mut fbe);
         for (p, x) in probe.iter_mut().zip(&fbe) {
             for c in 0..3 {
                 p[c] += x[c];
             }
         }
         let tr =
-            crate::inverse::compute(&f_view, &s_view, &emission, &probe, limit, &|k| bar.inc(k))?;
+            translux_engine::inverse::compute(&f_view, &s_view, &emission, &probe, limit, &|k| {
+                bar.inc(k)
+            })?;
         finish(bar, progress, "inverse T", t, &mut stages);
         Some(tr)
     } else {

@@ -8,10 +8,10 @@
 use std::f64::consts::PI;
 
 use glam::Vec3;
+use translux_engine::radiosity::{self, SolveParams};
+use translux_engine::raycast::Occluder;
 use translux_precompute::formfactor::{self, FormFactorParams};
 use translux_precompute::patch::{self, Density, Patches};
-use translux_precompute::radiosity::{self, SolveParams};
-use translux_precompute::raycast::Occluder;
 use translux_proto::csr::Csr;
 
 /// A rectangle from `origin` spanned by `u` and `v`, facing u × v.

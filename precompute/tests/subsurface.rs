@@ -1,9 +1,9 @@
 //! S through the whole pipeline: rebuilt from stored distances equals a fresh precompute,
 //! energy stays bounded for every preset, and light goes through the marble block.
 
+use translux_engine::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
+use translux_engine::raycast::Occluder;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
-use translux_precompute::raycast::Occluder;
 use translux_precompute::scene::{LoadedScene, load_scene};
 use translux_precompute::smatrix::{self, SParams};
 use translux_proto::bundle::Bundle;

@@ -6,11 +6,11 @@
 //! `inverse.rs`; server-side behaviour in the `translux-tests` crate.
 
 use glam::Vec3;
+use translux_engine::radiosity::{self, Albedo, Method, Rgb, SolveParams, SparseScatter};
+use translux_engine::raycast::Occluder;
 use translux_precompute::formfactor::{self, FormFactorParams};
 use translux_precompute::patch::{self, Density, Patches};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::{self, Albedo, Method, Rgb, SolveParams, SparseScatter};
-use translux_precompute::raycast::Occluder;
 use translux_precompute::scene::load_scene;
 use translux_proto::bundle::Bundle;
 use translux_proto::csr::Csr;
@@ -250,19 +250,12 @@ fn batched_systems_equal_separate_solves() {
     }
     for method in [Method::Jacobi, Method::BiCgStab] {
         let p = params(method, 1e-4);
-        let (x, st) =
-            translux_precompute::solver::solve_system(&f, &s, &stacked, 9, &p, None).unwrap();
+        let (x, st) = translux_engine::solver::solve_system(&f, &s, &stacked, 9, &p, None).unwrap();
         assert!(st.converged, "{st:?}");
         for (k, r) in [&rhs, &rhs2].into_iter().enumerate() {
-            let (single, _) = translux_precompute::solver::solve_system(
-                &f,
-                &s,
-                bytemuck::cast_slice(r),
-                3,
-                &p,
-                None,
-            )
-            .unwrap();
+            let (single, _) =
+                translux_engine::solver::solve_system(&f, &s, bytemuck::cast_slice(r), 3, &p, None)
+                    .unwrap();
             let single: &[Rgb] = bytemuck::cast_slice(&single);
             let mine: Vec<Rgb> = (0..n)
                 .map(|i| std::array::from_fn(|c| x[i * 9 + 3 * k + c]))

@@ -139,7 +139,7 @@ impl std::str::FromStr for ToneMap {
 
 /// How bright a render or export is: a number of EV stops (radiance × 2^EV before the tone
 /// curve), or `"auto"`: the exposure the viewer picks, computed from the relit radiance
-/// (`translux_precompute::render::auto_exposure`: the 95th percentile of vertex luminance
+/// (`translux_engine::render::auto_exposure`: the 95th percentile of vertex luminance
 /// near 0.8, rounded to 0.1 EV). In JSON a number or the string `"auto"`; on the command
 /// line `auto` or a number.
 ///

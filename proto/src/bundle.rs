@@ -43,7 +43,7 @@
 //! │  unless precomputed with `--env-bins 0` (manifest `environment` present):
 //! └── env_visibility.f16     [N, R, C]  V_ik = ∫_bin k visible_i(ω) max(n_i·ω, 0) dω (sr) for
 //!                                       the R × C equal-area direction bins of
-//!                                       `translux_precompute::envmap::Bins`; IEEE half floats
+//!                                       `translux_engine::envmap::Bins`; IEEE half floats
 //! ```
 //!
 //! `transfer.f16` row j, channel c: element (j·N + k)·3 + c, 2 bytes each (byte offset

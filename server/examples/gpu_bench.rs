@@ -20,11 +20,11 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use translux_precompute::inverse;
+use translux_engine::inverse;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::bundle::Bundle;
-use translux_server::backend::{self, Backend};
+use translux_server::backend::Backend;
 use translux_server::gpu::{DenseData, GpuContext, GpuDense, GpuOptions};
 use translux_server::relight;
 use translux_server::state::Scene;
@@ -255,14 +255,14 @@ fn main() -> anyhow::Result<()> {
             });
         }
         drop(dense);
-        assert!(backend::install(Backend::on_gpu(ctx)).is_ok());
-        // A fresh scene: no warm starts from the CPU's runs.
-        let scene = Scene::open("cornell", &dir)?;
+        let gpu = Backend::on_gpu(ctx);
+        // A fresh scene on the GPU backend: no warm starts from the CPU's runs.
+        let scene = Scene::open_on("cornell", &dir, &gpu)?;
         let t1 = Instant::now();
-        let on = backend::current().prepare(&scene);
+        let on = gpu.prepare(&scene);
         let prep_ms = t1.elapsed().as_secs_f64() * 1e3;
         let gpu_rows = relight_rows(&scene, a.reps)?;
-        let h = backend::current().gpu_health();
+        let h = gpu.gpu_health();
         print(
             &format!(
                 "GPU backend: {} ({}, {}{}), scene on {}",

@@ -1,8 +1,14 @@
 //! The compute backend, chosen once at start-up: `--backend auto|gpu|cpu`.
 //!
+//! There is no process-wide backend: the server starts one and hands it to its
+//! [`crate::AppState`], which opens every scene on it ([`crate::Scene::open_on`]); a scene
+//! remembers its backend, so a relight of it runs there. Library users and tests open
+//! scenes on the CPU ([`crate::Scene::open`]) or on a backend of their own, side by side in
+//! one process.
+//!
 //! In: the choice, and per request a scene, its S (the bundle's or a material override's),
 //! Bₑ and E. Out: the radiosity B from the device ([`crate::gpu`]), or `None`, which tells
-//! the relight to compute on the CPU (the reference path, [`translux_precompute::radiosity`]).
+//! the relight to compute on the CPU (the reference path, [`translux_engine::radiosity`]).
 //!
 //! - `cpu`: everything on the CPU.
 //! - `auto` (default): a hardware adapter (discrete, integrated, virtual) if wgpu finds one;
@@ -22,10 +28,10 @@
 //! template counts in the scene's bytes), except for heterogeneous objects.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex};
 
 use serde::Serialize;
-use translux_precompute::radiosity::{Rgb, SolveParams, SolveStats};
+use translux_engine::radiosity::{Rgb, SolveParams, SolveStats};
 
 use translux_precompute::smatrix::{self, CsrOwned, SError, SParams};
 use translux_proto::scene::Material;
@@ -146,22 +152,6 @@ pub struct SceneBackend {
     /// Why a scene of the GPU backend is served from the CPU.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
-}
-
-static CURRENT: OnceLock<Backend> = OnceLock::new();
-
-/// Makes `b` the process's backend (the server does this once at start-up); a second call
-/// is refused with the backend already installed.
-pub fn install(b: Backend) -> Result<(), Backend> {
-    CURRENT.set(b)
-}
-
-/// The installed backend; the CPU when none was installed (library use, tests).
-pub fn current() -> &'static Backend {
-    static DEFAULT: OnceLock<Backend> = OnceLock::new();
-    CURRENT
-        .get()
-        .unwrap_or_else(|| DEFAULT.get_or_init(|| Backend::cpu("no backend was installed")))
 }
 
 impl Backend {

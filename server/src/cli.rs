@@ -325,8 +325,7 @@ pub async fn run(
     tracing::info!("{}", backend.describe());
     let mut params = settings.params.clone();
     params.backend = backend.name().to_string();
-    let _ = crate::backend::install(backend);
-    let state = AppState::with_params(params);
+    let state = AppState::with_backend(params, backend);
     let team = crate::team::Team::start(&args.team, &dir, state.clone())?;
     for (id, error) in errors {
         tracing::warn!("skipping {id:?} in {}: {error}", dir.display());

@@ -3,8 +3,8 @@
 //!
 //! In: a scene and the request's lights. Out: [`check`] refuses what cannot be lit (400,
 //! the field named) before any work; [`direct_irradiance`] is E for all lights, point-like
-//! ones with shadow rays ([`translux_precompute::radiosity::direct_irradiance`]) plus each
-//! environment light's E_i = scale · Σ_k V_ik L̄_k ([`translux_precompute::envvis`]).
+//! ones with shadow rays ([`translux_engine::radiosity::direct_irradiance`]) plus each
+//! environment light's E_i = scale · Σ_k V_ik L̄_k ([`translux_engine::envvis`]).
 //!
 //! Maps (see `docs/environment.md`): `builtin:sky`, `builtin:white`, or a Radiance `.hdr`
 //! file named by a relative path inside the *bundles folder* — the folder that holds the
@@ -17,8 +17,8 @@ use std::path::{Component, Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::SystemTime;
 
-use translux_precompute::envmap::{self, Bins, EnvMap};
-use translux_precompute::radiosity::{self, PatchGeometry, Rgb};
+use translux_engine::envmap::{self, Bins, EnvMap};
+use translux_engine::radiosity::{self, PatchGeometry, Rgb};
 use translux_proto::light::Light;
 
 use crate::error::AppError;

@@ -5,7 +5,7 @@
 //! tone for exports). [`plan`] checks it (cheap; the picture's fields first, then
 //! [`relight::plan`]); [`run`] relights through [`relight::run`] — the same path as the
 //! relight route, nothing duplicated — and rasterizes the per-vertex radiance with
-//! [`translux_precompute::render`]. Out: PNG or OpenEXR bytes ([`run`], by
+//! [`translux_engine::render`]. Out: PNG or OpenEXR bytes ([`run`], by
 //! [`RenderPlan::format`]), or `.glb` / `.ply` bytes ([`export`]), with the relight's
 //! statistics and timings and the exposure used.
 //!
@@ -22,8 +22,8 @@
 
 use std::time::Instant;
 
-use translux_precompute::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
-use translux_precompute::render::{
+use translux_engine::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
+use translux_engine::render::{
     RenderError, RenderParams, auto_exposure, check_camera, encode_exr, encode_png, render,
     render_linear,
 };
@@ -229,7 +229,7 @@ pub fn mesh_parts(scene: &Scene) -> Vec<MeshPart> {
 
 /// Relights the scene and writes its viewer mesh with baked colours (exposure in EV stops,
 /// or `auto` as in [`resolve_exposure`], then the tone curve; the `.glb` in metres with one
-/// node per object; see [`translux_precompute::export`]).
+/// node per object; see [`translux_engine::export`]).
 pub fn export(
     scene: &Scene,
     plan: &RelightPlan,

@@ -7,11 +7,11 @@
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use translux_precompute::inverse;
-use translux_precompute::radiosity::{
+use translux_engine::inverse;
+use translux_engine::radiosity::{
     Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
 };
-use translux_precompute::solver::{SolveError, solve_system, spmv_multi};
+use translux_engine::solver::{SolveError, solve_system, spmv_multi};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
@@ -242,7 +242,7 @@ struct Prepared {
 ///
 /// Plans with the same materials and components share the transport: with T, one pass over
 /// T for all of their right-hand sides; with the iterative solver, one read of F and S per
-/// iteration for all of their systems ([`translux_precompute::solver`]).
+/// iteration for all of their systems ([`translux_engine::solver`]).
 ///
 /// Components (docs/transport.md), with ρ̄ the opaque albedo of each patch (a translucent
 /// patch's profile's total diffuse reflectance) and P = diag ρ̄:
@@ -507,7 +507,7 @@ fn transport(
         s.apply_multi(&v, &mut bvec, ch);
         let mut rv = vec![0.0f32; n * ch];
         // The product over T on the GPU backend (crate::backend), else on the CPU.
-        if !crate::backend::current().transfer_product(scene, &v, k, &mut rv) {
+        if !scene.backend.transfer_product(scene, &v, k, &mut rv) {
             inverse::apply_stored(t.bits, t.scale, t.n, &v, k, &mut rv);
         }
         add(&mut bvec, &rv);
@@ -563,7 +563,7 @@ fn transport(
     // The full transport (K = S) on the GPU backend (crate::backend), else on the CPU.
     let on_gpu = (components == Components::Full)
         .then(|| {
-            crate::backend::current().solve_rhs(
+            scene.backend.solve_rhs(
                 scene,
                 first.materials.as_ref(),
                 &rhs,

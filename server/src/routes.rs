@@ -189,7 +189,7 @@ fn health(state: &AppState) -> HealthReport {
     HealthReport {
         status: "ok".into(),
         backend: state.backend().to_string(),
-        gpu: crate::backend::current().gpu_health(),
+        gpu: state.compute_backend().gpu_health(),
         scenes: state.ids(),
         scene_states: state
             .scene_states()
@@ -240,7 +240,7 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, AppError> {
         .set(crate::metrics::resident_bytes().unwrap_or(0) as i64);
     m.mapped_bytes.set(state.mapped_bytes() as i64);
     m.gpu_bytes
-        .set(crate::backend::current().gpu_health().bytes as i64);
+        .set(state.compute_backend().gpu_health().bytes as i64);
     m.queue_depth.set(state.pool().queued() as i64);
     let text = m.render().map_err(AppError::internal)?;
     Ok((

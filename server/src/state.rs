@@ -10,15 +10,15 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use axum::body::Bytes;
 use glam::Vec3;
 use tokio::sync::watch;
+use translux_engine::radiosity::Rgb;
+use translux_engine::raycast::Occluder;
 use translux_precompute::pipeline::{material_albedo_emission, patch_albedo};
-use translux_precompute::radiosity::Rgb;
-use translux_precompute::raycast::Occluder;
 use translux_precompute::smatrix::{self, CsrOwned, SParams};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, arrays};
 use translux_proto::csr::CsrView;
 use translux_proto::scene::Material;
 
-use crate::backend::SBuild;
+use crate::backend::{Backend, SBuild};
 use crate::config::ServerParams;
 use crate::error::AppError;
 use crate::metrics::Metrics;
@@ -41,6 +41,8 @@ pub struct Scene {
     pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
     /// The last solutions, for warm starts (see [`crate::relight::WarmCache`]).
     pub(crate) warm: crate::relight::WarmCache,
+    /// Where its relights run: the backend it was opened on.
+    pub(crate) backend: Backend,
 }
 
 /// S, ρ and Bₑ for a set of material overrides.
@@ -83,7 +85,8 @@ impl Scene {
         }
         // On the device when the backend can (crate::gpu::subsurface), else on the CPU.
         let invalid = |e: smatrix::SError| AppError::invalid(format!("materials: {e}"));
-        let (s, built_on) = match crate::backend::current()
+        let (s, built_on) = match self
+            .backend
             .rebuild_s(self, &key, overrides)
             .map_err(invalid)?
         {
@@ -127,14 +130,28 @@ impl Scene {
         Ok(Some((m, true)))
     }
 
-    /// Opens (verifies and maps) the bundle in `dir` and builds its BVH.
+    /// Opens (verifies and maps) the bundle in `dir` and builds its BVH, relit on the CPU.
     pub fn open(id: impl Into<String>, dir: &Path) -> Result<Scene, BundleError> {
-        let bundle = Bundle::open(dir)?;
-        Ok(Scene::from_bundle(id, bundle))
+        Scene::open_on(id, dir, &cpu_backend())
     }
 
-    /// Builds the relight state for an opened bundle.
+    /// [`Scene::open`], relit on `backend` (which holds the scene's device copy, if any).
+    pub fn open_on(
+        id: impl Into<String>,
+        dir: &Path,
+        backend: &Backend,
+    ) -> Result<Scene, BundleError> {
+        let bundle = Bundle::open(dir)?;
+        Ok(Scene::from_bundle_on(id, bundle, backend))
+    }
+
+    /// Builds the relight state for an opened bundle, relit on the CPU.
     pub fn from_bundle(id: impl Into<String>, bundle: Bundle) -> Scene {
+        Scene::from_bundle_on(id, bundle, &cpu_backend())
+    }
+
+    /// [`Scene::from_bundle`], relit on `backend`.
+    pub fn from_bundle_on(id: impl Into<String>, bundle: Bundle, backend: &Backend) -> Scene {
         let tris: Vec<[Vec3; 3]> = bundle
             .occluder_triangles()
             .iter()
@@ -160,6 +177,7 @@ impl Scene {
             mesh_json: OnceLock::new(),
             material_cache: Mutex::new(None),
             warm: Default::default(),
+            backend: backend.clone(),
         }
     }
 }
@@ -206,6 +224,8 @@ struct Inner {
     shutdown: watch::Sender<bool>,
     /// Ids for WebSocket streams (each its own client of the pool).
     next_stream: AtomicU64,
+    /// The backend every scene is opened on.
+    backend: Backend,
 }
 
 impl Drop for Inner {
@@ -232,8 +252,15 @@ impl AppState {
         state
     }
 
-    /// A state with no scenes yet and its worker pool started with `params`.
+    /// A state with no scenes yet and its worker pool started with `params`, relighting on
+    /// the CPU.
     pub fn with_params(params: ServerParams) -> AppState {
+        AppState::with_backend(params, cpu_backend())
+    }
+
+    /// [`AppState::with_params`] with scenes opened on `backend` (the server's, started
+    /// once; `params.backend` should be its name).
+    pub fn with_backend(params: ServerParams, backend: Backend) -> AppState {
         let metrics = Metrics::new();
         let pool = Pool::new(params, metrics.clone());
         AppState {
@@ -243,6 +270,7 @@ impl AppState {
                 metrics,
                 shutdown: watch::channel(false).0,
                 next_stream: AtomicU64::new(1),
+                backend,
             }),
         }
     }
@@ -383,6 +411,11 @@ impl AppState {
         &self.params().backend
     }
 
+    /// The backend its scenes are opened on (the server's; the CPU for a default state).
+    pub fn compute_backend(&self) -> &Backend {
+        &self.inner.backend
+    }
+
     pub fn metrics(&self) -> &Metrics {
         &self.inner.metrics
     }
@@ -407,7 +440,7 @@ impl AppState {
     pub fn load_one(&self, id: &str, dir: &Path) {
         self.set_loading(id);
         let t = std::time::Instant::now();
-        match Scene::open(id, dir) {
+        match Scene::open_on(id, dir, &self.inner.backend) {
             Ok(scene) => {
                 let m = scene.bundle.manifest();
                 tracing::info!(
@@ -423,7 +456,7 @@ impl AppState {
                     t.elapsed().as_secs_f64()
                 );
                 // On the GPU backend, F and S go to the device now, not on the first relight.
-                crate::backend::current().prepare(&scene);
+                scene.backend.prepare(&scene);
                 self.insert_ready(scene);
             }
             Err(e) => {
@@ -520,7 +553,7 @@ pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(St
         Err(e) => return (state, vec![(dir.display().to_string(), e)]),
     };
     for (id, path) in found {
-        match Scene::open(id.clone(), &path) {
+        match Scene::open_on(id.clone(), &path, state.compute_backend()) {
             Ok(scene) => state.insert_ready(scene),
             Err(e) => errors.push((id, e.to_string())),
         }
@@ -565,4 +598,9 @@ pub fn remove_abandoned_temporaries(dir: &Path) -> Vec<String> {
 fn folder_name(dir: &Path) -> Option<String> {
     let abs = std::fs::canonicalize(dir).ok()?;
     abs.file_name().and_then(|n| n.to_str()).map(str::to_string)
+}
+
+/// The CPU backend of scenes opened without one (library use, tests, offline commands).
+fn cpu_backend() -> Backend {
+    Backend::cpu("the scene was opened without a backend: the CPU relights it")
 }

@@ -248,6 +248,7 @@ impl Team {
             Some(SceneState::Evicted(e)) => {
                 let dir = e.dir.clone();
                 let sid = id.to_string();
+                let backend = self.state.compute_backend().clone();
                 let t = std::time::Instant::now();
                 let opened = tokio::task::spawn_blocking(move || {
                     // Verified when first opened; the folder is replaced only by a rename.
@@ -257,7 +258,7 @@ impl Team {
                             verify_checksums: false,
                         },
                     )
-                    .map(|b| Scene::from_bundle(sid, b))
+                    .map(|b| Scene::from_bundle_on(sid, b, &backend))
                 })
                 .await
                 .map_err(|e| AppError::internal(format!("the reload task failed: {e}")))?;

@@ -337,7 +337,7 @@ fn check_scene(
                     r.escape_debug()
                 )));
             }
-            if !meshes.iter().any(|n| *n == r) {
+            if !meshes.contains(&r) {
                 return Err(AppError::invalid(format!(
                     "{m}: its buffer file {r:?} was not uploaded (send it as a mesh part)"
                 )));

@@ -30,8 +30,8 @@ use axum::response::Response;
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
-use translux_precompute::radiosity::Rgb;
-use translux_precompute::render::{display_rgb8, exposure_scale};
+use translux_engine::radiosity::Rgb;
+use translux_engine::render::{display_rgb8, exposure_scale};
 use translux_proto::api::{RelightRequest, ToneMap};
 
 use crate::error::AppError;

@@ -7,8 +7,8 @@ use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+use translux_engine::render::RenderParams;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::render::RenderParams;
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{RelightRequest, RelightResponse, ToneMap};
 use translux_proto::bundle::Bundle;
@@ -136,7 +136,7 @@ fn render_writes_the_png_the_library_renders() {
     // Flags applied on top of the request: the same picture as the library makes.
     let (scene, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
     let b = &scene.bundle;
-    let want = translux_precompute::render::render(
+    let want = translux_engine::render::render(
         b.vertex_positions(),
         b.triangle_vertices(),
         &radiance,
@@ -304,10 +304,10 @@ fn export_writes_glb_and_ply() {
         "--out",
         s(&ply_path),
     ]);
-    let auto = translux_precompute::render::auto_exposure(&radiance);
+    let auto = translux_engine::render::auto_exposure(&radiance);
     assert!(log.contains(&format!("exposure {auto} EV (auto)")), "{log}");
     let ply = std::fs::read(&ply_path).unwrap();
-    let header = translux_precompute::export::ply_header(nv, nf, auto, ToneMap::Srgb);
+    let header = translux_engine::export::ply_header(nv, nf, auto, ToneMap::Srgb);
     assert!(ply.starts_with(header.as_bytes()));
     assert_eq!(ply.len(), header.len() + 27 * nv + 13 * nf);
 
@@ -432,7 +432,7 @@ fn render_writes_a_linear_exr_by_extension_and_rejects_other_extensions() {
     let (scene, radiance) = library_radiance(translux_proto::parse_json(REQUEST).unwrap());
     let b = &scene.bundle;
     let linear = |exposure: f32| {
-        translux_precompute::render::render_linear(
+        translux_engine::render::render_linear(
             b.vertex_positions(),
             b.triangle_vertices(),
             &radiance,

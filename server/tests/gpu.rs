@@ -9,7 +9,7 @@
 
 use std::sync::OnceLock;
 
-use translux_precompute::radiosity::{Method, Rgb, SolveParams, SparseScatter, solve, spmv_rgb};
+use translux_engine::radiosity::{Method, Rgb, SolveParams, SparseScatter, solve, spmv_rgb};
 use translux_proto::csr::CsrView;
 use translux_server::gpu::cpu_twin::{self, DenseData};
 use translux_server::gpu::system::{jacobi_update_once, reduce_sum_once};
@@ -412,15 +412,15 @@ mod relight_on_both_backends {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
     use translux_proto::api::RelightRequest;
-    use translux_server::backend::{self, Backend};
+    use translux_server::backend::Backend;
     use translux_server::gpu::GpuOptions;
     use translux_server::relight;
     use translux_server::state::Scene;
 
-    /// The radiance, the solver, and where S for the overrides was built.
-    fn radiance(dir: &Path, body: &str) -> (Vec<Rgb>, String, Option<String>) {
+    /// The radiance, the solver, and where S for the overrides was built, relit on `backend`.
+    fn radiance(dir: &Path, body: &str, backend: &Backend) -> (Vec<Rgb>, String, Option<String>) {
         // A fresh scene each time: no warm start carried over from the other backend.
-        let scene = Scene::open("cornell", dir).unwrap();
+        let scene = Scene::open_on("cornell", dir, backend).unwrap();
         let req: RelightRequest = serde_json::from_str(body).unwrap();
         let mut plan = relight::plan(&scene, req).unwrap();
         plan.tolerance = 1e-6;
@@ -459,8 +459,8 @@ mod relight_on_both_backends {
                 )
             })
             .collect();
-        let run_batch = |dir: &Path| -> Vec<Vec<Rgb>> {
-            let scene = Scene::open("cornell", dir).unwrap();
+        let run_batch = |dir: &Path, backend: &Backend| -> Vec<Vec<Rgb>> {
+            let scene = Scene::open_on("cornell", dir, backend).unwrap();
             let plans: Vec<_> = batch
                 .iter()
                 .map(|b| relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap())
@@ -474,17 +474,8 @@ mod relight_on_both_backends {
                 })
                 .collect()
         };
-        // The CPU first (no backend installed yet), then the GPU.
-        let cpu_batch = run_batch(&dir);
-        let cpu: Vec<(Vec<Rgb>, String, Option<String>)> =
-            bodies.iter().map(|b| radiance(&dir, b)).collect();
-        assert_eq!(
-            cpu[1].2.as_deref(),
-            Some("cpu"),
-            "the CPU backend rebuilds S"
-        );
-        assert_eq!(cpu[2].1, "inverse");
-        assert_eq!(backend::current().name(), "cpu");
+        // Both backends in one process, each scene on its own.
+        let cpu_backend = Backend::cpu("the test's CPU half");
         let gpu_backend = Backend::on_gpu(
             GpuContext::new(&GpuOptions {
                 allow_software: true,
@@ -492,9 +483,20 @@ mod relight_on_both_backends {
             })
             .unwrap(),
         );
-        assert!(backend::install(gpu_backend).is_ok());
+        let cpu_batch = run_batch(&dir, &cpu_backend);
+        let cpu: Vec<(Vec<Rgb>, String, Option<String>)> = bodies
+            .iter()
+            .map(|b| radiance(&dir, b, &cpu_backend))
+            .collect();
+        assert_eq!(
+            cpu[1].2.as_deref(),
+            Some("cpu"),
+            "the CPU backend rebuilds S"
+        );
+        assert_eq!(cpu[2].1, "inverse");
+        assert_eq!(cpu_backend.gpu_health().scenes.len(), 0);
         for (body, (want, cpu_solver, _)) in bodies.iter().zip(&cpu) {
-            let (got, solver, on) = radiance(&dir, body);
+            let (got, solver, on) = radiance(&dir, body, &gpu_backend);
             // A translucency change rebuilds S on the device (s_entries, s_column_bound).
             if body.contains("materials") {
                 assert_eq!(on.as_deref(), Some("gpu"), "{body}");
@@ -511,11 +513,11 @@ mod relight_on_both_backends {
                 assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-3);
             }
         }
-        let gpu_batch = run_batch(&dir);
+        let gpu_batch = run_batch(&dir, &gpu_backend);
         for (v, (got, want)) in gpu_batch.iter().zip(&cpu_batch).enumerate() {
             assert_close(&format!("GPU vs CPU batched relight {v}"), got, want, 1e-4);
         }
-        let h = backend::current().gpu_health();
+        let h = gpu_backend.gpu_health();
         assert_eq!(h.scenes.len(), 1, "{h:?}");
         assert_eq!(h.scenes[0].on, "gpu");
         assert!(

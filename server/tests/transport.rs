@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
+use translux_engine::radiosity::Rgb;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::Rgb;
 use translux_precompute::scene::{load_scene, load_scene_file};
 use translux_proto::api::{Components, RelightRequest, Solver};
 use translux_proto::bundle::{Bundle, BundleError, arrays};
@@ -349,7 +349,7 @@ fn an_area_light_scales_the_radiosity_on_both_paths() {
 
 #[test]
 fn the_server_solve_equals_the_library_solve() {
-    use translux_precompute::radiosity::{self, SolveParams, SparseScatter};
+    use translux_engine::radiosity::{self, SolveParams, SparseScatter};
     let dir = tempfile::tempdir().unwrap();
     let scene = Scene::open("c", &build("builtin:cornell", dir.path(), "c", 400, false)).unwrap();
     let b = &scene.bundle;
@@ -365,7 +365,7 @@ fn the_server_solve_equals_the_library_solve() {
         None,
     )
     .unwrap();
-    let want = translux_precompute::radiosity::vertex_radiance(
+    let want = translux_engine::radiosity::vertex_radiance(
         b.triangle_vertices(),
         b.patch_areas(),
         b.vertex_positions().len(),

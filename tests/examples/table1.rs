@@ -30,15 +30,15 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use serde::Serialize;
 use serde_json::{Value, json};
+use translux_engine::radiosity::Rgb;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::Rgb;
 use translux_precompute::scene::resolve_scene;
 use translux_proto::light::Light;
 use translux_proto::scene::{
     ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile, Shape, Transform,
 };
-use translux_server::backend::{self, Backend, BackendChoice};
+use translux_server::backend::{Backend, BackendChoice};
 use translux_server::relight;
 use translux_server::state::Scene;
 use translux_tests::mitsuba;
@@ -494,7 +494,7 @@ fn rel_err(a: &[Rgb], b: &[Rgb]) -> (f64, f64) {
     (e[e.len() / 2], e[e.len() - 1])
 }
 
-fn measure(spec: &Spec, a: &Args, work: &Path) -> anyhow::Result<Row> {
+fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Result<Row> {
     let loaded = resolve_scene(
         spec.file.clone(),
         &spec.base_dir,
@@ -518,7 +518,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path) -> anyhow::Result<Row> {
     let t0 = Instant::now();
     let report = precompute(&loaded, &dir, &params)?;
     let precompute_s = t0.elapsed().as_secs_f64();
-    let scene = Scene::open(spec.key, &dir)?;
+    let scene = Scene::open_on(spec.key, &dir, backend)?;
     let m = scene.bundle.manifest();
     let stage = |names: &[&str]| -> f64 {
         m.stages
@@ -550,7 +550,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path) -> anyhow::Result<Row> {
         bundle_mib: scene.bundle.total_bytes() as f64 / (1 << 20) as f64,
         nnz_f: report.nnz_f,
         nnz_s: scene.bundle.subsurface().nnz() as u64,
-        backend: backend::current().name().to_owned(),
+        backend: backend.name().to_owned(),
         paper: Some(spec.paper.clone()),
         ..Default::default()
     };
@@ -588,7 +588,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path) -> anyhow::Result<Row> {
     }
     // Error of the 0.5% solve, cold (the worst case: no warm start).
     let cold = {
-        let fresh = Scene::open(spec.key, &dir)?;
+        let fresh = Scene::open_on(spec.key, &dir, backend)?;
         run(&fresh, &json!({"solver": "iterative"}), None)?
     };
     (row.solver_err_median, row.solver_err_max) = rel_err(&cold.radiance, &exact.radiance);
@@ -708,11 +708,11 @@ fn fps(ms: f64) -> String {
     format!("{:.1} ({ms:.1} ms)", 1e3 / ms)
 }
 
-fn markdown(rows: &[Row], machine: &str) -> String {
+fn markdown(rows: &[Row], machine: &str, backend: &Backend) -> String {
     let mut s = String::new();
     let opt = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map_or("—".to_owned(), f);
     s += &format!("## Table 1 on this machine — {machine}\n\n");
-    s += &format!("Backend: {}.\n\n", backend::current().describe());
+    s += &format!("Backend: {}.\n\n", backend.describe());
     s += "| scene | patches | precompute F + S (+ T) | bundle | relight only, T: fps | relight, solver: fps (it.) | translucency change: fps (it.) | error vs exact: T / solver (median, max) | backend |\n";
     s += "|---|---|---|---|---|---|---|---|---|\n";
     for r in rows {
@@ -833,20 +833,19 @@ fn main() -> anyhow::Result<()> {
     let a = args()?;
     let b = Backend::start(a.backend).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
     eprintln!("backend: {}", b.describe());
-    backend::install(b).map_err(|_| anyhow::anyhow!("a backend was installed already"))?;
     let work = tempfile::Builder::new()
         .prefix("table1-")
         .tempdir_in(Path::new(env!("CARGO_MANIFEST_DIR")).join("../target"))?;
     let mut rows = Vec::new();
     for spec in specs(&a)? {
-        let row = measure(&spec, &a, work.path())
+        let row = measure(&spec, &a, work.path(), &b)
             .with_context(|| format!("{} at {} patches", spec.title, spec.patches))?;
         eprintln!("{}", serde_json::to_string(&row)?);
         rows.push(row);
     }
     let machine = machine();
     let date = today();
-    let md = markdown(&rows, &format!("{date}, {machine}"));
+    let md = markdown(&rows, &format!("{date}, {machine}"), &b);
     println!("{md}");
     std::fs::create_dir_all(&a.out)?;
     let stem = if a.quick { "table1-quick" } else { "table1" };

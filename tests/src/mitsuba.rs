@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use serde_json::{Value, json};
-use translux_precompute::radiosity::Rgb;
+use translux_engine::radiosity::Rgb;
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::Material;
 

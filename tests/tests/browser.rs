@@ -31,7 +31,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use translux_precompute::export::linear_colour;
+use translux_engine::export::linear_colour;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::ToneMap;

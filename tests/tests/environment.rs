@@ -9,7 +9,7 @@ use reqwest::StatusCode;
 use reqwest::header::{ACCEPT, CONTENT_TYPE};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
-use translux_precompute::envvis::EnvVisParams;
+use translux_engine::envvis::EnvVisParams;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{ErrorBody, Mesh, RelightResponse};

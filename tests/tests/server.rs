@@ -9,11 +9,11 @@ use reqwest::StatusCode;
 use reqwest::header::{ACCEPT, CONTENT_TYPE};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::{
+use translux_engine::radiosity::{
     PatchGeometry, Rgb, SolveParams, SparseScatter, direct_irradiance, solve, vertex_radiance,
 };
-use translux_precompute::raycast::Occluder;
+use translux_engine::raycast::Occluder;
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{ErrorBody, Health, Mesh, RelightResponse, SceneDetail, SceneList};
 use translux_proto::bundle::Bundle;
@@ -1018,12 +1018,12 @@ async fn render_answers_a_png_of_the_relit_scene() {
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect();
-    let want = translux_precompute::render::render(
+    let want = translux_engine::render::render(
         bundle.vertex_positions(),
         bundle.triangle_vertices(),
         &radiance,
         &bundle.manifest().camera,
-        &translux_precompute::render::RenderParams {
+        &translux_engine::render::RenderParams {
             width: 160,
             height: 120,
             exposure: -1.0,
@@ -1199,7 +1199,7 @@ async fn render_defaults_to_the_viewers_auto_exposure() {
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect();
-    let want = translux_precompute::render::auto_exposure(&radiance);
+    let want = translux_engine::render::auto_exposure(&radiance);
     assert!(
         want < -1.0,
         "the Cornell box needs a negative exposure, got {want}"
@@ -1344,7 +1344,7 @@ fn relit_scene(
 
 #[test]
 fn export_glb_is_in_metres_with_one_named_node_per_object() {
-    use translux_precompute::export::linear_colour;
+    use translux_engine::export::linear_colour;
     use translux_proto::api::{Exposure, ToneMap};
     use translux_server::picture::{MeshFormat, export};
 
@@ -1363,7 +1363,7 @@ fn export_glb_is_in_metres_with_one_named_node_per_object() {
     // The viewer's rule on the relit radiance.
     assert_eq!(
         out.exposure,
-        translux_precompute::render::auto_exposure(&radiance)
+        translux_engine::render::auto_exposure(&radiance)
     );
     let scale = 2f32.powf(out.exposure);
     let (json, bin) = glb_chunks(&out.bytes);
@@ -1462,7 +1462,7 @@ fn export_glb_is_in_metres_with_one_named_node_per_object() {
         MeshFormat::Ply,
     )
     .unwrap();
-    let header = translux_precompute::export::ply_header_in(
+    let header = translux_engine::export::ply_header_in(
         b.vertex_positions().len(),
         b.triangle_vertices().len(),
         ply.exposure,
@@ -1623,8 +1623,8 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect();
-    let linear = |params: &translux_precompute::render::RenderParams| {
-        translux_precompute::render::render_linear(
+    let linear = |params: &translux_engine::render::RenderParams| {
+        translux_engine::render::render_linear(
             bundle.vertex_positions(),
             bundle.triangle_vertices(),
             &radiance,
@@ -1656,11 +1656,11 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
     let (exr, ev) = render_exr(&s, &body, "image/x-exr").await;
     assert_eq!(exr.dimensions(), (160, 120));
     assert_eq!(ev, -1.0);
-    let params = translux_precompute::render::RenderParams {
+    let params = translux_engine::render::RenderParams {
         width: 160,
         height: 120,
         exposure: -1.0,
-        tone: translux_precompute::render::ToneMap::Filmic,
+        tone: translux_engine::render::ToneMap::Filmic,
         background: [0.2, 0.4, 0.6],
         ..Default::default()
     };
@@ -1674,7 +1674,7 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
     assert!(centre.iter().all(|&v| v > 0.0), "{centre:?}");
     // Linear, not display values: the lit walls of the Cornell box exceed 1 somewhere at
     // EV 0, which no PNG value can.
-    let unexposed = linear(&translux_precompute::render::RenderParams {
+    let unexposed = linear(&translux_engine::render::RenderParams {
         exposure: 0.0,
         ..params
     });
@@ -1690,7 +1690,7 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
             continue;
         }
         covered += 1;
-        let want = translux_precompute::render::display_rgb8(l.0, 1.0, params.tone);
+        let want = translux_engine::render::display_rgb8(l.0, 1.0, params.tone);
         for c in 0..3 {
             assert!(d.0[c].abs_diff(want[c]) <= 1, "{:?} vs {want:?}", d.0);
         }
@@ -1704,7 +1704,7 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
     assert_eq!(ev, 0.0);
     close(
         &exr,
-        &linear(&translux_precompute::render::RenderParams {
+        &linear(&translux_engine::render::RenderParams {
             width: 96,
             height: 72,
             ..Default::default()

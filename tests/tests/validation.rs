@@ -13,9 +13,9 @@
 use std::path::Path;
 
 use serde_json::json;
+use translux_engine::radiosity::Rgb;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::radiosity::Rgb;
 use translux_precompute::scene::{LoadedScene, load_scene_file, resolve_scene};
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::{Material, SceneFile};
@@ -42,7 +42,7 @@ fn build(file: SceneFile, dir: &Path, name: &str, patches: u64) -> Scene {
 type PatchSolution = (Vec<Rgb>, Vec<[f32; 3]>, Vec<[f32; 3]>);
 
 fn patch_radiance(b: &Bundle, lights: &[translux_proto::light::Light]) -> PatchSolution {
-    use translux_precompute::radiosity::{self, BundleLighting, SolveParams, SparseScatter};
+    use translux_engine::radiosity::{self, BundleLighting, SolveParams, SparseScatter};
     let lit = BundleLighting::new(b);
     let e = lit.irradiance(lights).unwrap();
     let params = SolveParams {

@@ -1,9 +1,9 @@
 //! CPU twins of the WGSL kernels in `kernels/`: one function per kernel, of the same name,
 //! written to follow the shader step by step (the same lanes, the same summation order), so
 //! that tests can hold each kernel to its twin on random inputs. They are references, not the
-//! CPU backend (that is `translux_precompute::radiosity`).
+//! CPU backend (that is `translux_engine::radiosity`).
 
-use translux_precompute::radiosity::Rgb;
+use translux_engine::radiosity::Rgb;
 
 /// Threads per row in `csr_spmv_rgb.wgsl` (`LANES`).
 pub const SPMV_LANES: usize = 32;

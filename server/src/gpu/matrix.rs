@@ -16,7 +16,7 @@ use wgpu::util::DeviceExt;
 
 use super::cpu_twin::{DENSE_ROWS, DenseData, dense_vector_lanes};
 use super::{GpuContext, GpuError, grid};
-use translux_precompute::radiosity::Rgb;
+use translux_engine::radiosity::Rgb;
 
 /// Keep in sync with `Params` in `csr_spmv_rgb.wgsl`.
 #[repr(C)]

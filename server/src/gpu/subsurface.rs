@@ -24,7 +24,7 @@
 //! says so, and the relight reports where S was built (`stats.materials_on`).
 
 use rayon::prelude::*;
-use translux_precompute::radiosity::Rgb;
+use translux_engine::radiosity::Rgb;
 use translux_precompute::sheet::{self, KIND_OPPOSITE};
 use translux_precompute::smatrix::{self, CsrOwned, PatchGeometry, SError, SParams};
 use translux_precompute::subsurface::{

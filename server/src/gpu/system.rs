@@ -16,13 +16,13 @@
 //! once at the end. The returned B has had every iteration of the last submission applied,
 //! so it is at least as converged as the iterate whose residual met the tolerance.
 //!
-//! [`radiosity::solve`]: translux_precompute::radiosity::solve
-//! [`radiosity::Method::Jacobi`]: translux_precompute::radiosity::Method::Jacobi
+//! [`radiosity::solve`]: translux_engine::radiosity::solve
+//! [`radiosity::Method::Jacobi`]: translux_engine::radiosity::Method::Jacobi
 
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use translux_precompute::radiosity::{Method, Rgb, SolveParams, SolveStats};
+use translux_engine::radiosity::{Method, Rgb, SolveParams, SolveStats};
 use translux_proto::csr::CsrView;
 
 use super::matrix::{BoundOp, GpuCsr, alloc_size, staging, storage_zeroed, uniform};

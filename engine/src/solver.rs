@@ -28,7 +28,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 
-use crate::radiosity::Scatter;
+use crate::linalg::Scatter;
 
 /// Iteration scheme.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -131,7 +131,7 @@ pub fn spmv_multi(f: &CsrView<'_>, x: &[f32], y: &mut [f32], ch: usize) {
         3 => {
             let (x3, y3): (&[[f32; 3]], &mut [[f32; 3]]) =
                 (bytemuck::cast_slice(x), bytemuck::cast_slice_mut(y));
-            crate::radiosity::spmv_rgb(f, x3, y3);
+            crate::linalg::spmv_rgb(f, x3, y3);
         }
         6 => spmv_fixed::<6>(f, x, y),
         9 => spmv_fixed::<9>(f, x, y),

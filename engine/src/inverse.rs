@@ -32,7 +32,7 @@ use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
 use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 
-use crate::radiosity::Rgb;
+use crate::linalg::Rgb;
 
 /// Bytes [`compute`] needs at its peak for `n` patches: A (the LU, n² f64), the solution X
 /// (n² f64) and the stored result (n² × 3 f16).

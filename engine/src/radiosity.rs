@@ -18,11 +18,9 @@ use thiserror::Error;
 use translux_proto::csr::CsrView;
 use translux_proto::light::Light;
 
+pub use crate::linalg::{Albedo, Rgb, Scatter, SparseScatter, spmv_rgb};
 use crate::raycast::Occluder;
 pub use crate::solver::{Method, SolveError, SolveParams, SolveStats};
-
-/// RGB triple.
-pub type Rgb = [f32; 3];
 
 /// Lights this build cannot evaluate yet.
 #[derive(Debug, Error, PartialEq)]
@@ -185,108 +183,6 @@ pub fn spot_falloff(cos_angle: f32, inner_deg: f32, outer_deg: f32) -> f32 {
     }
 }
 
-/// y = F x for RGB vectors: one pass over F serves all three channels.
-pub fn spmv_rgb(f: &CsrView<'_>, x: &[Rgb], y: &mut [Rgb]) {
-    y.par_iter_mut()
-        .with_min_len(64)
-        .enumerate()
-        .for_each(|(i, yi)| {
-            let (cols, vals) = f.row(i);
-            let mut acc = [0.0f32; 3];
-            for (&j, &v) in cols.iter().zip(vals) {
-                let xj = &x[j as usize];
-                acc[0] += v * xj[0];
-                acc[1] += v * xj[1];
-                acc[2] += v * xj[2];
-            }
-            *yi = acc;
-        });
-}
-
-/// The scattering operator S: what exitance each patch sends out per unit irradiance.
-pub trait Scatter: Sync {
-    /// y = S h.
-    fn apply(&self, h: &[Rgb], y: &mut [Rgb]);
-    /// y = S h for `ch` channels per patch (`[patch][channel]`, `ch` a multiple of 3):
-    /// channel c uses colour component c % 3. One pass over S for every channel.
-    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize);
-    /// Whether S is diagonal (Gauss-Seidel needs that).
-    fn diagonal(&self) -> Option<&[Rgb]>;
-}
-
-/// S = diag(ρ): opaque Lambertian patches.
-#[derive(Debug, Clone, Copy)]
-pub struct Albedo<'a>(pub &'a [Rgb]);
-
-impl Scatter for Albedo<'_> {
-    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
-        y.par_iter_mut()
-            .zip(h.par_iter())
-            .zip(self.0.par_iter())
-            .for_each(|((y, h), r)| {
-                *y = [r[0] * h[0], r[1] * h[1], r[2] * h[2]];
-            });
-    }
-    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
-        y.par_chunks_mut(ch)
-            .zip(h.par_chunks(ch))
-            .zip(self.0.par_iter())
-            .for_each(|((y, h), r)| {
-                for c in 0..ch {
-                    y[c] = r[c % 3] * h[c];
-                }
-            });
-    }
-    fn diagonal(&self) -> Option<&[Rgb]> {
-        Some(self.0)
-    }
-}
-
-/// S as a sparse matrix of RGB entries: row j lists the sources i with S_ji.
-#[derive(Debug, Clone, Copy)]
-pub struct SparseScatter<'a>(pub CsrView<'a, Rgb>);
-
-impl Scatter for SparseScatter<'_> {
-    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
-        y.par_iter_mut()
-            .with_min_len(64)
-            .enumerate()
-            .for_each(|(j, yj)| {
-                let (cols, vals) = self.0.row(j);
-                let mut acc = [0.0f32; 3];
-                for (&i, s) in cols.iter().zip(vals) {
-                    let hi = &h[i as usize];
-                    acc[0] += s[0] * hi[0];
-                    acc[1] += s[1] * hi[1];
-                    acc[2] += s[2] * hi[2];
-                }
-                *yj = acc;
-            });
-    }
-    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
-        if ch == 3 {
-            self.apply(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y));
-            return;
-        }
-        y.par_chunks_mut(ch)
-            .with_min_len(64)
-            .enumerate()
-            .for_each(|(j, yj)| {
-                yj.fill(0.0);
-                let (cols, vals) = self.0.row(j);
-                for (&i, s) in cols.iter().zip(vals) {
-                    let hi = &h[i as usize * ch..(i as usize + 1) * ch];
-                    for c in 0..ch {
-                        yj[c] += s[c % 3] * hi[c];
-                    }
-                }
-            });
-    }
-    fn diagonal(&self) -> Option<&[Rgb]> {
-        None
-    }
-}
-
 /// Solves B = Bₑ + ρ(E + F B) for an opaque scene (S = diag ρ).
 pub fn solve_diffuse(
     f: &CsrView<'_>,
@@ -342,7 +238,38 @@ pub fn vertex_radiance(
 ) -> Vec<Rgb> {
     let inv_pi = 1.0 / std::f32::consts::PI;
     let radiance: Vec<Rgb> = radiosity.iter().map(|b| b.map(|v| v * inv_pi)).collect();
-    crate::patch::vertex_values(triangles, areas, vertex_count, &radiance)
+    vertex_values(triangles, areas, vertex_count, &radiance)
+}
+
+/// Vertex values from patch values: the area-weighted mean of the patches that use the
+/// vertex (its smoothing group). Vertices no patch uses get 0.
+pub fn vertex_values(
+    triangles: &[[u32; 3]],
+    areas: &[f32],
+    vertex_count: usize,
+    patch_values: &[[f32; 3]],
+) -> Vec<[f32; 3]> {
+    let mut sum = vec![[0.0f64; 3]; vertex_count];
+    let mut weight = vec![0.0f64; vertex_count];
+    for ((tri, &a), v) in triangles.iter().zip(areas).zip(patch_values) {
+        for &vi in tri {
+            let s = &mut sum[vi as usize];
+            for c in 0..3 {
+                s[c] += a as f64 * v[c] as f64;
+            }
+            weight[vi as usize] += a as f64;
+        }
+    }
+    sum.iter()
+        .zip(&weight)
+        .map(|(s, &w)| {
+            if w > 0.0 {
+                [(s[0] / w) as f32, (s[1] / w) as f32, (s[2] / w) as f32]
+            } else {
+                [0.0; 3]
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -1,0 +1,37 @@
+//! # translux-engine
+//!
+//! The run-time transport: what turns a bundle's arrays and a request (lights, materials,
+//! a camera) into radiance, pictures and meshes. In: CSR views of F and S, the stored
+//! transfer matrix T, patch geometry and the occluders for shadow rays, lights and
+//! environment maps. Out: radiosity B per patch (W·m⁻²), vertex radiance B/π, rendered
+//! images (PNG, OpenEXR) and relit meshes (glTF, PLY). No HTTP and no global state: the
+//! server (`translux-server`), the offline commands and the benchmarks call it, and the
+//! precompute (`translux-precompute`) uses its solvers and ray casting.
+//!
+//! Modules, from the bottom up:
+//! - [`linalg`] — RGB vectors, y = F x ([`linalg::spmv_rgb`]) and the scattering operator S
+//!   ([`linalg::Scatter`]: diagonal ρ or sparse subsurface S).
+//! - [`solver`] — Jacobi, Gauss-Seidel and BiCGSTAB for (I − S F) B = S E + Bₑ, warm
+//!   started, several right-hand sides per pass over F.
+//! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays.
+//! - [`radiosity`] — direct irradiance from the lights (with shadows), the solve
+//!   B = Bₑ + S (E + F B), and patch values to vertex values.
+//! - [`inverse`] — the transfer matrix T = (I − S F)⁻¹ S: computing it (dense LU) and
+//!   applying the stored f16 T.
+//! - [`envmap`], [`envvis`] — environment maps (`.hdr`, built-in skies) binned by
+//!   direction, and per-patch visibility of those bins.
+//! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
+//!   relit mesh as binary glTF or PLY.
+//!
+//! Crate graph: `proto ← engine ← {precompute, server (with its wgpu backend)}`; see
+//! `docs/architecture.md`.
+
+pub mod envmap;
+pub mod envvis;
+pub mod export;
+pub mod inverse;
+pub mod linalg;
+pub mod radiosity;
+pub mod raycast;
+pub mod render;
+pub mod solver;

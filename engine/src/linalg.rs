@@ -1,0 +1,114 @@
+//! Linear algebra of the transport on RGB vectors: the product with F ([`spmv_rgb`]) and
+//! the scattering operator S ([`Scatter`]: diagonal ρ for opaque patches, or sparse
+//! subsurface S). The solvers ([`crate::solver`]) and the relight ([`crate::radiosity`])
+//! build on these; nothing here knows about lights or scenes.
+//!
+//! In: CSR views of F (scalar) and S (RGB entries), vectors of RGB per patch. Out: products.
+
+use rayon::prelude::*;
+use translux_proto::csr::CsrView;
+
+/// RGB triple.
+pub type Rgb = [f32; 3];
+
+/// y = F x for RGB vectors: one pass over F serves all three channels.
+pub fn spmv_rgb(f: &CsrView<'_>, x: &[Rgb], y: &mut [Rgb]) {
+    y.par_iter_mut()
+        .with_min_len(64)
+        .enumerate()
+        .for_each(|(i, yi)| {
+            let (cols, vals) = f.row(i);
+            let mut acc = [0.0f32; 3];
+            for (&j, &v) in cols.iter().zip(vals) {
+                let xj = &x[j as usize];
+                acc[0] += v * xj[0];
+                acc[1] += v * xj[1];
+                acc[2] += v * xj[2];
+            }
+            *yi = acc;
+        });
+}
+
+/// The scattering operator S: what exitance each patch sends out per unit irradiance.
+pub trait Scatter: Sync {
+    /// y = S h.
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]);
+    /// y = S h for `ch` channels per patch (`[patch][channel]`, `ch` a multiple of 3):
+    /// channel c uses colour component c % 3. One pass over S for every channel.
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize);
+    /// Whether S is diagonal (Gauss-Seidel needs that).
+    fn diagonal(&self) -> Option<&[Rgb]>;
+}
+
+/// S = diag(ρ): opaque Lambertian patches.
+#[derive(Debug, Clone, Copy)]
+pub struct Albedo<'a>(pub &'a [Rgb]);
+
+impl Scatter for Albedo<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        y.par_iter_mut()
+            .zip(h.par_iter())
+            .zip(self.0.par_iter())
+            .for_each(|((y, h), r)| {
+                *y = [r[0] * h[0], r[1] * h[1], r[2] * h[2]];
+            });
+    }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        y.par_chunks_mut(ch)
+            .zip(h.par_chunks(ch))
+            .zip(self.0.par_iter())
+            .for_each(|((y, h), r)| {
+                for c in 0..ch {
+                    y[c] = r[c % 3] * h[c];
+                }
+            });
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        Some(self.0)
+    }
+}
+
+/// S as a sparse matrix of RGB entries: row j lists the sources i with S_ji.
+#[derive(Debug, Clone, Copy)]
+pub struct SparseScatter<'a>(pub CsrView<'a, Rgb>);
+
+impl Scatter for SparseScatter<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        y.par_iter_mut()
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(j, yj)| {
+                let (cols, vals) = self.0.row(j);
+                let mut acc = [0.0f32; 3];
+                for (&i, s) in cols.iter().zip(vals) {
+                    let hi = &h[i as usize];
+                    acc[0] += s[0] * hi[0];
+                    acc[1] += s[1] * hi[1];
+                    acc[2] += s[2] * hi[2];
+                }
+                *yj = acc;
+            });
+    }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        if ch == 3 {
+            self.apply(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y));
+            return;
+        }
+        y.par_chunks_mut(ch)
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(j, yj)| {
+                yj.fill(0.0);
+                let (cols, vals) = self.0.row(j);
+                for (&i, s) in cols.iter().zip(vals) {
+                    let hi = &h[i as usize * ch..(i as usize + 1) * ch];
+                    for c in 0..ch {
+                        yj[c] += s[c % 3] * hi[c];
+                    }
+                }
+            });
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        None
+    }
+}
