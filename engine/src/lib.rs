@@ -20,6 +20,10 @@
 //!   applying the stored f16 T.
 //! - [`envmap`], [`envvis`] — environment maps (`.hdr`, built-in skies) binned by
 //!   direction, and per-patch visibility of those bins.
+//! - [`profile`] — diffuse reflectance profiles (dipole, multipole, tables, exponentials);
+//!   [`subsurface`] — the quadrature of S between patches; [`sheet`] and [`hetero`] — S of
+//!   thin sheets and of heterogeneous objects; [`smatrix`] — the scene's S from the stored
+//!   distances and the materials (stage 2: the precompute's, and every translucency change).
 //! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
 //!   relit mesh as binary glTF or PLY.
 //!
@@ -29,9 +33,14 @@
 pub mod envmap;
 pub mod envvis;
 pub mod export;
+pub mod hetero;
 pub mod inverse;
 pub mod linalg;
+pub mod profile;
 pub mod radiosity;
 pub mod raycast;
 pub mod render;
+pub mod sheet;
+pub mod smatrix;
 pub mod solver;
+pub mod subsurface;

@@ -34,7 +34,7 @@
 //!   thin wall between two lobes does not lend one lobe's medium to the other. These objects
 //!   always take the voxel route, convex or not.
 //!
-//! Quadrature (per column i, as in [`crate::subsurface`]):
+//! Quadrature (per column i, as in [`translux_engine::subsurface`]):
 //! - the self term S_ii uses the profile of the patch's own medium (the medium just under its
 //!   centroid, [`patch_media`]) with the polar integration of the homogeneous case;
 //! - a pair whose path stays in one (merged) medium m gets exactly the homogeneous quadrature
@@ -50,19 +50,9 @@
 //! stronger medium would at the shorter of its stretches.
 
 use glam::{DVec3, Mat3, Vec3};
-use rayon::prelude::*;
-use translux_proto::scene::{MAX_HETEROGENEOUS_MATERIALS, Material, Pattern, Profile, Transform};
+use translux_proto::scene::{Material, Pattern, Transform};
 
-use crate::subsurface::{
-    DistanceView, ObjectPatches, ObjectS, SubsurfaceParams, Tabulated, bound_and_transpose,
-    coplanar_eps, pair_term, samples, self_term,
-};
-
-/// Media per path the bundle stores (`dist_material_len` has this many columns).
-pub const MEDIA: usize = MAX_HETEROGENEOUS_MATERIALS;
-
-/// Per-medium lengths of one optical path (scene units); unused media are 0.
-pub type MediaLen = [f32; MEDIA];
+pub use translux_engine::hetero::{MEDIA, MediaLen};
 
 /// Scene → object frame of a pattern: q = Rᵀ (p − t), undoing the object transform's
 /// rotation R and translation t but not its scale (pattern lengths stay in scene units).
@@ -278,134 +268,16 @@ pub fn patch_media(
     }
 }
 
-/// Merges media with equal profiles: `map[k]` is the distinct medium of pattern medium k
-/// (indices into `distinct`, which lists the first pattern medium of each). `map` has
-/// [`MEDIA`] entries; those past `materials.len()` map to 0 (their lengths are always 0).
-pub fn merge_media(materials: &[Profile]) -> ([usize; MEDIA], Vec<usize>) {
-    let mut map = [0usize; MEDIA];
-    let mut distinct: Vec<usize> = Vec::new();
-    for (k, p) in materials.iter().enumerate().take(MEDIA) {
-        map[k] = match distinct.iter().position(|&d| materials[d] == *p) {
-            Some(m) => m,
-            None => {
-                distinct.push(k);
-                distinct.len() - 1
-            }
-        };
-    }
-    (map, distinct)
-}
-
-/// Eq. 9 for K media: `len[k]` = r_k, `s0[k]` = S_k(0), `s(k, r)` = S_k(r), per channel
-/// (see the module docs). With r = Σ r_k = 0 it is the prefactor's limit along no medium: 0.
-pub fn eq9(len: &[f32], s0: &[[f32; 3]], s: impl Fn(usize, f32) -> [f32; 3]) -> [f32; 3] {
-    let r: f32 = len.iter().sum();
-    if r <= 0.0 {
-        return [0.0; 3];
-    }
-    let mut pre = [0.0f32; 3];
-    let mut prod = [1.0f32; 3];
-    for (k, &rk) in len.iter().enumerate() {
-        if rk <= 0.0 {
-            continue; // S_k(0) / S_k(0) = 1, and no share of the prefactor
-        }
-        let sk = s(k, rk);
-        for c in 0..3 {
-            pre[c] += s0[k][c] * rk / r;
-            prod[c] *= if s0[k][c] > 0.0 {
-                sk[c] / s0[k][c]
-            } else {
-                0.0
-            };
-        }
-    }
-    std::array::from_fn(|c| pre[c] * prod[c])
-}
-
-/// Assembles S of one heterogeneous object (local indices).
-///
-/// `len[e]` are the per-medium lengths of distance entry e (aligned with `d.col`), `media`
-/// the pattern medium of each patch, `map` the merge of [`merge_media`], and `tabs[m]` the
-/// tabulated profile of distinct medium m, all reaching the same truncation radius.
-pub fn assemble(
-    p: ObjectPatches<'_>,
-    d: DistanceView<'_>,
-    len: &[MediaLen],
-    media: &[u32],
-    map: &[usize; MEDIA],
-    tabs: &[Tabulated],
-    params: &SubsurfaceParams,
-) -> ObjectS {
-    let n = p.area.len();
-    let eps = coplanar_eps(&p);
-    let s0: Vec<[f32; 3]> = tabs.iter().map(|t| t.r(0.0)).collect();
-    let r_max = tabs.iter().map(|t| t.r_max()).fold(f32::INFINITY, f32::min);
-    let combined = |l: &[f32]| eq9(l, &s0, |k, r| tabs[k].r(r));
-    let columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let mut col = Vec::new();
-            let xs = samples(&p.corners[i], params.samples);
-            let own = map[(media[i] as usize).min(MEDIA - 1)];
-            col.push((i as u32, self_term(&p, i, &xs, &tabs[own], params)));
-            let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
-            for ((&j, &r), le) in d.col[a..b].iter().zip(&d.dist[a..b]).zip(&len[a..b]) {
-                let j = j as usize;
-                if r >= r_max {
-                    continue;
-                }
-                // Lengths per distinct medium, rescaled to sum to r exactly.
-                let mut m = [0.0f32; MEDIA];
-                for (k, &l) in le.iter().enumerate() {
-                    m[map[k]] += l;
-                }
-                let total: f32 = m.iter().sum();
-                let used = m.iter().filter(|&&x| x > 0.0).count();
-                let s = if total <= 0.0 || used <= 1 {
-                    // One medium: the homogeneous quadrature with its profile.
-                    let k = if total > 0.0 {
-                        m.iter().position(|&x| x > 0.0).unwrap_or(own)
-                    } else {
-                        own
-                    };
-                    pair_term(&p, i, j, r, &xs, &tabs[k], params, eps)
-                } else {
-                    let share = m.map(|x| x / total);
-                    let near = r < params.near_factor * p.size[i].max(p.size[j]);
-                    if !near {
-                        combined(&share.map(|f| f * r)).map(|v| v * p.area[i])
-                    } else {
-                        let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
-                        let ys = samples(&p.corners[j], params.samples);
-                        let mut acc = [0.0f32; 3];
-                        for &x in &xs {
-                            for &y in &ys {
-                                let dd = x.distance(y) + excess;
-                                let v = combined(&share.map(|f| f * dd));
-                                for c in 0..3 {
-                                    acc[c] += v[c];
-                                }
-                            }
-                        }
-                        let k = (xs.len() * ys.len()) as f32;
-                        acc.map(|v| v / k * p.area[i])
-                    }
-                };
-                if s.iter().any(|&v| v > 0.0) {
-                    col.push((j as u32, s));
-                }
-            }
-            col
-        })
-        .collect();
-    bound_and_transpose(columns, p.area)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::profile::ProfileEval;
+    use translux_engine::hetero::{assemble, eq9, merge_media};
+    use translux_engine::profile::ProfileEval;
+    use translux_engine::subsurface::{
+        DistanceView, ObjectPatches, ObjectS, SubsurfaceParams, Tabulated,
+    };
     use translux_proto::scene::ExpTerm;
+    use translux_proto::scene::Profile;
 
     fn checker(cell: f32, origin: [f32; 3], count: u32) -> Checker {
         Checker {
@@ -583,7 +455,7 @@ mod tests {
                     corners.push([p0, p2, p3]);
                 }
             }
-            let g = crate::smatrix::PatchGeometry::from_corners(corners);
+            let g = translux_engine::smatrix::PatchGeometry::from_corners(corners);
             let (mut row_ptr, mut col, mut dist, mut len) =
                 (vec![0u64], Vec::new(), Vec::new(), Vec::new());
             let n = g.centroid.len();
@@ -661,7 +533,7 @@ mod tests {
         }
         fn homogeneous(&self, profile: &Profile, r_max: f32) -> ObjectS {
             let tab = Tabulated::new(&ProfileEval::new(profile, 1.0).unwrap(), r_max, 2048);
-            crate::subsurface::assemble(
+            translux_engine::subsurface::assemble(
                 self.patches(),
                 self.distances(),
                 &tab,

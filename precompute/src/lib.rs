@@ -16,10 +16,11 @@
 //! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
 //! 3. [`formfactor`] — F with visibility (`translux_engine::raycast`), point-to-polygon,
 //!    near-pair sub-sampling.
-//! 4. [`voxel`], [`profile`], [`subsurface`], [`smatrix`] — optical path distances inside
-//!    translucent objects, diffuse reflectance profiles, and S from both; [`hetero`] —
-//!    heterogeneous objects (media by pattern, combined per path by the paper's eq. 9);
-//!    [`sheet`] — thin two-sided sheets (geodesic distances, reflectance and transmittance).
+//! 4. [`distances`] (with [`voxel`], [`sheet`], [`hetero`]) — optical path distances inside
+//!    translucent objects (voxel Dijkstra), along thin two-sided sheets (geodesics, same or
+//!    other side) and per medium in heterogeneous objects; S from them and the materials is
+//!    `translux_engine::smatrix` (profiles, quadrature, eq. 9), run here once and by the
+//!    server for every translucency change.
 //! 5. [`bundle`] — write arrays and manifest atomically; environment visibility and T come
 //!    from `translux_engine::{envvis, inverse}`.
 //!
@@ -35,17 +36,15 @@
 
 pub mod builtin;
 pub mod bundle;
+pub mod distances;
 pub mod formfactor;
 pub mod hetero;
 pub mod meshio;
 pub mod orient;
 pub mod patch;
 pub mod pipeline;
-pub mod profile;
 pub mod scene;
 pub mod shapes;
 pub mod sheet;
 pub mod simplify;
-pub mod smatrix;
-pub mod subsurface;
 pub mod voxel;

@@ -19,13 +19,16 @@ use translux_proto::light::Camera;
 use translux_proto::scene::Material;
 
 use crate::bundle::{ArrayData, BundleWriteError, NamedArray, write_bundle};
+use crate::distances::{self, DistanceError};
 use crate::formfactor::{self, FormFactorParams};
 use crate::hetero::{self, PatternFrame};
 use crate::patch::{self, Density, Patches};
-use crate::profile;
 use crate::scene::LoadedScene;
-use crate::smatrix::{self, ObjectMaterial, SError, SParams};
+use crate::voxel::VoxelParams;
 use translux_engine::raycast::Occluder;
+use translux_engine::smatrix::{
+    self, ObjectMaterial, SError, SParams, material_albedo_emission, patch_albedo,
+};
 
 /// Patch target for scene files that name no density.
 pub const DEFAULT_PATCHES: u64 = 10_000;
@@ -41,6 +44,8 @@ pub struct PrecomputeParams {
     pub max_edge: Option<f32>,
     pub form_factors: FormFactorParams,
     pub subsurface: SParams,
+    /// The voxel grid of the optical distances (stage 1 of S).
+    pub voxels: VoxelParams,
     /// Refuse when the estimated peak memory exceeds this many bytes (default: 85% of the
     /// memory available now).
     pub memory_limit: Option<u64>,
@@ -128,7 +133,7 @@ pub enum PrecomputeError {
          building, with F), more than the {} allowed; use fewer patches (simplify_to for a \
          scanned mesh) or a less translucent profile",
         human_bytes(*estimate),
-        smatrix::PEAK_BYTES_PER_PATH,
+        distances::PEAK_BYTES_PER_PATH,
         human_bytes(*limit)
     )]
     SubsurfaceOutOfMemory {
@@ -155,6 +160,8 @@ pub enum PrecomputeError {
     Empty,
     #[error(transparent)]
     Subsurface(#[from] SError),
+    #[error(transparent)]
+    Distances(#[from] DistanceError),
     #[error("--inverse: {0}")]
     Inverse(#[from] translux_engine::inverse::InverseError),
     #[error(transparent)]
@@ -168,66 +175,10 @@ pub enum PrecomputeError {
 /// (8 bytes per lower entry = 4 per non-zero).
 const BUILD_BYTES_PER_NNZ: u64 = 18;
 
-/// ρ a patch of this material carries in the diffuse solve, and its emitted exitance.
-pub fn material_albedo_emission(m: &Material) -> ([f32; 3], [f32; 3]) {
-    match m {
-        Material::Diffuse { albedo } => (*albedo, [0.0; 3]),
-        // Until S is in the bundle a translucent object is opaque with its profile's total
-        // diffuse reflectance (the "inter-reflection only" view of it), capped below 1.
-        Material::Translucent { profile } => (
-            profile::total_reflectance(profile).map(|r| r.clamp(0.0, 0.999)),
-            [0.0; 3],
-        ),
-        Material::Emitter { radiance } => ([0.0; 3], radiance.map(|l| l * std::f32::consts::PI)),
-        // A thin sheet returns light to the side it came from (R) and to the other (T); seen
-        // as an opaque two-sided patch, a face re-emits the sum, capped below 1.
-        Material::ThinSheet {
-            reflectance,
-            transmittance,
-            ..
-        } => {
-            let (r, t) = (
-                profile::total_reflectance(reflectance),
-                profile::total_reflectance(transmittance),
-            );
-            (
-                std::array::from_fn(|c| (r[c] + t[c]).clamp(0.0, 0.999)),
-                [0.0; 3],
-            )
-        }
-        // A heterogeneous object as a whole: the mean of its media's total diffuse
-        // reflectances, each medium counted once (the precompute writes each patch's own
-        // medium's instead, see `patch_albedo`).
-        Material::Heterogeneous { materials, .. } => {
-            let mut sum = [0.0f32; 3];
-            for p in materials {
-                let rd = profile::total_reflectance(p);
-                for c in 0..3 {
-                    sum[c] += rd[c] / materials.len().max(1) as f32;
-                }
-            }
-            (sum.map(|r| r.clamp(0.0, 0.999)), [0.0; 3])
-        }
-    }
-}
-
-/// ρ of one patch: [`material_albedo_emission`]'s, except that a patch of a heterogeneous
-/// object carries the total diffuse reflectance of its own medium `medium` (so the
-/// inter-reflection-only view shows the pattern).
-pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
-    match m {
-        Material::Heterogeneous { materials, .. } => match materials.get(medium as usize) {
-            Some(p) => profile::total_reflectance(p).map(|r| r.clamp(0.0, 0.999)),
-            None => material_albedo_emission(m).0,
-        },
-        _ => material_albedo_emission(m).0,
-    }
-}
-
 /// Where the media of the scene's heterogeneous objects are: each object's pattern frame
 /// (from its transform) and each patch's medium ([`hetero::patch_media`]; by OBJ material,
 /// the medium of the source face the patch was cut from). `h` is the subdivision edge.
-pub fn scene_media(scene: &LoadedScene, patches: &Patches, h: f32) -> smatrix::SceneMedia {
+pub fn scene_media(scene: &LoadedScene, patches: &Patches, h: f32) -> distances::SceneMedia {
     let frames: Vec<PatternFrame> = scene
         .file
         .objects
@@ -257,7 +208,7 @@ pub fn scene_media(scene: &LoadedScene, patches: &Patches, h: f32) -> smatrix::S
         );
         patch_material[range.clone()].copy_from_slice(&m);
     }
-    smatrix::SceneMedia {
+    distances::SceneMedia {
         patch_material,
         frames,
     }
@@ -493,7 +444,7 @@ pub fn precompute(
             patches: r.clone(),
         })
         .collect();
-    let paths = smatrix::estimate_paths(
+    let paths = distances::estimate_paths(
         &patches.centroid,
         &materials,
         scene.file.unit_mm,
@@ -502,7 +453,7 @@ pub fn precompute(
     let f_kept = (nnz_est * 8.0) as u64 + patches.len() as u64 * 200;
     let path_total: u64 = paths.iter().map(|p| p.1).sum();
     let subsurface_estimate =
-        f_kept.saturating_add(path_total.saturating_mul(smatrix::PEAK_BYTES_PER_PATH));
+        f_kept.saturating_add(path_total.saturating_mul(distances::PEAK_BYTES_PER_PATH));
     if subsurface_estimate > limit {
         let (object, most, radius) = paths
             .iter()
@@ -596,13 +547,20 @@ pub fn precompute(
     let unit_mm = scene.file.unit_mm;
     let sp = &params.subsurface;
     let media = scene_media(scene, &patches, h);
-    let (dist, dist_len, dist_kind, dist_reports) =
-        smatrix::scene_distances(&geometry, &materials, &sources, &media, unit_mm, sp)?;
+    let (dist, dist_len, dist_kind, dist_reports) = distances::scene_distances(
+        &geometry,
+        &materials,
+        &sources,
+        &media,
+        unit_mm,
+        sp,
+        &params.voxels,
+    )?;
     bar.inc(1);
     // The estimate was an upper bound; should the stored paths still outgrow the budget,
     // stop here, before S (the larger half) is assembled.
-    let grown =
-        f_kept.saturating_add((dist.col.len() as u64).saturating_mul(smatrix::PEAK_BYTES_PER_PATH));
+    let grown = f_kept
+        .saturating_add((dist.col.len() as u64).saturating_mul(distances::PEAK_BYTES_PER_PATH));
     if grown > limit {
         return Err(PrecomputeError::SubsurfaceOutOfMemory {
             object: "all translucent objects".into(),
@@ -649,7 +607,7 @@ pub fn precompute(
     let subsurface_info = SubsurfaceInfo {
         nnz: smat.col.len() as u64,
         distance_nnz: dist.col.len() as u64,
-        objects: smatrix::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy),
+        objects: distances::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy),
     };
     finish(bar, progress, "subsurface", t, &mut stages);
 

@@ -8,7 +8,8 @@
 //!   of (j, r_ij, kind) with kind [`KIND_SAME`] (j on i's side) or [`KIND_OPPOSITE`] (j on
 //!   the other side). `smatrix` stores them as the object's block of the distance CSR and of
 //!   the bundle's `dist_kind`.
-//! - [`assemble`]: the object's S from those distances and kinds, R and T tabulated.
+//! - S from those distances and kinds, R and T tabulated, is `translux_engine::sheet`
+//!   (stage 2, also run for every translucency change).
 //!
 //! ## Sides
 //! Two patches touch when they share a corner (welded by position, as `patch` welds the
@@ -65,27 +66,13 @@
 
 use std::cmp::Ordering;
 use std::collections::{BinaryHeap, HashMap};
-use std::ops::Range;
-use std::time::Instant;
 
 use glam::Vec3;
 use rayon::prelude::*;
-use thiserror::Error;
-use translux_proto::csr::CsrView;
-use translux_proto::scene::Profile;
 
-use crate::profile::{ProfileError, ProfileEval};
-use crate::smatrix::{AssemblyReport, DistanceReport, SParams};
-use crate::subsurface::{
-    self, DistanceView, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated,
-};
+pub use translux_engine::sheet::{KIND_OPPOSITE, KIND_SAME, SIDE_ANGLE_DEG, SheetError};
+use translux_engine::subsurface::ObjectPatches;
 
-/// `dist_kind` of a pair on one side of a sheet (or inside an ordinary translucent object).
-pub const KIND_SAME: u32 = 0;
-/// `dist_kind` of a pair on opposite sides of a thin sheet (the transmittance profile).
-pub const KIND_OPPOSITE: u32 = 1;
-/// Touching patches whose normals differ by more than this are not joined into one side.
-pub const SIDE_ANGLE_DEG: f32 = 60.0;
 /// The second side must hold at least this fraction of the first side's area.
 const MIN_SIDE_RATIO: f64 = 0.5;
 /// The rim may hold at most this fraction of the object's area.
@@ -110,34 +97,6 @@ pub struct Sides {
     /// The joined neighbours of each side patch (touching, same side, normals within
     /// [`SIDE_ANGLE_DEG`]), sorted: the graph geodesics start from. Empty for rim patches.
     pub neighbours: Vec<Vec<u32>>,
-}
-
-/// Why an object cannot be a thin sheet.
-#[derive(Debug, Clone, PartialEq, Error)]
-pub enum SheetError {
-    #[error(
-        "a thin-sheet material needs a two-sided mesh (front and back faces); object '{object}' \
-         has one side (its largest smooth surface has {first:.3e} scene units² of area, the \
-         next {second:.3e})"
-    )]
-    OneSide {
-        object: String,
-        first: f64,
-        second: f64,
-    },
-    #[error(
-        "object '{object}' is not a thin sheet: its two largest smooth sides hold only \
-         {percent:.0}% of its area, and the rest (patches at more than {SIDE_ANGLE_DEG}° to \
-         their neighbours) would get no subsurface transfer; a thin-sheet material needs a \
-         two-sided mesh with thin side walls"
-    )]
-    MostlyRim { object: String, percent: f64 },
-    #[error("object '{object}', {which} profile: {error}")]
-    Profile {
-        object: String,
-        which: &'static str,
-        error: ProfileError,
-    },
 }
 
 fn longest_edge(c: &[Vec3; 3]) -> f32 {
@@ -678,221 +637,15 @@ pub fn sheet_distances(
     })
 }
 
-/// The plan for S_ji of a pair at sheet distance `r` through either profile (R for the same
-/// side, T for the other), by the quadrature of the module docs: far pairs by A_i P(r_ij),
-/// near pairs by polar integration over j projected onto i's plane (far again when the
-/// projection is edge-on).
-pub fn pair_plan(
-    p: &ObjectPatches<'_>,
-    (i, j): (usize, usize),
-    r: f32,
-    params: &SubsurfaceParams,
-) -> Quadrature {
-    // Far: S_ji ≈ A_i P(r_ij).
-    let far = Quadrature::Far { area_i: p.area[i] };
-    if r >= params.near_factor * p.size[i].max(p.size[j]) {
-        return far;
-    }
-    // Near: j projected onto i's plane, y′ = y − n_i ((y − c_i)·n_i).
-    let (ci, ni) = (p.centroid[i], p.normal[i]);
-    let proj = p.corners[j].map(|y| y - ni * (y - ci).dot(ni));
-    let a_proj = 0.5 * (proj[1] - proj[0]).cross(proj[2] - proj[0]).length();
-    if a_proj < 0.5 * p.area[j] {
-        return far;
-    }
-    // S_ji = A_i · mean_x (1/A_j′) ∫_j′ P(|x − y′|) dA_y′.
-    Quadrature::Polar {
-        tri: proj,
-        normal: ni,
-        factor: p.area[i] / a_proj,
-    }
-}
-
-/// S of one thin-sheet object in local indices. `kind[e]` is the kind of distance entry e
-/// (parallel to `d.col`; missing entries count as [`KIND_SAME`]); `r` and `t` tabulate the
-/// reflectance and transmittance profiles out to the radii the distances were cut at.
-pub fn assemble(
-    p: ObjectPatches<'_>,
-    d: DistanceView<'_>,
-    kind: &[u32],
-    r: &Tabulated,
-    t: &Tabulated,
-    params: &SubsurfaceParams,
-) -> ObjectS {
-    let n = p.area.len();
-    let columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let xs = subsurface::samples(&p.corners[i], params.samples);
-            // Self term: reflectance only (the other side's "self" is ô(i), a pair).
-            let mut col = vec![(i as u32, subsurface::self_term(&p, i, &xs, r, params))];
-            for e in d.row_ptr[i] as usize..d.row_ptr[i + 1] as usize {
-                let (j, dist) = (d.col[e] as usize, d.dist[e]);
-                let tab = if kind.get(e) == Some(&KIND_OPPOSITE) {
-                    t
-                } else {
-                    r
-                };
-                if dist >= tab.r_max() {
-                    continue;
-                }
-                let s = pair_plan(&p, (i, j), dist, params).eval(dist, &xs, tab, params);
-                if s.iter().any(|&v| v > 0.0) {
-                    col.push((j as u32, s));
-                }
-            }
-            col
-        })
-        .collect();
-    subsurface::bound_and_transpose(columns, p.area)
-}
-
-fn eval(
-    name: &str,
-    which: &'static str,
-    profile: &Profile,
-    unit_mm: f64,
-) -> Result<ProfileEval, SheetError> {
-    ProfileEval::new(profile, unit_mm).map_err(|error| SheetError::Profile {
-        object: name.to_string(),
-        which,
-        error,
-    })
-}
-
-/// Stage 1 for one thin-sheet object (see `smatrix`): distances kept out to
-/// `radius_margin` × the larger truncation radius of R and T. Returns the local rows
-/// (j, r_ij, kind) and the report; a warning when the faces, as meshed, are not about
-/// `thickness_mm` apart (a units mistake, most often).
-pub fn object_distances(
-    name: &str,
-    (reflectance, transmittance, thickness_mm): (&Profile, &Profile, f32),
-    p: ObjectPatches<'_>,
-    unit_mm: f64,
-    params: &SParams,
-) -> Result<(SheetRows, DistanceReport), SheetError> {
-    let start = Instant::now();
-    let (er, et) = (
-        eval(name, "reflectance", reflectance, unit_mm)?,
-        eval(name, "transmittance", transmittance, unit_mm)?,
-    );
-    let e = params.truncation_energy;
-    let radius =
-        er.truncation_radius(e).max(et.truncation_radius(e)) * params.radius_margin.max(1.0);
-    let sd = sheet_distances(name, p, radius)?;
-    // Faces 0 apart (a zero-thickness two-sided mesh) are a modelling choice, not a mistake.
-    let gap_mm = sd.separation as f64 * unit_mm;
-    let t = thickness_mm as f64;
-    let warning = (gap_mm > 2.0 * t || (gap_mm < 0.5 * t && gap_mm > 0.01 * t)).then(|| {
-        format!(
-            "'{name}': its two faces are {gap_mm:.3} mm apart as meshed (median), but the \
-             material's thickness_mm is {thickness_mm}; check the units"
-        )
-    });
-    Ok((
-        sd.rows,
-        DistanceReport {
-            name: name.to_string(),
-            method: "geodesic (thin sheet)".into(),
-            radius,
-            voxels: 0,
-            interior_voxels: 0,
-            voxel_size: 0.0,
-            warning,
-            seconds: start.elapsed().as_secs_f64(),
-        },
-    ))
-}
-
-/// A thin sheet's reflectance and transmittance profiles tabulated out to their truncation
-/// radii, each capped by `reach` (how far the stored distances go), and the radius wanted
-/// when the cap bites.
-pub fn tables(
-    name: &str,
-    (reflectance, transmittance): (&Profile, &Profile),
-    reach: f32,
-    unit_mm: f64,
-    params: &SParams,
-) -> Result<(Tabulated, Tabulated, Option<f32>), SheetError> {
-    let (er, et) = (
-        eval(name, "reflectance", reflectance, unit_mm)?,
-        eval(name, "transmittance", transmittance, unit_mm)?,
-    );
-    let e = params.truncation_energy;
-    let (want_r, want_t) = (er.truncation_radius(e), et.truncation_radius(e));
-    let radius_r = want_r.min(reach.max(f32::MIN_POSITIVE));
-    let radius_t = want_t.min(reach.max(f32::MIN_POSITIVE));
-    let wanted = want_r.max(want_t);
-    let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
-    Ok((
-        Tabulated::new(&er, radius_r, 4096),
-        Tabulated::new(&et, radius_t, 4096),
-        capped_from,
-    ))
-}
-
-/// Stage 2 for one thin-sheet object whose patches are `range` of the scene: S from the
-/// stored distances (`distances`, global) and their kinds (`kinds`, parallel to the stored
-/// values), which reach `reach` scene units. Returns S in local indices and the report.
-#[allow(clippy::too_many_arguments)]
-pub fn object_s(
-    name: &str,
-    (reflectance, transmittance): (&Profile, &Profile),
-    p: ObjectPatches<'_>,
-    range: Range<usize>,
-    distances: CsrView<'_, f32>,
-    kinds: &[u32],
-    reach: f32,
-    unit_mm: f64,
-    params: &SParams,
-) -> Result<(ObjectS, AssemblyReport), SheetError> {
-    let start = Instant::now();
-    let (tr, tt, capped_from) = tables(name, (reflectance, transmittance), reach, unit_mm, params)?;
-    let (radius_r, radius_t) = (tr.r_max(), tt.r_max());
-    // The object's block of the stored distances, in local indices, with kinds.
-    let (base, len) = (range.start as u64, range.len() as u64);
-    let mut row_ptr = vec![0u64];
-    let (mut col, mut dist, mut kind) = (Vec::new(), Vec::new(), Vec::new());
-    for i in range {
-        let first = distances.row_ptr()[i] as usize;
-        let (cols, ds) = distances.row(i);
-        for (k, (&j, &d)) in cols.iter().zip(ds).enumerate() {
-            let kd = kinds.get(first + k).copied().unwrap_or(KIND_SAME);
-            let cut = if kd == KIND_OPPOSITE {
-                radius_t
-            } else {
-                radius_r
-            };
-            if (j as u64) >= base && (j as u64) < base + len && d < cut {
-                col.push((j as u64 - base) as u32);
-                dist.push(d);
-                kind.push(kd);
-            }
-        }
-        row_ptr.push(col.len() as u64);
-    }
-    let dv = DistanceView {
-        row_ptr: &row_ptr,
-        col: &col,
-        dist: &dist,
-    };
-    let s = assemble(p, dv, &kind, &tr, &tt, &params.quadrature);
-    let report = AssemblyReport {
-        name: name.to_string(),
-        radius: radius_r.max(radius_t),
-        capped_from,
-        max_column_energy: s.report.max_column,
-        scaled_columns: s.report.scaled_columns as u64,
-        seconds: start.elapsed().as_secs_f64(),
-    };
-    Ok((s, report))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::patch;
     use crate::shapes::shape_triangles;
+    use translux_engine::profile::ProfileEval;
+    use translux_engine::sheet::assemble;
+    use translux_engine::subsurface::{DistanceView, ObjectS, SubsurfaceParams, Tabulated};
+    use translux_proto::scene::Profile;
     use translux_proto::scene::{ExpTerm, Shape};
 
     /// Patches of one object, owned.
@@ -1307,7 +1060,7 @@ mod tests {
     #[test]
     fn the_flower_bundle_stores_sides_and_rebuilds_s_from_them() {
         use crate::pipeline::{PrecomputeParams, precompute};
-        use crate::smatrix::{self, SParams};
+        use translux_engine::smatrix::{self, SParams};
         use translux_proto::bundle::Bundle;
         use translux_proto::scene::Material;
 

@@ -2,9 +2,9 @@
 //! Fig. 7 (`builtin:cornell_checker`), media by OBJ material (`usemtl`), per-medium lengths
 //! in the bundle, eq. 9 assembly and rebuilds.
 
+use translux_engine::smatrix::{self, SError, SParams};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::{load_scene, load_scene_file};
-use translux_precompute::smatrix::{self, SError, SParams};
 use translux_proto::bundle::{Bundle, arrays};
 use translux_proto::scene::{Material, Pattern, Profile};
 

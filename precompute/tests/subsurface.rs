@@ -3,9 +3,9 @@
 
 use translux_engine::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
 use translux_engine::raycast::Occluder;
+use translux_engine::smatrix::{self, SParams};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::{LoadedScene, load_scene};
-use translux_precompute::smatrix::{self, SParams};
 use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 use translux_proto::scene::{DIPOLE_PRESETS, Material, Profile};

@@ -33,7 +33,7 @@ use std::sync::{Arc, Mutex};
 use serde::Serialize;
 use translux_engine::radiosity::{Rgb, SolveParams, SolveStats};
 
-use translux_precompute::smatrix::{self, CsrOwned, SError, SParams};
+use translux_engine::smatrix::{self, CsrOwned, SError, SParams};
 use translux_proto::scene::Material;
 
 use crate::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};

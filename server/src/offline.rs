@@ -21,13 +21,101 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use clap::Subcommand;
 use serde::de::DeserializeOwned;
 use translux_proto::api::{Exposure, RelightRequest, RelightResponse, RenderRequest, ToneMap};
 
-use crate::cli::{Command, ExportArgs, RelightArgs, RenderArgs};
 use crate::picture::{self, MeshFormat, PictureFormat};
 use crate::relight;
 use crate::state::Scene;
+
+/// The offline commands: one bundle, one request, one file out, no HTTP.
+#[derive(Debug, Clone, Subcommand)]
+pub enum Command {
+    /// Relight a bundle and render it from a camera to a PNG.
+    Render(RenderArgs),
+    /// Relight a bundle and write its mesh with baked vertex colours (.glb or .ply).
+    Export(ExportArgs),
+    /// Relight a bundle and write the per-vertex radiance B/pi (.f32 or .json).
+    Relight(RelightArgs),
+    /// Make or hash access tokens for the tokens file (--tokens).
+    #[command(subcommand)]
+    Token(crate::auth::TokenCommand),
+}
+
+/// `translux-server render`.
+#[derive(Debug, Clone, clap::Args)]
+#[command(
+    after_help = "The request is POST /api/v1/scenes/{id}/render's body: the relight \
+    fields (lights, materials, components, solver) plus camera, width, height, exposure, tone, \
+    background, cull_backfaces. Flags override the file's fields."
+)]
+pub struct RenderArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON render request (`-`: standard input); default `{}`: the bundle's lights and camera.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The picture to write, by extension (any case): `.png` (8-bit sRGB, exposed and tone
+    /// mapped) or `.exr` (linear radiance B/π in W·m⁻²·sr⁻¹, half-float RGB, no tone
+    /// curve; a numeric exposure scales it by 2^EV, `auto` leaves it unscaled).
+    #[arg(long, value_name = "FILE.png|FILE.exr")]
+    pub out: PathBuf,
+    /// Image width in pixels (1..=8192; default 800).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height in pixels (1..=8192; default 600).
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Exposure: EV stops (radiance × 2^EV) or `auto` (the viewer's automatic exposure);
+    /// default: the request's `exposure`, else auto.
+    #[arg(long, value_name = "auto|EV", allow_negative_numbers = true)]
+    pub exposure: Option<Exposure>,
+    /// Tone curve: srgb (clamp) or filmic (ACES fit); default srgb.
+    #[arg(long, value_name = "srgb|filmic")]
+    pub tone: Option<ToneMap>,
+}
+
+/// `translux-server export`.
+#[derive(Debug, Clone, clap::Args)]
+#[command(
+    after_help = "glTF colours (COLOR_0) are linear floats (exposure and tone curve \
+    applied, no sRGB encoding: glTF vertex colours are linear); PLY colours are 8-bit sRGB."
+)]
+pub struct ExportArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON relight request (`-`: standard input); default `{}`: the bundle's lights.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The file to write: FILE.glb (binary glTF 2.0) or FILE.ply (binary PLY).
+    #[arg(long, value_name = "FILE.glb|FILE.ply")]
+    pub out: PathBuf,
+    /// Exposure of the baked colours: EV stops or `auto` (the viewer's automatic exposure
+    /// for this relight); default auto.
+    #[arg(long, value_name = "auto|EV", allow_negative_numbers = true)]
+    pub exposure: Option<Exposure>,
+    /// Tone curve for the baked colours: srgb (clamp) or filmic (ACES fit); default srgb.
+    #[arg(long, value_name = "srgb|filmic")]
+    pub tone: Option<ToneMap>,
+}
+
+/// `translux-server relight`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RelightArgs {
+    /// The bundle folder (written by translux-precompute).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// JSON relight request (`-`: standard input); default `{}`: the bundle's lights.
+    #[arg(long, value_name = "REQ.json")]
+    pub request: Option<PathBuf>,
+    /// The file to write: FILE.f32 (n × 3 little-endian f32, as the binary API) or FILE.json
+    /// (as the JSON API).
+    #[arg(long, value_name = "FILE.f32|FILE.json")]
+    pub out: PathBuf,
+}
 
 /// Runs one offline command; the summary goes to the log (stderr).
 pub fn run(command: &Command) -> anyhow::Result<()> {

@@ -404,7 +404,7 @@ pub fn app(state: AppState, team: Team) -> Router {
     let ours = Router::new()
         .route(
             "/api/v1/scenes",
-            post(crate::upload::upload).layer(DefaultBodyLimit::max(body_limit)),
+            post(upload).layer(DefaultBodyLimit::max(body_limit)),
         )
         .route("/api/v1/scenes/{id}", delete(delete_scene))
         .route("/api/v1/jobs", get(list_jobs))
@@ -419,6 +419,22 @@ pub fn app(state: AppState, team: Team) -> Router {
             team.auth.clone(),
             crate::auth::middleware,
         ))
+}
+
+/// `POST /api/v1/scenes`: an upload becomes a precompute job ([`crate::upload::accept`]).
+async fn upload(
+    State(team): State<Team>,
+    identity: Option<Extension<Identity>>,
+    form: Result<axum::extract::Multipart, axum::extract::multipart::MultipartRejection>,
+) -> Result<Response, AppError> {
+    crate::upload::accept(
+        &team.jobs,
+        team.limits,
+        |id| team.reserve(id),
+        identity,
+        form,
+    )
+    .await
 }
 
 /// Whether `who` may see job `r`: its owner, or an admin.

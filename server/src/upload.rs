@@ -22,8 +22,8 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use axum::extract::Multipart;
 use axum::extract::multipart::{Field, MultipartError};
-use axum::extract::{Multipart, State};
 use axum::http::header::LOCATION;
 use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -37,7 +37,6 @@ use translux_proto::scene::{MeshRef, SceneFile};
 use crate::auth::Identity;
 use crate::error::AppError;
 use crate::jobs::{JobSpec, Jobs, strip_dir};
-use crate::team::Team;
 
 /// Upload limits.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -380,20 +379,22 @@ impl Drop for Staging {
     }
 }
 
-/// The handler of `POST /api/v1/scenes`.
-pub async fn upload(
-    State(team): State<Team>,
+/// `POST /api/v1/scenes` (its handler is [`crate::team`]'s): receives and checks the form
+/// within `limits`, reserves the scene id with `reserve` (the guard it returns is held until
+/// the job is queued or the upload refused) and queues the precompute job on `jobs`.
+pub async fn accept<R>(
+    jobs: &Jobs,
+    limits: UploadLimits,
+    reserve: impl FnOnce(&str) -> Result<R, AppError>,
     identity: Option<Extension<Identity>>,
     form: Result<Multipart, axum::extract::multipart::MultipartRejection>,
 ) -> Result<Response, AppError> {
-    let limits = team.limits;
     let form = form.map_err(|e| {
         AppError::unsupported_media_type(format!(
             "send the scene as multipart/form-data (fields scene, mesh, id, patches): {}",
             e.body_text()
         ))
     })?;
-    let jobs = team.jobs.clone();
     let job_id = Jobs::new_id();
     let dir = jobs.upload_dir(&job_id);
     std::fs::create_dir_all(&dir)
@@ -415,7 +416,7 @@ pub async fn upload(
     };
     check_scene_id(&id).map_err(AppError::invalid)?;
     // Held until the job is queued (or the upload is refused): see `Team::reserve`.
-    let _reservation = team.reserve(&id)?;
+    let _reservation = reserve(&id)?;
 
     let (d, meshes, patches, max_edge) =
         (dir.clone(), got.meshes.clone(), got.patches, got.max_edge);

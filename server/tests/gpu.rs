@@ -647,9 +647,9 @@ mod s_rebuild {
     use std::collections::HashMap;
 
     use super::*;
+    use translux_engine::smatrix::{self, SParams};
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
-    use translux_precompute::smatrix::{self, SParams};
     use translux_proto::bundle::Bundle;
     use translux_proto::scene::{ExpTerm, Material, Profile};
     use translux_server::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
@@ -887,9 +887,9 @@ mod s_rebuild {
 /// plan says so rather than building a wrong S on the device.
 #[test]
 fn heterogeneous_objects_are_rebuilt_on_the_cpu_and_say_so() {
+    use translux_engine::smatrix::{self, SParams};
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
-    use translux_precompute::smatrix::{self, SParams};
     use translux_proto::bundle::Bundle;
     use translux_server::gpu::subsurface::{Plan, SMaterials};
     let tmp = tempfile::tempdir().unwrap();

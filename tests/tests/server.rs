@@ -480,10 +480,10 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
         .unwrap();
     let material: translux_proto::scene::Material =
         serde_json::from_value(body["materials"]["tall_block"].clone()).unwrap();
-    let (smat, _) = translux_precompute::smatrix::rebuild_from_bundle(
+    let (smat, _) = translux_engine::smatrix::rebuild_from_bundle(
         &bundle,
         &[(k, material)],
-        &translux_precompute::smatrix::SParams::default(),
+        &translux_engine::smatrix::SParams::default(),
     )
     .unwrap();
     let n = bundle.patch_areas().len();

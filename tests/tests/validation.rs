@@ -354,7 +354,7 @@ fn a_room_as_one_inward_box_follows_its_orientation() {
 /// Jensen et al. 2001's dipole diffuse reflectance R_d(r) (mm⁻², r in mm) for reduced
 /// scattering σs′, absorption σa (mm⁻¹) and relative index η, written here from the
 /// published formulas (eqs. 4–5 of the paper, with its F_dr fit): the reference is
-/// independent of `translux_precompute::profile`.
+/// independent of `translux_engine::profile`.
 fn jensen_rd(r: f64, sigma_s_prime: f64, sigma_a: f64, eta: f64) -> f64 {
     let sigma_t = sigma_s_prime + sigma_a;
     let alpha = sigma_s_prime / sigma_t;

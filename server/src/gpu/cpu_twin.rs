@@ -198,15 +198,15 @@ pub fn reduce_sum(partial: &[f32]) -> f32 {
 }
 
 /// Twin of `s_entries.wgsl`: every entry of the template's S for the materials `m`, each
-/// plan evaluated by the precompute's own [`Quadrature::eval`](translux_precompute::subsurface::Quadrature::eval)
+/// plan evaluated by the precompute's own [`Quadrature::eval`](translux_engine::subsurface::Quadrature::eval)
 /// — the CPU assembly's arithmetic — with patch i's sample points.
 pub fn s_entries(
     t: &super::subsurface::STemplate,
     m: &super::subsurface::SMaterials,
-    params: &translux_precompute::subsurface::SubsurfaceParams,
+    params: &translux_engine::subsurface::SubsurfaceParams,
 ) -> Vec<Rgb> {
     use rayon::prelude::*;
-    use translux_precompute::subsurface::samples;
+    use translux_engine::subsurface::samples;
     (0..t.nnz())
         .into_par_iter()
         .map(|e| {

@@ -5,7 +5,7 @@
 //! [`GpuCsr`] ready for the solve, and its values read back once for the CPU's products
 //! (S E for the right-hand side and the `subsurface_only` / heuristic components).
 //!
-//! Two stages, the same split as the CPU's [`translux_precompute::smatrix`]:
+//! Two stages, the same split as the CPU's [`translux_engine::smatrix`]:
 //!
 //! 1. [`STemplate`] (CPU, once per scene and per object radii): which entries S has —
 //!    the self term and every stored pair within the radius of each translucent object or
@@ -25,11 +25,9 @@
 
 use rayon::prelude::*;
 use translux_engine::radiosity::Rgb;
-use translux_precompute::sheet::{self, KIND_OPPOSITE};
-use translux_precompute::smatrix::{self, CsrOwned, PatchGeometry, SError, SParams};
-use translux_precompute::subsurface::{
-    self, ObjectPatches, Quadrature, SubsurfaceParams, Tabulated,
-};
+use translux_engine::sheet::{self, KIND_OPPOSITE};
+use translux_engine::smatrix::{self, CsrOwned, PatchGeometry, SError, SParams};
+use translux_engine::subsurface::{self, ObjectPatches, Quadrature, SubsurfaceParams, Tabulated};
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::Material;
 

@@ -467,6 +467,42 @@ pub(crate) fn bound_and_transpose(mut columns: Vec<Vec<(u32, [f32; 3])>>, area: 
     ObjectS { rows, report }
 }
 
+/// Settings of S: how far profiles are kept and stored, and the quadrature. Defaults on each
+/// field.
+#[derive(Debug, Clone, Copy)]
+pub struct SParams {
+    /// S keeps pairs out to the radius beyond which the profile carries less than this
+    /// fraction of its energy. Default 1e-3.
+    pub truncation_energy: f32,
+    /// Distances are stored out to this many times the built profile's truncation radius,
+    /// so translucency can grow that much without new geometry work. Default 2.
+    pub radius_margin: f32,
+    pub quadrature: SubsurfaceParams,
+}
+
+impl Default for SParams {
+    fn default() -> Self {
+        Self {
+            truncation_energy: 1e-3,
+            radius_margin: 2.0,
+            quadrature: SubsurfaceParams::default(),
+        }
+    }
+}
+
+/// How stage 2 went for one translucent object.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AssemblyReport {
+    pub name: String,
+    /// The radius S used (the profile's truncation radius, capped by the stored distances).
+    pub radius: f32,
+    /// Set when the profile wanted more radius than the stored distances reach.
+    pub capped_from: Option<f32>,
+    pub max_column_energy: f32,
+    pub scaled_columns: u64,
+    pub seconds: f64,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,364 @@
+//! Stage 1 of S (geometry only): for every translucent object, the optical path r_ij
+//! between its patches ([`voxel::optical_distances`]), kept out to `radius_margin` × the
+//! built profile's truncation radius (`translux_engine::smatrix::stored_radius`), so that a
+//! more translucent profile later still finds its pairs. Stored in the bundle. A thin
+//! sheet's distances are geodesics along it, each with a kind — same side or other side —
+//! stored as `dist_kind` ([`sheet::sheet_distances`]). Heterogeneous objects ([`hetero`])
+//! also record, per stored pair, the length of the path in each medium
+//! (`dist_material_len`, [`SceneMedia`] saying where the media are), out to the largest of
+//! the media's truncation radii.
+//!
+//! Stage 2 — S from these distances and the materials, at precompute time and for every
+//! translucency change — is `translux_engine::smatrix`.
+//!
+//! In: patch geometry, each object's material, patch range and source triangles. Out: the
+//! distances as CSR with their kinds and per-medium lengths, and a report per object;
+//! [`estimate_paths`] bounds their number before any of it runs.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use thiserror::Error;
+use translux_engine::hetero::{MEDIA, MediaLen};
+use translux_engine::sheet::{KIND_SAME, SheetError, profile_eval};
+use translux_engine::smatrix::{
+    AssemblyReport, CsrOwned, ObjectMaterial, PatchGeometry, SError, SParams, object_patches,
+    stored_radius,
+};
+use translux_engine::subsurface::ObjectPatches;
+use translux_proto::bundle::SubsurfaceObject;
+use translux_proto::scene::{Material, Profile};
+
+use crate::hetero::{self, PatternFrame};
+use crate::sheet;
+use crate::voxel::{self, VoxelError, VoxelParams};
+
+/// Why stage 1 failed: a profile, sheet or media problem ([`SError`]) or the voxel grid.
+#[derive(Debug, Error)]
+pub enum DistanceError {
+    #[error(transparent)]
+    S(#[from] SError),
+    #[error(transparent)]
+    Voxel(#[from] VoxelError),
+}
+
+impl From<SheetError> for DistanceError {
+    fn from(e: SheetError) -> Self {
+        DistanceError::S(SError::Sheet(e))
+    }
+}
+
+/// Where the media of the scene's heterogeneous objects are (stage 1), and which medium each
+/// patch is in (stage 2's self terms; `patch_material` in the bundle).
+#[derive(Debug, Clone, Default)]
+pub struct SceneMedia {
+    /// Per patch (global): its medium ([`hetero::patch_media`]); 0 outside heterogeneous
+    /// objects. May be empty when the scene has no heterogeneous object.
+    pub patch_material: Vec<u32>,
+    /// Per object: the frame its pattern is laid in (identity when missing).
+    pub frames: Vec<PatternFrame>,
+}
+
+/// How stage 1 went for one translucent object.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DistanceReport {
+    pub name: String,
+    pub method: String,
+    pub radius: f32,
+    pub voxels: u64,
+    pub interior_voxels: u64,
+    pub voxel_size: f32,
+    pub warning: Option<String>,
+    pub seconds: f64,
+}
+
+/// Straight-line distances between centroids within `r_max`: the fallback when an object
+/// has no interior to trace paths through. O(n²), only reached for broken meshes.
+fn euclidean_rows(c: &[Vec3], r_max: f32) -> Vec<Vec<(u32, f32)>> {
+    (0..c.len())
+        .map(|i| {
+            c.iter()
+                .enumerate()
+                .filter(|&(j, cj)| j != i && c[i].distance(*cj) <= r_max)
+                .map(|(j, cj)| (j as u32, c[i].distance(*cj)))
+                .collect()
+        })
+        .collect()
+}
+
+/// What [`scene_distances`] returns: the distances (CSR), their per-medium lengths and their
+/// kinds (both aligned with the CSR entries), and a report per translucent object.
+pub type SceneDistances = (CsrOwned<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
+
+/// Bytes the subsurface stage holds per stored path at its peak, counted from its buffers:
+/// the path as a row entry (column and length, 8) and its kind (4) while the rows are
+/// built, the same in the CSR they become (12), S's column and RGB value (16) and the
+/// assembly's row buffers (about as much again), rounded up. With
+/// [`estimate_paths`]'s upper bound this refused the unsimplified bunny as marble
+/// (69k patches: ~1.5e9 paths, ~93 GiB) at once; it used to run for 12 minutes and be
+/// killed by the kernel at 24 GB.
+pub const PEAK_BYTES_PER_PATH: u64 = 64;
+
+/// An upper bound on the paths stage 1 will store, per translucent (or heterogeneous)
+/// object, before any of it runs: each object's patch pairs whose centroids lie within
+/// its radius (an optical path is never shorter than the straight line), counted on up to
+/// 256 evenly spaced rows. `(object name, paths, radius)` in scene units. Thin sheets are
+/// not counted (their paths run along the sheet, two sides, far fewer).
+pub fn estimate_paths(
+    centroid: &[Vec3],
+    objects: &[ObjectMaterial<'_>],
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<Vec<(String, u64, f32)>, SError> {
+    use rayon::prelude::*;
+    let mut out = Vec::new();
+    for o in objects {
+        let Some(radius) = stored_radius(o, unit_mm, params)? else {
+            continue;
+        };
+        let cen = &centroid[o.patches.clone()];
+        let n = cen.len();
+        if n == 0 {
+            continue;
+        }
+        let rows = n.min(256);
+        let r2 = radius * radius;
+        let near: u64 = (0..rows)
+            .into_par_iter()
+            .map(|k| {
+                let c = cen[k * n / rows];
+                cen.iter().filter(|p| p.distance_squared(c) <= r2).count() as u64
+            })
+            .sum();
+        let paths = (near as f64 / rows as f64 * n as f64) as u64;
+        out.push((o.name.to_string(), paths, radius));
+    }
+    Ok(out)
+}
+
+/// Stage 1: optical distances of every translucent object (global indices; rows of other
+/// patches empty). `triangles[o]` are object o's source triangles (for the inside test).
+/// Also returns the kind of every stored distance (`dist_kind`: [`sheet::KIND_OPPOSITE`]
+/// for a thin sheet's other side, else [`KIND_SAME`]), aligned with the CSR entries.
+/// Also returns the per-medium lengths of every stored distance (aligned with the CSR
+/// entries; all 0 outside heterogeneous objects).
+pub fn scene_distances(
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    triangles: &[&[[Vec3; 3]]],
+    media: &SceneMedia,
+    unit_mm: f64,
+    params: &SParams,
+    voxels: &VoxelParams,
+) -> Result<SceneDistances, DistanceError> {
+    let mut rows: Vec<Vec<(u32, f32)>> = vec![Vec::new(); g.corners.len()];
+    let mut kinds: Vec<Vec<u32>> = vec![Vec::new(); g.corners.len()];
+    let mut lens: Vec<Vec<MediaLen>> = vec![Vec::new(); g.corners.len()];
+    let mut reports = Vec::new();
+    for (k, (o, tris)) in objects.iter().zip(triangles).enumerate() {
+        if let Material::ThinSheet {
+            reflectance,
+            transmittance,
+            thickness_mm,
+        } = o.material
+        {
+            // Geodesics along the sheet, each with its side kind.
+            let r = o.patches.clone();
+            let (local, report) = sheet_object_distances(
+                o.name,
+                (reflectance, transmittance, *thickness_mm),
+                object_patches(g, r.clone()),
+                unit_mm,
+                params,
+            )?;
+            for (i, row) in local.into_iter().enumerate() {
+                rows[r.start + i] = row.iter().map(|e| (r.start as u32 + e.0, e.1)).collect();
+                kinds[r.start + i] = row.iter().map(|e| e.2).collect();
+            }
+            reports.push(report);
+            continue;
+        }
+        let Some(radius) = stored_radius(o, unit_mm, params)? else {
+            continue;
+        };
+        let t = Instant::now();
+        let r = o.patches.clone();
+        let (cen, nor) = (&g.centroid[r.clone()], &g.normal[r.clone()]);
+        let local_media = media.patch_material.get(r.clone()).unwrap_or(&[]);
+        let frame = media.frames.get(k).copied().unwrap_or_default();
+        let field = hetero::medium_field(o.material, frame, local_media);
+        if matches!(field, Some(hetero::MediumField::PerPatch(m)) if m.len() != r.len()) {
+            return Err(SError::Media {
+                object: o.name.to_string(),
+                why: "by_obj_material needs the medium of every patch".into(),
+            }
+            .into());
+        }
+        let mut local_lens: Vec<Vec<MediaLen>> = Vec::new();
+        let (local, stats, warning) = match voxel::optical_distances_media(
+            o.name,
+            tris,
+            cen,
+            nor,
+            radius,
+            voxels,
+            field.as_ref(),
+        ) {
+            Ok((d, s)) => {
+                if field.is_some() {
+                    local_lens = (0..r.len())
+                        .map(|i| {
+                            let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
+                            d.material_len[a..b].to_vec()
+                        })
+                        .collect();
+                }
+                let rows: Vec<Vec<(u32, f32)>> = (0..r.len())
+                    .map(|i| {
+                        let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
+                        d.col[a..b]
+                            .iter()
+                            .copied()
+                            .zip(d.dist[a..b].iter().copied())
+                            .collect()
+                    })
+                    .collect();
+                (rows, Some(s), None)
+            }
+            Err(VoxelError::NoInterior { .. }) => {
+                let rows = euclidean_rows(cen, radius);
+                if let Some(f) = &field {
+                    local_lens = rows
+                        .iter()
+                        .enumerate()
+                        .map(|(i, row)| {
+                            row.iter()
+                                .map(|&(j, d)| {
+                                    f.straight(i, j as usize, cen[i], cen[j as usize], d)
+                                })
+                                .collect()
+                        })
+                        .collect();
+                }
+                (
+                    rows,
+                    None,
+                    Some(format!(
+                        "'{}' has no interior (open or broken mesh): straight-line distances used",
+                        o.name
+                    )),
+                )
+            }
+            Err(e) => return Err(e.into()),
+        };
+        let base = r.start as u32;
+        for (i, row) in local.into_iter().enumerate() {
+            rows[r.start + i] = row.into_iter().map(|(j, d)| (base + j, d)).collect();
+        }
+        for (i, l) in local_lens.into_iter().enumerate() {
+            lens[r.start + i] = l;
+        }
+        reports.push(DistanceReport {
+            name: o.name.to_string(),
+            method: match stats.map(|s| s.method) {
+                Some(voxel::Method::Voxel) => "voxel".into(),
+                Some(voxel::Method::Euclidean) => "euclidean".into(),
+                None => "euclidean (fallback)".into(),
+            },
+            radius,
+            voxels: stats.map_or(0, |s| s.voxels as u64),
+            interior_voxels: stats.map_or(0, |s| s.interior_voxels as u64),
+            voxel_size: stats.map_or(0.0, |s| s.voxel_size),
+            warning,
+            seconds: t.elapsed().as_secs_f64(),
+        });
+    }
+    // Per-medium lengths aligned with the CSR entries (zeros for homogeneous rows).
+    let mut material_len = Vec::new();
+    for (row, l) in rows.iter().zip(&lens) {
+        if l.len() == row.len() {
+            material_len.extend_from_slice(l);
+        } else {
+            material_len.extend(std::iter::repeat_n([0.0; MEDIA], row.len()));
+        }
+    }
+    // Kinds aligned with the CSR entries (same side / interior unless a sheet said otherwise).
+    let mut kind = Vec::new();
+    for (row, kd) in rows.iter().zip(&kinds) {
+        if kd.len() == row.len() {
+            kind.extend_from_slice(kd);
+        } else {
+            kind.extend(std::iter::repeat_n(KIND_SAME, row.len()));
+        }
+    }
+    Ok((CsrOwned::from_rows(rows), material_len, kind, reports))
+}
+
+/// The manifest's per-object record, from both stages' reports.
+pub fn subsurface_objects(
+    d: &[DistanceReport],
+    a: &[AssemblyReport],
+    energy: f32,
+) -> Vec<SubsurfaceObject> {
+    d.iter()
+        .zip(a)
+        .map(|(d, a)| SubsurfaceObject {
+            name: d.name.clone(),
+            method: d.method.clone(),
+            truncation_radius: a.radius,
+            distance_radius: d.radius,
+            truncation_energy: energy,
+            voxels: d.voxels,
+            interior_voxels: d.interior_voxels,
+            voxel_size: d.voxel_size,
+            max_column_energy: a.max_column_energy,
+            scaled_columns: a.scaled_columns,
+            warning: d.warning.clone(),
+            seconds: d.seconds + a.seconds,
+        })
+        .collect()
+}
+
+/// Stage 1 for one thin-sheet object: distances kept out to
+/// `radius_margin` × the larger truncation radius of R and T. Returns the local rows
+/// (j, r_ij, kind) and the report; a warning when the faces, as meshed, are not about
+/// `thickness_mm` apart (a units mistake, most often).
+pub fn sheet_object_distances(
+    name: &str,
+    (reflectance, transmittance, thickness_mm): (&Profile, &Profile, f32),
+    p: ObjectPatches<'_>,
+    unit_mm: f64,
+    params: &SParams,
+) -> Result<(sheet::SheetRows, DistanceReport), SheetError> {
+    let start = Instant::now();
+    let (er, et) = (
+        profile_eval(name, "reflectance", reflectance, unit_mm)?,
+        profile_eval(name, "transmittance", transmittance, unit_mm)?,
+    );
+    let e = params.truncation_energy;
+    let radius =
+        er.truncation_radius(e).max(et.truncation_radius(e)) * params.radius_margin.max(1.0);
+    let sd = sheet::sheet_distances(name, p, radius)?;
+    // Faces 0 apart (a zero-thickness two-sided mesh) are a modelling choice, not a mistake.
+    let gap_mm = sd.separation as f64 * unit_mm;
+    let t = thickness_mm as f64;
+    let warning = (gap_mm > 2.0 * t || (gap_mm < 0.5 * t && gap_mm > 0.01 * t)).then(|| {
+        format!(
+            "'{name}': its two faces are {gap_mm:.3} mm apart as meshed (median), but the \
+             material's thickness_mm is {thickness_mm}; check the units"
+        )
+    });
+    Ok((
+        sd.rows,
+        DistanceReport {
+            name: name.to_string(),
+            method: "geodesic (thin sheet)".into(),
+            radius,
+            voxels: 0,
+            interior_voxels: 0,
+            voxel_size: 0.0,
+            warning,
+            seconds: start.elapsed().as_secs_f64(),
+        },
+    ))
+}
