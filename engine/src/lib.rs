@@ -6,7 +6,7 @@
 //! environment maps. Out: radiosity B per patch (W·m⁻²), vertex radiance B/π, rendered
 //! images (PNG, OpenEXR) and relit meshes (glTF, PLY). No HTTP and no global state: the
 //! server (`translux-server`), the offline commands and the benchmarks call it, and the
-//! precompute (`translux-precompute`) uses its solvers and ray casting.
+//! precompute (`translux-precompute`) uses its solvers, ray casting and S.
 //!
 //! Modules, from the bottom up:
 //! - [`linalg`] — RGB vectors, y = F x ([`linalg::spmv_rgb`]) and the scattering operator S
@@ -26,20 +26,33 @@
 //!   distances and the materials (stage 2: the precompute's, and every translucency change).
 //! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
 //!   relit mesh as binary glTF or PLY.
+//! - [`scene`] — a bundle opened for relighting, with its caches and the [`backend`] it
+//!   relights on (a trait: the CPU's here, the server's wgpu backend beside it);
+//!   [`environment`] — environment lights (map paths and cache, E from visibility);
+//!   [`relight`] — a request checked against a scene ([`relight::plan`]) and computed
+//!   ([`relight::run`], [`relight::run_batch`]: the six components, T or the solver, warm
+//!   starts); [`picture`] — renders and exports of a relight. Failures are
+//!   [`error::EngineError`]s.
 //!
 //! Crate graph: `proto ← engine ← {precompute, server (with its wgpu backend)}`; see
 //! `docs/architecture.md`.
 
+pub mod backend;
+pub mod environment;
 pub mod envmap;
 pub mod envvis;
+pub mod error;
 pub mod export;
 pub mod hetero;
 pub mod inverse;
 pub mod linalg;
+pub mod picture;
 pub mod profile;
 pub mod radiosity;
 pub mod raycast;
+pub mod relight;
 pub mod render;
+pub mod scene;
 pub mod sheet;
 pub mod smatrix;
 pub mod solver;

@@ -29,6 +29,7 @@ use translux_proto::csr::CsrView;
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, MediaLen};
+use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::subsurface::{self, DistanceView, ObjectPatches, Tabulated};
@@ -473,6 +474,27 @@ pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
             None => material_albedo_emission(m).0,
         },
         _ => material_albedo_emission(m).0,
+    }
+}
+
+/// S, ρ and Bₑ for a set of material overrides.
+#[derive(Debug)]
+pub struct OverrideMaterials {
+    /// The overrides, as JSON: which override set this is (the backend's key too).
+    pub key: String,
+    pub s: CsrOwned<[f32; 3]>,
+    pub albedo: Vec<Rgb>,
+    pub emission: Vec<Rgb>,
+    /// Where S was rebuilt: `gpu` or `cpu`.
+    pub built_on: &'static str,
+}
+
+impl OverrideMaterials {
+    /// S as a view (built by `smatrix::assemble_scene`, valid by construction).
+    pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
+        let n = self.albedo.len();
+        CsrView::new_checked(n, n, &self.s.row_ptr, &self.s.col, &self.s.val)
+            .expect("assemble_scene builds a valid CSR matrix")
     }
 }
 

@@ -392,14 +392,7 @@ pub fn read_ply(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
 /// and bring an old `base64`, for three cases: the GLB's BIN chunk, a base64 `data:` URI,
 /// or a file relative to the glTF file (percent-decoded). A missing buffer file is named.
 pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
-    let mut bytes = Vec::new();
-    open(path)?.read_to_end(&mut bytes).map_err(MeshError::Io)?;
-    let gltf = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| match e {
-        gltf::Error::Binary(e) => malformed(format!("bad GLB container: {e}")),
-        gltf::Error::Deserialize(e) => malformed(format!("bad glTF JSON: {e}")),
-        e => malformed(e.to_string()),
-    })?;
-    drop(bytes);
+    let gltf = open_gltf(path)?;
     let json = gltf.as_json();
     for (m, mesh) in json.meshes.iter().enumerate() {
         for (p, prim) in mesh.primitives.iter().enumerate() {
@@ -486,6 +479,17 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
     Ok(tris)
 }
 
+/// A glTF or GLB file parsed but not yet validated (see [`read_gltf`]).
+fn open_gltf(path: &Path) -> Result<gltf::Gltf, MeshError> {
+    let mut bytes = Vec::new();
+    open(path)?.read_to_end(&mut bytes).map_err(MeshError::Io)?;
+    gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| match e {
+        gltf::Error::Binary(e) => malformed(format!("bad GLB container: {e}")),
+        gltf::Error::Deserialize(e) => malformed(format!("bad glTF JSON: {e}")),
+        e => malformed(e.to_string()),
+    })
+}
+
 /// The files a glTF file's buffers name: every buffer URI that is not a `data:` URI,
 /// percent-decoded where it decodes (as written otherwise), in buffer order. Empty for a
 /// `.glb` whose only buffer is its binary chunk, and for any file that is not glTF.
@@ -496,13 +500,7 @@ pub fn referenced_files(path: &Path) -> Result<Vec<String>, MeshError> {
     if !matches!(MeshFormat::from_path(path), Ok(MeshFormat::Gltf)) {
         return Ok(Vec::new());
     }
-    let mut bytes = Vec::new();
-    open(path)?.read_to_end(&mut bytes).map_err(MeshError::Io)?;
-    let gltf = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| match e {
-        gltf::Error::Binary(e) => malformed(format!("bad GLB container: {e}")),
-        gltf::Error::Deserialize(e) => malformed(format!("bad glTF JSON: {e}")),
-        e => malformed(e.to_string()),
-    })?;
+    let gltf = open_gltf(path)?;
     Ok(gltf
         .as_json()
         .buffers

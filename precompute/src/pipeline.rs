@@ -68,6 +68,18 @@ pub trait Observer: Send + Sync + std::fmt::Debug {
     fn cancelled(&self) -> bool {
         false
     }
+    /// A note or warning about the scene for whoever runs the precompute (an object turned
+    /// outward or simplified, distances that look like a units mistake). Without an
+    /// observer they go to stderr.
+    fn note(&self, message: &str);
+}
+
+/// Tells `message` to the observer, or prints it on stderr when there is none (the CLI).
+fn tell(params: &PrecomputeParams, message: &str) {
+    match &params.observer {
+        Some(o) => o.note(message),
+        None => eprintln!("{message}"),
+    }
 }
 
 /// Every stage a precompute reports to its observer, in order (`inverse T` only with
@@ -354,13 +366,16 @@ pub fn precompute(
     let progress = params.progress;
     for (k, o) in scene.objects.iter().enumerate() {
         for note in &o.orientation_notes {
-            eprintln!("note: objects[{k}] {:?}: {note}", o.name);
+            tell(params, &format!("note: objects[{k}] {:?}: {note}", o.name));
         }
         let loaded = o.triangles.len() + o.dropped_degenerate;
         if o.source_triangles > loaded {
-            eprintln!(
-                "note: objects[{k}] {:?}: simplified from {} to {} triangles (simplify_to)",
-                o.name, o.source_triangles, loaded
+            tell(
+                params,
+                &format!(
+                    "note: objects[{k}] {:?}: simplified from {} to {} triangles (simplify_to)",
+                    o.name, o.source_triangles, loaded
+                ),
             );
         }
     }
@@ -601,7 +616,7 @@ pub fn precompute(
     bar.inc(1);
     for d in &dist_reports {
         if let Some(w) = &d.warning {
-            eprintln!("warning: {w}");
+            tell(params, &format!("warning: {w}"));
         }
     }
     let subsurface_info = SubsurfaceInfo {
@@ -867,4 +882,54 @@ pub fn precompute(
         memory_estimate,
         peak_rss: peak_rss(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::{Arc, Mutex};
+
+    use super::*;
+
+    #[derive(Debug, Default)]
+    struct Notes(Mutex<Vec<String>>);
+
+    impl Observer for Notes {
+        fn progress(&self, _stage: &str, _done: u64, _total: u64) {}
+        fn note(&self, message: &str) {
+            self.0.lock().unwrap().push(message.to_string());
+        }
+    }
+
+    /// A server job's observer gets the scene's notes (here: a closed OBJ wound inside out,
+    /// turned outward), rather than the library printing them.
+    #[test]
+    fn notes_go_to_the_observer() {
+        let dir = tempfile::tempdir().unwrap();
+        // A cube with every face wound inward.
+        let obj = "v -1 -1 -1\nv 1 -1 -1\nv 1 1 -1\nv -1 1 -1\nv -1 -1 1\nv 1 -1 1\nv 1 1 1\n\
+                   v -1 1 1\nf 2 3 4 1\nf 8 7 6 5\nf 5 6 2 1\nf 3 7 8 4\nf 4 8 5 1\nf 6 7 3 2\n";
+        std::fs::write(dir.path().join("cube.obj"), obj).unwrap();
+        let scene = r#"{"objects": [{"name": "cube", "mesh": "cube.obj",
+            "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}],
+            "lights": [{"type": "point", "position": [0, 5, 0], "intensity": [1, 1, 1]}]}"#;
+        std::fs::write(dir.path().join("scene.json"), scene).unwrap();
+        let loaded = crate::scene::load_scene_file(&dir.path().join("scene.json")).unwrap();
+        let notes = Arc::new(Notes::default());
+        let params = PrecomputeParams {
+            patches: Some(60),
+            observer: Some(notes.clone()),
+            environment: translux_engine::envvis::EnvVisParams {
+                bins: None,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        precompute(&loaded, &dir.path().join("out"), &params).unwrap();
+        let got = notes.0.lock().unwrap().clone();
+        assert!(
+            got.iter()
+                .any(|n| n.starts_with("note: objects[0] \"cube\"") && n.contains("outward")),
+            "{got:?}"
+        );
+    }
 }

@@ -20,14 +20,15 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use translux_engine::backend::Backend as _;
 use translux_engine::inverse;
+use translux_engine::relight;
+use translux_engine::scene::Scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::bundle::Bundle;
 use translux_server::backend::Backend;
 use translux_server::gpu::{DenseData, GpuContext, GpuDense, GpuOptions};
-use translux_server::relight;
-use translux_server::state::Scene;
 
 struct Args {
     patches: u64,
@@ -257,9 +258,9 @@ fn main() -> anyhow::Result<()> {
         drop(dense);
         let gpu = Backend::on_gpu(ctx);
         // A fresh scene on the GPU backend: no warm starts from the CPU's runs.
-        let scene = Scene::open_on("cornell", &dir, &gpu)?;
+        let scene = Scene::open_with("cornell", &dir, &gpu.resources())?;
         let t1 = Instant::now();
-        let on = gpu.prepare(&scene);
+        let on = gpu.prepare(scene.view());
         let prep_ms = t1.elapsed().as_secs_f64() * 1e3;
         let gpu_rows = relight_rows(&scene, a.reps)?;
         let h = gpu.gpu_health();

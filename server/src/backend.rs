@@ -1,10 +1,11 @@
 //! The compute backend, chosen once at start-up: `--backend auto|gpu|cpu`.
 //!
 //! There is no process-wide backend: the server starts one and hands it to its
-//! [`crate::AppState`], which opens every scene on it ([`crate::Scene::open_on`]); a scene
-//! remembers its backend, so a relight of it runs there. Library users and tests open
-//! scenes on the CPU ([`crate::Scene::open`]) or on a backend of their own, side by side in
-//! one process.
+//! [`crate::AppState`], which opens every scene with it ([`crate::Scene::open_with`]); a
+//! scene remembers its backend, so a relight of it runs there. It implements the engine's
+//! [`translux_engine::backend::Backend`] trait, which the relight calls. Library users and
+//! tests open scenes on the CPU ([`crate::Scene::open`]) or on a backend of their own, side
+//! by side in one process.
 //!
 //! In: the choice, and per request a scene, its S (the bundle's or a material override's),
 //! Bₑ and E. Out: the radiosity B from the device ([`crate::gpu`]), or `None`, which tells
@@ -33,7 +34,7 @@ use std::sync::{Arc, Mutex};
 use serde::Serialize;
 use translux_engine::radiosity::{Rgb, SolveParams, SolveStats};
 
-use translux_engine::smatrix::{self, CsrOwned, SError, SParams};
+use translux_engine::smatrix::{self, SError, SParams};
 use translux_proto::scene::Material;
 
 use crate::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
@@ -41,16 +42,9 @@ use crate::gpu::{
     AdapterSummary, DenseData, GpuContext, GpuCsr, GpuDense, GpuError, GpuOptions, GpuSystem,
     SystemParams,
 };
-use crate::state::{OverrideMaterials, Scene};
-
-/// Where S for a set of material overrides was built ([`Backend::rebuild_s`]).
-#[derive(Debug)]
-pub enum SBuild {
-    /// On the device; its values, read back once, for the CPU's products.
-    Device(CsrOwned<Rgb>),
-    /// Build it on the CPU; why, when the backend is the GPU.
-    Cpu(Option<String>),
-}
+pub use translux_engine::backend::SBuild;
+use translux_engine::backend::SceneRef;
+use translux_engine::smatrix::OverrideMaterials;
 
 /// `--backend`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -165,6 +159,12 @@ impl Backend {
                 params: SystemParams::default(),
             }),
         }
+    }
+
+    /// What the engine opens scenes with on this backend (with a new environment-map
+    /// cache): `Scene::open_with(id, dir, &backend.resources())`.
+    pub fn resources(&self) -> translux_engine::scene::Resources {
+        translux_engine::scene::Resources::on(Arc::new(self.clone()))
     }
 
     /// A GPU backend on `ctx`.
@@ -321,15 +321,9 @@ impl Backend {
             .sum()
     }
 
-    /// Uploads `scene` now (the server may call it at load; a solve does it otherwise).
-    /// Returns whether the scene is on the device.
-    pub fn prepare(&self, scene: &Scene) -> bool {
-        self.scene(scene).is_some()
-    }
-
     /// The scene's device state, uploading it on first use; `None` on the CPU backend or
     /// when the scene does not fit (then logged once and reported in `/healthz`).
-    fn scene(&self, scene: &Scene) -> Option<Arc<GpuScene>> {
+    fn scene(&self, scene: SceneRef<'_>) -> Option<Arc<GpuScene>> {
         let ctx = self.inner.gpu.as_ref()?;
         let key = scene_key(scene);
         let mut scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
@@ -343,7 +337,7 @@ impl Backend {
         let t = std::time::Instant::now();
         let made = GpuSystem::new(
             ctx,
-            &scene.id,
+            scene.id,
             &b.form_factors(),
             &b.subsurface(),
             SolveParams::default().max_iterations.max(1000),
@@ -364,7 +358,7 @@ impl Backend {
                     s_template: Mutex::new(None),
                     transfer: Mutex::new(None),
                 });
-                scenes.insert(key, (scene.id.clone(), Slot::Gpu(g.clone())));
+                scenes.insert(key, (scene.id.to_string(), Slot::Gpu(g.clone())));
                 Some(g)
             }
             Err(e) => {
@@ -372,7 +366,7 @@ impl Backend {
                 scenes.insert(
                     key,
                     (
-                        scene.id.clone(),
+                        scene.id.to_string(),
                         Slot::Cpu(format!("does not fit on the GPU: {e}")),
                     ),
                 );
@@ -387,7 +381,7 @@ impl Backend {
     /// and moves the scene to the CPU).
     pub fn solve(
         &self,
-        scene: &Scene,
+        scene: SceneRef<'_>,
         over: Option<&Arc<OverrideMaterials>>,
         emission: &[Rgb],
         irradiance: &[Rgb],
@@ -408,15 +402,97 @@ impl Backend {
         }
     }
 
+    /// The system of `scene` for `over`'s S (rebuilt on the device by
+    /// [`Backend::rebuild_s`], or uploaded once per override set) or the bundle's S, run
+    /// through `f`.
+    fn with_system<T>(
+        &self,
+        ctx: &GpuContext,
+        scene: SceneRef<'_>,
+        g: &GpuScene,
+        over: Option<&Arc<OverrideMaterials>>,
+        f: impl FnOnce(&GpuSystem) -> Result<T, GpuError>,
+    ) -> Result<T, GpuError> {
+        let Some(m) = over else {
+            return f(&g.base);
+        };
+        let mut slot = g.over.lock().unwrap_or_else(|p| p.into_inner());
+        if slot.as_ref().is_none_or(|(k, _)| *k != m.key) {
+            if let Some((_, old)) = slot.take() {
+                old.release(ctx);
+            }
+            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &m.s_view())?;
+            let sys = GpuSystem::with_f(
+                ctx,
+                scene.id,
+                g.base.f().clone(),
+                s,
+                SolveParams::default().max_iterations.max(1000),
+            )?;
+            *slot = Some((m.key.clone(), sys));
+        }
+        let (_, sys) = slot.as_ref().expect("set above");
+        f(sys)
+    }
+
+    /// Moves a scene to the CPU after a device error (logged; its buffers go when the last
+    /// request holding them ends).
+    fn fail(&self, ctx: &GpuContext, scene: SceneRef<'_>, what: &str, e: &GpuError) {
+        tracing::warn!(scene = %scene.id, "GPU {what} failed, the CPU takes over: {e}");
+        let mut scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
+        let old = scenes.insert(
+            scene_key(scene),
+            (
+                scene.id.to_string(),
+                Slot::Cpu(format!("a GPU {what} failed: {e}")),
+            ),
+        );
+        if let Some((_, Slot::Gpu(old))) = old {
+            ctx.release(old.bytes());
+        }
+    }
+}
+
+/// A scene's identity on the device: its id and the checksums of F and S, so a bundle
+/// replaced under the same id is uploaded anew.
+fn scene_key(scene: SceneRef<'_>) -> String {
+    let arrays = &scene.bundle.manifest().arrays;
+    let sum = |name: &str| {
+        arrays
+            .get(name)
+            .map_or("-", |a| a.xxh3.as_str())
+            .to_string()
+    };
+    format!(
+        "{}:{}:{}",
+        scene.id,
+        sum(translux_proto::bundle::arrays::FF_VAL),
+        sum(translux_proto::bundle::arrays::S_VAL)
+    )
+}
+
+/// The engine calls the device through this; each method declines (answers "on the CPU")
+/// on the CPU backend and for scenes the device does not hold.
+impl translux_engine::backend::Backend for Backend {
+    fn name(&self) -> &'static str {
+        Backend::name(self)
+    }
+
+    /// Uploads `scene` now (the server may call it at load; a solve does it otherwise).
+    /// Returns whether the scene is on the device.
+    fn prepare(&self, scene: SceneRef<'_>) -> bool {
+        self.scene(scene).is_some()
+    }
+
     /// Rebuilds S for `overrides` on the device ([`crate::gpu::subsurface`]) and makes it
     /// the scene's override system under `key`; answers S's values for the CPU's products.
     /// [`SBuild::Cpu`] (with the reason, on the GPU backend) when the CPU must build it: the
     /// CPU backend, a scene served from the CPU, a heterogeneous object, a template that
     /// does not fit, or a device error (logged). Errors are the materials' own (a bad
     /// profile), the same as the CPU rebuild's.
-    pub fn rebuild_s(
+    fn rebuild_s(
         &self,
-        scene: &Scene,
+        scene: SceneRef<'_>,
         key: &str,
         overrides: &[(usize, Material)],
     ) -> Result<SBuild, SError> {
@@ -468,7 +544,7 @@ impl Backend {
         let csr = built.csr;
         let sys = match GpuSystem::with_f(
             ctx,
-            &scene.id,
+            scene.id,
             g.base.f().clone(),
             built.s,
             SolveParams::default().max_iterations.max(1000),
@@ -484,53 +560,46 @@ impl Backend {
         Ok(SBuild::Device(csr))
     }
 
-    /// The system of `scene` for `over`'s S (rebuilt on the device by
-    /// [`Backend::rebuild_s`], or uploaded once per override set) or the bundle's S, run
-    /// through `f`.
-    fn with_system<T>(
-        &self,
-        ctx: &GpuContext,
-        scene: &Scene,
-        g: &GpuScene,
-        over: Option<&Arc<OverrideMaterials>>,
-        f: impl FnOnce(&GpuSystem) -> Result<T, GpuError>,
-    ) -> Result<T, GpuError> {
-        let Some(m) = over else {
-            return f(&g.base);
+    /// y = R v with the bundle's stored transfer matrix R = T − S (f16, scaled per row and
+    /// channel) for k right-hand sides (`[patch][k·3]`), one pass over R per 64 of them.
+    /// `false`: compute it on the CPU (CPU backend, no T, T does not fit, device error).
+    fn transfer_product(&self, scene: SceneRef<'_>, v: &[f32], k: usize, y: &mut [f32]) -> bool {
+        let Some(ctx) = self.inner.gpu.as_ref() else {
+            return false;
         };
-        let mut slot = g.over.lock().unwrap_or_else(|p| p.into_inner());
-        if slot.as_ref().is_none_or(|(k, _)| *k != m.key) {
-            if let Some((_, old)) = slot.take() {
-                old.release(ctx);
+        let Some(g) = self.scene(scene) else {
+            return false;
+        };
+        let Some(t) = scene.bundle.transfer() else {
+            return false;
+        };
+        let dense = {
+            let mut slot = g.transfer.lock().unwrap_or_else(|p| p.into_inner());
+            if slot.is_none() {
+                let made = GpuDense::upload(
+                    ctx,
+                    &format!("{} T", scene.id),
+                    t.n,
+                    t.n,
+                    DenseData::F16(t.bits),
+                    Some(t.scale),
+                );
+                if let Err(e) = &made {
+                    tracing::warn!(scene = %scene.id, "the transfer matrix stays on the CPU: {e}");
+                }
+                *slot = Some(made.map(Arc::new).map_err(|e| e.to_string()));
             }
-            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &m.s_view())?;
-            let sys = GpuSystem::with_f(
-                ctx,
-                &scene.id,
-                g.base.f().clone(),
-                s,
-                SolveParams::default().max_iterations.max(1000),
-            )?;
-            *slot = Some((m.key.clone(), sys));
-        }
-        let (_, sys) = slot.as_ref().expect("set above");
-        f(sys)
-    }
-
-    /// Moves a scene to the CPU after a device error (logged; its buffers go when the last
-    /// request holding them ends).
-    fn fail(&self, ctx: &GpuContext, scene: &Scene, what: &str, e: &GpuError) {
-        tracing::warn!(scene = %scene.id, "GPU {what} failed, the CPU takes over: {e}");
-        let mut scenes = self.inner.scenes.lock().unwrap_or_else(|p| p.into_inner());
-        let old = scenes.insert(
-            scene_key(scene),
-            (
-                scene.id.clone(),
-                Slot::Cpu(format!("a GPU {what} failed: {e}")),
-            ),
-        );
-        if let Some((_, Slot::Gpu(old))) = old {
-            ctx.release(old.bytes());
+            match slot.as_ref() {
+                Some(Ok(d)) => d.clone(),
+                _ => return false,
+            }
+        };
+        match dense.multiply_interleaved(ctx, v, k, y) {
+            Ok(()) => true,
+            Err(e) => {
+                self.fail(ctx, scene, "transfer product", &e);
+                false
+            }
         }
     }
 
@@ -538,9 +607,9 @@ impl Backend {
     /// (`[patch][k·3]`, the relight's batched layout), S the bundle's or `over`'s; one
     /// device solve per system. `warm` (same layout) starts each from a previous solution.
     /// `None`: solve on the CPU (see [`Backend::solve`]).
-    pub fn solve_rhs(
+    fn solve_rhs(
         &self,
-        scene: &Scene,
+        scene: SceneRef<'_>,
         over: Option<&Arc<OverrideMaterials>>,
         rhs: &[f32],
         k: usize,
@@ -601,65 +670,4 @@ impl Backend {
             }
         }
     }
-
-    /// y = R v with the bundle's stored transfer matrix R = T − S (f16, scaled per row and
-    /// channel) for k right-hand sides (`[patch][k·3]`), one pass over R per 64 of them.
-    /// `false`: compute it on the CPU (CPU backend, no T, T does not fit, device error).
-    pub fn transfer_product(&self, scene: &Scene, v: &[f32], k: usize, y: &mut [f32]) -> bool {
-        let Some(ctx) = self.inner.gpu.as_ref() else {
-            return false;
-        };
-        let Some(g) = self.scene(scene) else {
-            return false;
-        };
-        let Some(t) = scene.bundle.transfer() else {
-            return false;
-        };
-        let dense = {
-            let mut slot = g.transfer.lock().unwrap_or_else(|p| p.into_inner());
-            if slot.is_none() {
-                let made = GpuDense::upload(
-                    ctx,
-                    &format!("{} T", scene.id),
-                    t.n,
-                    t.n,
-                    DenseData::F16(t.bits),
-                    Some(t.scale),
-                );
-                if let Err(e) = &made {
-                    tracing::warn!(scene = %scene.id, "the transfer matrix stays on the CPU: {e}");
-                }
-                *slot = Some(made.map(Arc::new).map_err(|e| e.to_string()));
-            }
-            match slot.as_ref() {
-                Some(Ok(d)) => d.clone(),
-                _ => return false,
-            }
-        };
-        match dense.multiply_interleaved(ctx, v, k, y) {
-            Ok(()) => true,
-            Err(e) => {
-                self.fail(ctx, scene, "transfer product", &e);
-                false
-            }
-        }
-    }
-}
-
-/// A scene's identity on the device: its id and the checksums of F and S, so a bundle
-/// replaced under the same id is uploaded anew.
-fn scene_key(scene: &Scene) -> String {
-    let arrays = &scene.bundle.manifest().arrays;
-    let sum = |name: &str| {
-        arrays
-            .get(name)
-            .map_or("-", |a| a.xxh3.as_str())
-            .to_string()
-    };
-    format!(
-        "{}:{}:{}",
-        scene.id,
-        sum(translux_proto::bundle::arrays::FF_VAL),
-        sum(translux_proto::bundle::arrays::S_VAL)
-    )
 }

@@ -113,6 +113,19 @@ impl AppError {
     }
 }
 
+/// The engine's failures as answers: invalid and unsupported requests are 400s naming the
+/// field, anything else a 500.
+impl From<translux_engine::error::EngineError> for AppError {
+    fn from(e: translux_engine::error::EngineError) -> Self {
+        use translux_engine::error::ErrorKind;
+        match e.kind {
+            ErrorKind::Invalid => AppError::invalid(e.message),
+            ErrorKind::Unsupported => AppError::unsupported(e.message),
+            ErrorKind::Internal => AppError::internal(e.message),
+        }
+    }
+}
+
 impl std::fmt::Display for AppError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(

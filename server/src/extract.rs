@@ -10,7 +10,7 @@ use axum::http::{HeaderMap, HeaderValue};
 use serde::de::DeserializeOwned;
 
 use crate::error::AppError;
-use crate::picture::PictureFormat;
+use translux_engine::picture::PictureFormat;
 
 /// Largest request body accepted, in bytes (1 MiB).
 pub const BODY_LIMIT: usize = 1 << 20;

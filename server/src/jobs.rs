@@ -257,6 +257,12 @@ struct JobObserver {
 }
 
 impl Observer for JobObserver {
+    /// The precompute's notes and warnings go to the server's log with the job and scene,
+    /// never to the server's stderr unlabelled.
+    fn note(&self, message: &str) {
+        tracing::info!(job = %self.entry.spec.id, scene = %self.entry.spec.scene, "{message}");
+    }
+
     fn progress(&self, stage: &str, done: u64, total: u64) {
         let fraction = if total == 0 {
             1.0

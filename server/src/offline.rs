@@ -14,7 +14,7 @@
 //! gives a number. The log line of each says which EV was used and whether it was automatic.
 //! | `relight` | a relight request | `.f32` (n × 3 little-endian `f32`, the binary API answer) or `.json` (the JSON API answer) |
 //!
-//! The work is the server's own ([`crate::relight`], [`crate::picture`]), so an offline answer
+//! The work is the server's own ([`translux_engine::relight`], [`translux_engine::picture`]), so an offline answer
 //! equals the HTTP answer for the same request; errors carry the same messages.
 
 use std::path::{Path, PathBuf};
@@ -25,9 +25,9 @@ use clap::Subcommand;
 use serde::de::DeserializeOwned;
 use translux_proto::api::{Exposure, RelightRequest, RelightResponse, RenderRequest, ToneMap};
 
-use crate::picture::{self, MeshFormat, PictureFormat};
-use crate::relight;
-use crate::state::Scene;
+use translux_engine::picture::{self, MeshFormat, PictureFormat};
+use translux_engine::relight;
+use translux_engine::scene::Scene;
 
 /// The offline commands: one bundle, one request, one file out, no HTTP.
 #[derive(Debug, Clone, Subcommand)]

@@ -34,9 +34,9 @@ use tokio::sync::oneshot;
 use crate::config::ServerParams;
 use crate::error::AppError;
 use crate::metrics::Metrics;
-use crate::picture::{self, RenderOutput, RenderPlan};
-use crate::relight::{self, RelightOutput, RelightPlan};
-use crate::state::Scene;
+use translux_engine::picture::{self, RenderOutput, RenderPlan};
+use translux_engine::relight::{self, RelightOutput, RelightPlan};
+use translux_engine::scene::Scene;
 
 /// What a job computes.
 #[derive(Debug, Clone)]
@@ -405,15 +405,22 @@ fn process(s: &Shared, batch: Vec<Job>) {
                     Work::Render(_) => unreachable!("a batch holds relights of one scene"),
                 })
                 .collect();
-            guarded(n, || relight::run_batch(&scene, &plans))
-                .into_iter()
-                .map(|r| r.map(Done::Relight))
-                .collect()
-        }
-        Work::Render(plan) => guarded(1, || vec![picture::run(&scene, plan)])
+            guarded(n, || {
+                relight::run_batch(&scene, &plans)
+                    .into_iter()
+                    .map(|r| r.map_err(AppError::from))
+                    .collect()
+            })
             .into_iter()
-            .map(|r| r.map(|o| Done::Render(Box::new(o))))
-            .collect(),
+            .map(|r| r.map(Done::Relight))
+            .collect()
+        }
+        Work::Render(plan) => guarded(1, || {
+            vec![picture::run(&scene, plan).map_err(AppError::from)]
+        })
+        .into_iter()
+        .map(|r| r.map(|o| Done::Render(Box::new(o))))
+        .collect(),
     };
     let elapsed = t.elapsed();
     m.compute.observe(elapsed.as_secs_f64());

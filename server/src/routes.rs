@@ -25,7 +25,8 @@ use crate::error::AppError;
 use crate::extract::{BODY_LIMIT, ClientKey, Format, JsonBody, SceneId, accept_picture, negotiate};
 use crate::pool::{Done, Work};
 use crate::state::{AppState, Scene, SceneState};
-use crate::{picture, relight, ws};
+use crate::ws;
+use translux_engine::{picture, relight};
 
 /// The viewer page served at `/`.
 pub const INDEX_HTML: &str = include_str!("../../web/index.html");
@@ -371,7 +372,7 @@ async fn relight(
     let plan = relight::plan(&scene, req)?;
     let answer = state
         .pool()
-        .run(scene.clone(), Work::Relight(plan), client)
+        .run(scene.engine(), Work::Relight(plan), client)
         .await?;
     let waited_ms = answer.waited.as_secs_f64() * 1e3;
     let out = match answer.result? {
@@ -446,7 +447,7 @@ async fn render(
     };
     let answer = state
         .pool()
-        .run(scene.clone(), Work::Render(Box::new(plan)), client)
+        .run(scene.engine(), Work::Render(Box::new(plan)), client)
         .await?;
     let out = match answer.result? {
         Done::Render(out) => out,

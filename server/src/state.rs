@@ -5,178 +5,68 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, RwLock};
+use std::sync::{Arc, OnceLock, RwLock};
 
 use axum::body::Bytes;
-use glam::Vec3;
 use tokio::sync::watch;
-use translux_engine::radiosity::Rgb;
-use translux_engine::raycast::Occluder;
-use translux_engine::smatrix::{self, CsrOwned, SParams, material_albedo_emission, patch_albedo};
-use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, arrays};
-use translux_proto::csr::CsrView;
-use translux_proto::scene::Material;
+use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE};
 
-use crate::backend::{Backend, SBuild};
+use crate::backend::Backend;
 use crate::config::ServerParams;
 use crate::error::AppError;
 use crate::metrics::Metrics;
 use crate::pool::Pool;
+use translux_engine::scene::Resources;
 
-/// One served bundle: the mapped arrays plus what relighting needs that the bundle does not
-/// store (the shadow-ray BVH, patch centroids as vectors).
+/// One served bundle: the engine's relight state ([`translux_engine::scene::Scene`], which
+/// it dereferences to) plus what only the HTTP API needs (`GET /mesh`'s JSON).
 #[derive(Debug)]
 pub struct Scene {
-    /// The bundle's folder name; the `{id}` of its routes.
-    pub id: String,
-    pub bundle: Bundle,
-    pub(crate) occluder: Occluder,
-    pub(crate) centroids: Vec<Vec3>,
-    pub(crate) normals: Vec<Vec3>,
+    inner: Arc<translux_engine::scene::Scene>,
     /// `GET /mesh`'s JSON, serialised on first use.
     pub(crate) mesh_json: OnceLock<Bytes>,
-    /// The materials of the last override set, so a client that keeps its overrides while
-    /// moving lights pays for the S rebuild once.
-    pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
-    /// The last solutions, for warm starts (see [`crate::relight::WarmCache`]).
-    pub(crate) warm: crate::relight::WarmCache,
-    /// Where its relights run: the backend it was opened on.
-    pub(crate) backend: Backend,
 }
 
-/// S, ρ and Bₑ for a set of material overrides.
-#[derive(Debug)]
-pub struct OverrideMaterials {
-    /// The overrides, as JSON: which override set this is (the backend's key too).
-    pub key: String,
-    pub s: CsrOwned<[f32; 3]>,
-    pub albedo: Vec<Rgb>,
-    pub emission: Vec<Rgb>,
-    /// Where S was rebuilt: `gpu` or `cpu`.
-    pub built_on: &'static str,
-}
-
-impl OverrideMaterials {
-    /// S as a view (built by `smatrix::assemble_scene`, valid by construction).
-    pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
-        let n = self.albedo.len();
-        CsrView::new_checked(n, n, &self.s.row_ptr, &self.s.col, &self.s.val)
-            .expect("assemble_scene builds a valid CSR matrix")
+impl std::ops::Deref for Scene {
+    type Target = translux_engine::scene::Scene;
+    fn deref(&self) -> &Self::Target {
+        &self.inner
     }
 }
 
 impl Scene {
-    /// The materials with `overrides` applied (S rebuilt from the stored distances), or
-    /// `None` without overrides. The flag says whether S was rebuilt (not cached).
-    pub fn materials_for(
-        &self,
-        overrides: &[(usize, Material)],
-    ) -> Result<Option<(Arc<OverrideMaterials>, bool)>, AppError> {
-        if overrides.is_empty() {
-            return Ok(None);
-        }
-        let key = serde_json::to_string(overrides).unwrap_or_default();
-        if let Ok(cache) = self.material_cache.lock()
-            && let Some((k, m)) = cache.as_ref()
-            && *k == key
-        {
-            return Ok(Some((m.clone(), false)));
-        }
-        // On the device when the backend can (crate::gpu::subsurface), else on the CPU.
-        let invalid = |e: smatrix::SError| AppError::invalid(format!("materials: {e}"));
-        let (s, built_on) = match self
-            .backend
-            .rebuild_s(self, &key, overrides)
-            .map_err(invalid)?
-        {
-            SBuild::Device(s) => (s, "gpu"),
-            SBuild::Cpu(why) => {
-                if let Some(why) = why {
-                    tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
-                }
-                let (s, _) =
-                    smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
-                        .map_err(invalid)?;
-                (s, "cpu")
-            }
-        };
-        let mut albedo = self.bundle.patch_albedo().to_vec();
-        let mut emission = self.bundle.patch_emission().to_vec();
-        for (k, m) in overrides {
-            let o = &self.bundle.manifest().objects[*k];
-            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
-            let (rho, be) = material_albedo_emission(m);
-            albedo[range.clone()].fill(rho);
-            emission[range.clone()].fill(be);
-            if matches!(m, Material::Heterogeneous { .. }) {
-                // Each patch at its own medium's total diffuse reflectance.
-                let media = self.bundle.u32s(arrays::PATCH_MATERIAL);
-                for p in range {
-                    albedo[p] = patch_albedo(m, media.get(p).copied().unwrap_or(0));
-                }
-            }
-        }
-        let m = Arc::new(OverrideMaterials {
-            key: key.clone(),
-            s,
-            albedo,
-            emission,
-            built_on,
-        });
-        if let Ok(mut cache) = self.material_cache.lock() {
-            *cache = Some((key, m.clone()));
-        }
-        Ok(Some((m, true)))
-    }
-
-    /// Opens (verifies and maps) the bundle in `dir` and builds its BVH, relit on the CPU.
+    /// Opens the bundle in `dir` relit on the CPU ([`translux_engine::scene::Scene::open`]).
     pub fn open(id: impl Into<String>, dir: &Path) -> Result<Scene, BundleError> {
-        Scene::open_on(id, dir, &cpu_backend())
+        Scene::open_with(id, dir, &Resources::default())
     }
 
-    /// [`Scene::open`], relit on `backend` (which holds the scene's device copy, if any).
-    pub fn open_on(
+    /// Opens the bundle in `dir` relit with `resources` (the server's backend and caches).
+    pub fn open_with(
         id: impl Into<String>,
         dir: &Path,
-        backend: &Backend,
+        resources: &Resources,
     ) -> Result<Scene, BundleError> {
-        let bundle = Bundle::open(dir)?;
-        Ok(Scene::from_bundle_on(id, bundle, backend))
+        Ok(Scene::wrap(translux_engine::scene::Scene::open_with(
+            id, dir, resources,
+        )?))
     }
 
-    /// Builds the relight state for an opened bundle, relit on the CPU.
-    pub fn from_bundle(id: impl Into<String>, bundle: Bundle) -> Scene {
-        Scene::from_bundle_on(id, bundle, &cpu_backend())
+    /// An opened bundle relit with `resources`.
+    pub fn from_bundle_with(id: impl Into<String>, bundle: Bundle, resources: &Resources) -> Scene {
+        Scene::wrap(translux_engine::scene::Scene::from_bundle_with(
+            id, bundle, resources,
+        ))
     }
 
-    /// [`Scene::from_bundle`], relit on `backend`.
-    pub fn from_bundle_on(id: impl Into<String>, bundle: Bundle, backend: &Backend) -> Scene {
-        let tris: Vec<[Vec3; 3]> = bundle
-            .occluder_triangles()
-            .iter()
-            .map(|t| t.map(Vec3::from))
-            .collect();
-        let occluder = Occluder::new(&tris);
-        let centroids = bundle
-            .patch_corners()
-            .iter()
-            .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
-            .collect();
-        let normals = bundle
-            .patch_normals()
-            .iter()
-            .map(|&n| Vec3::from(n))
-            .collect();
+    /// The engine's scene, shared: what the worker pool relights.
+    pub fn engine(&self) -> Arc<translux_engine::scene::Scene> {
+        self.inner.clone()
+    }
+
+    fn wrap(inner: translux_engine::scene::Scene) -> Scene {
         Scene {
-            id: id.into(),
-            bundle,
-            occluder,
-            centroids,
-            normals,
+            inner: Arc::new(inner),
             mesh_json: OnceLock::new(),
-            material_cache: Mutex::new(None),
-            warm: Default::default(),
-            backend: backend.clone(),
         }
     }
 }
@@ -223,8 +113,10 @@ struct Inner {
     shutdown: watch::Sender<bool>,
     /// Ids for WebSocket streams (each its own client of the pool).
     next_stream: AtomicU64,
-    /// The backend every scene is opened on.
+    /// The backend every scene is opened on (its health and device memory).
     backend: Backend,
+    /// The same backend as the engine sees it, and the scenes' shared caches.
+    resources: Resources,
 }
 
 impl Drop for Inner {
@@ -269,6 +161,7 @@ impl AppState {
                 metrics,
                 shutdown: watch::channel(false).0,
                 next_stream: AtomicU64::new(1),
+                resources: Resources::on(Arc::new(backend.clone())),
                 backend,
             }),
         }
@@ -415,6 +308,11 @@ impl AppState {
         &self.inner.backend
     }
 
+    /// What its scenes are opened with: the backend and the shared environment-map cache.
+    pub fn resources(&self) -> &Resources {
+        &self.inner.resources
+    }
+
     pub fn metrics(&self) -> &Metrics {
         &self.inner.metrics
     }
@@ -439,7 +337,7 @@ impl AppState {
     pub fn load_one(&self, id: &str, dir: &Path) {
         self.set_loading(id);
         let t = std::time::Instant::now();
-        match Scene::open_on(id, dir, &self.inner.backend) {
+        match Scene::open_with(id, dir, &self.inner.resources) {
             Ok(scene) => {
                 let m = scene.bundle.manifest();
                 tracing::info!(
@@ -455,7 +353,7 @@ impl AppState {
                     t.elapsed().as_secs_f64()
                 );
                 // On the GPU backend, F and S go to the device now, not on the first relight.
-                scene.backend.prepare(&scene);
+                scene.backend().prepare(scene.view());
                 self.insert_ready(scene);
             }
             Err(e) => {
@@ -552,7 +450,7 @@ pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(St
         Err(e) => return (state, vec![(dir.display().to_string(), e)]),
     };
     for (id, path) in found {
-        match Scene::open_on(id.clone(), &path, state.compute_backend()) {
+        match Scene::open_with(id.clone(), &path, state.resources()) {
             Ok(scene) => state.insert_ready(scene),
             Err(e) => errors.push((id, e.to_string())),
         }
@@ -599,7 +497,7 @@ fn folder_name(dir: &Path) -> Option<String> {
     abs.file_name().and_then(|n| n.to_str()).map(str::to_string)
 }
 
-/// The CPU backend of scenes opened without one (library use, tests, offline commands).
+/// The backend of a state made without one ([`AppState::with_params`]: library use, tests).
 fn cpu_backend() -> Backend {
-    Backend::cpu("the scene was opened without a backend: the CPU relights it")
+    Backend::cpu("no backend was chosen (a state made without one): the CPU relights")
 }

@@ -248,7 +248,7 @@ impl Team {
             Some(SceneState::Evicted(e)) => {
                 let dir = e.dir.clone();
                 let sid = id.to_string();
-                let backend = self.state.compute_backend().clone();
+                let resources = self.state.resources().clone();
                 let t = std::time::Instant::now();
                 let opened = tokio::task::spawn_blocking(move || {
                     // Verified when first opened; the folder is replaced only by a rename.
@@ -258,7 +258,7 @@ impl Team {
                             verify_checksums: false,
                         },
                     )
-                    .map(|b| Scene::from_bundle_on(sid, b, &backend))
+                    .map(|b| Scene::from_bundle_with(sid, b, &resources))
                 })
                 .await
                 .map_err(|e| AppError::internal(format!("the reload task failed: {e}")))?;
@@ -318,17 +318,7 @@ pub fn host_bytes(scene: &Scene) -> u64 {
     let occluder = b.manifest().occluder_count * 36 * 2;
     let patches = b.manifest().patch_count * 24;
     let mesh = scene.mesh_json.get().map_or(0, |m| m.len() as u64);
-    let materials = scene
-        .material_cache
-        .lock()
-        .ok()
-        .and_then(|c| {
-            c.as_ref().map(|(_, m)| {
-                (m.s.row_ptr.len() * 8 + m.s.col.len() * 4 + m.s.val.len() * 12) as u64
-                    + m.albedo.len() as u64 * 24
-            })
-        })
-        .unwrap_or(0);
+    let materials = scene.material_cache_bytes();
     b.total_bytes() + occluder + patches + mesh + materials
 }
 

@@ -37,8 +37,8 @@ use translux_proto::api::{RelightRequest, ToneMap};
 use crate::error::AppError;
 use crate::extract::{BODY_LIMIT, SceneId};
 use crate::pool::{Done, Ticket, Work};
-use crate::relight;
 use crate::state::{AppState, Scene};
+use translux_engine::relight;
 
 /// The frame header's first four bytes.
 pub const MAGIC: &[u8; 4] = b"TLXF";
@@ -388,7 +388,7 @@ impl Conn {
         }
         let (seq, plan) = self.pending.take()?;
         match self.state.pool().submit(
-            self.scene.clone(),
+            self.scene.engine(),
             Work::Relight(plan.clone()),
             self.client.clone(),
         ) {
@@ -410,7 +410,7 @@ impl Conn {
     fn relight(&mut self, seq: u64, request: Result<RelightRequest, String>) -> Option<Message> {
         let plan = request
             .map_err(AppError::bad_request)
-            .and_then(|r| relight::plan(&self.scene, r));
+            .and_then(|r| relight::plan(&self.scene, r).map_err(AppError::from));
         let plan = match plan {
             Ok(p) => p,
             Err(e) => return Some(error_message(seq, &e)),

@@ -7,12 +7,12 @@ use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+use translux_engine::relight;
 use translux_engine::render::RenderParams;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{RelightRequest, RelightResponse, ToneMap};
 use translux_proto::bundle::Bundle;
-use translux_server::relight;
 use translux_server::state::Scene;
 
 const BIN: &str = env!("CARGO_BIN_EXE_translux-server");

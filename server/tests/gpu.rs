@@ -409,18 +409,19 @@ mod relight_on_both_backends {
     use std::path::Path;
 
     use super::*;
+    use translux_engine::backend::Backend as _;
+    use translux_engine::relight;
+    use translux_engine::scene::Scene;
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
     use translux_proto::api::RelightRequest;
     use translux_server::backend::Backend;
     use translux_server::gpu::GpuOptions;
-    use translux_server::relight;
-    use translux_server::state::Scene;
 
     /// The radiance, the solver, and where S for the overrides was built, relit on `backend`.
     fn radiance(dir: &Path, body: &str, backend: &Backend) -> (Vec<Rgb>, String, Option<String>) {
         // A fresh scene each time: no warm start carried over from the other backend.
-        let scene = Scene::open_on("cornell", dir, backend).unwrap();
+        let scene = Scene::open_with("cornell", dir, &backend.resources()).unwrap();
         let req: RelightRequest = serde_json::from_str(body).unwrap();
         let mut plan = relight::plan(&scene, req).unwrap();
         plan.tolerance = 1e-6;
@@ -460,7 +461,7 @@ mod relight_on_both_backends {
             })
             .collect();
         let run_batch = |dir: &Path, backend: &Backend| -> Vec<Vec<Rgb>> {
-            let scene = Scene::open_on("cornell", dir, backend).unwrap();
+            let scene = Scene::open_with("cornell", dir, &backend.resources()).unwrap();
             let plans: Vec<_> = batch
                 .iter()
                 .map(|b| relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap())
@@ -537,10 +538,10 @@ mod relight_on_both_backends {
         let scene = Scene::open("cornell", &dir).unwrap();
         let n = scene.bundle.patch_areas().len();
         let e = vec![[1.0f32; 3]; n];
-        assert!(!small.prepare(&scene));
+        assert!(!small.prepare(scene.view()));
         assert!(
             small
-                .solve(&scene, None, &e, &e, &SolveParams::default())
+                .solve(scene.view(), None, &e, &e, &SolveParams::default())
                 .is_none()
         );
         let h = small.gpu_health();

@@ -8,10 +8,10 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
+use translux_engine::relight;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::RelightRequest;
-use translux_server::relight;
 use translux_server::state::Scene;
 
 const BIN: &str = env!("CARGO_BIN_EXE_translux-server");

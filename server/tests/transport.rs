@@ -5,11 +5,11 @@
 use std::path::{Path, PathBuf};
 
 use translux_engine::radiosity::Rgb;
+use translux_engine::relight::{self, RelightOutput, RelightPlan};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::{load_scene, load_scene_file};
 use translux_proto::api::{Components, RelightRequest, Solver};
 use translux_proto::bundle::{Bundle, BundleError, arrays};
-use translux_server::relight::{self, RelightOutput, RelightPlan};
 use translux_server::state::Scene;
 
 fn build(spec: &str, dir: &Path, name: &str, patches: u64, inverse: bool) -> PathBuf {
@@ -110,6 +110,7 @@ fn relight_with_t_equals_a_tight_iterative_solve() {
         request(&marble2.replacen('{', r#"{"solver":"inverse","#, 1)),
     )
     .unwrap_err();
+    let e = translux_server::AppError::from(e);
     assert_eq!((e.status.as_u16(), e.code), (400, "unsupported"), "{e:?}");
     assert!(e.message.contains("stale"), "{}", e.message);
     // Components T does not hold are refused with "inverse", served iteratively by auto.
@@ -164,6 +165,7 @@ fn inverse_without_t_is_a_clear_400_and_a_truncated_t_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let plain = Scene::open("p", &build("builtin:cornell", dir.path(), "p", 400, false)).unwrap();
     let e = relight::plan(&plain, request(r#"{"solver":"inverse"}"#)).unwrap_err();
+    let e = translux_server::AppError::from(e);
     assert_eq!((e.status.as_u16(), e.code), (400, "unsupported"), "{e:?}");
     assert!(e.message.contains("--inverse"), "{}", e.message);
     // auto says why it solved.

@@ -31,6 +31,8 @@ use anyhow::{Context, bail};
 use serde::Serialize;
 use serde_json::{Value, json};
 use translux_engine::radiosity::Rgb;
+use translux_engine::relight;
+use translux_engine::scene::Scene;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::resolve_scene;
@@ -39,8 +41,6 @@ use translux_proto::scene::{
     ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile, Shape, Transform,
 };
 use translux_server::backend::{Backend, BackendChoice};
-use translux_server::relight;
-use translux_server::state::Scene;
 use translux_tests::mitsuba;
 
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
@@ -518,7 +518,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
     let t0 = Instant::now();
     let report = precompute(&loaded, &dir, &params)?;
     let precompute_s = t0.elapsed().as_secs_f64();
-    let scene = Scene::open_on(spec.key, &dir, backend)?;
+    let scene = Scene::open_with(spec.key, &dir, &backend.resources())?;
     let m = scene.bundle.manifest();
     let stage = |names: &[&str]| -> f64 {
         m.stages
@@ -588,7 +588,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
     }
     // Error of the 0.5% solve, cold (the worst case: no warm start).
     let cold = {
-        let fresh = Scene::open_on(spec.key, &dir, backend)?;
+        let fresh = Scene::open_with(spec.key, &dir, &backend.resources())?;
         run(&fresh, &json!({"solver": "iterative"}), None)?
     };
     (row.solver_err_median, row.solver_err_max) = rel_err(&cold.radiance, &exact.radiance);

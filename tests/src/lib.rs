@@ -7,5 +7,10 @@
 //! [`rooms`]: rooms modelled the way users model them (one OBJ per wall, or one inward
 //! box), written as OBJ files and a scene file.
 
+//!
+//! [`architecture`]: checks that crate dependencies point one way and that no crate has a
+//! module cycle.
+
+pub mod architecture;
 pub mod mitsuba;
 pub mod rooms;

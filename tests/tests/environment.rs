@@ -392,12 +392,12 @@ fn no_sky_reaches_inside_the_closed_cornell_box() {
             "lights": [{"type": "environment", "map": "builtin:sky", "scale": 10}],
             "components": components,
         });
-        let plan = translux_server::relight::plan(
+        let plan = translux_engine::relight::plan(
             &scene,
             translux_proto::parse_json(&request.to_string()).unwrap(),
         )
         .unwrap();
-        let out = translux_server::relight::run(&scene, &plan).unwrap();
+        let out = translux_engine::relight::run(&scene, &plan).unwrap();
         let lit: Vec<(usize, f32)> = out
             .radiance
             .iter()

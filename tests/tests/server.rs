@@ -302,7 +302,10 @@ async fn scene_list_detail_health_and_index() {
     assert_eq!((h.status.as_str(), h.backend.as_str()), ("ok", "cpu"));
     assert!(!h.gpu.available);
     // The test builds its state without choosing a backend: the CPU, and /healthz says why.
-    assert_eq!(h.gpu.reason.as_deref(), Some("no backend was installed"));
+    assert_eq!(
+        h.gpu.reason.as_deref(),
+        Some("no backend was chosen (a state made without one): the CPU relights")
+    );
     assert_eq!(h.scenes, vec![ID.to_string()]);
 
     let r = s.get("/").await;
@@ -1331,12 +1334,12 @@ fn relit_scene(
     dir: &Path,
 ) -> (
     translux_server::state::Scene,
-    translux_server::relight::RelightPlan,
+    translux_engine::relight::RelightPlan,
     Vec<[f32; 3]>,
 ) {
     let scene = translux_server::state::Scene::open("cm", dir).unwrap();
-    let plan = translux_server::relight::plan(&scene, Default::default()).unwrap();
-    let radiance = translux_server::relight::run(&scene, &plan)
+    let plan = translux_engine::relight::plan(&scene, Default::default()).unwrap();
+    let radiance = translux_engine::relight::run(&scene, &plan)
         .unwrap()
         .radiance;
     (scene, plan, radiance)
@@ -1345,8 +1348,8 @@ fn relit_scene(
 #[test]
 fn export_glb_is_in_metres_with_one_named_node_per_object() {
     use translux_engine::export::linear_colour;
+    use translux_engine::picture::{MeshFormat, export};
     use translux_proto::api::{Exposure, ToneMap};
-    use translux_server::picture::{MeshFormat, export};
 
     let (scene, plan, radiance) = relit_scene(centimetre_bundle());
     let b = &scene.bundle;
@@ -1507,8 +1510,8 @@ json.dump(out, sys.stdout)
 
 #[test]
 fn trimesh_reads_the_exported_vertex_colours() {
+    use translux_engine::picture::{MeshFormat, export};
     use translux_proto::api::{Exposure, ToneMap};
-    use translux_server::picture::{MeshFormat, export};
 
     let (scene, plan, _) = relit_scene(centimetre_bundle());
     let out = export(

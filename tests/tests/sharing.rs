@@ -12,12 +12,13 @@ use reqwest::StatusCode;
 use reqwest::header::RETRY_AFTER;
 use serde_json::{Value, json};
 use support::*;
+use translux_engine::relight;
 use translux_proto::api::RelightRequest;
 use translux_server::metrics::Metrics;
 use translux_server::pool::{Done, Pool, Work};
 use translux_server::routes::HealthReport;
 use translux_server::state::discover;
-use translux_server::{AppState, ServerParams, relight};
+use translux_server::{AppState, ServerParams};
 
 /// A request with `n` point lights spread over the ceiling: each light costs a shadow ray
 /// per patch, so `n` sets how long a relight takes.
@@ -89,7 +90,7 @@ async fn sixty_four_concurrent_relights_are_all_correct() {
 
 #[tokio::test]
 async fn the_pool_batches_queued_relights_of_one_scene_and_answers_each_its_own() {
-    let scene = library_scene().clone();
+    let scene = library_scene().engine();
     let requests: Vec<Value> = (0..20)
         .map(|k| light_at(-0.2 + 0.02 * k as f32, [1.0, 1.0, 1.0]))
         .collect();
@@ -144,7 +145,7 @@ async fn the_pool_batches_queued_relights_of_one_scene_and_answers_each_its_own(
 
 #[tokio::test]
 async fn clients_are_served_in_turn_not_in_order_of_arrival() {
-    let scene = library_scene().clone();
+    let scene = library_scene().engine();
     let pool = Pool::new(
         ServerParams {
             workers: 1,

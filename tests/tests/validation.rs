@@ -14,12 +14,12 @@ use std::path::Path;
 
 use serde_json::json;
 use translux_engine::radiosity::Rgb;
+use translux_engine::relight;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::{LoadedScene, load_scene_file, resolve_scene};
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::{Material, SceneFile};
-use translux_server::relight;
 use translux_server::state::Scene;
 use translux_tests::mitsuba::{self, Errors, errors, every, slice, vertex_queries};
 use translux_tests::rooms::{self, RoomSpec, Walls};

@@ -14,11 +14,12 @@ use reqwest::StatusCode;
 use reqwest::header::{ACCEPT, CONTENT_TYPE};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
+use translux_engine::relight;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{ErrorBody, RelightRequest};
 use translux_server::state::Scene;
-use translux_server::{AppState, ServerParams, load_bundles_with, relight};
+use translux_server::{AppState, ServerParams, load_bundles_with};
 
 /// Patches of the test bundle: small enough to precompute in about a second.
 pub const PATCHES: u64 = 400;

@@ -5,7 +5,7 @@
 //! tone for exports). [`plan`] checks it (cheap; the picture's fields first, then
 //! [`relight::plan`]); [`run`] relights through [`relight::run`] — the same path as the
 //! relight route, nothing duplicated — and rasterizes the per-vertex radiance with
-//! [`translux_engine::render`]. Out: PNG or OpenEXR bytes ([`run`], by
+//! [`crate::render`]. Out: PNG or OpenEXR bytes ([`run`], by
 //! [`RenderPlan::format`]), or `.glb` / `.ply` bytes ([`export`]), with the relight's
 //! statistics and timings and the exposure used.
 //!
@@ -22,17 +22,17 @@
 
 use std::time::Instant;
 
-use translux_engine::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
-use translux_engine::render::{
+use crate::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
+use crate::render::{
     RenderError, RenderParams, auto_exposure, check_camera, encode_exr, encode_png, render,
     render_linear,
 };
 use translux_proto::api::{Exposure, RelightStats, RenderRequest, ToneMap};
 use translux_proto::light::Camera;
 
-use crate::error::AppError;
+use crate::error::EngineError;
 use crate::relight::{self, RelightPlan};
-use crate::state::Scene;
+use crate::scene::Scene;
 
 /// A checked render request, ready to run.
 #[derive(Debug, Clone)]
@@ -80,7 +80,7 @@ impl PictureFormat {
 /// Checks `req` for `scene`: picture fields (`width`, `height`, `exposure`, `background`,
 /// `camera.*`) give 400 `invalid` naming the field, then the relight fields as in
 /// [`relight::plan`]. A request without `camera` uses the bundle's.
-pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, AppError> {
+pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, EngineError> {
     let params = RenderParams {
         width: req.width,
         height: req.height,
@@ -100,7 +100,7 @@ pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, AppError> {
         None => {
             let c = scene.bundle.manifest().camera;
             check_camera(&c).map_err(|e| {
-                AppError::invalid(format!(
+                EngineError::invalid(format!(
                     "camera: the scene's default camera cannot be used ({e}); give a camera \
                      in the request"
                 ))
@@ -147,7 +147,7 @@ pub struct RenderOutput {
 }
 
 /// Relights the scene and renders it. CPU-heavy: call it off the async runtime.
-pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, AppError> {
+pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, EngineError> {
     let t0 = Instant::now();
     let relit = relight::run(scene, &plan.relight)?;
     let b = &scene.bundle;
@@ -229,14 +229,14 @@ pub fn mesh_parts(scene: &Scene) -> Vec<MeshPart> {
 
 /// Relights the scene and writes its viewer mesh with baked colours (exposure in EV stops,
 /// or `auto` as in [`resolve_exposure`], then the tone curve; the `.glb` in metres with one
-/// node per object; see [`translux_engine::export`]).
+/// node per object; see [`crate::export`]).
 pub fn export(
     scene: &Scene,
     plan: &RelightPlan,
     exposure: Exposure,
     tone: ToneMap,
     format: MeshFormat,
-) -> Result<ExportOutput, AppError> {
+) -> Result<ExportOutput, EngineError> {
     let relit = relight::run(scene, plan)?;
     let b = &scene.bundle;
     let ev = resolve_exposure(exposure, &relit.radiance);
@@ -256,8 +256,8 @@ pub fn export(
         MeshFormat::Ply => to_ply(&mesh, ev, tone),
     }
     .map_err(|e| match e {
-        ExportError::Exposure(_) => AppError::invalid(e.to_string()),
-        other => AppError::internal(format!("cannot export the mesh: {other}")),
+        ExportError::Exposure(_) => EngineError::invalid(e.to_string()),
+        other => EngineError::internal(format!("cannot export the mesh: {other}")),
     })?;
     Ok(ExportOutput {
         bytes,
@@ -268,9 +268,9 @@ pub fn export(
 
 /// A render error as an answer: bad parameters are the client's (400 `invalid`), the rest
 /// (a bundle's mesh the renderer refuses, an encoder failure) the server's.
-fn render_error(e: RenderError) -> AppError {
+fn render_error(e: RenderError) -> EngineError {
     match e {
-        RenderError::Invalid(f) => AppError::invalid(f.to_string()),
-        other => AppError::internal(format!("cannot render the scene: {other}")),
+        RenderError::Invalid(f) => EngineError::invalid(f.to_string()),
+        other => EngineError::internal(format!("cannot render the scene: {other}")),
     }
 }

@@ -1,28 +1,30 @@
 //! Environment lights in a relight: map paths, the map cache, and E from the bundle's
 //! precomputed visibility (no rays).
 //!
-//! In: a scene and the request's lights. Out: [`check`] refuses what cannot be lit (400,
-//! the field named) before any work; [`direct_irradiance`] is E for all lights, point-like
-//! ones with shadow rays ([`translux_engine::radiosity::direct_irradiance`]) plus each
-//! environment light's E_i = scale · Σ_k V_ik L̄_k ([`translux_engine::envvis`]).
+//! In: a scene and the request's lights. Out: [`check`] refuses what cannot be lit (an
+//! invalid or unsupported error naming the field) before any work; [`direct_irradiance`] is E for all lights, point-like
+//! ones with shadow rays ([`crate::radiosity::direct_irradiance`]) plus each
+//! environment light's E_i = scale · Σ_k V_ik L̄_k ([`crate::envvis`]).
 //!
 //! Maps (see `docs/environment.md`): `builtin:sky`, `builtin:white`, or a Radiance `.hdr`
 //! file named by a relative path inside the *bundles folder* — the folder that holds the
 //! scene's bundle folder (`--bundles DIR` for the server; the parent of `--bundle DIR`
 //! offline). Absolute paths, `..` and links that lead outside it are refused. Loaded maps
 //! (keyed by path, length and modification time) and their per-bin means (keyed also by
-//! rotation and bins) are cached process-wide, a few of each.
+//! rotation and bins) are cached in the scene's [`EnvCache`] (shared by a server's scenes), a
+//! few of each.
 
 use std::path::{Component, Path, PathBuf};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex};
 use std::time::SystemTime;
 
-use translux_engine::envmap::{self, Bins, EnvMap};
-use translux_engine::radiosity::{self, PatchGeometry, Rgb};
+use crate::envmap::{self, Bins, EnvMap};
+use crate::radiosity::{self, PatchGeometry, Rgb};
 use translux_proto::light::Light;
 
-use crate::error::AppError;
-use crate::state::Scene;
+use crate::error::EngineError;
+use crate::raycast::Occluder;
+use translux_proto::bundle::Bundle;
 
 /// Maps kept in memory (a 2k × 1k map is 24 MB).
 const MAP_CACHE: usize = 4;
@@ -45,22 +47,33 @@ struct Caches {
     means: Vec<(MeanKey, Arc<Vec<Rgb>>)>,
 }
 
-fn caches() -> &'static Mutex<Caches> {
-    static C: OnceLock<Mutex<Caches>> = OnceLock::new();
-    C.get_or_init(Mutex::default)
+/// What environment lighting reads of a scene (see `crate::scene::Scene::env`).
+#[derive(Debug, Clone, Copy)]
+pub struct EnvScene<'a> {
+    /// The scene's id, named in messages.
+    pub id: &'a str,
+    pub bundle: &'a Bundle,
+    /// The shadow-ray BVH, for the lights that are not environments.
+    pub occluder: &'a Occluder,
+    pub cache: &'a EnvCache,
 }
 
+/// Loaded maps and their per-bin means, a few of each: shared by the scenes that hold the
+/// same [`crate::scene::Resources`] (a server's scenes share one).
+#[derive(Debug, Default)]
+pub struct EnvCache(Mutex<Caches>);
+
 /// The folder map paths are relative to: the one holding the scene's bundle folder.
-fn maps_root(scene: &Scene) -> PathBuf {
+fn maps_root(scene: &EnvScene<'_>) -> PathBuf {
     let dir = scene.bundle.dir();
     let abs = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
     abs.parent().map(Path::to_path_buf).unwrap_or(abs)
 }
 
 /// Resolves `map` (the value of `lights[i].map`, named `at` in messages).
-fn resolve(scene: &Scene, map: &str, at: &str) -> Result<MapKey, AppError> {
+fn resolve(scene: &EnvScene<'_>, map: &str, at: &str) -> Result<MapKey, EngineError> {
     if map.starts_with("builtin:") {
-        EnvMap::builtin(map).map_err(|e| AppError::invalid(format!("{at}: {e}")))?;
+        EnvMap::builtin(map).map_err(|e| EngineError::invalid(format!("{at}: {e}")))?;
         return Ok(MapKey::Builtin(map.to_string()));
     }
     let rel = Path::new(map);
@@ -68,7 +81,7 @@ fn resolve(scene: &Scene, map: &str, at: &str) -> Result<MapKey, AppError> {
         .components()
         .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
     if !plain || rel.as_os_str().is_empty() {
-        return Err(AppError::invalid(format!(
+        return Err(EngineError::invalid(format!(
             "{at}: {map:?} must be builtin:sky, builtin:white or a relative path inside the \
              bundles folder (no absolute path, no '..')"
         )));
@@ -78,7 +91,7 @@ fn resolve(scene: &Scene, map: &str, at: &str) -> Result<MapKey, AppError> {
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
     if !is_hdr {
-        return Err(AppError::invalid(format!(
+        return Err(EngineError::invalid(format!(
             "{at}: {map:?} is not a .hdr file (environment maps are equirectangular Radiance \
              .hdr images)"
         )));
@@ -87,28 +100,28 @@ fn resolve(scene: &Scene, map: &str, at: &str) -> Result<MapKey, AppError> {
     let path = match std::fs::canonicalize(root.join(rel)) {
         Ok(p) => p,
         Err(_) => {
-            return Err(AppError::invalid(format!(
+            return Err(EngineError::invalid(format!(
                 "{at}: no map {map:?} in the bundles folder (paths are relative to the folder \
                  that holds the scene's bundle)"
             )));
         }
     };
     if !path.starts_with(&root) {
-        return Err(AppError::invalid(format!(
+        return Err(EngineError::invalid(format!(
             "{at}: {map:?} leads outside the bundles folder"
         )));
     }
     let meta = std::fs::metadata(&path)
-        .map_err(|e| AppError::invalid(format!("{at}: cannot read {map:?}: {e}")))?;
+        .map_err(|e| EngineError::invalid(format!("{at}: cannot read {map:?}: {e}")))?;
     if !meta.is_file() {
-        return Err(AppError::invalid(format!("{at}: {map:?} is not a file")));
+        return Err(EngineError::invalid(format!("{at}: {map:?} is not a file")));
     }
     Ok(MapKey::File(path, meta.len(), meta.modified().ok()))
 }
 
 /// The map for `key`, from the cache or loaded (and cached).
-fn load(key: &MapKey, map: &str, at: &str) -> Result<Arc<EnvMap>, AppError> {
-    if let Ok(c) = caches().lock()
+fn load(cache: &EnvCache, key: &MapKey, map: &str, at: &str) -> Result<Arc<EnvMap>, EngineError> {
+    if let Ok(c) = cache.0.lock()
         && let Some((_, m)) = c.maps.iter().find(|(k, _)| k == key)
     {
         return Ok(m.clone());
@@ -130,9 +143,9 @@ fn load(key: &MapKey, map: &str, at: &str) -> Result<Arc<EnvMap>, AppError> {
             envmap::EnvMapError::Io { error, .. } => format!("cannot read the file: {error}"),
             other => other.to_string(),
         };
-        AppError::invalid(format!("{at}: {map:?}: {reason}"))
+        EngineError::invalid(format!("{at}: {map:?}: {reason}"))
     })?);
-    if let Ok(mut c) = caches().lock() {
+    if let Ok(mut c) = cache.0.lock() {
         if c.maps.len() >= MAP_CACHE {
             c.maps.remove(0);
         }
@@ -142,15 +155,21 @@ fn load(key: &MapKey, map: &str, at: &str) -> Result<Arc<EnvMap>, AppError> {
 }
 
 /// The map's mean radiance per bin after rotation, cached.
-fn means(key: &MapKey, map: &Arc<EnvMap>, rotation_deg: f32, bins: Bins) -> Arc<Vec<Rgb>> {
+fn means(
+    cache: &EnvCache,
+    key: &MapKey,
+    map: &Arc<EnvMap>,
+    rotation_deg: f32,
+    bins: Bins,
+) -> Arc<Vec<Rgb>> {
     let mk = (key.clone(), rotation_deg.to_bits(), bins.rows, bins.cols);
-    if let Ok(c) = caches().lock()
+    if let Ok(c) = cache.0.lock()
         && let Some((_, m)) = c.means.iter().find(|(k, _)| *k == mk)
     {
         return m.clone();
     }
     let m = Arc::new(envmap::bin_radiance(map, rotation_deg, bins));
-    if let Ok(mut c) = caches().lock() {
+    if let Ok(mut c) = cache.0.lock() {
         if c.means.len() >= MEAN_CACHE {
             c.means.remove(0);
         }
@@ -162,7 +181,7 @@ fn means(key: &MapKey, map: &Arc<EnvMap>, rotation_deg: f32, bins: Bins) -> Arc<
 /// Checks every environment light of `lights` against `scene` (visibility in the bundle,
 /// the map found and readable); loads and caches the maps. `given`: whether the lights came
 /// with the request (else they are the scene's defaults, which the message says).
-pub fn check(scene: &Scene, lights: &[Light], given: bool) -> Result<(), AppError> {
+pub fn check(scene: &EnvScene<'_>, lights: &[Light], given: bool) -> Result<(), EngineError> {
     for (i, l) in lights.iter().enumerate() {
         let Light::Environment { map, .. } = l else {
             continue;
@@ -173,7 +192,7 @@ pub fn check(scene: &Scene, lights: &[Light], given: bool) -> Result<(), AppErro
             format!("lights[{i}] (one of the scene's default lights)")
         };
         if scene.bundle.environment_visibility().is_none() {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "{at}: scene {:?} was precomputed without environment visibility \
                  (--env-bins 0); precompute it again without that flag to light it with an \
                  environment",
@@ -181,7 +200,7 @@ pub fn check(scene: &Scene, lights: &[Light], given: bool) -> Result<(), AppErro
             )));
         }
         let key = resolve(scene, map, &format!("{at}.map"))?;
-        load(&key, map, &format!("{at}.map"))?;
+        load(scene.cache, &key, map, &format!("{at}.map"))?;
     }
     Ok(())
 }
@@ -189,26 +208,26 @@ pub fn check(scene: &Scene, lights: &[Light], given: bool) -> Result<(), AppErro
 /// E for every patch from all of `lights`: point, spot and directional lights with shadow
 /// rays, environment lights from the bundle's visibility (W·m⁻²).
 pub fn direct_irradiance(
-    scene: &Scene,
+    scene: &EnvScene<'_>,
     geo: PatchGeometry<'_>,
     lights: &[Light],
-) -> Result<Vec<Rgb>, AppError> {
+) -> Result<Vec<Rgb>, EngineError> {
     let (env, others): (Vec<&Light>, Vec<&Light>) = lights
         .iter()
         .partition(|l| matches!(l, Light::Environment { .. }));
     let others: Vec<Light> = others.into_iter().cloned().collect();
     let mut e = radiosity::direct_irradiance(
         geo,
-        &scene.occluder,
+        scene.occluder,
         &others,
         scene.bundle.manifest().unit_mm,
     )
-    .map_err(|e| AppError::unsupported(e.to_string()))?;
+    .map_err(|e| EngineError::unsupported(e.to_string()))?;
     if env.is_empty() {
         return finite(e);
     }
     let Some(vis) = scene.bundle.environment_visibility() else {
-        return Err(AppError::unsupported(format!(
+        return Err(EngineError::unsupported(format!(
             "lights: scene {:?} was precomputed without environment visibility (--env-bins 0)",
             scene.id
         )));
@@ -230,10 +249,10 @@ pub fn direct_irradiance(
         };
         let at = format!("lights[{i}].map");
         let key = resolve(scene, map, &at)?;
-        let m = load(&key, map, &at)?;
+        let m = load(scene.cache, &key, map, &at)?;
         for (t, l) in total
             .iter_mut()
-            .zip(means(&key, &m, *rotation_deg, bins).iter())
+            .zip(means(scene.cache, &key, &m, *rotation_deg, bins).iter())
         {
             for c in 0..3 {
                 t[c] += scale * l[c];
@@ -247,10 +266,10 @@ pub fn direct_irradiance(
 /// E must be finite: lights within the validated bounds can still overflow f32 next to a
 /// surface, and an infinite right-hand side has no solution (a solver would stop at once
 /// and return whatever it was warm-started from).
-fn finite(e: Vec<Rgb>) -> Result<Vec<Rgb>, AppError> {
+fn finite(e: Vec<Rgb>) -> Result<Vec<Rgb>, EngineError> {
     match e.iter().position(|v| !v.iter().all(|x| x.is_finite())) {
         None => Ok(e),
-        Some(i) => Err(AppError::invalid(format!(
+        Some(i) => Err(EngineError::invalid(format!(
             "lights: the irradiance overflows at patch {i}; use smaller intensities (or a \
              light farther from the surfaces)"
         ))),

@@ -4,20 +4,21 @@
 //! [`run`] does the work (direct light with shadow rays, the diffuse solve, vertex colours)
 //! and belongs on a blocking thread.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
-use translux_engine::inverse;
-use translux_engine::radiosity::{
+use crate::inverse;
+use crate::radiosity::{
     Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
 };
-use translux_engine::solver::{SolveError, solve_system, spmv_multi};
+use crate::solver::{SolveError, solve_system, spmv_multi};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
-use crate::error::AppError;
-use crate::state::{OverrideMaterials, Scene};
+use crate::error::EngineError;
+use crate::scene::Scene;
+use crate::smatrix::OverrideMaterials;
 
 /// Most lights one request may carry (each costs a shadow ray per patch).
 pub const MAX_LIGHTS: usize = 256;
@@ -37,14 +38,14 @@ pub struct RelightPlan {
 
 /// Validates `req` for `scene`: 400 `invalid` for out-of-range values (the message names the
 /// field), 400 `unsupported` for valid requests this build cannot do yet. Nothing is ignored.
-pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError> {
+pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineError> {
     let manifest = scene.bundle.manifest();
     let (lights, given) = match req.lights {
         Some(lights) => (lights, true),
         None => (manifest.lights.clone(), false),
     };
     if lights.len() > MAX_LIGHTS {
-        return Err(AppError::invalid(format!(
+        return Err(EngineError::invalid(format!(
             "lights has {} entries; at most {MAX_LIGHTS} are allowed per request",
             lights.len()
         )));
@@ -52,11 +53,11 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
     if given {
         for (i, l) in lights.iter().enumerate() {
             l.validate(&format!("lights[{i}]"))
-                .map_err(|e| AppError::invalid(e.to_string()))?;
+                .map_err(|e| EngineError::invalid(e.to_string()))?;
         }
     }
     // Environment lights: the bundle's visibility and a readable map (cached for `run`).
-    crate::environment::check(scene, &lights, given)?;
+    crate::environment::check(&scene.env(), &lights, given)?;
 
     // Material overrides: checked here, applied in `run` by rebuilding S from the bundle's
     // stored optical distances (no geometry work).
@@ -64,7 +65,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
     for (name, material) in &req.materials {
         let Some(k) = manifest.objects.iter().position(|o| &o.name == name) else {
             let names: Vec<&str> = manifest.objects.iter().map(|o| o.name.as_str()).collect();
-            return Err(AppError::invalid(format!(
+            return Err(EngineError::invalid(format!(
                 "materials.{name}: scene {:?} has no object {name:?} (its objects are {})",
                 scene.id,
                 names.join(", ")
@@ -72,7 +73,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         };
         material
             .validate(&format!("materials.{name}"))
-            .map_err(|e| AppError::invalid(e.to_string()))?;
+            .map_err(|e| EngineError::invalid(e.to_string()))?;
         let built = &manifest.objects[k].material;
         if matches!(material, Material::Translucent { .. })
             && !matches!(
@@ -80,7 +81,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
                 Material::Translucent { .. } | Material::Heterogeneous { .. }
             )
         {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "materials.{name}: {name:?} was precomputed as {}, and a translucent material \
                  needs the optical distances inside it, which only a translucent object's bundle \
                  holds; precompute the scene with {name:?} translucent to vary its translucency",
@@ -90,7 +91,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
         if matches!(material, Material::ThinSheet { .. })
             && !matches!(built, Material::ThinSheet { .. })
         {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "materials.{name}: {name:?} was precomputed as {}, and a thin-sheet material \
                  needs the distances along the sheet and which side each pair is on, which only \
                  a thin sheet's bundle holds; precompute the scene with {name:?} as a thin sheet \
@@ -104,7 +105,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
             let same = matches!(built, Material::Heterogeneous { materials: bm, pattern: bp }
                 if bm.len() == materials.len() && bp == pattern);
             if !same {
-                return Err(AppError::unsupported(format!(
+                return Err(EngineError::unsupported(format!(
                     "materials.{name}: {name:?} was precomputed as {}; a heterogeneous override \
                      can change the profiles of the media it was precomputed with, not their \
                      pattern or number (the lengths each path travels in each medium are \
@@ -119,7 +120,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
             && material.kind() != "thin_sheet"
             && material.kind() != "heterogeneous"
         {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "materials.{name}: {} overrides are not supported yet",
                 material.kind()
             )));
@@ -131,7 +132,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
     // (the only component it represents) while the overrides leave S alone.
     if req.solver == Solver::Inverse {
         if scene.bundle.transfer().is_none() {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "solver \"inverse\": scene {:?} was precomputed without the transfer matrix T; \
                  precompute it with `translux-precompute ... --inverse`, or use \"auto\" or \
                  \"iterative\"",
@@ -139,7 +140,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
             )));
         }
         if let Some(why) = transfer_stale(scene, &overrides) {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "solver \"inverse\": {why}; use \"auto\" or \"iterative\""
             )));
         }
@@ -147,7 +148,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, AppError>
             req.components,
             Components::Full | Components::Direct | Components::SubsurfaceOnly
         ) {
-            return Err(AppError::unsupported(format!(
+            return Err(EngineError::unsupported(format!(
                 "solver \"inverse\": T = (I - S F)^-1 S gives the \"full\" transport; components \
                  {:?} need the iterative solver (use \"auto\" or \"iterative\")",
                 req.components.as_str()
@@ -194,36 +195,12 @@ pub fn transfer_stale(scene: &Scene, overrides: &[(usize, Material)]) -> Option<
     })
 }
 
-/// The last solutions per scene, so a relight that differs a little from the previous one
-/// (a light moved) starts from it. Keyed by materials and components; the few most recent.
-#[derive(Debug, Default)]
-pub struct WarmCache(Mutex<Vec<(String, Arc<Vec<f32>>)>>);
-
-const WARM_ENTRIES: usize = 8;
-
-impl WarmCache {
-    fn get(&self, key: &str) -> Option<Arc<Vec<f32>>> {
-        let cache = self.0.lock().ok()?;
-        cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
-    }
-
-    fn put(&self, key: String, value: Vec<f32>) {
-        if let Ok(mut cache) = self.0.lock() {
-            cache.retain(|(k, _)| *k != key);
-            if cache.len() >= WARM_ENTRIES {
-                cache.remove(0);
-            }
-            cache.push((key, Arc::new(value)));
-        }
-    }
-}
-
 /// Runs a plan: E from the lights (shadowed), then the transport its components name (see
 /// [`run_batch`]), then B/π per vertex. CPU-heavy: call it off the async runtime.
-pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, AppError> {
+pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, EngineError> {
     run_batch(scene, std::slice::from_ref(plan))
         .pop()
-        .unwrap_or_else(|| Err(AppError::internal("run_batch answered nothing")))
+        .unwrap_or_else(|| Err(EngineError::internal("run_batch answered nothing")))
 }
 
 /// What one plan needs before the transport: its E, materials and the path it takes.
@@ -242,7 +219,7 @@ struct Prepared {
 ///
 /// Plans with the same materials and components share the transport: with T, one pass over
 /// T for all of their right-hand sides; with the iterative solver, one read of F and S per
-/// iteration for all of their systems ([`translux_engine::solver`]).
+/// iteration for all of their systems ([`crate::solver`]).
 ///
 /// Components (docs/transport.md), with ρ̄ the opaque albedo of each patch (a translucent
 /// patch's profile's total diffuse reflectance) and P = diag ρ̄:
@@ -252,7 +229,7 @@ struct Prepared {
 /// - `interreflection_only`: B = Bₑ + P(E + F B)
 /// - `heuristic_a`: B = Bₑ + S E + P F B, i.e. (I − P F)⁻¹(Bₑ + S E)
 /// - `heuristic_b`: B = Bₑ + S E + (I − P F)⁻¹ P F (Bₑ + P E)
-pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, AppError>> {
+pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, EngineError>> {
     let b = &scene.bundle;
     let geo = PatchGeometry {
         centroid: &scene.centroids,
@@ -260,19 +237,20 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
     };
     let n = b.patch_areas().len();
     // Per plan: E and materials.
-    let mut out: Vec<Option<Result<RelightOutput, AppError>>> =
+    let mut out: Vec<Option<Result<RelightOutput, EngineError>>> =
         plans.iter().map(|_| None).collect();
     let mut prepared: Vec<Option<Prepared>> = Vec::with_capacity(plans.len());
     for (idx, plan) in plans.iter().enumerate() {
         let t0 = Instant::now();
-        let irradiance = match crate::environment::direct_irradiance(scene, geo, &plan.lights) {
-            Ok(e) => e,
-            Err(e) => {
-                out[idx] = Some(Err(e));
-                prepared.push(None);
-                continue;
-            }
-        };
+        let irradiance =
+            match crate::environment::direct_irradiance(&scene.env(), geo, &plan.lights) {
+                Ok(e) => e,
+                Err(e) => {
+                    out[idx] = Some(Err(e));
+                    prepared.push(None);
+                    continue;
+                }
+            };
         let direct_ms = t0.elapsed().as_secs_f64() * 1e3;
         let tm = Instant::now();
         let (materials, rebuilt) = match scene.materials_for(&plan.overrides) {
@@ -384,7 +362,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                         .iter()
                         .position(|v| !v.iter().all(|x| x.is_finite()))
                     {
-                        out[i] = Some(Err(AppError::invalid(format!(
+                        out[i] = Some(Err(EngineError::invalid(format!(
                             "lights: the result overflows (radiance at vertex {k} is not \
                              finite); use smaller intensities or irradiances"
                         ))));
@@ -413,7 +391,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
         }
     }
     out.into_iter()
-        .map(|r| r.unwrap_or_else(|| Err(AppError::internal("a relight was not run"))))
+        .map(|r| r.unwrap_or_else(|| Err(EngineError::internal("a relight was not run"))))
         .collect()
 }
 
@@ -436,7 +414,7 @@ fn transport(
     first: &Prepared,
     preps: &[&Prepared],
     n: usize,
-) -> Result<(Vec<f32>, TransportStats), AppError> {
+) -> Result<(Vec<f32>, TransportStats), EngineError> {
     let b = &scene.bundle;
     let k = preps.len();
     let ch = 3 * k;
@@ -499,15 +477,18 @@ fn transport(
         // B = Bₑ + S v + R v, v = E + F Bₑ (R = T − S, stored).
         let t = b
             .transfer()
-            .ok_or_else(|| AppError::internal("the transfer matrix vanished"))?;
+            .ok_or_else(|| EngineError::internal("the transfer matrix vanished"))?;
         let mut v = vec![0.0f32; n * ch];
         spmv_multi(&f, &be, &mut v, ch);
         add(&mut v, &e);
         let mut bvec = vec![0.0f32; n * ch];
         s.apply_multi(&v, &mut bvec, ch);
         let mut rv = vec![0.0f32; n * ch];
-        // The product over T on the GPU backend (crate::backend), else on the CPU.
-        if !scene.backend.transfer_product(scene, &v, k, &mut rv) {
+        // The product over T on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
+        if !scene
+            .backend()
+            .transfer_product(scene.view(), &v, k, &mut rv)
+        {
             inverse::apply_stored(t.bits, t.scale, t.n, &v, k, &mut rv);
         }
         add(&mut bvec, &rv);
@@ -560,11 +541,11 @@ fn transport(
             })
             .collect()
     });
-    // The full transport (K = S) on the GPU backend (crate::backend), else on the CPU.
+    // The full transport (K = S) on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
     let on_gpu = (components == Components::Full)
         .then(|| {
-            scene.backend.solve_rhs(
-                scene,
+            scene.backend().solve_rhs(
+                scene.view(),
                 first.materials.as_ref(),
                 &rhs,
                 k,
@@ -576,8 +557,8 @@ fn transport(
     let (mut x, st) = match on_gpu {
         Some(r) => r,
         None => solve_system(&f, kop, &rhs, ch, params, warm.as_deref()).map_err(|e| match e {
-            SolveError::Overflow => AppError::invalid(format!("lights: {e}")),
-            e => AppError::internal(e.to_string()),
+            SolveError::Overflow => EngineError::invalid(format!("lights: {e}")),
+            e => EngineError::internal(e.to_string()),
         })?,
     };
     // Keep the last system's answer for the next relight with these materials (never one

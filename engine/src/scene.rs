@@ -1,0 +1,242 @@
+//! A bundle opened for relighting: the mapped arrays plus what relighting needs that the
+//! bundle does not store — the shadow-ray BVH, patch centroids and normals as vectors — and
+//! the caches that make the next relight cheaper (the last override set's S, the last
+//! solutions for warm starts). It relights on the [`Backend`] of its [`Resources`].
+//!
+//! In: a bundle folder (or an opened [`Bundle`]) and the [`Resources`] to relight with.
+//! Out: a [`Scene`] that [`crate::relight`] and [`crate::picture`] take; with material
+//! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ (S rebuilt on the backend, or on
+//! the CPU by [`smatrix::rebuild_from_bundle`]).
+
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+
+use glam::Vec3;
+use translux_proto::bundle::{Bundle, BundleError, arrays};
+use translux_proto::scene::Material;
+
+use crate::backend::{Backend, Cpu, SBuild, SceneRef};
+use crate::environment::{EnvCache, EnvScene};
+use crate::error::EngineError;
+use crate::raycast::Occluder;
+use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
+
+/// What the scenes of one process share: the backend they relight on and the cache of
+/// environment maps. Cheap to clone. The default is the CPU with a cache of its own.
+#[derive(Debug, Clone)]
+pub struct Resources {
+    pub backend: Arc<dyn Backend>,
+    pub env: Arc<EnvCache>,
+}
+
+impl Default for Resources {
+    fn default() -> Self {
+        Resources::on(Arc::new(Cpu))
+    }
+}
+
+impl Resources {
+    /// `backend` with a new environment-map cache.
+    pub fn on(backend: Arc<dyn Backend>) -> Resources {
+        Resources {
+            backend,
+            env: Arc::new(EnvCache::default()),
+        }
+    }
+}
+
+/// One bundle opened for relighting (see the module docs).
+#[derive(Debug)]
+pub struct Scene {
+    /// The scene's id (the server's bundle folder name); named in messages.
+    pub id: String,
+    pub bundle: Bundle,
+    pub(crate) occluder: Occluder,
+    pub(crate) centroids: Vec<Vec3>,
+    pub(crate) normals: Vec<Vec3>,
+    /// The materials of the last override set, so a client that keeps its overrides while
+    /// moving lights pays for the S rebuild once.
+    pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
+    /// The last solutions, for warm starts (see [`WarmCache`]).
+    pub(crate) warm: WarmCache,
+    pub(crate) resources: Resources,
+}
+
+impl Scene {
+    /// The materials with `overrides` applied (S rebuilt from the stored distances), or
+    /// `None` without overrides. The flag says whether S was rebuilt (not cached).
+    pub fn materials_for(
+        &self,
+        overrides: &[(usize, Material)],
+    ) -> Result<Option<(Arc<OverrideMaterials>, bool)>, EngineError> {
+        if overrides.is_empty() {
+            return Ok(None);
+        }
+        let key = serde_json::to_string(overrides).unwrap_or_default();
+        if let Ok(cache) = self.material_cache.lock()
+            && let Some((k, m)) = cache.as_ref()
+            && *k == key
+        {
+            return Ok(Some((m.clone(), false)));
+        }
+        // On the device when the backend can (crate::gpu::subsurface), else on the CPU.
+        let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
+        let (s, built_on) = match self
+            .resources
+            .backend
+            .rebuild_s(self.view(), &key, overrides)
+            .map_err(invalid)?
+        {
+            SBuild::Device(s) => (s, "gpu"),
+            SBuild::Cpu(why) => {
+                if let Some(why) = why {
+                    tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
+                }
+                let (s, _) =
+                    smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
+                        .map_err(invalid)?;
+                (s, "cpu")
+            }
+        };
+        let mut albedo = self.bundle.patch_albedo().to_vec();
+        let mut emission = self.bundle.patch_emission().to_vec();
+        for (k, m) in overrides {
+            let o = &self.bundle.manifest().objects[*k];
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            let (rho, be) = material_albedo_emission(m);
+            albedo[range.clone()].fill(rho);
+            emission[range.clone()].fill(be);
+            if matches!(m, Material::Heterogeneous { .. }) {
+                // Each patch at its own medium's total diffuse reflectance.
+                let media = self.bundle.u32s(arrays::PATCH_MATERIAL);
+                for p in range {
+                    albedo[p] = patch_albedo(m, media.get(p).copied().unwrap_or(0));
+                }
+            }
+        }
+        let m = Arc::new(OverrideMaterials {
+            key: key.clone(),
+            s,
+            albedo,
+            emission,
+            built_on,
+        });
+        if let Ok(mut cache) = self.material_cache.lock() {
+            *cache = Some((key, m.clone()));
+        }
+        Ok(Some((m, true)))
+    }
+
+    /// Opens (verifies and maps) the bundle in `dir` and builds its BVH, relit on the CPU
+    /// with caches of its own.
+    pub fn open(id: impl Into<String>, dir: &Path) -> Result<Scene, BundleError> {
+        Scene::open_with(id, dir, &Resources::default())
+    }
+
+    /// [`Scene::open`], relit with `resources` (the backend, which holds the scene's device
+    /// copy if any, and the environment-map cache shared by the scenes of a server).
+    pub fn open_with(
+        id: impl Into<String>,
+        dir: &Path,
+        resources: &Resources,
+    ) -> Result<Scene, BundleError> {
+        let bundle = Bundle::open(dir)?;
+        Ok(Scene::from_bundle_with(id, bundle, resources))
+    }
+
+    /// Builds the relight state for an opened bundle, relit on the CPU.
+    pub fn from_bundle(id: impl Into<String>, bundle: Bundle) -> Scene {
+        Scene::from_bundle_with(id, bundle, &Resources::default())
+    }
+
+    /// [`Scene::from_bundle`], relit with `resources`.
+    pub fn from_bundle_with(id: impl Into<String>, bundle: Bundle, resources: &Resources) -> Scene {
+        let tris: Vec<[Vec3; 3]> = bundle
+            .occluder_triangles()
+            .iter()
+            .map(|t| t.map(Vec3::from))
+            .collect();
+        let occluder = Occluder::new(&tris);
+        let centroids = bundle
+            .patch_corners()
+            .iter()
+            .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+            .collect();
+        let normals = bundle
+            .patch_normals()
+            .iter()
+            .map(|&n| Vec3::from(n))
+            .collect();
+        Scene {
+            id: id.into(),
+            bundle,
+            occluder,
+            centroids,
+            normals,
+            material_cache: Mutex::new(None),
+            warm: Default::default(),
+            resources: resources.clone(),
+        }
+    }
+
+    /// What environment lighting reads of it ([`crate::environment`]).
+    pub fn env(&self) -> EnvScene<'_> {
+        EnvScene {
+            id: &self.id,
+            bundle: &self.bundle,
+            occluder: &self.occluder,
+            cache: &self.resources.env,
+        }
+    }
+
+    /// What a backend sees of it: its id and bundle.
+    pub fn view(&self) -> SceneRef<'_> {
+        SceneRef {
+            id: &self.id,
+            bundle: &self.bundle,
+        }
+    }
+
+    /// The backend its relights run on.
+    pub fn backend(&self) -> &dyn Backend {
+        self.resources.backend.as_ref()
+    }
+
+    /// Host bytes held by the cached override materials (S, ρ, Bₑ), 0 when none.
+    pub fn material_cache_bytes(&self) -> u64 {
+        self.material_cache
+            .lock()
+            .ok()
+            .and_then(|c| {
+                c.as_ref().map(|(_, m)| {
+                    (m.s.row_ptr.len() * 8 + m.s.col.len() * 4 + m.s.val.len() * 12) as u64
+                        + m.albedo.len() as u64 * 24
+                })
+            })
+            .unwrap_or(0)
+    }
+}
+
+/// The last solutions per scene, so a relight that differs a little from the previous one
+/// (a light moved) starts from it. Keyed by materials and components; the few most recent.
+#[derive(Debug, Default)]
+pub struct WarmCache(Mutex<Vec<(String, Arc<Vec<f32>>)>>);
+
+const WARM_ENTRIES: usize = 8;
+
+impl WarmCache {
+    pub(crate) fn get(&self, key: &str) -> Option<Arc<Vec<f32>>> {
+        let cache = self.0.lock().ok()?;
+        cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
+    }
+
+    pub(crate) fn put(&self, key: String, value: Vec<f32>) {
+        if let Ok(mut cache) = self.0.lock() {
+            cache.retain(|(k, _)| *k != key);
+            if cache.len() >= WARM_ENTRIES {
+                cache.remove(0);
+            }
+            cache.push((key, Arc::new(value)));
+        }
+    }
+}
