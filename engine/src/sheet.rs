@@ -170,7 +170,10 @@ pub fn tables(
 /// Stage 2 for one thin-sheet object whose patches are `range` of the scene: S from the
 /// stored distances (`distances`, global) and their kinds (`kinds`, parallel to the stored
 /// values), which reach `reach` scene units. Returns S in local indices and the report.
-#[allow(clippy::too_many_arguments)]
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the object's profiles and patches with its block of the scene's stored distances"
+)]
 pub fn object_s(
     name: &str,
     (reflectance, transmittance): (&Profile, &Profile),

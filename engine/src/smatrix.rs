@@ -155,7 +155,10 @@ pub fn stored_radius(
 /// `distances`) and `patch_material` are stage 1's per-medium lengths and patch media; they
 /// are read for heterogeneous objects only. `dist_kind` (aligned likewise; missing entries
 /// read as same side) is read for thin sheets only.
-#[allow(clippy::too_many_arguments)]
+#[expect(
+    clippy::too_many_arguments,
+    reason = "stage 1's arrays as the bundle stores them, each read by one kind of object"
+)]
 pub fn assemble_scene(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],

@@ -858,7 +858,10 @@ struct Group {
     members: std::ops::Range<usize>,
 }
 
-#[allow(clippy::too_many_arguments)]
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the private worker behind optical_distances_media, which names each input"
+)]
 fn voxel_distances(
     object_name: &str,
     tris: &[[Vec3; 3]],

@@ -542,3 +542,93 @@ pub fn method_label(method: &Method) -> &'static str {
         .find(|m| *m == method)
         .map_or("other", |m| m.as_str())
 }
+
+/// The routes that need no socket, through the router itself (`Router::oneshot`): no
+/// listener, no HTTP client. Servers over real sockets are tested in `translux-tests`.
+#[cfg(test)]
+mod tests {
+    use axum::http::{Request, StatusCode};
+    use serde_json::Value;
+    use tower::ServiceExt;
+
+    use super::*;
+
+    /// The answer's status and JSON body for `method path` with `body` (as JSON).
+    async fn call(method: Method, path: &str, body: Body) -> (StatusCode, Value) {
+        let req = Request::builder()
+            .method(method)
+            .uri(path)
+            .header(CONTENT_TYPE, "application/json")
+            .body(body)
+            .unwrap();
+        let resp = router(AppState::default()).oneshot(req).await.unwrap();
+        let status = resp.status();
+        let bytes = axum::body::to_bytes(resp.into_body(), 1 << 20)
+            .await
+            .unwrap();
+        (
+            status,
+            serde_json::from_slice(&bytes).unwrap_or(Value::Null),
+        )
+    }
+
+    #[tokio::test]
+    async fn health_and_an_empty_scene_list() {
+        let (status, h) = call(Method::GET, "/healthz", Body::empty()).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(
+            (h["status"].as_str(), h["backend"].as_str()),
+            (Some("ok"), Some("cpu"))
+        );
+        let (status, list) = call(Method::GET, "/api/v1/scenes", Body::empty()).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(list["scenes"], serde_json::json!([]));
+    }
+
+    #[tokio::test]
+    async fn refusals_are_json_naming_the_problem() {
+        let cases: [(Method, &str, Body, StatusCode, &str, &str); 4] = [
+            (
+                Method::GET,
+                "/api/v1/nothing",
+                Body::empty(),
+                StatusCode::NOT_FOUND,
+                "not_found",
+                "/api/v1/nothing",
+            ),
+            (
+                Method::PUT,
+                "/api/v1/scenes",
+                Body::empty(),
+                StatusCode::METHOD_NOT_ALLOWED,
+                "method_not_allowed",
+                "PUT",
+            ),
+            (
+                Method::GET,
+                "/api/v1/scenes/kitchen",
+                Body::empty(),
+                StatusCode::NOT_FOUND,
+                "not_found",
+                "kitchen",
+            ),
+            // The scene is looked up before the body is read: an unknown scene is a 404
+            // even with a body over the limit, which is then never buffered.
+            (
+                Method::POST,
+                "/api/v1/scenes/kitchen/relight",
+                Body::from(vec![b' '; BODY_LIMIT + 1]),
+                StatusCode::NOT_FOUND,
+                "not_found",
+                "no scene \"kitchen\"",
+            ),
+        ];
+        for (method, path, body, want, code, needle) in cases {
+            let (status, e) = call(method.clone(), path, body).await;
+            assert_eq!(status, want, "{method} {path}: {e}");
+            assert_eq!(e["error"]["code"], code, "{method} {path}: {e}");
+            let msg = e["error"]["message"].as_str().unwrap_or_default();
+            assert!(msg.contains(needle), "{method} {path}: {msg}");
+        }
+    }
+}

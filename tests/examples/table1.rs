@@ -833,9 +833,14 @@ fn main() -> anyhow::Result<()> {
     let a = args()?;
     let b = Backend::start(a.backend).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
     eprintln!("backend: {}", b.describe());
+    // Bundles go beside the build (they are large), in a folder made if missing: with
+    // CARGO_TARGET_DIR set elsewhere, the checkout has no target/.
+    let scratch = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target");
+    std::fs::create_dir_all(&scratch)
+        .with_context(|| format!("cannot create {}", scratch.display()))?;
     let work = tempfile::Builder::new()
         .prefix("table1-")
-        .tempdir_in(Path::new(env!("CARGO_MANIFEST_DIR")).join("../target"))?;
+        .tempdir_in(&scratch)?;
     let mut rows = Vec::new();
     for spec in specs(&a)? {
         let row = measure(&spec, &a, work.path(), &b)

@@ -222,7 +222,10 @@ impl GpuCsr {
 
     /// Uploads from raw arrays (`val`: one f32 per entry, or three when `rgb`). The arrays
     /// must form a valid CSR matrix (a [`CsrView`] guarantees it).
-    #[allow(clippy::too_many_arguments)]
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "a CSR matrix as its raw arrays, from the two public constructors"
+    )]
     fn upload(
         ctx: &GpuContext,
         what: &str,

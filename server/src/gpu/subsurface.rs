@@ -34,6 +34,10 @@ use translux_proto::scene::Material;
 use super::matrix::{alloc_size, staging, storage_init, storage_zeroed, uniform};
 use super::{GpuContext, GpuCsr, GpuError, grid};
 
+/// What one S dispatch gives back: the value buffer, its values and column reports as
+/// read back, and the bytes it reserved.
+type Dispatched = (wgpu::Buffer, Vec<Rgb>, Vec<ColumnReport>, u64);
+
 /// Entry modes (the low two bits of an entry's meta word; `s_entries.wgsl`).
 pub const MODE_DIAG: u32 = 0;
 pub const MODE_FAR: u32 = 1;
@@ -631,7 +635,6 @@ impl GpuSTemplate {
 
     /// Runs `s_entries` (or starts from `input`) and, when `bound`, `s_column_bound`; reads
     /// the values and reports back. Returns the value buffer and its reserved bytes.
-    #[allow(clippy::type_complexity)]
     fn dispatch(
         &self,
         ctx: &GpuContext,
@@ -640,7 +643,7 @@ impl GpuSTemplate {
         params: &SubsurfaceParams,
         input: Option<&[Rgb]>,
         bound: bool,
-    ) -> Result<(wgpu::Buffer, Vec<Rgb>, Vec<ColumnReport>, u64), GpuError> {
+    ) -> Result<Dispatched, GpuError> {
         if !self.template.covers(m) {
             return Err(GpuError::Invalid(format!(
                 "{what}: the S template does not cover these materials"
