@@ -18,7 +18,7 @@ use translux_proto::scene::Profile;
 
 use crate::profile::{ProfileError, ProfileEval};
 use crate::subsurface::{
-    self, AssemblyReport, DistanceView, ObjectPatches, ObjectS, Quadrature, SParams,
+    self, AssemblyReport, DistanceView, ObjectBlock, ObjectPatches, ObjectS, Quadrature, SParams,
     SubsurfaceParams, Tabulated,
 };
 
@@ -189,32 +189,16 @@ pub fn object_s(
     let (tr, tt, capped_from) = tables(name, (reflectance, transmittance), reach, unit_mm, params)?;
     let (radius_r, radius_t) = (tr.r_max(), tt.r_max());
     // The object's block of the stored distances, in local indices, with kinds.
-    let (base, len) = (range.start as u64, range.len() as u64);
-    let mut row_ptr = vec![0u64];
-    let (mut col, mut dist, mut kind) = (Vec::new(), Vec::new(), Vec::new());
-    for i in range {
-        let first = distances.row_ptr()[i] as usize;
-        let (cols, ds) = distances.row(i);
-        for (k, (&j, &d)) in cols.iter().zip(ds).enumerate() {
-            let kd = kinds.get(first + k).copied().unwrap_or(KIND_SAME);
-            let cut = if kd == KIND_OPPOSITE {
-                radius_t
-            } else {
-                radius_r
-            };
-            if (j as u64) >= base && (j as u64) < base + len && d < cut {
-                col.push((j as u64 - base) as u32);
-                dist.push(d);
-                kind.push(kd);
-            }
+    let kind_of = |e: usize| kinds.get(e).copied().unwrap_or(KIND_SAME);
+    let block = ObjectBlock::of(distances, range, |_, d, e| {
+        d < if kind_of(e) == KIND_OPPOSITE {
+            radius_t
+        } else {
+            radius_r
         }
-        row_ptr.push(col.len() as u64);
-    }
-    let dv = DistanceView {
-        row_ptr: &row_ptr,
-        col: &col,
-        dist: &dist,
-    };
+    });
+    let kind: Vec<u32> = block.entries.iter().map(|&e| kind_of(e)).collect();
+    let dv = block.view();
     let s = assemble(p, dv, &kind, &tr, &tt, &params.quadrature);
     let report = AssemblyReport {
         name: name.to_string(),

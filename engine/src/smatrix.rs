@@ -32,7 +32,7 @@ use crate::hetero::{self, MediaLen};
 use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
-use crate::subsurface::{self, DistanceView, ObjectPatches, Tabulated};
+use crate::subsurface::{self, ObjectBlock, ObjectPatches, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 
 /// Why S could not be built.
@@ -198,12 +198,7 @@ pub fn assemble_scene(
                     unit_mm,
                     params,
                 )?;
-                for (j, row) in s.rows.into_iter().enumerate() {
-                    rows[r.start + j] = row
-                        .into_iter()
-                        .map(|(i, v)| (r.start as u32 + i, v))
-                        .collect();
-                }
+                place(&mut rows, r.start, s.rows);
                 reports.push(report);
             }
             Material::Heterogeneous { materials, .. } => {
@@ -234,45 +229,22 @@ pub fn assemble_scene(
                 let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
                 let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
                 // Local CSR of this object's block, with its per-medium lengths.
-                let base = r.start as u64;
-                let ptr = distances.row_ptr();
-                let mut row_ptr = vec![0u64];
-                let (mut col, mut dist, mut lens) = (Vec::new(), Vec::new(), Vec::new());
-                for i in r.clone() {
-                    let (cols, ds) = distances.row(i);
-                    for (e, (&j, &d)) in cols.iter().zip(ds).enumerate() {
-                        if (j as u64) >= base && (j as u64) < base + r.len() as u64 && d < radius {
-                            col.push((j as u64 - base) as u32);
-                            dist.push(d);
-                            lens.push(material_len[ptr[i] as usize + e]);
-                        }
-                    }
-                    row_ptr.push(col.len() as u64);
-                }
+                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
+                let lens: Vec<MediaLen> = block.entries.iter().map(|&e| material_len[e]).collect();
                 let tabs: Vec<Tabulated> = evals
                     .iter()
                     .map(|e| Tabulated::new(e, radius, 4096))
                     .collect();
-                let op = ObjectPatches {
-                    corners: &g.corners[r.clone()],
-                    centroid: &g.centroid[r.clone()],
-                    normal: &g.normal[r.clone()],
-                    area: &g.area[r.clone()],
-                    size: &g.size[r.clone()],
-                };
-                let dv = DistanceView {
-                    row_ptr: &row_ptr,
-                    col: &col,
-                    dist: &dist,
-                };
                 let media = &patch_material[r.clone()];
-                let s = hetero::assemble(op, dv, &lens, media, &map, &tabs, &params.quadrature);
-                for (j, row) in s.rows.into_iter().enumerate() {
-                    rows[r.start + j] = row
-                        .into_iter()
-                        .map(|(i, v)| (r.start as u32 + i, v))
-                        .collect();
-                }
+                let s = hetero::assemble(
+                    object_patches(g, r.clone()),
+                    block.view(),
+                    &lens,
+                    media,
+                    &map,
+                    &tabs,
+                    &params.quadrature,
+                );
                 reports.push(AssemblyReport {
                     name: o.name.to_string(),
                     radius,
@@ -281,6 +253,7 @@ pub fn assemble_scene(
                     scaled_columns: s.report.scaled_columns as u64,
                     seconds: t.elapsed().as_secs_f64(),
                 });
+                place(&mut rows, r.start, s.rows);
             }
             Material::Translucent { profile } => {
                 let t = Instant::now();
@@ -288,39 +261,14 @@ pub fn assemble_scene(
                 let (tab, capped_from) =
                     translucent_table(o.name, profile, reach, unit_mm, params)?;
                 let radius = tab.r_max();
-                // Local CSR view of this object's block of the distances.
-                let base = r.start as u64;
-                let mut row_ptr = vec![0u64];
-                let (mut col, mut dist) = (Vec::new(), Vec::new());
-                for i in r.clone() {
-                    let (cols, ds) = distances.row(i);
-                    for (&j, &d) in cols.iter().zip(ds) {
-                        if (j as u64) >= base && (j as u64) < base + r.len() as u64 && d < radius {
-                            col.push((j as u64 - base) as u32);
-                            dist.push(d);
-                        }
-                    }
-                    row_ptr.push(col.len() as u64);
-                }
-                let op = ObjectPatches {
-                    corners: &g.corners[r.clone()],
-                    centroid: &g.centroid[r.clone()],
-                    normal: &g.normal[r.clone()],
-                    area: &g.area[r.clone()],
-                    size: &g.size[r.clone()],
-                };
-                let dv = DistanceView {
-                    row_ptr: &row_ptr,
-                    col: &col,
-                    dist: &dist,
-                };
-                let s = subsurface::assemble(op, dv, &tab, &params.quadrature);
-                for (j, row) in s.rows.into_iter().enumerate() {
-                    rows[r.start + j] = row
-                        .into_iter()
-                        .map(|(i, v)| (r.start as u32 + i, v))
-                        .collect();
-                }
+                // This object's block of the distances, within the radius.
+                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
+                let s = subsurface::assemble(
+                    object_patches(g, r.clone()),
+                    block.view(),
+                    &tab,
+                    &params.quadrature,
+                );
                 reports.push(AssemblyReport {
                     name: o.name.to_string(),
                     radius,
@@ -329,10 +277,22 @@ pub fn assemble_scene(
                     scaled_columns: s.report.scaled_columns as u64,
                     seconds: t.elapsed().as_secs_f64(),
                 });
+                place(&mut rows, r.start, s.rows);
             }
         }
     }
     Ok((CsrOwned::from_rows(rows), reports))
+}
+
+/// Writes an object's S columns (local indices, the object starting at patch `start`) into
+/// the scene's rows.
+fn place(rows: &mut [Vec<(u32, [f32; 3])>], start: usize, local: Vec<Vec<(u32, [f32; 3])>>) {
+    for (j, row) in local.into_iter().enumerate() {
+        rows[start + j] = row
+            .into_iter()
+            .map(|(i, v)| (start as u32 + i, v))
+            .collect();
+    }
 }
 
 /// A homogeneous translucent object's profile tabulated out to its truncation radius,

@@ -23,8 +23,11 @@
 //! light received). Quadrature can overshoot a little; such columns are scaled down to the
 //! bound and counted in the report, never silently.
 
+use std::ops::Range;
+
 use glam::Vec3;
 use rayon::prelude::*;
+use translux_proto::csr::CsrView;
 
 use crate::profile::ProfileEval;
 
@@ -67,6 +70,55 @@ pub struct DistanceView<'a> {
     pub row_ptr: &'a [u64],
     pub col: &'a [u32],
     pub dist: &'a [f32],
+}
+
+/// One object's block of the stored distances as a local CSR (indices relative to the
+/// object's first patch): the entries of its rows whose column is inside the object and
+/// that `keep(local row, distance, global entry index)` keeps.
+#[derive(Debug, Default)]
+pub struct ObjectBlock {
+    pub row_ptr: Vec<u64>,
+    pub col: Vec<u32>,
+    pub dist: Vec<f32>,
+    /// Each kept entry's index among the stored entries (for the arrays aligned with them:
+    /// kinds, per-medium lengths).
+    pub entries: Vec<usize>,
+}
+
+impl ObjectBlock {
+    pub fn of(
+        distances: CsrView<'_, f32>,
+        r: Range<usize>,
+        keep: impl Fn(usize, f32, usize) -> bool,
+    ) -> ObjectBlock {
+        let (base, len) = (r.start as u64, r.len() as u64);
+        let mut b = ObjectBlock {
+            row_ptr: vec![0],
+            ..Default::default()
+        };
+        for i in r {
+            let first = distances.row_ptr()[i] as usize;
+            let (cols, ds) = distances.row(i);
+            for (k, (&j, &d)) in cols.iter().zip(ds).enumerate() {
+                let inside = (j as u64) >= base && (j as u64) < base + len;
+                if inside && keep(i - base as usize, d, first + k) {
+                    b.col.push((j as u64 - base) as u32);
+                    b.dist.push(d);
+                    b.entries.push(first + k);
+                }
+            }
+            b.row_ptr.push(b.col.len() as u64);
+        }
+        b
+    }
+
+    pub fn view(&self) -> DistanceView<'_> {
+        DistanceView {
+            row_ptr: &self.row_ptr,
+            col: &self.col,
+            dist: &self.dist,
+        }
+    }
 }
 
 /// S of one object in local indices: `rows[j]` holds (i, S_ji) sorted by i, the diagonal

@@ -166,50 +166,17 @@ pub enum Format {
 /// `application/*`, `*/*` or no `Accept` → binary. The highest `q` wins; on a tie an exact
 /// type beats a wildcard, then the earlier entry. Nothing acceptable → 406.
 pub fn negotiate(headers: &HeaderMap) -> Result<Format, AppError> {
-    let mut best: Option<(f32, u8, Format)> = None;
-    let mut seen = Vec::new();
-    for value in headers.get_all(ACCEPT) {
-        let Ok(value) = value.to_str() else {
-            return Err(AppError::not_acceptable("the Accept header is not ASCII"));
-        };
-        for entry in value.split(',') {
-            let mut parts = entry.split(';');
-            let media = parts.next().unwrap_or("").trim().to_ascii_lowercase();
-            if media.is_empty() {
-                continue;
-            }
-            let mut q = 1.0f32;
-            for p in parts {
-                if let Some((k, v)) = p.split_once('=')
-                    && k.trim().eq_ignore_ascii_case("q")
-                {
-                    q = v.trim().parse().unwrap_or(0.0);
-                }
-            }
-            let candidate = match media.as_str() {
-                "application/json" => Some((2, Format::Json)),
-                "application/octet-stream" => Some((2, Format::Binary)),
-                "application/*" | "*/*" => Some((1, Format::Binary)),
-                _ => None,
-            };
-            seen.push(media);
-            if let Some((specificity, format)) = candidate
-                && q > 0.0
-                && best.is_none_or(|(bq, bs, _)| q > bq || (q == bq && specificity > bs))
-            {
-                best = Some((q, specificity, format));
-            }
-        }
-    }
-    match best {
-        Some((_, _, f)) => Ok(f),
-        None if seen.is_empty() => Ok(Format::Binary),
-        None => Err(AppError::not_acceptable(format!(
-            "Accept: {} is not available; this endpoint answers application/json or \
-             application/octet-stream",
-            seen.join(", ")
-        ))),
-    }
+    choose(
+        headers,
+        &[
+            ("application/json", 2, Format::Json),
+            ("application/octet-stream", 2, Format::Binary),
+            ("application/*", 1, Format::Binary),
+            ("*/*", 1, Format::Binary),
+        ],
+        Format::Binary,
+        "application/json or application/octet-stream",
+    )
 }
 
 /// The render endpoint's format from `Accept`: `image/x-exr` → OpenEXR; `image/png`,
@@ -217,7 +184,30 @@ pub fn negotiate(headers: &HeaderMap) -> Result<Format, AppError> {
 /// an exact type beats a wildcard, then the earlier entry. Nothing acceptable → 406 naming
 /// both types.
 pub fn accept_picture(headers: &HeaderMap) -> Result<PictureFormat, AppError> {
-    let mut best: Option<(f32, u8, PictureFormat)> = None;
+    choose(
+        headers,
+        &[
+            ("image/png", 2, PictureFormat::Png),
+            ("image/x-exr", 2, PictureFormat::Exr),
+            ("image/*", 1, PictureFormat::Png),
+            ("*/*", 1, PictureFormat::Png),
+        ],
+        PictureFormat::Png,
+        "image/png or image/x-exr",
+    )
+}
+
+/// Content negotiation over `Accept` for an endpoint answering the formats of `offers`
+/// (media type, specificity: 2 exact, 1 wildcard, format). The highest `q` (> 0) wins; on
+/// a tie the more specific type, then the earlier entry. No `Accept` → `default`; nothing
+/// acceptable → 406 listing what was asked and what the endpoint `answers`.
+fn choose<F: Copy>(
+    headers: &HeaderMap,
+    offers: &[(&str, u8, F)],
+    default: F,
+    answers: &str,
+) -> Result<F, AppError> {
+    let mut best: Option<(f32, u8, F)> = None;
     let mut seen = Vec::new();
     for value in headers.get_all(ACCEPT) {
         let Ok(value) = value.to_str() else {
@@ -237,12 +227,10 @@ pub fn accept_picture(headers: &HeaderMap) -> Result<PictureFormat, AppError> {
                     q = v.trim().parse().unwrap_or(0.0);
                 }
             }
-            let candidate = match media.as_str() {
-                "image/png" => Some((2, PictureFormat::Png)),
-                "image/x-exr" => Some((2, PictureFormat::Exr)),
-                "image/*" | "*/*" => Some((1, PictureFormat::Png)),
-                _ => None,
-            };
+            let candidate = offers
+                .iter()
+                .find(|(m, _, _)| *m == media)
+                .map(|&(_, specificity, format)| (specificity, format));
             seen.push(media);
             if let Some((specificity, format)) = candidate
                 && q > 0.0
@@ -254,9 +242,9 @@ pub fn accept_picture(headers: &HeaderMap) -> Result<PictureFormat, AppError> {
     }
     match best {
         Some((_, _, f)) => Ok(f),
-        None if seen.is_empty() => Ok(PictureFormat::Png),
+        None if seen.is_empty() => Ok(default),
         None => Err(AppError::not_acceptable(format!(
-            "Accept: {} is not available; this endpoint answers image/png or image/x-exr",
+            "Accept: {} is not available; this endpoint answers {answers}",
             seen.join(", ")
         ))),
     }
