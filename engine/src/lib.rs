@@ -57,3 +57,4 @@ pub mod sheet;
 pub mod smatrix;
 pub mod solver;
 pub mod subsurface;
+pub mod transport;

@@ -12,10 +12,10 @@
 //! with emitters. With S = diag(ρ) it is classical radiosity. A vertex's colour is the
 //! outgoing radiance B/π ([`vertex_radiance`]).
 
+use crate::transport::Transport;
 use glam::Vec3;
 use rayon::prelude::*;
 use thiserror::Error;
-use translux_proto::csr::CsrView;
 use translux_proto::light::Light;
 
 pub use crate::linalg::{Albedo, Rgb, Scatter, SparseScatter, spmv_rgb};
@@ -185,7 +185,7 @@ pub fn spot_falloff(cos_angle: f32, inner_deg: f32, outer_deg: f32) -> f32 {
 
 /// Solves B = Bₑ + ρ(E + F B) for an opaque scene (S = diag ρ).
 pub fn solve_diffuse(
-    f: &CsrView<'_>,
+    f: &Transport<'_>,
     albedo: &[Rgb],
     emission: &[Rgb],
     irradiance: &[Rgb],
@@ -202,7 +202,7 @@ pub fn solve_diffuse(
 /// Solves B = Bₑ + S(E + F B), i.e. (I − S F) B = Bₑ + S E, with `params.method`
 /// ([`crate::solver`]). `warm` starts from a previous solution.
 pub fn solve(
-    f: &CsrView<'_>,
+    f: &Transport<'_>,
     s: &dyn Scatter,
     emission: &[Rgb],
     irradiance: &[Rgb],
@@ -275,6 +275,7 @@ pub fn vertex_values(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use translux_proto::csr::CsrView;
 
     #[test]
     fn spot_falloff_edges() {
@@ -311,7 +312,7 @@ mod tests {
                 tolerance: 1e-6,
                 max_iterations: 100,
             };
-            let (b, s) = solve_diffuse(&f, &rho, &be, &e, &params, None);
+            let (b, s) = solve_diffuse(&Transport::dense(f), &rho, &be, &e, &params, None);
             assert!(s.converged);
             let b0 = 1.0 / (1.0 - 0.08);
             assert!(

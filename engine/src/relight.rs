@@ -11,7 +11,8 @@ use crate::inverse;
 use crate::radiosity::{
     Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
 };
-use crate::solver::{SolveError, solve_system, spmv_multi};
+use crate::solver::{SolveError, solve_system};
+use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
@@ -428,7 +429,7 @@ fn transport(
     };
     let s = SparseScatter(s_view);
     let p = Albedo(albedo);
-    let f = b.form_factors();
+    let f = Transport::of(b);
     // Stacked E: [patch][plan][rgb].
     let mut e = vec![0.0f32; n * ch];
     for (slot, q) in preps.iter().enumerate() {
@@ -479,7 +480,7 @@ fn transport(
             .transfer()
             .ok_or_else(|| EngineError::internal("the transfer matrix vanished"))?;
         let mut v = vec![0.0f32; n * ch];
-        spmv_multi(&f, &be, &mut v, ch);
+        f.apply_multi(&be, &mut v, ch, &mut Pulled::default());
         add(&mut v, &e);
         let mut bvec = vec![0.0f32; n * ch];
         s.apply_multi(&v, &mut bvec, ch);
@@ -527,7 +528,7 @@ fn transport(
     if components == Components::HeuristicB {
         // Y = (I − P F)⁻¹ P F (Bₑ + P E) solves (I − P F) Y = P F (Bₑ + P E).
         let mut fx = vec![0.0f32; n * ch];
-        spmv_multi(&f, &rhs, &mut fx, ch);
+        f.apply_multi(&rhs, &mut fx, ch, &mut Pulled::default());
         p.apply_multi(&fx, &mut rhs, ch);
     }
     let key = format!("{}|{}", first.materials_key, components.as_str());

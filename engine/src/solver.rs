@@ -28,6 +28,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 
+use crate::transport::{Pulled, Transport};
+
 use crate::linalg::Scatter;
 
 /// Iteration scheme.
@@ -178,17 +180,19 @@ fn spmv_fixed<const CH: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {
 
 /// The operator A = I − K F with its scratch space.
 struct System<'a> {
-    f: &'a CsrView<'a>,
+    f: &'a Transport<'a>,
     k: &'a dyn Scatter,
     ch: usize,
     fx: Vec<f32>,
+    pulled: Pulled,
     products: u32,
 }
 
 impl System<'_> {
     /// y = K F x (one product).
     fn kf(&mut self, x: &[f32], y: &mut [f32]) {
-        spmv_multi(self.f, x, &mut self.fx, self.ch);
+        self.f
+            .apply_multi(x, &mut self.fx, self.ch, &mut self.pulled);
         self.k.apply_multi(&self.fx, y, self.ch);
         self.products += 1;
     }
@@ -239,7 +243,7 @@ fn channel_residuals(r2: &[f64], b2: &[f64]) -> Vec<f64> {
 /// starts from a previous solution of the same length (another length, or a non-finite
 /// value, is ignored and reported as a cold start). A system whose b is 0 gets x = 0.
 pub fn solve_system(
-    f: &CsrView<'_>,
+    f: &Transport<'_>,
     k: &dyn Scatter,
     b: &[f32],
     ch: usize,
@@ -250,7 +254,7 @@ pub fn solve_system(
     if ch == 0 || !ch.is_multiple_of(3) {
         return Err(SolveError::Channels(ch));
     }
-    let n = f.n_rows();
+    let n = f.n();
     if b.len() != n * ch {
         return Err(SolveError::Length {
             got: b.len(),
@@ -284,6 +288,7 @@ pub fn solve_system(
         k,
         ch,
         fx: vec![0.0; n * ch],
+        pulled: Pulled::default(),
         products: 0,
     };
     let mut method = params.method;
@@ -382,12 +387,22 @@ fn jacobi(
         iterations += 1;
         match (params.method, sys.k.diagonal()) {
             (Method::GaussSeidel, Some(rho)) => {
+                // Patches are read as they are updated; cluster nodes (hierarchical F) hold
+                // their means from the start of the sweep.
+                let n = x.len() / ch;
+                sys.f.pull(x, ch, &mut sys.pulled);
+                let nodes = &sys.pulled.values;
                 let mut acc = vec![0.0f32; ch];
-                for i in 0..x.len() / ch {
+                for i in 0..n {
                     acc.fill(0.0);
-                    let (cols, vals) = sys.f.row(i);
+                    let (cols, vals) = sys.f.matrix().row(i);
                     for (&j, &v) in cols.iter().zip(vals) {
-                        let xj = &x[j as usize * ch..(j as usize + 1) * ch];
+                        let j = j as usize;
+                        let xj = if j < n {
+                            &x[j * ch..(j + 1) * ch]
+                        } else {
+                            &nodes[j * ch..(j + 1) * ch]
+                        };
                         for (a, &xv) in acc.iter_mut().zip(xj) {
                             *a += v * xv;
                         }

@@ -6,10 +6,11 @@
 //! (bundles made with `translux-precompute ... --inverse` also time T).
 
 use std::time::Instant;
+use translux_engine::transport::Transport;
 
 use translux_engine::inverse;
 use translux_engine::radiosity::{self, Method, Rgb, Scatter, SolveParams, SparseScatter};
-use translux_engine::solver::{solve_system, spmv_multi};
+use translux_engine::solver::solve_system;
 use translux_proto::bundle::Bundle;
 
 fn best_ms(reps: usize, mut f: impl FnMut()) -> f64 {
@@ -37,7 +38,7 @@ fn main() {
             .unwrap();
         // A nearby light for the warm start: every E 3% brighter.
         let e2: Vec<Rgb> = e.iter().map(|x| x.map(|v| v * 1.03)).collect();
-        let f = b.form_factors();
+        let f = Transport::of(&b);
         let s = SparseScatter(b.subsurface());
         let be = b.patch_emission();
         // (Gauss-Seidel needs a diagonal S; these scenes are translucent.)
@@ -80,7 +81,7 @@ fn main() {
         let mut t4_ms = None;
         if let Some(t) = b.transfer() {
             let mut v = vec![0.0f32; n * 3];
-            spmv_multi(&f, bytemuck::cast_slice(be), &mut v, 3);
+            f.apply_multi(bytemuck::cast_slice(be), &mut v, 3, &mut Default::default());
             let v: Vec<f32> = v
                 .iter()
                 .zip(bytemuck::cast_slice::<Rgb, f32>(&e))

@@ -403,6 +403,7 @@ mod tests {
             lights: vec![],
             transfer: None,
             environment: None,
+            hierarchy: None,
             camera: Camera {
                 position: [0.0, 2.0, 0.0],
                 target: [0.0; 3],
@@ -617,7 +618,8 @@ mod tests {
         assert_eq!(
             open_err(&out),
             format!(
-                "manifest.json: bundle version 99 is not supported (this build reads version {FORMAT_VERSION})"
+                "manifest.json: bundle version 99 is not supported (this build reads versions 4 to \
+                 {FORMAT_VERSION}); rebuild the bundle with this build's translux-precompute"
             )
         );
         fs::write(&path, "{\"format\": \"translux-bundle\",\n  oops").unwrap();

@@ -129,8 +129,72 @@ fn sample_points(c: &[Vec3; 3], m: u32, out: &mut Vec<Vec3>) {
 
 /// True when some corner of `corners` lies strictly in front of the plane (x, n).
 #[inline]
-fn any_in_front(corners: &[Vec3; 3], x: Vec3, n: Vec3, eps: f32) -> bool {
+pub(crate) fn any_in_front(corners: &[Vec3; 3], x: Vec3, n: Vec3, eps: f32) -> bool {
     corners.iter().any(|v| n.dot(*v - x) > eps)
+}
+
+/// F_ij and F_ji of one pair that passed the orientation cull (`None`: they exchange
+/// nothing). The smaller patch is point-sampled (its centroid far away, `near_samples`² or
+/// `touching_samples`² points near), the larger integrated exactly; reciprocity gives the
+/// other direction. Adds the rays it cast to `rays`. Shared by the dense F and the leaf
+/// links of the hierarchical one ([`crate::hierarchy`]).
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the pair's two ids beside the scene-wide inputs and the caller's scratch"
+)]
+pub(crate) fn pair(
+    p: &Patches,
+    occ: &Occluder,
+    params: &FormFactorParams,
+    offset: f32,
+    i: usize,
+    j: usize,
+    samples: &mut Vec<Vec3>,
+    rays: &mut u64,
+) -> Option<(f32, f32)> {
+    let (ai, aj) = (p.area[i], p.area[j]);
+    let (pp, qq) = if ai <= aj { (i, j) } else { (j, i) };
+    let (cp, np, cq, nq) = (p.centroid[pp], p.normal[pp], p.centroid[qq], p.normal[qq]);
+    let poly = &p.corners[qq];
+    let target = cq + nq * offset;
+    let dist = cp.distance(cq);
+    let big = p.size[i].max(p.size[j]);
+    let near = dist < params.near_factor * big;
+    let f_pq = if !near {
+        if nq.dot(cp - cq) <= 0.0 {
+            return None;
+        }
+        *rays += 1;
+        if occ.occluded(cp + np * offset, target) {
+            return None;
+        }
+        point_to_polygon(cp, np, poly)
+    } else {
+        let m = if dist < 1.5 * big {
+            params.touching_samples
+        } else {
+            params.near_samples
+        };
+        sample_points(&p.corners[pp], m, samples);
+        let mut sum = 0.0;
+        for &x in samples.iter() {
+            if nq.dot(x - cq) <= 0.0 {
+                continue;
+            }
+            *rays += 1;
+            if occ.occluded(x + np * offset, target) {
+                continue;
+            }
+            sum += point_to_polygon(x, np, poly);
+        }
+        sum / samples.len() as f32
+    };
+    if f_pq <= 0.0 {
+        return None;
+    }
+    // Reciprocity: A_p F_pq = A_q F_qp.
+    let f_qp = f_pq * p.area[pp] / p.area[qq];
+    Some(if pp == i { (f_pq, f_qp) } else { (f_qp, f_pq) })
 }
 
 /// One computed pair: column j (> row i), F_ij and F_ji.
@@ -171,7 +235,7 @@ pub fn compute_with_stop(
             if stop() {
                 return row;
             }
-            let (ci, ni, ai) = (p.centroid[i], p.normal[i], p.area[i]);
+            let (ci, ni) = (p.centroid[i], p.normal[i]);
             let corners_i = &p.corners[i];
             let (mut row_rays, mut row_pairs) = (0u64, 0u64);
             for j in i + 1..n {
@@ -182,50 +246,10 @@ pub fn compute_with_stop(
                     continue;
                 }
                 row_pairs += 1;
-                let aj = p.area[j];
-                // The smaller patch is point-sampled, the larger integrated exactly.
-                let (pp, qq) = if ai <= aj { (i, j) } else { (j, i) };
-                let (cp, np, cq, nq) = (p.centroid[pp], p.normal[pp], p.centroid[qq], p.normal[qq]);
-                let poly = &p.corners[qq];
-                let target = cq + nq * offset;
-                let dist = cp.distance(cq);
-                let big = p.size[i].max(p.size[j]);
-                let near = dist < params.near_factor * big;
-                let f_pq = if !near {
-                    if nq.dot(cp - cq) <= 0.0 {
-                        continue;
-                    }
-                    row_rays += 1;
-                    if occ.occluded(cp + np * offset, target) {
-                        continue;
-                    }
-                    point_to_polygon(cp, np, poly)
-                } else {
-                    let m = if dist < 1.5 * big {
-                        params.touching_samples
-                    } else {
-                        params.near_samples
-                    };
-                    sample_points(&p.corners[pp], m, samples);
-                    let mut sum = 0.0;
-                    for &x in samples.iter() {
-                        if nq.dot(x - cq) <= 0.0 {
-                            continue;
-                        }
-                        row_rays += 1;
-                        if occ.occluded(x + np * offset, target) {
-                            continue;
-                        }
-                        sum += point_to_polygon(x, np, poly);
-                    }
-                    sum / samples.len() as f32
-                };
-                if f_pq <= 0.0 {
+                let Some((f_ij, f_ji)) = pair(p, occ, params, offset, i, j, samples, &mut row_rays)
+                else {
                     continue;
-                }
-                // Reciprocity: A_p F_pq = A_q F_qp.
-                let f_qp = f_pq * p.area[pp] / p.area[qq];
-                let (f_ij, f_ji) = if pp == i { (f_pq, f_qp) } else { (f_qp, f_pq) };
+                };
                 row.push((j as u32, f_ij, f_ji));
             }
             rays.fetch_add(row_rays, Ordering::Relaxed);

@@ -39,6 +39,7 @@ pub mod bundle;
 pub mod distances;
 pub mod formfactor;
 pub mod hetero;
+pub mod hierarchy;
 pub mod meshio;
 pub mod orient;
 pub mod patch;

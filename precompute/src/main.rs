@@ -10,7 +10,8 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::Parser;
 use translux_precompute::formfactor::FormFactorParams;
-use translux_precompute::pipeline::{self, PrecomputeParams, human_bytes};
+use translux_precompute::hierarchy::HierarchyParams;
+use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
@@ -31,6 +32,15 @@ struct Cli {
     /// Also compute the transfer matrix T = (I − S F)⁻¹ S.
     #[arg(long)]
     inverse: bool,
+    /// How F is stored: `dense` (one entry per visible patch pair, O(N²)) or `hierarchical`
+    /// (a cluster tree and, per patch, links to whole clusters far enough away: F̃ = C·P).
+    #[arg(long, value_enum, default_value_t = TransportArg::Dense)]
+    transport: TransportArg,
+    /// Hierarchical F only: a cluster of radius R is linked whole only from a distance of
+    /// at least R / ACCURACY (it bounds the angle a link subtends). Smaller is more accurate
+    /// and larger; accepted 0.02 to 1.
+    #[arg(long, default_value_t = HierarchyParams::default().accuracy)]
+    accuracy: f32,
     /// Drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -49,6 +59,13 @@ struct Cli {
     env_bins: Option<String>,
 }
 
+/// `--transport`.
+#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
+enum TransportArg {
+    Dense,
+    Hierarchical,
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
@@ -64,6 +81,17 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
         bail!("--threshold must be in [0, 1), got {}", cli.threshold);
     }
+    let hierarchy = HierarchyParams {
+        accuracy: cli.accuracy,
+        ..Default::default()
+    };
+    let transport = match cli.transport {
+        TransportArg::Dense => FormFactorMethod::Dense,
+        TransportArg::Hierarchical => {
+            hierarchy.check().map_err(anyhow::Error::msg)?;
+            FormFactorMethod::Hierarchical(hierarchy)
+        }
+    };
     if let Some(t) = cli.threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(t.max(1))
@@ -80,6 +108,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             threshold: cli.threshold,
             ..Default::default()
         },
+        transport,
         memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
         progress: !cli.quiet,
         inverse: cli.inverse,
@@ -117,11 +146,38 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             turned.join(", ")
         );
     }
-    println!(
-        "  nnz(F)             {} ({:.1}% of N²)",
-        report.nnz_f,
-        100.0 * report.nnz_f as f64 / (report.patch_count as f64).powi(2).max(1.0)
-    );
+    let n = report.patch_count as f64;
+    match &report.hierarchy {
+        None => println!(
+            "  nnz(F)             {} ({:.1}% of N²), dense",
+            report.nnz_f,
+            100.0 * report.nnz_f as f64 / (n * n).max(1.0)
+        ),
+        Some(h) => {
+            println!(
+                "  nnz(F̃ = C·P)       {} ({:.1} per patch: {} to clusters, {} to patches), \
+                 hierarchical, accuracy {}",
+                report.nnz_f,
+                report.nnz_f as f64 / n.max(1.0),
+                h.node_entries,
+                h.patch_entries,
+                h.accuracy
+            );
+            // Dense F stores 8 bytes per entry (column, value) plus the row pointers.
+            let dense_bytes = h.dense_equivalent * 8 + (report.patch_count as u64 + 1) * 8;
+            let bytes =
+                report.nnz_f * 8 + (report.patch_count as u64 + 1) * 8 + n as u64 * 4 + h.nodes * 8;
+            println!(
+                "  cluster tree       {} nodes, depth {}; F̃ {} against {} for dense F \
+                 ({:.1}% of N² pairs in view of the cut)",
+                h.nodes,
+                h.depth,
+                human_bytes(bytes),
+                human_bytes(dense_bytes),
+                100.0 * h.dense_equivalent as f64 / (n * n).max(1.0)
+            );
+        }
+    }
     println!(
         "  F row sums         mean {:.4}, min {:.4}, max {:.4}",
         ff.row_sum_mean,

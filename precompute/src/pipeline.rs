@@ -12,8 +12,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use thiserror::Error;
 use translux_proto::bundle::{
-    FORMAT, FORMAT_VERSION, FormFactorInfo, Manifest, ObjectInfo, StageTime, SubsurfaceInfo,
-    TransferInfo, arrays,
+    FORMAT, FORMAT_VERSION, FormFactorInfo, HierarchyInfo, Manifest, ObjectInfo, StageTime,
+    SubsurfaceInfo, TransferInfo, arrays,
 };
 use translux_proto::light::Camera;
 use translux_proto::scene::Material;
@@ -22,6 +22,7 @@ use crate::bundle::{ArrayData, BundleWriteError, NamedArray, write_bundle};
 use crate::distances::{self, DistanceError};
 use crate::formfactor::{self, FormFactorParams};
 use crate::hetero::{self, PatternFrame};
+use crate::hierarchy::{self, HierarchyParams};
 use crate::patch::{self, Density, Patches};
 use crate::scene::LoadedScene;
 use crate::voxel::VoxelParams;
@@ -43,6 +44,8 @@ pub struct PrecomputeParams {
     /// Maximum patch edge (scene units); overrides the scene file's `patches`.
     pub max_edge: Option<f32>,
     pub form_factors: FormFactorParams,
+    /// Dense F, or hierarchical F̃ = C·P ([`crate::hierarchy`]).
+    pub transport: FormFactorMethod,
     pub subsurface: SParams,
     /// The voxel grid of the optical distances (stage 1 of S).
     pub voxels: VoxelParams,
@@ -58,6 +61,34 @@ pub struct PrecomputeParams {
     /// Per-patch environment visibility ([`translux_engine::envvis`]); `bins: None` skips it.
     pub environment: translux_engine::envvis::EnvVisParams,
 }
+
+/// How F is computed and stored.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum FormFactorMethod {
+    /// One entry per visible patch pair (O(N²)): for validation and small scenes.
+    #[default]
+    Dense,
+    /// A cluster tree and a light-independent cut per receiver ([`crate::hierarchy`]).
+    Hierarchical(HierarchyParams),
+}
+
+impl FormFactorMethod {
+    /// The CLI's name of it.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Dense => "dense",
+            Self::Hierarchical(_) => "hierarchical",
+        }
+    }
+}
+
+/// Entries per patch a hierarchical F stays under (for the memory estimate only): the
+/// issue's budget at η = 0.25 is a few hundred; this is several times that.
+const HIERARCHICAL_ENTRIES_BOUND: f64 = 2_000.0;
+
+/// More patches than this are refused with a hierarchical F (its pass is O(N log N); the
+/// limit keeps u32 column indices and the tree's memory far from their bounds).
+pub const MAX_PATCHES_HIERARCHICAL: u64 = 4_000_000;
 
 /// Watches a [`precompute`]: progress per stage, and a way to stop it.
 pub trait Observer: Send + Sync + std::fmt::Debug {
@@ -115,6 +146,8 @@ pub struct PrecomputeReport {
     pub nnz_f: u64,
     pub bundle_bytes: u64,
     pub form_factors: FormFactorInfo,
+    /// The tree and links of a hierarchical F.
+    pub hierarchy: Option<HierarchyInfo>,
     pub subsurface: SubsurfaceInfo,
     /// The transfer matrix's storage and errors (with `inverse`).
     pub transfer: Option<TransferInfo>,
@@ -136,9 +169,17 @@ pub enum PrecomputeError {
     BadMaxEdge(f32),
     #[error(
         "{requested} patches is too many: the form-factor pass is O(N²) (~{pairs:.1e} pairs); \
-         the limit is {MAX_PATCHES}"
+         the limit is {MAX_PATCHES} with --transport dense ({MAX_PATCHES_HIERARCHICAL} with \
+         --transport hierarchical)"
     )]
     TooManyPatches { requested: u64, pairs: f64 },
+    #[error(
+        "{requested} patches is too many: the limit is {MAX_PATCHES_HIERARCHICAL} with \
+         --transport hierarchical"
+    )]
+    TooManyPatchesHierarchical { requested: u64 },
+    #[error("{0}")]
+    BadHierarchy(String),
     #[error(
         "the subsurface stage would need about {} (~{paths:.2e} stored optical paths in \
          {object:?}, every patch pair within {radius:.4} scene units, {} bytes each while \
@@ -390,13 +431,25 @@ pub fn precompute(
     {
         return Err(PrecomputeError::BadMaxEdge(e));
     }
+    if let FormFactorMethod::Hierarchical(h) = &params.transport {
+        h.check().map_err(PrecomputeError::BadHierarchy)?;
+    }
+    let too_many = |requested: u64| match params.transport {
+        FormFactorMethod::Dense if requested > MAX_PATCHES => {
+            Some(PrecomputeError::TooManyPatches {
+                requested,
+                pairs: (requested as f64).powi(2) / 2.0,
+            })
+        }
+        FormFactorMethod::Hierarchical(_) if requested > MAX_PATCHES_HIERARCHICAL => {
+            Some(PrecomputeError::TooManyPatchesHierarchical { requested })
+        }
+        _ => None,
+    };
     if let Density::Target(t) = density
-        && t > MAX_PATCHES
+        && let Some(e) = too_many(t)
     {
-        return Err(PrecomputeError::TooManyPatches {
-            requested: t,
-            pairs: (t as f64).powi(2) / 2.0,
-        });
+        return Err(e);
     }
     let sources: Vec<&[[Vec3; 3]]> = scene
         .objects
@@ -408,11 +461,8 @@ pub fn precompute(
     }
     let t = Instant::now();
     let (h, count) = patch::plan(&sources, density);
-    if count > MAX_PATCHES {
-        return Err(PrecomputeError::TooManyPatches {
-            requested: count,
-            pairs: (count as f64).powi(2) / 2.0,
-        });
+    if let Some(e) = too_many(count) {
+        return Err(e);
     }
 
     // Patches and the viewer mesh.
@@ -426,7 +476,12 @@ pub fn precompute(
     finish(bar, progress, "patches", t, &mut stages);
 
     // Memory estimate for F, refused before the big allocation.
-    let nnz_est = estimate_nnz(&patches);
+    let nnz_est = match params.transport {
+        FormFactorMethod::Dense => estimate_nnz(&patches),
+        FormFactorMethod::Hierarchical(_) => {
+            estimate_nnz(&patches).min(patches.len() as f64 * HIERARCHICAL_ENTRIES_BOUND)
+        }
+    };
     let memory_estimate =
         (nnz_est * BUILD_BYTES_PER_NNZ as f64) as u64 + patches.len() as u64 * 200;
     let limit = params
@@ -515,19 +570,44 @@ pub fn precompute(
     let ff_total = n * n.saturating_sub(1) / 2;
     let bar = stage_bar(progress, ff_total, "form factors");
     let ff_done = std::sync::atomic::AtomicU64::new(0);
-    let (ff, ff_info) = formfactor::compute_with_stop(
-        &patches,
-        &occ,
-        &params.form_factors,
-        &|k| {
-            bar.inc(k);
-            if let Some(o) = &params.observer {
-                let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
-                o.progress("form factors", done, ff_total);
-            }
-        },
-        &|| params.observer.as_ref().is_some_and(|o| o.cancelled()),
-    );
+    let stop = || params.observer.as_ref().is_some_and(|o| o.cancelled());
+    let (ff, ff_info, tree) = match &params.transport {
+        FormFactorMethod::Dense => {
+            let (ff, info) = formfactor::compute_with_stop(
+                &patches,
+                &occ,
+                &params.form_factors,
+                &|k| {
+                    bar.inc(k);
+                    if let Some(o) = &params.observer {
+                        let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+                        o.progress("form factors", done, ff_total);
+                    }
+                },
+                &stop,
+            );
+            (ff, info, None)
+        }
+        FormFactorMethod::Hierarchical(hp) => {
+            bar.set_length(n);
+            let h = hierarchy::compute(
+                &patches,
+                &occ,
+                &params.form_factors,
+                hp,
+                &|k| {
+                    bar.inc(k);
+                    if let Some(o) = &params.observer {
+                        let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+                        o.progress("form factors", done, n);
+                    }
+                },
+                &stop,
+            );
+            let ranges = h.tree.ranges();
+            (h.c, h.ff_info, Some((h.tree.perm, ranges, h.info)))
+        }
+    };
     if params.observer.as_ref().is_some_and(|o| o.cancelled()) {
         return Err(PrecomputeError::Cancelled);
     }
@@ -631,7 +711,17 @@ pub fn precompute(
         let t = Instant::now();
         stage_start(params, "inverse T")?;
         let bar = stage_bar(progress, 6, "inverse T");
-        let f_view = ff.view().expect("form factors are a valid CSR");
+        // T needs F itself: a hierarchical C·P is multiplied out (N² at most, like T).
+        let expanded = tree.as_ref().map(|(perm, range, _)| {
+            let tree = translux_proto::bundle::TreeView { perm, range };
+            let c = ff.view().expect("form factors are a valid CSR");
+            translux_engine::transport::Transport::hierarchical(c, tree, &patches.area).expand()
+        });
+        let f_view = expanded
+            .as_ref()
+            .unwrap_or(&ff)
+            .view()
+            .expect("form factors are a valid CSR");
         let s_view = translux_proto::csr::CsrView::new_checked(
             n as usize,
             n as usize,
@@ -820,6 +910,19 @@ pub fn precompute(
             data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
+    let hierarchy_info = tree.map(|(perm, range, info)| {
+        arrays_out.push(NamedArray {
+            name: arrays::TREE_PERM,
+            shape: vec![np],
+            data: ArrayData::U32(perm),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::TREE_RANGE,
+            shape: vec![range.len() as u64, 2],
+            data: ArrayData::U32(range.concat()),
+        });
+        info
+    });
     if let Some(tr) = transfer {
         arrays_out.push(NamedArray {
             name: arrays::TRANSFER,
@@ -862,6 +965,7 @@ pub fn precompute(
         stages: stages.clone(),
         transfer: transfer_info.clone(),
         environment: environment_info,
+        hierarchy: hierarchy_info.clone(),
         arrays: Default::default(),
     };
     let written = write_bundle(out, manifest, arrays_out)?;
@@ -876,6 +980,7 @@ pub fn precompute(
         bundle_bytes: written.bytes,
         rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
         form_factors: ff_info,
+        hierarchy: hierarchy_info,
         subsurface: subsurface_info,
         transfer: transfer_info,
         stages,

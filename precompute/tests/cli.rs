@@ -72,6 +72,59 @@ fn builtin_cornell_becomes_a_verified_bundle_with_a_summary() {
     assert_eq!(left.len(), 1, "{left:?}");
 }
 
+/// `--transport hierarchical`: a bundle with the cluster tree, a summary that says what it
+/// stores against dense F, and an accuracy out of range refused by name with nothing
+/// written.
+#[test]
+fn hierarchical_transport_from_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cornell");
+    let args = |extra: &[&'static str]| {
+        let mut a = vec![
+            "builtin:cornell".to_string(),
+            "--out".into(),
+            out.to_str().unwrap().into(),
+            "--patches".into(),
+            "800".into(),
+            "--transport".into(),
+            "hierarchical".into(),
+        ];
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    for bad in [
+        "--accuracy=0",
+        "--accuracy=1.5",
+        "--accuracy=-0.2",
+        "--accuracy=NaN",
+    ] {
+        let a = args(&[bad]);
+        let o = precompute(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+        assert!(
+            text(&o).contains("--accuracy must be in [0.02, 1]"),
+            "{}",
+            text(&o)
+        );
+        assert!(!out.exists());
+    }
+    let a = args(&["--accuracy", "0.3"]);
+    let o = precompute(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", text(&o));
+    let t = text(&o);
+    assert!(
+        t.contains("hierarchical, accuracy 0.3") && t.contains("cluster tree"),
+        "{t}"
+    );
+    let b = Bundle::open(&out).unwrap();
+    let h = b.manifest().hierarchy.clone().unwrap();
+    assert_eq!(h.accuracy, 0.3);
+    let n = b.manifest().patch_count;
+    assert_eq!(h.nodes, n - 1);
+    assert_eq!(b.form_factors().n_cols() as u64, n + h.nodes);
+    assert!(h.dense_equivalent > b.form_factors().nnz() as u64, "{h:?}");
+}
+
 #[test]
 fn a_users_scene_file_with_an_obj_becomes_a_bundle() {
     let dir = tempfile::tempdir().unwrap();

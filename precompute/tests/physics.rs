@@ -184,7 +184,7 @@ fn a_plate_between_two_plates_blocks_their_exchange() {
 #[test]
 fn furnace_gives_emission_over_one_minus_albedo() {
     let (p, f) = build(&room(1.0, 1.0, 1.0), Density::Target(2400));
-    let v = f.view().unwrap();
+    let v = translux_engine::transport::Transport::dense(f.view().unwrap());
     let n = p.len();
     for rho in [0.3f32, 0.5, 0.8] {
         let albedo = vec![[rho; 3]; n];

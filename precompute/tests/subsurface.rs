@@ -4,6 +4,7 @@
 use translux_engine::radiosity::{self, PatchGeometry, SolveParams, SparseScatter};
 use translux_engine::raycast::Occluder;
 use translux_engine::smatrix::{self, SParams};
+use translux_engine::transport::Transport;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::{LoadedScene, load_scene};
 use translux_proto::bundle::Bundle;
@@ -201,7 +202,7 @@ fn light_enters_one_side_of_the_block_and_leaves_the_others() {
     );
     // The full solve converges with S in it.
     let (_, stats) = radiosity::solve(
-        &a.form_factors(),
+        &Transport::of(&a),
         &s,
         a.patch_emission(),
         &e,

@@ -8,6 +8,7 @@
 use glam::Vec3;
 use translux_engine::radiosity::{self, Albedo, Method, Rgb, SolveParams, SparseScatter};
 use translux_engine::raycast::Occluder;
+use translux_engine::transport::Transport;
 use translux_precompute::formfactor::{self, FormFactorParams};
 use translux_precompute::patch::{self, Density, Patches};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
@@ -88,7 +89,7 @@ fn params(method: Method, tolerance: f32) -> SolveParams {
 #[test]
 fn bicgstab_equals_jacobi_on_a_translucent_scene() {
     let (_dir, b, e) = translucent_cornell(1200);
-    let f = b.form_factors();
+    let f = Transport::of(&b);
     let s = SparseScatter(b.subsurface());
     let be = b.patch_emission();
     // A tight Jacobi solution is the reference.
@@ -140,7 +141,7 @@ fn bicgstab_equals_jacobi_on_a_translucent_scene() {
 #[test]
 fn bicgstab_needs_far_fewer_products_in_a_bright_closed_room() {
     let (p, f) = build(&room(1.0, 0.9, 1.2), Density::Target(1500));
-    let v = f.view().unwrap();
+    let v = Transport::dense(f.view().unwrap());
     let n = p.len();
     let rho = 0.98f32;
     let albedo = vec![[rho, 0.97, 0.96]; n];
@@ -201,7 +202,7 @@ fn bicgstab_needs_far_fewer_products_in_a_bright_closed_room() {
 #[test]
 fn warm_start_from_a_nearby_solution_needs_fewer_iterations() {
     let (_dir, b, e) = translucent_cornell(1200);
-    let f = b.form_factors();
+    let f = Transport::of(&b);
     let s = SparseScatter(b.subsurface());
     let be = b.patch_emission();
     // The light moved a little: 5% brighter and a tint.
@@ -235,7 +236,7 @@ fn warm_start_from_a_nearby_solution_needs_fewer_iterations() {
 #[test]
 fn batched_systems_equal_separate_solves() {
     let (_dir, b, e) = translucent_cornell(800);
-    let f = b.form_factors();
+    let f = Transport::of(&b);
     let s = SparseScatter(b.subsurface());
     let n = e.len();
     // Three right-hand sides: E, 2E + tint, and zero (answer 0).

@@ -66,8 +66,12 @@ use crate::scene::Material;
 
 /// The `format` field of every manifest.
 pub const FORMAT: &str = "translux-bundle";
-/// Bumped whenever the layout changes; a loader refuses other versions.
-pub const FORMAT_VERSION: u32 = 4;
+/// Bumped whenever the layout changes; this build writes it and reads it and every version
+/// from [`OLDEST_READABLE_VERSION`] on (version 5 added hierarchical F, see
+/// [`Manifest::hierarchy`]; a version 4 bundle is a dense one and reads unchanged).
+pub const FORMAT_VERSION: u32 = 5;
+/// The oldest bundle version this build still reads.
+pub const OLDEST_READABLE_VERSION: u32 = 4;
 /// The manifest's file name inside a bundle folder.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -101,6 +105,12 @@ pub mod arrays {
     pub const TRANSFER_SCALE: &str = "transfer_scale";
     /// Environment visibility, f16 `[N, rows, cols]` (only with `Manifest::environment`).
     pub const ENV_VISIBILITY: &str = "env_visibility";
+    /// The patches in cluster-tree order, u32 `[N]`, a permutation of `0..N` (only with
+    /// `Manifest::hierarchy`).
+    pub const TREE_PERM: &str = "tree_perm";
+    /// Each cluster node's range `[start, end)` of [`TREE_PERM`], u32 `[M, 2]` (only with
+    /// `Manifest::hierarchy`; M = `hierarchy.nodes`).
+    pub const TREE_RANGE: &str = "tree_range";
 }
 
 /// Element type of an array file.
@@ -177,6 +187,27 @@ pub struct FormFactorInfo {
     pub rays: u64,
     /// Patch pairs considered after orientation culling.
     pub pairs: u64,
+}
+
+/// How the hierarchical F̃ = C·P was built (see [`Manifest::hierarchy`]).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct HierarchyInfo {
+    /// Cluster nodes M (the columns `N..N+M` of F's arrays); leaves are the patches.
+    pub nodes: u64,
+    /// Deepest level of the tree (the root is level 0).
+    pub depth: u32,
+    /// The accuracy parameter η: a node s is linked to a receiver at distance d only when
+    /// its bounding radius R_s ≤ η d.
+    pub accuracy: f32,
+    /// Points (and shadow rays) per node link.
+    pub node_samples: u32,
+    /// Entries of C that link a receiver to a cluster node, and to a single patch.
+    pub node_entries: u64,
+    pub patch_entries: u64,
+    /// Entries dense F would have held, estimated from the links' patch counts (visibility
+    /// aside).
+    pub dense_equivalent: u64,
 }
 
 /// How S was built, per translucent object.
@@ -295,6 +326,12 @@ pub struct Manifest {
     /// The environment visibility, unless precomputed with `--env-bins 0`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub environment: Option<EnvironmentInfo>,
+    /// Present when F is hierarchical: F̃ = C·P, where the `ff_*` arrays hold C, an
+    /// `N × (N + M)` CSR matrix whose columns are the patches then the M cluster nodes of
+    /// [`arrays::TREE_RANGE`], and P pulls the area-weighted mean radiosity of each node's
+    /// patches. Absent: the `ff_*` arrays are the dense `N × N` F.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hierarchy: Option<HierarchyInfo>,
     /// Every array file, by array name (see [`arrays`]).
     pub arrays: BTreeMap<String, ArrayEntry>,
 }
@@ -351,6 +388,14 @@ impl<'a> TransferView<'a> {
 compile_error!(
     "translux bundles hold little-endian arrays that are cast in place; big-endian targets are not supported"
 );
+
+/// The cluster tree of a hierarchical F ([`Bundle::tree`]): node k covers the patches
+/// `perm[range[k][0]..range[k][1]]`.
+#[derive(Debug, Clone, Copy)]
+pub struct TreeView<'a> {
+    pub perm: &'a [u32],
+    pub range: &'a [[u32; 2]],
+}
 
 /// The array files every bundle of [`FORMAT_VERSION`] holds, with their element types.
 /// A manifest may list further arrays; the loader verifies and maps those too.
@@ -457,9 +502,11 @@ pub enum BundleError {
     /// The manifest's `format` is not [`FORMAT`].
     #[error("{MANIFEST_FILE}: format is {found:?}, expected {FORMAT:?}")]
     Format { found: String },
-    /// The manifest's `version` is not [`FORMAT_VERSION`].
+    /// The manifest's `version` is not one this build reads.
     #[error(
-        "{MANIFEST_FILE}: bundle version {found} is not supported (this build reads version {FORMAT_VERSION})"
+        "{MANIFEST_FILE}: bundle version {found} is not supported (this build reads versions \
+         {OLDEST_READABLE_VERSION} to {FORMAT_VERSION}); rebuild the bundle with this build's \
+         translux-precompute"
     )]
     Version { found: u32 },
     /// A file is shorter than the manifest says.
@@ -635,8 +682,10 @@ pub struct Bundle {
     manifest: Manifest,
     manifest_bytes: u64,
     arrays: BTreeMap<String, MappedArray>,
-    /// (rows, cols) of F, equal to patch_count.
+    /// The rows of F, equal to patch_count.
     n_patches: usize,
+    /// Cluster nodes of a hierarchical F (0 for a dense one): F has N + M columns.
+    n_nodes: usize,
 }
 
 /// The counts of a manifest, as `usize`.
@@ -879,7 +928,7 @@ impl Bundle {
                 found: manifest.format,
             });
         }
-        if manifest.version != FORMAT_VERSION {
+        if !(OLDEST_READABLE_VERSION..=FORMAT_VERSION).contains(&manifest.version) {
             return Err(BundleError::Version {
                 found: manifest.version,
             });
@@ -941,6 +990,45 @@ impl Bundle {
             }
         }
 
+        // The cluster tree: both arrays, with these shapes, when the manifest says so.
+        let n_nodes = match &manifest.hierarchy {
+            Some(h) => {
+                let n = counts.patches;
+                for (name, shape) in [
+                    (arrays::TREE_PERM, vec![n]),
+                    (arrays::TREE_RANGE, vec![h.nodes, 2]),
+                ] {
+                    let file = array_file_name(name, DType::U32);
+                    let entry = manifest
+                        .arrays
+                        .get(name)
+                        .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+                    if entry.dtype != DType::U32 || entry.shape != shape {
+                        return Err(invalid(
+                            &file,
+                            format!(
+                                "manifest lists {} {:?}, expected u32 {shape:?} (N = \
+                                 patch_count, M = hierarchy.nodes)",
+                                entry.dtype.name(),
+                                entry.shape,
+                            ),
+                        ));
+                    }
+                }
+                to_usize(h.nodes, MANIFEST_FILE, "hierarchy.nodes")?
+            }
+            None => 0,
+        };
+        if n_patches
+            .checked_add(n_nodes)
+            .is_none_or(|c| c > u32::MAX as usize)
+        {
+            return Err(invalid(
+                MANIFEST_FILE,
+                "patch_count + hierarchy.nodes does not fit a u32 column index",
+            ));
+        }
+
         // The required arrays: listed, with the right dtype and shape.
         for &(name, dtype) in REQUIRED_ARRAYS {
             let file = array_file_name(name, dtype);
@@ -988,6 +1076,7 @@ impl Bundle {
             manifest_bytes: text.len() as u64,
             arrays: mapped,
             n_patches,
+            n_nodes,
         };
         bundle.check_contents()?;
         Ok(bundle)
@@ -1102,10 +1191,14 @@ impl Bundle {
             ));
         }
 
-        // F is an N × N CSR matrix.
+        // F is an N × N CSR matrix, or C an N × (N + M) one over the cluster tree, whose
+        // permutation and ranges are valid.
+        if self.manifest.hierarchy.is_some() {
+            self.check_tree()?;
+        }
         crate::csr::CsrView::new_checked(
             n,
-            n,
+            n + self.n_nodes,
             self.u64s(arrays::FF_ROW_PTR),
             self.u32s(arrays::FF_COL),
             self.f32s(arrays::FF_VAL),
@@ -1257,6 +1350,51 @@ impl Bundle {
         })
     }
 
+    /// The cluster tree of a hierarchical F, when the bundle holds one (see [`TreeView`]).
+    pub fn tree(&self) -> Option<TreeView<'_>> {
+        self.manifest.hierarchy.as_ref()?;
+        Some(TreeView {
+            perm: self.u32s(arrays::TREE_PERM),
+            range: bytemuck::try_cast_slice(self.u32s(arrays::TREE_RANGE)).unwrap_or(&[]),
+        })
+    }
+
+    /// Checks the cluster tree: `tree_perm` is a permutation of `0..N` and every node's range
+    /// lies in `0..N` and holds at least two patches.
+    fn check_tree(&self) -> Result<(), BundleError> {
+        let n = self.n_patches;
+        let perm_file = array_file_name(arrays::TREE_PERM, DType::U32);
+        let mut seen = vec![false; n];
+        for (k, &p) in self.u32s(arrays::TREE_PERM).iter().enumerate() {
+            let Some(s) = seen.get_mut(p as usize) else {
+                return Err(invalid(
+                    &perm_file,
+                    format!("element {k} is patch {p} but patch_count is {n}"),
+                ));
+            };
+            if *s {
+                return Err(invalid(
+                    &perm_file,
+                    format!("patch {p} appears twice (not a permutation)"),
+                ));
+            }
+            *s = true;
+        }
+        let range_file = array_file_name(arrays::TREE_RANGE, DType::U32);
+        for (k, r) in self.u32s(arrays::TREE_RANGE).chunks_exact(2).enumerate() {
+            if !(r[0] < r[1] && r[1] as usize <= n && r[1] - r[0] >= 2) {
+                return Err(invalid(
+                    &range_file,
+                    format!(
+                        "node {k} covers [{}, {}): expected at least two patches within 0..{n}",
+                        r[0], r[1]
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// The bundle folder it was opened from.
     pub fn dir(&self) -> &Path {
         &self.dir
@@ -1372,10 +1510,12 @@ impl Bundle {
         self.u32s(arrays::DIST_KIND)
     }
 
+    /// F (`N × N`), or for a hierarchical bundle C (`N × (N + M)`, see
+    /// [`Manifest::hierarchy`]); use it with [`Bundle::tree`].
     pub fn form_factors(&self) -> crate::csr::CsrView<'_> {
         crate::csr::CsrView::from_checked_parts(
             self.n_patches,
-            self.n_patches,
+            self.n_patches + self.n_nodes,
             self.u64s(arrays::FF_ROW_PTR),
             self.u32s(arrays::FF_COL),
             self.f32s(arrays::FF_VAL),
@@ -1475,6 +1615,7 @@ mod tests {
             stages: vec![],
             transfer: None,
             environment: None,
+            hierarchy: None,
             arrays: BTreeMap::new(),
         };
         let (a, b, c, d) = (
@@ -1955,8 +2096,60 @@ mod tests {
         assert_eq!(
             open_err(m, &a),
             format!(
-                "manifest.json: bundle version 7 is not supported (this build reads version {FORMAT_VERSION})"
+                "manifest.json: bundle version 7 is not supported (this build reads versions 4 to \
+                 {FORMAT_VERSION}); rebuild the bundle with this build's translux-precompute"
             )
         );
+    }
+
+    /// A version 4 bundle (dense F, no hierarchy) still opens.
+    #[test]
+    fn version_4_bundles_still_open() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (mut m, a) = two_patches();
+        m.version = 4;
+        write(tmp.path(), m, &a);
+        let b = Bundle::open(tmp.path()).unwrap();
+        assert!(b.tree().is_none());
+        assert_eq!(b.form_factors().n_cols(), 2);
+    }
+
+    /// A hierarchical F: C has a column per node past the patches; the tree's permutation
+    /// and ranges are checked.
+    #[test]
+    fn hierarchical_f_opens_and_a_bad_tree_is_refused() {
+        let hierarchical = |perm: &[u32], range: &[u32]| {
+            let (mut m, mut a) = two_patches();
+            m.hierarchy = Some(HierarchyInfo {
+                nodes: 1,
+                ..Default::default()
+            });
+            // Row 0 sees node 0 (patches 0 and 1), row 1 sees patch 0.
+            replace(&mut a, u32s(arrays::FF_COL, &[2], &[2, 0]));
+            a.push(u32s(arrays::TREE_PERM, &[2], perm));
+            a.push(u32s(arrays::TREE_RANGE, &[1, 2], range));
+            (m, a)
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        let (m, a) = hierarchical(&[1, 0], &[0, 2]);
+        write(tmp.path(), m, &a);
+        let b = Bundle::open(tmp.path()).unwrap();
+        let t = b.tree().unwrap();
+        assert_eq!((t.perm, t.range), (&[1u32, 0][..], &[[0u32, 2]][..]));
+        assert_eq!(b.form_factors().n_cols(), 3);
+        let (m, a) = hierarchical(&[1, 1], &[0, 2]);
+        assert_eq!(
+            open_err(m, &a),
+            "tree_perm.u32: patch 1 appears twice (not a permutation)"
+        );
+        let (m, a) = hierarchical(&[0, 1], &[1, 2]);
+        assert_eq!(
+            open_err(m, &a),
+            "tree_range.u32: node 0 covers [1, 2): expected at least two patches within 0..2"
+        );
+        // Without the hierarchy the column past N is out of range.
+        let (mut m, a) = hierarchical(&[0, 1], &[0, 2]);
+        m.hierarchy = None;
+        assert!(open_err(m, &a).contains("out of range"));
     }
 }

@@ -357,7 +357,15 @@ fn solve_both(ctx: &GpuContext, sys: &System, seed: u64) -> (usize, usize) {
     assert!(gs.readbacks < gs.stats.iterations, "{gs:?}");
     for method in [Method::Jacobi, Method::BiCgStab] {
         let p = SolveParams { method, ..params };
-        let (cb, cs) = solve(&f, &SparseScatter(s), &be, &e, &p, None).unwrap();
+        let (cb, cs) = solve(
+            &translux_engine::transport::Transport::dense(f),
+            &SparseScatter(s),
+            &be,
+            &e,
+            &p,
+            None,
+        )
+        .unwrap();
         assert!(cs.converged, "{cs:?}");
         assert_close(&format!("GPU Jacobi vs CPU {method:?}"), &gb, &cb, 1e-4);
     }

@@ -3,6 +3,7 @@
 //! lights, batching, and the errors for what cannot be done.
 
 use std::path::{Path, PathBuf};
+use translux_engine::transport::Transport;
 
 use translux_engine::radiosity::Rgb;
 use translux_engine::relight::{self, RelightOutput, RelightPlan};
@@ -359,7 +360,7 @@ fn the_server_solve_equals_the_library_solve() {
         .irradiance(&b.manifest().lights)
         .unwrap();
     let (x, st) = radiosity::solve(
-        &b.form_factors(),
+        &Transport::of(b),
         &SparseScatter(b.subsurface()),
         b.patch_emission(),
         &e,

@@ -8,9 +8,13 @@
 //! box), written as OBJ files and a scene file.
 
 //!
+//! [`compare`]: hierarchical F against dense F on one scene (relit vertices, lit and
+//! shadowed apart; the operator on test fields).
+//!
 //! [`architecture`]: checks that crate dependencies point one way and that no crate has a
 //! module cycle.
 
 pub mod architecture;
+pub mod compare;
 pub mod mitsuba;
 pub mod rooms;

@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
+use translux_engine::transport::Transport;
 
 use glam::Vec3;
 use reqwest::StatusCode;
@@ -211,7 +212,7 @@ fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb>
     let (albedo, emission) = (bundle.patch_albedo(), bundle.patch_emission());
     let b = if interreflection {
         let (b, stats) = solve(
-            &bundle.form_factors(),
+            &Transport::of(bundle),
             &SparseScatter(bundle.subsurface()),
             emission,
             &e,
@@ -494,7 +495,7 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
         .unwrap();
     let e = direct(&bundle, &bundle.manifest().lights);
     let (b, stats) = solve(
-        &bundle.form_factors(),
+        &Transport::of(&bundle),
         &SparseScatter(sv),
         bundle.patch_emission(),
         &e,

@@ -1,0 +1,289 @@
+//! The form-factor operator the solvers apply: y = F x.
+//!
+//! In: a bundle's F arrays — dense (one entry per visible patch pair) or hierarchical (C over
+//! patches and cluster nodes, with the cluster tree, see
+//! [`translux_proto::bundle::Manifest::hierarchy`]). Out: products y = F x for any number of
+//! RGB systems, a Gauss-Seidel sweep's source values, F's row sums, and F written out
+//! densely where a dense factorisation needs it (the transfer matrix T).
+//!
+//! Hierarchical F̃ = C·P. P pulls the area-weighted mean of x over every cluster node. Each
+//! node covers a contiguous range of the tree's patch order, so one prefix sum of A x in that
+//! order gives every node's mean as a difference of two prefix values — O(N + M) per
+//! product, however deep the tree. The pulled vector x̄ = [x; P x] has N + M rows and C is an
+//! ordinary CSR matrix over it, so the CSR products serve both kinds unchanged.
+
+use rayon::prelude::*;
+use translux_proto::bundle::{Bundle, TreeView};
+use translux_proto::csr::{Csr, CsrView};
+
+use crate::linalg::Rgb;
+
+/// F as the solvers see it: a dense CSR matrix, or C with the tree P pulls over.
+#[derive(Debug, Clone, Copy)]
+pub struct Transport<'a> {
+    f: CsrView<'a>,
+    tree: Option<Tree<'a>>,
+}
+
+/// The cluster tree with the patch areas its means are weighted by.
+#[derive(Debug, Clone, Copy)]
+struct Tree<'a> {
+    view: TreeView<'a>,
+    area: &'a [f32],
+}
+
+/// Scratch space of [`Transport::apply_multi`]: the pulled vector and the prefix sums (kept
+/// between products so a solve allocates them once).
+#[derive(Debug, Default)]
+pub struct Pulled {
+    /// x̄ = [x; P x], `(N + M) × ch`.
+    pub values: Vec<f32>,
+    prefix: Vec<f64>,
+}
+
+impl<'a> Transport<'a> {
+    /// A dense F (`N × N`).
+    pub fn dense(f: CsrView<'a>) -> Self {
+        assert_eq!(f.n_rows(), f.n_cols(), "a dense F is square");
+        Self { f, tree: None }
+    }
+
+    /// A hierarchical F̃ = C·P: `c` is `N × (N + M)` over the patches then the nodes of
+    /// `tree`, whose means are weighted by `area` (`[N]`). The bundle loader has checked
+    /// that the tree's permutation and ranges are valid; the shapes are checked here.
+    pub fn hierarchical(c: CsrView<'a>, tree: TreeView<'a>, area: &'a [f32]) -> Self {
+        let n = c.n_rows();
+        assert_eq!(tree.perm.len(), n, "the tree orders every patch");
+        assert_eq!(area.len(), n, "an area per patch");
+        assert_eq!(
+            c.n_cols(),
+            n + tree.range.len(),
+            "C's columns: patches, then nodes"
+        );
+        Self {
+            f: c,
+            tree: Some(Tree { view: tree, area }),
+        }
+    }
+
+    /// The F a bundle holds, dense or hierarchical.
+    pub fn of(b: &'a Bundle) -> Self {
+        match b.tree() {
+            Some(t) => Self::hierarchical(b.form_factors(), t, b.patch_areas()),
+            None => Self::dense(b.form_factors()),
+        }
+    }
+
+    /// Patches N (rows of F).
+    pub fn n(&self) -> usize {
+        self.f.n_rows()
+    }
+
+    /// Cluster nodes M (0 for a dense F).
+    pub fn nodes(&self) -> usize {
+        self.f.n_cols() - self.n()
+    }
+
+    /// Whether F is hierarchical.
+    pub fn is_hierarchical(&self) -> bool {
+        self.tree.is_some()
+    }
+
+    /// The stored matrix: F itself, or C (whose columns past N are nodes).
+    pub fn matrix(&self) -> &CsrView<'a> {
+        &self.f
+    }
+
+    /// Stored entries.
+    pub fn nnz(&self) -> usize {
+        self.f.nnz()
+    }
+
+    /// Fills `out.values` with x̄ = [x; P x] for `ch` channels per patch (`x` is `N × ch`).
+    pub fn pull(&self, x: &[f32], ch: usize, out: &mut Pulled) {
+        let n = self.n();
+        let m = self.nodes();
+        out.values.resize((n + m) * ch, 0.0);
+        out.values[..n * ch].copy_from_slice(&x[..n * ch]);
+        let Some(t) = &self.tree else {
+            return;
+        };
+        // prefix[k] = Σ_{q<k} (A, A x) of the patches in tree order; one extra column for
+        // the area itself, so each node's mean is a ratio of two differences.
+        let w = ch + 1;
+        out.prefix.resize((n + 1) * w, 0.0);
+        out.prefix[..w].fill(0.0);
+        for (k, &p) in t.view.perm.iter().enumerate() {
+            let (p, a) = (p as usize, t.area[p as usize] as f64);
+            let (head, tail) = out.prefix.split_at_mut((k + 1) * w);
+            let prev = &head[k * w..];
+            let next = &mut tail[..w];
+            next[0] = prev[0] + a;
+            for c in 0..ch {
+                next[c + 1] = prev[c + 1] + a * x[p * ch + c] as f64;
+            }
+        }
+        let prefix = &out.prefix;
+        out.values[n * ch..]
+            .par_chunks_mut(ch)
+            .with_min_len(256)
+            .zip(t.view.range.par_iter())
+            .for_each(|(v, r)| {
+                let (a, b) = (&prefix[r[0] as usize * w..], &prefix[r[1] as usize * w..]);
+                let area = b[0] - a[0];
+                for c in 0..ch {
+                    v[c] = ((b[c + 1] - a[c + 1]) / area) as f32;
+                }
+            });
+    }
+
+    /// y = F x for `ch` channels per patch: one pass over the stored matrix serves every
+    /// channel. `scratch` is reused between calls.
+    pub fn apply_multi(&self, x: &[f32], y: &mut [f32], ch: usize, scratch: &mut Pulled) {
+        if self.tree.is_none() {
+            crate::solver::spmv_multi(&self.f, x, y, ch);
+            return;
+        }
+        self.pull(x, ch, scratch);
+        crate::solver::spmv_multi(&self.f, &scratch.values, y, ch);
+    }
+
+    /// y = F x for one RGB vector.
+    pub fn apply_rgb(&self, x: &[Rgb], y: &mut [Rgb]) {
+        self.apply_multi(
+            bytemuck::cast_slice(x),
+            bytemuck::cast_slice_mut(y),
+            3,
+            &mut Pulled::default(),
+        );
+    }
+
+    /// Σ_j F_ij per row (P keeps constants, so these are C's row sums).
+    pub fn row_sums(&self) -> Vec<f64> {
+        (0..self.n())
+            .into_par_iter()
+            .map(|i| self.f.row(i).1.iter().map(|&v| v as f64).sum())
+            .collect()
+    }
+
+    /// F as an `N × N` CSR matrix: C·P multiplied out (each node entry spread over the
+    /// node's patches by area). For a dense F, a copy. Costs O(N²) memory at worst: only
+    /// for what a dense factorisation needs anyway (the transfer matrix T).
+    pub fn expand(&self) -> Csr {
+        let n = self.n();
+        let rows: Vec<(Vec<u32>, Vec<f32>)> = (0..n)
+            .into_par_iter()
+            .map_init(
+                || vec![0.0f64; n],
+                |acc, i| {
+                    let (cols, vals) = self.f.row(i);
+                    for (&j, &v) in cols.iter().zip(vals) {
+                        let j = j as usize;
+                        match &self.tree {
+                            Some(t) if j >= n => {
+                                let r = t.view.range[j - n];
+                                let patches = &t.view.perm[r[0] as usize..r[1] as usize];
+                                let area: f64 =
+                                    patches.iter().map(|&p| t.area[p as usize] as f64).sum();
+                                for &p in patches {
+                                    acc[p as usize] += v as f64 * t.area[p as usize] as f64 / area;
+                                }
+                            }
+                            _ => acc[j] += v as f64,
+                        }
+                    }
+                    let (mut c, mut w) = (Vec::new(), Vec::new());
+                    for (j, a) in acc.iter_mut().enumerate() {
+                        if *a != 0.0 {
+                            c.push(j as u32);
+                            w.push(*a as f32);
+                            *a = 0.0;
+                        }
+                    }
+                    (c, w)
+                },
+            )
+            .collect();
+        let mut out = Csr {
+            n_rows: n,
+            n_cols: n,
+            row_ptr: Vec::with_capacity(n + 1),
+            col: Vec::new(),
+            val: Vec::new(),
+        };
+        out.row_ptr.push(0);
+        for (c, w) in rows {
+            out.col.extend(c);
+            out.val.extend(w);
+            out.row_ptr.push(out.col.len() as u64);
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Four patches, two nodes: {0, 2} and {0, 1, 2, 3}, perm [2, 0, 3, 1].
+    fn fixture() -> (Vec<u32>, Vec<[u32; 2]>, Vec<f32>, Csr) {
+        let perm = vec![2, 0, 3, 1];
+        let range = vec![[0, 2], [0, 4]];
+        let area = vec![1.0, 2.0, 3.0, 4.0];
+        // Row 0: 0.5·node0; row 1: 0.25·patch 0 + 0.5·node1; rows 2, 3: 0.1·node1.
+        let c = Csr {
+            n_rows: 4,
+            n_cols: 6,
+            row_ptr: vec![0, 1, 3, 4, 5],
+            col: vec![4, 0, 5, 5, 5],
+            val: vec![0.5, 0.25, 0.5, 0.1, 0.1],
+        };
+        (perm, range, area, c)
+    }
+
+    #[test]
+    fn the_pull_is_the_area_weighted_mean_and_expand_agrees_with_apply() {
+        let (perm, range, area, c) = fixture();
+        let view = c.view().unwrap();
+        let t = Transport::hierarchical(
+            view,
+            TreeView {
+                perm: &perm,
+                range: &range,
+            },
+            &area,
+        );
+        assert_eq!((t.n(), t.nodes()), (4, 2));
+        let x: Vec<Rgb> = vec![
+            [1.0, 0.0, 2.0],
+            [2.0, 1.0, 0.0],
+            [3.0, 0.0, 1.0],
+            [4.0, 2.0, 0.0],
+        ];
+        let mut pulled = Pulled::default();
+        t.pull(bytemuck::cast_slice(&x), 3, &mut pulled);
+        // Node 0 = patches {2, 0}: (3·3 + 1·1)/4 = 2.5 in red.
+        assert!((pulled.values[4 * 3] - 2.5).abs() < 1e-6);
+        // Node 1 = all: (1 + 4 + 9 + 16)/10 = 3 in red, (2 + 8)/10 = 1 in green.
+        assert!((pulled.values[5 * 3] - 3.0).abs() < 1e-6);
+        assert!((pulled.values[5 * 3 + 1] - 1.0).abs() < 1e-6);
+        let mut y = vec![[0.0f32; 3]; 4];
+        t.apply_rgb(&x, &mut y);
+        let dense = t.expand();
+        let d = Transport::dense(dense.view().unwrap());
+        let mut yd = vec![[0.0f32; 3]; 4];
+        d.apply_rgb(&x, &mut yd);
+        for (a, b) in y.iter().zip(&yd) {
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() < 1e-6, "{y:?} vs {yd:?}");
+            }
+        }
+        // A constant is transported by the row sums.
+        let sums = t.row_sums();
+        t.apply_rgb(&[[1.0; 3]; 4], &mut y);
+        for (s, yi) in sums.iter().zip(&y) {
+            assert!((*s as f32 - yi[0]).abs() < 1e-6);
+        }
+        assert_eq!(dense.row_ptr, vec![0, 2, 6, 10, 14]);
+    }
+}

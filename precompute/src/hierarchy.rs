@@ -1,0 +1,720 @@
+//! Hierarchical form factors: a cluster tree over the patches and, per receiver patch, a
+//! light-independent cut through it (the paper's future work, after Hanrahan et al. 1991
+//! and Willmott et al.'s face clusters 1999; see `docs/hierarchy.md`).
+//!
+//! In: [`Patches`], an [`Occluder`] over the scene, [`HierarchyParams`] and the leaf rule of
+//! [`crate::formfactor`]. Out: [`Hierarchical`]: C (rows: patches; columns: patches `0..N`,
+//! then cluster nodes `N..N+M`), the tree (patches in tree order and each node's range of
+//! that order), and the summaries. `translux_engine::transport` applies F̃ = C·P, P being the
+//! area-weighted mean of each node's patches.
+//!
+//! The tree: objects are split apart first (a median split of the object centres, so the top
+//! of the tree is a BVH over objects); within an object a node whose normal cone is wide is
+//! split by normal (the two sides of a thin wall part there), else at the median of the
+//! patch centroids along the longest axis. Leaves are the patches.
+//!
+//! The cut for receiver i at x (its centroid, normal nᵢ), from the root down:
+//! - a node entirely behind nᵢ's plane, or whose every face turns away from x (normal cone and
+//!   bounding sphere), is culled;
+//! - a node s is linked when R_s ≤ η d (η = [`HierarchyParams::accuracy`], d the distance
+//!   from x to its centre), d ≥ `near_factor` × patch i's size, s lies wholly in front of
+//!   x's plane, its normal cone is at most [`HierarchyParams::cone_deg`] wide and every face
+//!   faces x, and the shadow rays to its sample points all agree. The coefficient is
+//!   Σₖ wₖ F(x → qₖ) / A_qₖ · Vₖ over area-stratified patches qₖ of s (weights A_s/m, or
+//!   each patch's area when s has at most m patches), the kernel's mean over each sampled
+//!   patch taken exactly (point-to-polygon): a radiosity constant over s is moved exactly as
+//!   far as the samples resolve the kernel;
+//! - otherwise its children are visited; two patches use the dense code's pair rule (exact
+//!   point-to-polygon, sub-sampled when near). Nothing depends on a light.
+
+use std::f32::consts::{FRAC_PI_2, PI};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use glam::Vec3;
+use rayon::prelude::*;
+use translux_engine::raycast::Occluder;
+use translux_proto::bundle::{FormFactorInfo, HierarchyInfo};
+use translux_proto::csr::Csr;
+
+use crate::formfactor::{FormFactorParams, any_in_front, pair, point_to_polygon};
+use crate::patch::Patches;
+
+/// The accuracy parameters a precompute accepts ([`HierarchyParams::check`]).
+pub const ACCURACY_RANGE: std::ops::RangeInclusive<f32> = 0.02..=1.0;
+
+/// Parameters of [`compute`], with the defaults documented on each field.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HierarchyParams {
+    /// η: a node of bounding radius R is linked whole to a receiver only from a distance of
+    /// at least R/η; it bounds the angle a linked cluster subtends (about 2η radians) and so
+    /// the kernel's variation over it. Smaller is more accurate and stores more. Default
+    /// 0.25; accepted 0.02 to 1.
+    pub accuracy: f32,
+    /// Points of a linked node (one shadow ray each; their agreement is the visibility test).
+    /// Default 8.
+    pub node_samples: u32,
+    /// Widest normal cone (full angle, degrees) a linked node may have. Default 60.
+    pub cone_deg: f32,
+}
+
+impl Default for HierarchyParams {
+    fn default() -> Self {
+        Self {
+            accuracy: 0.25,
+            node_samples: 8,
+            cone_deg: 60.0,
+        }
+    }
+}
+
+impl HierarchyParams {
+    /// Refuses values outside the documented ranges, naming the parameter.
+    pub fn check(&self) -> Result<(), String> {
+        if !(self.accuracy.is_finite() && ACCURACY_RANGE.contains(&self.accuracy)) {
+            return Err(format!(
+                "--accuracy must be in [{}, {}] (the largest cluster radius over distance a \
+                 link may have), got {}",
+                ACCURACY_RANGE.start(),
+                ACCURACY_RANGE.end(),
+                self.accuracy
+            ));
+        }
+        if !(1..=64).contains(&self.node_samples) {
+            return Err(format!(
+                "node samples must be in [1, 64], got {}",
+                self.node_samples
+            ));
+        }
+        if !(self.cone_deg.is_finite() && (0.0..=180.0).contains(&self.cone_deg)) {
+            return Err(format!(
+                "the node cone must be in [0, 180] degrees, got {}",
+                self.cone_deg
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A child of a tree node.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Child {
+    Node(u32),
+    Patch(u32),
+}
+
+/// One cluster node.
+#[derive(Debug, Clone, Copy)]
+struct Node {
+    /// Range of the tree order it covers.
+    range: [u32; 2],
+    area: f64,
+    /// Bounding sphere of its patches' corners.
+    center: Vec3,
+    radius: f32,
+    /// Bounding box of its patches' corners: centre and half extent.
+    box_center: Vec3,
+    box_half: Vec3,
+    /// Least and greatest axis · corner over its corners (its extent along the cone axis).
+    plane_min: f32,
+    plane_max: f32,
+    /// Normal cone: area-weighted mean normal and the largest angle to it (π when the
+    /// normals cancel).
+    axis: Vec3,
+    cone: f32,
+    children: [Child; 2],
+}
+
+/// The cluster tree over the patches.
+#[derive(Debug)]
+pub struct ClusterTree {
+    /// Patches in tree order.
+    pub perm: Vec<u32>,
+    nodes: Vec<Node>,
+    root: Child,
+    /// Σ area of the patches before each position of the tree order (N + 1 values).
+    area_prefix: Vec<f64>,
+    pub depth: u32,
+}
+
+impl ClusterTree {
+    /// Builds the tree (see the module docs).
+    pub fn build(p: &Patches) -> Self {
+        let n = p.len();
+        let mut perm: Vec<u32> = (0..n as u32).collect();
+        let centers = object_centers(p);
+        let mut b = Builder {
+            p,
+            centers: &centers,
+            nodes: Vec::with_capacity(n.saturating_sub(1)),
+            depth: 0,
+        };
+        let root = if n == 0 {
+            Child::Patch(0)
+        } else {
+            b.build(&mut perm, 0, 0)
+        };
+        let (nodes, depth) = (b.nodes, b.depth);
+        let mut area_prefix = Vec::with_capacity(n + 1);
+        area_prefix.push(0.0);
+        let mut acc = 0.0f64;
+        for &q in &perm {
+            acc += p.area[q as usize] as f64;
+            area_prefix.push(acc);
+        }
+        Self {
+            perm,
+            nodes,
+            root,
+            area_prefix,
+            depth,
+        }
+    }
+
+    /// Cluster nodes (internal nodes; the leaves are the patches).
+    pub fn node_count(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Each node's range of [`ClusterTree::perm`].
+    pub fn ranges(&self) -> Vec<[u32; 2]> {
+        self.nodes.iter().map(|n| n.range).collect()
+    }
+}
+
+/// Area-weighted centre of each object's patches.
+fn object_centers(p: &Patches) -> Vec<Vec3> {
+    p.object_ranges
+        .iter()
+        .map(|r| {
+            let (mut c, mut a) = (Vec3::ZERO, 0.0f32);
+            for k in r.clone() {
+                c += p.centroid[k] * p.area[k];
+                a += p.area[k];
+            }
+            if a > 0.0 { c / a } else { c }
+        })
+        .collect()
+}
+
+struct Builder<'a> {
+    p: &'a Patches,
+    centers: &'a [Vec3],
+    nodes: Vec<Node>,
+    depth: u32,
+}
+
+/// Normal cones wider than this (full angle) are split by normal before position.
+const SPLIT_BY_NORMAL_DEG: f32 = 90.0;
+
+impl Builder<'_> {
+    /// The subtree over `perm` (which starts at `offset` of the tree order).
+    fn build(&mut self, perm: &mut [u32], offset: u32, depth: u32) -> Child {
+        if perm.len() == 1 {
+            return Child::Patch(perm[0]);
+        }
+        self.depth = self.depth.max(depth);
+        let p = self.p;
+        let at = self.nodes.len();
+        // Bounds, area and normal cone.
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        let (mut area, mut sum_n) = (0.0f64, Vec3::ZERO);
+        for &q in perm.iter() {
+            let q = q as usize;
+            for c in &p.corners[q] {
+                lo = lo.min(*c);
+                hi = hi.max(*c);
+            }
+            area += p.area[q] as f64;
+            sum_n += p.normal[q] * p.area[q];
+        }
+        let center = (lo + hi) * 0.5;
+        let mut radius = 0.0f32;
+        let (axis, mut cone) = if sum_n.length() > 1e-6 * area as f32 {
+            (sum_n.normalize(), 0.0f32)
+        } else {
+            (Vec3::Y, PI)
+        };
+        let (mut plane_min, mut plane_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        for &q in perm.iter() {
+            let q = q as usize;
+            for c in &p.corners[q] {
+                radius = radius.max(c.distance(center));
+                plane_min = plane_min.min(axis.dot(*c));
+                plane_max = plane_max.max(axis.dot(*c));
+            }
+            if cone < PI {
+                cone = cone.max(axis.dot(p.normal[q]).clamp(-1.0, 1.0).acos());
+            }
+        }
+        self.nodes.push(Node {
+            range: [offset, offset + perm.len() as u32],
+            area,
+            center,
+            radius,
+            box_center: center,
+            box_half: (hi - lo) * 0.5,
+            plane_min,
+            plane_max,
+            axis,
+            cone,
+            children: [Child::Patch(0); 2],
+        });
+        let mid = self.split(perm, cone);
+        let (left, right) = perm.split_at_mut(mid);
+        let a = self.build(left, offset, depth + 1);
+        let b = self.build(right, offset + mid as u32, depth + 1);
+        self.nodes[at].children = [a, b];
+        Child::Node(at as u32)
+    }
+
+    /// Reorders `perm` and returns where the two children part (0 < mid < len).
+    fn split(&self, perm: &mut [u32], cone: f32) -> usize {
+        let p = self.p;
+        let len = perm.len();
+        // 1. Several objects: by object, at the object boundary nearest the middle.
+        let first = p.object[perm[0] as usize];
+        if perm.iter().any(|&q| p.object[q as usize] != first) {
+            let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+            for &q in perm.iter() {
+                let c = self.centers[p.object[q as usize] as usize];
+                lo = lo.min(c);
+                hi = hi.max(c);
+            }
+            let axis = longest_axis(hi - lo);
+            let key = |q: &u32| {
+                let o = p.object[*q as usize];
+                (self.centers[o as usize][axis], o)
+            };
+            perm.sort_by(|a, b| {
+                let (ka, kb) = (key(a), key(b));
+                ka.0.total_cmp(&kb.0).then(ka.1.cmp(&kb.1))
+            });
+            let mut best = 0usize;
+            for k in 1..len {
+                if p.object[perm[k] as usize] != p.object[perm[k - 1] as usize]
+                    && (best == 0 || k.abs_diff(len / 2) < best.abs_diff(len / 2))
+                {
+                    best = k;
+                }
+            }
+            return best;
+        }
+        // 2. A wide normal cone: by normal, at the middle of the normals' extent along the
+        //    axis where they spread most (opposite sides of a wall part exactly).
+        if cone.to_degrees() * 2.0 > SPLIT_BY_NORMAL_DEG {
+            let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+            for &q in perm.iter() {
+                lo = lo.min(p.normal[q as usize]);
+                hi = hi.max(p.normal[q as usize]);
+            }
+            let axis = longest_axis(hi - lo);
+            let t = 0.5 * (lo[axis] + hi[axis]);
+            perm.sort_by(|a, b| {
+                p.normal[*a as usize][axis].total_cmp(&p.normal[*b as usize][axis])
+            });
+            let mid = perm.partition_point(|&q| p.normal[q as usize][axis] < t);
+            if mid > 0 && mid < len {
+                return mid;
+            }
+        }
+        // 3. By position: the median centroid along the longest axis.
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for &q in perm.iter() {
+            lo = lo.min(p.centroid[q as usize]);
+            hi = hi.max(p.centroid[q as usize]);
+        }
+        let axis = longest_axis(hi - lo);
+        let mid = len / 2;
+        perm.select_nth_unstable_by(mid, |a, b| {
+            p.centroid[*a as usize][axis].total_cmp(&p.centroid[*b as usize][axis])
+        });
+        mid
+    }
+}
+
+fn longest_axis(e: Vec3) -> usize {
+    if e.x >= e.y && e.x >= e.z {
+        0
+    } else if e.y >= e.z {
+        1
+    } else {
+        2
+    }
+}
+
+/// What [`compute`] made.
+#[derive(Debug)]
+pub struct Hierarchical {
+    /// C: `N × (N + M)`.
+    pub c: Csr,
+    pub tree: ClusterTree,
+    pub info: HierarchyInfo,
+    pub ff_info: FormFactorInfo,
+}
+
+/// Builds the tree and every receiver's cut. `progress` is called with the number of rows
+/// finished since its last call; once `stop()` returns `true` the rows not yet started are
+/// skipped (the result must then be thrown away).
+pub fn compute(
+    p: &Patches,
+    occ: &Occluder,
+    ff: &FormFactorParams,
+    params: &HierarchyParams,
+    progress: &(dyn Fn(u64) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Hierarchical {
+    let n = p.len();
+    let tree = ClusterTree::build(p);
+    let diag = occ.diagonal();
+    let ctx = Cut {
+        p,
+        occ,
+        ff,
+        tree: &tree,
+        eta: params.accuracy,
+        m: params.node_samples as usize,
+        half_cone: (params.cone_deg * 0.5).to_radians(),
+        eps_plane: 1e-6 * diag,
+        offset: 1e-5 * diag,
+    };
+    let rays = AtomicU64::new(0);
+    let tests = AtomicU64::new(0);
+    let rows: Vec<(Vec<(u32, f32)>, RowStats)> = (0..n)
+        .into_par_iter()
+        .with_min_len(4)
+        .map_init(Vec::new, |samples, i| {
+            if stop() {
+                return Default::default();
+            }
+            let r = ctx.row(i, samples);
+            rays.fetch_add(r.1.rays, Ordering::Relaxed);
+            tests.fetch_add(r.1.tests, Ordering::Relaxed);
+            progress(1);
+            r
+        })
+        .collect();
+
+    let mut c = Csr {
+        n_rows: n,
+        n_cols: n + tree.node_count(),
+        row_ptr: Vec::with_capacity(n + 1),
+        col: Vec::new(),
+        val: Vec::new(),
+    };
+    c.row_ptr.push(0);
+    let (mut node_entries, mut patch_entries, mut dense_equivalent) = (0u64, 0u64, 0u64);
+    let mut sums = Vec::with_capacity(n);
+    for (row, stats) in rows {
+        node_entries += stats.node_entries;
+        patch_entries += stats.patch_entries;
+        dense_equivalent += stats.covered;
+        sums.push(row.iter().map(|e| e.1 as f64).sum::<f64>());
+        for (j, v) in row {
+            c.col.push(j);
+            c.val.push(v);
+        }
+        c.row_ptr.push(c.col.len() as u64);
+    }
+    let ff_info = FormFactorInfo {
+        nnz: c.col.len() as u64,
+        threshold: 0.0,
+        dropped_energy: 0.0,
+        row_sum_mean: if n > 0 {
+            sums.iter().sum::<f64>() / n as f64
+        } else {
+            0.0
+        },
+        row_sum_min: sums
+            .iter()
+            .cloned()
+            .fold(f64::INFINITY, f64::min)
+            .min(f64::MAX),
+        row_sum_max: sums.iter().cloned().fold(0.0, f64::max),
+        rays: rays.into_inner(),
+        pairs: tests.into_inner(),
+    };
+    let info = HierarchyInfo {
+        nodes: tree.node_count() as u64,
+        depth: tree.depth,
+        accuracy: params.accuracy,
+        node_samples: params.node_samples,
+        node_entries,
+        patch_entries,
+        dense_equivalent,
+    };
+    Hierarchical {
+        c,
+        tree,
+        info,
+        ff_info,
+    }
+}
+
+/// Counts of one receiver's cut.
+#[derive(Debug, Default, Clone, Copy)]
+struct RowStats {
+    rays: u64,
+    /// Nodes and patch pairs examined.
+    tests: u64,
+    node_entries: u64,
+    patch_entries: u64,
+    /// Patches behind the row's entries (what dense F would store, visibility aside).
+    covered: u64,
+}
+
+struct Cut<'a> {
+    p: &'a Patches,
+    occ: &'a Occluder,
+    ff: &'a FormFactorParams,
+    tree: &'a ClusterTree,
+    eta: f32,
+    m: usize,
+    half_cone: f32,
+    eps_plane: f32,
+    offset: f32,
+}
+
+impl Cut<'_> {
+    /// Receiver i's entries, sorted by column, and its counts.
+    fn row(&self, i: usize, samples: &mut Vec<Vec3>) -> (Vec<(u32, f32)>, RowStats) {
+        let p = self.p;
+        let n = p.len();
+        let (x, ni, corners_i) = (p.centroid[i], p.normal[i], &p.corners[i]);
+        let near = self.ff.near_factor * p.size[i];
+        let mut st = RowStats::default();
+        let mut out = Vec::new();
+        let mut stack = vec![self.tree.root];
+        while let Some(child) = stack.pop() {
+            st.tests += 1;
+            let k = match child {
+                Child::Patch(j) => {
+                    let j = j as usize;
+                    if j == i
+                        || !any_in_front(&p.corners[j], x, ni, self.eps_plane)
+                        || !any_in_front(corners_i, p.centroid[j], p.normal[j], self.eps_plane)
+                    {
+                        continue;
+                    }
+                    if let Some((f, _)) = pair(
+                        p,
+                        self.occ,
+                        self.ff,
+                        self.offset,
+                        i,
+                        j,
+                        samples,
+                        &mut st.rays,
+                    ) {
+                        out.push((j as u32, f));
+                        st.patch_entries += 1;
+                        st.covered += 1;
+                    }
+                    continue;
+                }
+                Child::Node(k) => k as usize,
+            };
+            let s = &self.tree.nodes[k];
+            let to = s.center - x;
+            let d = to.length();
+            // The node's extent in front of the receiver's plane (box and sphere bounds).
+            let reach = ni.abs().dot(s.box_half).min(s.radius);
+            let front = ni.dot(s.box_center - x);
+            // Wholly behind (or in) the receiver's plane: nothing of it is seen.
+            if front + reach <= self.eps_plane {
+                continue;
+            }
+            // x against the node's faces: every face turned away from x, or every face
+            // towards it. By the normal cone and the sphere (the axis more than 90° + cone +
+            // the sphere's half-angle from the direction to x), or, for a narrow cone, by
+            // the node's extent along its axis.
+            let (facing, beta) = if d > s.radius {
+                let theta = s.axis.dot(-to / d).clamp(-1.0, 1.0).acos();
+                (theta, (s.radius / d).asin())
+            } else {
+                (0.0, FRAC_PI_2)
+            };
+            let slack = if s.cone < FRAC_PI_2 {
+                s.cone.sin() * (d + s.radius) + self.eps_plane
+            } else {
+                f32::INFINITY
+            };
+            let height = s.axis.dot(x);
+            if (s.cone < PI && facing > FRAC_PI_2 + s.cone + beta)
+                || s.plane_min - height > slack
+                || (s.cone == 0.0 && height - s.plane_min <= self.eps_plane)
+            {
+                continue;
+            }
+            let faces_x = facing + s.cone + beta < FRAC_PI_2 || height - s.plane_max > slack;
+            let linkable = s.radius <= self.eta * d
+                && d >= near
+                && front - reach >= -self.eps_plane
+                && s.cone <= self.half_cone
+                && faces_x;
+            if linkable && let Some(v) = self.link(x, ni, s, &mut st.rays) {
+                if v > 0.0 {
+                    out.push(((n + k) as u32, v));
+                    st.node_entries += 1;
+                    st.covered += u64::from(s.range[1] - s.range[0]);
+                }
+                continue;
+            }
+            stack.extend_from_slice(&s.children);
+        }
+        out.sort_unstable_by_key(|e| e.0);
+        (out, st)
+    }
+
+    /// The coefficient of node s for a receiver at x, or `None` when its sample points
+    /// disagree about visibility (then the caller descends).
+    fn link(&self, x: Vec3, ni: Vec3, s: &Node, rays: &mut u64) -> Option<f32> {
+        let p = self.p;
+        let t = self.tree;
+        let (a, b) = (s.range[0] as usize, s.range[1] as usize);
+        let from = x + ni * self.offset;
+        let (mut seen, mut hidden) = (0u32, 0u32);
+        let mut sum = 0.0f64;
+        // Each sample is a patch q of s: its exact point-to-polygon form factor F(x → q)
+        // over its area is the kernel's mean over q; weighted by w it estimates s's share.
+        let mut sample = |q: usize, w: f64| {
+            let y = p.centroid[q];
+            let ny = p.normal[q];
+            if ny.dot(x - y) <= 0.0 || ni.dot(y - x) <= 0.0 {
+                return;
+            }
+            *rays += 1;
+            if self.occ.occluded(from, y + ny * self.offset) {
+                hidden += 1;
+            } else {
+                seen += 1;
+                let f = point_to_polygon(x, ni, &p.corners[q]) as f64;
+                sum += w * f / p.area[q] as f64;
+            }
+        };
+        if b - a <= self.m {
+            for &q in &t.perm[a..b] {
+                sample(q as usize, p.area[q as usize] as f64);
+            }
+        } else {
+            // Area-stratified: the patch at the middle of each of m equal shares of the area.
+            let w = s.area / self.m as f64;
+            let base = t.area_prefix[a];
+            for k in 0..self.m {
+                let target = base + (k as f64 + 0.5) * w;
+                let at = a + t.area_prefix[a + 1..=b].partition_point(|&c| c <= target);
+                sample(t.perm[at.min(b - 1)] as usize, w);
+            }
+        }
+        if seen > 0 && hidden > 0 {
+            return None;
+        }
+        Some(sum as f32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::patch;
+
+    /// Two triangles wound a, d, c, b (the walls below are listed outward-wound).
+    fn quad(a: Vec3, b: Vec3, c: Vec3, d: Vec3) -> Vec<[Vec3; 3]> {
+        vec![[a, d, c], [a, c, b]]
+    }
+
+    /// A closed unit box seen from inside (inward normals), split into `h`-sized patches.
+    fn closed_box(h: f32) -> Patches {
+        let v = |x: f32, y: f32, z: f32| Vec3::new(x, y, z);
+        let walls: Vec<Vec<[Vec3; 3]>> = vec![
+            quad(v(0., 0., 0.), v(1., 0., 0.), v(1., 0., 1.), v(0., 0., 1.)),
+            quad(v(0., 1., 0.), v(0., 1., 1.), v(1., 1., 1.), v(1., 1., 0.)),
+            quad(v(0., 0., 0.), v(0., 0., 1.), v(0., 1., 1.), v(0., 1., 0.)),
+            quad(v(1., 0., 0.), v(1., 1., 0.), v(1., 1., 1.), v(1., 0., 1.)),
+            quad(v(0., 0., 0.), v(0., 1., 0.), v(1., 1., 0.), v(1., 0., 0.)),
+            quad(v(0., 0., 1.), v(1., 0., 1.), v(1., 1., 1.), v(0., 1., 1.)),
+        ];
+        let sources: Vec<&[[Vec3; 3]]> = walls.iter().map(|w| w.as_slice()).collect();
+        patch::subdivide(&sources, h)
+    }
+
+    #[test]
+    fn the_tree_covers_every_patch_in_contiguous_ranges() {
+        let p = closed_box(0.2);
+        let t = ClusterTree::build(&p);
+        let n = p.len();
+        assert_eq!(t.node_count(), n - 1, "a binary tree with N leaves");
+        let mut sorted = t.perm.clone();
+        sorted.sort();
+        assert_eq!(sorted, (0..n as u32).collect::<Vec<_>>());
+        let root = &t.nodes[0];
+        assert_eq!(root.range, [0, n as u32]);
+        // Each node's range is the union of its children's.
+        for node in &t.nodes {
+            let span = |c: Child, at: u32| match c {
+                Child::Node(k) => t.nodes[k as usize].range,
+                Child::Patch(_) => [at, at + 1],
+            };
+            let l = span(node.children[0], node.range[0]);
+            let r = span(node.children[1], l[1]);
+            assert_eq!([l[0], r[1]], node.range);
+            if let Child::Patch(q) = node.children[0] {
+                assert_eq!(t.perm[node.range[0] as usize], q);
+            }
+        }
+        // Objects are apart: no node below the object level mixes walls.
+        for node in &t.nodes {
+            if node.cone < 1e-3 {
+                let o = p.object[t.perm[node.range[0] as usize] as usize];
+                assert!(
+                    t.perm[node.range[0] as usize..node.range[1] as usize]
+                        .iter()
+                        .all(|&q| p.object[q as usize] == o)
+                );
+            }
+        }
+    }
+
+    /// In a closed box every row of F sums to 1; the hierarchical rows too, within what
+    /// the node links' point sampling resolves.
+    #[test]
+    fn closed_box_rows_sum_to_one() {
+        let p = closed_box(0.1);
+        let tris: Vec<[Vec3; 3]> = p.corners.clone();
+        let occ = Occluder::new(&tris);
+        let h = compute(
+            &p,
+            &occ,
+            &FormFactorParams::default(),
+            &HierarchyParams::default(),
+            &|_| {},
+            &|| false,
+        );
+        assert!(h.info.node_entries > 0, "{:?}", h.info);
+        let n = p.len();
+        assert!(
+            (h.c.nnz() as f64) < 0.5 * (n * n) as f64,
+            "{} entries for {n} patches",
+            h.c.nnz()
+        );
+        let (lo, hi) = (h.ff_info.row_sum_min, h.ff_info.row_sum_max);
+        assert!(
+            (h.ff_info.row_sum_mean - 1.0).abs() < 0.01 && lo > 0.95 && hi < 1.05,
+            "{:?}",
+            h.ff_info
+        );
+    }
+
+    #[test]
+    fn out_of_range_parameters_are_refused() {
+        for accuracy in [0.0, -1.0, 1.5, f32::NAN] {
+            let e = HierarchyParams {
+                accuracy,
+                ..Default::default()
+            }
+            .check()
+            .unwrap_err();
+            assert!(e.starts_with("--accuracy must be in [0.02, 1]"), "{e}");
+        }
+        assert!(HierarchyParams::default().check().is_ok());
+    }
+}

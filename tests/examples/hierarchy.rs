@@ -1,0 +1,192 @@
+//! Hierarchical F against dense F on one scene, as a table (the numbers of issue #17).
+//!
+//! ```text
+//! cargo run --release -p translux-tests --example hierarchy -- \
+//!     [--scene builtin:cornell] [--patches 24640] [--accuracy 0.25,0.15] [--lights 16] \
+//!     [--samples 8] [--cone 60]
+//! ```
+//!
+//! Per transport: F precompute time, entries per patch, F's bytes, occlusion rays, relight
+//! time with the warm solver (CPU, this machine), and against the dense exact solve
+//! (residual 1e-7) with random point and spot lights: per-vertex relative error, median and
+//! 90th percentile, lit and shadowed vertices apart; the operator's error on a constant, a
+//! smooth random field and a cluster indicator; the largest row-sum difference.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use translux_engine::linalg::{Rgb, SparseScatter};
+use translux_engine::radiosity::{self, BundleLighting};
+use translux_engine::solver::SolveParams;
+use translux_engine::transport::Transport;
+use translux_precompute::hierarchy::HierarchyParams;
+use translux_precompute::pipeline::{FormFactorMethod, PrecomputeParams, precompute};
+use translux_proto::bundle::Bundle;
+use translux_proto::light::Light;
+use translux_tests::compare;
+
+struct Args {
+    scene: String,
+    patches: u64,
+    accuracy: Vec<f32>,
+    samples: u32,
+    cone: f32,
+    lights: usize,
+}
+
+fn args() -> anyhow::Result<Args> {
+    let mut a = Args {
+        scene: "builtin:cornell".into(),
+        patches: 24_640,
+        accuracy: vec![HierarchyParams::default().accuracy],
+        lights: 16,
+        samples: HierarchyParams::default().node_samples,
+        cone: HierarchyParams::default().cone_deg,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(k) = it.next() {
+        let mut v = || it.next().with_context(|| format!("{k} needs a value"));
+        match k.as_str() {
+            "--scene" => a.scene = v()?,
+            "--patches" => a.patches = v()?.parse()?,
+            "--lights" => a.lights = v()?.parse()?,
+            "--samples" => a.samples = v()?.parse()?,
+            "--cone" => a.cone = v()?.parse()?,
+            "--accuracy" => {
+                a.accuracy = v()?
+                    .split(',')
+                    .map(|s| s.trim().parse::<f32>())
+                    .collect::<Result<_, _>>()?
+            }
+            other => anyhow::bail!("unknown argument {other}"),
+        }
+    }
+    Ok(a)
+}
+
+/// Milliseconds per relight: direct light plus the solve at the server's default
+/// tolerance, warm-started from the previous answer, the light moving a little each time.
+fn relight_ms(b: &Bundle, lights: &[Light]) -> f64 {
+    let lighting = BundleLighting::new(b);
+    let f = Transport::of(b);
+    let s = SparseScatter(b.subsurface());
+    let params = SolveParams::default();
+    let mut warm: Option<Vec<Rgb>> = None;
+    let reps = 12;
+    let mut spent = 0.0;
+    for r in 0..reps + 2 {
+        let light = match &lights[0] {
+            Light::Point {
+                position,
+                intensity,
+            } => Light::Point {
+                position: [position[0] + 0.002 * r as f32, position[1], position[2]],
+                intensity: *intensity,
+            },
+            l => l.clone(),
+        };
+        let t = Instant::now();
+        let e = lighting.irradiance(&[light]).expect("point light");
+        let (x, _) = radiosity::solve(&f, &s, b.patch_emission(), &e, &params, warm.as_deref())
+            .expect("solve");
+        if r >= 2 {
+            spent += t.elapsed().as_secs_f64();
+        }
+        warm = Some(x);
+    }
+    1e3 * spent / reps as f64
+}
+
+fn main() -> anyhow::Result<()> {
+    let a = args()?;
+    let work = tempfile::tempdir()?;
+    let loaded = translux_precompute::scene::load_scene(&a.scene)?;
+    let mut methods = vec![("dense".to_string(), FormFactorMethod::Dense)];
+    for &accuracy in &a.accuracy {
+        methods.push((
+            format!("hierarchical η={accuracy}"),
+            FormFactorMethod::Hierarchical(HierarchyParams {
+                accuracy,
+                node_samples: a.samples,
+                cone_deg: a.cone,
+            }),
+        ));
+    }
+    let mut bundles = Vec::new();
+    println!(
+        "# {} at {} requested patches, {} threads\n",
+        a.scene,
+        a.patches,
+        rayon::current_num_threads()
+    );
+    println!(
+        "| transport | patches | F time | entries/patch | F bytes | rays | relight (warm) | fps |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for (k, (name, method)) in methods.iter().enumerate() {
+        let out = work.path().join(format!("b{k}"));
+        let params = PrecomputeParams {
+            patches: Some(a.patches),
+            transport: *method,
+            environment: translux_engine::envvis::EnvVisParams {
+                bins: None,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let report = precompute(&loaded, &out, &params)?;
+        let f_s = report
+            .stages
+            .iter()
+            .find(|s| s.stage == "form factors")
+            .map_or(0.0, |s| s.seconds);
+        let b = Bundle::open(&out)?;
+        let ff_bytes: u64 = ["ff_row_ptr", "ff_col", "ff_val", "tree_perm", "tree_range"]
+            .iter()
+            .filter_map(|n| b.manifest().arrays.get(*n))
+            .map(|e| e.bytes)
+            .sum();
+        let lights = compare::random_lights(&b, 1, 7);
+        let ms = relight_ms(&b, &lights);
+        println!(
+            "| {name} | {} | {f_s:.2} s | {:.0} | {:.1} MiB | {:.1} M | {ms:.1} ms | {:.1} |",
+            report.patch_count,
+            report.nnz_f as f64 / report.patch_count as f64,
+            ff_bytes as f64 / (1 << 20) as f64,
+            report.form_factors.rays as f64 / 1e6,
+            1e3 / ms
+        );
+        bundles.push((name.clone(), b, out));
+    }
+    println!(
+        "\n| transport | lit median | lit p90 | shadowed median | shadowed p90 | vertices (lit / shadowed) | max row-sum diff | operator error (constant / smooth / cluster) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    let dense = &bundles[0].1;
+    let lights = compare::random_lights(dense, a.lights, 17);
+    let dense_sums = Transport::of(dense).row_sums();
+    for (name, b, _) in &bundles[1..] {
+        let acc = compare::relight_accuracy(dense, b, &lights);
+        let sums = Transport::of(b).row_sums();
+        let row_diff = dense_sums
+            .iter()
+            .zip(&sums)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        let ops: Vec<String> = compare::fields(b, 3)
+            .iter()
+            .map(|(_, x)| format!("{:.2e}", compare::operator_error(dense, b, x)))
+            .collect();
+        println!(
+            "| {name} | {:.2}% | {:.2}% | {:.2}% | {:.2}% | {} / {} | {row_diff:.1e} | {} |",
+            100.0 * acc.lit.median,
+            100.0 * acc.lit.p90,
+            100.0 * acc.shadowed.median,
+            100.0 * acc.shadowed.p90,
+            acc.lit.count,
+            acc.shadowed.count,
+            ops.join(" / ")
+        );
+    }
+    Ok(())
+}
