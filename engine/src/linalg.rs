@@ -112,3 +112,55 @@ impl Scatter for SparseScatter<'_> {
         None
     }
 }
+
+/// y = F x for `ch` channels per patch: one pass over F serves every channel.
+pub fn spmv_multi(f: &CsrView<'_>, x: &[f32], y: &mut [f32], ch: usize) {
+    // Fixed widths unroll and vectorise; batches of up to 8 RGB systems.
+    match ch {
+        3 => {
+            let (x3, y3): (&[[f32; 3]], &mut [[f32; 3]]) =
+                (bytemuck::cast_slice(x), bytemuck::cast_slice_mut(y));
+            spmv_rgb(f, x3, y3);
+        }
+        6 => spmv_fixed::<6>(f, x, y),
+        9 => spmv_fixed::<9>(f, x, y),
+        12 => spmv_fixed::<12>(f, x, y),
+        15 => spmv_fixed::<15>(f, x, y),
+        18 => spmv_fixed::<18>(f, x, y),
+        21 => spmv_fixed::<21>(f, x, y),
+        24 => spmv_fixed::<24>(f, x, y),
+        _ => y
+            .par_chunks_mut(ch)
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(i, yi)| {
+                yi.fill(0.0);
+                let (cols, vals) = f.row(i);
+                for (&j, &v) in cols.iter().zip(vals) {
+                    let xj = &x[j as usize * ch..(j as usize + 1) * ch];
+                    for (a, &b) in yi.iter_mut().zip(xj) {
+                        *a += v * b;
+                    }
+                }
+            }),
+    }
+}
+
+fn spmv_fixed<const CH: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {
+    let (xs, ys): (&[[f32; CH]], &mut [[f32; CH]]) =
+        (x.as_chunks::<CH>().0, y.as_chunks_mut::<CH>().0);
+    ys.par_iter_mut()
+        .with_min_len(64)
+        .enumerate()
+        .for_each(|(i, yi)| {
+            let (cols, vals) = f.row(i);
+            let mut acc = [0.0f32; CH];
+            for (&j, &v) in cols.iter().zip(vals) {
+                let xj = &xs[j as usize];
+                for c in 0..CH {
+                    acc[c] += v * xj[c];
+                }
+            }
+            *yi = acc;
+        });
+}

@@ -141,11 +141,11 @@ impl<'a> Transport<'a> {
     /// channel. `scratch` is reused between calls.
     pub fn apply_multi(&self, x: &[f32], y: &mut [f32], ch: usize, scratch: &mut Pulled) {
         if self.tree.is_none() {
-            crate::solver::spmv_multi(&self.f, x, y, ch);
+            crate::linalg::spmv_multi(&self.f, x, y, ch);
             return;
         }
         self.pull(x, ch, scratch);
-        crate::solver::spmv_multi(&self.f, &scratch.values, y, ch);
+        crate::linalg::spmv_multi(&self.f, &scratch.values, y, ch);
     }
 
     /// y = F x for one RGB vector.
@@ -156,6 +156,47 @@ impl<'a> Transport<'a> {
             3,
             &mut Pulled::default(),
         );
+    }
+
+    /// The pull as a matrix, `(N + M) × N`: the identity over the patches, then row N + k
+    /// holding A_p / A_k for the patches p of node k — so x̄ = P' x is a CSR product (the GPU
+    /// backend's form of [`Transport::pull`], which it is tested against). `None` for a
+    /// dense F. About N × (tree depth + 1) entries.
+    pub fn pull_matrix(&self) -> Option<Csr> {
+        let t = self.tree.as_ref()?;
+        let n = self.n();
+        let mut out = Csr {
+            n_rows: n + self.nodes(),
+            n_cols: n,
+            row_ptr: Vec::with_capacity(n + self.nodes() + 1),
+            col: Vec::with_capacity(n),
+            val: Vec::with_capacity(n),
+        };
+        out.row_ptr.push(0);
+        for p in 0..n {
+            out.col.push(p as u32);
+            out.val.push(1.0);
+            out.row_ptr.push(out.col.len() as u64);
+        }
+        let mut patches = Vec::new();
+        for r in t.view.range {
+            patches.clear();
+            patches.extend_from_slice(&t.view.perm[r[0] as usize..r[1] as usize]);
+            patches.sort_unstable();
+            let area: f64 = patches.iter().map(|&p| t.area[p as usize] as f64).sum();
+            for &p in &patches {
+                out.col.push(p);
+                out.val.push((t.area[p as usize] as f64 / area) as f32);
+            }
+            out.row_ptr.push(out.col.len() as u64);
+        }
+        Some(out)
+    }
+
+    /// y = A x for the stored matrix alone (no pull; any shape): tests.
+    #[cfg(test)]
+    fn apply_rgb_unchecked(&self, x: &[Rgb], y: &mut [Rgb]) {
+        crate::linalg::spmv_rgb(&self.f, x, y);
     }
 
     /// Σ_j F_ij per row (P keeps constants, so these are C's row sums).
@@ -285,5 +326,17 @@ mod tests {
             assert!((*s as f32 - yi[0]).abs() < 1e-6);
         }
         assert_eq!(dense.row_ptr, vec![0, 2, 6, 10, 14]);
+        // The pull as a matrix gives the same x̄.
+        let p = t.pull_matrix().unwrap();
+        let pv = p.view().unwrap();
+        let mut xbar = vec![[0.0f32; 3]; 6];
+        Transport { f: pv, tree: None }.apply_rgb_unchecked(&x, &mut xbar);
+        t.pull(bytemuck::cast_slice(&x), 3, &mut pulled);
+        for (a, b) in bytemuck::cast_slice::<_, f32>(&xbar)
+            .iter()
+            .zip(&pulled.values)
+        {
+            assert!((a - b).abs() < 1e-6);
+        }
     }
 }

@@ -155,8 +155,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         ),
         Some(h) => {
             println!(
-                "  nnz(F̃ = C·P)       {} ({:.1} per patch: {} to clusters, {} to patches), \
-                 hierarchical, accuracy {}",
+                "  nnz(F)             {} ({:.1} per patch: {} to clusters, {} to patches), \
+                 hierarchical F̃ = C·P, accuracy {}",
                 report.nnz_f,
                 report.nnz_f as f64 / n.max(1.0),
                 h.node_entries,

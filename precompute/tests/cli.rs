@@ -113,7 +113,7 @@ fn hierarchical_transport_from_the_command_line() {
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
     assert!(
-        t.contains("hierarchical, accuracy 0.3") && t.contains("cluster tree"),
+        t.contains("hierarchical F̃ = C·P, accuracy 0.3") && t.contains("cluster tree"),
         "{t}"
     );
     let b = Bundle::open(&out).unwrap();

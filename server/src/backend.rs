@@ -334,20 +334,11 @@ impl Backend {
             };
         }
         let b = &scene.bundle;
-        if b.tree().is_some() {
-            // The device kernels apply a dense F; the pull over the cluster tree has no
-            // kernel yet. Said in the log and in /healthz (the scene's reason).
-            let reason = "served from the CPU: hierarchical F (the GPU kernels take dense F \
-                          only; precompute with --transport dense to use the GPU)";
-            tracing::warn!(scene = %scene.id, "{reason}");
-            scenes.insert(key, (scene.id.to_string(), Slot::Cpu(reason.to_string())));
-            return None;
-        }
         let t = std::time::Instant::now();
         let made = GpuSystem::new(
             ctx,
             scene.id,
-            &b.form_factors(),
+            &translux_engine::transport::Transport::of(b),
             &b.subsurface(),
             SolveParams::default().max_iterations.max(1000),
         );

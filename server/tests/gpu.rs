@@ -349,7 +349,14 @@ fn solve_both(ctx: &GpuContext, sys: &System, seed: u64) -> (usize, usize) {
         tolerance: 1e-6,
         max_iterations: 400,
     };
-    let gpu = GpuSystem::new(ctx, "random", &f, &s, params.max_iterations).unwrap();
+    let gpu = GpuSystem::new(
+        ctx,
+        "random",
+        &translux_engine::transport::Transport::dense(f),
+        &s,
+        params.max_iterations,
+    )
+    .unwrap();
     let (gb, gs) = gpu
         .solve(ctx, &be, &e, &params, &SystemParams::default(), None)
         .unwrap();
@@ -918,5 +925,52 @@ fn heterogeneous_objects_are_rebuilt_on_the_cpu_and_say_so() {
     match SMaterials::plan(&b, &materials, &stored, &SParams::default()).unwrap() {
         Plan::Cpu(why) => assert!(why.contains("heterogeneous"), "{why}"),
         Plan::Device(_) => panic!("a heterogeneous object planned for the device"),
+    }
+}
+
+/// A hierarchical F on the device (the pull P' = [I; P] then C, the same CSR kernel) solves
+/// what the CPU solves with its prefix-sum pull; also split into 4 KiB blocks.
+#[test]
+fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
+    use translux_engine::transport::Transport;
+    use translux_precompute::hierarchy::HierarchyParams;
+    use translux_precompute::pipeline::{FormFactorMethod, PrecomputeParams, precompute};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cornell");
+    let params = PrecomputeParams {
+        patches: Some(700),
+        transport: FormFactorMethod::Hierarchical(HierarchyParams::default()),
+        environment: translux_engine::envvis::EnvVisParams {
+            bins: None,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let loaded = translux_precompute::scene::load_scene("builtin:cornell").unwrap();
+    precompute(&loaded, &out, &params).unwrap();
+    let b = translux_proto::bundle::Bundle::open(&out).unwrap();
+    let f = Transport::of(&b);
+    assert!(f.is_hierarchical() && f.nodes() > 0);
+    let n = f.n();
+    let mut rng = Rng(41);
+    let e: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();
+    let be = vec![[0.0f32; 3]; n];
+    let p = SolveParams {
+        method: Method::Jacobi,
+        tolerance: 1e-6,
+        max_iterations: 400,
+    };
+    let s = b.subsurface();
+    let (cb, cs) = solve(&f, &SparseScatter(s), &be, &e, &p, None).unwrap();
+    assert!(cs.converged, "{cs:?}");
+    for ctx in [ctx(), tiny_ctx()] {
+        let Some(ctx) = ctx else { return };
+        let gpu = GpuSystem::new(ctx, "hierarchical", &f, &s, p.max_iterations).unwrap();
+        let (gb, gs) = gpu
+            .solve(ctx, &be, &e, &p, &SystemParams::default(), None)
+            .unwrap();
+        assert!(gs.stats.converged, "{gs:?}");
+        assert_close("GPU hierarchical vs CPU", &gb, &cb, 1e-4);
+        gpu.release(ctx);
     }
 }

@@ -129,24 +129,39 @@ pub struct GpuCsr {
 /// counts of every block, made once and replayed by every request.
 #[derive(Debug)]
 pub(crate) struct BoundOp {
-    pipeline: wgpu::ComputePipeline,
-    groups: Vec<(wgpu::BindGroup, (u32, u32))>,
+    /// Kernels in order, each with its dispatches (a product may take several: the pull of
+    /// a hierarchical F, then C).
+    steps: Vec<Step>,
 }
+
+/// One kernel's dispatches within a [`BoundOp`].
+type Step = (wgpu::ComputePipeline, Vec<(wgpu::BindGroup, (u32, u32))>);
 
 impl BoundOp {
     pub(crate) fn new(
         pipeline: wgpu::ComputePipeline,
         groups: Vec<(wgpu::BindGroup, (u32, u32))>,
     ) -> Self {
-        Self { pipeline, groups }
+        Self {
+            steps: vec![(pipeline, groups)],
+        }
+    }
+
+    /// This op, then `next` (its dispatches see what this one wrote: WebGPU orders the
+    /// dispatches of a pass).
+    pub(crate) fn then(mut self, next: BoundOp) -> Self {
+        self.steps.extend(next.steps);
+        self
     }
 
     /// Records the op's dispatches into `pass`.
     pub(crate) fn encode(&self, pass: &mut wgpu::ComputePass<'_>) {
-        pass.set_pipeline(&self.pipeline);
-        for (bg, (x, y)) in &self.groups {
-            pass.set_bind_group(0, bg, &[]);
-            pass.dispatch_workgroups(*x, *y, 1);
+        for (pipeline, groups) in &self.steps {
+            pass.set_pipeline(pipeline);
+            for (bg, (x, y)) in groups {
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(*x, *y, 1);
+            }
         }
     }
 }

@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use translux_engine::radiosity::{Method, Rgb, SolveParams, SolveStats};
+use translux_engine::transport::Transport;
 use translux_proto::csr::CsrView;
 
 use super::matrix::{BoundOp, GpuCsr, alloc_size, staging, storage_zeroed, uniform};
@@ -70,6 +71,8 @@ struct Vectors {
     x: wgpu::Buffer,
     fx: wgpu::Buffer,
     sfx: wgpu::Buffer,
+    /// x̄ = [x; P x] of a hierarchical F (a stub otherwise).
+    pulled: wgpu::Buffer,
     partial: wgpu::Buffer,
     history: wgpu::Buffer,
     counter: wgpu::Buffer,
@@ -94,12 +97,92 @@ struct Ops {
     reduce: BoundOp,
 }
 
+/// F on the device: a dense F, or a hierarchical F̃ = C·P as C with its pull
+/// P' = [I; P] ((N + M) × N, [`Transport::pull_matrix`]): F x is then two CSR products,
+/// x̄ ← P' x and y ← C x̄, with the same kernel.
+#[derive(Debug)]
+pub struct GpuF {
+    c: GpuCsr,
+    pull: Option<GpuCsr>,
+}
+
+impl GpuF {
+    /// Uploads F (and the pull of a hierarchical one).
+    pub fn upload(ctx: &GpuContext, what: &str, f: &Transport<'_>) -> Result<GpuF, GpuError> {
+        let pull = match f.pull_matrix() {
+            Some(p) => {
+                let view = p
+                    .view()
+                    .map_err(|e| GpuError::Invalid(format!("{what} pull: {e}")))?;
+                Some(GpuCsr::upload_f32(ctx, &format!("{what} pull"), &view)?)
+            }
+            None => None,
+        };
+        match GpuCsr::upload_f32(ctx, &format!("{what} F"), f.matrix()) {
+            Ok(c) => Ok(GpuF { c, pull }),
+            Err(e) => {
+                if let Some(p) = pull {
+                    ctx.release(p.bytes());
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// Rows of F (patches).
+    pub fn n_rows(&self) -> usize {
+        self.c.n_rows()
+    }
+
+    /// Rows of the pulled vector x̄ (patches, then cluster nodes).
+    fn pulled_rows(&self) -> usize {
+        self.c.n_cols()
+    }
+
+    /// Whether the pulled vector matches C (dense: C is square; hierarchical: P' feeds it).
+    fn consistent(&self) -> bool {
+        match &self.pull {
+            None => self.c.n_cols() == self.c.n_rows(),
+            Some(p) => p.n_rows() == self.c.n_cols() && p.n_cols() == self.c.n_rows(),
+        }
+    }
+
+    /// Row blocks of C (and of the pull).
+    pub fn blocks(&self) -> usize {
+        self.c.blocks() + self.pull.as_ref().map_or(0, GpuCsr::blocks)
+    }
+
+    /// GPU bytes held.
+    pub fn bytes(&self) -> u64 {
+        self.c.bytes() + self.pull.as_ref().map_or(0, GpuCsr::bytes)
+    }
+
+    /// Bytes one product reads.
+    pub fn stream_bytes(&self) -> u64 {
+        self.c.stream_bytes() + self.pull.as_ref().map_or(0, GpuCsr::stream_bytes)
+    }
+
+    /// y = F x; `pulled` holds x̄ for a hierarchical F.
+    fn bind(
+        &self,
+        ctx: &GpuContext,
+        x: &wgpu::Buffer,
+        pulled: &wgpu::Buffer,
+        y: &wgpu::Buffer,
+    ) -> BoundOp {
+        match &self.pull {
+            None => self.c.bind(ctx, x, y),
+            Some(p) => p.bind(ctx, x, pulled).then(self.c.bind(ctx, pulled, y)),
+        }
+    }
+}
+
 /// A scene's F and S on the device, with everything the solve needs.
 #[derive(Debug)]
 pub struct GpuSystem {
     n: usize,
     /// Shared by every system of the scene (the bundle's S and overridden ones).
-    f: Arc<GpuCsr>,
+    f: Arc<GpuF>,
     s: GpuCsr,
     v: Vectors,
     ops: Ops,
@@ -123,21 +206,19 @@ impl GpuSystem {
     pub fn new(
         ctx: &GpuContext,
         what: &str,
-        f: &CsrView<'_, f32>,
+        f: &Transport<'_>,
         s: &CsrView<'_, Rgb>,
         max_iterations: u32,
     ) -> Result<GpuSystem, GpuError> {
-        let n = f.n_rows();
-        if f.n_cols() != n || s.n_rows() != n || s.n_cols() != n {
+        let n = f.n();
+        if s.n_rows() != n || s.n_cols() != n {
             return Err(GpuError::Invalid(format!(
-                "{what}: F is {}×{} and S {}×{}; both must be n×n",
-                f.n_rows(),
-                f.n_cols(),
+                "{what}: F has {n} rows and S is {}×{}; S must be n×n",
                 s.n_rows(),
                 s.n_cols()
             )));
         }
-        let f = Arc::new(GpuCsr::upload_f32(ctx, &format!("{what} F"), f)?);
+        let f = Arc::new(GpuF::upload(ctx, what, f)?);
         let s = match GpuCsr::upload_rgb(ctx, &format!("{what} S"), s) {
             Ok(s) => s,
             Err(e) => {
@@ -154,25 +235,30 @@ impl GpuSystem {
     pub fn with_f(
         ctx: &GpuContext,
         what: &str,
-        f: Arc<GpuCsr>,
+        f: Arc<GpuF>,
         s: GpuCsr,
         max_iterations: u32,
     ) -> Result<GpuSystem, GpuError> {
         let n = f.n_rows();
-        if f.n_cols() != n || s.n_rows() != n || s.n_cols() != n {
+        if !f.consistent() || s.n_rows() != n || s.n_cols() != n {
             ctx.release(s.bytes());
             return Err(GpuError::Invalid(format!(
-                "{what}: F is {}×{} and S {}×{}; both must be n×n",
-                f.n_rows(),
-                f.n_cols(),
+                "{what}: F has {n} rows and {} pulled columns, S is {}×{}; S must be n×n",
+                f.pulled_rows(),
                 s.n_rows(),
                 s.n_cols()
             )));
         }
         let vb = alloc_size(12 * n as u64);
+        let pulled_bytes = if f.pull.is_some() {
+            alloc_size(12 * f.pulled_rows() as u64)
+        } else {
+            16
+        };
         let groups = (n as u32).div_ceil(256);
         let capacity = max_iterations + 2;
         let vector_bytes = 6 * vb
+            + pulled_bytes
             + alloc_size(4 * groups as u64)
             + 2 * alloc_size(4 * capacity as u64)
             + 16
@@ -190,6 +276,7 @@ impl GpuSystem {
                 x: storage_zeroed(ctx, "x", vb),
                 fx: storage_zeroed(ctx, "Fx", vb),
                 sfx: storage_zeroed(ctx, "SFx", vb),
+                pulled: storage_zeroed(ctx, "pulled", pulled_bytes),
                 partial: storage_zeroed(ctx, "partial", 4 * groups as u64),
                 history: storage_zeroed(ctx, "history", 4 * capacity as u64),
                 counter: storage_zeroed(ctx, "counter", 16),
@@ -228,7 +315,7 @@ impl GpuSystem {
                         g,
                     )],
                 ),
-                f_x: f.bind(ctx, &v.x, &v.fx),
+                f_x: f.bind(ctx, &v.x, &v.pulled, &v.fx),
                 s_fx: s.bind(ctx, &v.fx, &v.sfx),
                 update: BoundOp::new(
                     k.jacobi_update.clone(),
@@ -282,12 +369,12 @@ impl GpuSystem {
     }
 
     /// The shared F.
-    pub fn f(&self) -> &Arc<GpuCsr> {
+    pub fn f(&self) -> &Arc<GpuF> {
         &self.f
     }
 
     /// The uploaded F and S.
-    pub fn matrices(&self) -> (&GpuCsr, &GpuCsr) {
+    pub fn matrices(&self) -> (&GpuF, &GpuCsr) {
         (&self.f, &self.s)
     }
 
