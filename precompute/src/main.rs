@@ -32,16 +32,17 @@ struct Cli {
     /// Also compute the transfer matrix T = (I − S F)⁻¹ S.
     #[arg(long)]
     inverse: bool,
-    /// How F is stored: `dense` (one entry per visible patch pair, O(N²)) or `hierarchical`
-    /// (a cluster tree and, per patch, links to whole clusters far enough away: F̃ = C·P).
-    #[arg(long, value_enum, default_value_t = TransportArg::Dense)]
+    /// How F is stored: `hierarchical` (a cluster tree and, per patch, links to whole
+    /// clusters far enough away: F̃ = C·P) or `dense` (one entry per visible patch pair,
+    /// O(N²): for validation and small scenes).
+    #[arg(long, value_enum, default_value_t = TransportArg::Hierarchical)]
     transport: TransportArg,
     /// Hierarchical F only: a cluster of radius R is linked whole only from a distance of
     /// at least R / ACCURACY (it bounds the angle a link subtends). Smaller is more accurate
     /// and larger; accepted 0.02 to 1.
     #[arg(long, default_value_t = HierarchyParams::default().accuracy)]
     accuracy: f32,
-    /// Drop form factors below this value and report the power they carried.
+    /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
     /// Worker threads (default: all cores).
@@ -89,6 +90,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         TransportArg::Dense => FormFactorMethod::Dense,
         TransportArg::Hierarchical => {
             hierarchy.check().map_err(anyhow::Error::msg)?;
+            if cli.threshold > 0.0 {
+                bail!(
+                    "--threshold drops entries of a dense F; use it with --transport dense \
+                     (a hierarchical F is bounded by --accuracy instead)"
+                );
+            }
             FormFactorMethod::Hierarchical(hierarchy)
         }
     };

@@ -44,7 +44,7 @@ pub struct PrecomputeParams {
     /// Maximum patch edge (scene units); overrides the scene file's `patches`.
     pub max_edge: Option<f32>,
     pub form_factors: FormFactorParams,
-    /// Dense F, or hierarchical F̃ = C·P ([`crate::hierarchy`]).
+    /// Hierarchical F̃ = C·P ([`crate::hierarchy`], the default) or dense F.
     pub transport: FormFactorMethod,
     pub subsurface: SParams,
     /// The voxel grid of the optical distances (stage 1 of S).
@@ -63,13 +63,19 @@ pub struct PrecomputeParams {
 }
 
 /// How F is computed and stored.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum FormFactorMethod {
     /// One entry per visible patch pair (O(N²)): for validation and small scenes.
-    #[default]
     Dense,
     /// A cluster tree and a light-independent cut per receiver ([`crate::hierarchy`]).
     Hierarchical(HierarchyParams),
+}
+
+impl Default for FormFactorMethod {
+    /// Hierarchical, at the default accuracy.
+    fn default() -> Self {
+        Self::Hierarchical(HierarchyParams::default())
+    }
 }
 
 impl FormFactorMethod {
@@ -433,6 +439,13 @@ pub fn precompute(
     }
     if let FormFactorMethod::Hierarchical(h) = &params.transport {
         h.check().map_err(PrecomputeError::BadHierarchy)?;
+        if params.form_factors.threshold > 0.0 {
+            return Err(PrecomputeError::BadHierarchy(
+                "a threshold drops entries of a dense F; a hierarchical F is bounded by its \
+                 accuracy instead"
+                    .into(),
+            ));
+        }
     }
     let too_many = |requested: u64| match params.transport {
         FormFactorMethod::Dense if requested > MAX_PATCHES => {
