@@ -48,7 +48,7 @@ pub struct HierarchyParams {
     /// η: a node of bounding radius R is linked whole to a receiver only from a distance of
     /// at least R/η; it bounds the angle a linked cluster subtends (about 2η radians) and so
     /// the kernel's variation over it. Smaller is more accurate and stores more. Default
-    /// 0.25; accepted 0.02 to 1.
+    /// 0.2; accepted 0.02 to 1.
     pub accuracy: f32,
     /// Points of a linked node (one shadow ray each; their agreement is the visibility test).
     /// Default 8.
@@ -60,7 +60,7 @@ pub struct HierarchyParams {
 impl Default for HierarchyParams {
     fn default() -> Self {
         Self {
-            accuracy: 0.25,
+            accuracy: 0.2,
             node_samples: 8,
             cone_deg: 60.0,
         }
@@ -576,11 +576,12 @@ impl Cut<'_> {
         let mut sum = 0.0f64;
         // Each sample is a patch q of s: its exact point-to-polygon form factor F(x → q)
         // over its area is the kernel's mean over q; weighted by w it estimates s's share.
-        let mut sample = |q: usize, w: f64| {
+        // The first disagreement about visibility ends the test (the caller descends).
+        let mut sample = |q: usize, w: f64| -> bool {
             let y = p.centroid[q];
             let ny = p.normal[q];
             if ny.dot(x - y) <= 0.0 || ni.dot(y - x) <= 0.0 {
-                return;
+                return true;
             }
             *rays += 1;
             if self.occ.occluded(from, y + ny * self.offset) {
@@ -590,10 +591,13 @@ impl Cut<'_> {
                 let f = point_to_polygon(x, ni, &p.corners[q]) as f64;
                 sum += w * f / p.area[q] as f64;
             }
+            seen == 0 || hidden == 0
         };
         if b - a <= self.m {
             for &q in &t.perm[a..b] {
-                sample(q as usize, p.area[q as usize] as f64);
+                if !sample(q as usize, p.area[q as usize] as f64) {
+                    return None;
+                }
             }
         } else {
             // Area-stratified: the patch at the middle of each of m equal shares of the area.
@@ -602,11 +606,10 @@ impl Cut<'_> {
             for k in 0..self.m {
                 let target = base + (k as f64 + 0.5) * w;
                 let at = a + t.area_prefix[a + 1..=b].partition_point(|&c| c <= target);
-                sample(t.perm[at.min(b - 1)] as usize, w);
+                if !sample(t.perm[at.min(b - 1)] as usize, w) {
+                    return None;
+                }
             }
-        }
-        if seen > 0 && hidden > 0 {
-            return None;
         }
         Some(sum as f32)
     }
