@@ -197,6 +197,43 @@ pub(crate) fn pair(
     Some(if pp == i { (f_pq, f_qp) } else { (f_qp, f_pq) })
 }
 
+/// The summary of a computed F (dense, or the C of a hierarchical one: P keeps constants,
+/// so C's row sums are F̃'s): entries and row sums Σ_j F_ij (mean, min, max).
+pub(crate) fn summarize(
+    csr: &Csr,
+    threshold: f32,
+    dropped_energy: f64,
+    rays: u64,
+    pairs: u64,
+) -> FormFactorInfo {
+    let n = csr.n_rows;
+    let sums: Vec<f64> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let (a, b) = (csr.row_ptr[i] as usize, csr.row_ptr[i + 1] as usize);
+            csr.val[a..b].iter().map(|&v| v as f64).sum()
+        })
+        .collect();
+    FormFactorInfo {
+        nnz: csr.nnz() as u64,
+        threshold,
+        dropped_energy,
+        row_sum_mean: if n > 0 {
+            sums.iter().sum::<f64>() / n as f64
+        } else {
+            0.0
+        },
+        row_sum_min: sums
+            .iter()
+            .cloned()
+            .fold(f64::INFINITY, f64::min)
+            .min(f64::MAX),
+        row_sum_max: sums.iter().cloned().fold(0.0, f64::max),
+        rays,
+        pairs,
+    }
+}
+
 /// One computed pair: column j (> row i), F_ij and F_ji.
 type UpperEntry = (u32, f32, f32);
 
@@ -350,36 +387,19 @@ pub fn compute_with_stop(
     };
 
     // 5. Summary: row sums (1 in a closed room), power dropped as a fraction of all power.
-    let sums: Vec<f64> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let (a, b) = (csr.row_ptr[i] as usize, csr.row_ptr[i + 1] as usize);
-            csr.val[a..b].iter().map(|&v| v as f64).sum()
-        })
-        .collect();
     let total_area: f64 = p.area.iter().map(|&a| a as f64).sum();
-    let info = FormFactorInfo {
-        nnz: nnz as u64,
-        threshold: thr,
-        dropped_energy: if total_area > 0.0 {
-            dropped / total_area
-        } else {
-            0.0
-        },
-        row_sum_mean: if n > 0 {
-            sums.iter().sum::<f64>() / n as f64
-        } else {
-            0.0
-        },
-        row_sum_min: sums
-            .iter()
-            .cloned()
-            .fold(f64::INFINITY, f64::min)
-            .min(f64::MAX),
-        row_sum_max: sums.iter().cloned().fold(0.0, f64::max),
-        rays: rays.into_inner(),
-        pairs: pairs.into_inner(),
+    let dropped_energy = if total_area > 0.0 {
+        dropped / total_area
+    } else {
+        0.0
     };
+    let info = summarize(
+        &csr,
+        thr,
+        dropped_energy,
+        rays.into_inner(),
+        pairs.into_inner(),
+    );
     (csr, info)
 }
 

@@ -36,7 +36,7 @@ use translux_engine::raycast::Occluder;
 use translux_proto::bundle::{FormFactorInfo, HierarchyInfo};
 use translux_proto::csr::Csr;
 
-use crate::formfactor::{FormFactorParams, any_in_front, pair, point_to_polygon};
+use crate::formfactor::{FormFactorParams, any_in_front, pair, point_to_polygon, summarize};
 use crate::patch::Patches;
 
 /// The accuracy parameters a precompute accepts ([`HierarchyParams::check`]).
@@ -403,36 +403,17 @@ pub fn compute(
     };
     c.row_ptr.push(0);
     let (mut node_entries, mut patch_entries, mut dense_equivalent) = (0u64, 0u64, 0u64);
-    let mut sums = Vec::with_capacity(n);
     for (row, stats) in rows {
         node_entries += stats.node_entries;
         patch_entries += stats.patch_entries;
         dense_equivalent += stats.covered;
-        sums.push(row.iter().map(|e| e.1 as f64).sum::<f64>());
         for (j, v) in row {
             c.col.push(j);
             c.val.push(v);
         }
         c.row_ptr.push(c.col.len() as u64);
     }
-    let ff_info = FormFactorInfo {
-        nnz: c.col.len() as u64,
-        threshold: 0.0,
-        dropped_energy: 0.0,
-        row_sum_mean: if n > 0 {
-            sums.iter().sum::<f64>() / n as f64
-        } else {
-            0.0
-        },
-        row_sum_min: sums
-            .iter()
-            .cloned()
-            .fold(f64::INFINITY, f64::min)
-            .min(f64::MAX),
-        row_sum_max: sums.iter().cloned().fold(0.0, f64::max),
-        rays: rays.into_inner(),
-        pairs: tests.into_inner(),
-    };
+    let ff_info = summarize(&c, 0.0, 0.0, rays.into_inner(), tests.into_inner());
     let info = HierarchyInfo {
         nodes: tree.node_count() as u64,
         depth: tree.depth,
