@@ -16,7 +16,9 @@ use translux_proto::bundle::Bundle;
 use translux_proto::scene::Material;
 
 use crate::linalg::Rgb;
-use crate::smatrix::{CsrOwned, OverrideMaterials, SError};
+use translux_proto::csr::Csr;
+
+use crate::smatrix::{OverrideMaterials, SError};
 use crate::solver::{SolveParams, SolveStats};
 
 /// What a backend sees of a scene ([`crate::scene::Scene::view`]): its id (named in logs,
@@ -31,7 +33,7 @@ pub struct SceneRef<'a> {
 #[derive(Debug)]
 pub enum SBuild {
     /// On the device; its values, read back once, for the CPU's products.
-    Device(CsrOwned<Rgb>),
+    Device(Csr<Rgb>),
     /// Build it on the CPU; why, when the backend is not the CPU.
     Cpu(Option<String>),
 }

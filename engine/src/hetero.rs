@@ -8,11 +8,12 @@
 //! patterns and for the quadrature of mixed pairs.
 
 use rayon::prelude::*;
+use translux_proto::csr::CsrView;
 use translux_proto::scene::{MAX_HETEROGENEOUS_MATERIALS, Profile};
 
 use crate::subsurface::{
-    DistanceView, ObjectPatches, ObjectS, SubsurfaceParams, Tabulated, bound_and_transpose,
-    coplanar_eps, pair_term, samples, self_term,
+    ObjectPatches, ObjectS, SubsurfaceParams, Tabulated, bound_and_transpose, coplanar_eps,
+    pair_term, samples, self_term,
 };
 
 /// Media per path the bundle stores (`dist_material_len` has this many columns).
@@ -67,12 +68,12 @@ pub fn eq9(len: &[f32], s0: &[[f32; 3]], s: impl Fn(usize, f32) -> [f32; 3]) -> 
 
 /// Assembles S of one heterogeneous object (local indices).
 ///
-/// `len[e]` are the per-medium lengths of distance entry e (aligned with `d.col`), `media`
+/// `len[e]` are the per-medium lengths of distance entry e (aligned with `d.col()`), `media`
 /// the pattern medium of each patch, `map` the merge of [`merge_media`], and `tabs[m]` the
 /// tabulated profile of distinct medium m, all reaching the same truncation radius.
 pub fn assemble(
     p: ObjectPatches<'_>,
-    d: DistanceView<'_>,
+    d: CsrView<'_, f32>,
     len: &[MediaLen],
     media: &[u32],
     map: &[usize; MEDIA],
@@ -91,8 +92,9 @@ pub fn assemble(
             let xs = samples(&p.corners[i], params.samples);
             let own = map[(media[i] as usize).min(MEDIA - 1)];
             col.push((i as u32, self_term(&p, i, &xs, &tabs[own], params)));
-            let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
-            for ((&j, &r), le) in d.col[a..b].iter().zip(&d.dist[a..b]).zip(&len[a..b]) {
+            let (a, b) = (d.row_ptr()[i] as usize, d.row_ptr()[i + 1] as usize);
+            let (cols, ds) = d.row(i);
+            for ((&j, &r), le) in cols.iter().zip(ds).zip(&len[a..b]) {
                 let j = j as usize;
                 if r >= r_max {
                     continue;

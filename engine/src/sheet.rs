@@ -18,7 +18,7 @@ use translux_proto::scene::Profile;
 
 use crate::profile::{ProfileError, ProfileEval};
 use crate::subsurface::{
-    self, AssemblyReport, DistanceView, ObjectBlock, ObjectPatches, ObjectS, Quadrature, SParams,
+    self, AssemblyReport, ObjectBlock, ObjectPatches, ObjectS, Quadrature, SParams,
     SubsurfaceParams, Tabulated,
 };
 
@@ -87,11 +87,11 @@ pub fn pair_plan(
 }
 
 /// S of one thin-sheet object in local indices. `kind[e]` is the kind of distance entry e
-/// (parallel to `d.col`; missing entries count as [`KIND_SAME`]); `r` and `t` tabulate the
+/// (parallel to `d.col()`; missing entries count as [`KIND_SAME`]); `r` and `t` tabulate the
 /// reflectance and transmittance profiles out to the radii the distances were cut at.
 pub fn assemble(
     p: ObjectPatches<'_>,
-    d: DistanceView<'_>,
+    d: CsrView<'_, f32>,
     kind: &[u32],
     r: &Tabulated,
     t: &Tabulated,
@@ -104,8 +104,8 @@ pub fn assemble(
             let xs = subsurface::samples(&p.corners[i], params.samples);
             // Self term: reflectance only (the other side's "self" is ô(i), a pair).
             let mut col = vec![(i as u32, subsurface::self_term(&p, i, &xs, r, params))];
-            for e in d.row_ptr[i] as usize..d.row_ptr[i + 1] as usize {
-                let (j, dist) = (d.col[e] as usize, d.dist[e]);
+            for e in d.row_ptr()[i] as usize..d.row_ptr()[i + 1] as usize {
+                let (j, dist) = (d.col()[e] as usize, d.val()[e]);
                 let tab = if kind.get(e) == Some(&KIND_OPPOSITE) {
                     t
                 } else {

@@ -25,7 +25,7 @@ use std::time::Instant;
 use glam::Vec3;
 use thiserror::Error;
 use translux_proto::bundle::{Bundle, arrays};
-use translux_proto::csr::CsrView;
+use translux_proto::csr::{Csr, CsrError, CsrView};
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, MediaLen};
@@ -45,6 +45,9 @@ pub enum SError {
     /// A heterogeneous material that the stored per-medium lengths cannot serve.
     #[error("object '{object}': {why}")]
     Media { object: String, why: String },
+    /// Assembly made an invalid matrix (a non-finite value from a profile, say).
+    #[error("S is not a valid matrix: {0}")]
+    Matrix(#[from] CsrError),
 }
 
 /// The per-patch geometry S needs (one scene's worth, global indices).
@@ -77,33 +80,6 @@ impl PatchGeometry {
             );
         }
         g
-    }
-}
-
-/// A matrix as owned CSR arrays (global indices).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct CsrOwned<T> {
-    pub row_ptr: Vec<u64>,
-    pub col: Vec<u32>,
-    pub val: Vec<T>,
-}
-
-impl<T: Copy> CsrOwned<T> {
-    /// The matrix whose row i lists `rows[i]`'s (column, value) pairs, in their order.
-    pub fn from_rows(rows: Vec<Vec<(u32, T)>>) -> Self {
-        let mut m = CsrOwned {
-            row_ptr: vec![0],
-            col: Vec::new(),
-            val: Vec::new(),
-        };
-        for row in rows {
-            for (c, v) in row {
-                m.col.push(c);
-                m.val.push(v);
-            }
-            m.row_ptr.push(m.col.len() as u64);
-        }
-        m
     }
 }
 
@@ -169,7 +145,7 @@ pub fn assemble_scene(
     stored_radius: &[f32],
     unit_mm: f64,
     params: &SParams,
-) -> Result<(CsrOwned<[f32; 3]>, Vec<AssemblyReport>), SError> {
+) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let n = g.corners.len();
     let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
     let mut reports = Vec::new();
@@ -281,7 +257,8 @@ pub fn assemble_scene(
             }
         }
     }
-    Ok((CsrOwned::from_rows(rows), reports))
+    let n = rows.len();
+    Ok((Csr::from_rows(n, rows)?, reports))
 }
 
 /// Writes an object's S columns (local indices, the object starting at patch `start`) into
@@ -445,7 +422,7 @@ pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
 pub struct OverrideMaterials {
     /// The overrides, as JSON: which override set this is (the backend's key too).
     pub key: String,
-    pub s: CsrOwned<[f32; 3]>,
+    pub s: Csr<[f32; 3]>,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
     /// Where S was rebuilt: `gpu` or `cpu`.
@@ -455,8 +432,8 @@ pub struct OverrideMaterials {
 impl OverrideMaterials {
     /// S as a view (built by `smatrix::assemble_scene`, valid by construction).
     pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
-        let n = self.albedo.len();
-        CsrView::new_checked(n, n, &self.s.row_ptr, &self.s.col, &self.s.val)
+        self.s
+            .view()
             .expect("assemble_scene builds a valid CSR matrix")
     }
 }
@@ -467,7 +444,7 @@ pub fn rebuild_from_bundle(
     bundle: &Bundle,
     overrides: &[(usize, Material)],
     params: &SParams,
-) -> Result<(CsrOwned<[f32; 3]>, Vec<AssemblyReport>), SError> {
+) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let m = bundle.manifest();
     let g = bundle_geometry(bundle);
     let (materials, stored) = bundle_materials(bundle, overrides)?;

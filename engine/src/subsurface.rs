@@ -27,7 +27,7 @@ use std::ops::Range;
 
 use glam::Vec3;
 use rayon::prelude::*;
-use translux_proto::csr::CsrView;
+use translux_proto::csr::{Csr, CsrBuilder, CsrView};
 
 use crate::profile::ProfileEval;
 
@@ -63,23 +63,13 @@ pub struct ObjectPatches<'a> {
     pub size: &'a [f32],
 }
 
-/// Sparse optical distances over the object's patches (local indices): row i lists the
-/// patches j ≠ i within the truncation radius and r_ij.
-#[derive(Debug, Clone, Copy)]
-pub struct DistanceView<'a> {
-    pub row_ptr: &'a [u64],
-    pub col: &'a [u32],
-    pub dist: &'a [f32],
-}
-
 /// One object's block of the stored distances as a local CSR (indices relative to the
 /// object's first patch): the entries of its rows whose column is inside the object and
-/// that `keep(local row, distance, global entry index)` keeps.
+/// that `keep(local row, distance, global entry index)` keeps. Row i of [`ObjectBlock::view`]
+/// lists the patches j ≠ i within the truncation radius and r_ij.
 #[derive(Debug, Default)]
 pub struct ObjectBlock {
-    pub row_ptr: Vec<u64>,
-    pub col: Vec<u32>,
-    pub dist: Vec<f32>,
+    pub csr: Csr<f32>,
     /// Each kept entry's index among the stored entries (for the arrays aligned with them:
     /// kinds, per-medium lengths).
     pub entries: Vec<usize>,
@@ -92,32 +82,34 @@ impl ObjectBlock {
         keep: impl Fn(usize, f32, usize) -> bool,
     ) -> ObjectBlock {
         let (base, len) = (r.start as u64, r.len() as u64);
-        let mut b = ObjectBlock {
-            row_ptr: vec![0],
-            ..Default::default()
-        };
+        let mut csr = CsrBuilder::new(r.len());
+        let mut entries = Vec::new();
+        let mut row = Vec::new();
         for i in r {
             let first = distances.row_ptr()[i] as usize;
             let (cols, ds) = distances.row(i);
+            row.clear();
             for (k, (&j, &d)) in cols.iter().zip(ds).enumerate() {
                 let inside = (j as u64) >= base && (j as u64) < base + len;
                 if inside && keep(i - base as usize, d, first + k) {
-                    b.col.push((j as u64 - base) as u32);
-                    b.dist.push(d);
-                    b.entries.push(first + k);
+                    row.push(((j as u64 - base) as u32, d));
+                    entries.push(first + k);
                 }
             }
-            b.row_ptr.push(b.col.len() as u64);
+            csr.push_row(&row)
+                .expect("a block of a checked matrix, shifted, is a valid matrix");
         }
-        b
+        ObjectBlock {
+            csr: csr.finish(),
+            entries,
+        }
     }
 
-    pub fn view(&self) -> DistanceView<'_> {
-        DistanceView {
-            row_ptr: &self.row_ptr,
-            col: &self.col,
-            dist: &self.dist,
-        }
+    /// The block as a view (checked once more: one pass).
+    pub fn view(&self) -> CsrView<'_, f32> {
+        self.csr
+            .view()
+            .expect("ObjectBlock::of builds it with the checking builder")
     }
 }
 
@@ -305,7 +297,7 @@ fn coplanar(a: &[Vec3; 3], na: Vec3, b: &[Vec3; 3], nb: Vec3, eps: f32) -> bool 
 /// distances were computed with.
 pub fn assemble(
     p: ObjectPatches<'_>,
-    d: DistanceView<'_>,
+    d: CsrView<'_, f32>,
     tab: &Tabulated,
     params: &SubsurfaceParams,
 ) -> ObjectS {
@@ -319,8 +311,8 @@ pub fn assemble(
             let mut col = Vec::new();
             let xs = samples(&p.corners[i], params.samples);
             col.push((i as u32, self_term(&p, i, &xs, tab, params)));
-            let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
-            for (&j, &r) in d.col[a..b].iter().zip(&d.dist[a..b]) {
+            let (cols, ds) = d.row(i);
+            for (&j, &r) in cols.iter().zip(ds) {
                 if r >= tab.r_max() {
                     continue;
                 }
@@ -645,11 +637,8 @@ mod tests {
             area: &o.area,
             size: &o.size,
         };
-        let d = DistanceView {
-            row_ptr: &o.row_ptr,
-            col: &o.col,
-            dist: &o.dist,
-        };
+        let n = o.area.len();
+        let d = CsrView::new_checked(n, n, &o.row_ptr, &o.col, &o.dist).unwrap();
         assemble(p, d, tab, &SubsurfaceParams::default())
     }
 

@@ -22,11 +22,11 @@ use thiserror::Error;
 use translux_engine::hetero::{MEDIA, MediaLen};
 use translux_engine::sheet::{KIND_SAME, SheetError, profile_eval};
 use translux_engine::smatrix::{
-    AssemblyReport, CsrOwned, ObjectMaterial, PatchGeometry, SError, SParams, object_patches,
-    stored_radius,
+    AssemblyReport, ObjectMaterial, PatchGeometry, SError, SParams, object_patches, stored_radius,
 };
 use translux_engine::subsurface::ObjectPatches;
 use translux_proto::bundle::SubsurfaceObject;
+use translux_proto::csr::Csr;
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, PatternFrame};
@@ -88,7 +88,7 @@ fn euclidean_rows(c: &[Vec3], r_max: f32) -> Vec<Vec<(u32, f32)>> {
 
 /// What [`scene_distances`] returns: the distances (CSR), their per-medium lengths and their
 /// kinds (both aligned with the CSR entries), and a report per translucent object.
-pub type SceneDistances = (CsrOwned<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
+pub type SceneDistances = (Csr<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
 
 /// Bytes the subsurface stage holds per stored path at its peak, counted from its buffers:
 /// the path as a row entry (column and length, 8) and its kind (4) while the rows are
@@ -208,19 +208,15 @@ pub fn scene_distances(
                 if field.is_some() {
                     local_lens = (0..r.len())
                         .map(|i| {
-                            let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
+                            let (a, b) = (d.csr.row_ptr[i] as usize, d.csr.row_ptr[i + 1] as usize);
                             d.material_len[a..b].to_vec()
                         })
                         .collect();
                 }
                 let rows: Vec<Vec<(u32, f32)>> = (0..r.len())
                     .map(|i| {
-                        let (a, b) = (d.row_ptr[i] as usize, d.row_ptr[i + 1] as usize);
-                        d.col[a..b]
-                            .iter()
-                            .copied()
-                            .zip(d.dist[a..b].iter().copied())
-                            .collect()
+                        let (cols, dist) = d.row(i);
+                        cols.iter().copied().zip(dist.iter().copied()).collect()
                     })
                     .collect();
                 (rows, Some(s), None)
@@ -291,7 +287,9 @@ pub fn scene_distances(
             kind.extend(std::iter::repeat_n(KIND_SAME, row.len()));
         }
     }
-    Ok((CsrOwned::from_rows(rows), material_len, kind, reports))
+    let n = rows.len();
+    let d = Csr::from_rows(n, rows).map_err(SError::Matrix)?;
+    Ok((d, material_len, kind, reports))
 }
 
 /// The manifest's per-object record, from both stages' reports.

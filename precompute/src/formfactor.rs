@@ -197,6 +197,37 @@ pub(crate) fn pair(
     Some(if pp == i { (f_pq, f_qp) } else { (f_qp, f_pq) })
 }
 
+/// Row i of dense F, exactly as [`compute`] makes it (the same culls and the same pair rule,
+/// each pair evaluated in the order `compute` evaluates it): the reference for checking
+/// single rows of a hierarchical F where dense F would not fit. Sorted by column.
+pub fn dense_row(
+    p: &Patches,
+    occ: &Occluder,
+    params: &FormFactorParams,
+    i: usize,
+) -> Vec<(u32, f32)> {
+    let diag = occ.diagonal();
+    let (eps_plane, offset) = (1e-6 * diag, 1e-5 * diag);
+    let (mut samples, mut rays) = (Vec::new(), 0u64);
+    let mut row = Vec::new();
+    for j in 0..p.len() {
+        if j == i
+            || !any_in_front(&p.corners[j], p.centroid[i], p.normal[i], eps_plane)
+            || !any_in_front(&p.corners[i], p.centroid[j], p.normal[j], eps_plane)
+        {
+            continue;
+        }
+        let (a, b) = (i.min(j), i.max(j));
+        if let Some((f_ab, f_ba)) = pair(p, occ, params, offset, a, b, &mut samples, &mut rays) {
+            let f = if a == i { f_ab } else { f_ba };
+            if f >= params.threshold {
+                row.push((j as u32, f));
+            }
+        }
+    }
+    row
+}
+
 /// The summary of a computed F (dense, or the C of a hierarchical one: P keeps constants,
 /// so C's row sums are F̃'s): entries and row sums Σ_j F_ij (mean, min, max).
 pub(crate) fn summarize(

@@ -273,9 +273,8 @@ mod tests {
     use super::*;
     use translux_engine::hetero::{assemble, eq9, merge_media};
     use translux_engine::profile::ProfileEval;
-    use translux_engine::subsurface::{
-        DistanceView, ObjectPatches, ObjectS, SubsurfaceParams, Tabulated,
-    };
+    use translux_engine::subsurface::{ObjectPatches, ObjectS, SubsurfaceParams, Tabulated};
+    use translux_proto::csr::CsrView;
     use translux_proto::scene::ExpTerm;
     use translux_proto::scene::Profile;
 
@@ -506,12 +505,9 @@ mod tests {
                 size: &self.size,
             }
         }
-        fn distances(&self) -> DistanceView<'_> {
-            DistanceView {
-                row_ptr: &self.row_ptr,
-                col: &self.col,
-                dist: &self.dist,
-            }
+        fn distances(&self) -> CsrView<'_, f32> {
+            let n = self.area.len();
+            CsrView::new_checked(n, n, &self.row_ptr, &self.col, &self.dist).unwrap()
         }
         fn hetero(&self, profiles: &[Profile], r_max: f32) -> ObjectS {
             let (map, distinct) = merge_media(profiles);

@@ -12,10 +12,12 @@
 //!    geometry and the built-in scenes.
 //!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`);
 //!    [`orient`] turns closed parts wound inside out outward (`orientation`).
-//!    [`meshio`] picks a mesh file's format by extension and reads PLY and glTF 2.0.
-//! 2. [`patch`] — split triangles into patches, weld vertices, crease-aware normals.
+//!    [`meshio`] picks a mesh file's format by extension and reads PLY and glTF 2.0;
+//!    [`obj`] reads OBJ (with `usemtl` groups).
+//! 2. [`patch`] — split triangles into patches, weld vertices (the crate's one weld, also
+//!    used by [`sheet`]), crease-aware normals.
 //! 3. [`formfactor`] — F with visibility (`translux_engine::raycast`), point-to-polygon,
-//!    near-pair sub-sampling.
+//!    near-pair sub-sampling; [`hierarchy`] — the cluster tree and the hierarchical F̃ = C·P.
 //! 4. [`distances`] (with [`voxel`], [`sheet`], [`hetero`]) — optical path distances inside
 //!    translucent objects (voxel Dijkstra), along thin two-sided sheets (geodesics, same or
 //!    other side) and per medium in heterogeneous objects; S from them and the materials is
@@ -41,6 +43,7 @@ pub mod formfactor;
 pub mod hetero;
 pub mod hierarchy;
 pub mod meshio;
+pub mod obj;
 pub mod orient;
 pub mod patch;
 pub mod pipeline;

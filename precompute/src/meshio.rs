@@ -1,5 +1,5 @@
 //! Mesh files: which format a scene's `"mesh": "PATH"` is, and readers for PLY and glTF 2.0
-//! (OBJ is read in [`crate::scene`], which also keeps its `usemtl` groups).
+//! (OBJ is read by [`crate::obj`], which also keeps its `usemtl` groups).
 //!
 //! The format is chosen by the file's extension, in any case: `.obj`, `.ply`, `.gltf`,
 //! `.glb` ([`MeshFormat::from_path`]). Every reader gives the same thing: the file's

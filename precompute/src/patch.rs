@@ -163,7 +163,54 @@ fn push(p: &mut Patches, c: [Vec3; 3], object: usize) {
     p.corners.push(c);
 }
 
-/// Welds corners within each object, then splits each welded point into one vertex per
+/// Welds corners by position within eps = 1e-6 × their bounding box's diagonal: a grid of
+/// cell size eps, where a corner joins a point within eps in its own or a neighbouring cell
+/// (so points that straddle a cell border still weld). Returns the points, each triangle's
+/// three point ids, and eps. The one weld of the crate: the viewer mesh (per object) and
+/// the sheets' touching patches use it.
+pub(crate) fn weld(corners: &[[Vec3; 3]]) -> (Vec<Vec3>, Vec<[u32; 3]>, f32) {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for v in corners.iter().flatten() {
+        lo = lo.min(*v);
+        hi = hi.max(*v);
+    }
+    let eps = ((hi - lo).length() * 1e-6).max(1e-12);
+    let cell = |v: Vec3| {
+        let q = ((v - lo) / eps).floor();
+        (q.x as i64, q.y as i64, q.z as i64)
+    };
+    let mut grid: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
+    let mut points: Vec<Vec3> = Vec::new();
+    let mut ids = vec![[0u32; 3]; corners.len()];
+    for (k, c) in corners.iter().enumerate() {
+        for (ci, v) in c.iter().enumerate() {
+            let (x, y, z) = cell(*v);
+            let mut found = None;
+            'search: for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        for &id in grid.get(&(x + dx, y + dy, z + dz)).into_iter().flatten() {
+                            if points[id as usize].distance(*v) <= eps {
+                                found = Some(id);
+                                break 'search;
+                            }
+                        }
+                    }
+                }
+            }
+            ids[k][ci] = found.unwrap_or_else(|| {
+                let id = points.len() as u32;
+                points.push(*v);
+                grid.entry((x, y, z)).or_default().push(id);
+                id
+            });
+        }
+    }
+    (points, ids, eps)
+}
+
+/// Welds corners within each object ([`weld`]), then splits each welded point into one vertex per
 /// smoothing group: faces around a point join the first group whose seed normal is within
 /// `crease_deg[object]` of theirs. Vertex normals are area-weighted means of their group.
 pub fn viewer_mesh(p: &Patches, crease_deg: &[f32]) -> ViewerMesh {
@@ -181,51 +228,7 @@ pub fn viewer_mesh(p: &Patches, crease_deg: &[f32]) -> ViewerMesh {
             .unwrap_or(40.0)
             .to_radians()
             .cos();
-        // Weld: a grid of cell size eps; a corner joins a point within eps in its own or a
-        // neighbouring cell, so points that straddle a cell border still weld.
-        let mut lo = Vec3::splat(f32::INFINITY);
-        let mut hi = Vec3::splat(f32::NEG_INFINITY);
-        for c in &p.corners[range.clone()] {
-            for v in c {
-                lo = lo.min(*v);
-                hi = hi.max(*v);
-            }
-        }
-        let eps = ((hi - lo).length() * 1e-6).max(1e-12);
-        let cell = |v: Vec3| {
-            let q = ((v - lo) / eps).floor();
-            (q.x as i64, q.y as i64, q.z as i64)
-        };
-        let mut grid: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
-        let mut points: Vec<Vec3> = Vec::new();
-        let mut corner_point = vec![[0u32; 3]; range.len()];
-        for (k, pi) in range.clone().enumerate() {
-            for (ci, v) in p.corners[pi].iter().enumerate() {
-                let (x, y, z) = cell(*v);
-                let mut found = None;
-                'search: for dx in -1..=1 {
-                    for dy in -1..=1 {
-                        for dz in -1..=1 {
-                            if let Some(ids) = grid.get(&(x + dx, y + dy, z + dz)) {
-                                for &id in ids {
-                                    if points[id as usize].distance(*v) <= eps {
-                                        found = Some(id);
-                                        break 'search;
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-                let id = found.unwrap_or_else(|| {
-                    let id = points.len() as u32;
-                    points.push(*v);
-                    grid.entry((x, y, z)).or_default().push(id);
-                    id
-                });
-                corner_point[k][ci] = id;
-            }
-        }
+        let (points, corner_point, _) = weld(&p.corners[range.clone()]);
         // Faces around each welded point.
         let mut around: Vec<Vec<(u32, u8)>> = vec![Vec::new(); points.len()];
         for (k, cp) in corner_point.iter().enumerate() {

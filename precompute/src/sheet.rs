@@ -106,56 +106,11 @@ fn longest_edge(c: &[Vec3; 3]) -> f32 {
         .max((c[0] - c[2]).length())
 }
 
-/// Welds corners by position within eps = 1e-6 × the bounding-box diagonal (a corner joins
-/// a point within eps in its own or a neighbouring grid cell of size eps, as in `patch`).
-/// Returns the points, each patch's three point ids, and eps.
-fn weld(corners: &[[Vec3; 3]]) -> (Vec<Vec3>, Vec<[u32; 3]>, f32) {
-    let mut lo = Vec3::splat(f32::INFINITY);
-    let mut hi = Vec3::splat(f32::NEG_INFINITY);
-    for v in corners.iter().flatten() {
-        lo = lo.min(*v);
-        hi = hi.max(*v);
-    }
-    let eps = ((hi - lo).length() * 1e-6).max(1e-12);
-    let cell = |v: Vec3| {
-        let q = ((v - lo) / eps).floor();
-        (q.x as i64, q.y as i64, q.z as i64)
-    };
-    let mut grid: HashMap<(i64, i64, i64), Vec<u32>> = HashMap::new();
-    let mut points: Vec<Vec3> = Vec::new();
-    let mut ids = vec![[0u32; 3]; corners.len()];
-    for (k, c) in corners.iter().enumerate() {
-        for (ci, v) in c.iter().enumerate() {
-            let (x, y, z) = cell(*v);
-            let mut found = None;
-            'search: for dx in -1..=1 {
-                for dy in -1..=1 {
-                    for dz in -1..=1 {
-                        for &id in grid.get(&(x + dx, y + dy, z + dz)).into_iter().flatten() {
-                            if points[id as usize].distance(*v) <= eps {
-                                found = Some(id);
-                                break 'search;
-                            }
-                        }
-                    }
-                }
-            }
-            ids[k][ci] = found.unwrap_or_else(|| {
-                let id = points.len() as u32;
-                points.push(*v);
-                grid.entry((x, y, z)).or_default().push(id);
-                id
-            });
-        }
-    }
-    (points, ids, eps)
-}
-
 /// For every patch, the patches touching it (sharing a welded corner, or a corner of one
 /// inside an edge of the other), sorted, itself left out.
 pub fn touching(corners: &[[Vec3; 3]]) -> Vec<Vec<u32>> {
     let n = corners.len();
-    let (points, ids, eps) = weld(corners);
+    let (points, ids, eps) = crate::patch::weld(corners);
     let mut around: Vec<Vec<u32>> = vec![Vec::new(); points.len()];
     for (k, c) in ids.iter().enumerate() {
         for &p in c {
@@ -644,7 +599,8 @@ mod tests {
     use crate::shapes::shape_triangles;
     use translux_engine::profile::ProfileEval;
     use translux_engine::sheet::assemble;
-    use translux_engine::subsurface::{DistanceView, ObjectS, SubsurfaceParams, Tabulated};
+    use translux_engine::subsurface::{ObjectS, SubsurfaceParams, Tabulated};
+    use translux_proto::csr::CsrView;
     use translux_proto::scene::Profile;
     use translux_proto::scene::{ExpTerm, Shape};
 
@@ -729,11 +685,8 @@ mod tests {
             }
             row_ptr.push(col.len() as u64);
         }
-        let dv = DistanceView {
-            row_ptr: &row_ptr,
-            col: &col,
-            dist: &dist,
-        };
+        let n = o.area.len();
+        let dv = CsrView::new_checked(n, n, &row_ptr, &col, &dist).unwrap();
         let (tr, tt) = (Tabulated::new(&er, rr, 4096), Tabulated::new(&et, rt, 4096));
         let s = assemble(o.view(), dv, &kind, &tr, &tt, &SubsurfaceParams::default());
         (sd, s)

@@ -180,19 +180,22 @@ impl CsrView<'_, f32> {
     }
 }
 
-/// An owned CSR matrix (what the precompute builds before writing it).
+/// An owned CSR matrix over values `T` (F and distances: `f32`; S: RGB): what the
+/// precompute builds before writing it, and what S assembly hands the backends. The one
+/// owned CSR type of the workspace; build it row by row with [`CsrBuilder`] (each row
+/// checked as it is pushed) or [`Csr::from_rows`], and borrow it with [`Csr::view`].
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct Csr {
+pub struct Csr<T: CsrValue = f32> {
     pub n_rows: usize,
     pub n_cols: usize,
     pub row_ptr: Vec<u64>,
     pub col: Vec<u32>,
-    pub val: Vec<f32>,
+    pub val: Vec<T>,
 }
 
-impl Csr {
-    /// Borrows it as a checked view.
-    pub fn view(&self) -> Result<CsrView<'_>, CsrError> {
+impl<T: CsrValue> Csr<T> {
+    /// Borrows it as a checked view (one pass over the matrix).
+    pub fn view(&self) -> Result<CsrView<'_, T>, CsrError> {
         CsrView::new_checked(
             self.n_rows,
             self.n_cols,
@@ -204,6 +207,88 @@ impl Csr {
 
     pub fn nnz(&self) -> usize {
         self.col.len()
+    }
+
+    /// The matrix with `n_cols` columns whose row i lists `rows[i]`'s (column, value)
+    /// pairs, each row checked as by [`CsrBuilder::push_row`].
+    pub fn from_rows(
+        n_cols: usize,
+        rows: impl IntoIterator<Item = impl AsRef<[(u32, T)]>>,
+    ) -> Result<Self, CsrError> {
+        let mut b = CsrBuilder::new(n_cols);
+        for row in rows {
+            b.push_row(row.as_ref())?;
+        }
+        Ok(b.finish())
+    }
+}
+
+/// Builds a [`Csr`] a row at a time, checking each row as it comes: columns in range and
+/// strictly increasing, values finite. What it finishes is therefore always a valid matrix.
+#[derive(Debug, Clone)]
+pub struct CsrBuilder<T: CsrValue = f32> {
+    csr: Csr<T>,
+}
+
+impl<T: CsrValue> CsrBuilder<T> {
+    /// An empty matrix of `n_cols` columns (no rows yet).
+    pub fn new(n_cols: usize) -> Self {
+        CsrBuilder {
+            csr: Csr {
+                n_rows: 0,
+                n_cols,
+                row_ptr: vec![0],
+                col: Vec::new(),
+                val: Vec::new(),
+            },
+        }
+    }
+
+    /// Reserves room for `rows` more rows and `nnz` more entries.
+    pub fn reserve(&mut self, rows: usize, nnz: usize) {
+        self.csr.row_ptr.reserve(rows);
+        self.csr.col.reserve(nnz);
+        self.csr.val.reserve(nnz);
+    }
+
+    /// Rows pushed so far.
+    pub fn rows(&self) -> usize {
+        self.csr.n_rows
+    }
+
+    /// Entries pushed so far.
+    pub fn nnz(&self) -> usize {
+        self.csr.col.len()
+    }
+
+    /// Appends the next row; on an invalid row nothing is appended and the error names the
+    /// row and the column.
+    pub fn push_row(&mut self, entries: &[(u32, T)]) -> Result<(), CsrError> {
+        let row = self.csr.n_rows;
+        for (k, &(c, v)) in entries.iter().enumerate() {
+            if c as usize >= self.csr.n_cols {
+                return Err(CsrError::ColumnOutOfRange {
+                    row,
+                    col: c,
+                    n_cols: self.csr.n_cols,
+                });
+            }
+            if k > 0 && c <= entries[k - 1].0 {
+                return Err(CsrError::ColumnsUnsorted { row, col: c });
+            }
+            if !v.is_finite_value() {
+                return Err(CsrError::NonFinite { row, col: c });
+            }
+        }
+        self.csr.col.extend(entries.iter().map(|e| e.0));
+        self.csr.val.extend(entries.iter().map(|e| e.1));
+        self.csr.row_ptr.push(self.csr.col.len() as u64);
+        self.csr.n_rows += 1;
+        Ok(())
+    }
+
+    pub fn finish(self) -> Csr<T> {
+        self.csr
     }
 }
 
@@ -245,5 +330,37 @@ mod tests {
             CsrView::new_checked(3, 3, &rp, &col, &val),
             Err(CsrError::RowPtrLength { .. })
         ));
+    }
+
+    #[test]
+    fn the_builder_checks_each_row_and_keeps_the_matrix_valid() {
+        let mut b = CsrBuilder::<f32>::new(4);
+        b.push_row(&[(0, 1.0), (3, 2.0)]).unwrap();
+        b.push_row(&[]).unwrap();
+        assert_eq!(
+            b.push_row(&[(2, 1.0), (1, 1.0)]),
+            Err(CsrError::ColumnsUnsorted { row: 2, col: 1 })
+        );
+        assert_eq!(
+            b.push_row(&[(4, 1.0)]),
+            Err(CsrError::ColumnOutOfRange {
+                row: 2,
+                col: 4,
+                n_cols: 4
+            })
+        );
+        assert_eq!(
+            b.push_row(&[(1, f32::NAN)]),
+            Err(CsrError::NonFinite { row: 2, col: 1 })
+        );
+        b.push_row(&[(1, 5.0)]).unwrap();
+        let m = b.finish();
+        assert_eq!((m.n_rows, m.nnz()), (3, 3));
+        let v = m.view().unwrap();
+        assert_eq!(v.get(0, 3), 2.0);
+        assert_eq!(v.get(2, 1), 5.0);
+        let rgb = Csr::<[f32; 3]>::from_rows(2, [vec![(1, [1.0, 2.0, 3.0])], vec![]]).unwrap();
+        assert_eq!(rgb.view().unwrap().entry(0, 1), Some([1.0, 2.0, 3.0]));
+        assert!(Csr::<[f32; 3]>::from_rows(2, [vec![(0, [f32::INFINITY, 0.0, 0.0])]]).is_err());
     }
 }

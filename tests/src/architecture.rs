@@ -96,6 +96,11 @@ mod tests {
             if module == "lib" || module == "main" {
                 continue;
             }
+            // A module's unit tests in their own file (`voxel/tests.rs`) are test code, like
+            // an inline `mod tests`.
+            if f.file_name().is_some_and(|n| n == "tests.rs") {
+                continue;
+            }
             let text = std::fs::read_to_string(&f).unwrap();
             let code = text.split("#[cfg(test)]\nmod tests").next().unwrap_or("");
             let deps = graph.entry(module.clone()).or_default();

@@ -26,9 +26,10 @@
 use rayon::prelude::*;
 use translux_engine::radiosity::Rgb;
 use translux_engine::sheet::{self, KIND_OPPOSITE};
-use translux_engine::smatrix::{self, CsrOwned, PatchGeometry, SError, SParams};
+use translux_engine::smatrix::{self, PatchGeometry, SError, SParams};
 use translux_engine::subsurface::{self, ObjectPatches, Quadrature, SubsurfaceParams, Tabulated};
 use translux_proto::bundle::Bundle;
+use translux_proto::csr::Csr;
 use translux_proto::scene::Material;
 
 use super::matrix::{alloc_size, staging, storage_init, storage_zeroed, uniform};
@@ -507,7 +508,7 @@ pub struct DeviceS {
     /// S on the device, bound by the solve.
     pub s: GpuCsr,
     /// The same values on the CPU (explicit zeros kept: the template's structure).
-    pub csr: CsrOwned<Rgb>,
+    pub csr: Csr<Rgb>,
     pub reports: Vec<ColumnReport>,
 }
 
@@ -595,7 +596,9 @@ impl GpuSTemplate {
         );
         Ok(DeviceS {
             s,
-            csr: CsrOwned {
+            csr: Csr {
+                n_rows: t.n,
+                n_cols: t.n,
                 row_ptr: t.row_ptr.clone(),
                 col: t.col.clone(),
                 val: values,

@@ -1,11 +1,6 @@
-//! Shared by the server tests in `stream.rs` and `sharing.rs`: a small Cornell-box bundle
-//! built once per test binary, a server on 127.0.0.1:0 with chosen settings, reference
+//! The fixtures of the end-to-end tests: one rule for kept folders, one way to build a test
+//! bundle, a small Cornell-box bundle built once per test run, a server on 127.0.0.1:0 with chosen settings, reference
 //! relights through the library, and small HTTP helpers.
-
-#![allow(
-    dead_code,
-    reason = "each test binary uses a different part of this module"
-)]
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
@@ -16,7 +11,7 @@ use serde_json::{Value, json};
 use tokio::sync::oneshot;
 use translux_engine::relight;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::scene::load_scene;
+use translux_precompute::scene::{LoadedScene, load_scene};
 use translux_proto::api::{ErrorBody, RelightRequest};
 use translux_server::state::Scene;
 use translux_server::{AppState, ServerParams, load_bundles_with};
@@ -24,48 +19,57 @@ use translux_server::{AppState, ServerParams, load_bundles_with};
 /// Patches of the test bundle: small enough to precompute in about a second.
 pub const PATCHES: u64 = 400;
 pub const ID: &str = "cornell";
-const PREFIX: &str = "server-sharing-";
+const PREFIX: &str = "translux-fixture-";
 
-/// The folder holding the bundle `cornell`, built on first use.
+/// A folder under the target's temp folder that outlives the test run (statics are never
+/// dropped): removed by a later run once older than ten minutes (no test run holds one that
+/// long). Every fixture of this binary is made in one of these.
+pub fn kept_folder(prefix: &str) -> PathBuf {
+    let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    if let Ok(entries) = std::fs::read_dir(parent) {
+        for e in entries.flatten() {
+            let stale = e.file_name().to_string_lossy().starts_with(prefix)
+                && e.metadata()
+                    .and_then(|m| m.modified())
+                    .ok()
+                    .and_then(|t| t.elapsed().ok())
+                    .is_some_and(|age| age.as_secs() > 600);
+            if stale {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
+    tempfile::Builder::new()
+        .prefix(prefix)
+        .tempdir_in(parent)
+        .expect("temp dir")
+        .keep()
+}
+
+/// The one way this binary builds a test bundle: `scene` precomputed at about `patches`
+/// patches into `dir` (the default transport, no environment bins unless the scene's
+/// defaults ask), panicking with the precompute's error.
+pub fn build_bundle(scene: &LoadedScene, dir: &Path, patches: u64) {
+    let params = PrecomputeParams {
+        patches: Some(patches),
+        ..Default::default()
+    };
+    precompute(scene, dir, &params).expect("precompute");
+}
+
+/// The folder holding the bundle `cornell` (builtin:cornell at [`PATCHES`]), built on first
+/// use and shared by every test of this binary that needs a small scene.
 pub fn bundles_root() -> &'static Path {
     static ROOT: OnceLock<PathBuf> = OnceLock::new();
     ROOT.get_or_init(|| {
-        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        remove_stale(parent);
-        // Statics are never dropped: the folder is removed by a later run (older than ten
-        // minutes: no test binary runs that long).
-        let root = tempfile::Builder::new()
-            .prefix(PREFIX)
-            .tempdir_in(parent)
-            .expect("temp dir")
-            .keep();
+        let root = kept_folder(PREFIX);
         let scene = load_scene("builtin:cornell").expect("builtin:cornell loads");
-        let params = PrecomputeParams {
-            patches: Some(PATCHES),
-            ..Default::default()
-        };
-        precompute(&scene, &root.join(ID), &params).expect("precompute");
+        build_bundle(&scene, &root.join(ID), PATCHES);
         root
     })
 }
 
-fn remove_stale(parent: &Path) {
-    let Ok(entries) = std::fs::read_dir(parent) else {
-        return;
-    };
-    for e in entries.flatten() {
-        let stale = e.file_name().to_string_lossy().starts_with(PREFIX)
-            && e.metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age.as_secs() > 600);
-        if stale {
-            let _ = std::fs::remove_dir_all(e.path());
-        }
-    }
-}
-
+/// The `cornell` bundle's own folder.
 pub fn bundle_dir() -> PathBuf {
     bundles_root().join(ID)
 }
@@ -116,7 +120,6 @@ pub fn light_at(x: f32, intensity: [f32; 3]) -> Value {
 /// A running server; stopped gracefully by [`TestServer::stop`].
 pub struct TestServer {
     pub addr: std::net::SocketAddr,
-    pub state: AppState,
     pub client: reqwest::Client,
     stop: Option<oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<std::io::Result<()>>,
@@ -128,16 +131,11 @@ impl TestServer {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let (tx, rx) = oneshot::channel::<()>();
-        let task = tokio::spawn(translux_server::serve(
-            listener,
-            state.clone(),
-            async move {
-                let _ = rx.await;
-            },
-        ));
+        let task = tokio::spawn(translux_server::serve(listener, state, async move {
+            let _ = rx.await;
+        }));
         TestServer {
             addr,
-            state,
             // One connection per concurrent request: no pooling surprises.
             client: reqwest::Client::builder()
                 .pool_max_idle_per_host(0)

@@ -1,5 +1,5 @@
-//! End-to-end tests of `translux-server`: a small Cornell-box bundle is precomputed once per
-//! test binary, each test starts a server on 127.0.0.1:0 and talks HTTP to it.
+//! End-to-end tests of `translux-server`: the small Cornell-box bundle of `support` is
+//! precomputed once per test run, each test starts a server on 127.0.0.1:0 and talks HTTP to it.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -14,68 +14,13 @@ use translux_engine::radiosity::{
     PatchGeometry, Rgb, SolveParams, SparseScatter, direct_irradiance, solve, vertex_radiance,
 };
 use translux_engine::raycast::Occluder;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::api::{ErrorBody, Health, Mesh, RelightResponse, SceneDetail, SceneList};
 use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 use translux_server::{AppState, load_bundles};
 
-/// Patches of the test bundle: small enough to precompute in about a second.
-const PATCHES: u64 = 400;
-const ID: &str = "cornell";
-
-struct Fixture {
-    /// Holds one bundle, `cornell`.
-    root: PathBuf,
-}
-
-/// The test bundle, built on first use (inside this crate's target temp folder).
-fn fixture() -> &'static Fixture {
-    static FIXTURE: OnceLock<Fixture> = OnceLock::new();
-    FIXTURE.get_or_init(|| {
-        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        remove_stale_fixtures(parent);
-        // Statics are never dropped, so the folder is kept and cleaned up by a later run.
-        let root = tempfile::Builder::new()
-            .prefix(FIXTURE_PREFIX)
-            .tempdir_in(parent)
-            .expect("temp dir")
-            .keep();
-        let scene = load_scene("builtin:cornell").expect("builtin:cornell loads");
-        let params = PrecomputeParams {
-            patches: Some(PATCHES),
-            ..Default::default()
-        };
-        precompute(&scene, &root.join(ID), &params).expect("precompute");
-        Fixture { root }
-    })
-}
-
-const FIXTURE_PREFIX: &str = "server-bundles-";
-
-/// Removes fixture folders that earlier runs left behind (older than ten minutes: no test
-/// binary runs that long, so none is in use).
-fn remove_stale_fixtures(parent: &Path) {
-    let Ok(entries) = std::fs::read_dir(parent) else {
-        return;
-    };
-    for e in entries.flatten() {
-        let stale = e.file_name().to_string_lossy().starts_with(FIXTURE_PREFIX)
-            && e.metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age.as_secs() > 600);
-        if stale {
-            let _ = std::fs::remove_dir_all(e.path());
-        }
-    }
-}
-
-fn bundle_dir() -> PathBuf {
-    fixture().root.join(ID)
-}
+use crate::support::{ID, PATCHES, build_bundle, bundle_dir, bundles_root, kept_folder};
 
 /// A running server; stopped (gracefully) by [`TestServer::stop`] or when the test's runtime
 /// ends.
@@ -104,7 +49,7 @@ impl TestServer {
 
     /// The server on the shared test bundle.
     async fn cornell() -> TestServer {
-        let (state, errors) = load_bundles(&fixture().root);
+        let (state, errors) = load_bundles(bundles_root());
         assert!(errors.is_empty(), "{errors:?}");
         TestServer::start(state).await
     }
@@ -1272,20 +1217,10 @@ async fn render_defaults_to_the_viewers_auto_exposure() {
 fn centimetre_bundle() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        let root = tempfile::Builder::new()
-            .prefix(FIXTURE_PREFIX)
-            .tempdir_in(parent)
-            .expect("temp dir")
-            .keep();
         let mut scene = load_scene("builtin:cornell").expect("builtin:cornell loads");
         scene.file.unit_mm = 10.0;
-        let params = PrecomputeParams {
-            patches: Some(200),
-            ..Default::default()
-        };
-        let dir = root.join("cornell_cm");
-        precompute(&scene, &dir, &params).expect("precompute");
+        let dir = kept_folder("translux-fixture-cm-").join("cornell_cm");
+        build_bundle(&scene, &dir, 200);
         dir
     })
 }

@@ -28,11 +28,7 @@ const PLATE_Y: f32 = 1.5;
 fn fixture() -> &'static PathBuf {
     static ROOT: OnceLock<PathBuf> = OnceLock::new();
     ROOT.get_or_init(|| {
-        let root = tempfile::Builder::new()
-            .prefix("environment-bundles-")
-            .tempdir_in(env!("CARGO_TARGET_TMPDIR"))
-            .expect("temp dir")
-            .keep();
+        let root = crate::support::kept_folder("translux-fixture-env-");
         let scene_file = root.join("plate.json");
         let scene = json!({
             "unit_mm": 1000,

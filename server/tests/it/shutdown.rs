@@ -9,8 +9,6 @@ use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 use translux_engine::relight;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::scene::load_scene;
 use translux_proto::api::RelightRequest;
 use translux_server::state::Scene;
 
@@ -19,31 +17,8 @@ const PREFIX: &str = "server-shutdown-";
 
 /// A folder holding a 400-patch Cornell box as `cornell`, fresh for this test binary.
 fn bundles() -> PathBuf {
-    let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-    if let Ok(entries) = std::fs::read_dir(parent) {
-        for e in entries.flatten() {
-            let stale = e.file_name().to_string_lossy().starts_with(PREFIX)
-                && e.metadata()
-                    .and_then(|m| m.modified())
-                    .ok()
-                    .and_then(|t| t.elapsed().ok())
-                    .is_some_and(|age| age.as_secs() > 600);
-            if stale {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-    }
-    let root = tempfile::Builder::new()
-        .prefix(PREFIX)
-        .tempdir_in(parent)
-        .unwrap()
-        .keep();
-    let scene = load_scene("builtin:cornell").unwrap();
-    let params = PrecomputeParams {
-        patches: Some(400),
-        ..Default::default()
-    };
-    precompute(&scene, &root.join("cornell"), &params).unwrap();
+    let root = crate::support::kept_folder(PREFIX);
+    crate::support::cornell_into(&root, 400);
     root
 }
 

@@ -2,16 +2,14 @@
 //! scenes that load in the background, `/healthz`, `/metrics` and the OpenAPI document,
 //! against a real server on 127.0.0.1:0 (or the pool itself where timing must not matter).
 
-mod support;
-
 use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::support::*;
 use reqwest::StatusCode;
 use reqwest::header::RETRY_AFTER;
 use serde_json::{Value, json};
-use support::*;
 use translux_engine::relight;
 use translux_proto::api::RelightRequest;
 use translux_server::metrics::Metrics;
@@ -491,7 +489,7 @@ async fn the_openapi_document_describes_every_route_the_router_serves() {
     assert!(doc.openapi.starts_with("3."), "{}", doc.openapi);
 
     // This test's server serves `routes::router`; the team routes (uploads, jobs, whoami)
-    // are served by `team::app` and answered in tests/tests/team.rs.
+    // are served by `team::app` and answered in tests/tests/it/team.rs.
     let served: BTreeSet<(String, String)> = translux_server::routes::routes()
         .into_iter()
         .map(|(m, p)| (m.as_str().to_lowercase(), openapi_path(p)))

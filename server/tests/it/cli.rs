@@ -2,63 +2,19 @@
 //! server flags, run as a user would, on a small Cornell-box bundle built in the test.
 
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output, Stdio};
-use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use translux_engine::relight;
 use translux_engine::render::RenderParams;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::scene::load_scene;
 use translux_proto::api::{RelightRequest, RelightResponse, ToneMap};
 use translux_proto::bundle::Bundle;
 use translux_server::state::Scene;
 
+use crate::support::bundle_dir;
+
 const BIN: &str = env!("CARGO_BIN_EXE_translux-server");
-
-/// A ~300-patch Cornell box, built once per test binary in a folder under the target's temp
-/// folder. Statics are never dropped, so each run removes the folders that earlier runs left
-/// (older than ten minutes: no run of this binary takes that long).
-fn bundle_dir() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-        remove_stale(parent);
-        let root = tempfile::Builder::new()
-            .prefix(PREFIX)
-            .tempdir_in(parent)
-            .unwrap()
-            .keep();
-        let dir = root.join("cornell");
-        let scene = load_scene("builtin:cornell").unwrap();
-        let params = PrecomputeParams {
-            patches: Some(300),
-            ..Default::default()
-        };
-        precompute(&scene, &dir, &params).unwrap();
-        dir
-    })
-}
-
-const PREFIX: &str = "server-cli-bundle-";
-
-fn remove_stale(parent: &Path) {
-    let Ok(entries) = std::fs::read_dir(parent) else {
-        return;
-    };
-    for e in entries.flatten() {
-        let stale = e.file_name().to_string_lossy().starts_with(PREFIX)
-            && e.metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age.as_secs() > 600);
-        if stale {
-            let _ = std::fs::remove_dir_all(e.path());
-        }
-    }
-}
 
 fn server(args: &[&str]) -> Output {
     Command::new(BIN)
@@ -269,7 +225,7 @@ fn export_writes_glb_and_ply() {
     assert_eq!(root.buffers[0].byte_length.0 as usize, bin_len);
     assert_eq!(bin_len, 36 * nv + 12 * nf);
     // One mesh per object (POSITION, NORMAL, COLOR_0, indices each): every vertex and every
-    // triangle once. (The names are checked in tests/tests/server.rs.)
+    // triangle once. (The names are checked in tests/tests/it/server.rs.)
     let objects = bundle.manifest().objects.len();
     assert_eq!((root.meshes.len(), root.nodes.len()), (objects, objects));
     let counts: Vec<u64> = root.accessors.iter().map(|a| a.count.0).collect();

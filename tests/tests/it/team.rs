@@ -12,8 +12,6 @@ use reqwest::header::{ACCEPT, AUTHORIZATION, CONTENT_TYPE, LOCATION, WWW_AUTHENT
 use reqwest::multipart::{Form, Part};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
-use translux_precompute::scene::load_scene;
 use translux_proto::api::{RelightResponse, SceneList};
 use translux_server::auth::{Role, hash_token, required_role};
 use translux_server::state::discover;
@@ -59,25 +57,6 @@ fn logs() -> &'static Captured {
 // ---------------------------------------------------------------------------------------
 // Fixtures.
 
-/// A small Cornell-box bundle, built once per test binary.
-fn cornell_bundle() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let root = tempfile::Builder::new()
-            .prefix("team-fixture-")
-            .tempdir_in(env!("CARGO_TARGET_TMPDIR"))
-            .unwrap()
-            .keep();
-        let scene = load_scene("builtin:cornell").unwrap();
-        let params = PrecomputeParams {
-            patches: Some(300),
-            ..Default::default()
-        };
-        precompute(&scene, &root.join("cornell"), &params).unwrap();
-        root.join("cornell")
-    })
-}
-
 fn copy_dir(from: &Path, to: &Path) {
     std::fs::create_dir_all(to).unwrap();
     for e in std::fs::read_dir(from).unwrap() {
@@ -90,7 +69,7 @@ fn copy_dir(from: &Path, to: &Path) {
 fn bundles_with(ids: &[&str]) -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
     for id in ids {
-        copy_dir(cornell_bundle(), &dir.path().join(id));
+        copy_dir(&crate::support::bundle_dir(), &dir.path().join(id));
     }
     dir
 }
@@ -1113,7 +1092,7 @@ async fn a_restart_after_a_killed_job_reports_it_failed_and_serves_no_half_bundl
     let tmp = bundles.path().join(".mug.tmp-1234-5678-0");
     std::fs::create_dir_all(&tmp).unwrap();
     std::fs::copy(
-        cornell_bundle().join("manifest.json"),
+        crate::support::bundle_dir().join("manifest.json"),
         tmp.join("manifest.json"),
     )
     .unwrap();

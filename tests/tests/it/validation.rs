@@ -4,7 +4,7 @@
 //! Each test builds a scene, precomputes it, relights it through the server's own relight
 //! path (the one the REST route runs) and compares the per-vertex radiance B/π with the
 //! radiance Mitsuba measures at the same points. They print a table of the errors
-//! (`cargo test -p translux-tests --test validation -- --nocapture`).
+//! (`cargo test -p translux-tests --test it validation:: -- --nocapture`).
 //!
 //! Mitsuba must be installed (`pip install mitsuba`, Debian's `libllvm19`; `.ci/run` does
 //! both). Without it these tests fail and say what to install, unless
@@ -765,4 +765,90 @@ fn a_thin_wall_keeps_the_other_room_dark_with_hierarchical_f() {
     let (lit, dark) = (lit.0 / lit.1 as f64, dark.0 / dark.1 as f64);
     eprintln!("mean radiance: lit side {lit:.3e}, dark side {dark:.3e}");
     assert!(lit > 0.0 && dark <= 1e-3 * lit, "{dark} vs {lit}");
+}
+
+/// A lamp inside a bowl on a table (below the rim): with an opaque bowl the outside of the
+/// bowl and the table stay dark under a hierarchical F (the inner and outer faces of the
+/// wall are in different clusters); with a translucent bowl light reaches the outside only
+/// through S, as much as with a dense F.
+#[test]
+fn a_lamp_inside_a_bowl_reaches_the_outside_only_through_s() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (radius, thickness) = (0.1f32, 0.008f32);
+    let scene = |material: serde_json::Value| {
+        json!({
+            "objects": [
+                {"name": "table", "mesh": {"shape": "quad", "size": [1, 1]},
+                 "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+                {"name": "bowl",
+                 "mesh": {"shape": "bowl", "radius": radius, "thickness": thickness},
+                 "material": material},
+            ],
+            "lights": [{"type": "point", "position": [0, 0.05, 0], "intensity": [1, 1, 1]}],
+        })
+    };
+    // Mean radiance (red) of the bowl's inner face, its outer face, and the table beyond it.
+    let regions = |b: &Bundle| -> [f64; 3] {
+        let (x, centroids, normals) = patch_radiance(b, &b.manifest().lights.clone());
+        let mut acc = [(0.0f64, 0usize); 3];
+        let centre = [0.0, radius, 0.0];
+        for ((c, n), v) in centroids.iter().zip(&normals).zip(&x) {
+            let out: [f32; 3] = std::array::from_fn(|k| c[k] - centre[k]);
+            let r = out.iter().map(|v| v * v).sum::<f32>().sqrt();
+            let k = if c[1] < 1e-4 {
+                if c[0].hypot(c[2]) < radius * 1.02 {
+                    continue;
+                }
+                2
+            } else if r < radius - 0.5 * thickness && c[1] < radius - 1e-4 {
+                0
+            } else if c[1] < radius - 1e-4 && (0..3).map(|k| n[k] * out[k]).sum::<f32>() > 0.0 {
+                1
+            } else {
+                continue;
+            };
+            acc[k] = (acc[k].0 + v[0] as f64, acc[k].1 + 1);
+        }
+        acc.map(|(s, n)| {
+            assert!(n > 0, "a region has no patches");
+            s / n as f64
+        })
+    };
+    let hierarchical = || FormFactorMethod::Hierarchical(HierarchyParams::default());
+
+    let grey = json!({"type": "diffuse", "albedo": [0.8, 0.8, 0.8]});
+    std::fs::write(d.join("opaque.json"), scene(grey).to_string()).unwrap();
+    let loaded = load_scene_file(&d.join("opaque.json")).unwrap();
+    let b = bundle_with(&loaded, d, "opaque", 4000, hierarchical());
+    let [inside, outside, table] = regions(&b);
+    eprintln!("opaque bowl: inside {inside:.3e}, outside {outside:.3e}, table {table:.3e}");
+    assert!(inside > 0.0, "the inside is lit");
+    assert!(outside <= 1e-3 * inside, "{outside} vs {inside}");
+    assert!(table <= 1e-3 * inside, "{table} vs {inside}");
+
+    let milk = json!({"type": "translucent", "profile": {"type": "dipole", "preset": "skimmilk"}});
+    std::fs::write(d.join("milk.json"), scene(milk).to_string()).unwrap();
+    let loaded = load_scene_file(&d.join("milk.json")).unwrap();
+    let h = regions(&bundle_with(&loaded, d, "milk_h", 4000, hierarchical()));
+    let dense = regions(&bundle_with(
+        &loaded,
+        d,
+        "milk_d",
+        4000,
+        FormFactorMethod::Dense,
+    ));
+    eprintln!("translucent bowl (inside, outside, table): hierarchical {h:?}, dense {dense:?}");
+    assert!(
+        h[1] > 1e-3 * h[0],
+        "S carries light through the wall: {h:?}"
+    );
+    for k in 0..3 {
+        assert!(
+            (h[k] - dense[k]).abs() <= 0.05 * dense[k],
+            "region {k}: hierarchical {} against dense {}",
+            h[k],
+            dense[k]
+        );
+    }
 }

@@ -1,0 +1,657 @@
+use super::*;
+use crate::patch::{Density, plan, subdivide};
+use crate::shapes::shape_triangles;
+use translux_proto::scene::Shape;
+
+fn patches_of(tris: &[[Vec3; 3]], target: u64) -> (Vec<Vec3>, Vec<Vec3>) {
+    let (h, _) = plan(&[tris], Density::Target(target));
+    let p = subdivide(&[tris], h);
+    (p.centroid, p.normal)
+}
+
+/// A thick U, extruded along z from 0 to `depth`: arms [0,1]×[1,3] and [2,3]×[1,3] on a
+/// base [0,3]×[0,1], all scaled by `s`. Closed, wound outwards.
+fn u_shape(s: f32, depth: f32) -> Vec<[Vec3; 3]> {
+    let poly = [
+        (0.0, 0.0),
+        (3.0, 0.0),
+        (3.0, 3.0),
+        (2.0, 3.0),
+        (2.0, 1.0),
+        (1.0, 1.0),
+        (1.0, 3.0),
+        (0.0, 3.0),
+    ]; // counter-clockwise
+    let p = |k: usize, z: f32| Vec3::new(poly[k].0 * s, poly[k].1 * s, z);
+    let caps = [
+        [0, 1, 4],
+        [0, 4, 5],
+        [1, 2, 3],
+        [1, 3, 4],
+        [0, 5, 6],
+        [0, 6, 7],
+    ];
+    let mut t = Vec::new();
+    for c in caps {
+        t.push([p(c[0], depth), p(c[1], depth), p(c[2], depth)]); // +z
+        t.push([p(c[0], 0.0), p(c[2], 0.0), p(c[1], 0.0)]); // −z
+    }
+    for k in 0..8 {
+        let l = (k + 1) % 8;
+        // Edge × z points outwards for a counter-clockwise polygon.
+        t.push([p(k, 0.0), p(l, 0.0), p(l, depth)]);
+        t.push([p(k, 0.0), p(l, depth), p(k, depth)]);
+    }
+    t
+}
+
+fn check_structure(d: &Distances, n: usize, max_radius: f32) {
+    assert_eq!(d.len(), n);
+    d.csr.view().expect("a valid CSR matrix");
+    assert_eq!(d.csr.n_cols, n);
+    for i in 0..n {
+        let (cols, dist) = d.row(i);
+        assert!(cols.windows(2).all(|w| w[0] < w[1]), "row {i} not sorted");
+        assert!(!cols.contains(&(i as u32)), "diagonal in row {i}");
+        assert!(
+            dist.iter()
+                .all(|&x| x.is_finite() && x >= 0.0 && x <= max_radius)
+        );
+    }
+}
+
+#[test]
+fn convexity_detection() {
+    let cube = shape_triangles(&Shape::Box {
+        size: [0.165, 0.33, 0.165],
+        inward: false,
+    });
+    assert!(is_convex(&cube, 1e-4));
+    let sphere = shape_triangles(&Shape::Sphere {
+        radius: 1.0,
+        segments: Some(24),
+    });
+    assert!(is_convex(&sphere, 1e-4));
+    assert!(!is_convex(&u_shape(1.0, 1.0), 1e-4));
+    // A flat quad encloses nothing; an inward box is wound the wrong way round.
+    let quad = shape_triangles(&Shape::Quad { size: [1.0, 1.0] });
+    assert!(!is_convex(&quad, 1e-4));
+    let inward = shape_triangles(&Shape::Box {
+        size: [1.0; 3],
+        inward: true,
+    });
+    assert!(!is_convex(&inward, 1e-4));
+}
+
+#[test]
+fn convex_box_is_euclidean_and_complete() {
+    let tris = shape_triangles(&Shape::Box {
+        size: [0.165, 0.33, 0.165],
+        inward: false,
+    });
+    let (c, n) = patches_of(&tris, 3000);
+    let r = 0.08;
+    let (d, st) = optical_distances("tall", &tris, &c, &n, r, &VoxelParams::default()).unwrap();
+    assert_eq!(st.method, Method::Euclidean);
+    check_structure(&d, c.len(), r);
+    let mut brute = 0u64;
+    for i in 0..c.len() {
+        for j in 0..c.len() {
+            let e = c[i].distance(c[j]);
+            if i != j && e <= r {
+                brute += 1;
+                assert_eq!(d.get(i, j), Some(e));
+            }
+        }
+    }
+    assert_eq!(brute, d.nnz());
+}
+
+#[test]
+fn sphere_through_voxels_matches_euclidean() {
+    let tris = shape_triangles(&Shape::Sphere {
+        radius: 1.0,
+        segments: Some(48),
+    });
+    let (c, n) = patches_of(&tris, 2000);
+    let r = 1.2;
+    let params = VoxelParams {
+        max_voxels: 100_000,
+        force_voxels: true,
+        ..Default::default()
+    };
+    let (d, st) = optical_distances("ball", &tris, &c, &n, r, &params).unwrap();
+    assert_eq!(st.method, Method::Voxel);
+    check_structure(&d, c.len(), r);
+    let vs = st.voxel_size;
+    // Volume check of the inside test: interior voxels ≈ 4/3 π / vs³.
+    let ball = 4.0 / 3.0 * std::f32::consts::PI / vs.powi(3);
+    let ratio = st.interior_voxels as f32 / ball;
+    assert!((0.9..1.1).contains(&ratio), "interior volume ratio {ratio}");
+    // Convex: every chord is interior, so r(i, j) ≈ |c_i − c_j|: at most 12.8 % + 2 voxels
+    // over (the stencil bound), never under.
+    let (mut worst, mut sum, mut cnt, mut missing) = (0.0f32, 0.0f64, 0u64, 0u64);
+    for i in 0..c.len() {
+        for j in 0..c.len() {
+            let e = c[i].distance(c[j]);
+            match d.get(i, j) {
+                Some(x) => {
+                    assert!(x >= e - 1e-5, "shorter than the straight line");
+                    assert!(
+                        x <= CHAMFER_MAX_RATIO as f32 * e + 2.0 * vs,
+                        "({i},{j}) {x} vs {e}"
+                    );
+                    worst = worst.max((x - e) / vs);
+                    sum += f64::from(x - e);
+                    cnt += 1;
+                }
+                None if i != j && e <= r - 2.0 * vs => missing += 1,
+                None => {}
+            }
+        }
+    }
+    let mean = sum / cnt as f64 / f64::from(vs);
+    eprintln!(
+        "sphere: vs {vs:.4}, {} interior, {cnt} pairs, mean excess {mean:.3} vox, worst {worst:.2} vox, missing {missing}",
+        st.interior_voxels
+    );
+    assert!(mean < 0.25, "mean excess {mean} voxels");
+    assert_eq!(missing, 0);
+}
+
+#[test]
+fn u_shape_path_goes_round_the_bend() {
+    let s = 0.1;
+    let tris = u_shape(s, s);
+    let (c, n) = patches_of(&tris, 4000);
+    let params = VoxelParams {
+        max_voxels: 200_000,
+        ..Default::default()
+    };
+    let r = 1.0;
+    let (d, st) = optical_distances("u", &tris, &c, &n, r, &params).unwrap();
+    assert_eq!(st.method, Method::Voxel);
+    check_structure(&d, c.len(), r);
+    // Patches on the arm tops (y = 3s) nearest the middle of each tip.
+    let near = |p: Vec3| {
+        (0..c.len())
+            .filter(|&i| n[i].y > 0.9 && (c[i].y - 3.0 * s).abs() < 1e-5)
+            .min_by(|&a, &b| c[a].distance(p).total_cmp(&c[b].distance(p)))
+            .unwrap()
+    };
+    let a = near(Vec3::new(0.5 * s, 3.0 * s, 0.5 * s));
+    let b = near(Vec3::new(2.5 * s, 3.0 * s, 0.5 * s));
+    let straight = c[a].distance(c[b]);
+    let got = d.get(a, b).expect("tips connected");
+    // Shortest interior path: tip → inner corner (1,1) → (2,1) → tip.
+    let inner = |p: Vec3, q: Vec3| p.distance(q);
+    let bend =
+        inner(c[a], Vec3::new(s, s, c[a].z)) + s + inner(Vec3::new(2.0 * s, s, c[b].z), c[b]);
+    eprintln!(
+        "U: straight {straight:.4}, optical {got:.4}, around the bend {bend:.4}, vs {:.4}",
+        st.voxel_size
+    );
+    assert!(got > 2.0 * straight, "{got} vs straight {straight}");
+    let vs = st.voxel_size;
+    assert!(got >= bend - 2.0 * vs && got <= CHAMFER_MAX_RATIO as f32 * bend + 2.0 * vs);
+    assert_eq!(d.get(b, a), Some(got), "symmetric");
+    // Within one arm nothing bends: straight distances.
+    let a2 = near(Vec3::new(0.2 * s, 3.0 * s, 0.2 * s));
+    let e = c[a].distance(c[a2]);
+    assert!((d.get(a, a2).unwrap() - e).abs() <= 0.5 * vs);
+}
+
+#[test]
+fn truncation_and_symmetry() {
+    let tris = u_shape(0.1, 0.1);
+    let (c, n) = patches_of(&tris, 3000);
+    let params = VoxelParams {
+        max_voxels: 100_000,
+        ..Default::default()
+    };
+    for r in [0.03f32, 0.12] {
+        let (d, _) = optical_distances("u", &tris, &c, &n, r, &params).unwrap();
+        check_structure(&d, c.len(), r);
+        let mut transposed = 0;
+        for i in 0..c.len() {
+            let (cols, dist) = d.row(i);
+            for (&j, &x) in cols.iter().zip(dist) {
+                assert_eq!(d.get(j as usize, i), Some(x));
+                transposed += 1;
+            }
+        }
+        assert!(transposed > 0);
+        // Pairs beyond r in straight line can't be stored; most pairs well within are.
+        let mut close = 0;
+        let mut found = 0;
+        for i in (0..c.len()).step_by(7) {
+            for j in 0..c.len() {
+                let e = c[i].distance(c[j]);
+                if i != j && e <= 0.5 * r {
+                    close += 1;
+                    found += d.get(i, j).is_some() as u32;
+                }
+            }
+        }
+        assert!(found as f32 >= 0.9 * close as f32, "r {r}: {found}/{close}");
+    }
+}
+
+#[test]
+fn chamfer_bound_and_straight_graph_paths() {
+    // The stencil's worst overestimate is 12.8 %, not 8 %: check over all offsets.
+    let mut worst = 0.0f64;
+    for x in 0..=40i64 {
+        for y in 0..=x {
+            for z in 0..=y {
+                if x > 0 {
+                    let e = ((x * x + y * y + z * z) as f64).sqrt();
+                    worst = worst.max(chamfer([x, -y, z]) as f64 / f64::from(UNIT) / e);
+                }
+            }
+        }
+    }
+    assert!(worst <= CHAMFER_MAX_RATIO && worst > 1.12, "worst {worst}");
+    // In a solid block the graph length is exactly the chamfer length.
+    let grid = Grid {
+        origin: DVec3::ZERO,
+        size: 1.0,
+        dims: [12, 12, 12],
+    };
+    let inside: Vec<bool> = (0..grid.len())
+        .map(|v| grid.coords(v).iter().all(|&c| (1..11).contains(&c)))
+        .collect();
+    let [nx, ny, _] = grid.dims;
+    let mut offsets = [(0isize, 0u32); 26];
+    let mut m = 0;
+    for dz in -1isize..=1 {
+        for dy in -1isize..=1 {
+            for dx in -1isize..=1 {
+                let k = (dx != 0) as usize + (dy != 0) as usize + (dz != 0) as usize;
+                if k > 0 {
+                    offsets[m] = (dx + nx as isize * (dy + ny as isize * dz), W[k - 1]);
+                    m += 1;
+                }
+            }
+        }
+    }
+    let group_of: Vec<u32> = (0..grid.len() as u32)
+        .map(|v| if inside[v as usize] { v } else { NONE })
+        .collect();
+    let mut s = Scratch::new(&inside);
+    let src = grid.index(1, 2, 3) as u32;
+    dijkstra(src, &offsets, &group_of, 6 * UNIT, None, &mut s);
+    let a = grid.coords(src as usize);
+    let mut seen = 0;
+    for &(v, g) in &s.reached {
+        let b = grid.coords(v as usize);
+        let ch = chamfer([b[0] - a[0], b[1] - a[1], b[2] - a[2]]);
+        assert_eq!(u64::from(g), ch);
+        assert!(g <= 6 * UNIT);
+        seen += 1;
+    }
+    let expect = (0..grid.len())
+        .filter(|&v| {
+            let b = grid.coords(v);
+            inside[v] && chamfer([b[0] - a[0], b[1] - a[1], b[2] - a[2]]) <= 6 * 1024
+        })
+        .count();
+    assert_eq!(seen, expect);
+    assert!(
+        s.dist
+            .iter()
+            .zip(&inside)
+            .all(|(&d, &i)| d == if i { NONE } else { 0 })
+    );
+}
+
+/// A checkerboard of 2 media split by the plane x = 0 only (cells of 1 around a box
+/// of 0.3 × 0.1 × 0.1): medium 1 for x < 0, medium 0 for x ≥ 0.
+fn split_at_x0() -> crate::hetero::Checker {
+    crate::hetero::Checker {
+        frame: Default::default(),
+        cell: 1.0,
+        origin: DVec3::new(0.0, -0.5, -0.5),
+        count: 2,
+    }
+}
+
+fn bar() -> Vec<[Vec3; 3]> {
+    shape_triangles(&Shape::Box {
+        size: [0.3, 0.1, 0.1],
+        inward: false,
+    })
+}
+
+#[test]
+fn media_lengths_of_straight_paths_are_the_exact_split() {
+    let tris = bar();
+    let (c, n) = patches_of(&tris, 1500);
+    let field = MediumField::Checker(split_at_x0());
+    let (d, st) = optical_distances_media(
+        "bar",
+        &tris,
+        &c,
+        &n,
+        0.2,
+        &VoxelParams::default(),
+        Some(&field),
+    )
+    .unwrap();
+    assert_eq!(st.method, Method::Euclidean);
+    assert_eq!(d.material_len.len(), d.csr.nnz());
+    let mut crossing = 0;
+    for i in 0..c.len() {
+        let (cols, dist) = d.row(i);
+        for (&j, &r) in cols.iter().zip(dist) {
+            let (a, b) = (c[i], c[j as usize]);
+            let l = d.get_len(i, j as usize).unwrap();
+            assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+            // By hand: the straight segment meets x = 0 at t = −a_x / (b_x − a_x).
+            let want1 = if a.x < 0.0 && b.x < 0.0 {
+                r
+            } else if a.x >= 0.0 && b.x >= 0.0 {
+                0.0
+            } else {
+                crossing += 1;
+                let t = -a.x / (b.x - a.x);
+                if a.x < 0.0 { t * r } else { (1.0 - t) * r }
+            };
+            assert!((l[1] - want1).abs() <= 1e-5, "{a} → {b}: {l:?} vs {want1}");
+            assert_eq!((l[2], l[3]), (0.0, 0.0));
+        }
+    }
+    assert!(crossing > 100, "{crossing}");
+}
+
+#[test]
+fn media_lengths_of_voxel_paths_follow_the_pattern() {
+    // The bar through the voxel method: every interior path is straight (zero detour),
+    // so the split is the exact one of the segment, as for the Euclidean method.
+    let tris = bar();
+    let (c, n) = patches_of(&tris, 1500);
+    let params = VoxelParams {
+        max_voxels: 200_000,
+        force_voxels: true,
+        ..Default::default()
+    };
+    let field = MediumField::Checker(split_at_x0());
+    let r_max = 0.2;
+    let (d, st) =
+        optical_distances_media("bar", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+    assert_eq!(st.method, Method::Voxel);
+    check_structure(&d, c.len(), r_max);
+    // The same distances as without media: tracking changes nothing else.
+    let (plain, _) = optical_distances("bar", &tris, &c, &n, r_max, &params).unwrap();
+    assert_eq!(plain.csr, d.csr);
+    assert!(plain.material_len.is_empty());
+    let mut crossing = 0;
+    for i in 0..c.len() {
+        let (cols, dist) = d.row(i);
+        for (&j, &r) in cols.iter().zip(dist) {
+            let (a, b) = (c[i], c[j as usize]);
+            let l = d.get_len(i, j as usize).unwrap();
+            assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+            let want1 = if a.x < 0.0 && b.x < 0.0 {
+                r
+            } else if a.x >= 0.0 && b.x >= 0.0 {
+                0.0
+            } else {
+                crossing += 1;
+                let t = -a.x / (b.x - a.x);
+                if a.x < 0.0 { t * r } else { (1.0 - t) * r }
+            };
+            assert!((l[1] - want1).abs() <= 1e-5, "{a} → {b}: {l:?} vs {want1}");
+        }
+    }
+    assert!(crossing > 100, "{crossing}");
+}
+
+#[test]
+fn media_lengths_of_bent_paths_come_from_the_graph_path() {
+    // The U with its left half (x < 1.5 s, one arm and half the base) in medium 1 and the
+    // right half in medium 0. Tip to tip around the bend, the path is symmetric about
+    // x = 1.5 s: half of it in each medium.
+    let s = 0.1;
+    let tris = u_shape(s, s);
+    let (c, n) = patches_of(&tris, 3000);
+    let params = VoxelParams {
+        max_voxels: 200_000,
+        ..Default::default()
+    };
+    // Cells of 1 with the origin at x = 1.5 s − 1: the U (x, y, z ∈ [0, 3 s], s = 0.1)
+    // lies in cell 0 for x < 1.5 s (medium 0) and in cell 1 beyond (medium 1).
+    let field = MediumField::Checker(crate::hetero::Checker {
+        frame: Default::default(),
+        cell: 1.0,
+        origin: DVec3::new(1.5 * f64::from(s) - 1.0, -0.5, -0.5),
+        count: 2,
+    });
+    let r_max = 1.0;
+    let (d, st) =
+        optical_distances_media("u", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+    assert_eq!(st.method, Method::Voxel);
+    let vs = st.voxel_size;
+    let near = |p: Vec3| {
+        (0..c.len())
+            .filter(|&i| n[i].y > 0.9 && (c[i].y - 3.0 * s).abs() < 1e-5)
+            .min_by(|&a, &b| c[a].distance(p).total_cmp(&c[b].distance(p)))
+            .unwrap()
+    };
+    let a = near(Vec3::new(0.5 * s, 3.0 * s, 0.5 * s));
+    let b = near(Vec3::new(2.5 * s, 3.0 * s, 0.5 * s));
+    let r = d.get(a, b).unwrap();
+    let l = d.get_len(a, b).unwrap();
+    let m = |p: Vec3| (field_medium(&field, p), p);
+    eprintln!(
+        "U: r {r:.4}, lengths {l:?}, vs {vs:.4}, tips {:?} {:?}",
+        m(c[a]),
+        m(c[b])
+    );
+    assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r);
+    // Within the staircase bound (≈ 9 % of the path) and a voxel of the mirror path.
+    for k in 0..2 {
+        assert!((l[k] - 0.5 * r).abs() <= 0.09 * r + vs, "{l:?} vs {r}");
+    }
+    // Along one arm, nothing crosses: all in that arm's medium.
+    let a2 = near(Vec3::new(0.2 * s, 3.0 * s, 0.2 * s));
+    let l = d.get_len(a, a2).unwrap();
+    assert_eq!(l[1], 0.0, "{l:?}");
+    let b2 = near(Vec3::new(2.8 * s, 3.0 * s, 0.8 * s));
+    let l = d.get_len(b, b2).unwrap();
+    assert_eq!(l[0], 0.0, "{l:?}");
+}
+
+fn field_medium(f: &MediumField<'_>, p: Vec3) -> u32 {
+    match f {
+        MediumField::Checker(c) => c.medium_at(p),
+        MediumField::PerPatch(_) => u32::MAX,
+    }
+}
+
+#[test]
+fn per_patch_media_fill_the_inside_from_the_nearest_patch() {
+    // The bar's patches left of x = 0 are medium 1, the others medium 0; the inside takes
+    // the medium of the nearest patch, so the media meet near the plane x = 0.
+    let tris = bar();
+    let (c, n) = patches_of(&tris, 1500);
+    let media: Vec<u32> = c.iter().map(|p| u32::from(p.x < 0.0)).collect();
+    let field = MediumField::PerPatch(&media);
+    let params = VoxelParams {
+        max_voxels: 200_000,
+        ..Default::default()
+    };
+    let r_max = 0.2;
+    let (d, st) =
+        optical_distances_media("bar", &tris, &c, &n, r_max, &params, Some(&field)).unwrap();
+    // Convex, but per-patch media always take the voxel route.
+    assert_eq!(st.method, Method::Voxel);
+    let vs = st.voxel_size;
+    let size = patch_size(&tris, 1500);
+    let (mut crossing, mut worst) = (0, 0.0f32);
+    for i in 0..c.len() {
+        let (cols, dist) = d.row(i);
+        for (&j, &r) in cols.iter().zip(dist) {
+            let (a, b) = (c[i], c[j as usize]);
+            let l = d.get_len(i, j as usize).unwrap();
+            assert!((l.iter().sum::<f32>() - r).abs() <= 1e-5 * r.max(1e-3));
+            if a.x < -2.0 * vs && b.x < -2.0 * vs {
+                assert_eq!(l[0], 0.0, "{a} → {b}: {l:?}");
+            }
+            if a.x > 2.0 * vs && b.x > 2.0 * vs {
+                assert_eq!(l[1], 0.0, "{a} → {b}: {l:?}");
+            }
+            if a.x < -2.0 * vs && b.x > 2.0 * vs && b.x - a.x > 0.5 * r {
+                // Paths mostly along x: the straight split, within the staircase bound of
+                // graph paths (≈ 9 % of the path) and the placement of the boundary
+                // (half a patch and a voxel, stretched by r / Δx ≤ 2).
+                crossing += 1;
+                let want1 = -a.x / (b.x - a.x) * r;
+                worst = worst.max((l[1] - want1).abs() / r);
+                assert!(
+                    (l[1] - want1).abs() <= 0.09 * r + size + 2.0 * vs,
+                    "{a} → {b}: {l:?} vs {want1}"
+                );
+            }
+        }
+    }
+    eprintln!("per-patch media: {crossing} crossing pairs, worst {worst:.3} of r");
+    assert!(crossing > 100);
+}
+
+/// The longest patch edge [`patches_of`] makes.
+fn patch_size(tris: &[[Vec3; 3]], target: u64) -> f32 {
+    let (h, _) = plan(&[tris], Density::Target(target));
+    let p = subdivide(&[tris], h);
+    p.size.iter().cloned().fold(0.0, f32::max)
+}
+
+#[test]
+fn inside_test_survives_a_missing_face() {
+    // A unit box without its top: parity along Y is ambiguous through the hole, X and Z
+    // still see the walls, so the vote keeps the box's interior (and nothing above it).
+    let mut tris = shape_triangles(&Shape::Box {
+        size: [1.0; 3],
+        inward: false,
+    });
+    let before = tris.len();
+    tris.retain(|t| !t.iter().all(|v| v.y > 0.49));
+    assert_eq!(tris.len(), before - 2);
+    let (lo, hi) = bounds(&tris);
+    let grid = Grid::choose(lo, hi, 30_000);
+    let inside = classify_interior(&tris, &grid);
+    let mut count = 0;
+    for (v, &b) in inside.iter().enumerate() {
+        let c = grid.centre(v);
+        let in_box = c.abs().max_element() < 0.5;
+        if b {
+            count += 1;
+            assert!(in_box, "voxel at {c} outside the box marked interior");
+        }
+    }
+    let expect = 1.0 / grid.size.powi(3);
+    let ratio = count as f64 / expect;
+    assert!((0.9..1.1).contains(&ratio), "interior ratio {ratio}");
+    // The box closed but wound inwards is the same solid to the parity test, and the hole
+    // cost no interior voxel.
+    let inward = shape_triangles(&Shape::Box {
+        size: [1.0; 3],
+        inward: true,
+    });
+    let n_in = classify_interior(&inward, &grid)
+        .iter()
+        .filter(|&&b| b)
+        .count();
+    assert_eq!(n_in, count);
+}
+
+#[test]
+fn open_quad_has_no_interior() {
+    let tris = shape_triangles(&Shape::Quad { size: [1.0, 1.0] });
+    let (c, n) = patches_of(&tris, 50);
+    let err = optical_distances("sheet", &tris, &c, &n, 0.5, &VoxelParams::default()).unwrap_err();
+    match err {
+        VoxelError::NoInterior { object, voxels } => {
+            assert_eq!(object, "sheet");
+            assert!(voxels > 0);
+        }
+        e => panic!("wrong error {e}"),
+    }
+}
+
+fn load_obj(path: &str) -> Option<Vec<[Vec3; 3]>> {
+    let opts = tobj::LoadOptions {
+        triangulate: true,
+        ignore_points: true,
+        ignore_lines: true,
+        ..Default::default()
+    };
+    let (models, _) = tobj::load_obj(path, &opts).ok()?;
+    let mut tris = Vec::new();
+    for m in &models {
+        let p = &m.mesh.positions;
+        let v = |i: u32| {
+            Vec3::new(
+                p[3 * i as usize],
+                p[3 * i as usize + 1],
+                p[3 * i as usize + 2],
+            )
+        };
+        for f in m.mesh.indices.chunks_exact(3) {
+            tris.push([v(f[0]), v(f[1]), v(f[2])]);
+        }
+    }
+    Some(tris)
+}
+
+#[test]
+fn bunny_has_interior_and_local_pairs() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/stanford-bunny.obj"
+    );
+    // Missing data fails with a message, as everywhere: never a silent skip.
+    let tris = load_obj(path).unwrap_or_else(|| {
+        panic!(
+            "{path} is missing or unreadable: the tests read the scanned meshes from ../shared/data"
+        )
+    });
+    assert!(!is_convex(&tris, 1e-4));
+    let (c, n) = patches_of(&tris, 70_000);
+    let (lo, hi) = bounds(&tris);
+    let r = (hi - lo).max_element() / 10.0;
+    let (d, st) = optical_distances("bunny", &tris, &c, &n, r, &VoxelParams::default()).unwrap();
+    eprintln!(
+        "bunny: {} patches, r {r:.4}, grid {:?} = {} voxels of {:.5}, {} interior, {} sources, {} unattached, {:.2} s, nnz {} ({:.0}/row)",
+        c.len(),
+        st.grid,
+        st.voxels,
+        st.voxel_size,
+        st.interior_voxels,
+        st.sources,
+        st.unattached,
+        st.seconds,
+        st.pairs,
+        st.pairs as f64 / c.len() as f64
+    );
+    assert_eq!(st.method, Method::Voxel);
+    assert!(st.interior_voxels > st.voxels / 10);
+    check_structure(&d, c.len(), r);
+    // Locally the interior path is nearly straight: most pairs within r/4 are stored, and
+    // none is shorter than the straight line.
+    let (mut close, mut found) = (0u64, 0u64);
+    for i in (0..c.len()).step_by(97) {
+        let (cols, dist) = d.row(i);
+        for (&j, &x) in cols.iter().zip(dist) {
+            assert!(x >= c[i].distance(c[j as usize]) - 1e-5);
+        }
+        for j in 0..c.len() {
+            if i != j && c[i].distance(c[j]) <= 0.25 * r {
+                close += 1;
+                found += d.get(i, j).is_some() as u64;
+            }
+        }
+    }
+    eprintln!("bunny: {found}/{close} pairs within r/4 found");
+    assert!(found as f64 >= 0.9 * close as f64);
+}

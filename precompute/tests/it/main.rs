@@ -1,0 +1,13 @@
+//! translux-precompute's integration tests, one binary with a module per subject:
+//! `cli` (the real process, its files, exit codes and messages), `physics` (closed-form
+//! form factors and conservation), `transport` (the solvers and light components),
+//! `subsurface` (S through the pipeline) and `heterogeneous` (eq. 9 objects).
+//!
+//! Run one subject with `cargo test -p translux-precompute --test it physics::`. One binary
+//! links the crate's dependencies once instead of once per file.
+
+mod cli;
+mod heterogeneous;
+mod physics;
+mod subsurface;
+mod transport;
