@@ -4,6 +4,26 @@
 
 use super::*;
 
+/// The 26 neighbours of a voxel as (linear index offset, edge weight [`W`] by how many
+/// axes the step moves along).
+pub(super) fn neighbour_offsets(grid: &Grid) -> [(isize, u32); 26] {
+    let [nx, ny, _] = grid.dims;
+    let mut offsets = [(0isize, 0u32); 26];
+    let mut m = 0;
+    for dz in -1isize..=1 {
+        for dy in -1isize..=1 {
+            for dx in -1isize..=1 {
+                let kind = (dx != 0) as usize + (dy != 0) as usize + (dz != 0) as usize;
+                if kind > 0 {
+                    offsets[m] = (dx + nx as isize * (dy + ny as isize * dz), W[kind - 1]);
+                    m += 1;
+                }
+            }
+        }
+    }
+    offsets
+}
+
 /// Free-space 26-neighbour length (×UNIT) of a voxel offset: with sorted |components|
 /// a ≥ b ≥ c, (a − b)·W₁ + (b − c)·W₂ + c·W₃.
 pub(super) fn chamfer(d: [i64; 3]) -> u64 {
@@ -314,20 +334,7 @@ pub(super) fn voxel_distances(
     let hash_all = (unattached > 0).then(|| PointHash::new(centroids, &all, max_radius));
     let hash_loose = (unattached > 0).then(|| PointHash::new(centroids, &loose, max_radius));
 
-    let [nx, ny, _] = grid.dims;
-    let mut offsets = [(0isize, 0u32); 26];
-    let mut m = 0;
-    for dz in -1isize..=1 {
-        for dy in -1isize..=1 {
-            for dx in -1isize..=1 {
-                let kind = (dx != 0) as usize + (dy != 0) as usize + (dz != 0) as usize;
-                if kind > 0 {
-                    offsets[m] = (dx + nx as isize * (dy + ny as isize * dz), W[kind - 1]);
-                    m += 1;
-                }
-            }
-        }
-    }
+    let offsets = neighbour_offsets(&grid);
 
     // Media labels of the interior voxels (heterogeneous objects).
     let labels: Option<Vec<u8>> = media.map(|field| match field {

@@ -261,20 +261,7 @@ fn chamfer_bound_and_straight_graph_paths() {
     let inside: Vec<bool> = (0..grid.len())
         .map(|v| grid.coords(v).iter().all(|&c| (1..11).contains(&c)))
         .collect();
-    let [nx, ny, _] = grid.dims;
-    let mut offsets = [(0isize, 0u32); 26];
-    let mut m = 0;
-    for dz in -1isize..=1 {
-        for dy in -1isize..=1 {
-            for dx in -1isize..=1 {
-                let k = (dx != 0) as usize + (dy != 0) as usize + (dz != 0) as usize;
-                if k > 0 {
-                    offsets[m] = (dx + nx as isize * (dy + ny as isize * dz), W[k - 1]);
-                    m += 1;
-                }
-            }
-        }
-    }
+    let offsets = neighbour_offsets(&grid);
     let group_of: Vec<u32> = (0..grid.len() as u32)
         .map(|v| if inside[v as usize] { v } else { NONE })
         .collect();

@@ -7,30 +7,9 @@ use std::sync::OnceLock;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 
-/// A folder under the target's temp folder that outlives the test run (statics are never
-/// dropped): removed by a later run once older than ten minutes (no run of this binary
-/// takes that long).
-pub fn kept_folder(prefix: &str) -> PathBuf {
-    let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-    if let Ok(entries) = std::fs::read_dir(parent) {
-        for e in entries.flatten() {
-            let stale = e.file_name().to_string_lossy().starts_with(prefix)
-                && e.metadata()
-                    .and_then(|m| m.modified())
-                    .ok()
-                    .and_then(|t| t.elapsed().ok())
-                    .is_some_and(|age| age.as_secs() > 600);
-            if stale {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-    }
-    tempfile::Builder::new()
-        .prefix(prefix)
-        .tempdir_in(parent)
-        .expect("temp dir")
-        .keep()
-}
+#[path = "../../../tests/fixtures/kept_folder.rs"]
+mod kept;
+pub use kept::kept_folder;
 
 /// builtin:cornell precomputed at about `patches` patches into `root/cornell`.
 pub fn cornell_into(root: &Path, patches: u64) -> PathBuf {

@@ -21,30 +21,9 @@ pub const PATCHES: u64 = 400;
 pub const ID: &str = "cornell";
 const PREFIX: &str = "translux-fixture-";
 
-/// A folder under the target's temp folder that outlives the test run (statics are never
-/// dropped): removed by a later run once older than ten minutes (no test run holds one that
-/// long). Every fixture of this binary is made in one of these.
-pub fn kept_folder(prefix: &str) -> PathBuf {
-    let parent = Path::new(env!("CARGO_TARGET_TMPDIR"));
-    if let Ok(entries) = std::fs::read_dir(parent) {
-        for e in entries.flatten() {
-            let stale = e.file_name().to_string_lossy().starts_with(prefix)
-                && e.metadata()
-                    .and_then(|m| m.modified())
-                    .ok()
-                    .and_then(|t| t.elapsed().ok())
-                    .is_some_and(|age| age.as_secs() > 600);
-            if stale {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-    }
-    tempfile::Builder::new()
-        .prefix(prefix)
-        .tempdir_in(parent)
-        .expect("temp dir")
-        .keep()
-}
+#[path = "../../fixtures/kept_folder.rs"]
+mod kept;
+pub use kept::kept_folder;
 
 /// The one way this binary builds a test bundle: `scene` precomputed at about `patches`
 /// patches into `dir` (the default transport, no environment bins unless the scene's
