@@ -271,16 +271,14 @@ fn exact_rows(bundles: &[(String, Bundle, std::path::PathBuf)], count: usize) {
                 let rgb: Vec<Rgb> = x.iter().map(|&v| [v; 3]).collect();
                 let mut y = vec![[0.0f32; 3]; n];
                 f.apply_rgb(&rgb, &mut y);
-                let (mut num, mut den) = (0.0f64, 0.0f64);
-                for (&i, row) in rows.iter().zip(&exact) {
-                    let want: f64 = row
+                let err = compare::relative_l2(rows.iter().zip(&exact).map(|(&i, row)| {
+                    let want = row
                         .iter()
                         .map(|&(j, v)| v as f64 * x[j as usize] as f64)
                         .sum();
-                    num += (y[i][0] as f64 - want).powi(2);
-                    den += want * want;
-                }
-                format!("{:.2e}", if den > 0.0 { (num / den).sqrt() } else { 0.0 })
+                    (y[i][0] as f64, want)
+                }));
+                format!("{err:.2e}")
             })
             .collect();
         println!(
@@ -305,12 +303,12 @@ fn peak_rss() -> String {
 
 /// builtin:cornell with the scanned bunny for the short box, everything diffuse.
 fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScene> {
-    use translux_proto::scene::{Material, MeshRef, ObjectDesc, Scale, Transform};
-    let data = std::path::Path::new("../shared/data");
+    use translux_proto::scene::Material;
+    let data = translux_tests::scans::data_dir();
     anyhow::ensure!(
         data.join("stanford-bunny.obj").is_file(),
-        "../shared/data/stanford-bunny.obj is missing (run from the repository root, with \
-         ../shared beside it)"
+        "{} is missing: the scanned meshes are read from ../shared/data beside the repository",
+        data.join("stanford-bunny.obj").display()
     );
     let mut file =
         translux_precompute::builtin::builtin_scene("cornell").context("builtin cornell")?;
@@ -319,23 +317,11 @@ fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScen
         .iter()
         .position(|o| o.name == "short_box")
         .context("cornell has a short box")?;
-    // The bunny's feet on the floor where the short box stood (the scan's lowest point is at
-    // y = 0.033 and its centre at x = -0.0168; scaled 1.2 it stands 0.19 tall).
-    file.objects[short] = ObjectDesc {
-        name: "bunny".into(),
-        mesh: MeshRef::Path("stanford-bunny.obj".into()),
-        transform: Some(Transform {
-            translate: [0.09 + 0.0168 * 1.2, -0.032987 * 1.2, 0.07],
-            rotate_deg: [0.0, 200.0, 0.0],
-            scale: Some(Scale::Uniform(1.2)),
-        }),
-        material: Material::Diffuse {
-            albedo: [0.75, 0.75, 0.75],
-        },
-        crease_deg: Some(60.0),
-        simplify_to: None,
-        orientation: Default::default(),
+    // The bunny's feet on the floor where the short box stood.
+    let diffuse = Material::Diffuse {
+        albedo: [0.75, 0.75, 0.75],
     };
+    file.objects[short] = translux_tests::scans::bunny(0.09, 0.07, 200.0, diffuse);
     for o in &mut file.objects {
         if matches!(o.material, Material::Translucent { .. }) {
             o.material = Material::Diffuse {
@@ -345,7 +331,7 @@ fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScen
     }
     Ok(translux_precompute::scene::resolve_scene(
         file,
-        data,
+        &data,
         "cornell+bunny".into(),
         "cornell+bunny".into(),
     )?)

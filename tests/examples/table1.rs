@@ -43,7 +43,7 @@ use translux_proto::scene::{
     ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile, Shape, Transform,
 };
 use translux_server::backend::{Backend, BackendChoice};
-use translux_tests::mitsuba;
+use translux_tests::{mitsuba, scans};
 
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
 #[derive(Debug, Clone, Serialize)]
@@ -181,10 +181,6 @@ fn args() -> anyhow::Result<Args> {
     Ok(a)
 }
 
-fn data_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
-}
-
 fn obj(name: &str, file: &str, translate: [f32; 3], rotate: [f32; 3], scale: f32) -> ObjectDesc {
     ObjectDesc {
         name: name.to_owned(),
@@ -259,21 +255,14 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                     Some(14_000)
                 };
                 // The bunny's feet on the table where the blob stood, facing the bowls.
-                let mut bunny = obj(
-                    "bunny",
-                    "stanford-bunny.obj",
-                    [0.0168 * 1.2, -0.032987 * 1.2, 0.13],
-                    [0.0, 180.0, 0.0],
-                    1.2,
-                );
-                bunny.material = material;
+                let mut bunny = scans::bunny(0.0, 0.13, 180.0, material);
                 bunny.simplify_to = tris;
                 file.objects[blob] = bunny;
                 out.push(Spec {
                     key: "bowls",
                     title: "Bowls and bunny",
                     file,
-                    base_dir: data_dir(),
+                    base_dir: scans::data_dir(),
                     patches: if q {
                         10_000
                     } else if full {
@@ -368,7 +357,7 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                         }),
                         camera: None,
                     },
-                    base_dir: data_dir(),
+                    base_dir: scans::data_dir(),
                     patches: if q {
                         8_000
                     } else if full {

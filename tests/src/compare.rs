@@ -185,10 +185,15 @@ pub fn operator_error(dense: &Bundle, hier: &Bundle, x: &[f32]) -> f64 {
     let (mut yd, mut yh) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     Transport::of(dense).apply_rgb(&rgb, &mut yd);
     Transport::of(hier).apply_rgb(&rgb, &mut yh);
+    relative_l2(yh.iter().zip(&yd).map(|(h, d)| (h[0] as f64, d[0] as f64)))
+}
+
+/// ‖got − want‖ / ‖want‖ over (got, want) pairs (0 when `want` is all zero).
+pub fn relative_l2(pairs: impl IntoIterator<Item = (f64, f64)>) -> f64 {
     let (mut num, mut den) = (0.0f64, 0.0f64);
-    for (a, b) in yd.iter().zip(&yh) {
-        num += (b[0] as f64 - a[0] as f64).powi(2);
-        den += (a[0] as f64).powi(2);
+    for (got, want) in pairs {
+        num += (got - want).powi(2);
+        den += want * want;
     }
     if den > 0.0 { (num / den).sqrt() } else { 0.0 }
 }

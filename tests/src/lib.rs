@@ -11,6 +11,8 @@
 //! [`compare`]: hierarchical F against dense F on one scene (relit vertices, lit and
 //! shadowed apart; the operator on test fields).
 //!
+//! [`scans`]: where the scanned meshes are, and the bunny as the benchmarks place it.
+//!
 //! [`architecture`]: checks that crate dependencies point one way and that no crate has a
 //! module cycle.
 
@@ -18,3 +20,4 @@ pub mod architecture;
 pub mod compare;
 pub mod mitsuba;
 pub mod rooms;
+pub mod scans;
