@@ -56,5 +56,6 @@ pub mod scene;
 pub mod sheet;
 pub mod smatrix;
 pub mod solver;
+pub mod sterms;
 pub mod subsurface;
 pub mod transport;

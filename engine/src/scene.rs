@@ -9,7 +9,7 @@
 //! the CPU by [`smatrix::rebuild_from_bundle`]).
 
 use std::path::Path;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use glam::Vec3;
 use translux_proto::bundle::{Bundle, BundleError, arrays};
@@ -20,6 +20,7 @@ use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::raycast::Occluder;
 use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
+use crate::sterms::STerms;
 
 /// What the scenes of one process share: the backend they relight on and the cache of
 /// environment maps. Cheap to clone. The default is the CPU with a cache of its own.
@@ -57,6 +58,9 @@ pub struct Scene {
     /// The materials of the last override set, so a client that keeps its overrides while
     /// moving lights pays for the S rebuild once.
     pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
+    /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
+    /// by every later one ([`crate::sterms`]).
+    pub(crate) s_terms: OnceLock<STerms>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
     pub(crate) warm: WarmCache,
     pub(crate) resources: Resources,
@@ -92,8 +96,21 @@ impl Scene {
                 if let Some(why) = why {
                     tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
                 }
+                let params = SParams::default();
+                let terms = self.s_terms.get_or_init(|| {
+                    let t = smatrix::terms_of_bundle(&self.bundle, &params.quadrature);
+                    tracing::info!(
+                        scene = %self.id,
+                        entries = t.entries(),
+                        terms = t.terms(),
+                        mib = t.bytes() as f64 / (1u64 << 20) as f64,
+                        seconds = t.seconds,
+                        "S reduced to radial terms for translucency changes"
+                    );
+                    t
+                });
                 let (s, _) =
-                    smatrix::rebuild_from_bundle(&self.bundle, overrides, &SParams::default())
+                    smatrix::rebuild_with_terms(&self.bundle, overrides, &params, Some(terms))
                         .map_err(invalid)?;
                 (s, "cpu")
             }
@@ -174,6 +191,7 @@ impl Scene {
             centroids,
             normals,
             material_cache: Mutex::new(None),
+            s_terms: OnceLock::new(),
             warm: Default::default(),
             resources: resources.clone(),
         }
@@ -202,8 +220,13 @@ impl Scene {
         self.resources.backend.as_ref()
     }
 
-    /// Host bytes held by the cached override materials (S, ρ, Bₑ), 0 when none.
+    /// Host bytes held by the cached override materials (S, ρ, Bₑ) and S's radial terms,
+    /// 0 when none.
     pub fn material_cache_bytes(&self) -> u64 {
+        self.s_terms.get().map_or(0, STerms::bytes) + self.override_bytes()
+    }
+
+    fn override_bytes(&self) -> u64 {
         self.material_cache
             .lock()
             .ok()

@@ -25,14 +25,15 @@ use std::time::Instant;
 use glam::Vec3;
 use thiserror::Error;
 use translux_proto::bundle::{Bundle, arrays};
-use translux_proto::csr::{Csr, CsrError, CsrView};
+use translux_proto::csr::{Csr, CsrBuilder, CsrError, CsrView};
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, MediaLen};
 use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
-use crate::subsurface::{self, ObjectBlock, ObjectPatches, Tabulated};
+use crate::sterms::{ObjectTerms, STerms};
+use crate::subsurface::{self, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 
 /// Why S could not be built.
@@ -130,7 +131,9 @@ pub fn stored_radius(
 /// reach (0 for non-translucent objects). `material_len` (aligned with the entries of
 /// `distances`) and `patch_material` are stage 1's per-medium lengths and patch media; they
 /// are read for heterogeneous objects only. `dist_kind` (aligned likewise; missing entries
-/// read as same side) is read for thin sheets only.
+/// read as same side) is read for thin sheets only. With `terms` (reduced from the same
+/// distances, [`STerms`]), translucent objects and thin sheets are summed from their terms
+/// instead of integrated: a translucency change's fast path.
 #[expect(
     clippy::too_many_arguments,
     reason = "stage 1's arrays as the bundle stores them, each read by one kind of object"
@@ -145,6 +148,7 @@ pub fn assemble_scene(
     stored_radius: &[f32],
     unit_mm: f64,
     params: &SParams,
+    terms: Option<&STerms>,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let n = g.corners.len();
     let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
@@ -163,17 +167,40 @@ pub fn assemble_scene(
                 transmittance,
                 ..
             } => {
-                let (s, report) = sheet::object_s(
-                    o.name,
-                    (reflectance, transmittance),
-                    object_patches(g, r.clone()),
-                    r.clone(),
-                    distances,
-                    dist_kind,
-                    stored_radius.get(k).copied().unwrap_or(0.0),
-                    unit_mm,
-                    params,
-                )?;
+                let reach = stored_radius.get(k).copied().unwrap_or(0.0);
+                let (s, report) = match terms.and_then(|t| t.get(k, true)) {
+                    Some(t) => {
+                        let start = Instant::now();
+                        let (tr, tt, capped_from) = sheet::tables(
+                            o.name,
+                            (reflectance, transmittance),
+                            reach,
+                            unit_mm,
+                            params,
+                        )?;
+                        let s = t.assemble(&g.area[r.clone()], &tr, &tt);
+                        let report = AssemblyReport {
+                            name: o.name.to_string(),
+                            radius: tr.r_max().max(tt.r_max()),
+                            capped_from,
+                            max_column_energy: s.report.max_column,
+                            scaled_columns: s.report.scaled_columns as u64,
+                            seconds: start.elapsed().as_secs_f64(),
+                        };
+                        (s, report)
+                    }
+                    None => sheet::object_s(
+                        o.name,
+                        (reflectance, transmittance),
+                        object_patches(g, r.clone()),
+                        r.clone(),
+                        distances,
+                        dist_kind,
+                        reach,
+                        unit_mm,
+                        params,
+                    )?,
+                };
                 place(&mut rows, r.start, s.rows);
                 reports.push(report);
             }
@@ -237,14 +264,19 @@ pub fn assemble_scene(
                 let (tab, capped_from) =
                     translucent_table(o.name, profile, reach, unit_mm, params)?;
                 let radius = tab.r_max();
-                // This object's block of the distances, within the radius.
-                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
-                let s = subsurface::assemble(
-                    object_patches(g, r.clone()),
-                    block.view(),
-                    &tab,
-                    &params.quadrature,
-                );
+                let s = match terms.and_then(|t| t.get(k, false)) {
+                    Some(t) => t.assemble(&g.area[r.clone()], &tab, &tab),
+                    None => {
+                        // This object's block of the distances, within the radius.
+                        let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
+                        subsurface::assemble(
+                            object_patches(g, r.clone()),
+                            block.view(),
+                            &tab,
+                            &params.quadrature,
+                        )
+                    }
+                };
                 reports.push(AssemblyReport {
                     name: o.name.to_string(),
                     radius,
@@ -350,6 +382,41 @@ pub fn bundle_materials(
     Ok((materials, stored))
 }
 
+/// Reduces the S entries of every translucent object and thin sheet of `bundle`, out to the
+/// radius its distances were stored to, to radial terms ([`crate::sterms`]): what
+/// [`rebuild_with_terms`] sums.
+pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
+    let t = Instant::now();
+    let g = bundle_geometry(bundle);
+    let (materials, reach) = bundle_materials(bundle, &[]).expect("the bundle's own materials");
+    let kinds = bundle.distance_kinds();
+    let objects = bundle
+        .manifest()
+        .objects
+        .iter()
+        .zip(&materials)
+        .zip(&reach)
+        .map(|((o, material), &reach)| {
+            let sheet = match material {
+                Material::Translucent { .. } => false,
+                Material::ThinSheet { .. } => true,
+                _ => return None,
+            };
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            let block = ObjectBlock::of(bundle.distances(), range.clone(), |_, d, _| d < reach);
+            let opposite = |e: usize| kinds.get(block.entries[e]) == Some(&sheet::KIND_OPPOSITE);
+            Some(ObjectTerms::build(
+                object_patches(&g, range),
+                block.view(),
+                sheet,
+                &opposite,
+                params,
+            ))
+        })
+        .collect();
+    STerms::new(objects, t.elapsed().as_secs_f64())
+}
+
 /// The bundle's patch geometry as S assembly takes it.
 pub fn bundle_geometry(bundle: &Bundle) -> PatchGeometry {
     PatchGeometry::from_corners(
@@ -445,16 +512,72 @@ pub fn rebuild_from_bundle(
     overrides: &[(usize, Material)],
     params: &SParams,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    assemble_overrides(bundle, overrides, params, None, false)
+}
+
+/// [`rebuild_from_bundle`] for a translucency change: objects that are not overridden keep
+/// their rows of the bundle's stored S (so overriding one object, or only an emitter, leaves
+/// the others exactly as precomputed), and overridden translucent objects and thin sheets
+/// are summed from `terms` (reduced once from this bundle, [`terms_of_bundle`]) instead of
+/// integrated. Reports cover the objects assembled here.
+pub fn rebuild_with_terms(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    params: &SParams,
+    terms: Option<&STerms>,
+) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    let (s, reports) = assemble_overrides(bundle, overrides, params, terms, true)?;
+    // The kept objects' rows are empty in `s`: fill them from the stored S.
+    let n = s.n_rows;
+    let stored = bundle.subsurface();
+    let mut kept = vec![false; n];
+    for (k, o) in bundle.manifest().objects.iter().enumerate() {
+        if !overrides.iter().any(|(i, _)| *i == k) {
+            kept[o.first_patch as usize..(o.first_patch + o.patch_count) as usize].fill(true);
+        }
+    }
+    let mut out = CsrBuilder::new(n);
+    out.reserve(n, s.col.len() + stored.nnz());
+    let mut row = Vec::new();
+    for (j, &keep) in kept.iter().enumerate() {
+        let (cols, vals) = if keep {
+            stored.row(j)
+        } else {
+            let (a, b) = (s.row_ptr[j] as usize, s.row_ptr[j + 1] as usize);
+            (&s.col[a..b], &s.val[a..b])
+        };
+        row.clear();
+        row.extend(cols.iter().copied().zip(vals.iter().copied()));
+        out.push_row(&row)?;
+    }
+    Ok((out.finish(), reports))
+}
+
+/// Stage 2 on a bundle with `overrides`; with `skip_kept`, objects without an override
+/// contribute no rows (the caller takes them from the stored S).
+fn assemble_overrides(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    params: &SParams,
+    terms: Option<&STerms>,
+    skip_kept: bool,
+) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let m = bundle.manifest();
     let g = bundle_geometry(bundle);
     let (materials, stored) = bundle_materials(bundle, overrides)?;
+    let nothing = Material::Emitter { radiance: [0.0; 3] };
     let objects: Vec<ObjectMaterial<'_>> = m
         .objects
         .iter()
         .zip(&materials)
-        .map(|(o, mat)| ObjectMaterial {
+        .enumerate()
+        .map(|(k, (o, mat))| ObjectMaterial {
             name: &o.name,
-            material: mat,
+            material: if skip_kept && !overrides.iter().any(|(i, _)| *i == k) {
+                &nothing
+            } else {
+                mat
+            },
             patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
         })
         .collect();
@@ -470,5 +593,6 @@ pub fn rebuild_from_bundle(
         &stored,
         m.unit_mm,
         params,
+        terms,
     )
 }

@@ -240,6 +240,20 @@ pub fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
 /// ∫ over triangle `t` of R(|x − y|) dA_y for x in t's plane: polar integration with K
 /// directions, exact along each direction through W.
 pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
+    let mut sum = [0.0f32; 3];
+    polar_intervals(x, t, n, k, |lo, hi| {
+        let (w0, w1) = (tab.w(lo), tab.w(hi));
+        for c in 0..3 {
+            sum[c] += w1[c] - w0[c];
+        }
+    });
+    sum.map(|s| s / k as f32)
+}
+
+/// The K rays of [`polar_integral`]: for each direction from x in t's plane that crosses
+/// `t`, `f(ρ_in, ρ_out)`, where the ray enters and leaves the triangle (ρ_in = 0 when x is
+/// inside). The integral is Σ (W(ρ_out) − W(ρ_in)) / K over these calls.
+pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMut(f32, f32)) {
     // An orthonormal frame (u, v) in the plane.
     let u = (t[1] - t[0]).normalize_or_zero();
     let v = n.cross(u);
@@ -252,7 +266,6 @@ pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) 
     let area2 =
         (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
     let sign = if area2 >= 0.0 { 1.0 } else { -1.0 };
-    let mut sum = [0.0f32; 3];
     for dir in 0..k {
         let th = (dir as f32 + 0.5) * std::f32::consts::TAU / k as f32;
         let d = [th.cos(), th.sin()];
@@ -278,15 +291,10 @@ pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) 
                 }
             }
         }
-        if empty || hi <= lo {
-            continue;
-        }
-        let (w0, w1) = (tab.w(lo), tab.w(hi));
-        for c in 0..3 {
-            sum[c] += w1[c] - w0[c];
+        if !empty && hi > lo {
+            f(lo, hi);
         }
     }
-    sum.map(|s| s / k as f32)
 }
 
 fn coplanar(a: &[Vec3; 3], na: Vec3, b: &[Vec3; 3], nb: Vec3, eps: f32) -> bool {

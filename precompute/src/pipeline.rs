@@ -705,6 +705,7 @@ pub fn precompute(
         &stored,
         unit_mm,
         sp,
+        None,
     )?;
     bar.inc(1);
     for d in &dist_reports {

@@ -526,7 +526,15 @@ mod relight_on_both_backends {
                     solver, "jacobi",
                     "the device solves by Jacobi (CPU: {cpu_solver})"
                 );
-                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-3);
+                // With a translucency override the CPU sums S from radial terms
+                // (engine::sterms, within 0.3% of the quadrature per column) while the device
+                // evaluates the full quadrature plans: 5e-3 then, 1e-3 otherwise.
+                let tol = if body.contains("materials") {
+                    5e-3
+                } else {
+                    1e-3
+                };
+                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, tol);
             }
         }
         let gpu_batch = run_batch(&dir, &gpu_backend);

@@ -429,12 +429,13 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
         .unwrap();
     let material: translux_proto::scene::Material =
         serde_json::from_value(body["materials"]["tall_block"].clone()).unwrap();
-    let (smat, _) = translux_engine::smatrix::rebuild_from_bundle(
-        &bundle,
-        &[(k, material)],
-        &translux_engine::smatrix::SParams::default(),
-    )
-    .unwrap();
+    // The CPU backend sums S from the bundle's radial terms (engine::sterms; checked against
+    // the quadrature in precompute's subsurface tests), so the reference does too.
+    let sp = translux_engine::smatrix::SParams::default();
+    let terms = translux_engine::smatrix::terms_of_bundle(&bundle, &sp.quadrature);
+    let (smat, _) =
+        translux_engine::smatrix::rebuild_with_terms(&bundle, &[(k, material)], &sp, Some(&terms))
+            .unwrap();
     let n = bundle.patch_areas().len();
     let sv = translux_proto::csr::CsrView::new_checked(n, n, &smat.row_ptr, &smat.col, &smat.val)
         .unwrap();
