@@ -531,8 +531,9 @@ fn transport(
         f.apply_multi(&rhs, &mut fx, ch, &mut Pulled::default());
         p.apply_multi(&fx, &mut rhs, ch);
     }
-    let key = format!("{}|{}", first.materials_key, components.as_str());
-    let warm_one = scene.warm.get(&key);
+    let suffix = format!("|{}", components.as_str());
+    let key = format!("{}{suffix}", first.materials_key);
+    let warm_one = scene.warm.get_or_latest(&key, &suffix);
     let warm: Option<Vec<f32>> = warm_one.as_ref().filter(|w| w.len() == 3 * n).map(|w| {
         (0..n)
             .flat_map(|j| {

@@ -241,7 +241,8 @@ impl Scene {
 }
 
 /// The last solutions per scene, so a relight that differs a little from the previous one
-/// (a light moved) starts from it. Keyed by materials and components; the few most recent.
+/// (a light moved, a translucency slider moved) starts from it. Keyed by materials and
+/// components; the few most recent.
 #[derive(Debug, Default)]
 pub struct WarmCache(Mutex<Vec<(String, Arc<Vec<f32>>)>>);
 
@@ -251,6 +252,21 @@ impl WarmCache {
     pub(crate) fn get(&self, key: &str) -> Option<Arc<Vec<f32>>> {
         let cache = self.0.lock().ok()?;
         cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
+    }
+
+    /// The solution stored under `key`, else the most recent one whose key ends with
+    /// `suffix` (the same components under other materials: a translucency change starts
+    /// from the previous scale's answer, which the solver iterates to its tolerance like
+    /// any other start).
+    pub(crate) fn get_or_latest(&self, key: &str, suffix: &str) -> Option<Arc<Vec<f32>>> {
+        self.get(key).or_else(|| {
+            let cache = self.0.lock().ok()?;
+            cache
+                .iter()
+                .rev()
+                .find(|(k, _)| k.ends_with(suffix))
+                .map(|(_, v)| v.clone())
+        })
     }
 
     pub(crate) fn put(&self, key: String, value: Vec<f32>) {

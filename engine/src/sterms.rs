@@ -5,8 +5,8 @@
 //! thin sheets; `smatrix::terms_of_bundle` does a whole bundle), the quadrature settings.
 //! Out: [`STerms`], which [`crate::smatrix::assemble_scene`] uses in
 //! place of the quadrature of [`crate::subsurface`] whenever a profile changes: every entry
-//! S_ji is a sum of at most [`POLAR_BINS`] (or [`POINT_BINS`]) terms of one or two table
-//! lookups each, where the quadrature took up to m² × K (768 by default).
+//! S_ji is a sum of at most [`POLAR_BINS`] (or [`POINT_BINS`]) terms of one table lookup
+//! each, where the quadrature took up to m² × K (768 by default) lookups of W.
 //!
 //! Why this is exact where it matters. Every quadrature plan is linear in the profile:
 //! - far pairs: A_i R(r_ij), one term;
@@ -40,24 +40,43 @@ pub const POLAR_BINS: usize = 32;
 /// Terms of a point-sample entry.
 pub const POINT_BINS: usize = 24;
 
-/// One radial term: `weight · R(lo)` when `lo == hi`, else `weight · (W(hi) − W(lo))`.
+/// One radial term: `weight · R(r)` or `weight · W(r)` at r = `root`² (the root is
+/// stored: the table's grid is uniform in √r, so a lookup is a multiply).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Term {
-    pub lo: f32,
-    pub hi: f32,
+    pub root: f32,
     pub weight: f32,
+    pub of: Of,
+}
+
+impl Term {
+    fn new(r: f32, weight: f32, of: Of) -> Term {
+        Term {
+            root: r.max(0.0).sqrt(),
+            weight,
+            of,
+        }
+    }
+}
+
+/// Which tabulated function a [`Term`] weighs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Of {
+    /// The profile R(r).
+    R,
+    /// Its integral W(r) = ∫₀^r R 2πr′ dr′.
+    W,
 }
 
 impl Term {
     /// The term's value under the profile tabulated by `tab`.
     #[inline]
     pub fn eval(&self, tab: &Tabulated) -> [f32; 3] {
-        if self.lo == self.hi {
-            tab.r(self.lo).map(|v| v * self.weight)
-        } else {
-            let (a, b) = (tab.w(self.lo), tab.w(self.hi));
-            std::array::from_fn(|c| (b[c] - a[c]) * self.weight)
-        }
+        let v = match self.of {
+            Of::R => tab.r_root(self.root),
+            Of::W => tab.w_root(self.root),
+        };
+        v.map(|x| x * self.weight)
     }
 }
 
@@ -71,11 +90,7 @@ pub fn reduce(
     out: &mut Vec<Term>,
 ) {
     match *plan {
-        Quadrature::Far { area_i } => out.push(Term {
-            lo: r,
-            hi: r,
-            weight: area_i,
-        }),
+        Quadrature::Far { area_i } => out.push(Term::new(r, area_i, Of::R)),
         Quadrature::Points {
             tri_j,
             excess,
@@ -162,14 +177,16 @@ fn polar_bins(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
         prev = prev.max(r);
         n += dn as f64;
     }
-    for b in 0..mass.len() {
+    // Σ_b n̄_b (W(e_{b+1}) − W(e_b)) regrouped by edge: one W lookup per edge, n̄ being 0
+    // past the last edge and W(e_0) = W(0) = 0.
+    let mean = |b: usize| {
         let area = ring(e[b] as f64, e[b + 1] as f64);
-        if mass[b] != 0.0 && area > 0.0 {
-            out.push(Term {
-                lo: e[b],
-                hi: e[b + 1],
-                weight: (mass[b] / area) as f32,
-            });
+        if area > 0.0 { mass[b] / area } else { 0.0 }
+    };
+    for (k, &edge) in e.iter().enumerate().skip(1) {
+        let weight = mean(k - 1) - if k < mass.len() { mean(k) } else { 0.0 };
+        if weight != 0.0 {
+            out.push(Term::new(edge, weight as f32, Of::W));
         }
     }
 }
@@ -194,11 +211,7 @@ fn point_bins(rho: &[f32], c: f32, out: &mut Vec<Term>) {
     for (s, k) in sum {
         if k > 0 {
             let mean = (s / k as f64) as f32;
-            out.push(Term {
-                lo: mean,
-                hi: mean,
-                weight: c * k as f32,
-            });
+            out.push(Term::new(mean, c * k as f32, Of::R));
         }
     }
 }
@@ -485,7 +498,14 @@ mod tests {
                 &format!("across an edge, side {side}"),
             );
             let far = Quadrature::Far { area_i: area };
-            check(far, 3.0 * side, &xs, 0.0, &format!("far pair, side {side}"));
+            // Only the table lookup differs: linear in √r instead of r within a grid cell.
+            check(
+                far,
+                3.0 * side,
+                &xs,
+                1e-4,
+                &format!("far pair, side {side}"),
+            );
         }
     }
 
@@ -502,7 +522,13 @@ mod tests {
         let mut terms = Vec::new();
         reduce(&plan, 0.0, &xs, &SubsurfaceParams::default(), &mut terms);
         let w = |r: f32| std::f32::consts::PI * r * r;
-        let got: f32 = terms.iter().map(|t| t.weight * (w(t.hi) - w(t.lo))).sum();
+        let got: f32 = terms
+            .iter()
+            .map(|t| {
+                assert_eq!(t.of, Of::W);
+                t.weight * w(t.root * t.root)
+            })
+            .sum();
         assert!(
             (got - 0.5).abs() < 0.5 * 0.02,
             "∫ 1 over the triangle = {got}"

@@ -143,6 +143,8 @@ pub struct Tabulated {
     r: Vec<[f32; 3]>,
     w: Vec<[f32; 3]>,
     w_total: [f32; 3],
+    /// N / √r_max: √x times this is x's position on the grid.
+    root_scale: f32,
 }
 
 impl Tabulated {
@@ -167,6 +169,7 @@ impl Tabulated {
         }
         let w_total = w[radii.len() - 1];
         Self {
+            root_scale: n as f32 / r_max.sqrt(),
             r_max,
             radii,
             r,
@@ -201,6 +204,42 @@ impl Tabulated {
     #[inline]
     pub fn w(&self, x: f32) -> [f32; 3] {
         match self.locate(x) {
+            None => self.w_total,
+            Some((k, t)) => {
+                std::array::from_fn(|c| self.w[k][c] + t * (self.w[k + 1][c] - self.w[k][c]))
+            }
+        }
+    }
+
+    /// The cell and fraction of √x on the grid, which is uniform in √r: the lookup of
+    /// [`Tabulated::r_root`] and [`Tabulated::w_root`], with no square root or division.
+    #[inline]
+    fn locate_root(&self, root: f32) -> Option<(usize, f32)> {
+        let n = self.radii.len() - 1;
+        let s = root.max(0.0) * self.root_scale;
+        if s >= n as f32 {
+            return None;
+        }
+        let k = (s as usize).min(n - 1);
+        Some((k, s - k as f32))
+    }
+
+    /// R(x) given √x, interpolated linearly in √r between grid points (within a few ulps of
+    /// [`Tabulated::r`] on this grid's 4096 cells; what summed terms use).
+    #[inline]
+    pub fn r_root(&self, root: f32) -> [f32; 3] {
+        match self.locate_root(root) {
+            None => [0.0; 3],
+            Some((k, t)) => {
+                std::array::from_fn(|c| self.r[k][c] + t * (self.r[k + 1][c] - self.r[k][c]))
+            }
+        }
+    }
+
+    /// W(x) given √x, as [`Tabulated::r_root`] does R.
+    #[inline]
+    pub fn w_root(&self, root: f32) -> [f32; 3] {
+        match self.locate_root(root) {
             None => self.w_total,
             Some((k, t)) => {
                 std::array::from_fn(|c| self.w[k][c] + t * (self.w[k + 1][c] - self.w[k][c]))

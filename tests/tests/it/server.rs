@@ -415,6 +415,9 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
         "profile": {"type": "dipole", "preset": "marble", "scale": 1.8}}}});
     let first = s.relight_json(&body).await;
     assert!(first.stats.materials_ms > 0.0, "{:?}", first.stats);
+    // A translucency change starts from the last answer under other materials (the
+    // base relight's): the offline reference below does the same.
+    assert!(!base.stats.warm && first.stats.warm, "{:?}", first.stats);
     assert_ne!(first.radiance, base.radiance);
     // The same overrides again come from the cache, with the same answer.
     let again = s.relight_json(&body).await;
@@ -440,13 +443,22 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
     let sv = translux_proto::csr::CsrView::new_checked(n, n, &smat.row_ptr, &smat.col, &smat.val)
         .unwrap();
     let e = direct(&bundle, &bundle.manifest().lights);
+    let (b0, _) = solve(
+        &Transport::of(&bundle),
+        &SparseScatter(bundle.subsurface()),
+        bundle.patch_emission(),
+        &e,
+        &SolveParams::default(),
+        None,
+    )
+    .unwrap();
     let (b, stats) = solve(
         &Transport::of(&bundle),
         &SparseScatter(sv),
         bundle.patch_emission(),
         &e,
         &SolveParams::default(),
-        None,
+        Some(&b0),
     )
     .unwrap();
     assert!(stats.converged);
