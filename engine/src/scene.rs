@@ -109,9 +109,8 @@ impl Scene {
                     );
                     t
                 });
-                let (s, _) =
-                    smatrix::rebuild_with_terms(&self.bundle, overrides, &params, Some(terms))
-                        .map_err(invalid)?;
+                let (s, _) = smatrix::rebuild_with_terms(&self.bundle, overrides, &params, terms)
+                    .map_err(invalid)?;
                 (s, "cpu")
             }
         };

@@ -25,7 +25,7 @@ use std::time::Instant;
 use glam::Vec3;
 use thiserror::Error;
 use translux_proto::bundle::{Bundle, arrays};
-use translux_proto::csr::{Csr, CsrBuilder, CsrError, CsrView};
+use translux_proto::csr::{Csr, CsrError, CsrView};
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, MediaLen};
@@ -131,9 +131,10 @@ pub fn stored_radius(
 /// reach (0 for non-translucent objects). `material_len` (aligned with the entries of
 /// `distances`) and `patch_material` are stage 1's per-medium lengths and patch media; they
 /// are read for heterogeneous objects only. `dist_kind` (aligned likewise; missing entries
-/// read as same side) is read for thin sheets only. With `terms` (reduced from the same
-/// distances, [`STerms`]), translucent objects and thin sheets are summed from their terms
-/// instead of integrated: a translucency change's fast path.
+/// read as same side) is read for thin sheets only. With `fast` (a translucency change's
+/// path, [`FastPath`]), objects it marks kept copy their rows of the stored S and the
+/// other translucent objects and thin sheets are summed from their terms instead of
+/// integrated.
 #[expect(
     clippy::too_many_arguments,
     reason = "stage 1's arrays as the bundle stores them, each read by one kind of object"
@@ -148,13 +149,21 @@ pub fn assemble_scene(
     stored_radius: &[f32],
     unit_mm: f64,
     params: &SParams,
-    terms: Option<&STerms>,
+    fast: Option<&FastPath<'_>>,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let n = g.corners.len();
     let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
     let mut reports = Vec::new();
+    let terms = fast.map(|f| f.terms);
     for (k, o) in objects.iter().enumerate() {
         let r = o.patches.clone();
+        if let Some(f) = fast.filter(|f| f.kept.get(k) == Some(&true)) {
+            for j in r {
+                let (cols, vals) = f.stored.row(j);
+                rows[j] = cols.iter().copied().zip(vals.iter().copied()).collect();
+            }
+            continue;
+        }
         match o.material {
             Material::Diffuse { albedo } => {
                 for j in r {
@@ -505,6 +514,16 @@ impl OverrideMaterials {
     }
 }
 
+/// What a translucency change reuses ([`assemble_scene`]): the radial terms of the
+/// bundle's translucent objects and thin sheets, its stored S, and which objects (by index)
+/// keep their stored rows.
+#[derive(Debug, Clone, Copy)]
+pub struct FastPath<'a> {
+    pub terms: &'a STerms,
+    pub stored: CsrView<'a, [f32; 3]>,
+    pub kept: &'a [bool],
+}
+
 /// Rebuilds S for a bundle with some objects' materials replaced (by object index), from
 /// the stored distances: no voxels, no rays. Objects not overridden keep their material.
 pub fn rebuild_from_bundle(
@@ -512,7 +531,7 @@ pub fn rebuild_from_bundle(
     overrides: &[(usize, Material)],
     params: &SParams,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
-    assemble_overrides(bundle, overrides, params, None, false)
+    assemble_overrides(bundle, overrides, params, None)
 }
 
 /// [`rebuild_from_bundle`] for a translucency change: objects that are not overridden keep
@@ -524,60 +543,36 @@ pub fn rebuild_with_terms(
     bundle: &Bundle,
     overrides: &[(usize, Material)],
     params: &SParams,
-    terms: Option<&STerms>,
+    terms: &STerms,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
-    let (s, reports) = assemble_overrides(bundle, overrides, params, terms, true)?;
-    // The kept objects' rows are empty in `s`: fill them from the stored S.
-    let n = s.n_rows;
-    let stored = bundle.subsurface();
-    let mut kept = vec![false; n];
-    for (k, o) in bundle.manifest().objects.iter().enumerate() {
-        if !overrides.iter().any(|(i, _)| *i == k) {
-            kept[o.first_patch as usize..(o.first_patch + o.patch_count) as usize].fill(true);
-        }
-    }
-    let mut out = CsrBuilder::new(n);
-    out.reserve(n, s.col.len() + stored.nnz());
-    let mut row = Vec::new();
-    for (j, &keep) in kept.iter().enumerate() {
-        let (cols, vals) = if keep {
-            stored.row(j)
-        } else {
-            let (a, b) = (s.row_ptr[j] as usize, s.row_ptr[j + 1] as usize);
-            (&s.col[a..b], &s.val[a..b])
-        };
-        row.clear();
-        row.extend(cols.iter().copied().zip(vals.iter().copied()));
-        out.push_row(&row)?;
-    }
-    Ok((out.finish(), reports))
+    let kept: Vec<bool> = (0..bundle.manifest().objects.len())
+        .map(|k| !overrides.iter().any(|(i, _)| *i == k))
+        .collect();
+    let fast = FastPath {
+        terms,
+        stored: bundle.subsurface(),
+        kept: &kept,
+    };
+    assemble_overrides(bundle, overrides, params, Some(&fast))
 }
 
-/// Stage 2 on a bundle with `overrides`; with `skip_kept`, objects without an override
-/// contribute no rows (the caller takes them from the stored S).
+/// Stage 2 on a bundle with `overrides` applied to its materials.
 fn assemble_overrides(
     bundle: &Bundle,
     overrides: &[(usize, Material)],
     params: &SParams,
-    terms: Option<&STerms>,
-    skip_kept: bool,
+    fast: Option<&FastPath<'_>>,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let m = bundle.manifest();
     let g = bundle_geometry(bundle);
     let (materials, stored) = bundle_materials(bundle, overrides)?;
-    let nothing = Material::Emitter { radiance: [0.0; 3] };
     let objects: Vec<ObjectMaterial<'_>> = m
         .objects
         .iter()
         .zip(&materials)
-        .enumerate()
-        .map(|(k, (o, mat))| ObjectMaterial {
+        .map(|(o, mat)| ObjectMaterial {
             name: &o.name,
-            material: if skip_kept && !overrides.iter().any(|(i, _)| *i == k) {
-                &nothing
-            } else {
-                mat
-            },
+            material: mat,
             patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
         })
         .collect();
@@ -593,6 +588,6 @@ fn assemble_overrides(
         &stored,
         m.unit_mm,
         params,
-        terms,
+        fast,
     )
 }

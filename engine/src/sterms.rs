@@ -110,7 +110,8 @@ pub fn reduce(
             factor,
         } => {
             let c = factor / (xs.len() as f32 * params.directions as f32);
-            let mut events: Vec<(f32, f32)> = Vec::with_capacity(2 * xs.len() * 48);
+            let mut events: Vec<(f32, f32)> =
+                Vec::with_capacity(2 * xs.len() * params.directions as usize);
             for &x in xs {
                 subsurface::polar_intervals(x, &tri, normal, params.directions, |lo, hi| {
                     events.push((lo, c));
@@ -303,7 +304,8 @@ impl ObjectTerms {
                 let mut col = Vec::new();
                 for e in self.col_ptr[i] as usize..self.col_ptr[i + 1] as usize {
                     let tab = if self.opposite[e] { other } else { same };
-                    let self_term = self.row[e] as usize == i && e == self.col_ptr[i] as usize;
+                    // The self term is each column's first entry (`build`).
+                    let self_term = e == self.col_ptr[i] as usize;
                     if !self_term && self.dist[e] >= tab.r_max() {
                         continue;
                     }

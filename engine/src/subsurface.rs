@@ -194,9 +194,7 @@ impl Tabulated {
     pub fn r(&self, x: f32) -> [f32; 3] {
         match self.locate(x) {
             None => [0.0; 3],
-            Some((k, t)) => {
-                std::array::from_fn(|c| self.r[k][c] + t * (self.r[k + 1][c] - self.r[k][c]))
-            }
+            Some((k, t)) => lerp(&self.r, k, t),
         }
     }
 
@@ -205,9 +203,7 @@ impl Tabulated {
     pub fn w(&self, x: f32) -> [f32; 3] {
         match self.locate(x) {
             None => self.w_total,
-            Some((k, t)) => {
-                std::array::from_fn(|c| self.w[k][c] + t * (self.w[k + 1][c] - self.w[k][c]))
-            }
+            Some((k, t)) => lerp(&self.w, k, t),
         }
     }
 
@@ -230,9 +226,7 @@ impl Tabulated {
     pub fn r_root(&self, root: f32) -> [f32; 3] {
         match self.locate_root(root) {
             None => [0.0; 3],
-            Some((k, t)) => {
-                std::array::from_fn(|c| self.r[k][c] + t * (self.r[k + 1][c] - self.r[k][c]))
-            }
+            Some((k, t)) => lerp(&self.r, k, t),
         }
     }
 
@@ -241,9 +235,7 @@ impl Tabulated {
     pub fn w_root(&self, root: f32) -> [f32; 3] {
         match self.locate_root(root) {
             None => self.w_total,
-            Some((k, t)) => {
-                std::array::from_fn(|c| self.w[k][c] + t * (self.w[k + 1][c] - self.w[k][c]))
-            }
+            Some((k, t)) => lerp(&self.w, k, t),
         }
     }
 
@@ -257,6 +249,12 @@ impl Tabulated {
     pub fn grid(&self) -> (&[f32], &[[f32; 3]], &[[f32; 3]]) {
         (&self.radii, &self.r, &self.w)
     }
+}
+
+/// `v[k]` to `v[k + 1]` at fraction `t`, per channel.
+#[inline]
+fn lerp(v: &[[f32; 3]], k: usize, t: f32) -> [f32; 3] {
+    std::array::from_fn(|c| v[k][c] + t * (v[k + 1][c] - v[k][c]))
 }
 
 /// Points at the centroids of a triangle's m² regular sub-triangles (equal areas).

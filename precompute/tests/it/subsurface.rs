@@ -35,6 +35,15 @@ fn cornell_with(material: Material) -> LoadedScene {
     s
 }
 
+/// The marble block's object index.
+fn block(b: &Bundle) -> usize {
+    b.manifest()
+        .objects
+        .iter()
+        .position(|o| o.name == "tall_block")
+        .unwrap()
+}
+
 fn build(scene: &LoadedScene, dir: &std::path::Path, name: &str) -> Bundle {
     let out = dir.join(name);
     let params = PrecomputeParams {
@@ -51,12 +60,7 @@ fn rebuilding_s_from_stored_distances_equals_a_fresh_precompute() {
     let a = build(&cornell_with(marble(None, "marble")), dir.path(), "a");
     let changed = marble(Some(1.5), "marble");
     let b = build(&cornell_with(changed.clone()), dir.path(), "b");
-    let k = a
-        .manifest()
-        .objects
-        .iter()
-        .position(|o| o.name == "tall_block")
-        .unwrap();
+    let k = block(&a);
     let (s, reports) =
         smatrix::rebuild_from_bundle(&a, &[(k, changed)], &SParams::default()).unwrap();
     assert_eq!(reports.len(), 1);
@@ -88,12 +92,7 @@ fn rebuilding_s_from_stored_distances_equals_a_fresh_precompute() {
 fn every_preset_conserves_energy_on_the_cornell_block() {
     let dir = tempfile::tempdir().unwrap();
     let a = build(&cornell_with(marble(None, "marble")), dir.path(), "a");
-    let k = a
-        .manifest()
-        .objects
-        .iter()
-        .position(|o| o.name == "tall_block")
-        .unwrap();
+    let k = block(&a);
     let areas = a.patch_areas();
     for preset in DIPOLE_PRESETS {
         let (s, reports) =
@@ -133,11 +132,7 @@ fn light_enters_one_side_of_the_block_and_leaves_the_others() {
         "a",
     );
     let m = a.manifest();
-    let k = m
-        .objects
-        .iter()
-        .position(|o| o.name == "tall_block")
-        .unwrap();
+    let k = block(&a);
     let range = m.objects[k].first_patch as usize
         ..(m.objects[k].first_patch + m.objects[k].patch_count) as usize;
     let occ_tris: Vec<[glam::Vec3; 3]> = a
@@ -262,7 +257,7 @@ fn terms_against_quadrature(
 ) -> (f64, f64) {
     let sp = SParams::default();
     let (exact, _) = smatrix::rebuild_from_bundle(b, overrides, &sp).unwrap();
-    let (fast, reports) = smatrix::rebuild_with_terms(b, overrides, &sp, Some(terms)).unwrap();
+    let (fast, reports) = smatrix::rebuild_with_terms(b, overrides, &sp, terms).unwrap();
     for r in &reports {
         assert!(r.max_column_energy <= 1.0 + 1e-6, "{r:?}");
     }
@@ -312,12 +307,7 @@ fn terms_against_quadrature(
 fn radial_terms_match_the_quadrature_from_a_quarter_to_four_times_the_translucency() {
     let dir = tempfile::tempdir().unwrap();
     let a = build(&cornell_with(marble(None, "marble")), dir.path(), "a");
-    let k = a
-        .manifest()
-        .objects
-        .iter()
-        .position(|o| o.name == "tall_block")
-        .unwrap();
+    let k = block(&a);
     let terms = translux_engine::smatrix::terms_of_bundle(&a, &SParams::default().quadrature);
     assert!(terms.get(k, false).is_some() && terms.get(k, true).is_none());
     for preset in ["marble", "skimmilk", "ketchup"] {

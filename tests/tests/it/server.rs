@@ -437,7 +437,7 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
     let sp = translux_engine::smatrix::SParams::default();
     let terms = translux_engine::smatrix::terms_of_bundle(&bundle, &sp.quadrature);
     let (smat, _) =
-        translux_engine::smatrix::rebuild_with_terms(&bundle, &[(k, material)], &sp, Some(&terms))
+        translux_engine::smatrix::rebuild_with_terms(&bundle, &[(k, material)], &sp, &terms)
             .unwrap();
     let n = bundle.patch_areas().len();
     let sv = translux_proto::csr::CsrView::new_checked(n, n, &smat.row_ptr, &smat.col, &smat.val)
