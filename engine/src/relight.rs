@@ -8,9 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::inverse;
-use crate::radiosity::{
-    Albedo, PatchGeometry, Rgb, Scatter, SolveParams, SparseScatter, vertex_radiance,
-};
+use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
 use crate::solver::{SolveError, solve_system};
 use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
@@ -427,7 +425,8 @@ fn transport(
         Some(m) => m.s_view(),
         None => b.subsurface(),
     };
-    let s = SparseScatter(s_view);
+    let s = crate::transport::subsurface_operator(b, s_view);
+    let s = s.as_ref();
     let p = Albedo(albedo);
     let f = Transport::of(b);
     // Stacked E: [patch][plan][rgb].
@@ -511,7 +510,7 @@ fn transport(
         Components::Full => {
             s.apply_multi(&e, &mut se, ch);
             add(&mut se, &be);
-            (&s, se)
+            (s, se)
         }
         Components::InterreflectionOnly | Components::HeuristicB => {
             p.apply_multi(&e, &mut se, ch);

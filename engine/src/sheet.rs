@@ -206,6 +206,8 @@ pub fn object_s(
         capped_from,
         max_column_energy: s.report.max_column,
         scaled_columns: s.report.scaled_columns as u64,
+        entries: s.report.nnz,
+        links: 0,
         seconds: start.elapsed().as_secs_f64(),
     };
     Ok((s, report))

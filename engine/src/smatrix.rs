@@ -33,8 +33,9 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::sterms::{ObjectTerms, STerms};
-use crate::subsurface::{self, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
+use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
+use rayon::prelude::*;
 
 /// Why S could not be built.
 #[derive(Debug, Error)]
@@ -59,6 +60,8 @@ pub struct PatchGeometry {
     pub normal: Vec<Vec3>,
     pub area: Vec<f32>,
     pub size: Vec<f32>,
+    /// The cluster tree a hierarchical S's links refer to (`None`: no links are read).
+    pub nodes: Option<Nodes>,
 }
 
 impl PatchGeometry {
@@ -194,6 +197,8 @@ pub fn assemble_scene(
                             capped_from,
                             max_column_energy: s.report.max_column,
                             scaled_columns: s.report.scaled_columns as u64,
+                            entries: s.report.nnz,
+                            links: 0,
                             seconds: start.elapsed().as_secs_f64(),
                         };
                         (s, report)
@@ -210,7 +215,7 @@ pub fn assemble_scene(
                         params,
                     )?,
                 };
-                place(&mut rows, r.start, s.rows);
+                place(&mut rows, r.start, s.rows, Vec::new());
                 reports.push(report);
             }
             Material::Heterogeneous { materials, .. } => {
@@ -263,9 +268,11 @@ pub fn assemble_scene(
                     capped_from,
                     max_column_energy: s.report.max_column,
                     scaled_columns: s.report.scaled_columns as u64,
+                    entries: s.report.nnz,
+                    links: 0,
                     seconds: t.elapsed().as_secs_f64(),
                 });
-                place(&mut rows, r.start, s.rows);
+                place(&mut rows, r.start, s.rows, Vec::new());
             }
             Material::Translucent { profile } => {
                 let t = Instant::now();
@@ -286,30 +293,72 @@ pub fn assemble_scene(
                         )
                     }
                 };
+                let mut s = s;
+                if let Some(nodes) = &g.nodes {
+                    // A hierarchical S: receiver j's links to whole nodes, A_k R(r).
+                    let links: Vec<Vec<(u32, [f32; 3])>> = r
+                        .clone()
+                        .into_par_iter()
+                        .map(|j| {
+                            let (cols, ds) = distances.row(j);
+                            cols.iter()
+                                .zip(ds)
+                                .filter(|&(&c, &d)| c as usize >= n && d < radius)
+                                .map(|(&c, &d)| {
+                                    let a = nodes.area[c as usize - n];
+                                    (c, tab.r(d).map(|v| v * a))
+                                })
+                                .collect()
+                        })
+                        .collect();
+                    if links.iter().any(|l| !l.is_empty()) {
+                        subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
+                    }
+                }
+                let links = s.links.iter().map(|l| l.len() as u64).sum();
                 reports.push(AssemblyReport {
                     name: o.name.to_string(),
                     radius,
                     capped_from,
                     max_column_energy: s.report.max_column,
                     scaled_columns: s.report.scaled_columns as u64,
+                    entries: s.report.nnz,
+                    links,
                     seconds: t.elapsed().as_secs_f64(),
                 });
-                place(&mut rows, r.start, s.rows);
+                place(&mut rows, r.start, s.rows, s.links);
             }
         }
     }
-    let n = rows.len();
-    Ok((Csr::from_rows(n, rows)?, reports))
+    // Node columns when any row links to a node (a hierarchical S).
+    let linked = rows
+        .iter()
+        .any(|row| row.last().is_some_and(|e| e.0 as usize >= n));
+    let cols = match &g.nodes {
+        Some(nodes) if linked => n + nodes.range.len(),
+        _ => n,
+    };
+    Ok((Csr::from_rows(cols, rows)?, reports))
 }
 
-/// Writes an object's S columns (local indices, the object starting at patch `start`) into
-/// the scene's rows.
-fn place(rows: &mut [Vec<(u32, [f32; 3])>], start: usize, local: Vec<Vec<(u32, [f32; 3])>>) {
+/// Writes an object's S rows (local indices, the object starting at patch `start`) into
+/// the scene's rows, each followed by its links to nodes (global columns, if any).
+fn place(
+    rows: &mut [Vec<(u32, [f32; 3])>],
+    start: usize,
+    local: Vec<Vec<(u32, [f32; 3])>>,
+    links: Vec<Vec<(u32, [f32; 3])>>,
+) {
+    let mut links = links.into_iter();
     for (j, row) in local.into_iter().enumerate() {
-        rows[start + j] = row
+        let mut out: Vec<(u32, [f32; 3])> = row
             .into_iter()
             .map(|(i, v)| (start as u32 + i, v))
             .collect();
+        if let Some(l) = links.next() {
+            out.extend(l);
+        }
+        rows[start + j] = out;
     }
 }
 
@@ -428,13 +477,23 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
 
 /// The bundle's patch geometry as S assembly takes it.
 pub fn bundle_geometry(bundle: &Bundle) -> PatchGeometry {
-    PatchGeometry::from_corners(
+    let mut g = PatchGeometry::from_corners(
         bundle
             .patch_corners()
             .iter()
             .map(|c| c.map(Vec3::from))
             .collect(),
-    )
+    );
+    if bundle.manifest().subsurface.links > 0
+        && let Some(t) = bundle.tree()
+    {
+        g.nodes = Some(Nodes {
+            perm: t.perm.to_vec(),
+            range: t.range.to_vec(),
+            area: crate::transport::node_areas(t, bundle.patch_areas()),
+        });
+    }
+    g
 }
 
 /// ρ a patch of this material carries in the diffuse solve, and its emitted exitance.

@@ -118,6 +118,9 @@ impl ObjectBlock {
 #[derive(Debug, Clone, Default)]
 pub struct ObjectS {
     pub rows: Vec<Vec<(u32, [f32; 3])>>,
+    /// A hierarchical S's links per row: (N + k, S_{j,N+k}), node k's column (global; see
+    /// [`add_links`]). Empty for a pairwise S.
+    pub links: Vec<Vec<(u32, [f32; 3])>>,
     pub report: EnergyReport,
 }
 
@@ -556,7 +559,108 @@ pub(crate) fn bound_and_transpose(mut columns: Vec<Vec<(u32, [f32; 3])>>, area: 
         }
     }
     report.nnz = rows.iter().map(|r| r.len() as u64).sum();
-    ObjectS { rows, report }
+    ObjectS {
+        rows,
+        links: Vec::new(),
+        report,
+    }
+}
+
+/// The scene's cluster tree as a hierarchical S's links refer to it: the patches in tree
+/// order, each node's range of that order, and each node's area.
+#[derive(Debug, Clone, Default)]
+pub struct Nodes {
+    pub perm: Vec<u32>,
+    pub range: Vec<[u32; 2]>,
+    pub area: Vec<f32>,
+}
+
+impl Nodes {
+    /// Node k's patches (global indices).
+    pub fn members(&self, k: usize) -> &[u32] {
+        let r = self.range[k];
+        &self.perm[r[0] as usize..r[1] as usize]
+    }
+}
+
+/// Adds one object's links to its S (`s` in local indices, the object starting at patch
+/// `start`; `links[j]` lists (N + k, S_{j,N+k}) for local receiver j, N = `n`) and enforces
+/// the energy bound on every column with them: patch i's column re-emits
+/// Σ_j A_j S_ji / A_i directly plus, through every node k that holds it,
+/// e_k = Σ_j A_j S_{j,N+k} / A_k (the link spreads node k's mean over its patches by area).
+/// A column over 1 has its direct entries scaled so the sum is 1 (links are shared by a
+/// node's patches, so they are left whole; they are far pairs and carry little).
+pub fn add_links(
+    s: &mut ObjectS,
+    start: usize,
+    area: &[f32],
+    links: Vec<Vec<(u32, [f32; 3])>>,
+    nodes: &Nodes,
+    n: usize,
+) {
+    let local = area.len();
+    // e_k per node, then spread to the member patches.
+    let mut e = vec![[0.0f32; 3]; nodes.range.len()];
+    for (j, row) in links.iter().enumerate() {
+        for &(col, v) in row {
+            let k = col as usize - n;
+            for c in 0..3 {
+                e[k][c] += area[j] * v[c] / nodes.area[k];
+            }
+        }
+    }
+    let mut far = vec![[0.0f32; 3]; local];
+    for (k, ek) in e.iter().enumerate() {
+        if ek.iter().all(|&v| v == 0.0) {
+            continue;
+        }
+        for &p in nodes.members(k) {
+            let i = p as usize - start;
+            for c in 0..3 {
+                far[i][c] += ek[c];
+            }
+        }
+    }
+    // Direct column sums (already bounded by 1 each).
+    let mut direct = vec![[0.0f32; 3]; local];
+    for (j, row) in s.rows.iter().enumerate() {
+        for &(i, v) in row {
+            for c in 0..3 {
+                direct[i as usize][c] += area[j] * v[c] / area[i as usize];
+            }
+        }
+    }
+    let mut scale = vec![[1.0f32; 3]; local];
+    let mut scaled = 0usize;
+    let mut mean = 0.0f64;
+    for i in 0..local {
+        let mut any = false;
+        for c in 0..3 {
+            let total = direct[i][c] + far[i][c];
+            s.report.max_column = s.report.max_column.max(total);
+            if total > 1.0 && direct[i][c] > 0.0 {
+                scale[i][c] = (1.0 - far[i][c]).max(0.0) / direct[i][c];
+                any = true;
+            }
+        }
+        mean += (direct[i][1] + far[i][1]) as f64;
+        scaled += any as usize;
+    }
+    if scaled > 0 {
+        for row in &mut s.rows {
+            for (i, v) in row.iter_mut() {
+                for c in 0..3 {
+                    v[c] *= scale[*i as usize][c];
+                }
+            }
+        }
+    }
+    s.report.scaled_columns += scaled;
+    if local > 0 {
+        s.report.mean_column = (mean / local as f64) as f32;
+    }
+    s.report.nnz += links.iter().map(|r| r.len() as u64).sum::<u64>();
+    s.links = links;
 }
 
 /// Settings of S: how far profiles are kept and stored, and the quadrature. Defaults on each
@@ -592,6 +696,9 @@ pub struct AssemblyReport {
     pub capped_from: Option<f32>,
     pub max_column_energy: f32,
     pub scaled_columns: u64,
+    /// Entries of the object's S, and how many of them are links to cluster nodes.
+    pub entries: u64,
+    pub links: u64,
     pub seconds: f64,
 }
 

@@ -11,12 +11,17 @@
 //! order gives every node's mean as a difference of two prefix values — O(N + M) per
 //! product, however deep the tree. The pulled vector x̄ = [x; P x] has N + M rows and C is an
 //! ordinary CSR matrix over it, so the CSR products serve both kinds unchanged.
+//!
+//! A hierarchical S (`translux-precompute --subsurface hierarchical`) is built the same way
+//! over the same tree: [`LinkedScatter`] pulls the irradiance and applies S̃ = C_S·P, C_S
+//! holding near pairs in its first N columns and links to whole nodes after them
+//! ([`subsurface_operator`] picks it for a bundle's S).
 
 use rayon::prelude::*;
 use translux_proto::bundle::{Bundle, TreeView};
 use translux_proto::csr::{Csr, CsrView};
 
-use crate::linalg::Rgb;
+use crate::linalg::{Rgb, Scatter, SparseScatter};
 
 /// F as the solvers see it: a dense CSR matrix, or C with the tree P pulls over.
 #[derive(Debug, Clone, Copy)]
@@ -39,6 +44,43 @@ pub struct Pulled {
     /// x̄ = [x; P x], `(N + M) × ch`.
     pub values: Vec<f32>,
     prefix: Vec<f64>,
+}
+
+impl<'a> Tree<'a> {
+    /// x̄ = [x; P x] into `out.values` (`x` is `N × ch`).
+    fn pull(&self, x: &[f32], ch: usize, out: &mut Pulled) {
+        let n = self.view.perm.len();
+        let m = self.view.range.len();
+        out.values.resize((n + m) * ch, 0.0);
+        out.values[..n * ch].copy_from_slice(&x[..n * ch]);
+        // prefix[k] = Σ_{q<k} (A, A x) of the patches in tree order; one extra column for
+        // the area itself, so each node's mean is a ratio of two differences.
+        let w = ch + 1;
+        out.prefix.resize((n + 1) * w, 0.0);
+        out.prefix[..w].fill(0.0);
+        for (k, &p) in self.view.perm.iter().enumerate() {
+            let (p, a) = (p as usize, self.area[p as usize] as f64);
+            let (head, tail) = out.prefix.split_at_mut((k + 1) * w);
+            let prev = &head[k * w..];
+            let next = &mut tail[..w];
+            next[0] = prev[0] + a;
+            for c in 0..ch {
+                next[c + 1] = prev[c + 1] + a * x[p * ch + c] as f64;
+            }
+        }
+        let prefix = &out.prefix;
+        out.values[n * ch..]
+            .par_chunks_mut(ch)
+            .with_min_len(256)
+            .zip(self.view.range.par_iter())
+            .for_each(|(v, r)| {
+                let (a, b) = (&prefix[r[0] as usize * w..], &prefix[r[1] as usize * w..]);
+                let area = b[0] - a[0];
+                for c in 0..ch {
+                    v[c] = ((b[c + 1] - a[c + 1]) / area) as f32;
+                }
+            });
+    }
 }
 
 impl<'a> Transport<'a> {
@@ -101,40 +143,14 @@ impl<'a> Transport<'a> {
 
     /// Fills `out.values` with x̄ = [x; P x] for `ch` channels per patch (`x` is `N × ch`).
     pub fn pull(&self, x: &[f32], ch: usize, out: &mut Pulled) {
-        let n = self.n();
-        let m = self.nodes();
-        out.values.resize((n + m) * ch, 0.0);
-        out.values[..n * ch].copy_from_slice(&x[..n * ch]);
-        let Some(t) = &self.tree else {
-            return;
-        };
-        // prefix[k] = Σ_{q<k} (A, A x) of the patches in tree order; one extra column for
-        // the area itself, so each node's mean is a ratio of two differences.
-        let w = ch + 1;
-        out.prefix.resize((n + 1) * w, 0.0);
-        out.prefix[..w].fill(0.0);
-        for (k, &p) in t.view.perm.iter().enumerate() {
-            let (p, a) = (p as usize, t.area[p as usize] as f64);
-            let (head, tail) = out.prefix.split_at_mut((k + 1) * w);
-            let prev = &head[k * w..];
-            let next = &mut tail[..w];
-            next[0] = prev[0] + a;
-            for c in 0..ch {
-                next[c + 1] = prev[c + 1] + a * x[p * ch + c] as f64;
+        match &self.tree {
+            Some(t) => t.pull(x, ch, out),
+            None => {
+                let n = self.n();
+                out.values.resize(n * ch, 0.0);
+                out.values.copy_from_slice(&x[..n * ch]);
             }
         }
-        let prefix = &out.prefix;
-        out.values[n * ch..]
-            .par_chunks_mut(ch)
-            .with_min_len(256)
-            .zip(t.view.range.par_iter())
-            .for_each(|(v, r)| {
-                let (a, b) = (&prefix[r[0] as usize * w..], &prefix[r[1] as usize * w..]);
-                let area = b[0] - a[0];
-                for c in 0..ch {
-                    v[c] = ((b[c + 1] - a[c + 1]) / area) as f32;
-                }
-            });
     }
 
     /// y = F x for `ch` channels per patch: one pass over the stored matrix serves every
@@ -260,6 +276,70 @@ impl<'a> Transport<'a> {
         }
         out
     }
+}
+
+/// A hierarchical S̃ = C_S·P as the solvers apply it: C_S is `N × (N + M)` (RGB entries;
+/// columns past N gather a cluster node's area-weighted mean whole), P the same pull as a
+/// hierarchical F's over the bundle's cluster tree. Built by [`subsurface_operator`].
+#[derive(Debug, Clone, Copy)]
+pub struct LinkedScatter<'a> {
+    s: CsrView<'a, Rgb>,
+    tree: Tree<'a>,
+}
+
+impl<'a> LinkedScatter<'a> {
+    /// S̃ with the tree its node columns refer to (`area`: `[N]`).
+    pub fn new(s: CsrView<'a, Rgb>, tree: TreeView<'a>, area: &'a [f32]) -> Self {
+        assert_eq!(s.n_rows(), tree.perm.len(), "the tree orders every patch");
+        assert_eq!(area.len(), s.n_rows(), "an area per patch");
+        assert_eq!(
+            s.n_cols(),
+            s.n_rows() + tree.range.len(),
+            "S's columns: patches, then nodes"
+        );
+        Self {
+            s,
+            tree: Tree { view: tree, area },
+        }
+    }
+}
+
+impl Scatter for LinkedScatter<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        self.apply_multi(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y), 3);
+    }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        let mut pulled = Pulled::default();
+        self.tree.pull(h, ch, &mut pulled);
+        SparseScatter(self.s).apply_multi(&pulled.values, y, ch);
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        None
+    }
+}
+
+/// The scattering operator of a bundle's S (its own, or one rebuilt for overrides, `s`):
+/// a sparse S, or [`LinkedScatter`] when S has node columns (a hierarchical S).
+pub fn subsurface_operator<'a>(b: &'a Bundle, s: CsrView<'a, Rgb>) -> Box<dyn Scatter + 'a> {
+    match b.tree() {
+        Some(t) if s.n_cols() > s.n_rows() => Box::new(LinkedScatter::new(s, t, b.patch_areas())),
+        _ => Box::new(SparseScatter(s)),
+    }
+}
+
+/// Each cluster node's area Σ A_p over its patches (`[M]`).
+pub fn node_areas(tree: TreeView<'_>, area: &[f32]) -> Vec<f32> {
+    let mut prefix = Vec::with_capacity(tree.perm.len() + 1);
+    prefix.push(0.0f64);
+    let mut acc = 0.0f64;
+    for &p in tree.perm {
+        acc += area[p as usize] as f64;
+        prefix.push(acc);
+    }
+    tree.range
+        .iter()
+        .map(|r| (prefix[r[1] as usize] - prefix[r[0] as usize]) as f32)
+        .collect()
 }
 
 #[cfg(test)]

@@ -311,6 +311,8 @@ pub fn subsurface_objects(
             voxel_size: d.voxel_size,
             max_column_energy: a.max_column_energy,
             scaled_columns: a.scaled_columns,
+            links: a.links,
+            entries: a.entries,
             warning: d.warning.clone(),
             seconds: d.seconds + a.seconds,
         })

@@ -95,9 +95,9 @@ impl HierarchyParams {
     }
 }
 
-/// A child of a tree node.
+/// A child of a tree node: another node (by index) or a patch.
 #[derive(Debug, Clone, Copy, PartialEq)]
-enum Child {
+pub enum Child {
     Node(u32),
     Patch(u32),
 }
@@ -178,6 +178,29 @@ impl ClusterTree {
     /// Each node's range of [`ClusterTree::perm`].
     pub fn ranges(&self) -> Vec<[u32; 2]> {
         self.nodes.iter().map(|n| n.range).collect()
+    }
+
+    /// Node k's two children.
+    pub fn children(&self, k: usize) -> [Child; 2] {
+        self.nodes[k].children
+    }
+
+    /// Node k's bounding sphere (centre, radius) of its patches' corners.
+    pub fn sphere(&self, k: usize) -> (Vec3, f32) {
+        (self.nodes[k].center, self.nodes[k].radius)
+    }
+
+    /// The subtree that holds exactly the patches at positions `range` of the tree order
+    /// (an object's, since objects are split apart first): a node, a single patch, or `None`
+    /// when no subtree covers exactly that range.
+    pub fn subtree(&self, range: [u32; 2]) -> Option<Child> {
+        if range[1] == range[0] + 1 {
+            return Some(Child::Patch(self.perm[range[0] as usize]));
+        }
+        self.nodes
+            .iter()
+            .position(|n| n.range == range)
+            .map(|k| Child::Node(k as u32))
     }
 }
 

@@ -51,4 +51,5 @@ pub mod scene;
 pub mod shapes;
 pub mod sheet;
 pub mod simplify;
+pub mod slinks;
 pub mod voxel;

@@ -13,6 +13,7 @@ use translux_precompute::formfactor::FormFactorParams;
 use translux_precompute::hierarchy::HierarchyParams;
 use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
+use translux_precompute::slinks::SLinkParams;
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
 #[derive(Debug, Parser)]
@@ -42,6 +43,15 @@ struct Cli {
     /// and larger; accepted 0.02 to 1.
     #[arg(long, default_value_t = HierarchyParams::default().accuracy)]
     accuracy: f32,
+    /// How S is stored inside translucent objects: `pairwise` (one entry per patch pair
+    /// within the profile's reach) or `hierarchical` (near pairs as pairs, far parts of the
+    /// object through whole cluster nodes of F's tree; needs `--transport hierarchical`).
+    #[arg(long, value_enum, default_value_t = SubsurfaceArg::Pairwise)]
+    subsurface: SubsurfaceArg,
+    /// Hierarchical S only: a node of radius R is linked whole only from a distance of at
+    /// least R / S_ACCURACY; accepted 0.05 to 1.
+    #[arg(long, default_value_t = SLinkParams::default().accuracy)]
+    s_accuracy: f32,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -58,6 +68,13 @@ struct Cli {
     /// bin), or 0 to skip the stage (environment lights are then refused for the bundle).
     #[arg(long, value_name = "ROWSxCOLS")]
     env_bins: Option<String>,
+}
+
+/// `--subsurface`.
+#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
+enum SubsurfaceArg {
+    Pairwise,
+    Hierarchical,
 }
 
 /// `--transport`.
@@ -119,6 +136,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
         progress: !cli.quiet,
         inverse: cli.inverse,
+        subsurface_links: match cli.subsurface {
+            SubsurfaceArg::Pairwise => None,
+            SubsurfaceArg::Hierarchical => Some(SLinkParams {
+                accuracy: cli.s_accuracy,
+            }),
+        },
         environment: match cli.env_bins.as_deref() {
             None => Default::default(),
             Some(text) => translux_engine::envvis::EnvVisParams {
@@ -204,10 +227,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         report.rays_per_second / 1e6
     );
     let ss = &report.subsurface;
-    println!(
-        "  nnz(S)             {} (optical distances stored: {})",
-        ss.nnz, ss.distance_nnz
-    );
+    if ss.links > 0 {
+        println!(
+            "  nnz(S)             {} (optical distances stored: {}, {} of them links to cluster \
+             nodes; pair by pair: {})",
+            ss.nnz, ss.distance_nnz, ss.links, ss.pairwise_distances
+        );
+    } else {
+        println!(
+            "  nnz(S)             {} (optical distances stored: {})",
+            ss.nnz, ss.distance_nnz
+        );
+    }
     for o in &ss.objects {
         println!(
             "    {:<16} {} paths, r ≤ {:.4} (scene units), {} voxels ({} inside, size {:.4}), \
@@ -226,6 +257,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             },
             o.seconds
         );
+        if o.links > 0 {
+            println!(
+                "    {:<16} hierarchical S: {} entries, {} of them links to cluster nodes",
+                "", o.entries, o.links
+            );
+        }
         if let Some(w) = &o.warning {
             println!("    warning: {w}");
         }

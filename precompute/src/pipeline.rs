@@ -60,6 +60,10 @@ pub struct PrecomputeParams {
     pub inverse: bool,
     /// Per-patch environment visibility ([`translux_engine::envvis`]); `bins: None` skips it.
     pub environment: translux_engine::envvis::EnvVisParams,
+    /// Hierarchical S ([`crate::slinks`]): far parts of each translucent object reach a
+    /// receiver through whole cluster nodes. Needs the hierarchical F's tree. `None`: S is
+    /// stored pair by pair.
+    pub subsurface_links: Option<crate::slinks::SLinkParams>,
 }
 
 /// How F is computed and stored.
@@ -437,6 +441,23 @@ pub fn precompute(
     {
         return Err(PrecomputeError::BadMaxEdge(e));
     }
+    if let Some(sl) = &params.subsurface_links {
+        sl.check().map_err(PrecomputeError::BadHierarchy)?;
+        if params.transport == FormFactorMethod::Dense {
+            return Err(PrecomputeError::BadHierarchy(
+                "--subsurface hierarchical links S to the cluster tree of the hierarchical \
+                 F; it cannot be used with --transport dense"
+                    .into(),
+            ));
+        }
+        if params.inverse {
+            return Err(PrecomputeError::BadHierarchy(
+                "--inverse needs a pairwise S (T = (I - S F)^-1 S is dense anyway); leave out \
+                 --subsurface hierarchical"
+                    .into(),
+            ));
+        }
+    }
     if let FormFactorMethod::Hierarchical(h) = &params.transport {
         h.check().map_err(PrecomputeError::BadHierarchy)?;
         if params.form_factors.threshold > 0.0 {
@@ -618,7 +639,7 @@ pub fn precompute(
                 &stop,
             );
             let ranges = h.tree.ranges();
-            (h.c, h.ff_info, Some((h.tree.perm, ranges, h.info)))
+            (h.c, h.ff_info, Some((h.tree, ranges, h.info)))
         }
     };
     if params.observer.as_ref().is_some_and(|o| o.cancelled()) {
@@ -651,7 +672,9 @@ pub fn precompute(
         normal: patches.normal.clone(),
         area: patches.area.clone(),
         size: patches.size.clone(),
+        nodes: None,
     };
+    let mut geometry = geometry;
     let unit_mm = scene.file.unit_mm;
     let sp = &params.subsurface;
     let media = scene_media(scene, &patches, h);
@@ -687,9 +710,44 @@ pub fn precompute(
                 .map_or(0.0, |d| d.radius)
         })
         .collect();
+    // A hierarchical S: far pairs of translucent objects become links to whole nodes.
+    let t_links = Instant::now();
+    let pairwise_distances = dist.col.len() as u64;
+    let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
+        (Some(sl), Some((t, _, _))) => {
+            let c = crate::slinks::collapse(
+                t,
+                &geometry,
+                &materials,
+                &stored,
+                &dist,
+                &dist_len,
+                &dist_kind,
+                sp.quadrature.near_factor,
+                sl,
+            )
+            .map_err(SError::Matrix)?;
+            if c.links > 0 {
+                geometry.nodes = Some(c.nodes);
+            }
+            (c.dist, c.material_len, c.kind, c.links)
+        }
+        _ => (dist, dist_len, dist_kind, 0),
+    };
+    if links > 0 {
+        tell(
+            params,
+            &format!(
+                "note: hierarchical S: {links} links to cluster nodes beside {} direct pairs, \
+                 from {pairwise_distances} pairwise distances (cut in {:.2} s)",
+                dist.col.len() as u64 - links,
+                t_links.elapsed().as_secs_f64()
+            ),
+        );
+    }
     let dist_view = translux_proto::csr::CsrView::new_checked(
         n as usize,
-        n as usize,
+        dist.n_cols,
         &dist.row_ptr,
         &dist.col,
         &dist.val,
@@ -716,6 +774,8 @@ pub fn precompute(
     let subsurface_info = SubsurfaceInfo {
         nnz: smat.col.len() as u64,
         distance_nnz: dist.col.len() as u64,
+        links,
+        pairwise_distances: if links > 0 { pairwise_distances } else { 0 },
         objects: distances::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy),
     };
     finish(bar, progress, "subsurface", t, &mut stages);
@@ -726,8 +786,11 @@ pub fn precompute(
         stage_start(params, "inverse T")?;
         let bar = stage_bar(progress, 6, "inverse T");
         // T needs F itself: a hierarchical C·P is multiplied out (N² at most, like T).
-        let expanded = tree.as_ref().map(|(perm, range, _)| {
-            let tree = translux_proto::bundle::TreeView { perm, range };
+        let expanded = tree.as_ref().map(|(t, range, _)| {
+            let tree = translux_proto::bundle::TreeView {
+                perm: &t.perm,
+                range,
+            };
             let c = ff.view().expect("form factors are a valid CSR");
             translux_engine::transport::Transport::hierarchical(c, tree, &patches.area).expand()
         });
@@ -924,11 +987,11 @@ pub fn precompute(
             data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
-    let hierarchy_info = tree.map(|(perm, range, info)| {
+    let hierarchy_info = tree.map(|(t, range, info)| {
         arrays_out.push(NamedArray {
             name: arrays::TREE_PERM,
             shape: vec![np],
-            data: ArrayData::U32(perm),
+            data: ArrayData::U32(t.perm),
         });
         arrays_out.push(NamedArray {
             name: arrays::TREE_RANGE,

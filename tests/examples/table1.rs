@@ -38,6 +38,7 @@ use translux_engine::scene::Scene;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::resolve_scene;
+use translux_precompute::slinks::SLinkParams;
 use translux_proto::light::Light;
 use translux_proto::scene::{
     ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile, Shape, Transform,
@@ -123,6 +124,8 @@ struct Args {
     reps: usize,
     out: PathBuf,
     t_max: u64,
+    /// `--subsurface hierarchical`: S with links to cluster nodes.
+    s_links: Option<SLinkParams>,
 }
 
 fn args() -> anyhow::Result<Args> {
@@ -138,6 +141,7 @@ fn args() -> anyhow::Result<Args> {
         reps: 5,
         out: root.join("bench/results"),
         t_max: 6_100,
+        s_links: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -164,9 +168,21 @@ fn args() -> anyhow::Result<Args> {
             "--reps" => a.reps = it.next().context("--reps N")?.parse()?,
             "--out" => a.out = PathBuf::from(it.next().context("--out DIR")?),
             "--t-max" => a.t_max = it.next().context("--t-max N")?.parse()?,
+            "--subsurface" => {
+                a.s_links = match it.next().as_deref() {
+                    Some("pairwise") => None,
+                    Some("hierarchical") => Some(SLinkParams::default()),
+                    other => bail!("--subsurface pairwise|hierarchical, not {other:?}"),
+                }
+            }
+            "--s-accuracy" => {
+                let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
+                a.s_links = Some(SLinkParams { accuracy: theta });
+            }
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
-                 --no-mitsuba, --reps N, --out DIR, --t-max N)"
+                 --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface pairwise|hierarchical, \
+                 --s-accuracy X)"
             ),
         }
     }
@@ -538,10 +554,12 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         format!("table1:{}", spec.key),
     )?;
     let dir = work.join(format!("{}-{}", spec.key, spec.patches));
-    let inverse = spec.patches <= a.t_max;
+    // T needs a pairwise S.
+    let inverse = spec.patches <= a.t_max && a.s_links.is_none();
     let params = PrecomputeParams {
         patches: Some(spec.patches),
         inverse,
+        subsurface_links: a.s_links,
         progress: true,
         ..Default::default()
     };
@@ -590,6 +608,44 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         paper: Some(spec.paper.clone()),
         ..Default::default()
     };
+    // S per translucent patch (objects with a subsurface record; thin sheets included).
+    {
+        let (mut patches, mut entries, mut links) = (0u64, 0u64, 0u64);
+        for so in &m.subsurface.objects {
+            if let Some(o) = m.objects.iter().find(|o| o.name == so.name) {
+                patches += o.patch_count;
+                entries += so.entries;
+                links += so.links;
+            }
+        }
+        if patches > 0 {
+            let s_note = format!(
+                "S {}: {:.0} entries per translucent patch ({:.1}% of them links to cluster \
+                 nodes), S {:.0} MiB",
+                if m.subsurface.links > 0 {
+                    "hierarchical"
+                } else {
+                    "pairwise"
+                },
+                entries as f64 / patches as f64,
+                100.0 * links as f64 / entries.max(1) as f64,
+                (m.subsurface.nnz * 16) as f64 / (1u64 << 20) as f64
+            );
+            let s_note = if m.subsurface.links > 0 {
+                format!(
+                    "{s_note}, optical distances {} against {} pair by pair",
+                    m.subsurface.distance_nnz, m.subsurface.pairwise_distances
+                )
+            } else {
+                s_note
+            };
+            row.note = if row.note.is_empty() {
+                s_note
+            } else {
+                format!("{}; {s_note}", row.note)
+            };
+        }
+    }
     let lights = m.lights.clone();
     // Exact: a tight iterative solve of the default lights.
     let exact = run(&scene, &json!({"solver": "iterative"}), Some(1e-7))?;

@@ -13,8 +13,9 @@ use crate::scene::Material;
 pub const FORMAT: &str = "translux-bundle";
 /// Bumped whenever the layout changes; this build writes it and reads it and every version
 /// from [`OLDEST_READABLE_VERSION`] on (version 5 added hierarchical F, see
-/// [`Manifest::hierarchy`]; a version 4 bundle is a dense one and reads unchanged).
-pub const FORMAT_VERSION: u32 = 5;
+/// [`Manifest::hierarchy`]; a version 4 bundle is a dense one and reads unchanged; version 6
+/// added hierarchical S, [`SubsurfaceInfo::links`], and reads every version 5 bundle).
+pub const FORMAT_VERSION: u32 = 6;
 /// The oldest bundle version this build still reads.
 pub const OLDEST_READABLE_VERSION: u32 = 4;
 /// The manifest's file name inside a bundle folder.
@@ -163,7 +164,24 @@ pub struct SubsurfaceInfo {
     pub nnz: u64,
     /// Stored optical distances.
     pub distance_nnz: u64,
+    /// Stored distances whose column is a cluster node, the links of a hierarchical S
+    /// (version 6; S holds at most as many): S and the distances then have N + M columns,
+    /// M = `hierarchy.nodes`. In the distances, row i
+    /// lists the receivers j < N that take patch i directly (as in a pairwise S) and the
+    /// nodes N + k that receiver i gathers from whole, with the optical distance to the
+    /// node's representative patch; S_{i,N+k} = A_k R(r) multiplies the area-weighted mean
+    /// of node k's patches. 0: a pairwise S.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub links: u64,
+    /// With links: the distances stage 1 found pair by pair, before the cut replaced the far
+    /// ones (what a pairwise S would have stored).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub pairwise_distances: u64,
     pub objects: Vec<SubsurfaceObject>,
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
 }
 
 /// One translucent object's S.
@@ -187,6 +205,12 @@ pub struct SubsurfaceObject {
     /// had to be scaled down to it.
     pub max_column_energy: f32,
     pub scaled_columns: u64,
+    /// Entries of S in the object's rows that gather from a cluster node whole (hierarchical
+    /// S; 0 for a pairwise one), and all its entries (links included).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub links: u64,
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub entries: u64,
     /// A note when something fell back (e.g. no interior found: Euclidean distances used).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,

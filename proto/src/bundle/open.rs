@@ -819,10 +819,19 @@ impl Bundle {
             error,
         })?;
 
-        // S is an N × N CSR matrix of RGB values, non-negative; distances likewise, scalar.
+        // S is an N × N (hierarchical: N × (N + M)) CSR matrix of RGB values, non-negative;
+        // distances likewise, scalar.
+        if self.manifest.subsurface.links > 0 && self.manifest.hierarchy.is_none() {
+            return Err(invalid(
+                MANIFEST_FILE,
+                "subsurface.links > 0 (a hierarchical S) needs the cluster tree of \
+                 `hierarchy`, which is missing",
+            ));
+        }
+        let s_cols = self.s_cols();
         let s = crate::csr::CsrView::<[f32; 3]>::new_checked(
             n,
-            n,
+            s_cols,
             self.u64s(arrays::S_ROW_PTR),
             self.u32s(arrays::S_COL),
             bytemuck::try_cast_slice(self.f32s(arrays::S_VAL)).unwrap_or(&[]),
@@ -839,7 +848,7 @@ impl Bundle {
         }
         let d = crate::csr::CsrView::<f32>::new_checked(
             n,
-            n,
+            s_cols,
             self.u64s(arrays::DIST_ROW_PTR),
             self.u32s(arrays::DIST_COL),
             self.f32s(arrays::DIST_VAL),
@@ -1095,19 +1104,30 @@ impl Bundle {
     pub fn subsurface(&self) -> crate::csr::CsrView<'_, [f32; 3]> {
         crate::csr::CsrView::from_checked_parts(
             self.n_patches,
-            self.n_patches,
+            self.s_cols(),
             self.u64s(arrays::S_ROW_PTR),
             self.u32s(arrays::S_COL),
             bytemuck::try_cast_slice(self.f32s(arrays::S_VAL)).unwrap_or(&[]),
         )
     }
 
+    /// Columns of S and of the distances: N, or N + M for a hierarchical S (see
+    /// [`crate::bundle::SubsurfaceInfo::links`]).
+    pub fn s_cols(&self) -> usize {
+        if self.manifest.subsurface.links > 0 {
+            self.n_patches + self.n_nodes
+        } else {
+            self.n_patches
+        }
+    }
+
     /// Optical path distances between patches of the same translucent object (verified at
-    /// open; scene units).
+    /// open; scene units); with a hierarchical S, also each receiver's links to cluster nodes
+    /// (columns past N, [`crate::bundle::SubsurfaceInfo::links`]).
     pub fn distances(&self) -> crate::csr::CsrView<'_, f32> {
         crate::csr::CsrView::from_checked_parts(
             self.n_patches,
-            self.n_patches,
+            self.s_cols(),
             self.u64s(arrays::DIST_ROW_PTR),
             self.u32s(arrays::DIST_COL),
             self.f32s(arrays::DIST_VAL),

@@ -613,3 +613,47 @@ fn hierarchical_f_opens_and_a_bad_tree_is_refused() {
     m.hierarchy = None;
     assert!(open_err(m, &a).contains("out of range"));
 }
+
+/// A hierarchical S: with `subsurface.links` S and the distances have node columns over
+/// F's tree; without the tree it is refused, and without `links` a node column is out of
+/// range.
+#[test]
+fn hierarchical_s_opens_with_the_tree_and_is_refused_without_it() {
+    let linked = |links: u64, tree: bool| {
+        let (mut m, mut a) = two_patches();
+        if tree {
+            m.hierarchy = Some(HierarchyInfo {
+                nodes: 1,
+                ..Default::default()
+            });
+            a.push(u32s(arrays::TREE_PERM, &[2], &[0, 1]));
+            a.push(u32s(arrays::TREE_RANGE, &[1, 2], &[0, 2]));
+        }
+        m.subsurface.links = links;
+        m.subsurface.distance_nnz = 1;
+        // Row 1 gathers node 0 (column N + 0 = 2) whole; its distance is stored likewise.
+        m.subsurface.nnz = 3;
+        replace(&mut a, u64s(arrays::S_ROW_PTR, &[3], &[0, 1, 3]));
+        replace(&mut a, u32s(arrays::S_COL, &[3], &[0, 1, 2]));
+        replace(&mut a, f32s(arrays::S_VAL, &[3, 3], &[0.25; 9]));
+        replace(&mut a, u64s(arrays::DIST_ROW_PTR, &[3], &[0, 0, 1]));
+        replace(&mut a, u32s(arrays::DIST_COL, &[1], &[2]));
+        replace(&mut a, f32s(arrays::DIST_VAL, &[1], &[0.75]));
+        replace(&mut a, u32s(arrays::DIST_KIND, &[1], &[0]));
+        replace(&mut a, f32s(arrays::DIST_MATERIAL_LEN, &[1, 4], &[0.0; 4]));
+        (m, a)
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let (m, a) = linked(1, true);
+    write(tmp.path(), m, &a);
+    let b = Bundle::open(tmp.path()).unwrap();
+    assert_eq!((b.subsurface().n_cols(), b.distances().n_cols()), (3, 3));
+    assert_eq!(b.subsurface().row(1).0, &[1, 2]);
+    let (m, a) = linked(1, false);
+    assert!(
+        open_err(m, &a).contains("needs the cluster tree"),
+        "a hierarchical S without the tree"
+    );
+    let (m, a) = linked(0, true);
+    assert!(open_err(m, &a).contains("out of range"));
+}

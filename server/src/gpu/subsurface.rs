@@ -104,6 +104,13 @@ impl SMaterials {
         params: &SParams,
     ) -> Result<Plan, SError> {
         let m = bundle.manifest();
+        if m.subsurface.links > 0 {
+            // The device template holds patch pairs only; the CPU sums the links (one
+            // lookup each) and the solve on the device applies S with them.
+            return Ok(Plan::Cpu(
+                "a hierarchical S (links to cluster nodes) is rebuilt on the CPU".into(),
+            ));
+        }
         if params.quadrature.samples.pow(2) > MAX_SAMPLES {
             return Ok(Plan::Cpu(format!(
                 "{} sample points per patch; the device kernel holds at most {MAX_SAMPLES}",

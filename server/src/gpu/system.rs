@@ -177,6 +177,23 @@ impl GpuF {
     }
 }
 
+/// y = S x: one CSR product, or for a hierarchical S (`linked`) F's pull of x into
+/// `pulled` and then S over it (the pulled vector is free again once F's product is done).
+fn s_product(
+    f: &GpuF,
+    s: &GpuCsr,
+    linked: bool,
+    ctx: &GpuContext,
+    x: &wgpu::Buffer,
+    pulled: &wgpu::Buffer,
+    y: &wgpu::Buffer,
+) -> BoundOp {
+    match (&f.pull, linked) {
+        (Some(p), true) => p.bind(ctx, x, pulled).then(s.bind(ctx, pulled, y)),
+        _ => s.bind(ctx, x, y),
+    }
+}
+
 /// A scene's F and S on the device, with everything the solve needs.
 #[derive(Debug)]
 pub struct GpuSystem {
@@ -211,9 +228,11 @@ impl GpuSystem {
         max_iterations: u32,
     ) -> Result<GpuSystem, GpuError> {
         let n = f.n();
-        if s.n_rows() != n || s.n_cols() != n {
+        let s_linked = f.is_hierarchical() && s.n_cols() == n + f.nodes() && f.nodes() > 0;
+        if s.n_rows() != n || (s.n_cols() != n && !s_linked) {
             return Err(GpuError::Invalid(format!(
-                "{what}: F has {n} rows and S is {}×{}; S must be n×n",
+                "{what}: F has {n} rows and S is {}×{}; S must be n×n, or n×(n + nodes) over \
+                 F's cluster tree",
                 s.n_rows(),
                 s.n_cols()
             )));
@@ -240,10 +259,13 @@ impl GpuSystem {
         max_iterations: u32,
     ) -> Result<GpuSystem, GpuError> {
         let n = f.n_rows();
-        if !f.consistent() || s.n_rows() != n || s.n_cols() != n {
+        // A hierarchical S has node columns: it reads the vector pulled by F's tree.
+        let s_linked = f.pull.is_some() && s.n_cols() == f.pulled_rows() && s.n_cols() > n;
+        if !f.consistent() || s.n_rows() != n || (s.n_cols() != n && !s_linked) {
             ctx.release(s.bytes());
             return Err(GpuError::Invalid(format!(
-                "{what}: F has {n} rows and {} pulled columns, S is {}×{}; S must be n×n",
+                "{what}: F has {n} rows and {} pulled columns, S is {}×{}; S must be n×n, \
+                 or n×(n + nodes) over F's cluster tree",
                 f.pulled_rows(),
                 s.n_rows(),
                 s.n_cols()
@@ -307,7 +329,7 @@ impl GpuSystem {
             let k = &ctx.kernels;
             let dev = &ctx.device;
             let ops = Ops {
-                s_e: s.bind(ctx, &v.e, &v.sfx),
+                s_e: s_product(&f, &s, s_linked, ctx, &v.e, &v.pulled, &v.sfx),
                 rhs: BoundOp::new(
                     k.jacobi_update.clone(),
                     vec![(
@@ -316,7 +338,7 @@ impl GpuSystem {
                     )],
                 ),
                 f_x: f.bind(ctx, &v.x, &v.pulled, &v.fx),
-                s_fx: s.bind(ctx, &v.fx, &v.sfx),
+                s_fx: s_product(&f, &s, s_linked, ctx, &v.fx, &v.pulled, &v.sfx),
                 update: BoundOp::new(
                     k.jacobi_update.clone(),
                     vec![(

@@ -1,0 +1,335 @@
+//! Hierarchical S (`--subsurface hierarchical`) against the pairwise S of the same scene:
+//! a marble cube and a U-shaped marble object (optical paths longer than straight lines),
+//! scenes in millimetres, at three translucency scales under random lights; and the energy
+//! bound on every column with the links spread over their nodes' patches.
+
+use glam::Vec3;
+use translux_engine::radiosity::{self, PatchGeometry, Rgb, SolveParams};
+use translux_engine::raycast::Occluder;
+use translux_engine::relight;
+use translux_engine::scene::Scene;
+use translux_engine::smatrix::{self, SParams};
+use translux_engine::transport::{Transport, node_areas, subsurface_operator};
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene;
+use translux_precompute::slinks::SLinkParams;
+use translux_proto::api::RelightRequest;
+use translux_proto::bundle::Bundle;
+use translux_proto::light::Light;
+use translux_proto::scene::{Material, Profile};
+
+fn marble(scale: f32) -> Material {
+    Material::Translucent {
+        profile: Profile::Dipole {
+            preset: Some("marble".into()),
+            sigma_a: None,
+            sigma_s_prime: None,
+            eta: None,
+            scale: Some(scale),
+        },
+    }
+}
+
+/// A U extruded along z (millimetres): outer 60 × 60, arms and base 20 wide, 20 deep. Its
+/// two arms face each other across a 20 mm gap, so paths between them bend round the base.
+fn u_obj() -> String {
+    let outline = [
+        (0.0, 0.0),
+        (60.0, 0.0),
+        (60.0, 60.0),
+        (40.0, 60.0),
+        (40.0, 20.0),
+        (20.0, 20.0),
+        (20.0, 60.0),
+        (0.0, 60.0),
+    ];
+    let mut s = String::new();
+    for z in [0.0, 20.0] {
+        for (x, y) in outline {
+            s += &format!("v {x} {y} {z}\n");
+        }
+    }
+    // Caps: the base trapezoid and the two arms (vertex k at z = 0 is k + 1, at z = 20 k + 9).
+    let cap = [
+        [0, 1, 4],
+        [0, 4, 5],
+        [1, 2, 3],
+        [1, 3, 4],
+        [0, 5, 6],
+        [0, 6, 7],
+    ];
+    for t in cap {
+        // z = 0 faces −z (clockwise seen from +z), z = 20 faces +z.
+        s += &format!("f {} {} {}\n", t[0] + 1, t[2] + 1, t[1] + 1);
+        s += &format!("f {} {} {}\n", t[0] + 9, t[1] + 9, t[2] + 9);
+    }
+    for k in 0..8 {
+        let (a, b) = (k, (k + 1) % 8);
+        s += &format!("f {} {} {}\n", a + 1, b + 1, b + 9);
+        s += &format!("f {} {} {}\n", a + 1, b + 9, a + 9);
+    }
+    s
+}
+
+/// The scene file: `object` (a mesh entry) in marble on a floor, in millimetres.
+fn scene(dir: &std::path::Path, object: &str) -> std::path::PathBuf {
+    std::fs::write(dir.join("u.obj"), u_obj()).unwrap();
+    let text = format!(
+        r#"{{"unit_mm": 1,
+           "objects":[
+            {{"name":"floor","mesh":{{"shape":"quad","size":[140,140]}},
+              "material":{{"type":"diffuse","albedo":[0.5,0.5,0.5]}}}},
+            {{"name":"marble","mesh":{object},
+              "material":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble"}}}}}}],
+           "lights":[{{"type":"point","position":[0,150,0],"intensity":[1,1,1]}}],
+           "patches":{{"target":2600}}}}"#
+    );
+    let path = dir.join("scene.json");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn build(path: &std::path::Path, out: &std::path::Path, links: bool) -> Bundle {
+    let loaded = load_scene(path.to_str().unwrap()).unwrap();
+    let params = PrecomputeParams {
+        subsurface_links: links.then(SLinkParams::default),
+        ..Default::default()
+    };
+    precompute(&loaded, out, &params).unwrap();
+    Bundle::open(out).unwrap()
+}
+
+/// Deterministic numbers in [0, 1).
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+/// Vertex radiance of the full solve under `lights` with `s` (the bundle's own S or a
+/// rebuilt one).
+fn vertices(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>, lights: &[Light]) -> Vec<Rgb> {
+    let tris: Vec<[Vec3; 3]> = b
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let occ = Occluder::new(&tris);
+    let centroid: Vec<Vec3> = b
+        .patch_corners()
+        .iter()
+        .map(|c| (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0)
+        .collect();
+    let normal: Vec<Vec3> = b.patch_normals().iter().map(|&n| Vec3::from(n)).collect();
+    let e = radiosity::direct_irradiance(
+        PatchGeometry {
+            centroid: &centroid,
+            normal: &normal,
+        },
+        &occ,
+        lights,
+        b.manifest().unit_mm,
+    )
+    .unwrap();
+    let op = subsurface_operator(b, s.view().unwrap());
+    let params = SolveParams {
+        tolerance: 1e-6,
+        ..Default::default()
+    };
+    let (x, stats) = radiosity::solve(
+        &Transport::of(b),
+        op.as_ref(),
+        b.patch_emission(),
+        &e,
+        &params,
+        None,
+    )
+    .unwrap();
+    assert!(stats.converged, "{stats:?}");
+    radiosity::vertex_radiance(
+        b.triangle_vertices(),
+        b.patch_areas(),
+        b.vertex_positions().len(),
+        &x,
+    )
+}
+
+/// The marble object's vertices (those of its patches' triangles).
+fn object_vertices(b: &Bundle) -> Vec<usize> {
+    let o = &b.manifest().objects[1];
+    let mut v: Vec<usize> = b.triangle_vertices()
+        [o.first_patch as usize..(o.first_patch + o.patch_count) as usize]
+        .iter()
+        .flat_map(|t| t.map(|k| k as usize))
+        .collect();
+    v.sort_unstable();
+    v.dedup();
+    v
+}
+
+/// Σ_j A_j S_ji / A_i per column i and channel, each link spread over its node's patches.
+fn column_energy(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>) -> Vec<[f64; 3]> {
+    let area = b.patch_areas();
+    let n = area.len();
+    let tree = b.tree().unwrap();
+    let node_area = node_areas(tree, area);
+    let mut out = vec![[0.0f64; 3]; n];
+    let v = s.view().unwrap();
+    for j in 0..n {
+        let (cols, vals) = v.row(j);
+        for (&c, s) in cols.iter().zip(vals) {
+            let c = c as usize;
+            if c < n {
+                for k in 0..3 {
+                    out[c][k] += area[j] as f64 * s[k] as f64 / area[c] as f64;
+                }
+            } else {
+                let r = tree.range[c - n];
+                for &p in &tree.perm[r[0] as usize..r[1] as usize] {
+                    for k in 0..3 {
+                        out[p as usize][k] +=
+                            area[j] as f64 * s[k] as f64 / node_area[c - n] as f64;
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Builds both bundles of the scene and compares them at ×0.25, ×1, ×4 under random lights.
+fn compare(object: &str, seed: u64) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = scene(dir.path(), object);
+    let pair = build(&path, &dir.path().join("pairwise"), false);
+    let hier = build(&path, &dir.path().join("hierarchical"), true);
+    assert_eq!(pair.patch_areas(), hier.patch_areas(), "the same patches");
+    let (mp, mh) = (pair.manifest(), hier.manifest());
+    assert!(mh.subsurface.links > 0, "no links were made");
+    let (sp, sh) = (&mp.subsurface.objects[0], &mh.subsurface.objects[0]);
+    assert!(sh.links > 0, "S holds no links");
+    assert!(
+        (sh.entries as f64) < 0.9 * sp.entries as f64,
+        "hierarchical S keeps {} entries against pairwise {}",
+        sh.entries,
+        sp.entries
+    );
+    let verts = object_vertices(&pair);
+    let params = SParams::default();
+    let mut rng = Lcg(seed);
+    for scale in [0.25f32, 1.0, 4.0] {
+        let over = [(1usize, marble(scale))];
+        let (s_pair, _) = smatrix::rebuild_from_bundle(&pair, &over, &params).unwrap();
+        let (s_hier, _) = smatrix::rebuild_from_bundle(&hier, &over, &params).unwrap();
+        // The translucency change's path (terms for the pairs, one lookup per link) agrees.
+        let terms = smatrix::terms_of_bundle(&hier, &params.quadrature);
+        let (s_fast, _) = smatrix::rebuild_with_terms(&hier, &over, &params, &terms).unwrap();
+        assert_eq!(s_fast.col, s_hier.col);
+        let (mut d2, mut s2) = (0.0f64, 0.0f64);
+        for (a, b) in s_fast.val.iter().zip(&s_hier.val) {
+            for c in 0..3 {
+                d2 += ((a[c] - b[c]) as f64).powi(2);
+                s2 += (b[c] as f64).powi(2);
+            }
+        }
+        let rel = (d2 / s2).sqrt();
+        assert!(
+            rel <= 2e-3,
+            "×{scale}: terms against quadrature ‖ΔS‖/‖S‖ = {rel}"
+        );
+        // Every column within the energy bound, links included.
+        let worst = column_energy(&hier, &s_hier)
+            .iter()
+            .flatten()
+            .cloned()
+            .fold(0.0f64, f64::max);
+        assert!(worst <= 1.0 + 1e-4, "×{scale}: a column re-emits {worst}");
+        for round in 0..2 {
+            let lights: Vec<Light> = (0..3)
+                .map(|_| {
+                    let (a, h) = (rng.next() * std::f32::consts::TAU, 40.0 + 80.0 * rng.next());
+                    Light::Point {
+                        position: [90.0 * a.cos(), h, 90.0 * a.sin()],
+                        intensity: [0.5 + rng.next(), 0.5 + rng.next(), 0.5 + rng.next()],
+                    }
+                })
+                .collect();
+            let (vp, vh) = (
+                vertices(&pair, &s_pair, &lights),
+                vertices(&hier, &s_hier, &lights),
+            );
+            let peak = verts
+                .iter()
+                .map(|&k| vp[k].iter().sum::<f32>())
+                .fold(0.0f32, f32::max);
+            let mut errors: Vec<f64> = verts
+                .iter()
+                .filter(|&&k| vp[k].iter().sum::<f32>() > 1e-3 * peak)
+                .map(|&k| {
+                    let (p, h) = (vp[k].iter().sum::<f32>(), vh[k].iter().sum::<f32>());
+                    ((h - p) / p).abs() as f64
+                })
+                .collect();
+            assert!(errors.len() * 2 > verts.len(), "too few lit vertices");
+            let median = percentile(&mut errors, 0.5);
+            let p90 = percentile(&mut errors, 0.9);
+            eprintln!(
+                "{object} ×{scale} lights {round}: {} vertices, median {:.3}%, p90 {:.3}%",
+                errors.len(),
+                100.0 * median,
+                100.0 * p90
+            );
+            assert!(
+                median <= 0.01 && p90 <= 0.03,
+                "×{scale}: median {median:.4}, p90 {p90:.4}"
+            );
+            if round == 0 && scale == 4.0 {
+                // What a relight request with the override gets (the engine's scene: S from
+                // the terms and the links, the solve with the pull) is that answer.
+                let scene = Scene::open("hier", &dir.path().join("hierarchical")).unwrap();
+                let req: RelightRequest = serde_json::from_value(serde_json::json!({
+                    "lights": lights,
+                    "materials": {"marble": marble(scale)},
+                    "solver": "iterative",
+                }))
+                .unwrap();
+                let mut plan = relight::plan(&scene, req).unwrap();
+                plan.tolerance = 1e-6;
+                let got = relight::run(&scene, &plan).unwrap().radiance;
+                let want = vertices(&hier, &s_fast, &lights);
+                let (mut d2, mut w2) = (0.0f64, 0.0f64);
+                for (g, w) in got.iter().zip(&want) {
+                    for c in 0..3 {
+                        d2 += ((g[c] - w[c]) as f64).powi(2);
+                        w2 += (w[c] as f64).powi(2);
+                    }
+                }
+                let rel = (d2 / w2).sqrt();
+                assert!(rel <= 1e-4, "relight against the library solve: {rel}");
+            }
+        }
+    }
+}
+
+#[test]
+fn hierarchical_s_matches_pairwise_on_a_marble_cube() {
+    compare(
+        r#"{"shape":"box","size":[40,40,40]},"transform":{"translate":[0,20,0]}"#,
+        7,
+    );
+}
+
+#[test]
+fn hierarchical_s_matches_pairwise_on_a_u_shaped_object() {
+    compare(r#""u.obj","transform":{"translate":[-30,0,-10]}"#, 11);
+}
