@@ -215,7 +215,31 @@ pub fn assemble_scene(
                         params,
                     )?,
                 };
-                place(&mut rows, r.start, s.rows, Vec::new());
+                let (mut s, mut report) = (s, report);
+                if let Some(nodes) = &g.nodes {
+                    // Links read the table of their kind (the representative's side).
+                    let (tr, tt, _) = sheet::tables(
+                        o.name,
+                        (reflectance, transmittance),
+                        reach,
+                        unit_mm,
+                        params,
+                    )?;
+                    let tab = |kind: u32| {
+                        if kind == sheet::KIND_OPPOSITE {
+                            &tt
+                        } else {
+                            &tr
+                        }
+                    };
+                    let links = node_links(distances, dist_kind, r.clone(), nodes, &tab);
+                    subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
+                    report.max_column_energy = s.report.max_column;
+                    report.scaled_columns = s.report.scaled_columns as u64;
+                    report.entries = s.report.nnz;
+                    report.links = s.links.iter().map(|l| l.len() as u64).sum();
+                }
+                place(&mut rows, r.start, s.rows, s.links);
                 reports.push(report);
             }
             Material::Heterogeneous { materials, .. } => {
@@ -295,25 +319,8 @@ pub fn assemble_scene(
                 };
                 let mut s = s;
                 if let Some(nodes) = &g.nodes {
-                    // A hierarchical S: receiver j's links to whole nodes, A_k R(r).
-                    let links: Vec<Vec<(u32, [f32; 3])>> = r
-                        .clone()
-                        .into_par_iter()
-                        .map(|j| {
-                            let (cols, ds) = distances.row(j);
-                            cols.iter()
-                                .zip(ds)
-                                .filter(|&(&c, &d)| c as usize >= n && d < radius)
-                                .map(|(&c, &d)| {
-                                    let a = nodes.area[c as usize - n];
-                                    (c, tab.r(d).map(|v| v * a))
-                                })
-                                .collect()
-                        })
-                        .collect();
-                    if links.iter().any(|l| !l.is_empty()) {
-                        subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
-                    }
+                    let links = node_links(distances, dist_kind, r.clone(), nodes, &|_| &tab);
+                    subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
                 }
                 let links = s.links.iter().map(|l| l.len() as u64).sum();
                 reports.push(AssemblyReport {
@@ -339,6 +346,40 @@ pub fn assemble_scene(
         _ => n,
     };
     Ok((Csr::from_rows(cols, rows)?, reports))
+}
+
+/// Receiver j's links to whole nodes for the rows `r` of a hierarchical S: S_{j,N+k} =
+/// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while r is within the
+/// table's reach. Empty rows when the distances hold no links.
+fn node_links<'t>(
+    distances: CsrView<'_, f32>,
+    dist_kind: &[u32],
+    r: Range<usize>,
+    nodes: &Nodes,
+    tab: &(dyn Fn(u32) -> &'t Tabulated + Sync),
+) -> Vec<Vec<(u32, [f32; 3])>> {
+    let n = distances.n_rows();
+    r.into_par_iter()
+        .map(|j| {
+            let first = distances.row_ptr()[j] as usize;
+            let (cols, ds) = distances.row(j);
+            cols.iter()
+                .zip(ds)
+                .enumerate()
+                .filter(|&(_, (&c, _))| c as usize >= n)
+                .filter_map(|(e, (&c, &d))| {
+                    let t = tab(dist_kind
+                        .get(first + e)
+                        .copied()
+                        .unwrap_or(sheet::KIND_SAME));
+                    (d < t.r_max()).then(|| {
+                        let a = nodes.area[c as usize - n];
+                        (c, t.r(d).map(|v| v * a))
+                    })
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// Writes an object's S rows (local indices, the object starting at patch `start`) into

@@ -598,6 +598,9 @@ pub fn add_links(
     nodes: &Nodes,
     n: usize,
 ) {
+    if links.iter().all(Vec::is_empty) {
+        return;
+    }
     let local = area.len();
     // e_k per node, then spread to the member patches.
     let mut e = vec![[0.0f32; 3]; nodes.range.len()];

@@ -185,6 +185,12 @@ impl ClusterTree {
         self.nodes[k].children
     }
 
+    /// Node k's normal cone: the largest angle (radians) of a patch normal to the node's
+    /// mean normal (π when the normals cancel).
+    pub fn cone(&self, k: usize) -> f32 {
+        self.nodes[k].cone
+    }
+
     /// Node k's bounding sphere (centre, radius) of its patches' corners.
     pub fn sphere(&self, k: usize) -> (Vec3, f32) {
         (self.nodes[k].center, self.nodes[k].radius)

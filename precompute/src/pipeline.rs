@@ -716,17 +716,8 @@ pub fn precompute(
     let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
-                t,
-                &geometry,
-                &materials,
-                &stored,
-                &dist,
-                &dist_len,
-                &dist_kind,
-                sp.quadrature.near_factor,
-                sl,
-            )
-            .map_err(SError::Matrix)?;
+                t, &geometry, &materials, &stored, &dist, &dist_len, &dist_kind, sp, sl,
+            )?;
             if c.links > 0 {
                 geometry.nodes = Some(c.nodes);
             }

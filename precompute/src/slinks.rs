@@ -28,7 +28,10 @@
 //! - otherwise its children are visited; a patch i with a stored distance becomes a direct
 //!   entry, evaluated as in a pairwise S.
 //!
-//! Thin sheets and heterogeneous objects keep their pairwise distances.
+//! Thin sheets are cut the same way along their geodesics, a node being linked only when its
+//! normal cone is at most 45° wide (so it holds one side) and the link taking its
+//! representative's kind (same side or other side). Heterogeneous objects keep their
+//! pairwise distances (each carries its own per-medium lengths).
 
 use std::ops::RangeInclusive;
 
@@ -36,13 +39,17 @@ use glam::Vec3;
 use rayon::prelude::*;
 use translux_engine::hetero::{MEDIA, MediaLen};
 use translux_engine::sheet::KIND_SAME;
-use translux_engine::smatrix::{ObjectMaterial, PatchGeometry};
+use translux_engine::smatrix::{ObjectMaterial, PatchGeometry, SError, SParams};
 use translux_engine::subsurface::Nodes;
 use translux_proto::bundle::TreeView;
-use translux_proto::csr::{Csr, CsrError};
+use translux_proto::csr::Csr;
 use translux_proto::scene::Material;
 
 use crate::hierarchy::{Child, ClusterTree};
+
+/// Widest normal cone (half-angle, radians: 45°) of a node a thin sheet's receiver may link:
+/// the sheet's two sides face apart, so such a node holds one side.
+const SHEET_CONE: f32 = std::f32::consts::FRAC_PI_4;
 
 /// The accuracies a precompute accepts ([`SLinkParams::check`]).
 pub const ACCURACY_RANGE: RangeInclusive<f32> = 0.05..=1.0;
@@ -51,7 +58,7 @@ pub const ACCURACY_RANGE: RangeInclusive<f32> = 0.05..=1.0;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SLinkParams {
     /// θ: a node of bounding radius ρ is linked whole to a receiver only from a distance of
-    /// at least ρ/θ. Smaller is more accurate and stores more. Default 0.3; accepted 0.05
+    /// at least ρ/θ. Smaller is more accurate and stores more. Default 0.5; accepted 0.05
     /// to 1.
     pub accuracy: f32,
 }
@@ -116,9 +123,10 @@ fn representatives(tree: &ClusterTree, g: &PatchGeometry) -> Vec<u32> {
         .collect()
 }
 
-/// Replaces the pairwise distances of every homogeneous translucent object (of two patches
-/// or more) by direct pairs and links (the module docs); other rows are copied. `stored[k]`
-/// is how far object k's distances reach; `near_factor` is the quadrature's near-pair rule.
+/// Replaces the pairwise distances of every homogeneous translucent object and thin sheet
+/// (of two patches or more) by direct pairs and links (the module docs); other rows are
+/// copied. `stored[k]` is how far object k's distances reach; `sp` gives the quadrature's
+/// near-pair rule.
 #[expect(
     clippy::too_many_arguments,
     reason = "stage 1's arrays as the pipeline holds them"
@@ -131,9 +139,10 @@ pub fn collapse(
     dist: &Csr<f32>,
     material_len: &[MediaLen],
     kind: &[u32],
-    near_factor: f32,
+    sp: &SParams,
     params: &SLinkParams,
-) -> Result<Collapsed, CsrError> {
+) -> Result<Collapsed, SError> {
+    let near_factor = sp.quadrature.near_factor;
     let n = g.corners.len();
     let ranges = tree.ranges();
     let m = ranges.len();
@@ -173,28 +182,45 @@ pub fn collapse(
     let mut links_total = 0u64;
     for (k, o) in objects.iter().enumerate() {
         let r = o.patches.clone();
-        if !matches!(o.material, Material::Translucent { .. }) || r.len() < 2 {
+        if r.len() < 2 {
             continue;
         }
+        let reach = stored.get(k).copied().unwrap_or(0.0);
+        let sheet = match o.material {
+            Material::Translucent { .. } => false,
+            Material::ThinSheet { .. } => true,
+            _ => continue,
+        };
         // The object's subtree (objects are split apart first; without one it stays
         // pairwise).
         let lo = r.clone().map(|p| pos[p]).min().unwrap_or(0);
         let Some(root) = tree.subtree([lo, lo + r.len() as u32]) else {
             continue;
         };
-        let reach = stored.get(k).copied().unwrap_or(0.0);
         // Per receiver j (local): its direct sources and its links.
-        type Cut = (Vec<(u32, f32)>, Vec<(u32, f32)>);
+        type Cut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32)>);
+        // What reaches each receiver j: the stored entries (source i, receiver j) turned
+        // around, as stored (a sheet's entry i → j need not equal j → i).
+        let mut incoming: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
+        for i in r.clone() {
+            for e in dist.row_ptr[i] as usize..dist.row_ptr[i + 1] as usize {
+                let j = dist.col[e] as usize;
+                if r.contains(&j) {
+                    let kd = kind.get(e).copied().unwrap_or(KIND_SAME);
+                    incoming[j - r.start].push(((i - r.start) as u32, dist.val[e], kd));
+                }
+            }
+        }
         let cuts: Vec<Cut> = r
             .clone()
             .into_par_iter()
             .map_init(
-                || vec![f32::INFINITY; r.len()],
-                |dj, j| {
-                    let (a, b) = (dist.row_ptr[j] as usize, dist.row_ptr[j + 1] as usize);
-                    let inside = |e: usize| r.contains(&(dist.col[e] as usize));
-                    for e in (a..b).filter(|&e| inside(e)) {
-                        dj[dist.col[e] as usize - r.start] = dist.val[e];
+                || (vec![f32::INFINITY; r.len()], vec![KIND_SAME; r.len()]),
+                |(dj, kj), j| {
+                    let into = &incoming[j - r.start];
+                    for &(i, d, kd) in into {
+                        dj[i as usize] = d;
+                        kj[i as usize] = kd;
                     }
                     let x = g.centroid[j];
                     let (mut direct, mut links) = (Vec::new(), Vec::new());
@@ -204,7 +230,7 @@ pub fn collapse(
                             Child::Patch(i) => {
                                 let d = dj[i as usize - r.start];
                                 if i as usize != j && d.is_finite() {
-                                    direct.push((i, d));
+                                    direct.push((i, d, kj[i as usize - r.start]));
                                 }
                             }
                             Child::Node(q) => {
@@ -219,10 +245,15 @@ pub fn collapse(
                                 if de - rho > reach {
                                     continue;
                                 }
-                                let far = rho <= theta * de && de - rho >= near_factor * g.size[j];
-                                let d = dj[rep[q] as usize - r.start];
+                                // On a sheet a link stands for one side only (normals within
+                                // SHEET_CONE of their mean), of its representative's kind.
+                                let far = rho <= theta * de
+                                    && de - rho >= near_factor * g.size[j]
+                                    && (!sheet || tree.cone(q) <= SHEET_CONE);
+                                let lr = rep[q] as usize - r.start;
+                                let d = dj[lr];
                                 if far && d.is_finite() {
-                                    links.push((q as u32, d));
+                                    links.push((q as u32, d, kj[lr]));
                                 } else if !far {
                                     stack.extend_from_slice(&tree.children(q));
                                 }
@@ -232,8 +263,8 @@ pub fn collapse(
                             }
                         }
                     }
-                    for e in (a..b).filter(|&e| inside(e)) {
-                        dj[dist.col[e] as usize - r.start] = f32::INFINITY;
+                    for &(i, _, _) in into {
+                        dj[i as usize] = f32::INFINITY;
                     }
                     direct.sort_unstable_by_key(|e| e.0);
                     links.sort_unstable_by_key(|e| e.0);
@@ -248,8 +279,8 @@ pub fn collapse(
         // in increasing order, so every row stays sorted.
         for (jl, (direct, _)) in cuts.iter().enumerate() {
             let j = (r.start + jl) as u32;
-            for &(i, d) in direct {
-                rows[i as usize].push((j, d, [0.0; MEDIA], KIND_SAME));
+            for &(i, d, kd) in direct {
+                rows[i as usize].push((j, d, [0.0; MEDIA], kd));
             }
         }
         for (jl, (_, links)) in cuts.into_iter().enumerate() {
@@ -257,7 +288,7 @@ pub fn collapse(
             rows[r.start + jl].extend(
                 links
                     .into_iter()
-                    .map(|(q, d)| (n as u32 + q, d, [0.0; MEDIA], KIND_SAME)),
+                    .map(|(q, d, kd)| (n as u32 + q, d, [0.0; MEDIA], kd)),
             );
         }
     }
@@ -276,7 +307,7 @@ pub fn collapse(
                 .collect()
         })
         .collect();
-    let dist = Csr::from_rows(if linked { n + m } else { n }, plain)?;
+    let dist = Csr::from_rows(if linked { n + m } else { n }, plain).map_err(SError::Matrix)?;
     Ok(Collapsed {
         dist,
         material_len,
