@@ -15,7 +15,8 @@
 //!   started, several right-hand sides per pass over F.
 //! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays.
 //! - [`radiosity`] — direct irradiance from the lights (with shadows), the solve
-//!   B = Bₑ + S (E + F B), and patch values to vertex values.
+//!   B = Bₑ + S (E + F B), and patch values to vertex values; [`vertexlight`] — the direct
+//!   term of opaque diffuse surfaces evaluated at the viewer's vertices themselves.
 //! - [`inverse`] — the transfer matrix T = (I − S F)⁻¹ S: computing it (dense LU) and
 //!   applying the stored f16 T.
 //! - [`envmap`], [`envvis`] — environment maps (`.hdr`, built-in skies) binned by
@@ -59,3 +60,4 @@ pub mod solver;
 pub mod sterms;
 pub mod subsurface;
 pub mod transport;
+pub mod vertexlight;

@@ -1,7 +1,8 @@
 //! Relighting one scene on the CPU: request in, per-vertex radiance out.
 //!
 //! [`plan`] checks a request against the scene and this build (cheap, on the async side);
-//! [`run`] does the work (direct light with shadow rays, the diffuse solve, vertex colours)
+//! [`run`] does the work (direct light with shadow rays, the diffuse solve, vertex colours
+//! with direct light at the vertices of opaque surfaces)
 //! and belongs on a blocking thread.
 
 use std::sync::Arc;
@@ -195,7 +196,8 @@ pub fn transfer_stale(scene: &Scene, overrides: &[(usize, Material)]) -> Option<
 }
 
 /// Runs a plan: E from the lights (shadowed), then the transport its components name (see
-/// [`run_batch`]), then B/π per vertex. CPU-heavy: call it off the async runtime.
+/// [`run_batch`]), then B/π per vertex, with the direct term of opaque diffuse surfaces
+/// taken at the vertex itself ([`crate::vertexlight`]). CPU-heavy: call it off the async runtime.
 pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, EngineError> {
     run_batch(scene, std::slice::from_ref(plan))
         .pop()
@@ -211,6 +213,75 @@ struct Prepared {
     direct_ms: f64,
     use_t: bool,
     note: Option<String>,
+    /// Direct light at the opaque diffuse vertices ([`crate::vertexlight`]).
+    vertex: Option<VertexDirect>,
+}
+
+/// E at the vertices whose direct term is taken at the vertex, and what it replaces.
+struct VertexDirect {
+    which: Vec<usize>,
+    /// E (lights other than environments) at the vertices `which`.
+    at_vertex: Vec<Rgb>,
+    /// E of those lights at the patches, where it differs from the plan's E (environment
+    /// lights are in that one and stay per patch).
+    at_patch: Option<Vec<Rgb>>,
+}
+
+/// The direct light of `plan`'s point, spot and directional lights at the vertices of
+/// opaque diffuse surfaces (under the plan's materials); `None` without such lights or
+/// vertices.
+fn vertex_direct(
+    scene: &Scene,
+    geo: PatchGeometry<'_>,
+    plan: &RelightPlan,
+) -> Result<Option<VertexDirect>, EngineError> {
+    let b = &scene.bundle;
+    let lights: Vec<Light> = plan
+        .lights
+        .iter()
+        .filter(|l| !matches!(l, Light::Environment { .. }))
+        .cloned()
+        .collect();
+    if lights.is_empty() {
+        return Ok(None);
+    }
+    let materials: Vec<&Material> = b
+        .manifest()
+        .objects
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            plan.overrides
+                .iter()
+                .find(|(i, _)| *i == k)
+                .map_or(&o.material, |(_, m)| m)
+        })
+        .collect();
+    let samples = scene.vertex_samples();
+    let which = samples.diffuse_vertices(b, &materials);
+    if which.is_empty() {
+        return Ok(None);
+    }
+    let (point, normal) = samples.geometry(&which);
+    let unit_mm = b.manifest().unit_mm;
+    let direct = |geo: PatchGeometry<'_>| {
+        crate::radiosity::direct_irradiance(geo, &scene.occluder, &lights, unit_mm)
+            .map_err(|e| EngineError::unsupported(e.to_string()))
+    };
+    let at_vertex = direct(PatchGeometry {
+        centroid: &point,
+        normal: &normal,
+    })?;
+    let at_patch = if lights.len() == plan.lights.len() {
+        None
+    } else {
+        Some(direct(geo)?)
+    };
+    Ok(Some(VertexDirect {
+        which,
+        at_vertex,
+        at_patch,
+    }))
 }
 
 /// Runs several plans for one scene (the worker pool batches concurrent relights this way);
@@ -250,6 +321,14 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                     continue;
                 }
             };
+        let vertex = match vertex_direct(scene, geo, plan) {
+            Ok(v) => v,
+            Err(e) => {
+                out[idx] = Some(Err(e));
+                prepared.push(None);
+                continue;
+            }
+        };
         let direct_ms = t0.elapsed().as_secs_f64() * 1e3;
         let tm = Instant::now();
         let (materials, rebuilt) = match scene.materials_for(&plan.overrides) {
@@ -299,6 +378,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
             direct_ms,
             use_t,
             note,
+            vertex,
         }));
     }
 
@@ -349,12 +429,26 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                             std::array::from_fn(|c| radiosity[j * 3 * group.len() + 3 * slot + c])
                         })
                         .collect();
-                    let radiance = vertex_radiance(
+                    let mut radiance = vertex_radiance(
                         b.triangle_vertices(),
                         b.patch_areas(),
                         b.vertex_positions().len(),
                         &rad,
                     );
+                    if let Some(v) = &p.vertex {
+                        let albedo = match &p.materials {
+                            Some(m) => m.albedo.as_slice(),
+                            None => b.patch_albedo(),
+                        };
+                        crate::vertexlight::correct(
+                            b,
+                            &v.which,
+                            &v.at_vertex,
+                            v.at_patch.as_deref().unwrap_or(&p.irradiance),
+                            albedo,
+                            &mut radiance,
+                        );
+                    }
                     // Finite inputs can still overflow f32 (an intensity near f32::MAX);
                     // never answer NaN or infinity (JSON has no such numbers).
                     if let Some(k) = radiance

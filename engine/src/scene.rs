@@ -21,6 +21,7 @@ use crate::error::EngineError;
 use crate::raycast::Occluder;
 use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
 use crate::sterms::STerms;
+use crate::vertexlight::VertexSamples;
 
 /// What the scenes of one process share: the backend they relight on and the cache of
 /// environment maps. Cheap to clone. The default is the CPU with a cache of its own.
@@ -61,6 +62,8 @@ pub struct Scene {
     /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
     /// by every later one ([`crate::sterms`]).
     pub(crate) s_terms: OnceLock<STerms>,
+    /// Where direct light is evaluated at the viewer's vertices (made on first use).
+    pub(crate) vertex_samples: OnceLock<VertexSamples>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
     pub(crate) warm: WarmCache,
     pub(crate) resources: Resources,
@@ -191,9 +194,16 @@ impl Scene {
             normals,
             material_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
+            vertex_samples: OnceLock::new(),
             warm: Default::default(),
             resources: resources.clone(),
         }
+    }
+
+    /// Where direct light is evaluated at the viewer's vertices ([`crate::vertexlight`]).
+    pub fn vertex_samples(&self) -> &VertexSamples {
+        self.vertex_samples
+            .get_or_init(|| VertexSamples::new(&self.bundle))
     }
 
     /// What environment lighting reads of it ([`crate::environment`]).

@@ -207,7 +207,7 @@ struct Case<'a> {
     relight_dir: Option<&'a std::path::Path>,
 }
 
-/// Compares a hierarchical S with the pairwise one at ×0.25, ×1, ×4 under random point
+/// Compares a hierarchical S with the pairwise one at ×1 and ×4 under random point
 /// lights around the scene: per-vertex median ≤ 1%, p90 ≤ 3% on the objects.
 fn compare(c: &Case<'_>, seed: u64) {
     let (pair, hier) = (c.pair, c.hier);
@@ -257,7 +257,8 @@ fn compare(c: &Case<'_>, seed: u64) {
     let (centre, size) = ((lo + hi) * 0.5, (hi - lo).length());
     let params = SParams::default();
     let mut rng = Lcg(seed);
-    for scale in [0.25f32, 1.0, 4.0] {
+    // ×0.25 read 0.000% here (its profile is spent before the links begin): not repeated.
+    for scale in [1.0f32, 4.0] {
         let over: Vec<(usize, Material)> = c
             .objects
             .iter()
@@ -353,8 +354,10 @@ fn compare(c: &Case<'_>, seed: u64) {
                 plan.tolerance = 1e-6;
                 let got = relight::run(&scene, &plan).unwrap().radiance;
                 let want = vertices(hier, &s_fast, &lights);
+                // On the objects' vertices: the floor's show direct light at the vertex
+                // (engine::vertexlight), which `vertices` leaves out.
                 let (mut d2, mut w2) = (0.0f64, 0.0f64);
-                for (g, w) in got.iter().zip(&want) {
+                for (g, w) in verts.iter().map(|&k| (got[k], want[k])) {
                     for ch in 0..3 {
                         d2 += ((g[ch] - w[ch]) as f64).powi(2);
                         w2 += (w[ch] as f64).powi(2);

@@ -1,0 +1,172 @@
+//! Direct light at the viewer's vertices.
+//!
+//! In: a bundle's viewer mesh (vertex positions and normals, triangle k = patch k), the
+//! patches' albedo ρ and the direct irradiance E at their centroids, the lights and the
+//! shadow-ray BVH. Out: a correction per vertex that replaces the patch-averaged direct
+//! term of an opaque diffuse surface with the direct term at the vertex itself.
+//!
+//! A vertex's radiance is the area-weighted mean of B/π over the patches around it
+//! ([`crate::radiosity::vertex_radiance`]). On an opaque diffuse patch
+//! B = Bₑ + ρ E + ρ F B, so that mean smears the direct term ρE over a patch: shadow edges
+//! become stair steps and a light's hot spot is flattened. For a vertex whose patches are
+//! all opaque and diffuse, this module swaps the mean of ρE for ρ̄ E(v), with E(v) the
+//! shadowed irradiance at the vertex with its own (smooth) normal:
+//!
+//! ```text
+//!     L(v) = mean(B/π) + (ρ̄ E(v) − mean(ρ E)) / π
+//! ```
+//!
+//! The indirect part ρ F B stays interpolated (it varies slowly), and so does everything
+//! on translucent objects and sheets, whose S already smooths the direct light over a
+//! mean free path (an exact E at a vertex would be the wrong answer there). Environment
+//! lights stay per patch too: their visibility is stored per patch only.
+
+use glam::Vec3;
+use translux_proto::bundle::Bundle;
+use translux_proto::scene::Material;
+
+use crate::linalg::Rgb;
+
+/// Where direct light is evaluated for each viewer vertex.
+#[derive(Debug)]
+pub struct VertexSamples {
+    /// The vertex moved 1% of the way toward the area-weighted centroid of its triangles:
+    /// on the surface it belongs to, off the edges it shares with walls and other objects
+    /// (a room's corner vertex lies on the next wall too).
+    pub point: Vec<Vec3>,
+    /// The viewer's vertex normal (unit), or its triangles' area-weighted normal where the
+    /// mesh has none.
+    pub normal: Vec<Vec3>,
+    /// Total area of the vertex's patches (0 for a vertex no patch uses).
+    pub area: Vec<f32>,
+}
+
+impl VertexSamples {
+    pub fn new(b: &Bundle) -> VertexSamples {
+        let pos = b.vertex_positions();
+        let normals = b.vertex_normals();
+        let v = pos.len();
+        let mut centre = vec![Vec3::ZERO; v];
+        let mut face_n = vec![Vec3::ZERO; v];
+        let mut area = vec![0.0f32; v];
+        for t in b.triangle_vertices() {
+            let [a, bb, c] = t.map(|k| Vec3::from(pos[k as usize]));
+            let cross = (bb - a).cross(c - a);
+            let w = 0.5 * cross.length();
+            let centroid = (a + bb + c) / 3.0;
+            for &k in t {
+                let k = k as usize;
+                centre[k] += w * centroid;
+                face_n[k] += cross;
+                area[k] += w;
+            }
+        }
+        let point = (0..v)
+            .map(|k| {
+                let p = Vec3::from(pos[k]);
+                if area[k] > 0.0 {
+                    p + 0.01 * (centre[k] / area[k] - p)
+                } else {
+                    p
+                }
+            })
+            .collect();
+        let normal = (0..v)
+            .map(|k| {
+                let n = normals.get(k).map(|&n| Vec3::from(n)).unwrap_or(Vec3::ZERO);
+                if n.length_squared() > 0.0 && n.is_finite() {
+                    n.normalize()
+                } else {
+                    face_n[k].normalize_or_zero()
+                }
+            })
+            .collect();
+        VertexSamples {
+            point,
+            normal,
+            area,
+        }
+    }
+
+    /// The vertices whose patches are all opaque diffuse under `materials` (one per object
+    /// of the manifest, the request's overrides applied).
+    pub fn diffuse_vertices(&self, b: &Bundle, materials: &[&Material]) -> Vec<usize> {
+        let m = b.manifest();
+        let n = b.triangle_vertices().len();
+        let mut diffuse = vec![false; n];
+        for (o, mat) in m.objects.iter().zip(materials) {
+            if matches!(mat, Material::Diffuse { .. }) {
+                let (first, count) = (o.first_patch as usize, o.patch_count as usize);
+                for d in &mut diffuse[first.min(n)..(first + count).min(n)] {
+                    *d = true;
+                }
+            }
+        }
+        let mut ok = vec![true; self.point.len()];
+        for (t, &d) in b.triangle_vertices().iter().zip(&diffuse) {
+            if !d {
+                for &k in t {
+                    ok[k as usize] = false;
+                }
+            }
+        }
+        (0..self.point.len())
+            .filter(|&k| ok[k] && self.area[k] > 0.0)
+            .collect()
+    }
+
+    /// The sample points and normals of the vertices `which`, for
+    /// [`crate::radiosity::direct_irradiance`].
+    pub fn geometry(&self, which: &[usize]) -> (Vec<Vec3>, Vec<Vec3>) {
+        (
+            which.iter().map(|&k| self.point[k]).collect(),
+            which.iter().map(|&k| self.normal[k]).collect(),
+        )
+    }
+}
+
+/// Adds to `radiance` (per vertex, W·m⁻²·sr⁻¹) at the vertices `which` the difference
+/// between their own direct term ρ̄ E(v) / π and the patch mean of ρ E / π it holds.
+/// `vertex_e[i]` is E at vertex `which[i]`; `patch_e` and `albedo` are per patch.
+pub fn correct(
+    b: &Bundle,
+    which: &[usize],
+    vertex_e: &[Rgb],
+    patch_e: &[Rgb],
+    albedo: &[Rgb],
+    radiance: &mut [Rgb],
+) {
+    let v = radiance.len();
+    // Per vertex: Σ a ρ E, Σ a ρ, Σ a over its patches.
+    let mut rho_e = vec![[0.0f64; 3]; v];
+    let mut rho = vec![[0.0f64; 3]; v];
+    let mut area = vec![0.0f64; v];
+    for ((t, &a), (e, r)) in b
+        .triangle_vertices()
+        .iter()
+        .zip(b.patch_areas())
+        .zip(patch_e.iter().zip(albedo))
+    {
+        for &k in t {
+            let k = k as usize;
+            for c in 0..3 {
+                rho_e[k][c] += a as f64 * r[c] as f64 * e[c] as f64;
+                rho[k][c] += a as f64 * r[c] as f64;
+            }
+            area[k] += a as f64;
+        }
+    }
+    let inv_pi = 1.0 / std::f64::consts::PI;
+    for (&k, ev) in which.iter().zip(vertex_e) {
+        if area[k] <= 0.0 {
+            continue;
+        }
+        for c in 0..3 {
+            let own = rho[k][c] / area[k] * ev[c] as f64;
+            let mean = rho_e[k][c] / area[k];
+            // The mean of B/π holds mean(ρE)/π exactly, so the sum stays ≥ 0 up to
+            // rounding; clamp that rounding.
+            radiance[k][c] = (radiance[k][c] as f64 + (own - mean) * inv_pi).max(0.0) as f32;
+        }
+    }
+}
