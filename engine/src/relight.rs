@@ -442,10 +442,14 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                         };
                         crate::vertexlight::correct(
                             b,
+                            scene.vertex_samples(),
                             &v.which,
                             &v.at_vertex,
-                            v.at_patch.as_deref().unwrap_or(&p.irradiance),
-                            albedo,
+                            crate::vertexlight::PatchTerms {
+                                radiosity: &rad,
+                                irradiance: v.at_patch.as_deref().unwrap_or(&p.irradiance),
+                                albedo,
+                            },
                             &mut radiance,
                         );
                     }

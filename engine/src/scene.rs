@@ -203,7 +203,7 @@ impl Scene {
     /// Where direct light is evaluated at the viewer's vertices ([`crate::vertexlight`]).
     pub fn vertex_samples(&self) -> &VertexSamples {
         self.vertex_samples
-            .get_or_init(|| VertexSamples::new(&self.bundle))
+            .get_or_init(|| VertexSamples::new(&self.bundle, &self.occluder))
     }
 
     /// What environment lighting reads of it ([`crate::environment`]).

@@ -16,6 +16,10 @@
 //!     L(v) = mean(B/π) + (ρ̄ E(v) − mean(ρ E)) / π
 //! ```
 //!
+//! Patches pressed against another object (the floor under a block) are left out of both
+//! means and of where the vertex is sampled, where the vertex has other patches: a vertex
+//! on the block's outline shows the floor outside it, not half the dark floor beneath.
+//!
 //! The indirect part ρ F B stays interpolated (it varies slowly), and so does everything
 //! on translucent objects and sheets, whose S already smooths the direct light over a
 //! mean free path (an exact E at a vertex would be the wrong answer there). Environment
@@ -26,6 +30,8 @@ use translux_proto::bundle::Bundle;
 use translux_proto::scene::Material;
 
 use crate::linalg::Rgb;
+use crate::raycast::Occluder;
+use rayon::prelude::*;
 
 /// Where direct light is evaluated for each viewer vertex.
 #[derive(Debug)]
@@ -39,17 +45,47 @@ pub struct VertexSamples {
     pub normal: Vec<Vec3>,
     /// Total area of the vertex's patches (0 for a vertex no patch uses).
     pub area: Vec<f32>,
+    /// Per patch: whether it counts in its vertices' means ([`Occluder::buried`] at its
+    /// centroid is false, or all of some vertex's patches are buried).
+    pub counts: Vec<bool>,
 }
 
 impl VertexSamples {
-    pub fn new(b: &Bundle) -> VertexSamples {
+    /// The samples of `b`'s vertices; `occ` (the scene's shadow-ray BVH) finds the patches
+    /// pressed against other objects.
+    pub fn new(b: &Bundle, occ: &Occluder) -> VertexSamples {
         let pos = b.vertex_positions();
         let normals = b.vertex_normals();
+        let tris = b.triangle_vertices();
         let v = pos.len();
+        let step = occ.contact_step();
+        let buried: Vec<bool> = b
+            .patch_corners()
+            .par_iter()
+            .zip(b.patch_normals().par_iter())
+            .map(|(c, &n)| {
+                let centroid = (Vec3::from(c[0]) + Vec3::from(c[1]) + Vec3::from(c[2])) / 3.0;
+                occ.buried(centroid, Vec3::from(n), step, u32::MAX)
+            })
+            .collect();
+        // A vertex all of whose patches are buried keeps them all.
+        let mut free = vec![false; v];
+        for (t, &d) in tris.iter().zip(&buried) {
+            if !d {
+                for &k in t {
+                    free[k as usize] = true;
+                }
+            }
+        }
+        let counts: Vec<bool> = tris
+            .iter()
+            .zip(&buried)
+            .map(|(t, &d)| !d || t.iter().all(|&k| !free[k as usize]))
+            .collect();
         let mut centre = vec![Vec3::ZERO; v];
         let mut face_n = vec![Vec3::ZERO; v];
         let mut area = vec![0.0f32; v];
-        for t in b.triangle_vertices() {
+        for (t, _) in tris.iter().zip(&counts).filter(|(_, c)| **c) {
             let [a, bb, c] = t.map(|k| Vec3::from(pos[k as usize]));
             let cross = (bb - a).cross(c - a);
             let w = 0.5 * cross.length();
@@ -85,6 +121,7 @@ impl VertexSamples {
             point,
             normal,
             area,
+            counts,
         }
     }
 
@@ -125,48 +162,59 @@ impl VertexSamples {
     }
 }
 
-/// Adds to `radiance` (per vertex, W·m⁻²·sr⁻¹) at the vertices `which` the difference
-/// between their own direct term ρ̄ E(v) / π and the patch mean of ρ E / π it holds.
-/// `vertex_e[i]` is E at vertex `which[i]`; `patch_e` and `albedo` are per patch.
+/// A relight's answer per patch: the radiosity B, the direct irradiance E of the lights
+/// taken at the vertices, and the albedo ρ it was solved with.
+#[derive(Debug, Clone, Copy)]
+pub struct PatchTerms<'a> {
+    pub radiosity: &'a [Rgb],
+    pub irradiance: &'a [Rgb],
+    pub albedo: &'a [Rgb],
+}
+
+/// Sets `radiance` (per vertex, W·m⁻²·sr⁻¹) at the vertices `which` to
+/// mean(B − ρE)/π + ρ̄ E(v)/π over the patches that count ([`VertexSamples::counts`]).
+/// `vertex_e[i]` is E at vertex `which[i]`.
 pub fn correct(
     b: &Bundle,
+    samples: &VertexSamples,
     which: &[usize],
     vertex_e: &[Rgb],
-    patch_e: &[Rgb],
-    albedo: &[Rgb],
+    patches: PatchTerms<'_>,
     radiance: &mut [Rgb],
 ) {
     let v = radiance.len();
-    // Per vertex: Σ a ρ E, Σ a ρ, Σ a over its patches.
-    let mut rho_e = vec![[0.0f64; 3]; v];
+    // Per vertex: Σ a (B − ρ E), Σ a ρ, Σ a over its patches that count.
+    let mut rest = vec![[0.0f64; 3]; v];
     let mut rho = vec![[0.0f64; 3]; v];
     let mut area = vec![0.0f64; v];
-    for ((t, &a), (e, r)) in b
-        .triangle_vertices()
-        .iter()
-        .zip(b.patch_areas())
-        .zip(patch_e.iter().zip(albedo))
-    {
-        for &k in t {
-            let k = k as usize;
+    for (k, t) in b.triangle_vertices().iter().enumerate() {
+        if !samples.counts[k] {
+            continue;
+        }
+        let a = b.patch_areas()[k] as f64;
+        let (bb, e, r) = (
+            patches.radiosity[k],
+            patches.irradiance[k],
+            patches.albedo[k],
+        );
+        for &q in t {
+            let q = q as usize;
             for c in 0..3 {
-                rho_e[k][c] += a as f64 * r[c] as f64 * e[c] as f64;
-                rho[k][c] += a as f64 * r[c] as f64;
+                rest[q][c] += a * (bb[c] as f64 - r[c] as f64 * e[c] as f64);
+                rho[q][c] += a * r[c] as f64;
             }
-            area[k] += a as f64;
+            area[q] += a;
         }
     }
     let inv_pi = 1.0 / std::f64::consts::PI;
-    for (&k, ev) in which.iter().zip(vertex_e) {
-        if area[k] <= 0.0 {
+    for (&q, ev) in which.iter().zip(vertex_e) {
+        if area[q] <= 0.0 {
             continue;
         }
         for c in 0..3 {
-            let own = rho[k][c] / area[k] * ev[c] as f64;
-            let mean = rho_e[k][c] / area[k];
-            // The mean of B/π holds mean(ρE)/π exactly, so the sum stays ≥ 0 up to
-            // rounding; clamp that rounding.
-            radiance[k][c] = (radiance[k][c] as f64 + (own - mean) * inv_pi).max(0.0) as f32;
+            let value = (rest[q][c] + rho[q][c] * ev[c] as f64) / area[q] * inv_pi;
+            // B ≥ ρE on every patch, so only rounding can make it negative.
+            radiance[q][c] = value.max(0.0) as f32;
         }
     }
 }

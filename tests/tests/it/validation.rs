@@ -194,6 +194,9 @@ fn closed_room_against_mitsuba(
             "{what}: median error {:.2}% > 3%",
             100.0 * e.median
         );
+        // The tail: shadow edges and hot spots at the vertices take the direct light at
+        // the vertex (engine::vertexlight; the patch mean gave 10.4% in the Cornell box).
+        assert!(e.p90 < 0.07, "{what}: p90 error {:.2}% > 7%", 100.0 * e.p90);
         // Energy: inter-reflection neither gained nor lost overall.
         assert!(
             (e.total_ratio - 1.0).abs() < 0.03,
