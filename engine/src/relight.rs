@@ -228,8 +228,8 @@ struct VertexDirect {
 }
 
 /// The direct light of `plan`'s point, spot and directional lights at the vertices of
-/// opaque diffuse surfaces (under the plan's materials); `None` without such lights or
-/// vertices.
+/// opaque surfaces (under the plan's materials and components); `None` without such
+/// lights or vertices.
 fn vertex_direct(
     scene: &Scene,
     geo: PatchGeometry<'_>,
@@ -258,7 +258,8 @@ fn vertex_direct(
         })
         .collect();
     let samples = scene.vertex_samples();
-    let which = samples.diffuse_vertices(b, &materials);
+    let opaque = crate::vertexlight::opaque_objects(&materials, plan.components);
+    let which = samples.opaque_vertices(b, &opaque);
     if which.is_empty() {
         return Ok(None);
     }

@@ -22,10 +22,12 @@
 //!
 //! The indirect part ρ F B stays interpolated (it varies slowly), and so does everything
 //! on translucent objects and sheets, whose S already smooths the direct light over a
-//! mean free path (an exact E at a vertex would be the wrong answer there). Environment
+//! mean free path (an exact E at a vertex would be the wrong answer there), except in
+//! the components that take them as opaque at ρ̄ (`direct`, `interreflection_only`). Environment
 //! lights stay per patch too: their visibility is stored per patch only.
 
 use glam::Vec3;
+use translux_proto::api::Components;
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::Material;
 
@@ -125,22 +127,22 @@ impl VertexSamples {
         }
     }
 
-    /// The vertices whose patches are all opaque diffuse under `materials` (one per object
-    /// of the manifest, the request's overrides applied).
-    pub fn diffuse_vertices(&self, b: &Bundle, materials: &[&Material]) -> Vec<usize> {
+    /// The vertices whose patches all belong to objects with `opaque[k]` set (one flag
+    /// per object of the manifest; see [`opaque_objects`]).
+    pub fn opaque_vertices(&self, b: &Bundle, opaque: &[bool]) -> Vec<usize> {
         let m = b.manifest();
         let n = b.triangle_vertices().len();
-        let mut diffuse = vec![false; n];
-        for (o, mat) in m.objects.iter().zip(materials) {
-            if matches!(mat, Material::Diffuse { .. }) {
+        let mut flat = vec![false; n];
+        for (o, &op) in m.objects.iter().zip(opaque) {
+            if op {
                 let (first, count) = (o.first_patch as usize, o.patch_count as usize);
-                for d in &mut diffuse[first.min(n)..(first + count).min(n)] {
+                for d in &mut flat[first.min(n)..(first + count).min(n)] {
                     *d = true;
                 }
             }
         }
         let mut ok = vec![true; self.point.len()];
-        for (t, &d) in b.triangle_vertices().iter().zip(&diffuse) {
+        for (t, &d) in b.triangle_vertices().iter().zip(&flat) {
             if !d {
                 for &k in t {
                     ok[k as usize] = false;
@@ -160,6 +162,21 @@ impl VertexSamples {
             which.iter().map(|&k| self.normal[k]).collect(),
         )
     }
+}
+
+/// Which objects reflect the direct light as an opaque surface, B = … + ρ̄E, under
+/// `materials` (one per object, the request's overrides applied) and `components`: diffuse
+/// objects always; every object in the `direct` and `interreflection_only` components,
+/// which take translucent objects as opaque at ρ̄ (emitters have ρ̄ = 0 and are unchanged).
+pub fn opaque_objects(materials: &[&Material], components: Components) -> Vec<bool> {
+    let all = matches!(
+        components,
+        Components::Direct | Components::InterreflectionOnly
+    );
+    materials
+        .iter()
+        .map(|m| all || matches!(m, Material::Diffuse { .. }))
+        .collect()
 }
 
 /// A relight's answer per patch: the radiosity B, the direct irradiance E of the lights
@@ -217,4 +234,33 @@ pub fn correct(
             radiance[q][c] = value.max(0.0) as f32;
         }
     }
+}
+
+/// The whole step on its own: for the point, spot and directional `lights`, sets the
+/// vertices of opaque surfaces (`opaque`, one flag per object: [`opaque_objects`]) in
+/// `radiance` (the patch means of B/π) to their own direct term plus the interpolated rest.
+/// `patches.irradiance` must be E of those lights alone. What [`crate::relight`] does,
+/// for callers that solve through the library.
+pub fn apply(
+    b: &Bundle,
+    occ: &Occluder,
+    lights: &[translux_proto::light::Light],
+    opaque: &[bool],
+    patches: PatchTerms<'_>,
+    radiance: &mut [Rgb],
+) -> Result<(), crate::radiosity::LightError> {
+    let samples = VertexSamples::new(b, occ);
+    let which = samples.opaque_vertices(b, opaque);
+    let (point, normal) = samples.geometry(&which);
+    let at_vertex = crate::radiosity::direct_irradiance(
+        crate::radiosity::PatchGeometry {
+            centroid: &point,
+            normal: &normal,
+        },
+        occ,
+        lights,
+        b.manifest().unit_mm,
+    )?;
+    correct(b, &samples, &which, &at_vertex, patches, radiance);
+    Ok(())
 }

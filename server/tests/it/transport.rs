@@ -368,12 +368,28 @@ fn the_server_solve_equals_the_library_solve() {
         None,
     )
     .unwrap();
-    let want = translux_engine::radiosity::vertex_radiance(
+    let mut want = translux_engine::radiosity::vertex_radiance(
         b.triangle_vertices(),
         b.patch_areas(),
         b.vertex_positions().len(),
         &x,
     );
+    // The direct light of the diffuse walls at their vertices, as the relight takes it.
+    let lighting = radiosity::BundleLighting::new(b);
+    let materials: Vec<_> = b.manifest().objects.iter().map(|o| &o.material).collect();
+    translux_engine::vertexlight::apply(
+        b,
+        &lighting.occluder,
+        &b.manifest().lights,
+        &translux_engine::vertexlight::opaque_objects(&materials, Components::Full),
+        translux_engine::vertexlight::PatchTerms {
+            radiosity: &x,
+            irradiance: &e,
+            albedo: b.patch_albedo(),
+        },
+        &mut want,
+    )
+    .unwrap();
     let got = relight::run(&scene, &plan(&scene, "{}")).unwrap();
     eprintln!("{st:?} / {:?}", got.stats);
     assert_eq!(got.stats.iterations, st.iterations);

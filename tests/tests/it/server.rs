@@ -15,7 +15,9 @@ use translux_engine::radiosity::{
 };
 use translux_engine::raycast::Occluder;
 use translux_precompute::scene::load_scene;
-use translux_proto::api::{ErrorBody, Health, Mesh, RelightResponse, SceneDetail, SceneList};
+use translux_proto::api::{
+    Components, ErrorBody, Health, Mesh, RelightResponse, SceneDetail, SceneList,
+};
 use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 use translux_server::{AppState, load_bundles};
@@ -173,12 +175,57 @@ fn offline(bundle: &Bundle, lights: &[Light], interreflection: bool) -> Vec<Rgb>
             .collect()
     };
     let vertex_count = bundle.vertex_positions().len();
-    vertex_radiance(
+    let mut radiance = vertex_radiance(
         bundle.triangle_vertices(),
         bundle.patch_areas(),
         vertex_count,
         &b,
+    );
+    let components = if interreflection {
+        Components::Full
+    } else {
+        Components::Direct
+    };
+    at_vertices(bundle, lights, components, &b, &e, &mut radiance);
+    radiance
+}
+
+/// The direct light of opaque diffuse surfaces taken at their vertices, as the relight
+/// does for `components` (engine::vertexlight, tested against closed forms in
+/// `vertices`), under the bundle's materials; `e` is the lights' E per patch (no
+/// environment lights here).
+fn at_vertices(
+    bundle: &Bundle,
+    lights: &[Light],
+    components: Components,
+    b: &[Rgb],
+    e: &[Rgb],
+    radiance: &mut [Rgb],
+) {
+    let tris: Vec<[Vec3; 3]> = bundle
+        .occluder_triangles()
+        .iter()
+        .map(|t| t.map(Vec3::from))
+        .collect();
+    let materials: Vec<_> = bundle
+        .manifest()
+        .objects
+        .iter()
+        .map(|o| &o.material)
+        .collect();
+    translux_engine::vertexlight::apply(
+        bundle,
+        &Occluder::new(&tris),
+        lights,
+        &translux_engine::vertexlight::opaque_objects(&materials, components),
+        translux_engine::vertexlight::PatchTerms {
+            radiosity: b,
+            irradiance: e,
+            albedo: bundle.patch_albedo(),
+        },
+        radiance,
     )
+    .unwrap();
 }
 
 fn assert_close(got: &[f32], want: &[Rgb], rel: f32) {
@@ -462,11 +509,20 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
     )
     .unwrap();
     assert!(stats.converged);
-    let want = vertex_radiance(
+    let mut want = vertex_radiance(
         bundle.triangle_vertices(),
         bundle.patch_areas(),
         bundle.vertex_positions().len(),
         &b,
+    );
+    // The override keeps the block translucent: the diffuse vertices are the bundle's.
+    at_vertices(
+        &bundle,
+        &bundle.manifest().lights,
+        Components::Full,
+        &b,
+        &e,
+        &mut want,
     );
     assert_close(&first.radiance, &want, 1e-5);
 
