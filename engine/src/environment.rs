@@ -205,6 +205,33 @@ pub fn check(scene: &EnvScene<'_>, lights: &[Light], given: bool) -> Result<(), 
     Ok(())
 }
 
+/// The environment lights of `lights` with their maps loaded (from the cache after
+/// [`check`]), in order: what the specular pass reflects ([`crate::specular::EnvLight`]).
+pub fn lights_with_maps(
+    scene: &EnvScene<'_>,
+    lights: &[Light],
+) -> Result<Vec<crate::specular::EnvLight>, EngineError> {
+    let mut out = Vec::new();
+    for (i, l) in lights.iter().enumerate() {
+        let Light::Environment {
+            map,
+            scale,
+            rotation_deg,
+        } = l
+        else {
+            continue;
+        };
+        let at = format!("lights[{i}].map");
+        let key = resolve(scene, map, &at)?;
+        out.push(crate::specular::EnvLight {
+            map: load(scene.cache, &key, map, &at)?,
+            scale: *scale,
+            rotation_deg: *rotation_deg,
+        });
+    }
+    Ok(out)
+}
+
 /// E for every patch from all of `lights`: point, spot and directional lights with shadow
 /// rays, environment lights from the bundle's visibility (W·m⁻²).
 pub fn direct_irradiance(

@@ -57,6 +57,7 @@ pub mod scene;
 pub mod sheet;
 pub mod smatrix;
 pub mod solver;
+pub mod specular;
 pub mod sterms;
 pub mod subsurface;
 pub mod transport;

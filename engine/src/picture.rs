@@ -24,10 +24,11 @@ use std::time::Instant;
 
 use crate::export::{ExportError, ExportMesh, MeshPart, to_glb, to_ply};
 use crate::render::{
-    RenderError, RenderParams, auto_exposure, check_camera, encode_exr, encode_png, render,
-    render_linear,
+    RenderError, RenderParams, Surface, auto_exposure, check_camera, encode_exr, encode_png,
+    render_linear_with, render_with,
 };
-use translux_proto::api::{Exposure, RelightStats, RenderRequest, ToneMap};
+use crate::specular::{Highlights, Lighting};
+use translux_proto::api::{Components, Exposure, RelightStats, RenderRequest, ToneMap};
 use translux_proto::light::Camera;
 
 use crate::error::EngineError;
@@ -46,6 +47,39 @@ pub struct RenderPlan {
     pub exposure: Exposure,
     /// The file to make; [`plan`] picks PNG, a caller that negotiated EXR sets it.
     pub format: PictureFormat,
+    /// Add the specular pass ([`crate::specular`]) where the components include it
+    /// ([`with_highlights`]).
+    pub specular: bool,
+}
+
+/// Whether a picture of `components` gets the specular pass: yes for the ones that show
+/// the direct light as it leaves the surface (`full`, `direct`, and the paper's heuristics),
+/// no for `subsurface_only` and `interreflection_only`, which isolate one transport path.
+pub fn with_highlights(components: Components) -> bool {
+    !matches!(
+        components,
+        Components::SubsurfaceOnly | Components::InterreflectionOnly
+    )
+}
+
+/// The specular pass of `plan` for `scene`, or `None` when it adds nothing (no glossy object,
+/// no light, switched off, or components without it).
+fn highlights<'a>(
+    scene: &'a Scene,
+    plan: &RenderPlan,
+) -> Result<Option<Highlights<'a>>, EngineError> {
+    let r = &plan.relight;
+    if !plan.specular || !with_highlights(r.components) || r.gloss.iter().all(Option::is_none) {
+        return Ok(None);
+    }
+    let env = crate::environment::lights_with_maps(&scene.env(), &r.lights)?;
+    let manifest = scene.bundle.manifest();
+    let lighting = Lighting::new(&r.lights, env, &scene.occluder, manifest.unit_mm);
+    let objects = manifest.objects.iter().zip(&r.gloss).map(|(o, g)| {
+        let start = o.first_patch as u32;
+        (start..start + o.patch_count as u32, *g)
+    });
+    Ok(Highlights::new(lighting, objects))
 }
 
 /// The picture file formats of a render.
@@ -115,6 +149,7 @@ pub fn plan(scene: &Scene, req: RenderRequest) -> Result<RenderPlan, EngineError
         params,
         exposure: req.exposure,
         format: PictureFormat::Png,
+        specular: req.specular,
     })
 }
 
@@ -161,22 +196,29 @@ pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, EngineError
         exposure,
         ..plan.params
     };
+    let shine = highlights(scene, plan)?;
+    let surface = shine.as_ref().map(|h| Surface {
+        normals: b.vertex_normals(),
+        shade: h,
+    });
     let args = (
         b.vertex_positions(),
         b.triangle_vertices(),
         &relit.radiance[..],
         &plan.camera,
         &params,
+        surface.as_ref(),
     );
     let (bytes, t2) = match plan.format {
         PictureFormat::Png => {
-            let img = render(args.0, args.1, args.2, args.3, args.4).map_err(render_error)?;
+            let img = render_with(args.0, args.1, args.2, args.3, args.4, args.5)
+                .map_err(render_error)?;
             let t2 = Instant::now();
             (encode_png(&img).map_err(render_error)?, t2)
         }
         PictureFormat::Exr => {
-            let img =
-                render_linear(args.0, args.1, args.2, args.3, args.4).map_err(render_error)?;
+            let img = render_linear_with(args.0, args.1, args.2, args.3, args.4, args.5)
+                .map_err(render_error)?;
             let t2 = Instant::now();
             (encode_exr(&img).map_err(render_error)?, t2)
         }

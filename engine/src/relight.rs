@@ -19,6 +19,7 @@ use translux_proto::scene::Material;
 use crate::error::EngineError;
 use crate::scene::Scene;
 use crate::smatrix::OverrideMaterials;
+use crate::specular::Gloss;
 
 /// Most lights one request may carry (each costs a shadow ray per patch).
 pub const MAX_LIGHTS: usize = 256;
@@ -29,8 +30,13 @@ pub struct RelightPlan {
     pub lights: Vec<Light>,
     pub components: Components,
     pub solver: Solver,
-    /// Objects whose material the request replaces (index into the manifest's objects).
+    /// Objects whose material the request replaces (index into the manifest's objects),
+    /// as the transport sees them: without `specular`, and without the objects whose
+    /// override changes only `specular` (S and the albedo do not depend on it).
     pub overrides: Vec<(usize, Material)>,
+    /// Each object's glossy coat after the request's overrides (one per manifest object),
+    /// for the specular pass of renders ([`crate::specular`]).
+    pub gloss: Vec<Option<Gloss>>,
     /// Relative residual the iterative solver stops at ([`solve_params`]'s 0.5% from
     /// [`plan`]; tests tighten it). Plans batch together only with equal tolerances.
     pub tolerance: f32,
@@ -62,6 +68,11 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
     // Material overrides: checked here, applied in `run` by rebuilding S from the bundle's
     // stored optical distances (no geometry work).
     let mut overrides = Vec::new();
+    let mut gloss: Vec<Option<Gloss>> = manifest
+        .objects
+        .iter()
+        .map(|o| Gloss::of(&o.material))
+        .collect();
     for (name, material) in &req.materials {
         let Some(k) = manifest.objects.iter().position(|o| &o.name == name) else {
             let names: Vec<&str> = manifest.objects.iter().map(|o| o.name.as_str()).collect();
@@ -101,8 +112,11 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
         }
         // A heterogeneous object's stored per-medium lengths serve new profiles for its
         // media, not another layout of media.
-        if let Material::Heterogeneous { materials, pattern } = material {
-            let same = matches!(built, Material::Heterogeneous { materials: bm, pattern: bp }
+        if let Material::Heterogeneous {
+            materials, pattern, ..
+        } = material
+        {
+            let same = matches!(built, Material::Heterogeneous { materials: bm, pattern: bp, .. }
                 if bm.len() == materials.len() && bp == pattern);
             if !same {
                 return Err(EngineError::unsupported(format!(
@@ -125,7 +139,12 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
                 material.kind()
             )));
         }
-        overrides.push((k, material.clone()));
+        gloss[k] = Gloss::of(material);
+        // A change of `specular` alone leaves the transport as it is: no S rebuild.
+        let transport = material.without_specular();
+        if material == built || transport != built.without_specular() {
+            overrides.push((k, transport));
+        }
     }
 
     // The transfer matrix holds (I − S F)⁻¹ S for the bundle's own S: it serves `full`
@@ -160,6 +179,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
         components: req.components,
         solver: req.solver,
         overrides,
+        gloss,
         tolerance: solve_params().tolerance,
     })
 }

@@ -184,11 +184,13 @@ fn frame(camera: &Camera, aspect: f32) -> Result<ViewFrame, RenderError> {
     })
 }
 
-/// A vertex in view space with its radiance.
+/// A vertex in view space with its radiance and its barycentric coordinates in the source
+/// triangle (a corner is a unit vector; a clipped vertex interpolates them).
 #[derive(Debug, Clone, Copy, Default)]
 struct ClipVertex {
     p: Vec3,
     c: [f32; 3],
+    b: [f32; 3],
 }
 
 /// A convex polygon of at most 3 + 5 vertices (each clip plane adds at most one).
@@ -219,6 +221,7 @@ impl Poly {
                 out.push(ClipVertex {
                     p: a.p + (b.p - a.p) * t,
                     c: std::array::from_fn(|i| a.c[i] + (b.c[i] - a.c[i]) * t),
+                    b: std::array::from_fn(|i| a.b[i] + (b.b[i] - a.b[i]) * t),
                 });
             }
         }
@@ -235,13 +238,15 @@ impl Poly {
     }
 }
 
-/// A projected vertex: pixel coordinates, w = 1/z, and radiance / z.
+/// A projected vertex: pixel coordinates, w = 1/z, radiance / z and source-triangle
+/// barycentrics / z.
 #[derive(Debug, Clone, Copy)]
 struct ScreenVertex {
     x: f64,
     y: f64,
     w: f32,
     c_w: [f32; 3],
+    b_w: [f32; 3],
 }
 
 /// A screen triangle, counter-clockwise in pixel coordinates (positive edge-function area),
@@ -249,6 +254,8 @@ struct ScreenVertex {
 #[derive(Debug, Clone, Copy)]
 struct ScreenTri {
     v: [ScreenVertex; 3],
+    /// The index of the mesh triangle it was cut from.
+    source: u32,
     /// 1 / (e_0 + e_1 + e_2).
     inv_area: f64,
     x_min: f64,
@@ -269,6 +276,48 @@ pub fn render(
     camera: &Camera,
     params: &RenderParams,
 ) -> Result<RgbImage, RenderError> {
+    render_with(positions, triangles, vertex_radiance, camera, params, None)
+}
+
+/// Radiance a [`Surface`] adds at a pixel, on top of the interpolated vertex radiance: the
+/// specular pass ([`crate::specular`]).
+pub trait PixelShade: Sync {
+    /// Whether mesh triangle `triangle` gets anything (a cheap test made before the rest).
+    fn shades(&self, triangle: u32) -> bool;
+    /// The radiance (W·m⁻²·sr⁻¹) added at world point `p` of mesh triangle `triangle`, with
+    /// the interpolated unit normal `n`, seen along the unit direction `to_eye`; `pixel` is
+    /// the pixel's row-major index (a seed for sampled terms).
+    fn shade(&self, triangle: u32, p: Vec3, n: Vec3, to_eye: Vec3, pixel: u32) -> [f32; 3];
+}
+
+/// What per-pixel shading reads of the mesh: its vertex normals (one per position; they
+/// need not be unit length) and the shader.
+#[derive(Clone, Copy)]
+pub struct Surface<'a> {
+    pub normals: &'a [[f32; 3]],
+    pub shade: &'a dyn PixelShade,
+}
+
+impl std::fmt::Debug for Surface<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Surface")
+            .field("normals", &self.normals.len())
+            .finish_non_exhaustive()
+    }
+}
+
+/// [`render`] with per-pixel shading: at each pixel whose triangle the shader takes, the
+/// world position and the normal are interpolated perspective-correctly from the mesh
+/// triangle's corners (barycentrics carried through clipping), and the shader's radiance is
+/// added to the interpolated vertex radiance before exposure.
+pub fn render_with(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+    camera: &Camera,
+    params: &RenderParams,
+    surface: Option<&Surface<'_>>,
+) -> Result<RgbImage, RenderError> {
     let scale = exposure_scale(params.exposure);
     let background = params.background.map(|v| to_u8(srgb_oetf(v)));
     let pixels = rasterize(
@@ -277,6 +326,7 @@ pub fn render(
         vertex_radiance,
         camera,
         params,
+        surface,
         |c| match c {
             Some(c) => display_rgb8(c, scale, params.tone),
             None => background,
@@ -297,6 +347,18 @@ pub fn render_linear(
     camera: &Camera,
     params: &RenderParams,
 ) -> Result<Rgb32FImage, RenderError> {
+    render_linear_with(positions, triangles, vertex_radiance, camera, params, None)
+}
+
+/// [`render_linear`] with per-pixel shading, as [`render_with`].
+pub fn render_linear_with(
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    vertex_radiance: &[[f32; 3]],
+    camera: &Camera,
+    params: &RenderParams,
+    surface: Option<&Surface<'_>>,
+) -> Result<Rgb32FImage, RenderError> {
     let scale = exposure_scale(params.exposure);
     let pixels = rasterize(
         positions,
@@ -304,6 +366,7 @@ pub fn render_linear(
         vertex_radiance,
         camera,
         params,
+        surface,
         |c| match c {
             Some(c) => c.map(|v| v * scale),
             None => params.background,
@@ -321,20 +384,41 @@ fn rasterize<T: Copy + Default + Send>(
     vertex_radiance: &[[f32; 3]],
     camera: &Camera,
     params: &RenderParams,
+    surface: Option<&Surface<'_>>,
     pixel: impl Fn(Option<[f32; 3]>) -> [T; 3] + Sync,
 ) -> Result<Vec<T>, RenderError> {
     params.validate()?;
     let (width, height) = (params.width, params.height);
     let view = frame(camera, width as f32 / height as f32)?;
     check_mesh(positions, triangles, vertex_radiance)?;
+    if let Some(s) = surface
+        && s.normals.len() != positions.len()
+    {
+        return Err(RenderError::Mesh(format!(
+            "normals has {} entries for {} vertices",
+            s.normals.len(),
+            positions.len()
+        )));
+    }
 
     // 1–4: view space, culling, clipping, projection; in parallel, in triangle order.
+    const CHUNK: usize = 4096;
     let tris: Vec<ScreenTri> = triangles
-        .par_chunks(4096)
-        .map(|chunk| {
+        .par_chunks(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
             let mut out = Vec::with_capacity(chunk.len());
-            for t in chunk {
-                setup_triangle(t, positions, vertex_radiance, &view, params, &mut out);
+            for (j, t) in chunk.iter().enumerate() {
+                let source = (c * CHUNK + j) as u32;
+                setup_triangle(
+                    source,
+                    t,
+                    positions,
+                    vertex_radiance,
+                    &view,
+                    params,
+                    &mut out,
+                );
             }
             out
         })
@@ -368,13 +452,31 @@ fn rasterize<T: Copy + Default + Send>(
             let n = (width * rows) as usize;
             let mut depth = vec![0.0f32; n];
             let mut colour = vec![[0.0f32; 3]; n];
+            // The nearest screen triangle per pixel, for the shading pass.
+            let mut nearest = vec![u32::MAX; if surface.is_some() { n } else { 0 }];
             for &k in bin {
+                let hit = surface.is_some().then_some((k, &mut nearest[..]));
                 raster(
                     &tris[k as usize],
                     width,
                     row0,
                     rows,
                     &mut depth,
+                    &mut colour,
+                    hit,
+                );
+            }
+            if let Some(s) = surface {
+                shade_band(
+                    s,
+                    &tris,
+                    positions,
+                    triangles,
+                    &view,
+                    width,
+                    row0,
+                    &nearest,
+                    &depth,
                     &mut colour,
                 );
             }
@@ -431,6 +533,7 @@ fn check_mesh(
 
 /// Transforms, culls, clips and projects one triangle, appending 0 to 7 screen triangles.
 fn setup_triangle(
+    source: u32,
     t: &[u32; 3],
     positions: &[[f32; 3]],
     radiance: &[[f32; 3]],
@@ -438,18 +541,22 @@ fn setup_triangle(
     params: &RenderParams,
     out: &mut Vec<ScreenTri>,
 ) {
-    let to_view = |i: u32| {
+    let to_view = |k: usize| {
+        let i = t[k];
         let d = Vec3::from(positions[i as usize]) - view.eye;
+        let mut b = [0.0; 3];
+        b[k] = 1.0;
         ClipVertex {
             p: Vec3::new(d.dot(view.right), d.dot(view.up), d.dot(view.forward)),
             c: radiance[i as usize],
+            b,
         }
     };
     // Facing, in world space (the view frame (r, u, f) is left-handed, which would flip a
     // cross product taken in view coordinates): n · (eye − a) > 0.
     let [a, b, c] = t.map(|i| Vec3::from(positions[i as usize]));
     let facing = (b - a).cross(c - a).dot(view.eye - a);
-    let v = t.map(to_view);
+    let v: [ClipVertex; 3] = std::array::from_fn(to_view);
     // NaN (an overflow in view space) compares false both ways: not drawn.
     let draw = facing > 0.0 || (!params.cull_backfaces && facing < 0.0);
     if !draw {
@@ -484,6 +591,7 @@ fn setup_triangle(
             y: (1.0 - c.p.y as f64 * inv_z as f64 / view.ty as f64) * 0.5 * h,
             w: inv_z,
             c_w: c.c.map(|x| x * inv_z),
+            b_w: c.b.map(|x| x * inv_z),
         }
     };
     let s0 = project(&poly.v[0]);
@@ -496,6 +604,7 @@ fn setup_triangle(
         }
         let t = ScreenTri {
             v: [s0, s1, s2],
+            source,
             inv_area: 1.0 / area,
             x_min: s0.x.min(s1.x).min(s2.x),
             x_max: s0.x.max(s1.x).max(s2.x),
@@ -534,6 +643,7 @@ fn raster(
     rows: u32,
     depth: &mut [f32],
     colour: &mut [[f32; 3]],
+    mut hit: Option<(u32, &mut [u32])>,
 ) {
     let Some((x0, x1)) = pixel_span(t.x_min, t.x_max, width) else {
         return;
@@ -572,7 +682,68 @@ fn raster(
                 colour[i] = std::array::from_fn(|ch| {
                     (l[0] * a.c_w[ch] + l[1] * b.c_w[ch] + l[2] * c.c_w[ch]) / w
                 });
+                if let Some((k, nearest)) = hit.as_mut() {
+                    nearest[i] = *k;
+                }
             }
+        }
+    }
+}
+
+/// Adds the surface's shading to each covered pixel of a band whose nearest triangle it
+/// takes. The pixel centre's barycentrics in the screen triangle (λ) give those in the mesh
+/// triangle perspective-correctly, B = (Σ λ_k b_k / z_k) / (Σ λ_k / z_k), and from them the
+/// world position and the normal.
+#[allow(clippy::too_many_arguments)]
+fn shade_band(
+    surface: &Surface<'_>,
+    tris: &[ScreenTri],
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+    view: &ViewFrame,
+    width: u32,
+    row0: u32,
+    nearest: &[u32],
+    depth: &[f32],
+    colour: &mut [[f32; 3]],
+) {
+    for (i, &k) in nearest.iter().enumerate() {
+        if k == u32::MAX || depth[i] <= 0.0 {
+            continue;
+        }
+        let t = &tris[k as usize];
+        if !surface.shade.shades(t.source) {
+            continue;
+        }
+        let (x, y) = (
+            (i as u32 % width) as f64 + 0.5,
+            (row0 + i as u32 / width) as f64 + 0.5,
+        );
+        let [a, b, c] = &t.v;
+        let l = [
+            (edge(b, c, x, y) * t.inv_area) as f32,
+            (edge(c, a, x, y) * t.inv_area) as f32,
+            (edge(a, b, x, y) * t.inv_area) as f32,
+        ];
+        let w = depth[i];
+        let bary: [f32; 3] =
+            std::array::from_fn(|m| (l[0] * a.b_w[m] + l[1] * b.b_w[m] + l[2] * c.b_w[m]) / w);
+        let corners = triangles[t.source as usize];
+        let mut p = Vec3::ZERO;
+        let mut n = Vec3::ZERO;
+        for m in 0..3 {
+            p += Vec3::from(positions[corners[m] as usize]) * bary[m];
+            n += Vec3::from(surface.normals[corners[m] as usize]) * bary[m];
+        }
+        let to_eye = (view.eye - p).normalize_or_zero();
+        let n = n.normalize_or_zero();
+        if n == Vec3::ZERO || to_eye == Vec3::ZERO {
+            continue;
+        }
+        let pixel = row0 * width + i as u32;
+        let add = surface.shade.shade(t.source, p, n, to_eye, pixel);
+        for ch in 0..3 {
+            colour[i][ch] += add[ch];
         }
     }
 }

@@ -115,7 +115,7 @@ pub fn stored_radius(
     params: &SParams,
 ) -> Result<Option<f32>, SError> {
     let profiles: &[Profile] = match o.material {
-        Material::Translucent { profile } => std::slice::from_ref(profile),
+        Material::Translucent { profile, .. } => std::slice::from_ref(profile),
         Material::Heterogeneous { materials, .. } => materials,
         _ => return Ok(None),
     };
@@ -168,7 +168,7 @@ pub fn assemble_scene(
             continue;
         }
         match o.material {
-            Material::Diffuse { albedo } => {
+            Material::Diffuse { albedo, .. } => {
                 for j in r {
                     rows[j] = vec![(j as u32, *albedo)];
                 }
@@ -298,7 +298,7 @@ pub fn assemble_scene(
                 });
                 place(&mut rows, r.start, s.rows, Vec::new());
             }
-            Material::Translucent { profile } => {
+            Material::Translucent { profile, .. } => {
                 let t = Instant::now();
                 let reach = stored_radius.get(k).copied().unwrap_or(0.0);
                 let (tab, capped_from) =
@@ -458,13 +458,16 @@ pub fn bundle_materials(
     // must have been built heterogeneous with the same pattern and number of media (only the
     // media's profiles may change).
     for (k, mat) in overrides {
-        let Material::Heterogeneous { materials, pattern } = mat else {
+        let Material::Heterogeneous {
+            materials, pattern, ..
+        } = mat
+        else {
             continue;
         };
         let Some(built) = m.objects.get(*k) else {
             continue;
         };
-        let same = matches!(&built.material, Material::Heterogeneous { materials: bm, pattern: bp }
+        let same = matches!(&built.material, Material::Heterogeneous { materials: bm, pattern: bp, .. }
             if bm.len() == materials.len() && bp == pattern);
         if !same {
             return Err(SError::Media {
@@ -540,10 +543,10 @@ pub fn bundle_geometry(bundle: &Bundle) -> PatchGeometry {
 /// ρ a patch of this material carries in the diffuse solve, and its emitted exitance.
 pub fn material_albedo_emission(m: &Material) -> ([f32; 3], [f32; 3]) {
     match m {
-        Material::Diffuse { albedo } => (*albedo, [0.0; 3]),
+        Material::Diffuse { albedo, .. } => (*albedo, [0.0; 3]),
         // Until S is in the bundle a translucent object is opaque with its profile's total
         // diffuse reflectance (the "inter-reflection only" view of it), capped below 1.
-        Material::Translucent { profile } => (
+        Material::Translucent { profile, .. } => (
             crate::profile::total_reflectance(profile).map(|r| r.clamp(0.0, 0.999)),
             [0.0; 3],
         ),

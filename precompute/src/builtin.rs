@@ -54,7 +54,10 @@ fn object(
 }
 
 fn diffuse(albedo: [f32; 3]) -> Material {
-    Material::Diffuse { albedo }
+    Material::Diffuse {
+        albedo,
+        specular: None,
+    }
 }
 
 fn dipole_preset(name: &str) -> Material {
@@ -66,6 +69,7 @@ fn dipole_preset(name: &str) -> Material {
             eta: None,
             scale: None,
         },
+        specular: None,
     }
 }
 
@@ -78,6 +82,7 @@ fn dipole(sigma_a: [f32; 3], sigma_s_prime: [f32; 3]) -> Material {
             eta: Some(1.3),
             scale: None,
         },
+        specular: None,
     }
 }
 
@@ -199,6 +204,7 @@ fn cornell_checker() -> SceneFile {
                 cell: CHECKER_CELL,
                 origin: [0.5 * CHECKER_CELL, 0.0, 0.5 * CHECKER_CELL],
             },
+            specular: None,
         };
     }
     s
@@ -325,6 +331,7 @@ fn flower() -> SceneFile {
             ],
         },
         thickness_mm: PETAL_THICKNESS * DEFAULT_UNIT_MM as f32,
+        specular: None,
     };
     let tilt_deg = 25.0f32;
     for k in 0..PETALS {
@@ -523,7 +530,7 @@ mod tests {
         }
         assert!((area - 6.0 * 0.555f64.powi(2)).abs() < 1e-4, "{area}");
         let albedo = |name: &str| match object(&s, name).material {
-            Material::Diffuse { albedo } => albedo,
+            Material::Diffuse { albedo, .. } => albedo,
             ref m => panic!("{name}: {m:?}"),
         };
         assert_eq!(albedo("left_wall"), [0.63, 0.065, 0.05]);
@@ -531,7 +538,7 @@ mod tests {
         assert_eq!(albedo("short_box"), [0.75, 0.65, 0.15]);
         assert!(matches!(
             &object(&s, "tall_block").material,
-            Material::Translucent { profile: Profile::Dipole { preset: Some(p), .. } } if p == "marble"
+            Material::Translucent { profile: Profile::Dipole { preset: Some(p), .. }, .. } if p == "marble"
         ));
     }
 
@@ -599,6 +606,7 @@ mod tests {
                     Profile::Dipole {
                         sigma_a: Some(sa), ..
                     },
+                ..
             } = &object(&s, name).material
             else {
                 panic!("{name}")
@@ -621,6 +629,7 @@ mod tests {
                 reflectance: Profile::Exponentials { terms: r },
                 transmittance: Profile::Exponentials { terms: t },
                 thickness_mm,
+                ..
             } = &p.material
             else {
                 panic!("{}: {:?}", p.name, p.material)

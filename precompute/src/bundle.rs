@@ -395,6 +395,7 @@ mod tests {
                 name: "fan".into(),
                 material: Material::Diffuse {
                     albedo: [0.7, 0.6, 0.5],
+                    specular: None,
                 },
                 first_patch: 0,
                 patch_count: N,

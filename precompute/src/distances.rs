@@ -160,6 +160,7 @@ pub fn scene_distances(
             reflectance,
             transmittance,
             thickness_mm,
+            ..
         } = o.material
         {
             // Geodesics along the sheet, each with its side kind.

@@ -215,6 +215,7 @@ pub fn medium_field<'a>(
         Material::Heterogeneous {
             materials,
             pattern: Pattern::Checkerboard { cell, origin },
+            ..
         } => Some(MediumField::Checker(Checker {
             frame,
             cell: f64::from(*cell),
@@ -244,6 +245,7 @@ pub fn patch_media(
         Material::Heterogeneous {
             materials,
             pattern: Pattern::Checkerboard { cell, origin },
+            ..
         } => {
             let c = Checker {
                 frame,
@@ -481,6 +483,7 @@ mod tests {
                     cell: checker.cell as f32,
                     origin: checker.origin.as_vec3().to_array(),
                 },
+                specular: None,
             };
             let media = patch_media(&mat, checker.frame, &g.centroid, &g.normal, None);
             Slab {

@@ -1081,6 +1081,7 @@ mod tests {
             reflectance,
             transmittance: exp_profile([1e-9; 3], 1.0),
             thickness_mm,
+            specular: None,
         };
         let (_, reports) =
             smatrix::rebuild_from_bundle(&b, &[(k, dark)], &SParams::default()).unwrap();

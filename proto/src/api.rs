@@ -310,6 +310,10 @@ pub struct RenderRequest {
     /// through its near wall.
     #[serde(default = "yes")]
     pub cull_backfaces: bool,
+    /// Add the specular pass (glossy highlights of the lights on materials with a
+    /// `specular` coat) where the components show direct light leaving the surface.
+    #[serde(default = "yes")]
+    pub specular: bool,
 }
 
 fn default_width() -> u32 {
@@ -336,6 +340,7 @@ impl Default for RenderRequest {
             tone: ToneMap::default(),
             background: [0.0; 3],
             cull_backfaces: true,
+            specular: true,
         }
     }
 }

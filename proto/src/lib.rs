@@ -197,7 +197,10 @@ mod tests {
             s.validate().unwrap_err().to_string(),
             "objects[0].material.albedo[1] must be finite and in [0, 1]"
         );
-        s.objects[0].material = Material::Diffuse { albedo: [0.5; 3] };
+        s.objects[0].material = Material::Diffuse {
+            albedo: [0.5; 3],
+            specular: None,
+        };
         s.lights[0] = crate::light::Light::Point {
             position: [0.0; 3],
             intensity: [1.0, f32::NAN, 1.0],

@@ -251,9 +251,17 @@ tagged_enum! {
     #[derive(Debug, Clone, PartialEq)]
     pub enum Material {
     /// Opaque Lambertian: S_ii = albedo.
-    Diffuse { albedo: [f32; 3] },
+    Diffuse {
+        albedo: [f32; 3],
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        specular: Option<Specular>,
+    },
     /// Subsurface scattering through the object, described by a 1-D profile.
-    Translucent { profile: Profile },
+    Translucent {
+        profile: Profile,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        specular: Option<Specular>,
+    },
     /// A thin two-sided sheet (a petal, a leaf, paper) of constant thickness, after the
     /// paper's rose: light entering one face leaves the same face by `reflectance` and the
     /// other face by `transmittance`, both over the geodesic distance along the sheet (R, T
@@ -263,6 +271,8 @@ tagged_enum! {
         reflectance: Profile,
         transmittance: Profile,
         thickness_mm: f32,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        specular: Option<Specular>,
     },
     /// A Lambertian emitter of constant radiance (W·m⁻²·sr⁻¹); it reflects nothing.
     Emitter { radiance: [f32; 3] },
@@ -270,8 +280,49 @@ tagged_enum! {
     /// laid out by `pattern`. A path of length r = Σ_k r_k, r_k travelled in medium k,
     /// scatters by the paper's eq. 9 generalised to K media,
     /// `S = (Σ_k S_k(0) r_k / r) · Π_k S_k(r_k) / S_k(0)`, S_k the profile of medium k.
-    Heterogeneous { materials: Vec<Profile>, pattern: Pattern },
+    Heterogeneous {
+        materials: Vec<Profile>,
+        pattern: Pattern,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        specular: Option<Specular>,
+    },
 }
+}
+
+/// A glossy reflection on top of a material's diffuse or subsurface answer: the paper's
+/// "one bounce of specularities added in a separate pass". A Fresnel-weighted GGX
+/// microfacet lobe (Walter et al. 2007) of the lights, evaluated per pixel by the renderer
+/// and the viewer; it does not enter the radiosity transport (B is unchanged).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Specular {
+    /// Perceptual roughness in [[`MIN_ROUGHNESS`], 1] (Blender's and glTF's convention):
+    /// the GGX width is α = roughness².
+    pub roughness: f32,
+    /// Relative index of refraction for the Fresnel term, in [1, 3]. Absent: the medium's
+    /// η where the material has one (a dipole's `eta`, 1.3 for the presets), else 1.5.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta: Option<f32>,
+}
+
+/// The smallest [`Specular::roughness`]: α = 1e-4, a highlight of a point light still a
+/// few pixels wide, and GGX's peak 1/(πα²) far inside f32.
+pub const MIN_ROUGHNESS: f32 = 0.01;
+
+impl Specular {
+    /// Checks ranges; `at` is the field path of this specular (`objects[0].material.specular`).
+    pub fn validate(&self, at: &str) -> Result<(), FieldError> {
+        check_range(
+            &format!("{at}.roughness"),
+            self.roughness,
+            MIN_ROUGHNESS,
+            1.0,
+        )?;
+        if let Some(e) = self.eta {
+            check_range(&format!("{at}.eta"), e, 1.0, 3.0)?;
+        }
+        Ok(())
+    }
 }
 
 /// Most media a [`Material::Heterogeneous`] object may combine (the bundle stores four
@@ -308,6 +359,31 @@ impl Material {
             Material::Emitter { .. } => "emitter",
             Material::Heterogeneous { .. } => "heterogeneous",
         }
+    }
+
+    /// The material's glossy coat, if it has one.
+    pub fn specular(&self) -> Option<&Specular> {
+        match self {
+            Material::Diffuse { specular, .. }
+            | Material::Translucent { specular, .. }
+            | Material::ThinSheet { specular, .. }
+            | Material::Heterogeneous { specular, .. } => specular.as_ref(),
+            Material::Emitter { .. } => None,
+        }
+    }
+
+    /// The same material without its glossy coat: what the radiosity transport sees (S and
+    /// the albedo do not depend on `specular`).
+    pub fn without_specular(&self) -> Material {
+        let mut m = self.clone();
+        match &mut m {
+            Material::Diffuse { specular, .. }
+            | Material::Translucent { specular, .. }
+            | Material::ThinSheet { specular, .. }
+            | Material::Heterogeneous { specular, .. } => *specular = None,
+            Material::Emitter { .. } => {}
+        }
+        m
     }
 }
 
@@ -543,8 +619,11 @@ impl Shape {
 impl Material {
     /// Checks ranges; `at` is the field path of this material.
     pub fn validate(&self, at: &str) -> Result<(), FieldError> {
+        if let Some(s) = self.specular() {
+            s.validate(&format!("{at}.specular"))?;
+        }
         match self {
-            Material::Diffuse { albedo } => {
+            Material::Diffuse { albedo, .. } => {
                 check_vec_range(&format!("{at}.albedo"), albedo, 0.0, 1.0)
             }
             Material::Emitter { radiance } => check_vec_range(
@@ -553,11 +632,12 @@ impl Material {
                 0.0,
                 crate::light::MAX_POWER,
             ),
-            Material::Translucent { profile } => profile.validate(&format!("{at}.profile")),
+            Material::Translucent { profile, .. } => profile.validate(&format!("{at}.profile")),
             Material::ThinSheet {
                 reflectance,
                 transmittance,
                 thickness_mm,
+                ..
             } => {
                 reflectance.validate(&format!("{at}.reflectance"))?;
                 transmittance.validate(&format!("{at}.transmittance"))?;
@@ -568,7 +648,9 @@ impl Material {
                 }
                 Ok(())
             }
-            Material::Heterogeneous { materials, pattern } => {
+            Material::Heterogeneous {
+                materials, pattern, ..
+            } => {
                 let k = materials.len();
                 if !(2..=MAX_HETEROGENEOUS_MATERIALS).contains(&k) {
                     return Err(FieldError::new(
@@ -779,7 +861,10 @@ mod tests {
             ),
         )
         .unwrap();
-        let Material::Heterogeneous { materials, pattern } = &s.objects[0].material else {
+        let Material::Heterogeneous {
+            materials, pattern, ..
+        } = &s.objects[0].material
+        else {
             panic!("{:?}", s.objects[0].material)
         };
         assert_eq!(materials.len(), 2);
@@ -936,6 +1021,7 @@ mod thin_sheet_tests {
             reflectance: Profile::Exponentials { .. },
             transmittance: Profile::Exponentials { terms },
             thickness_mm,
+            ..
         } = m
         else {
             panic!("{m:?}")

@@ -320,12 +320,14 @@ fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScen
     // The bunny's feet on the floor where the short box stood.
     let diffuse = Material::Diffuse {
         albedo: [0.75, 0.75, 0.75],
+        specular: None,
     };
     file.objects[short] = translux_tests::scans::bunny(0.09, 0.07, 200.0, diffuse);
     for o in &mut file.objects {
         if matches!(o.material, Material::Translucent { .. }) {
             o.material = Material::Diffuse {
                 albedo: [0.8, 0.8, 0.8],
+                specular: None,
             };
         }
     }

@@ -214,6 +214,7 @@ fn obj(name: &str, file: &str, translate: [f32; 3], rotate: [f32; 3], scale: f32
                 eta: None,
                 scale: None,
             },
+            specular: None,
         },
         crease_deg: Some(60.0),
         simplify_to: None,
@@ -340,6 +341,7 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                     transform: None,
                     material: Material::Diffuse {
                         albedo: [0.25, 0.55, 0.2],
+                        specular: None,
                     },
                     crease_deg: None,
                     simplify_to: None,
@@ -488,21 +490,27 @@ fn translucency(scene: &Scene, s: f32) -> serde_json::Map<String, Value> {
     let mut m = serde_json::Map::new();
     for o in &scene.bundle.manifest().objects {
         let changed = match &o.material {
-            Material::Translucent { profile } => Some(Material::Translucent {
+            Material::Translucent { profile, .. } => Some(Material::Translucent {
                 profile: scaled(profile, s),
+                specular: None,
             }),
             Material::ThinSheet {
                 reflectance,
                 transmittance,
                 thickness_mm,
+                ..
             } => Some(Material::ThinSheet {
                 reflectance: scaled(reflectance, s),
                 transmittance: scaled(transmittance, s),
                 thickness_mm: *thickness_mm,
+                specular: None,
             }),
-            Material::Heterogeneous { materials, pattern } => Some(Material::Heterogeneous {
+            Material::Heterogeneous {
+                materials, pattern, ..
+            } => Some(Material::Heterogeneous {
                 materials: materials.iter().map(|p| scaled(p, s)).collect(),
                 pattern: pattern.clone(),
+                specular: None,
             }),
             _ => None,
         };

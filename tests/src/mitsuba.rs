@@ -123,7 +123,7 @@ pub fn objects_with(b: &Bundle, overrides: &[(String, Value)]) -> Vec<Value> {
             let over = overrides.iter().find(|(n, _)| *n == o.name).map(|(_, m)| m.clone());
             let material = match (&o.material, over) {
                 (_, Some(m)) => m,
-                (Material::Diffuse { albedo }, None) => {
+                (Material::Diffuse { albedo, .. }, None) => {
                     json!({"type": "diffuse", "albedo": albedo})
                 }
                 (Material::Emitter { radiance }, None) => {

@@ -75,6 +75,7 @@ const app = {
     exposure: 0,
     tone: "filmic",
     cull: true,
+    specular: true,
   },
   matUi: {},
   hashProblems: [],
@@ -274,7 +275,8 @@ async function loadScene(id, fromHash) {
   s.env = hash.env || (env ? { on: true, map: env.map, rotation_deg: env.rotation_deg ?? 0, scale: env.scale ?? 1 }
     : { on: false, map: "builtin:sky", rotation_deg: 0, scale: 1 });
   s.materials = hash.materials || {};
-  for (const k of ["components", "exposure", "tone", "cull"]) if (hash[k] !== undefined) s[k] = hash[k];
+  for (const k of ["components", "exposure", "tone", "cull", "specular"]) if (hash[k] !== undefined) s[k] = hash[k];
+  updateGloss();
   app.autoExposure = hash.exposure === undefined;
   app.selected = 0;
   $("scene").value = id;
@@ -509,21 +511,56 @@ function materialOverride(name) {
   const o = app.detail.objects.find((x) => x.name === name);
   const u = app.matUi[name];
   const scaled = (p) => (p.type === "dipole" ? { ...p, scale: +((p.scale ?? 1) * u.scale).toPrecision(4) } : p);
+  // The scene's specular coat stays with the new medium.
+  const coat = (m) => (o.material.specular ? { ...m, specular: o.material.specular } : m);
   if (o.material.type === "translucent") {
     const base = u.choice === "scene" ? o.material.profile : { type: "dipole", preset: u.choice };
     if (u.choice === "scene" && u.scale === 1) return null;
-    return { type: "translucent", profile: scaled(base) };
+    return coat({ type: "translucent", profile: scaled(base) });
   }
   const media = o.material.materials.map((p, k) => (u.media[k] === "scene" ? p : { type: "dipole", preset: u.media[k] }));
   if (u.media.every((m) => m === "scene") && u.scale === 1) return null;
-  return { type: "heterogeneous", materials: media.map(scaled), pattern: o.material.pattern };
+  return coat({ type: "heterogeneous", materials: media.map(scaled), pattern: o.material.pattern });
 }
 
 function applyMaterial(name, t) {
   const m = materialOverride(name);
   if (m) app.state.materials[name] = m;
   else delete app.state.materials[name];
+  updateGloss();
   changed(t);
+}
+
+// Jensen et al. 2001's presets all have eta 1.3, the dipole's default too
+// (engine/src/profile.rs); with neither, a coat's eta is 1.5 (engine/src/specular.rs).
+const DIPOLE_ETA = 1.3;
+const DEFAULT_COAT_ETA = 1.5;
+
+/** A material's specular coat as [alpha, eta], or null: the rule of `Gloss::of`. */
+function glossOf(m) {
+  const spec = m && m.specular;
+  if (!spec) return null;
+  const profile = m.type === "translucent" ? m.profile
+    : m.type === "thin_sheet" ? m.reflectance
+      : m.type === "heterogeneous" ? m.materials[0] : null;
+  const mediumEta = profile && profile.type === "dipole" ? (profile.eta ?? DIPOLE_ETA) : null;
+  return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_COAT_ETA];
+}
+
+/** Each vertex's coat from its object's material (the override where there is one). */
+function updateGloss() {
+  if (!app.detail || !app.mesh) return;
+  const gloss = new Float32Array((app.mesh.positions.length / 3) * 2);
+  const idx = app.mesh.indices;
+  for (const part of app.mesh.objects) {
+    const o = app.detail.objects.find((x) => x.name === part.name);
+    const g = o && glossOf(app.state.materials[o.name] || o.material);
+    if (!g) continue;
+    const end = 3 * (part.first_triangle + part.triangle_count);
+    for (let i = 3 * part.first_triangle; i < end; i++) gloss.set(g, 2 * idx[i]);
+  }
+  app.renderer.setGloss(gloss);
+  app.needDraw = true;
 }
 
 /** The UI state of an object from its override in the URL (or none). */
@@ -628,6 +665,12 @@ function buildDisplay() {
     app.needDraw = true;
     scheduleHash();
   });
+  const spec = el("input", { type: "checkbox", id: "specular", checked: s.specular });
+  spec.addEventListener("change", () => {
+    s.specular = spec.checked;
+    app.needDraw = true;
+    scheduleHash();
+  });
   const giz = el("input", { type: "checkbox", id: "gizmo", checked: app.gizmo });
   giz.addEventListener("change", () => {
     app.gizmo = giz.checked;
@@ -639,6 +682,7 @@ function buildDisplay() {
     app.exposureRow,
     tone,
     el("label", { class: "row" }, el("span", { class: "lab" }, "Near walls"), cull, "hide back faces (see inside)"),
+    el("label", { class: "row" }, el("span", { class: "lab" }, "Highlights"), spec, "specular pass (glossy materials)"),
     el("label", { class: "row" }, el("span", { class: "lab" }, "Gizmo"), giz, "show light handles"),
   );
 }
@@ -847,7 +891,15 @@ function draw(withGizmo = app.gizmo) {
     cullBackfaces: app.state.cull,
     background: [0.031, 0.035, 0.043],
     gizmo: withGizmo && app.detail ? gizmoGeometry() : null,
+    highlights: highlightsOn() ? { lights: app.state.lights, unitMm: app.detail.unit_mm } : null,
   });
+}
+
+/** The specular pass is drawn as the server's render route draws it (`with_highlights`):
+ * on, for components that show direct light leaving the surface. */
+function highlightsOn() {
+  const c = app.state.components;
+  return !!(app.detail && app.state.specular && c !== "subsurface_only" && c !== "interreflection_only");
 }
 
 function frame() {

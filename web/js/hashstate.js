@@ -1,6 +1,6 @@
 // The view state in the URL hash, so a view can be bookmarked and shared:
 //   #scene=cornell&comp=full&ev=-1&tone=filmic&cam=px,py,pz,tx,ty,tz,fov
-//    &lights=[...]&mat={...}&env=builtin:sky,rotation,scale&cull=0
+//    &lights=[...]&mat={...}&env=builtin:sky,rotation,scale&cull=0&spec=0
 // `lights` and `mat` are the API's JSON (RelightRequest.lights and .materials); absent fields
 // mean the scene's defaults. Bad values are reported, never silently dropped.
 
@@ -24,6 +24,7 @@ export function encodeHash(s) {
   if (Object.keys(s.materials).length) p.set("mat", JSON.stringify(s.materials));
   if (s.env.on) p.set("env", [s.env.map, num(s.env.rotation_deg), num(s.env.scale)].join(","));
   if (!s.cull) p.set("cull", "0");
+  if (s.specular === false) p.set("spec", "0");
   return "#" + p.toString();
 }
 
@@ -74,6 +75,7 @@ export function decodeHash(hash) {
     out.env = { on: true, map: map || "builtin:sky", rotation_deg: parseFloat(rot) || 0, scale: sc === undefined ? 1 : parseFloat(sc) };
   }
   if (p.has("cull")) out.cull = p.get("cull") !== "0";
+  if (p.has("spec")) out.specular = p.get("spec") !== "0";
   return { state: out, problems };
 }
 

@@ -9,27 +9,102 @@ const MESH_VS = `#version 300 es
 layout(location = 0) in vec3 aPos;
 layout(location = 1) in vec3 aNormal;
 layout(location = 2) in vec3 aRadiance;
+layout(location = 3) in vec2 aGloss;
 uniform mat4 uViewProj;
 out vec3 vRadiance;
 out vec3 vNormal;
 out vec3 vPos;
+out vec2 vGloss;
 void main() {
   vRadiance = aRadiance;
+  vGloss = aGloss;
   vNormal = aNormal;
   vPos = aPos;
   gl_Position = uViewProj * vec4(aPos, 1.0);
 }`;
 
+/** Most lights the viewer's specular pass reads (the first ones of the request). */
+export const MAX_SPECULAR_LIGHTS = 16;
+
 const MESH_FS = `#version 300 es
 precision highp float;
+#define MAX_LIGHTS ${MAX_SPECULAR_LIGHTS}
 in vec3 vRadiance;
 in vec3 vNormal;
 in vec3 vPos;
+in vec2 vGloss;            // GGX alpha (0: matte) and eta of the surface's specular coat
 uniform float uExposure;   // 2^EV
 uniform int uTone;         // 0: clamp (sRGB), 1: ACES filmic (Narkowicz 2016)
 uniform int uLit;          // 0: no radiance yet, shade the geometry so it can be seen
 uniform vec3 uEye;
+// The specular pass (engine/src/specular.rs, the same model): point, spot and directional
+// lights, not shadowed here.
+uniform int uLightCount;
+uniform vec4 uLightPos[MAX_LIGHTS];     // xyz position and w = 1, or toward the light and w = 0
+uniform vec3 uLightPower[MAX_LIGHTS];   // intensity (W/sr) or irradiance (W/m^2)
+uniform vec4 uSpotAxis[MAX_LIGHTS];     // xyz axis, w = 1 for a spot
+uniform vec2 uSpotCos[MAX_LIGHTS];      // cos of the inner and outer half-angles
+uniform float uToM;                     // metres per scene unit
 out vec4 outColour;
+
+const float PI = 3.14159265358979;
+float ggxD(float a, float c) {
+  if (c <= 0.0) return 0.0;
+  float a2 = a * a;
+  float k = c * c * (a2 - 1.0) + 1.0;
+  return a2 / (PI * k * k);
+}
+float lambda(float a, float c) {
+  float c2 = clamp(c * c, 1e-12, 1.0);
+  return 0.5 * (-1.0 + sqrt(1.0 + a * a * (1.0 - c2) / c2));
+}
+float fresnel(float ci, float eta) {
+  ci = clamp(ci, 0.0, 1.0);
+  float s2 = (1.0 - ci * ci) / (eta * eta);
+  if (s2 >= 1.0) return 1.0;
+  float ct = sqrt(1.0 - s2);
+  float rs = (ci - eta * ct) / (ci + eta * ct);
+  float rp = (eta * ci - ct) / (eta * ci + ct);
+  return 0.5 * (rs * rs + rp * rp);
+}
+float brdf(float a, float eta, vec3 n, vec3 l, vec3 v) {
+  float nl = dot(n, l), nv = dot(n, v);
+  if (nl <= 0.0 || nv <= 0.0) return 0.0;
+  vec3 h = normalize(l + v);
+  float g2 = 1.0 / (1.0 + lambda(a, nl) + lambda(a, nv));
+  return fresnel(dot(v, h), eta) * ggxD(a, dot(n, h)) * g2 / (4.0 * nl * nv);
+}
+float spotFalloff(float c, vec2 cosIO) {
+  if (c >= cosIO.x) return 1.0;
+  if (c <= cosIO.y) return 0.0;
+  float t = (c - cosIO.y) / (cosIO.x - cosIO.y);
+  return t * t * (3.0 - 2.0 * t);
+}
+vec3 highlight(vec3 n, vec3 v) {
+  vec3 sum = vec3(0.0);
+  for (int i = 0; i < MAX_LIGHTS; i++) {
+    if (i >= uLightCount) break;
+    vec4 lp = uLightPos[i];
+    vec3 l;
+    float e;
+    if (lp.w > 0.5) {
+      vec3 d = lp.xyz - vPos;
+      float r = length(d);
+      if (r <= 0.0) continue;
+      l = d / r;
+      float rm = r * uToM;
+      e = 1.0 / (rm * rm);
+      if (uSpotAxis[i].w > 0.5) e *= spotFalloff(dot(uSpotAxis[i].xyz, -l), uSpotCos[i]);
+    } else {
+      l = lp.xyz;
+      e = 1.0;
+    }
+    float nl = dot(n, l);
+    if (nl <= 0.0 || e <= 0.0) continue;
+    sum += brdf(vGloss.x, vGloss.y, n, l, v) * nl * e * uLightPower[i];
+  }
+  return sum;
+}
 
 float srgbOetf(float v) {
   v = clamp(v, 0.0, 1.0);
@@ -42,7 +117,13 @@ vec3 aces(vec3 x) {
 void main() {
   vec3 c;
   if (uLit == 1) {
-    vec3 x = max(vRadiance, vec3(0.0)) * uExposure;
+    vec3 lin = max(vRadiance, vec3(0.0));
+    if (vGloss.x > 0.0 && uLightCount > 0) {
+      vec3 n = normalize(vNormal);
+      vec3 v = normalize(uEye - vPos);
+      if (dot(n, v) > 0.0) lin += highlight(n, v);
+    }
+    vec3 x = lin * uExposure;
     c = uTone == 1 ? aces(x) : min(x, vec3(1.0));
   } else {
     vec3 n = normalize(vNormal);
@@ -144,25 +225,27 @@ export class Renderer {
     }
     const vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
-    const buf = (data, loc) => {
+    const buf = (data, loc, size = 3) => {
       const b = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, b);
-      gl.bufferData(gl.ARRAY_BUFFER, data, loc === 2 ? gl.DYNAMIC_DRAW : gl.STATIC_DRAW);
+      gl.bufferData(gl.ARRAY_BUFFER, data, loc >= 2 ? gl.DYNAMIC_DRAW : gl.STATIC_DRAW);
       gl.enableVertexAttribArray(loc);
-      gl.vertexAttribPointer(loc, 3, gl.FLOAT, false, 0, 0);
+      gl.vertexAttribPointer(loc, size, gl.FLOAT, false, 0, 0);
       return b;
     };
     const n = positions.length / 3;
     const pos = buf(new Float32Array(positions), 0);
     const nor = buf(new Float32Array(normals), 1);
     const rad = buf(new Float32Array(n * 3), 2);
+    const gloss = buf(new Float32Array(n * 2), 3, 2);
     const ib = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, new Uint32Array(indices), gl.STATIC_DRAW);
     gl.bindVertexArray(null);
     this.meshVao = vao;
-    this.meshBuffers = [pos, nor, rad, ib];
+    this.meshBuffers = [pos, nor, rad, gloss, ib];
     this.radianceBuf = rad;
+    this.glossBuf = gloss;
     this.indexCount = indices.length;
     this.vertexCount = n;
     this.lit = false;
@@ -181,6 +264,16 @@ export class Renderer {
     this.lit = true;
   }
 
+  /** Each vertex's specular coat (Float32Array, GGX alpha and eta per vertex; alpha 0: none). */
+  setGloss(gloss) {
+    if (gloss.length !== this.vertexCount * 2) {
+      throw new Error(`gloss has ${gloss.length / 2} entries for a mesh of ${this.vertexCount} vertices`);
+    }
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.glossBuf);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, gloss);
+  }
+
   /** Matches the drawing buffer to the canvas's CSS size × devicePixelRatio. */
   resize() {
     const dpr = Math.min(window.devicePixelRatio || 1, 2);
@@ -194,7 +287,8 @@ export class Renderer {
 
   /**
    * Draws a frame. `view`: { viewProj, eye }; `opts`: { exposure (EV), tone, cullBackfaces,
-   * background [r,g,b] display values, gizmo: { lines: Float32Array, points: Float32Array } }.
+   * background [r,g,b] display values, gizmo: { lines: Float32Array, points: Float32Array },
+   * highlights: null (off) or { lights (the API's lights; environments are skipped), unitMm } }.
    */
   draw(view, opts) {
     const gl = this.gl;
@@ -216,11 +310,47 @@ export class Renderer {
       gl.uniform1i(u.uTone, opts.tone === "filmic" ? 1 : 0);
       gl.uniform1i(u.uLit, this.lit ? 1 : 0);
       gl.uniform3fv(u.uEye, view.eye);
+      this.setLights(u, opts.highlights);
       gl.bindVertexArray(this.meshVao);
       gl.drawElements(gl.TRIANGLES, this.indexCount, gl.UNSIGNED_INT, 0);
       gl.bindVertexArray(null);
     }
     if (opts.gizmo) this.drawGizmo(view, opts.gizmo);
+  }
+
+  /** The specular pass's light uniforms (the same conversions as engine/src/specular.rs). */
+  setLights(u, highlights) {
+    const gl = this.gl;
+    const lights = highlights ? highlights.lights.filter((l) => l.type !== "environment").slice(0, MAX_SPECULAR_LIGHTS) : [];
+    const pos = new Float32Array(4 * MAX_SPECULAR_LIGHTS);
+    const power = new Float32Array(3 * MAX_SPECULAR_LIGHTS);
+    const axis = new Float32Array(4 * MAX_SPECULAR_LIGHTS);
+    const cone = new Float32Array(2 * MAX_SPECULAR_LIGHTS);
+    const unit = (v) => {
+      const n = Math.hypot(v[0], v[1], v[2]) || 1;
+      return [v[0] / n, v[1] / n, v[2] / n];
+    };
+    lights.forEach((l, i) => {
+      if (l.type === "directional") {
+        const d = unit(l.direction);
+        pos.set([-d[0], -d[1], -d[2], 0], 4 * i);
+        power.set(l.irradiance, 3 * i);
+      } else {
+        pos.set([...l.position, 1], 4 * i);
+        power.set(l.intensity, 3 * i);
+        if (l.type === "spot") {
+          axis.set([...unit(l.direction), 1], 4 * i);
+          const rad = Math.PI / 180;
+          cone.set([Math.cos(l.inner_deg * rad), Math.cos(l.outer_deg * rad)], 2 * i);
+        }
+      }
+    });
+    gl.uniform1i(u.uLightCount, lights.length);
+    gl.uniform4fv(u["uLightPos[0]"], pos);
+    gl.uniform3fv(u["uLightPower[0]"], power);
+    gl.uniform4fv(u["uSpotAxis[0]"], axis);
+    gl.uniform2fv(u["uSpotCos[0]"], cone);
+    gl.uniform1f(u.uToM, highlights ? highlights.unitMm / 1000 : 1);
   }
 
   drawGizmo(view, gizmo) {

@@ -179,6 +179,7 @@ fn cornell_checker_block_is_a_checkerboard_of_two_media() {
     let twins = Material::Heterogeneous {
         materials: vec![marble(), marble()],
         pattern: pattern.clone(),
+        specular: None,
     };
     let (s, _) = smatrix::rebuild_from_bundle(&het, &[(k, twins)], &SParams::default()).unwrap();
     assert_eq!(s.row_ptr, sm.row_ptr(), "different sparsity");
@@ -207,6 +208,7 @@ fn cornell_checker_block_is_a_checkerboard_of_two_media() {
             Material::Heterogeneous {
                 materials: softer,
                 pattern: pattern.clone(),
+                specular: None,
             },
         )],
         &SParams::default(),
@@ -221,6 +223,7 @@ fn cornell_checker_block_is_a_checkerboard_of_two_media() {
             cell: 0.05,
             origin: [0.0; 3],
         },
+        specular: None,
     };
     let e = smatrix::rebuild_from_bundle(&het, &[(k, moved)], &SParams::default()).unwrap_err();
     assert!(matches!(e, SError::Media { .. }), "{e}");
@@ -237,7 +240,13 @@ fn cornell_checker_block_is_a_checkerboard_of_two_media() {
     // A heterogeneous bundle's block can become homogeneous (distances are all it needs).
     let (s, _) = smatrix::rebuild_from_bundle(
         &het,
-        &[(k, Material::Translucent { profile: marble() })],
+        &[(
+            k,
+            Material::Translucent {
+                profile: marble(),
+                specular: None,
+            },
+        )],
         &SParams::default(),
     )
     .unwrap();

@@ -28,6 +28,7 @@ fn marble(scale: f32) -> Material {
             eta: None,
             scale: Some(scale),
         },
+        specular: None,
     }
 }
 
@@ -447,6 +448,7 @@ fn petal(scale: f32) -> Material {
             4.0 * scale,
         ),
         thickness_mm: 1.0,
+        specular: None,
     }
 }
 

@@ -20,6 +20,7 @@ fn marble(scale: Option<f32>, preset: &str) -> Material {
             eta: None,
             scale,
         },
+        specular: None,
     }
 }
 

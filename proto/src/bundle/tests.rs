@@ -53,7 +53,10 @@ fn two_patches() -> (Manifest, Vec<Raw>) {
         occluder_count: 1,
         objects: vec![ObjectInfo {
             name: "floor".into(),
-            material: Material::Diffuse { albedo: [0.5; 3] },
+            material: Material::Diffuse {
+                albedo: [0.5; 3],
+                specular: None,
+            },
             first_patch: 0,
             patch_count: 2,
             albedo: [0.5; 3],

@@ -127,8 +127,8 @@ impl SMaterials {
             let slot = out.tables.len() as u32;
             let (class, albedo, radius, slots) = match mat {
                 Material::Emitter { .. } => (Class::Emitter, [0.0; 3], 0.0, (0, 0)),
-                Material::Diffuse { albedo } => (Class::Diffuse, *albedo, 0.0, (0, 0)),
-                Material::Translucent { profile } => {
+                Material::Diffuse { albedo, .. } => (Class::Diffuse, *albedo, 0.0, (0, 0)),
+                Material::Translucent { profile, .. } => {
                     let (tab, _) =
                         smatrix::translucent_table(&o.name, profile, reach, m.unit_mm, params)?;
                     let r = tab.r_max();

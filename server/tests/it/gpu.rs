@@ -733,17 +733,20 @@ mod s_rebuild {
             }
         };
         let m = match &b.manifest().objects[k].material {
-            Material::Translucent { profile } => Material::Translucent {
+            Material::Translucent { profile, .. } => Material::Translucent {
                 profile: with_scale(profile),
+                specular: None,
             },
             Material::ThinSheet {
                 reflectance,
                 transmittance,
                 thickness_mm,
+                ..
             } => Material::ThinSheet {
                 reflectance: with_scale(reflectance),
                 transmittance: with_scale(transmittance),
                 thickness_mm: *thickness_mm,
+                specular: None,
             },
             other => panic!("{name} is {}", other.kind()),
         };
@@ -1008,6 +1011,7 @@ fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
             eta: None,
             scale: Some(8.0),
         },
+        specular: None,
     };
     loaded.objects[k].material = m.clone();
     loaded.file.objects[k].material = m;

@@ -87,6 +87,7 @@ fn a_closed_diffuse_room_matches_mitsuba_per_vertex() {
         if let Material::Translucent { .. } = o.material {
             o.material = Material::Diffuse {
                 albedo: [0.75, 0.75, 0.75],
+                specular: None,
             };
         }
     }
@@ -466,6 +467,7 @@ fn a_convex_translucent_cube_matches_the_integrated_dipole() {
                     eta: None,
                     scale: None,
                 },
+                specular: None,
             },
             crease_deg: None,
             simplify_to: None,
@@ -582,6 +584,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
                     eta: Some(1.0),
                     scale: None,
                 },
+                specular: None,
             };
         }
     }
