@@ -68,8 +68,8 @@ impl Gloss {
 }
 
 /// The relative index of refraction of a material's medium, where it states one: a dipole's
-/// `eta`, else its preset's (Jensen et al. 2001 use 1.3 for all of theirs), else the
-/// dipole's default 1.3; a measured table or an exponential sum states none. For a thin sheet,
+/// `eta`, else its preset's ([`profile::preset`]: 1.5 for marble, 1.3 for the others), else
+/// the dipole's default 1.3; a measured table or an exponential sum states none. For a thin sheet,
 /// its reflectance profile's; for a heterogeneous object, its first medium's.
 pub fn medium_eta(material: &Material) -> Option<f32> {
     let of = |p: &Profile| profile::dipole_medium(p).map(|m| m.eta);

@@ -300,7 +300,7 @@ pub struct Specular {
     /// the GGX width is α = roughness².
     pub roughness: f32,
     /// Relative index of refraction for the Fresnel term, in [1, 3]. Absent: the medium's
-    /// η where the material has one (a dipole's `eta`, 1.3 for the presets), else 1.5.
+    /// η where the material has one (a dipole's `eta`, else its preset's), else 1.5.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub eta: Option<f32>,
 }

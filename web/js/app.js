@@ -531,9 +531,11 @@ function applyMaterial(name, t) {
   changed(t);
 }
 
-// Jensen et al. 2001's presets all have eta 1.3, the dipole's default too
-// (engine/src/profile.rs); with neither, a coat's eta is 1.5 (engine/src/specular.rs).
+// The dipole presets' eta: 1.3 but marble's 1.5, and 1.3 for a dipole given by its
+// coefficients (engine/src/profile.rs, `preset` and `dipole_medium`); without a dipole, a
+// coat's eta is 1.5 (engine/src/specular.rs). Change them together.
 const DIPOLE_ETA = 1.3;
+const PRESET_ETA = { marble: 1.5 };
 const DEFAULT_COAT_ETA = 1.5;
 
 /** A material's specular coat as [alpha, eta], or null: the rule of `Gloss::of`. */
@@ -543,7 +545,8 @@ function glossOf(m) {
   const profile = m.type === "translucent" ? m.profile
     : m.type === "thin_sheet" ? m.reflectance
       : m.type === "heterogeneous" ? m.materials[0] : null;
-  const mediumEta = profile && profile.type === "dipole" ? (profile.eta ?? DIPOLE_ETA) : null;
+  const mediumEta = profile && profile.type === "dipole"
+    ? (profile.eta ?? PRESET_ETA[profile.preset] ?? DIPOLE_ETA) : null;
   return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_COAT_ETA];
 }
 

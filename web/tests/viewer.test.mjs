@@ -353,6 +353,94 @@ async function checkLinkMaterialLayout(browser) {
 }
 
 /**
+ * 13. The specular pass: the marble block given a glossy coat by a material override. The
+ * highlight the viewer's shader adds (Highlights on minus off) is compared with the one the
+ * render route adds (`specular` true minus false) for the same camera, size, lights,
+ * exposure and tone. Differences cancel what the two pictures do differently elsewhere
+ * (antialiasing, the background).
+ */
+async function checkSpecular(browser) {
+  const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
+  watchErrors(context);
+  const page = await context.newPage();
+  const mat = { tall_block: { type: "translucent", profile: { type: "dipole", preset: "marble" }, specular: { roughness: 0.4 } } };
+  const hash = new URLSearchParams({
+    // Looking down at the block's top from where it mirrors the ceiling light.
+    scene: "cornell", comp: "full", tone: "srgb", ev: "-4", cam: "-0.18,0.5,-0.16,-0.09,0.33,-0.08,50",
+    mat: JSON.stringify(mat),
+  });
+  await page.goto(url + "#" + hash.toString());
+  await firstLit(page);
+  await page.uncheck("#gizmo");
+  await idle(page);
+  // Luminance per pixel of the drawing buffer, rows from the top.
+  const viewerLum = () => page.evaluate(() => {
+    const { w, h, px } = window.translux.app.renderer.readPixels();
+    const out = new Float64Array(w * h);
+    for (let y = 0; y < h; y++) {
+      for (let x = 0; x < w; x++) {
+        const i = ((h - 1 - y) * w + x) * 4;
+        out[y * w + x] = 0.2126 * px[i] + 0.7152 * px[i + 1] + 0.0722 * px[i + 2];
+      }
+    }
+    return { w, h, lum: Array.from(out) };
+  });
+  const on = await viewerLum();
+  await page.uncheck("#specular");
+  await idle(page);
+  const off = await viewerLum();
+  await page.check("#specular");
+  await idle(page);
+  const renderLum = (specular) => page.evaluate(async ({ specular, w, h }) => {
+    const a = window.translux.app;
+    const cam = a.camera.toJSON();
+    const body = {
+      lights: a.state.lights, materials: a.state.materials, components: a.state.components,
+      camera: { position: cam.position, target: cam.target, up: [0, 1, 0], fov_deg: cam.fov_deg },
+      width: w, height: h, exposure: a.state.exposure, tone: a.state.tone, specular,
+    };
+    const r = await fetch(`/api/v1/scenes/${a.state.scene}/render`, {
+      method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify(body),
+    });
+    if (!r.ok) throw new Error(`render: ${r.status} ${await r.text()}`);
+    const bmp = await createImageBitmap(await r.blob(), { colorSpaceConversion: "none" });
+    const c = new OffscreenCanvas(w, h);
+    const g = c.getContext("2d");
+    g.drawImage(bmp, 0, 0);
+    const px = g.getImageData(0, 0, w, h).data;
+    const out = new Float64Array(w * h);
+    for (let i = 0; i < w * h; i++) out[i] = 0.2126 * px[4 * i] + 0.7152 * px[4 * i + 1] + 0.0722 * px[4 * i + 2];
+    return Array.from(out);
+  }, { specular, w: on.w, h: on.h });
+  const ron = await renderLum(true), roff = await renderLum(false);
+  // The added light per pixel, its total and its centroid, in both pictures.
+  const added = (a, b) => {
+    let sum = 0, sx = 0, sy = 0;
+    const d = a.map((v, i) => Math.max(0, v - b[i]));
+    d.forEach((v, i) => { sum += v; sx += v * (i % on.w); sy += v * Math.floor(i / on.w); });
+    return { d, sum, x: sx / Math.max(sum, 1e-9), y: sy / Math.max(sum, 1e-9) };
+  };
+  const v = added(on.lum, off.lum), r = added(ron, roff);
+  let absDiff = 0, counted = 0;
+  for (let i = 0; i < v.d.length; i++) {
+    if (v.d[i] > 2 || r.d[i] > 2) { absDiff += Math.abs(v.d[i] - r.d[i]); counted++; }
+  }
+  const out = {
+    viewer_sum: +v.sum.toFixed(0), render_sum: +r.sum.toFixed(0), ratio: +(v.sum / r.sum).toFixed(3),
+    centroid_px: +Math.hypot(v.x - r.x, v.y - r.y).toFixed(2), highlight_pixels: counted,
+    mean_abs_diff: +(absDiff / Math.max(counted, 1)).toFixed(2),
+  };
+  log("specular: viewer vs render", JSON.stringify(out));
+  await shot(page, "13-specular.png");
+  check(r.sum > 2000 && counted > 200, `the render shows no highlight on the glossy block (${JSON.stringify(out)})`);
+  check(out.ratio > 0.85 && out.ratio < 1.15, `the viewer's highlight holds ${out.ratio}× the render's light`);
+  check(out.centroid_px < 3, `the viewer's highlight sits ${out.centroid_px} px from the render's`);
+  check(out.mean_abs_diff < 6, `the highlights differ by ${out.mean_abs_diff}/255 per pixel on average`);
+  await context.close();
+  return out;
+}
+
+/**
  * 12. A 390×844 phone: the panel does not cover the view (a drawer, closed at first); open,
  * its controls work and the view still has a good part of the screen.
  */
@@ -406,6 +494,16 @@ const browser = await chromium.launch({
 });
 const result = { event: "result" };
 const pageErrors = [];
+// TRANSLUX_TEST_ONLY=specular runs step 13 alone (against any server with builtin:cornell).
+if (process.env.TRANSLUX_TEST_ONLY === "specular") {
+  try {
+    result.specular = await checkSpecular(browser);
+  } finally {
+    await browser.close();
+  }
+  console.log(JSON.stringify(result));
+  process.exit(0);
+}
 try {
   const context = await newContext(browser, { viewport: { width: 1280, height: 760 } });
   const page = await context.newPage();
@@ -661,6 +759,7 @@ try {
   result.sign_in = await checkSignIn(browser);
   result.link_and_layout = await checkLinkMaterialLayout(browser);
   result.phone = await checkPhone(browser);
+  result.specular = await checkSpecular(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {

@@ -1012,6 +1012,67 @@ fn mean_red(img: &image::RgbImage, cols: std::ops::Range<u32>) -> f64 {
     sum / n
 }
 
+/// A material override that gives the marble block a glossy coat: the render gains a
+/// highlight, and nothing else changes (the transport ignores the coat, S is not rebuilt).
+#[tokio::test]
+async fn a_specular_coat_adds_a_highlight_to_renders_only() {
+    let s = TestServer::cornell().await;
+    let glossy = json!({"tall_block": {"type": "translucent",
+        "profile": {"type": "dipole", "preset": "marble"}, "specular": {"roughness": 0.3}}});
+    let picture = |materials: &Value, specular: bool, components: &str| {
+        // Looking down at the block's top from where it mirrors the ceiling light.
+        json!({"width": 160, "height": 120, "exposure": -4.0, "materials": materials,
+            "specular": specular, "components": components,
+            "camera": {"position": [-0.18, 0.5, -0.16], "target": [-0.09, 0.33, -0.08],
+                "fov_deg": 50}})
+    };
+    let none = json!({});
+    let plain = render_png(&s, &picture(&none, true, "full")).await;
+    let on = render_png(&s, &picture(&glossy, true, "full")).await;
+    let off = render_png(&s, &picture(&glossy, false, "full")).await;
+    // Without the pass, the coat changes nothing.
+    assert_eq!(off.as_raw(), plain.as_raw());
+    // With it, light is only added, and a highlight of some size appears.
+    let mut added = 0u64;
+    let mut brighter = 0;
+    for (a, b) in on.as_raw().iter().zip(off.as_raw()) {
+        assert!(a >= b, "the specular pass darkened a pixel: {a} < {b}");
+        added += u64::from(a - b);
+        brighter += usize::from(u16::from(*a) > u16::from(*b) + 8);
+    }
+    assert!(
+        brighter >= 20 && added > 2000,
+        "{brighter} pixels brighter by more than 8, {added} added in all"
+    );
+    // Components that isolate a transport path get no highlight.
+    let sub_on = render_png(&s, &picture(&glossy, true, "subsurface_only")).await;
+    let sub_off = render_png(&s, &picture(&glossy, false, "subsurface_only")).await;
+    assert_eq!(sub_on.as_raw(), sub_off.as_raw());
+
+    // The relight answer is the same with and without the coat, and S is not rebuilt.
+    let relit = s.relight_json(&json!({"materials": glossy})).await;
+    let bare = s.relight_json(&json!({})).await;
+    assert_eq!(relit.stats.materials_ms, 0.0, "{:?}", relit.stats);
+    let scale = bare.radiance.iter().fold(0f32, |m, v| m.max(v.abs()));
+    for (a, b) in relit.radiance.iter().zip(&bare.radiance) {
+        // Both solves stop at the iterative solver's residual tolerance.
+        assert!((a - b).abs() <= 5e-3 * scale, "{a} vs {b}");
+    }
+
+    // A roughness out of range names the field.
+    let bad = json!({"materials": {"tall_block": {"type": "translucent",
+        "profile": {"type": "dipole", "preset": "marble"}, "specular": {"roughness": 0.0}}}});
+    let r = s.relight(ID, &bad, Some("application/json")).await;
+    expect_error(
+        r,
+        StatusCode::BAD_REQUEST,
+        "invalid",
+        &["materials.tall_block.specular.roughness"],
+    )
+    .await;
+    s.stop().await;
+}
+
 #[tokio::test]
 async fn render_answers_a_png_of_the_relit_scene() {
     let s = TestServer::cornell().await;
