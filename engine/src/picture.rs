@@ -27,8 +27,8 @@ use crate::render::{
     RenderError, RenderParams, Surface, auto_exposure, check_camera, encode_exr, encode_png,
     render_linear_with, render_with,
 };
-use crate::specular::{Highlights, Lighting};
-use translux_proto::api::{Components, Exposure, RelightStats, RenderRequest, ToneMap};
+use crate::specular::{Lighting, ObjectShading, PixelLighting};
+use translux_proto::api::{Components, DirectAt, Exposure, RelightStats, RenderRequest, ToneMap};
 use translux_proto::light::Camera;
 
 use crate::error::EngineError;
@@ -48,7 +48,8 @@ pub struct RenderPlan {
     /// The file to make; [`plan`] picks PNG, a caller that negotiated EXR sets it.
     pub format: PictureFormat,
     /// Add the specular pass ([`crate::specular`]) where the components include it
-    /// ([`with_highlights`]).
+    /// ([`with_highlights`]). (Where diffuse objects' direct light is evaluated is
+    /// `relight.direct_at`.)
     pub specular: bool,
 }
 
@@ -62,24 +63,51 @@ pub fn with_highlights(components: Components) -> bool {
     )
 }
 
-/// The specular pass of `plan` for `scene`, or `None` when it adds nothing (no glossy object,
-/// no light, switched off, or components without it).
-fn highlights<'a>(
+/// What `plan` adds per pixel for `scene` (the specular pass, and the direct light of
+/// diffuse objects with [`DirectAt::Pixel`]), or `None` when it adds nothing.
+fn pixel_lighting<'a>(
     scene: &'a Scene,
     plan: &RenderPlan,
-) -> Result<Option<Highlights<'a>>, EngineError> {
+) -> Result<Option<PixelLighting<'a>>, EngineError> {
     let r = &plan.relight;
-    if !plan.specular || !with_highlights(r.components) || r.gloss.iter().all(Option::is_none) {
+    let manifest = scene.bundle.manifest();
+    let glossy = plan.specular && with_highlights(r.components);
+    let shading: Vec<ObjectShading> = manifest
+        .objects
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            let material = r
+                .overrides
+                .iter()
+                .find(|(i, _)| *i == k)
+                .map_or(&o.material, |(_, m)| m);
+            ObjectShading {
+                gloss: if glossy { r.gloss[k] } else { None },
+                diffuse: match r.direct_at {
+                    DirectAt::Pixel => relight::per_pixel_direct(material),
+                    DirectAt::Vertex => None,
+                },
+            }
+        })
+        .collect();
+    if shading
+        .iter()
+        .all(|s| s.gloss.is_none() && s.diffuse.is_none())
+    {
         return Ok(None);
     }
-    let env = crate::environment::lights_with_maps(&scene.env(), &r.lights)?;
-    let manifest = scene.bundle.manifest();
+    let env = if shading.iter().any(|s| s.gloss.is_some()) {
+        crate::environment::lights_with_maps(&scene.env(), &r.lights)?
+    } else {
+        Vec::new()
+    };
     let lighting = Lighting::new(&r.lights, env, &scene.occluder, manifest.unit_mm);
-    let objects = manifest.objects.iter().zip(&r.gloss).map(|(o, g)| {
+    let objects = manifest.objects.iter().zip(shading).map(|(o, s)| {
         let start = o.first_patch as u32;
-        (start..start + o.patch_count as u32, *g)
+        (start..start + o.patch_count as u32, s)
     });
-    Ok(Highlights::new(lighting, objects))
+    Ok(PixelLighting::new(lighting, objects))
 }
 
 /// The picture file formats of a render.
@@ -188,7 +216,12 @@ pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, EngineError
     let b = &scene.bundle;
     let t1 = Instant::now();
     let exposure = match plan.format {
-        PictureFormat::Png => resolve_exposure(plan.exposure, &relit.radiance),
+        // With the direct light per pixel, the relight says what the whole answer's
+        // automatic exposure is (its radiance lacks that term).
+        PictureFormat::Png => match (plan.exposure, relit.stats.auto_exposure) {
+            (Exposure::Auto, Some(ev)) => ev,
+            _ => resolve_exposure(plan.exposure, &relit.radiance),
+        },
         // Linear output: `auto` writes the radiance as it is.
         PictureFormat::Exr => plan.exposure.ev().unwrap_or(0.0),
     };
@@ -196,7 +229,7 @@ pub fn run(scene: &Scene, plan: &RenderPlan) -> Result<RenderOutput, EngineError
         exposure,
         ..plan.params
     };
-    let shine = highlights(scene, plan)?;
+    let shine = pixel_lighting(scene, plan)?;
     let surface = shine.as_ref().map(|h| Surface {
         normals: b.vertex_normals(),
         shade: h,
@@ -279,7 +312,12 @@ pub fn export(
     tone: ToneMap,
     format: MeshFormat,
 ) -> Result<ExportOutput, EngineError> {
-    let relit = relight::run(scene, plan)?;
+    // A file of vertex colours holds the whole answer: the direct light at the vertices.
+    let plan = RelightPlan {
+        direct_at: DirectAt::Vertex,
+        ..plan.clone()
+    };
+    let relit = relight::run(scene, &plan)?;
     let b = &scene.bundle;
     let ev = resolve_exposure(exposure, &relit.radiance);
     let parts = mesh_parts(scene);

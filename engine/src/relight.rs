@@ -20,6 +20,7 @@ use crate::error::EngineError;
 use crate::scene::Scene;
 use crate::smatrix::OverrideMaterials;
 use crate::specular::Gloss;
+use translux_proto::api::DirectAt;
 
 /// Most lights one request may carry (each costs a shadow ray per patch).
 pub const MAX_LIGHTS: usize = 256;
@@ -37,6 +38,9 @@ pub struct RelightPlan {
     /// Each object's glossy coat after the request's overrides (one per manifest object),
     /// for the specular pass of renders ([`crate::specular`]).
     pub gloss: Vec<Option<Gloss>>,
+    /// Where the direct light of diffuse objects is evaluated; with
+    /// [`DirectAt::Pixel`] their vertices get only the rest of the transport.
+    pub direct_at: DirectAt,
     /// Relative residual the iterative solver stops at ([`solve_params`]'s 0.5% from
     /// [`plan`]; tests tighten it). Plans batch together only with equal tolerances.
     pub tolerance: f32,
@@ -180,6 +184,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
         solver: req.solver,
         overrides,
         gloss,
+        direct_at: req.direct_at,
         tolerance: solve_params().tolerance,
     })
 }
@@ -245,6 +250,8 @@ struct VertexDirect {
     /// E of those lights at the patches, where it differs from the plan's E (environment
     /// lights are in that one and stay per patch).
     at_patch: Option<Vec<Rgb>>,
+    /// With [`DirectAt::Pixel`]: which of `which` leave their direct term out of the answer.
+    per_pixel: Option<Vec<bool>>,
 }
 
 /// The direct light of `plan`'s point, spot and directional lights at the vertices of
@@ -293,6 +300,21 @@ fn vertex_direct(
         centroid: &point,
         normal: &normal,
     })?;
+    // Per pixel: the vertices of diffuse objects answer the rest alone (E(v) taken as 0);
+    // the others that count as opaque (translucent ones in `direct`) keep their E(v).
+    let per_pixel = match plan.direct_at {
+        DirectAt::Vertex => None,
+        DirectAt::Pixel => {
+            let diffuse: Vec<bool> = materials
+                .iter()
+                .zip(&opaque)
+                .map(|(m, &o)| o && per_pixel_direct(m).is_some())
+                .collect();
+            let skip: std::collections::HashSet<usize> =
+                samples.opaque_vertices(b, &diffuse).into_iter().collect();
+            Some(which.iter().map(|v| skip.contains(v)).collect())
+        }
+    };
     let at_patch = if lights.len() == plan.lights.len() {
         None
     } else {
@@ -302,7 +324,18 @@ fn vertex_direct(
         which,
         at_vertex,
         at_patch,
+        per_pixel,
     }))
+}
+
+/// The albedo a picture multiplies the per-pixel direct irradiance by for an object of
+/// `material` ([`DirectAt::Pixel`]): a diffuse object's ρ; `None` for the others, which keep
+/// their direct light at the vertices (a translucent object's is smoothed by S).
+pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
+    match material {
+        Material::Diffuse { albedo, .. } => Some(*albedo),
+        _ => None,
+    }
 }
 
 /// Runs several plans for one scene (the worker pool batches concurrent relights this way);
@@ -456,23 +489,48 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                         b.vertex_positions().len(),
                         &rad,
                     );
+                    let mut auto_exposure = None;
                     if let Some(v) = &p.vertex {
                         let albedo = match &p.materials {
                             Some(m) => m.albedo.as_slice(),
                             None => b.patch_albedo(),
                         };
+                        let terms = crate::vertexlight::PatchTerms {
+                            radiosity: &rad,
+                            irradiance: v.at_patch.as_deref().unwrap_or(&p.irradiance),
+                            albedo,
+                        };
+                        let samples = scene.vertex_samples();
                         crate::vertexlight::correct(
                             b,
-                            scene.vertex_samples(),
+                            samples,
                             &v.which,
                             &v.at_vertex,
-                            crate::vertexlight::PatchTerms {
-                                radiosity: &rad,
-                                irradiance: v.at_patch.as_deref().unwrap_or(&p.irradiance),
-                                albedo,
-                            },
+                            terms,
                             &mut radiance,
                         );
+                        if let Some(skip) = &v.per_pixel {
+                            // The exposure of the whole answer, then the answer without the
+                            // direct term the picture adds per pixel.
+                            auto_exposure = Some(crate::render::auto_exposure(&radiance));
+                            let e: Vec<Rgb> = v
+                                .at_vertex
+                                .iter()
+                                .zip(skip)
+                                .map(|(e, &s)| if s { [0.0; 3] } else { *e })
+                                .collect();
+                            crate::vertexlight::correct(
+                                b,
+                                samples,
+                                &v.which,
+                                &e,
+                                terms,
+                                &mut radiance,
+                            );
+                        }
+                    }
+                    if plans[i].direct_at == DirectAt::Pixel && auto_exposure.is_none() {
+                        auto_exposure = Some(crate::render::auto_exposure(&radiance));
                     }
                     // Finite inputs can still overflow f32 (an intensity near f32::MAX);
                     // never answer NaN or infinity (JSON has no such numbers).
@@ -502,6 +560,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                         warm: ts.warm,
                         batch: group.len(),
                         note: p.note.clone(),
+                        auto_exposure,
                     };
                     out[i] = Some(Ok(RelightOutput { radiance, stats }));
                 }

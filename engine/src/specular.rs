@@ -251,6 +251,58 @@ impl<'a> Lighting<'a> {
         self.sources.is_empty() && self.env.is_empty()
     }
 
+    /// The direct irradiance E (W·m⁻²) of the point, spot and directional lights at `p` with
+    /// normal `n`, each shadowed by a ray: the rule of
+    /// [`crate::radiosity::direct_irradiance`] at one point (environment lights excluded).
+    pub fn irradiance(&self, p: Vec3, n: Vec3) -> [f32; 3] {
+        let mut e = [0.0f32; 3];
+        let origin = p + n * self.offset;
+        for s in &self.sources {
+            let (w, c) = match *s {
+                Source::At {
+                    position,
+                    intensity,
+                    cone,
+                } => {
+                    let d = position - origin;
+                    let r = d.length();
+                    if r <= 0.0 {
+                        continue;
+                    }
+                    let cos = n.dot(d) / r;
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    let spot = match cone {
+                        Some((axis, inner, outer)) => {
+                            spot_falloff(axis.dot((p - position).normalize_or_zero()), inner, outer)
+                        }
+                        None => 1.0,
+                    };
+                    if spot <= 0.0 || self.occ.occluded(origin, position) {
+                        continue;
+                    }
+                    let rm = r * self.to_m;
+                    (spot * cos / (rm * rm), intensity)
+                }
+                Source::Far {
+                    to_light,
+                    irradiance,
+                } => {
+                    let cos = n.dot(to_light);
+                    if cos <= 0.0 || self.occ.occluded_dir(origin, to_light, 0.0, self.far) {
+                        continue;
+                    }
+                    (cos, irradiance)
+                }
+            };
+            for k in 0..3 {
+                e[k] += w * c[k];
+            }
+        }
+        e
+    }
+
     /// The reflected radiance (W·m⁻²·sr⁻¹) at `p` with shading normal `n`, seen from the
     /// direction `v` (unit, toward the eye). `pixel` seeds the environment's sample set.
     pub fn radiance(&self, g: Gloss, p: Vec3, n: Vec3, v: Vec3, pixel: u32) -> [f32; 3] {
@@ -336,48 +388,68 @@ impl<'a> Lighting<'a> {
     }
 }
 
-/// The specular pass of a render: the glossy objects' triangle ranges and the lights, as a
-/// [`PixelShade`] for [`crate::render::render_with`].
-#[derive(Debug)]
-pub struct Highlights<'a> {
-    lighting: Lighting<'a>,
-    /// Mesh triangle ranges [start, end) of glossy objects, ascending, with their coat.
-    ranges: Vec<(u32, u32, Gloss)>,
+/// What a render adds per pixel on one object: the specular pass where it has a coat, and
+/// the direct light of the point, spot and directional lights times its albedo where its
+/// direct term is taken per pixel ([`translux_proto::api::DirectAt::Pixel`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ObjectShading {
+    pub gloss: Option<Gloss>,
+    /// ρ: the pixel gains ρ E(p) / π, E(p) with shadow rays.
+    pub diffuse: Option<[f32; 3]>,
 }
 
-impl<'a> Highlights<'a> {
-    /// `objects`: each object's mesh triangle range and coat (`None`: matte). `None` when no
-    /// object is glossy or no light can make a highlight: nothing to add.
+/// The per-pixel pass of a render: the objects' triangle ranges with what they get, and the
+/// lights, as a [`PixelShade`] for [`crate::render::render_with`].
+#[derive(Debug)]
+pub struct PixelLighting<'a> {
+    lighting: Lighting<'a>,
+    /// Mesh triangle ranges [start, end), ascending, of objects that get something.
+    ranges: Vec<(u32, u32, ObjectShading)>,
+}
+
+impl<'a> PixelLighting<'a> {
+    /// `objects`: each object's mesh triangle range and shading. `None` when no object gets
+    /// anything or no light can add anything: nothing to do.
     pub fn new(
         lighting: Lighting<'a>,
-        objects: impl IntoIterator<Item = (std::ops::Range<u32>, Option<Gloss>)>,
-    ) -> Option<Highlights<'a>> {
-        let mut ranges: Vec<(u32, u32, Gloss)> = objects
+        objects: impl IntoIterator<Item = (std::ops::Range<u32>, ObjectShading)>,
+    ) -> Option<PixelLighting<'a>> {
+        let mut ranges: Vec<(u32, u32, ObjectShading)> = objects
             .into_iter()
-            .filter_map(|(r, g)| g.map(|g| (r.start, r.end, g)))
-            .filter(|(a, b, _)| a < b)
+            .filter(|(r, s)| r.start < r.end && (s.gloss.is_some() || s.diffuse.is_some()))
+            .map(|(r, s)| (r.start, r.end, s))
             .collect();
         ranges.sort_by_key(|r| r.0);
-        (!ranges.is_empty() && !lighting.is_empty()).then_some(Highlights { lighting, ranges })
+        (!ranges.is_empty() && !lighting.is_empty()).then_some(PixelLighting { lighting, ranges })
     }
 
-    fn gloss(&self, triangle: u32) -> Option<Gloss> {
+    fn object(&self, triangle: u32) -> Option<&ObjectShading> {
         let k = self.ranges.partition_point(|r| r.0 <= triangle);
-        let (_, end, g) = *self.ranges.get(k.checked_sub(1)?)?;
-        (triangle < end).then_some(g)
+        let (_, end, s) = self.ranges.get(k.checked_sub(1)?)?;
+        (triangle < *end).then_some(s)
     }
 }
 
-impl PixelShade for Highlights<'_> {
+impl PixelShade for PixelLighting<'_> {
     fn shades(&self, triangle: u32) -> bool {
-        self.gloss(triangle).is_some()
+        self.object(triangle).is_some()
     }
 
     fn shade(&self, triangle: u32, p: Vec3, n: Vec3, to_eye: Vec3, pixel: u32) -> [f32; 3] {
-        match self.gloss(triangle) {
+        let Some(s) = self.object(triangle) else {
+            return [0.0; 3];
+        };
+        let mut out = match s.gloss {
             Some(g) => self.lighting.radiance(g, p, n, to_eye, pixel),
             None => [0.0; 3],
+        };
+        if let Some(rho) = s.diffuse {
+            let e = self.lighting.irradiance(p, n);
+            for k in 0..3 {
+                out[k] += rho[k] * e[k] * std::f32::consts::FRAC_1_PI;
+            }
         }
+        out
     }
 }
 
@@ -551,7 +623,11 @@ mod tests {
         // unit_mm 1000: scene units are metres.
         let lighting = Lighting::new(&[light], Vec::new(), &occ, 1000.0);
         let g = Gloss { alpha, eta: 1.5 };
-        let h = Highlights::new(lighting, [(0..2, Some(g))]).unwrap();
+        let shading = ObjectShading {
+            gloss: Some(g),
+            diffuse: None,
+        };
+        let h = PixelLighting::new(lighting, [(0..2, shading)]).unwrap();
         let surface = Surface {
             normals: &normals,
             shade: &h,

@@ -99,6 +99,33 @@ pub struct RelightRequest {
     pub components: Components,
     #[serde(default)]
     pub solver: Solver,
+    /// Where the direct light of diffuse objects is evaluated (default `vertex`). With
+    /// `pixel`, the answer leaves out the direct term ρE/π of the point, spot and directional
+    /// lights at the vertices of diffuse objects, for a client that adds it per pixel with
+    /// its own shadows (the viewer does); the rest of the transport is unchanged.
+    #[serde(default, skip_serializing_if = "DirectAt::is_vertex")]
+    pub direct_at: DirectAt,
+}
+
+/// Where the direct light of diffuse objects is evaluated (docs/transport.md).
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum DirectAt {
+    /// At each vertex, interpolated across triangles with the rest of the transport.
+    #[default]
+    Vertex,
+    /// Per pixel, by whoever draws the picture: a relight answer then holds the rest.
+    Pixel,
+}
+
+impl DirectAt {
+    pub fn is_vertex(&self) -> bool {
+        *self == DirectAt::Vertex
+    }
+}
+
+fn pixel() -> DirectAt {
+    DirectAt::Pixel
 }
 
 /// The tone curve that maps exposed linear radiance to display values (before the sRGB
@@ -314,6 +341,11 @@ pub struct RenderRequest {
     /// `specular` coat) where the components show direct light leaving the surface.
     #[serde(default = "yes")]
     pub specular: bool,
+    /// Where the direct light of diffuse objects is evaluated: `pixel` (the default: per
+    /// pixel, with a shadow ray, so shadow edges are sharp) or `vertex` (interpolated from
+    /// the vertices, the relight answer's picture).
+    #[serde(default = "pixel")]
+    pub direct_at: DirectAt,
 }
 
 fn default_width() -> u32 {
@@ -341,6 +373,7 @@ impl Default for RenderRequest {
             background: [0.0; 3],
             cull_backfaces: true,
             specular: true,
+            direct_at: DirectAt::Pixel,
         }
     }
 }
@@ -353,6 +386,7 @@ impl RenderRequest {
             materials: self.materials.clone(),
             components: self.components,
             solver: self.solver,
+            direct_at: self.direct_at,
         }
     }
 
@@ -363,6 +397,7 @@ impl RenderRequest {
             materials: relight.materials,
             components: relight.components,
             solver: relight.solver,
+            direct_at: relight.direct_at,
             ..Default::default()
         }
     }
@@ -411,6 +446,12 @@ pub struct RelightStats {
     /// (e.g. a translucency change makes T stale).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
+    /// With `"direct_at": "pixel"`: the viewer's automatic exposure (EV, the rule of a
+    /// render's `"exposure": "auto"`) of the whole answer, its direct light at the vertices
+    /// included, which the answer leaves out. A client that adds the direct light per pixel
+    /// exposes with this. Absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_exposure: Option<f32>,
 }
 
 fn one() -> usize {

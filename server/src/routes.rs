@@ -397,6 +397,7 @@ async fn relight(
         s.direct_ms, s.solve_ms, s.ms
     );
     let vertex_count = out.radiance.len();
+    let auto_exposure = out.stats.auto_exposure;
     let mut response = match format {
         Format::Json => to_json(&RelightResponse {
             vertex_count,
@@ -421,6 +422,13 @@ async fn relight(
     h.insert("x-vertex-count", HeaderValue::from(vertex_count));
     if let Ok(v) = HeaderValue::from_str(&timing) {
         h.insert("server-timing", v);
+    }
+    // `"direct_at": "pixel"`: the whole answer's automatic exposure, for binary answers
+    // too (their stats are only these headers).
+    if let Some(ev) = auto_exposure
+        && let Ok(v) = HeaderValue::from_str(&format!("{ev}"))
+    {
+        h.insert("x-auto-exposure", v);
     }
     Ok(response)
 }

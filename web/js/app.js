@@ -2,7 +2,7 @@
 // server while lights, materials and the transport components are edited, and draws it with
 // WebGL2. See docs/viewer.md.
 
-import { Renderer } from "./renderer.js";
+import { MAX_SHADOWED_LIGHTS, Renderer } from "./renderer.js";
 import { OrbitCamera } from "./camera.js";
 import { Link } from "./link.js";
 import { buildGlb } from "./glb.js";
@@ -76,7 +76,10 @@ const app = {
     tone: "filmic",
     cull: true,
     specular: true,
+    pixelDirect: true,
   },
+  frameDirect: false, // whether the radiance on screen left the direct light to the pixels
+  sentDirect: new Map(), // seq → whether that request asked for "direct_at": "pixel"
   matUi: {},
   hashProblems: [],
   linkNotes: [], // sentences about the opened link, shown with the hash problems
@@ -112,7 +115,17 @@ function relightRequest() {
   }
   const req = { lights, components: s.components };
   if (Object.keys(s.materials).length) req.materials = s.materials;
+  if (pixelDirectOn()) req.direct_at = "pixel";
   return req;
+}
+
+/**
+ * Whether the direct light of diffuse objects is drawn per pixel: asked for, and every
+ * point, spot and directional light gets a shadow map (else the server adds it at the
+ * vertices, and the overlay says why).
+ */
+function pixelDirectOn() {
+  return app.state.pixelDirect && app.state.lights.length <= MAX_SHADOWED_LIGHTS;
 }
 
 /** A state change that needs a new solve; `t` is the input event's time stamp. */
@@ -121,7 +134,10 @@ function changed(t) {
   app.seq += 1;
   metrics.inputs.push({ seq: app.seq, t: t ?? performance.now() });
   if (metrics.inputs.length > 2000) metrics.inputs.splice(0, 1000);
-  app.link.submit(app.seq, relightRequest());
+  const req = relightRequest();
+  app.sentDirect.set(app.seq, req.direct_at === "pixel");
+  for (const k of app.sentDirect.keys()) if (k < app.seq - 256) app.sentDirect.delete(k);
+  app.link.submit(app.seq, req);
   scheduleHash();
   app.needDraw = true;
 }
@@ -152,6 +168,7 @@ function onFrame(radiance, info) {
   app.radiance = radiance;
   app.shownSeq = info.seq;
   app.lastInfo = info;
+  app.frameDirect = app.sentDirect.get(info.seq) === true;
   app.newFrame = true;
   app.needDraw = true;
   if (app.errors.request && info.seq >= (app.errorSeq ?? 0)) setBanner("request", null);
@@ -275,8 +292,8 @@ async function loadScene(id, fromHash) {
   s.env = hash.env || (env ? { on: true, map: env.map, rotation_deg: env.rotation_deg ?? 0, scale: env.scale ?? 1 }
     : { on: false, map: "builtin:sky", rotation_deg: 0, scale: 1 });
   s.materials = hash.materials || {};
-  for (const k of ["components", "exposure", "tone", "cull", "specular"]) if (hash[k] !== undefined) s[k] = hash[k];
-  updateGloss();
+  for (const k of ["components", "exposure", "tone", "cull", "specular", "pixelDirect"]) if (hash[k] !== undefined) s[k] = hash[k];
+  updateSurfaces();
   app.autoExposure = hash.exposure === undefined;
   app.selected = 0;
   $("scene").value = id;
@@ -311,6 +328,15 @@ function bbox(p) {
 function autoExposure() {
   const r = app.radiance;
   if (!r) return;
+  // With the direct light per pixel the radiance lacks it: the server says what the whole
+  // answer's exposure is, by the same rule.
+  const given = app.frameDirect && app.lastInfo && app.lastInfo.stats ? app.lastInfo.stats.auto_exposure : null;
+  if (typeof given === "number") {
+    app.state.exposure = given;
+    if (app.exposureRow) app.exposureRow.set(app.state.exposure);
+    scheduleHash();
+    return;
+  }
   const lum = [];
   for (let i = 0; i < r.length; i += 3) lum.push(0.2126 * r[i] + 0.7152 * r[i + 1] + 0.0722 * r[i + 2]);
   lum.sort((a, b) => a - b);
@@ -527,7 +553,7 @@ function applyMaterial(name, t) {
   const m = materialOverride(name);
   if (m) app.state.materials[name] = m;
   else delete app.state.materials[name];
-  updateGloss();
+  updateSurfaces();
   changed(t);
 }
 
@@ -550,19 +576,30 @@ function glossOf(m) {
   return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_COAT_ETA];
 }
 
-/** Each vertex's coat from its object's material (the override where there is one). */
-function updateGloss() {
+/**
+ * Each vertex's coat, and its albedo for the direct light per pixel (diffuse objects only:
+ * `per_pixel_direct` in engine/src/relight.rs), from its object's material (the override
+ * where there is one).
+ */
+function updateSurfaces() {
   if (!app.detail || !app.mesh) return;
-  const gloss = new Float32Array((app.mesh.positions.length / 3) * 2);
+  const n = app.mesh.positions.length / 3;
+  const gloss = new Float32Array(n * 2);
+  const albedo = new Float32Array(n * 3);
   const idx = app.mesh.indices;
   for (const part of app.mesh.objects) {
     const o = app.detail.objects.find((x) => x.name === part.name);
-    const g = o && glossOf(app.state.materials[o.name] || o.material);
-    if (!g) continue;
+    if (!o) continue;
+    const m = app.state.materials[o.name] || o.material;
+    const g = glossOf(m);
     const end = 3 * (part.first_triangle + part.triangle_count);
-    for (let i = 3 * part.first_triangle; i < end; i++) gloss.set(g, 2 * idx[i]);
+    for (let i = 3 * part.first_triangle; i < end; i++) {
+      if (g) gloss.set(g, 2 * idx[i]);
+      if (m.type === "diffuse") albedo.set(m.albedo, 3 * idx[i]);
+    }
   }
   app.renderer.setGloss(gloss);
+  app.renderer.setAlbedo(albedo);
   app.needDraw = true;
 }
 
@@ -668,6 +705,11 @@ function buildDisplay() {
     app.needDraw = true;
     scheduleHash();
   });
+  const crisp = el("input", { type: "checkbox", id: "pixel-direct", checked: s.pixelDirect });
+  crisp.addEventListener("change", () => {
+    s.pixelDirect = crisp.checked;
+    changed();
+  });
   const spec = el("input", { type: "checkbox", id: "specular", checked: s.specular });
   spec.addEventListener("change", () => {
     s.specular = spec.checked;
@@ -685,6 +727,7 @@ function buildDisplay() {
     app.exposureRow,
     tone,
     el("label", { class: "row" }, el("span", { class: "lab" }, "Near walls"), cull, "hide back faces (see inside)"),
+    el("label", { class: "row" }, el("span", { class: "lab" }, "Crisp light"), crisp, `direct light per pixel, shadow maps (up to ${MAX_SHADOWED_LIGHTS} lights)`),
     el("label", { class: "row" }, el("span", { class: "lab" }, "Highlights"), spec, "specular pass (glossy materials)"),
     el("label", { class: "row" }, el("span", { class: "lab" }, "Gizmo"), giz, "show light handles"),
   );
@@ -894,7 +937,14 @@ function draw(withGizmo = app.gizmo) {
     cullBackfaces: app.state.cull,
     background: [0.031, 0.035, 0.043],
     gizmo: withGizmo && app.detail ? gizmoGeometry() : null,
-    highlights: highlightsOn() ? { lights: app.state.lights, unitMm: app.detail.unit_mm } : null,
+    highlights: app.detail ? {
+      lights: app.state.lights,
+      unitMm: app.detail.unit_mm,
+      specular: highlightsOn(),
+      direct: app.frameDirect,
+      shadows: app.frameDirect || highlightsOn(),
+      bounds: { centre: scale(add(app.bbox.min, app.bbox.max), 0.5), radius: app.camera.sceneRadius },
+    } : null,
   });
 }
 
@@ -950,6 +1000,7 @@ function updateStats(now) {
     `server ${f(s && s.ms)} ms  (direct ${f(s && s.direct_ms)}, solve ${f(s && s.solve_ms)}${s && s.materials_ms ? `, S ${f(s.materials_ms)}` : ""})`,
     `solver ${s ? s.solver ?? "n/a over REST" : "—"} · ${s && s.iterations != null ? s.iterations + " it" : "— it"} · residual ${s && s.residual != null ? Number(s.residual).toExponential(1) : "—"}`,
     `shown ${s ? s.components : "—"} · seq ${app.shownSeq}${info && info.dropped != null ? ` · dropped ${info.dropped}` : ""}`,
+    `direct light ${app.frameDirect ? "per pixel" : app.state.pixelDirect ? `per vertex (over ${MAX_SHADOWED_LIGHTS} lights)` : "per vertex"}`,
     `input→photon ${f(med, 0)} ms (median of ${lat.length})`,
     app.detail ? `${app.detail.patches} patches · ${app.detail.vertices} vertices` : "",
   ];

@@ -235,6 +235,8 @@ export class Link {
     }
     const buf = await res.arrayBuffer();
     const stats = restStats(res.headers.get("server-timing"), request);
+    const ev = parseFloat(res.headers.get("x-auto-exposure"));
+    if (Number.isFinite(ev)) stats.auto_exposure = ev;
     this.h.onFrame(new Float32Array(buf), { seq, stats, dropped: null, transport: "rest" });
     this.done();
   }

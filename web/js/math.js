@@ -28,6 +28,19 @@ export function perspective(fovyRad, aspect, near, far) {
   return m;
 }
 
+/** An orthographic projection of the box [l, r] × [b, t] × [-n, -f] in view space. */
+export function ortho(l, r, b, t, n, f) {
+  const m = new Float32Array(16);
+  m[0] = 2 / (r - l);
+  m[5] = 2 / (t - b);
+  m[10] = -2 / (f - n);
+  m[12] = -(r + l) / (r - l);
+  m[13] = -(t + b) / (t - b);
+  m[14] = -(f + n) / (f - n);
+  m[15] = 1;
+  return m;
+}
+
 export function lookAt(eye, target, up) {
   const z = normalize(sub(eye, target));
   let x = normalize(cross(up, z));

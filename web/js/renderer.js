@@ -5,19 +5,24 @@
 // need ~300 lines, the served files stay self-contained (no npm build inside `cargo build`),
 // and nothing has to be vendored or kept up to date.
 
+import { add, length, lookAt, multiply, normalize, ortho, perspective, scale, sub } from "./math.js";
+
 const MESH_VS = `#version 300 es
 layout(location = 0) in vec3 aPos;
 layout(location = 1) in vec3 aNormal;
 layout(location = 2) in vec3 aRadiance;
 layout(location = 3) in vec2 aGloss;
+layout(location = 4) in vec3 aAlbedo;
 uniform mat4 uViewProj;
 out vec3 vRadiance;
 out vec3 vNormal;
 out vec3 vPos;
 out vec2 vGloss;
+out vec3 vAlbedo;
 void main() {
   vRadiance = aRadiance;
   vGloss = aGloss;
+  vAlbedo = aAlbedo;
   vNormal = aNormal;
   vPos = aPos;
   gl_Position = uViewProj * vec4(aPos, 1.0);
@@ -25,6 +30,10 @@ void main() {
 
 /** Most lights the viewer's specular pass reads (the first ones of the request). */
 export const MAX_SPECULAR_LIGHTS = 16;
+/** Lights with shadow maps: the first ones; the direct light per pixel needs every light to have one. */
+export const MAX_SHADOWED_LIGHTS = 4;
+const CUBE_SIZE = 512;
+const MAP_SIZE = 1024;
 
 const MESH_FS = `#version 300 es
 precision highp float;
@@ -33,13 +42,22 @@ in vec3 vRadiance;
 in vec3 vNormal;
 in vec3 vPos;
 in vec2 vGloss;            // GGX alpha (0: matte) and eta of the surface's specular coat
+in vec3 vAlbedo;           // rho of a diffuse surface whose direct light is drawn per pixel
 uniform float uExposure;   // 2^EV
 uniform int uTone;         // 0: clamp (sRGB), 1: ACES filmic (Narkowicz 2016)
 uniform int uLit;          // 0: no radiance yet, shade the geometry so it can be seen
 uniform vec3 uEye;
-// The specular pass (engine/src/specular.rs, the same model): point, spot and directional
-// lights, not shadowed here.
+// The specular pass and the direct light per pixel (engine/src/specular.rs, the same
+// model): point, spot and directional lights, the first MAX_SHADOWED shadowed by maps.
 uniform int uLightCount;
+uniform int uDirect;                    // 1: add rho E / pi where vAlbedo is set
+uniform int uSpecular;                  // 1: the specular pass where vGloss is set
+uniform int uShadowKind[${MAX_SHADOWED_LIGHTS}];         // 0: none, 1: cube map, 2: 2-D map
+uniform vec2 uShadowRange[${MAX_SHADOWED_LIGHTS}];       // cube maps: near and far
+uniform mat4 uShadowMat[${MAX_SHADOWED_LIGHTS}];         // 2-D maps: world to clip
+uniform float uShadowTexel[${MAX_SHADOWED_LIGHTS}];      // 2-D maps: a texel in scene units
+uniform highp samplerCubeShadow uCube0, uCube1, uCube2, uCube3;
+uniform highp sampler2DShadow uMap0, uMap1, uMap2, uMap3;
 uniform vec4 uLightPos[MAX_LIGHTS];     // xyz position and w = 1, or toward the light and w = 0
 uniform vec3 uLightPower[MAX_LIGHTS];   // intensity (W/sr) or irradiance (W/m^2)
 uniform vec4 uSpotAxis[MAX_LIGHTS];     // xyz axis, w = 1 for a spot
@@ -80,16 +98,56 @@ float spotFalloff(float c, vec2 cosIO) {
   float t = (c - cosIO.y) / (cosIO.x - cosIO.y);
   return t * t * (3.0 - 2.0 * t);
 }
-vec3 highlight(vec3 n, vec3 v) {
+float cubeVis(highp samplerCubeShadow s, vec3 p, vec3 lightPos, vec2 range) {
+  vec3 d = p - lightPos;
+  vec3 a = abs(d);
+  float z = max(a.x, max(a.y, a.z));
+  float n = range.x, f = range.y;
+  float depth = ((f + n) / (f - n) - 2.0 * f * n / ((f - n) * z)) * 0.5 + 0.5;
+  return texture(s, vec4(d, depth));
+}
+float mapVis(highp sampler2DShadow s, vec3 p, mat4 m) {
+  vec4 q = m * vec4(p, 1.0);
+  vec3 c = q.xyz / q.w * 0.5 + 0.5;
+  if (any(lessThan(c.xy, vec2(0.0))) || any(greaterThan(c.xy, vec2(1.0)))) return 1.0;
+  return texture(s, c);
+}
+// Light i's visibility at the fragment, its position pushed off the surface along the normal
+// by about a shadow-map texel (the normal-offset bias).
+float visibility(int i, vec3 n, vec3 toLight, float r) {
+  if (i >= ${MAX_SHADOWED_LIGHTS}) return 1.0;
+  int kind = uShadowKind[i];
+  if (kind == 0) return 1.0;
+  float slope = sqrt(max(0.0, 1.0 - pow(dot(n, toLight), 2.0)));
+  if (kind == 1) {
+    float texel = 2.0 * r / ${CUBE_SIZE}.0;
+    vec3 p = vPos + n * texel * (1.0 + 2.0 * slope);
+    vec3 lp = uLightPos[i].xyz;
+    vec2 range = uShadowRange[i];
+    if (i == 0) return cubeVis(uCube0, p, lp, range);
+    if (i == 1) return cubeVis(uCube1, p, lp, range);
+    if (i == 2) return cubeVis(uCube2, p, lp, range);
+    return cubeVis(uCube3, p, lp, range);
+  }
+  vec3 p = vPos + n * uShadowTexel[i] * (1.0 + 2.0 * slope);
+  if (i == 0) return mapVis(uMap0, p, uShadowMat[0]);
+  if (i == 1) return mapVis(uMap1, p, uShadowMat[1]);
+  if (i == 2) return mapVis(uMap2, p, uShadowMat[2]);
+  return mapVis(uMap3, p, uShadowMat[3]);
+}
+// The direct light per pixel (rho E / pi) and the specular pass, from the first
+// uLightCount lights.
+vec3 pixelLight(vec3 n, vec3 v, bool glossy, bool diffuse) {
   vec3 sum = vec3(0.0);
   for (int i = 0; i < MAX_LIGHTS; i++) {
     if (i >= uLightCount) break;
     vec4 lp = uLightPos[i];
     vec3 l;
     float e;
+    float r = 0.0;
     if (lp.w > 0.5) {
       vec3 d = lp.xyz - vPos;
-      float r = length(d);
+      r = length(d);
       if (r <= 0.0) continue;
       l = d / r;
       float rm = r * uToM;
@@ -101,7 +159,13 @@ vec3 highlight(vec3 n, vec3 v) {
     }
     float nl = dot(n, l);
     if (nl <= 0.0 || e <= 0.0) continue;
-    sum += brdf(vGloss.x, vGloss.y, n, l, v) * nl * e * uLightPower[i];
+    e *= visibility(i, n, l, r);
+    if (e <= 0.0) continue;
+    float f = 0.0;
+    if (glossy && dot(n, v) > 0.0) f += brdf(vGloss.x, vGloss.y, n, l, v);
+    vec3 c = f * nl * e * uLightPower[i];
+    if (diffuse) c += vAlbedo * (nl * e / PI) * uLightPower[i];
+    sum += c;
   }
   return sum;
 }
@@ -118,10 +182,12 @@ void main() {
   vec3 c;
   if (uLit == 1) {
     vec3 lin = max(vRadiance, vec3(0.0));
-    if (vGloss.x > 0.0 && uLightCount > 0) {
+    bool glossy = uSpecular == 1 && vGloss.x > 0.0;
+    bool diffuse = uDirect == 1 && max(vAlbedo.r, max(vAlbedo.g, vAlbedo.b)) > 0.0;
+    if ((glossy || diffuse) && uLightCount > 0) {
       vec3 n = normalize(vNormal);
       vec3 v = normalize(uEye - vPos);
-      if (dot(n, v) > 0.0) lin += highlight(n, v);
+      lin += pixelLight(n, v, glossy, diffuse);
     }
     vec3 x = lin * uExposure;
     c = uTone == 1 ? aces(x) : min(x, vec3(1.0));
@@ -132,6 +198,23 @@ void main() {
   }
   outColour = vec4(srgbOetf(c.r), srgbOetf(c.g), srgbOetf(c.b), 1.0);
 }`;
+
+// Shadow maps: depth only.
+const DEPTH_VS = `#version 300 es
+layout(location = 0) in vec3 aPos;
+uniform mat4 uViewProj;
+void main() {
+  gl_Position = uViewProj * vec4(aPos, 1.0);
+}`;
+const DEPTH_FS = `#version 300 es
+precision mediump float;
+void main() {}`;
+
+// The cube map faces in GL's order (+X, -X, +Y, -Y, +Z, -Z): view direction and up.
+const CUBE_FACES = [
+  [[1, 0, 0], [0, -1, 0]], [[-1, 0, 0], [0, -1, 0]], [[0, 1, 0], [0, 0, 1]],
+  [[0, -1, 0], [0, 0, -1]], [[0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, -1, 0]],
+];
 
 // Gizmo lines and handles: positions with display colours (already sRGB), no depth test.
 const LINE_VS = `#version 300 es
@@ -201,6 +284,14 @@ export class Renderer {
     this.gl = gl;
     this.mesh = compile(gl, MESH_VS, MESH_FS);
     this.lines = compile(gl, LINE_VS, LINE_FS);
+    this.depth = compile(gl, DEPTH_VS, DEPTH_FS);
+    // Shadow maps per shadowed light (made on first use), and 1×1 stand-ins so that every
+    // shadow sampler always has a complete depth texture bound.
+    this.shadows = [];
+    this.shadowKey = null;
+    this.shadowFbo = gl.createFramebuffer();
+    this.dummyCube = this.depthTexture(gl.TEXTURE_CUBE_MAP, 1);
+    this.dummyMap = this.depthTexture(gl.TEXTURE_2D, 1);
     this.meshVao = null;
     this.indexCount = 0;
     this.vertexCount = 0;
@@ -238,14 +329,17 @@ export class Renderer {
     const nor = buf(new Float32Array(normals), 1);
     const rad = buf(new Float32Array(n * 3), 2);
     const gloss = buf(new Float32Array(n * 2), 3, 2);
+    const albedo = buf(new Float32Array(n * 3), 4);
     const ib = gl.createBuffer();
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, new Uint32Array(indices), gl.STATIC_DRAW);
     gl.bindVertexArray(null);
     this.meshVao = vao;
-    this.meshBuffers = [pos, nor, rad, gloss, ib];
+    this.meshBuffers = [pos, nor, rad, gloss, albedo, ib];
     this.radianceBuf = rad;
     this.glossBuf = gloss;
+    this.albedoBuf = albedo;
+    this.shadowKey = null;
     this.indexCount = indices.length;
     this.vertexCount = n;
     this.lit = false;
@@ -274,6 +368,132 @@ export class Renderer {
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, gloss);
   }
 
+  /** Each vertex's albedo for the direct light per pixel (Float32Array, 3 per vertex; 0: none). */
+  setAlbedo(albedo) {
+    if (albedo.length !== this.vertexCount * 3) {
+      throw new Error(`albedo has ${albedo.length / 3} entries for a mesh of ${this.vertexCount} vertices`);
+    }
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.albedoBuf);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, albedo);
+  }
+
+  /** A depth texture set up for comparisons (`size`² texels, each face for a cube map). */
+  depthTexture(target, size) {
+    const gl = this.gl;
+    const t = gl.createTexture();
+    gl.bindTexture(target, t);
+    const faces = target === gl.TEXTURE_CUBE_MAP
+      ? [0, 1, 2, 3, 4, 5].map((k) => gl.TEXTURE_CUBE_MAP_POSITIVE_X + k) : [gl.TEXTURE_2D];
+    for (const f of faces) {
+      gl.texImage2D(f, 0, gl.DEPTH_COMPONENT24, size, size, 0, gl.DEPTH_COMPONENT, gl.UNSIGNED_INT, null);
+    }
+    gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(target, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(target, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(target, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(target, gl.TEXTURE_COMPARE_MODE, gl.COMPARE_REF_TO_TEXTURE);
+    gl.texParameteri(target, gl.TEXTURE_COMPARE_FUNC, gl.LEQUAL);
+    if (size === 1) {
+      // A stand-in reads "lit" everywhere: depth 1 passes every comparison.
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.shadowFbo);
+      for (const f of faces) {
+        gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, f, t, 0);
+        gl.clearDepth(1);
+        gl.clear(gl.DEPTH_BUFFER_BIT);
+      }
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    }
+    return t;
+  }
+
+  /**
+   * Renders the shadow maps of the first MAX_SHADOWED_LIGHTS point, spot and directional
+   * lights (a cube map around a point or spot light, an orthographic map over the scene's
+   * bounding sphere `bounds` = { centre, radius } for a directional one), unless the lights
+   * and mesh are those of the last call.
+   */
+  updateShadows(lights, bounds) {
+    const gl = this.gl;
+    const key = JSON.stringify([lights, bounds, this.indexCount]);
+    if (key === this.shadowKey || !this.meshVao) return;
+    this.shadowKey = key;
+    const { prog, uniforms: u } = this.depth;
+    gl.useProgram(prog);
+    gl.bindVertexArray(this.meshVao);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.shadowFbo);
+    gl.enable(gl.DEPTH_TEST);
+    gl.depthFunc(gl.LESS);
+    gl.disable(gl.CULL_FACE);
+    gl.enable(gl.POLYGON_OFFSET_FILL);
+    gl.polygonOffset(1.5, 4);
+    gl.colorMask(false, false, false, false);
+    const R = bounds.radius;
+    this.shadows = lights.slice(0, MAX_SHADOWED_LIGHTS).map((l, i) => {
+      const old = this.shadows[i];
+      if (l.type === "directional") {
+        const tex = old && old.kind === 2 ? old.tex : this.depthTexture(gl.TEXTURE_2D, MAP_SIZE);
+        const d = normalize(l.direction);
+        const eye = sub(bounds.centre, scale(d, 2 * R));
+        const up = Math.abs(d[1]) > 0.9 ? [0, 0, 1] : [0, 1, 0];
+        const m = multiply(ortho(-R, R, -R, R, 0.5 * R, 3.5 * R), lookAt(eye, bounds.centre, up));
+        gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.TEXTURE_2D, tex, 0);
+        gl.viewport(0, 0, MAP_SIZE, MAP_SIZE);
+        gl.clear(gl.DEPTH_BUFFER_BIT);
+        gl.uniformMatrix4fv(u.uViewProj, false, m);
+        gl.drawElements(gl.TRIANGLES, this.indexCount, gl.UNSIGNED_INT, 0);
+        return { kind: 2, tex, mat: m, texel: (2 * R) / MAP_SIZE };
+      }
+      const tex = old && old.kind === 1 ? old.tex : this.depthTexture(gl.TEXTURE_CUBE_MAP, CUBE_SIZE);
+      const p = l.position;
+      const dist = length(sub(p, bounds.centre));
+      const near = 1e-3 * R, far = dist + 2 * R;
+      const proj = perspective(Math.PI / 2, 1, near, far);
+      gl.viewport(0, 0, CUBE_SIZE, CUBE_SIZE);
+      CUBE_FACES.forEach(([dir, up], k) => {
+        gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.TEXTURE_CUBE_MAP_POSITIVE_X + k, tex, 0);
+        gl.clear(gl.DEPTH_BUFFER_BIT);
+        gl.uniformMatrix4fv(u.uViewProj, false, multiply(proj, lookAt(p, add(p, dir), up)));
+        gl.drawElements(gl.TRIANGLES, this.indexCount, gl.UNSIGNED_INT, 0);
+      });
+      return { kind: 1, tex, range: [near, far] };
+    });
+    gl.colorMask(true, true, true, true);
+    gl.disable(gl.POLYGON_OFFSET_FILL);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.bindVertexArray(null);
+  }
+
+  /** Binds the shadow maps and their uniforms for the mesh program. */
+  bindShadows(u, on) {
+    const gl = this.gl;
+    const kinds = new Int32Array(MAX_SHADOWED_LIGHTS);
+    const ranges = new Float32Array(2 * MAX_SHADOWED_LIGHTS);
+    const mats = new Float32Array(16 * MAX_SHADOWED_LIGHTS);
+    const texels = new Float32Array(MAX_SHADOWED_LIGHTS);
+    for (let i = 0; i < MAX_SHADOWED_LIGHTS; i++) {
+      const sm = on ? this.shadows[i] : null;
+      gl.activeTexture(gl.TEXTURE1 + 2 * i);
+      gl.bindTexture(gl.TEXTURE_CUBE_MAP, sm && sm.kind === 1 ? sm.tex : this.dummyCube);
+      gl.uniform1i(u[`uCube${i}`], 1 + 2 * i);
+      gl.activeTexture(gl.TEXTURE2 + 2 * i);
+      gl.bindTexture(gl.TEXTURE_2D, sm && sm.kind === 2 ? sm.tex : this.dummyMap);
+      gl.uniform1i(u[`uMap${i}`], 2 + 2 * i);
+      if (!sm) continue;
+      kinds[i] = sm.kind;
+      if (sm.kind === 1) ranges.set(sm.range, 2 * i);
+      else {
+        mats.set(sm.mat, 16 * i);
+        texels[i] = sm.texel;
+      }
+    }
+    gl.activeTexture(gl.TEXTURE0);
+    gl.uniform1iv(u["uShadowKind[0]"], kinds);
+    gl.uniform2fv(u["uShadowRange[0]"], ranges);
+    gl.uniformMatrix4fv(u["uShadowMat[0]"], false, mats);
+    gl.uniform1fv(u["uShadowTexel[0]"], texels);
+  }
+
   /** Matches the drawing buffer to the canvas's CSS size × devicePixelRatio. */
   resize() {
     const dpr = Math.min(window.devicePixelRatio || 1, 2);
@@ -288,7 +508,9 @@ export class Renderer {
   /**
    * Draws a frame. `view`: { viewProj, eye }; `opts`: { exposure (EV), tone, cullBackfaces,
    * background [r,g,b] display values, gizmo: { lines: Float32Array, points: Float32Array },
-   * highlights: null (off) or { lights (the API's lights; environments are skipped), unitMm } }.
+   * highlights: null (off) or { lights (the API's lights; environments are skipped), unitMm,
+   * specular (bool: the specular pass), direct (bool: the direct light per pixel), shadows
+   * (bool), bounds: { centre, radius } } }.
    */
   draw(view, opts) {
     const gl = this.gl;
@@ -296,6 +518,11 @@ export class Renderer {
     const bg = opts.background;
     gl.clearColor(bg[0], bg[1], bg[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    const hl = opts.highlights;
+    if (this.meshVao && hl && hl.shadows) {
+      this.updateShadows(hl.lights.filter((l) => l.type !== "environment"), hl.bounds);
+      gl.viewport(0, 0, this.canvas.width, this.canvas.height);
+    }
     if (this.meshVao) {
       gl.enable(gl.DEPTH_TEST);
       gl.depthFunc(gl.LEQUAL);
@@ -322,6 +549,8 @@ export class Renderer {
   setLights(u, highlights) {
     const gl = this.gl;
     const lights = highlights ? highlights.lights.filter((l) => l.type !== "environment").slice(0, MAX_SPECULAR_LIGHTS) : [];
+    this.bindShadows(u, !!(highlights && highlights.shadows));
+    gl.uniform1i(u.uDirect, highlights && highlights.direct ? 1 : 0);
     const pos = new Float32Array(4 * MAX_SPECULAR_LIGHTS);
     const power = new Float32Array(3 * MAX_SPECULAR_LIGHTS);
     const axis = new Float32Array(4 * MAX_SPECULAR_LIGHTS);
@@ -351,6 +580,7 @@ export class Renderer {
     gl.uniform4fv(u["uSpotAxis[0]"], axis);
     gl.uniform2fv(u["uSpotCos[0]"], cone);
     gl.uniform1f(u.uToM, highlights ? highlights.unitMm / 1000 : 1);
+    gl.uniform1i(u.uSpecular, highlights && highlights.specular ? 1 : 0);
   }
 
   drawGizmo(view, gizmo) {

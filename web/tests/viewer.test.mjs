@@ -440,6 +440,132 @@ async function checkSpecular(browser) {
   return out;
 }
 
+/** The drawing buffer as RGB rows from the top (0–255). */
+async function viewerRgb(page) {
+  return page.evaluate(() => {
+    const { w, h, px } = window.translux.app.renderer.readPixels();
+    const out = new Uint8Array(w * h * 3);
+    for (let y = 0; y < h; y++) {
+      for (let x = 0; x < w; x++) {
+        const i = ((h - 1 - y) * w + x) * 4, o = (y * w + x) * 3;
+        out[o] = px[i]; out[o + 1] = px[i + 1]; out[o + 2] = px[i + 2];
+      }
+    }
+    return { w, h, rgb: Array.from(out) };
+  });
+}
+
+/** The render route's picture of the page's current state and camera, as RGB rows. */
+async function renderRgb(page, w, h, extra = {}) {
+  return page.evaluate(async ({ w, h, extra }) => {
+    const a = window.translux.app;
+    const cam = a.camera.toJSON();
+    const body = {
+      lights: a.state.lights, materials: a.state.materials, components: a.state.components,
+      camera: { position: cam.position, target: cam.target, up: [0, 1, 0], fov_deg: cam.fov_deg },
+      width: w, height: h, exposure: a.state.exposure, tone: a.state.tone, ...extra,
+    };
+    const r = await fetch(`/api/v1/scenes/${a.state.scene}/render`, {
+      method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify(body),
+    });
+    if (!r.ok) throw new Error(`render: ${r.status} ${await r.text()}`);
+    const bmp = await createImageBitmap(await r.blob(), { colorSpaceConversion: "none" });
+    const g = new OffscreenCanvas(w, h).getContext("2d");
+    g.drawImage(bmp, 0, 0);
+    const px = g.getImageData(0, 0, w, h).data;
+    const out = new Uint8Array(w * h * 3);
+    for (let i = 0; i < w * h; i++) { out[3 * i] = px[4 * i]; out[3 * i + 1] = px[4 * i + 1]; out[3 * i + 2] = px[4 * i + 2]; }
+    return Array.from(out);
+  }, { w, h, extra });
+}
+
+/**
+ * 14. Crisp light: a point light just under the ceiling right above the short box casts a
+ * ring of shadow around its base, narrower than a floor patch. Looking down through the
+ * culled ceiling, the viewer with the direct light per pixel (shadow maps) shows the ring
+ * as the render route does (per pixel, shadow rays); with *Crisp light* off (the direct
+ * light at the vertices) the ring all but vanishes. The ring's outer edge is measured across
+ * rows: the pixels between dark (10%) and lit (90%).
+ */
+async function checkCrispLight(browser) {
+  const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
+  watchErrors(context);
+  const page = await context.newPage();
+  const lights = [{ type: "point", position: [0.09, 0.54, 0.07], intensity: [0.5, 0.5, 0.5] }];
+  const hash = new URLSearchParams({
+    scene: "cornell", comp: "direct", tone: "srgb", ev: "0", cam: "0.09,1,0.1,0.09,0,0.07,40",
+    lights: JSON.stringify(lights),
+  });
+  await page.goto(url + "#" + hash.toString());
+  await firstLit(page);
+  await page.uncheck("#gizmo");
+  await idle(page);
+  check(await page.evaluate(() => window.translux.app.frameDirect), "the first frame did not leave the direct light to the pixels");
+  const pix = await viewerRgb(page);
+  const { w, h } = pix;
+  const rendered = await renderRgb(page, w, h);
+  await shot(page, "14-crisp-light.png");
+  await page.uncheck("#pixel-direct");
+  await idle(page);
+  check(!(await page.evaluate(() => window.translux.app.frameDirect)), "Crisp light off still draws the direct light per pixel");
+  const vert = await viewerRgb(page);
+  await shot(page, "14-crisp-light-off.png");
+  await page.check("#pixel-direct");
+  await idle(page);
+
+  // The disc of floor around the box: 0.16 m at 1 m, the half height seeing 0.364 m.
+  const cx = w / 2, cy = h / 2, rad = (0.16 / 0.364) * (h / 2);
+  const lum = (rgb, i) => 0.2126 * rgb[3 * i] + 0.7152 * rgb[3 * i + 1] + 0.0722 * rgb[3 * i + 2];
+  const yellow = (rgb, i) => rgb[3 * i] > 30 && rgb[3 * i + 2] < 0.6 * rgb[3 * i];
+  const darkInDisc = (rgb) => {
+    let n = 0;
+    for (let y = Math.floor(cy - rad); y < cy + rad; y++) {
+      for (let x = Math.floor(cx - rad); x < cx + rad; x++) {
+        if ((x - cx) ** 2 + (y - cy) ** 2 <= rad * rad && lum(rgb, y * w + x) < 25) n++;
+      }
+    }
+    return n;
+  };
+  let diff = 0, count = 0;
+  for (let y = Math.floor(cy - rad); y < cy + rad; y++) {
+    for (let x = Math.floor(cx - rad); x < cx + rad; x++) {
+      if ((x - cx) ** 2 + (y - cy) ** 2 > rad * rad) continue;
+      diff += Math.abs(lum(pix.rgb, y * w + x) - lum(rendered, y * w + x));
+      count++;
+    }
+  }
+  // The ring's outer edge, right of the box, in rows near the middle.
+  const widths = [];
+  for (let y = Math.round(cy - 0.15 * rad); y <= cy + 0.15 * rad; y++) {
+    const xs = [];
+    for (let x = Math.round(cx); x < cx + rad; x++) if (!yellow(pix.rgb, y * w + x)) xs.push(x);
+    const l = xs.map((x) => lum(pix.rgb, y * w + x));
+    const lo = Math.min(...l), hi = Math.max(...l);
+    const dark = l.findIndex((v) => v < lo + 0.1 * (hi - lo));
+    if (dark < 0) continue;
+    let last = dark;
+    while (last + 1 < l.length && l[last + 1] < lo + 0.1 * (hi - lo)) last++;
+    const lit = l.findIndex((v, k) => k > last && v > lo + 0.9 * (hi - lo));
+    if (lit > 0) widths.push(xs[lit] - xs[last] - 1);
+  }
+  widths.sort((a, b) => a - b);
+  const out = {
+    ring_pixels: { viewer: darkInDisc(pix.rgb), render: darkInDisc(rendered), viewer_per_vertex: darkInDisc(vert.rgb) },
+    edge_width_px: widths.length ? widths[Math.floor(widths.length / 2)] : null,
+    rows_measured: widths.length,
+    mean_abs_diff_vs_render: +(diff / Math.max(count, 1)).toFixed(2),
+  };
+  log("crisp light", JSON.stringify(out));
+  const r = out.ring_pixels;
+  check(r.render > 300, `the render shows no shadow ring (${JSON.stringify(out)})`);
+  check(r.viewer > 0.8 * r.render && r.viewer < 1.25 * r.render, `the viewer's ring has ${r.viewer} dark pixels, the render's ${r.render}`);
+  check(r.viewer_per_vertex < 0.5 * r.render, `with the direct light at the vertices the ring still has ${r.viewer_per_vertex} dark pixels`);
+  check(out.rows_measured >= 5 && out.edge_width_px <= 3, `the ring's edge is ${out.edge_width_px} px wide (${out.rows_measured} rows)`);
+  check(out.mean_abs_diff_vs_render < 6, `the viewer differs from the render by ${out.mean_abs_diff_vs_render}/255 around the box`);
+  await context.close();
+  return out;
+}
+
 /**
  * 12. A 390×844 phone: the panel does not cover the view (a drawer, closed at first); open,
  * its controls work and the view still has a good part of the screen.
@@ -494,10 +620,13 @@ const browser = await chromium.launch({
 });
 const result = { event: "result" };
 const pageErrors = [];
-// TRANSLUX_TEST_ONLY=specular runs step 13 alone (against any server with builtin:cornell).
-if (process.env.TRANSLUX_TEST_ONLY === "specular") {
+// TRANSLUX_TEST_ONLY=specular,crisp runs steps 13 and 14 alone (against any server with
+// builtin:cornell).
+if (process.env.TRANSLUX_TEST_ONLY) {
   try {
-    result.specular = await checkSpecular(browser);
+    const only = process.env.TRANSLUX_TEST_ONLY.split(",");
+    if (only.includes("specular")) result.specular = await checkSpecular(browser);
+    if (only.includes("crisp")) result.crisp_light = await checkCrispLight(browser);
   } finally {
     await browser.close();
   }
@@ -760,6 +889,7 @@ try {
   result.link_and_layout = await checkLinkMaterialLayout(browser);
   result.phone = await checkPhone(browser);
   result.specular = await checkSpecular(browser);
+  result.crisp_light = await checkCrispLight(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {

@@ -53,7 +53,7 @@ fn library_radiance(req: RelightRequest) -> (Scene, Vec<[f32; 3]>) {
     (scene, out.radiance)
 }
 
-const REQUEST: &str = r#"{"components": "direct",
+const REQUEST: &str = r#"{"components": "direct", "direct_at": "vertex",
     "lights": [{"type": "point", "position": [-0.1, 0.45, 0.05], "intensity": [0.4, 0.35, 0.3]}]}"#;
 
 #[test]

@@ -1012,6 +1012,86 @@ fn mean_red(img: &image::RgbImage, cols: std::ops::Range<u32>) -> f64 {
     sum / n
 }
 
+/// With the direct light per pixel (the render route's default) the short box's shadow on
+/// the floor has a sharp edge; at the vertices it spreads over a patch. A light just under
+/// the ceiling right above the box casts a ring of shadow around its base; looking straight
+/// down (through the culled ceiling), each row across the middle of the picture crosses the
+/// ring's outer edge on the floor. Measured as the transition width, contrast / largest
+/// step between neighbouring floor pixels (the yellow box top left out).
+#[tokio::test]
+async fn direct_light_per_pixel_gives_sharp_shadow_edges() {
+    let s = TestServer::cornell().await;
+    let picture = |direct_at: &str| {
+        json!({"width": 200, "height": 200, "exposure": 0.0, "components": "direct",
+            "direct_at": direct_at,
+            "lights": [{"type": "point", "position": [0.09, 0.54, 0.07],
+                "intensity": [0.5, 0.5, 0.5]}],
+            "camera": {"position": [0.09, 1.0, 0.07], "target": [0.09, 0.0, 0.07],
+                "up": [0.0, 0.0, -1.0], "fov_deg": 40}})
+    };
+    // Per row: the contrast between lit and shadowed floor, and the largest step between
+    // neighbouring floor pixels, from the box's centre to short of the right (green) wall.
+    let rows = |img: &image::RgbImage| -> Vec<(f64, f64)> {
+        (85..115)
+            .map(|y| {
+                let floor: Vec<Option<f64>> = (100..145)
+                    .map(|x| {
+                        let p = img.get_pixel(x, y).0.map(f64::from);
+                        let yellow = p[0] > 20.0 && p[2] < 0.6 * p[0];
+                        (!yellow).then_some(0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2])
+                    })
+                    .collect();
+                let lum: Vec<f64> = floor.iter().flatten().copied().collect();
+                let (lo, hi) = lum
+                    .iter()
+                    .fold((f64::MAX, 0f64), |(a, b), &v| (a.min(v), b.max(v)));
+                let step = floor
+                    .windows(2)
+                    .filter_map(|w| Some((w[1]? - w[0]?).abs()))
+                    .fold(0.0, f64::max);
+                (hi - lo, step)
+            })
+            .collect()
+    };
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let pixel = render_png(&s, &picture("pixel")).await;
+    let vertex = render_png(&s, &picture("vertex")).await;
+    // Kept for a look: target/tmp/shadow-{pixel,vertex}.png.
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"));
+    pixel.save(dir.join("shadow-pixel.png")).unwrap();
+    vertex.save(dir.join("shadow-vertex.png")).unwrap();
+    // The width: the per-pixel picture's contrast over each picture's largest step.
+    let (rp, rv) = (rows(&pixel), rows(&vertex));
+    for (y, (c, _)) in rp.iter().enumerate() {
+        assert!(
+            *c > 60.0,
+            "row {}: no shadow to measure (contrast {c:.0})",
+            85 + y
+        );
+    }
+    let wp = median(rp.iter().map(|(c, s)| c / s).collect());
+    let wv = median(rp.iter().zip(&rv).map(|((c, _), (_, s))| c / s).collect());
+    println!("shadow edge: {wp:.1} px per pixel, {wv:.1} px at the vertices");
+    assert!(wp <= 3.0, "per pixel the edge is {wp:.1} px wide");
+    assert!(
+        wv >= 2.0 * wp,
+        "at the vertices {wv:.1} px, per pixel {wp:.1} px"
+    );
+    // Away from edges the two agree: the mean brightness differs little.
+    let mean = |img: &image::RgbImage| {
+        img.as_raw().iter().map(|&v| v as f64).sum::<f64>() / img.as_raw().len() as f64
+    };
+    let (mp, mv) = (mean(&pixel), mean(&vertex));
+    assert!(
+        (mp - mv).abs() < 0.05 * mv,
+        "mean {mp:.1} per pixel, {mv:.1} at the vertices"
+    );
+    s.stop().await;
+}
+
 /// A material override that gives the marble block a glossy coat: the render gains a
 /// highlight, and nothing else changes (the transport ignores the coat, S is not rebuilt).
 #[tokio::test]
@@ -1078,8 +1158,8 @@ async fn render_answers_a_png_of_the_relit_scene() {
     let s = TestServer::cornell().await;
     let bundle = Bundle::open(&bundle_dir()).unwrap();
 
-    // The bundle's lights and camera, at the requested size.
-    let body = json!({"width": 160, "height": 120, "exposure": -1.0});
+    // The bundle's lights and camera, at the requested size, direct light at the vertices.
+    let body = json!({"width": 160, "height": 120, "exposure": -1.0, "direct_at": "vertex"});
     let img = render_png(&s, &body).await;
     assert_eq!(img.dimensions(), (160, 120));
     let colours: std::collections::HashSet<[u8; 3]> = img.pixels().map(|p| p.0).collect();
@@ -1721,6 +1801,7 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
     // An explicit exposure scales the radiance by 2^EV; the background is linear as asked;
     // the tone curve does not apply.
     let body = json!({"width": 160, "height": 120, "exposure": -1.0, "tone": "filmic",
+        "direct_at": "vertex",
         "background": [0.2, 0.4, 0.6]});
     let (exr, ev) = render_exr(&s, &body, "image/x-exr").await;
     assert_eq!(exr.dimensions(), (160, 120));
@@ -1768,7 +1849,7 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
 
     // `auto` (the default) writes the radiance unscaled and says EV 0; EXR wins over PNG when
     // preferred by q; the default background is black.
-    let body = json!({"width": 96, "height": 72});
+    let body = json!({"width": 96, "height": 72, "direct_at": "vertex"});
     let (exr, ev) = render_exr(&s, &body, "image/png;q=0.5, image/x-exr").await;
     assert_eq!(ev, 0.0);
     close(
