@@ -199,10 +199,15 @@ pub fn check(scene: &EnvScene<'_>, lights: &[Light], given: bool) -> Result<(), 
                 scene.id
             )));
         }
-        let key = resolve(scene, map, &format!("{at}.map"))?;
-        load(scene.cache, &key, map, &format!("{at}.map"))?;
+        map_of(scene, map, &format!("{at}.map"))?;
     }
     Ok(())
+}
+
+/// The loaded map `map` (the value of the field `at`), from the cache or read.
+fn map_of(scene: &EnvScene<'_>, map: &str, at: &str) -> Result<Arc<EnvMap>, EngineError> {
+    let key = resolve(scene, map, at)?;
+    load(scene.cache, &key, map, at)
 }
 
 /// The environment lights of `lights` with their maps loaded (from the cache after
@@ -221,10 +226,8 @@ pub fn lights_with_maps(
         else {
             continue;
         };
-        let at = format!("lights[{i}].map");
-        let key = resolve(scene, map, &at)?;
         out.push(crate::specular::EnvLight {
-            map: load(scene.cache, &key, map, &at)?,
+            map: map_of(scene, map, &format!("lights[{i}].map"))?,
             scale: *scale,
             rotation_deg: *rotation_deg,
         });

@@ -78,7 +78,8 @@ impl BundleLighting {
     }
 }
 
-/// Direct irradiance E at each patch centroid (W·m⁻²), with shadow rays through `occ`.
+/// Direct irradiance E at each patch centroid (W·m⁻²), with shadow rays through `occ`
+/// ([`PointLights::irradiance`] at each centroid).
 ///
 /// Point: E = I cos θ / r² (r in metres: scene length × `unit_mm` / 1000). Spot: the same
 /// times a smoothstep from 1 inside `inner_deg` to 0 at `outer_deg`. Directional:
@@ -97,76 +98,171 @@ pub fn direct_irradiance(
             });
         }
     }
-    let to_m = (unit_mm / 1000.0) as f32;
-    let offset = 1e-5 * occ.diagonal();
-    let far = 4.0 * occ.diagonal();
+    let lights = PointLights::new(lights, occ, unit_mm);
     Ok(geo
         .centroid
         .par_iter()
         .zip(geo.normal.par_iter())
-        .map(|(&c, &n)| {
-            let origin = c + n * offset;
-            let mut e = [0.0f32; 3];
-            for l in lights {
-                let (scale, color) = match l {
-                    Light::Point {
-                        position,
-                        intensity,
-                    } => (
-                        point_factor(origin, n, Vec3::from(*position), to_m, occ),
-                        *intensity,
-                    ),
-                    Light::Spot {
-                        position,
-                        intensity,
-                        direction,
-                        inner_deg,
-                        outer_deg,
-                    } => {
-                        let pos = Vec3::from(*position);
-                        let axis = Vec3::from(*direction).normalize_or_zero();
-                        let to_patch = (c - pos).normalize_or_zero();
-                        let cone = spot_falloff(axis.dot(to_patch), *inner_deg, *outer_deg);
-                        let f = if cone > 0.0 {
-                            point_factor(origin, n, pos, to_m, occ)
-                        } else {
-                            0.0
-                        };
-                        (f * cone, *intensity)
-                    }
-                    Light::Directional {
-                        direction,
-                        irradiance,
-                    } => {
-                        let to_light = -Vec3::from(*direction).normalize_or_zero();
-                        let cos = n.dot(to_light);
-                        let lit = cos > 0.0 && !occ.occluded_dir(origin, to_light, 0.0, far);
-                        (if lit { cos } else { 0.0 }, *irradiance)
-                    }
-                    Light::Environment { .. } => (0.0, [0.0; 3]),
-                };
-                for k in 0..3 {
-                    e[k] += scale * color[k];
-                }
-            }
-            e
-        })
+        .map(|(&c, &n)| lights.irradiance(c, n))
         .collect())
 }
 
-/// cos θ / r² toward a point light (r in metres), 0 when facing away or shadowed.
-fn point_factor(origin: Vec3, n: Vec3, light: Vec3, to_m: f32, occ: &Occluder) -> f32 {
-    let d = light - origin;
-    let r = d.length();
-    if r <= 0.0 {
-        return 0.0;
+/// A point-like light as [`PointLights`] reads it.
+#[derive(Debug, Clone, Copy)]
+enum Source {
+    /// Point or spot: position, intensity (W·sr⁻¹), and the spot's cone when it has one
+    /// (axis, inner and outer half-angles in degrees).
+    At {
+        position: Vec3,
+        intensity: [f32; 3],
+        cone: Option<(Vec3, f32, f32)>,
+    },
+    /// Directional: toward the light, irradiance (W·m⁻²) facing it.
+    Far {
+        to_light: Vec3,
+        irradiance: [f32; 3],
+    },
+}
+
+/// The point, spot and directional lights of a request, ready to light surface points with
+/// shadow rays: patch centroids ([`direct_irradiance`]), viewer vertices
+/// ([`crate::vertexlight`]) and pixels ([`crate::specular`]) all go through
+/// [`PointLights::each`], so they follow one rule.
+#[derive(Debug)]
+pub struct PointLights<'a> {
+    sources: Vec<Source>,
+    occ: &'a Occluder,
+    /// Metres per scene unit.
+    to_m: f32,
+    /// Shadow rays start this far off the surface (scene units).
+    offset: f32,
+    /// Rays toward directional lights end here.
+    far: f32,
+}
+
+impl<'a> PointLights<'a> {
+    /// The point, spot and directional lights of `lights` (environment lights are skipped);
+    /// `unit_mm` is the scene's millimetres per unit.
+    pub fn new(lights: &[Light], occ: &'a Occluder, unit_mm: f64) -> Self {
+        let sources = lights
+            .iter()
+            .filter_map(|l| match l {
+                Light::Point {
+                    position,
+                    intensity,
+                } => Some(Source::At {
+                    position: Vec3::from(*position),
+                    intensity: *intensity,
+                    cone: None,
+                }),
+                Light::Spot {
+                    position,
+                    intensity,
+                    direction,
+                    inner_deg,
+                    outer_deg,
+                } => Some(Source::At {
+                    position: Vec3::from(*position),
+                    intensity: *intensity,
+                    cone: Some((
+                        Vec3::from(*direction).normalize_or_zero(),
+                        *inner_deg,
+                        *outer_deg,
+                    )),
+                }),
+                Light::Directional {
+                    direction,
+                    irradiance,
+                } => Some(Source::Far {
+                    to_light: -Vec3::from(*direction).normalize_or_zero(),
+                    irradiance: *irradiance,
+                }),
+                Light::Environment { .. } => None,
+            })
+            .collect();
+        PointLights {
+            sources,
+            occ,
+            to_m: (unit_mm / 1000.0) as f32,
+            offset: 1e-5 * occ.diagonal(),
+            far: 4.0 * occ.diagonal(),
+        }
     }
-    let cos = n.dot(d) / r;
-    if cos <= 0.0 || occ.occluded(origin, light) {
-        return 0.0;
+
+    /// Whether there is no light.
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
     }
-    let rm = r * to_m;
-    cos / (rm * rm)
+
+    /// The shadow-ray origin for a surface point: `p` moved off the surface along `n`.
+    pub fn origin(&self, p: Vec3, n: Vec3) -> Vec3 {
+        p + n * self.offset
+    }
+
+    /// Where rays toward the far field end (scene units).
+    pub fn far(&self) -> f32 {
+        self.far
+    }
+
+    /// Calls `f(l, e)` for each light that reaches `p` (normal `n`) unshadowed, with `l` the
+    /// unit direction toward it and `e` its irradiance there (W·m⁻², cos θ included): point
+    /// I cos θ / r² (r from the ray origin, in metres), spot the same times its fall-off,
+    /// directional E cos θ.
+    pub fn each(&self, p: Vec3, n: Vec3, mut f: impl FnMut(Vec3, [f32; 3])) {
+        let origin = self.origin(p, n);
+        for s in &self.sources {
+            match *s {
+                Source::At {
+                    position,
+                    intensity,
+                    cone,
+                } => {
+                    let d = position - origin;
+                    let r = d.length();
+                    if r <= 0.0 {
+                        continue;
+                    }
+                    let cos = n.dot(d) / r;
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    let spot = match cone {
+                        Some((axis, inner, outer)) => {
+                            spot_falloff(axis.dot((p - position).normalize_or_zero()), inner, outer)
+                        }
+                        None => 1.0,
+                    };
+                    if spot <= 0.0 || self.occ.occluded(origin, position) {
+                        continue;
+                    }
+                    let rm = r * self.to_m;
+                    let w = spot * cos / (rm * rm);
+                    f(d / r, intensity.map(|c| w * c));
+                }
+                Source::Far {
+                    to_light,
+                    irradiance,
+                } => {
+                    let cos = n.dot(to_light);
+                    if cos <= 0.0 || self.occ.occluded_dir(origin, to_light, 0.0, self.far) {
+                        continue;
+                    }
+                    f(to_light, irradiance.map(|c| cos * c));
+                }
+            }
+        }
+    }
+
+    /// The direct irradiance E (W·m⁻²) at `p` with normal `n`: the sum of [`Self::each`].
+    pub fn irradiance(&self, p: Vec3, n: Vec3) -> Rgb {
+        let mut e = [0.0f32; 3];
+        self.each(p, n, |_, c| {
+            for k in 0..3 {
+                e[k] += c[k];
+            }
+        });
+        e
+    }
 }
 
 /// 1 inside the inner cone, 0 outside the outer cone, smoothstep between, from cos of the

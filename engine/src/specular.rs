@@ -35,7 +35,7 @@ use translux_proto::scene::{Material, Profile, Specular};
 
 use crate::envmap::EnvMap;
 use crate::profile;
-use crate::radiosity::spot_falloff;
+use crate::radiosity::PointLights;
 use crate::raycast::Occluder;
 use crate::render::PixelShade;
 
@@ -156,23 +156,6 @@ pub fn sample(g: Gloss, n: Vec3, v: Vec3, u: [f32; 2]) -> Option<(Vec3, f32)> {
     Some((l, fresnel_dielectric(vh, g.eta) * g2 * vh / (nv * cos_h)))
 }
 
-/// A point-like light as the specular pass reads it.
-#[derive(Debug, Clone, Copy)]
-enum Source {
-    /// Point or spot: position, intensity (W·sr⁻¹), and the spot's cone when it has one
-    /// (axis, inner and outer half-angles in degrees).
-    At {
-        position: Vec3,
-        intensity: [f32; 3],
-        cone: Option<(Vec3, f32, f32)>,
-    },
-    /// Directional: toward the light, irradiance (W·m⁻²) facing it.
-    Far {
-        to_light: Vec3,
-        irradiance: [f32; 3],
-    },
-}
-
 /// An environment light: its map, scale and rotation about +Y (degrees).
 #[derive(Debug, Clone)]
 pub struct EnvLight {
@@ -181,18 +164,13 @@ pub struct EnvLight {
     pub rotation_deg: f32,
 }
 
-/// The request's lights, ready for per-pixel highlights.
+/// The request's lights, ready for per-pixel work: the point, spot and directional ones
+/// ([`PointLights`], with their shadow rays) and the environment lights with their maps.
 #[derive(Debug)]
 pub struct Lighting<'a> {
-    sources: Vec<Source>,
+    point: PointLights<'a>,
     env: Vec<EnvLight>,
     occ: &'a Occluder,
-    /// Metres per scene unit.
-    to_m: f32,
-    /// Shadow rays start this far off the surface (scene units).
-    offset: f32,
-    /// Rays to directional and environment lights end here.
-    far: f32,
 }
 
 impl<'a> Lighting<'a> {
@@ -200,170 +178,47 @@ impl<'a> Lighting<'a> {
     /// loaded in `env` (environment entries of `lights` are skipped: the caller loads their
     /// maps). `unit_mm` is the scene's millimetres per unit.
     pub fn new(lights: &[Light], env: Vec<EnvLight>, occ: &'a Occluder, unit_mm: f64) -> Self {
-        let sources = lights
-            .iter()
-            .filter_map(|l| match l {
-                Light::Point {
-                    position,
-                    intensity,
-                } => Some(Source::At {
-                    position: Vec3::from(*position),
-                    intensity: *intensity,
-                    cone: None,
-                }),
-                Light::Spot {
-                    position,
-                    intensity,
-                    direction,
-                    inner_deg,
-                    outer_deg,
-                } => Some(Source::At {
-                    position: Vec3::from(*position),
-                    intensity: *intensity,
-                    cone: Some((
-                        Vec3::from(*direction).normalize_or_zero(),
-                        *inner_deg,
-                        *outer_deg,
-                    )),
-                }),
-                Light::Directional {
-                    direction,
-                    irradiance,
-                } => Some(Source::Far {
-                    to_light: -Vec3::from(*direction).normalize_or_zero(),
-                    irradiance: *irradiance,
-                }),
-                Light::Environment { .. } => None,
-            })
-            .collect();
         Lighting {
-            sources,
+            point: PointLights::new(lights, occ, unit_mm),
             env,
             occ,
-            to_m: (unit_mm / 1000.0) as f32,
-            offset: 1e-5 * occ.diagonal(),
-            far: 4.0 * occ.diagonal(),
         }
     }
 
-    /// Whether any light can make a highlight.
+    /// Whether no light can add anything.
     pub fn is_empty(&self) -> bool {
-        self.sources.is_empty() && self.env.is_empty()
+        self.point.is_empty() && self.env.is_empty()
     }
 
-    /// The direct irradiance E (W·m⁻²) of the point, spot and directional lights at `p` with
-    /// normal `n`, each shadowed by a ray: the rule of
-    /// [`crate::radiosity::direct_irradiance`] at one point (environment lights excluded).
-    pub fn irradiance(&self, p: Vec3, n: Vec3) -> [f32; 3] {
-        let mut e = [0.0f32; 3];
-        let origin = p + n * self.offset;
-        for s in &self.sources {
-            let (w, c) = match *s {
-                Source::At {
-                    position,
-                    intensity,
-                    cone,
-                } => {
-                    let d = position - origin;
-                    let r = d.length();
-                    if r <= 0.0 {
-                        continue;
-                    }
-                    let cos = n.dot(d) / r;
-                    if cos <= 0.0 {
-                        continue;
-                    }
-                    let spot = match cone {
-                        Some((axis, inner, outer)) => {
-                            spot_falloff(axis.dot((p - position).normalize_or_zero()), inner, outer)
-                        }
-                        None => 1.0,
-                    };
-                    if spot <= 0.0 || self.occ.occluded(origin, position) {
-                        continue;
-                    }
-                    let rm = r * self.to_m;
-                    (spot * cos / (rm * rm), intensity)
-                }
-                Source::Far {
-                    to_light,
-                    irradiance,
-                } => {
-                    let cos = n.dot(to_light);
-                    if cos <= 0.0 || self.occ.occluded_dir(origin, to_light, 0.0, self.far) {
-                        continue;
-                    }
-                    (cos, irradiance)
-                }
+    /// The radiance (W·m⁻²·sr⁻¹) a pixel gains at `p` with shading normal `n`, seen from
+    /// the unit direction `v` (toward the eye): the highlight of the coat `gloss` (all
+    /// lights) plus ρ E / π for `diffuse` = ρ (point, spot and directional lights), each
+    /// light's shadow ray cast once. `pixel` seeds the environment's sample set.
+    pub fn shade(
+        &self,
+        gloss: Option<Gloss>,
+        diffuse: Option<[f32; 3]>,
+        p: Vec3,
+        n: Vec3,
+        v: Vec3,
+        pixel: u32,
+    ) -> [f32; 3] {
+        let mut out = [0.0f32; 3];
+        let seen = n.dot(v) > 0.0;
+        let rho = diffuse
+            .unwrap_or([0.0; 3])
+            .map(|r| r * std::f32::consts::FRAC_1_PI);
+        self.point.each(p, n, |l, e| {
+            let f = match gloss {
+                Some(g) if seen => brdf(g, n, l, v),
+                _ => 0.0,
             };
             for k in 0..3 {
-                e[k] += w * c[k];
+                out[k] += (f + rho[k]) * e[k];
             }
-        }
-        e
-    }
-
-    /// The reflected radiance (W·m⁻²·sr⁻¹) at `p` with shading normal `n`, seen from the
-    /// direction `v` (unit, toward the eye). `pixel` seeds the environment's sample set.
-    pub fn radiance(&self, g: Gloss, p: Vec3, n: Vec3, v: Vec3, pixel: u32) -> [f32; 3] {
-        let mut out = [0.0f32; 3];
-        if n.dot(v) <= 0.0 {
-            return out;
-        }
-        let origin = p + n * self.offset;
-        let mut add = |w: f32, c: &[f32; 3]| {
-            for k in 0..3 {
-                out[k] += w * c[k];
-            }
-        };
-        for s in &self.sources {
-            match *s {
-                Source::At {
-                    position,
-                    intensity,
-                    cone,
-                } => {
-                    let d = position - p;
-                    let r = d.length();
-                    if r <= 0.0 {
-                        continue;
-                    }
-                    let l = d / r;
-                    let nl = n.dot(l);
-                    if nl <= 0.0 {
-                        continue;
-                    }
-                    let spot = match cone {
-                        Some((axis, inner, outer)) => spot_falloff(axis.dot(-l), inner, outer),
-                        None => 1.0,
-                    };
-                    if spot <= 0.0 {
-                        continue;
-                    }
-                    let f = brdf(g, n, l, v);
-                    if f <= 0.0 || self.occ.occluded(origin, position) {
-                        continue;
-                    }
-                    let rm = r * self.to_m;
-                    add(f * nl * spot / (rm * rm), &intensity);
-                }
-                Source::Far {
-                    to_light,
-                    irradiance,
-                } => {
-                    let nl = n.dot(to_light);
-                    if nl <= 0.0 {
-                        continue;
-                    }
-                    let f = brdf(g, n, to_light, v);
-                    if f <= 0.0 || self.occ.occluded_dir(origin, to_light, 0.0, self.far) {
-                        continue;
-                    }
-                    add(f * nl, &irradiance);
-                }
-            }
-        }
-        if !self.env.is_empty() {
+        });
+        if let (Some(g), true, false) = (gloss, seen, self.env.is_empty()) {
+            let origin = self.point.origin(p, n);
             let turn = pixel_offsets(pixel);
             let inv = 1.0 / ENV_SAMPLES as f32;
             for k in 0..ENV_SAMPLES {
@@ -375,12 +230,14 @@ impl<'a> Lighting<'a> {
                 let Some((l, w)) = sample(g, n, v, u) else {
                     continue;
                 };
-                if self.occ.occluded_dir(origin, l, 0.0, self.far) {
+                if self.occ.occluded_dir(origin, l, 0.0, self.point.far()) {
                     continue;
                 }
                 for e in &self.env {
                     let c = e.map.radiance_rotated(l, e.rotation_deg);
-                    add(w * inv * e.scale, &c);
+                    for ch in 0..3 {
+                        out[ch] += w * inv * e.scale * c[ch];
+                    }
                 }
             }
         }
@@ -436,20 +293,10 @@ impl PixelShade for PixelLighting<'_> {
     }
 
     fn shade(&self, triangle: u32, p: Vec3, n: Vec3, to_eye: Vec3, pixel: u32) -> [f32; 3] {
-        let Some(s) = self.object(triangle) else {
-            return [0.0; 3];
-        };
-        let mut out = match s.gloss {
-            Some(g) => self.lighting.radiance(g, p, n, to_eye, pixel),
+        match self.object(triangle) {
+            Some(s) => self.lighting.shade(s.gloss, s.diffuse, p, n, to_eye, pixel),
             None => [0.0; 3],
-        };
-        if let Some(rho) = s.diffuse {
-            let e = self.lighting.irradiance(p, n);
-            for k in 0..3 {
-                out[k] += rho[k] * e[k] * std::f32::consts::FRAC_1_PI;
-            }
         }
-        out
     }
 }
 
@@ -512,6 +359,28 @@ mod tests {
         assert!((fresnel_dielectric(ci, eta) - 0.5 * rs * rs).abs() < 1e-6);
     }
 
+    /// ∫ f(ω) dω over the upper hemisphere (+z) by the midpoint rule in θ and φ.
+    fn hemisphere(nt: usize, np: usize, f: impl Fn(Vec3) -> f64) -> f64 {
+        let (dt, dp) = (
+            std::f64::consts::FRAC_PI_2 / nt as f64,
+            std::f64::consts::TAU / np as f64,
+        );
+        let mut sum = 0.0;
+        for i in 0..nt {
+            let th = (i as f64 + 0.5) * dt;
+            for j in 0..np {
+                let ph = (j as f64 + 0.5) * dp;
+                let w = Vec3::new(
+                    (th.sin() * ph.cos()) as f32,
+                    (th.sin() * ph.sin()) as f32,
+                    th.cos() as f32,
+                );
+                sum += f(w) * th.sin() * dt * dp;
+            }
+        }
+        sum
+    }
+
     /// The weak white furnace (Heitz 2014, eq. 16): with G₁ alone and F = 1, the visible
     /// normals integrate to one, ∫ G₁(v) max(0, v·h) D(h) dω_h = n·v, for every view.
     #[test]
@@ -521,25 +390,9 @@ mod tests {
                 let t = theta_deg.to_radians();
                 let v = Vec3::new(t.sin(), 0.0, t.cos());
                 let g1 = 1.0 / (1.0 + smith_lambda(alpha, v.z)) as f64;
-                let (nt, np) = (1500, 600);
-                let mut sum = 0.0f64;
-                for i in 0..nt {
-                    // θ_h over [0, π/2) in the variable s = sin²… keep it plain: uniform θ.
-                    let th = (i as f64 + 0.5) / nt as f64 * std::f64::consts::FRAC_PI_2;
-                    for j in 0..np {
-                        let ph = (j as f64 + 0.5) / np as f64 * std::f64::consts::TAU;
-                        let h = Vec3::new(
-                            (th.sin() * ph.cos()) as f32,
-                            (th.sin() * ph.sin()) as f32,
-                            th.cos() as f32,
-                        );
-                        let vh = v.dot(h).max(0.0) as f64;
-                        let dw = th.sin()
-                            * (std::f64::consts::FRAC_PI_2 / nt as f64)
-                            * (std::f64::consts::TAU / np as f64);
-                        sum += vh * ggx_d(alpha, h.z) as f64 * dw;
-                    }
-                }
+                let sum = hemisphere(1500, 600, |h| {
+                    v.dot(h).max(0.0) as f64 * ggx_d(alpha, h.z) as f64
+                });
                 let got = g1 * sum;
                 assert!(
                     (got - v.z as f64).abs() < 0.01 * v.z as f64 + 1e-3,
@@ -559,23 +412,7 @@ mod tests {
             let g = Gloss { alpha, eta: 1.5 };
             let t = theta_deg.to_radians();
             let v = Vec3::new(t.sin(), 0.0, t.cos());
-            let (nt, np) = (800, 400);
-            let mut quad = 0.0f64;
-            for i in 0..nt {
-                let th = (i as f64 + 0.5) / nt as f64 * std::f64::consts::FRAC_PI_2;
-                for j in 0..np {
-                    let ph = (j as f64 + 0.5) / np as f64 * std::f64::consts::TAU;
-                    let l = Vec3::new(
-                        (th.sin() * ph.cos()) as f32,
-                        (th.sin() * ph.sin()) as f32,
-                        th.cos() as f32,
-                    );
-                    let dw = th.sin()
-                        * (std::f64::consts::FRAC_PI_2 / nt as f64)
-                        * (std::f64::consts::TAU / np as f64);
-                    quad += brdf(g, n, l, v) as f64 * l.z as f64 * dw;
-                }
-            }
+            let quad = hemisphere(800, 400, |l| brdf(g, n, l, v) as f64 * l.z as f64);
             let m = 512u32;
             let mut mc = 0.0f64;
             for a in 0..m {

@@ -1017,12 +1017,31 @@ function snapshot() {
   }, "image/png");
 }
 
-function glb() {
+async function glb() {
   if (!app.radiance) {
     setBanner("app", "No relit frame yet: the .glb needs the server's radiance");
     return;
   }
-  const bytes = buildGlb(app.mesh, app.radiance, app.state.exposure, app.state.tone, "translux viewer");
+  // Vertex colours hold the whole answer: with the direct light drawn per pixel, the
+  // server is asked again for it at the vertices.
+  let radiance = app.radiance;
+  if (app.frameDirect) {
+    const { direct_at: _, ...request } = app.link.latest.request;
+    try {
+      const r = await apiFetch(`/api/v1/scenes/${encodeURIComponent(app.state.scene)}/relight`, {
+        method: "POST",
+        headers: { "content-type": "application/json", accept: "application/octet-stream" },
+        body: JSON.stringify(request),
+      });
+      if (!r.ok) throw new Error(`${r.status} ${(await r.json().catch(() => null))?.error?.message ?? r.statusText}`);
+      radiance = new Float32Array(await r.arrayBuffer());
+    } catch (e) {
+      setBanner("app", `Cannot make the .glb: the server did not answer the vertex colours (${e.message})`);
+      return;
+    }
+  }
+  app.glbRadiance = radiance;
+  const bytes = buildGlb(app.mesh, radiance, app.state.exposure, app.state.tone, "translux viewer");
   download(`translux-${app.state.scene}-${app.state.components}.glb`, new Blob([bytes], { type: "model/gltf-binary" }));
 }
 

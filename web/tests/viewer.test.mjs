@@ -373,46 +373,20 @@ async function checkSpecular(browser) {
   await firstLit(page);
   await page.uncheck("#gizmo");
   await idle(page);
-  // Luminance per pixel of the drawing buffer, rows from the top.
-  const viewerLum = () => page.evaluate(() => {
-    const { w, h, px } = window.translux.app.renderer.readPixels();
-    const out = new Float64Array(w * h);
-    for (let y = 0; y < h; y++) {
-      for (let x = 0; x < w; x++) {
-        const i = ((h - 1 - y) * w + x) * 4;
-        out[y * w + x] = 0.2126 * px[i] + 0.7152 * px[i + 1] + 0.0722 * px[i + 2];
-      }
-    }
-    return { w, h, lum: Array.from(out) };
-  });
-  const on = await viewerLum();
+  const luminance = (rgb) => {
+    const out = new Float64Array(rgb.length / 3);
+    for (let i = 0; i < out.length; i++) out[i] = 0.2126 * rgb[3 * i] + 0.7152 * rgb[3 * i + 1] + 0.0722 * rgb[3 * i + 2];
+    return Array.from(out);
+  };
+  const first = await viewerRgb(page);
+  const on = { w: first.w, h: first.h, lum: luminance(first.rgb) };
   await page.uncheck("#specular");
   await idle(page);
-  const off = await viewerLum();
+  const off = { lum: luminance((await viewerRgb(page)).rgb) };
   await page.check("#specular");
   await idle(page);
-  const renderLum = (specular) => page.evaluate(async ({ specular, w, h }) => {
-    const a = window.translux.app;
-    const cam = a.camera.toJSON();
-    const body = {
-      lights: a.state.lights, materials: a.state.materials, components: a.state.components,
-      camera: { position: cam.position, target: cam.target, up: [0, 1, 0], fov_deg: cam.fov_deg },
-      width: w, height: h, exposure: a.state.exposure, tone: a.state.tone, specular,
-    };
-    const r = await fetch(`/api/v1/scenes/${a.state.scene}/render`, {
-      method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify(body),
-    });
-    if (!r.ok) throw new Error(`render: ${r.status} ${await r.text()}`);
-    const bmp = await createImageBitmap(await r.blob(), { colorSpaceConversion: "none" });
-    const c = new OffscreenCanvas(w, h);
-    const g = c.getContext("2d");
-    g.drawImage(bmp, 0, 0);
-    const px = g.getImageData(0, 0, w, h).data;
-    const out = new Float64Array(w * h);
-    for (let i = 0; i < w * h; i++) out[i] = 0.2126 * px[4 * i] + 0.7152 * px[4 * i + 1] + 0.0722 * px[4 * i + 2];
-    return Array.from(out);
-  }, { specular, w: on.w, h: on.h });
-  const ron = await renderLum(true), roff = await renderLum(false);
+  const ron = luminance(await renderRgb(page, on.w, on.h, { specular: true }));
+  const roff = luminance(await renderRgb(page, on.w, on.h, { specular: false }));
   // The added light per pixel, its total and its centroid, in both pictures.
   const added = (a, b) => {
     let sum = 0, sx = 0, sy = 0;
@@ -857,6 +831,7 @@ try {
       tone: a.state.tone,
       request: a.link.latest.request,
       radiance: Array.from(a.radiance),
+      glb_radiance: Array.from(a.glbRadiance),
     };
   });
   writeFileSync(join(outDir, "viewer-glb-source.json"), JSON.stringify(source));

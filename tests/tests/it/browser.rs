@@ -319,7 +319,17 @@ fn viewer_in_a_real_browser() {
         &bundle,
         &source,
     );
-    check_radiance_matches_server(&server, &source);
+    // The page drew the answer to its request; the .glb baked the answer to the same request
+    // with the direct light at the vertices.
+    assert_eq!(
+        source["request"]["direct_at"], "pixel",
+        "{}",
+        source["request"]
+    );
+    check_radiance_matches_server(&server, &source, &source["request"], "radiance");
+    let mut whole = source["request"].clone();
+    whole.as_object_mut().unwrap().remove("direct_at");
+    check_radiance_matches_server(&server, &source, &whole, "glb_radiance");
     check_snapshot(&out.join("snapshot.png"));
     server.stop();
 }
@@ -425,7 +435,9 @@ fn check_glb(glb: &[u8], bundle: &Bundle, source: &Value) {
             assert_eq!(v, want, "triangle {t}");
         }
     }
-    let radiance = floats(&source["radiance"]);
+    // What the .glb baked: the whole answer at the vertices (the viewer asks for it again
+    // when it draws the direct light per pixel).
+    let radiance = floats(&source["glb_radiance"]);
     assert_eq!(radiance.len(), 3 * n);
     let exposure = source["exposure"].as_f64().unwrap() as f32;
     let tone: ToneMap = source["tone"].as_str().unwrap().parse().unwrap();
@@ -453,8 +465,13 @@ fn check_glb(glb: &[u8], bundle: &Bundle, source: &Value) {
     );
 }
 
-/// The radiance the page drew is the server's answer to the request the page sent.
-fn check_radiance_matches_server(server: &ServerThread, source: &Value) {
+/// `source[field]` is the server's answer to `request`.
+fn check_radiance_matches_server(
+    server: &ServerThread,
+    source: &Value,
+    request: &Value,
+    field: &str,
+) {
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -464,7 +481,7 @@ fn check_radiance_matches_server(server: &ServerThread, source: &Value) {
         server.addr,
         source["scene"].as_str().unwrap()
     );
-    let body = source["request"].to_string();
+    let body = request.to_string();
     let want: Vec<f32> = rt.block_on(async {
         let r = reqwest::Client::new()
             .post(&url)
@@ -481,7 +498,7 @@ fn check_radiance_matches_server(server: &ServerThread, source: &Value) {
             .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
             .collect()
     });
-    let got = floats(&source["radiance"]);
+    let got = floats(&source[field]);
     assert_eq!(got.len(), want.len());
     let scale = want.iter().fold(0f32, |m, &x| m.max(x.abs())).max(1e-12);
     for (i, (g, w)) in got.iter().zip(&want).enumerate() {
@@ -489,7 +506,7 @@ fn check_radiance_matches_server(server: &ServerThread, source: &Value) {
         // to float summation order.
         assert!(
             (g - w).abs() <= 1e-4 * scale + 1e-4 * w.abs(),
-            "radiance[{i}]: the page drew {g}, the server answers {w}"
+            "{field}[{i}]: the page has {g}, the server answers {w}"
         );
     }
 }
