@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # Renders the paper's comparison figures into docs/figures/ with the offline commands
 # (no server): Fig. 5 (light components of the Cornell box), Fig. 6 (translucency sweep),
-# Fig. 7 (heterogeneous checkerboard block) and Fig. 12 (full model vs the two heuristics).
+# Fig. 7 (heterogeneous checkerboard block), Fig. 8 b–c (specular highlights on the bowls),
+# Fig. 12 (full model vs the two heuristics), and the direct light per pixel against the
+# all-per-vertex picture.
 # docs/figures/README.md says what each image shows.
 #
 #   bash scripts/figures.sh            # 3000 patches per scene, 400×300 images
 #   PATCHES=6000 SIZE=640x480 bash scripts/figures.sh
 #
 # A few minutes on 2 cores: it builds the two binaries (release), precomputes three bundles
-# into a temporary folder and renders 11 images.
+# into a temporary folder and renders 15 images.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -98,5 +100,21 @@ render checker fig7_checker.png "$EV" '{}'
 for c in full heuristic_a heuristic_b; do
   render bowls "fig12_$c.png" 2 "{\"components\":\"$c\"}"
 done
+
+# Fig. 8 b–c: the bowls and the blob with a glossy coat (GGX, roughness 0.25, eta from each
+# medium), against the same picture without the specular pass.
+GLOSSY='{"materials":{'
+for b in red_bowl:0.003,0.12,0.15:2.2,2.0,1.9 green_bowl:0.14,0.004,0.11:2.0,2.2,2.0 \
+  blue_bowl:0.16,0.09,0.003:1.9,2.0,2.2; do
+  IFS=: read -r name sa ss <<<"$b"
+  GLOSSY+="\"$name\":{\"type\":\"translucent\",\"profile\":{\"type\":\"dipole\",\"sigma_a\":[$sa],\"sigma_s_prime\":[$ss],\"eta\":1.3},\"specular\":{\"roughness\":0.25}},"
+done
+GLOSSY+='"blob":{"type":"translucent","profile":{"type":"dipole","preset":"skimmilk"},"specular":{"roughness":0.25}}}'
+render bowls fig8_specular.png 2 "$GLOSSY}"
+render bowls fig8_no_specular.png 2 "$GLOSSY,\"specular\":false}"
+
+# The direct light per pixel (renders' default) against the same light at the vertices.
+render cornell crisp_pixel.png "$EV" '{"direct_at":"pixel"}'
+render cornell crisp_vertex.png "$EV" '{"direct_at":"vertex"}'
 
 echo "wrote $(ls "$OUT"/*.png | wc -l) images to $OUT"

@@ -623,7 +623,7 @@ mod tests {
         let relight: RelightRequest = parse_json(
             r#"{"lights":[{"type":"point","position":[0,1,0],"intensity":[1,2,3]}],
                 "materials":{"block":{"type":"diffuse","albedo":[1,0,0]}},
-                "components":"direct","solver":"iterative"}"#,
+                "components":"direct","solver":"iterative","direct_at":"pixel"}"#,
         )
         .unwrap();
         let text = serde_json::to_string(&relight).unwrap();
