@@ -102,16 +102,22 @@ for c in full heuristic_a heuristic_b; do
 done
 
 # Fig. 8 b–c: the bowls and the blob with a glossy coat (GGX, roughness 0.25, eta from each
-# medium), against the same picture without the specular pass.
+# medium) and a lamp above the front added to the lights inside the bowls, against the same
+# picture without the specular pass.
 GLOSSY='{"materials":{'
 for b in red_bowl:0.003,0.12,0.15:2.2,2.0,1.9 green_bowl:0.14,0.004,0.11:2.0,2.2,2.0 \
   blue_bowl:0.16,0.09,0.003:1.9,2.0,2.2; do
   IFS=: read -r name sa ss <<<"$b"
   GLOSSY+="\"$name\":{\"type\":\"translucent\",\"profile\":{\"type\":\"dipole\",\"sigma_a\":[$sa],\"sigma_s_prime\":[$ss],\"eta\":1.3},\"specular\":{\"roughness\":0.25}},"
 done
-GLOSSY+='"blob":{"type":"translucent","profile":{"type":"dipole","preset":"skimmilk"},"specular":{"roughness":0.25}}}'
-render bowls fig8_specular.png 2 "$GLOSSY}"
-render bowls fig8_no_specular.png 2 "$GLOSSY,\"specular\":false}"
+GLOSSY+='"blob":{"type":"translucent","profile":{"type":"dipole","preset":"skimmilk"},"specular":{"roughness":0.25}}},'
+GLOSSY+='"lights":['
+for at in -0.22,0.05,-0.06 0,0.05,-0.13 0.22,0.05,-0.06; do
+  GLOSSY+="{\"type\":\"point\",\"position\":[$at],\"intensity\":[0.05,0.05,0.05]},"
+done
+GLOSSY+='{"type":"point","position":[0.1,0.45,0.45],"intensity":[0.4,0.4,0.4]}]'
+render bowls fig8_specular.png 0 "$GLOSSY}"
+render bowls fig8_no_specular.png 0 "$GLOSSY,\"specular\":false}"
 
 # The direct light per pixel (renders' default) against the same light at the vertices.
 render cornell crisp_pixel.png "$EV" '{"direct_at":"pixel"}'
