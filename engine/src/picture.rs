@@ -72,23 +72,16 @@ fn pixel_lighting<'a>(
     let r = &plan.relight;
     let manifest = scene.bundle.manifest();
     let glossy = plan.specular && with_highlights(r.components);
-    let shading: Vec<ObjectShading> = manifest
-        .objects
-        .iter()
+    let shading: Vec<ObjectShading> = r
+        .materials(scene)
+        .into_iter()
         .enumerate()
-        .map(|(k, o)| {
-            let material = r
-                .overrides
-                .iter()
-                .find(|(i, _)| *i == k)
-                .map_or(&o.material, |(_, m)| m);
-            ObjectShading {
-                gloss: if glossy { r.gloss[k] } else { None },
-                diffuse: match r.direct_at {
-                    DirectAt::Pixel => relight::per_pixel_direct(material),
-                    DirectAt::Vertex => None,
-                },
-            }
+        .map(|(k, material)| ObjectShading {
+            gloss: if glossy { r.gloss[k] } else { None },
+            diffuse: match r.direct_at {
+                DirectAt::Pixel => relight::per_pixel_direct(material),
+                DirectAt::Vertex => None,
+            },
         })
         .collect();
     if shading

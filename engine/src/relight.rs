@@ -46,6 +46,26 @@ pub struct RelightPlan {
     pub tolerance: f32,
 }
 
+impl RelightPlan {
+    /// Each object's material as the transport sees it: the override where the plan has
+    /// one, else the bundle's (one per manifest object).
+    pub fn materials<'a>(&'a self, scene: &'a Scene) -> Vec<&'a Material> {
+        scene
+            .bundle
+            .manifest()
+            .objects
+            .iter()
+            .enumerate()
+            .map(|(k, o)| {
+                self.overrides
+                    .iter()
+                    .find(|(i, _)| *i == k)
+                    .map_or(&o.material, |(_, m)| m)
+            })
+            .collect()
+    }
+}
+
 /// Validates `req` for `scene`: 400 `invalid` for out-of-range values (the message names the
 /// field), 400 `unsupported` for valid requests this build cannot do yet. Nothing is ignored.
 pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineError> {
@@ -272,18 +292,7 @@ fn vertex_direct(
     if lights.is_empty() {
         return Ok(None);
     }
-    let materials: Vec<&Material> = b
-        .manifest()
-        .objects
-        .iter()
-        .enumerate()
-        .map(|(k, o)| {
-            plan.overrides
-                .iter()
-                .find(|(i, _)| *i == k)
-                .map_or(&o.material, |(_, m)| m)
-        })
-        .collect();
+    let materials = plan.materials(scene);
     let samples = scene.vertex_samples();
     let opaque = crate::vertexlight::opaque_objects(&materials, plan.components);
     let which = samples.opaque_vertices(b, &opaque);
@@ -305,10 +314,10 @@ fn vertex_direct(
     let per_pixel = match plan.direct_at {
         DirectAt::Vertex => None,
         DirectAt::Pixel => {
+            // Diffuse objects count as opaque under every component.
             let diffuse: Vec<bool> = materials
                 .iter()
-                .zip(&opaque)
-                .map(|(m, &o)| o && per_pixel_direct(m).is_some())
+                .map(|m| per_pixel_direct(m).is_some())
                 .collect();
             let skip: std::collections::HashSet<usize> =
                 samples.opaque_vertices(b, &diffuse).into_iter().collect();
@@ -500,15 +509,9 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                             irradiance: v.at_patch.as_deref().unwrap_or(&p.irradiance),
                             albedo,
                         };
-                        let samples = scene.vertex_samples();
-                        crate::vertexlight::correct(
-                            b,
-                            samples,
-                            &v.which,
-                            &v.at_vertex,
-                            terms,
-                            &mut radiance,
-                        );
+                        let means =
+                            crate::vertexlight::VertexMeans::new(b, scene.vertex_samples(), terms);
+                        means.set(&v.which, &v.at_vertex, &mut radiance);
                         if let Some(skip) = &v.per_pixel {
                             // The exposure of the whole answer, then the answer without the
                             // direct term the picture adds per pixel.
@@ -519,14 +522,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                                 .zip(skip)
                                 .map(|(e, &s)| if s { [0.0; 3] } else { *e })
                                 .collect();
-                            crate::vertexlight::correct(
-                                b,
-                                samples,
-                                &v.which,
-                                &e,
-                                terms,
-                                &mut radiance,
-                            );
+                            means.set(&v.which, &e, &mut radiance);
                         }
                     }
                     if plans[i].direct_at == DirectAt::Pixel && auto_exposure.is_none() {

@@ -188,50 +188,60 @@ pub struct PatchTerms<'a> {
     pub albedo: &'a [Rgb],
 }
 
-/// Sets `radiance` (per vertex, W·m⁻²·sr⁻¹) at the vertices `which` to
-/// mean(B − ρE)/π + ρ̄ E(v)/π over the patches that count ([`VertexSamples::counts`]).
-/// `vertex_e[i]` is E at vertex `which[i]`.
-pub fn correct(
-    b: &Bundle,
-    samples: &VertexSamples,
-    which: &[usize],
-    vertex_e: &[Rgb],
-    patches: PatchTerms<'_>,
-    radiance: &mut [Rgb],
-) {
-    let v = radiance.len();
-    // Per vertex: Σ a (B − ρ E), Σ a ρ, Σ a over its patches that count.
-    let mut rest = vec![[0.0f64; 3]; v];
-    let mut rho = vec![[0.0f64; 3]; v];
-    let mut area = vec![0.0f64; v];
-    for (k, t) in b.triangle_vertices().iter().enumerate() {
-        if !samples.counts[k] {
-            continue;
-        }
-        let a = b.patch_areas()[k] as f64;
-        let (bb, e, r) = (
-            patches.radiosity[k],
-            patches.irradiance[k],
-            patches.albedo[k],
-        );
-        for &q in t {
-            let q = q as usize;
-            for c in 0..3 {
-                rest[q][c] += a * (bb[c] as f64 - r[c] as f64 * e[c] as f64);
-                rho[q][c] += a * r[c] as f64;
+/// Per vertex, over the patches that count ([`VertexSamples::counts`]): Σ a (B − ρE),
+/// Σ a ρ and Σ a, made once per relight; [`VertexMeans::set`] then writes the vertices'
+/// values for any E at the vertices.
+#[derive(Debug, Clone)]
+pub struct VertexMeans {
+    rest: Vec<[f64; 3]>,
+    rho: Vec<[f64; 3]>,
+    area: Vec<f64>,
+}
+
+impl VertexMeans {
+    pub fn new(b: &Bundle, samples: &VertexSamples, patches: PatchTerms<'_>) -> VertexMeans {
+        let v = b.vertex_positions().len();
+        let mut m = VertexMeans {
+            rest: vec![[0.0; 3]; v],
+            rho: vec![[0.0; 3]; v],
+            area: vec![0.0; v],
+        };
+        for (k, t) in b.triangle_vertices().iter().enumerate() {
+            if !samples.counts[k] {
+                continue;
             }
-            area[q] += a;
+            let a = b.patch_areas()[k] as f64;
+            let (bb, e, r) = (
+                patches.radiosity[k],
+                patches.irradiance[k],
+                patches.albedo[k],
+            );
+            for &q in t {
+                let q = q as usize;
+                for c in 0..3 {
+                    m.rest[q][c] += a * (bb[c] as f64 - r[c] as f64 * e[c] as f64);
+                    m.rho[q][c] += a * r[c] as f64;
+                }
+                m.area[q] += a;
+            }
         }
+        m
     }
-    let inv_pi = 1.0 / std::f64::consts::PI;
-    for (&q, ev) in which.iter().zip(vertex_e) {
-        if area[q] <= 0.0 {
-            continue;
-        }
-        for c in 0..3 {
-            let value = (rest[q][c] + rho[q][c] * ev[c] as f64) / area[q] * inv_pi;
-            // B ≥ ρE on every patch, so only rounding can make it negative.
-            radiance[q][c] = value.max(0.0) as f32;
+
+    /// Sets `radiance` (per vertex, W·m⁻²·sr⁻¹) at the vertices `which` to
+    /// mean(B − ρE)/π + ρ̄ E(v)/π; `vertex_e[i]` is E at vertex `which[i]`.
+    pub fn set(&self, which: &[usize], vertex_e: &[Rgb], radiance: &mut [Rgb]) {
+        let inv_pi = 1.0 / std::f64::consts::PI;
+        for (&q, ev) in which.iter().zip(vertex_e) {
+            if self.area[q] <= 0.0 {
+                continue;
+            }
+            for c in 0..3 {
+                let value =
+                    (self.rest[q][c] + self.rho[q][c] * ev[c] as f64) / self.area[q] * inv_pi;
+                // B ≥ ρE on every patch, so only rounding can make it negative.
+                radiance[q][c] = value.max(0.0) as f32;
+            }
         }
     }
 }
@@ -261,6 +271,6 @@ pub fn apply(
         lights,
         b.manifest().unit_mm,
     )?;
-    correct(b, &samples, &which, &at_vertex, patches, radiance);
+    VertexMeans::new(b, &samples, patches).set(&which, &at_vertex, radiance);
     Ok(())
 }
