@@ -24,7 +24,8 @@
 //! - [`profile`] — diffuse reflectance profiles (dipole, multipole, tables, exponentials);
 //!   [`subsurface`] — the quadrature of S between patches; [`sheet`] and [`hetero`] — S of
 //!   thin sheets and of heterogeneous objects; [`smatrix`] — the scene's S from the stored
-//!   distances and the materials (stage 2: the precompute's, and every translucency change).
+//!   distances and the materials (stage 2: the precompute's, and every translucency change);
+//!   [`simulated`] — a simulated S: random walks inside the mesh, re-weighted for absorption.
 //! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
 //!   relit mesh as binary glTF or PLY.
 //! - [`scene`] — a bundle opened for relighting, with its caches and the [`backend`] it
@@ -55,6 +56,7 @@ pub mod relight;
 pub mod render;
 pub mod scene;
 pub mod sheet;
+pub mod simulated;
 pub mod smatrix;
 pub mod solver;
 pub mod specular;

@@ -11,7 +11,7 @@
 
 use glam::{Vec3, Vec3A};
 use obvhs::{
-    BvhBuildParams, cwbvh::CwBvh, cwbvh::builder::build_cwbvh_from_tris, ray::Ray,
+    BvhBuildParams, cwbvh::CwBvh, cwbvh::builder::build_cwbvh_from_tris, ray::Ray, ray::RayHit,
     triangle::Triangle,
 };
 
@@ -166,6 +166,32 @@ impl Occluder {
     /// room): surfaces closer than that to a face's front count as touching it.
     pub fn contact_step(&self) -> f32 {
         2e-4 * self.diagonal
+    }
+
+    /// The nearest triangle hit by the ray from `origin` along unit `dir` within
+    /// `(tmin, tmax)`: its index in the triangles the occluder was built from, and the
+    /// distance. Used by the random walks of a simulated S, against one object's mesh.
+    pub fn closest_hit(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+    ) -> Option<(usize, f32)> {
+        let ray = Ray::new(origin.into(), positive_zeros(dir).into(), tmin, tmax);
+        let mut hit = RayHit::none();
+        let found = self.bvh.ray_traverse(ray, &mut hit, |r, id| {
+            if self.padding[id] {
+                f32::INFINITY
+            } else {
+                intersect_closed(&self.tris[id], r)
+            }
+        });
+        if !found || hit.primitive_id == obvhs::ray::INVALID_ID {
+            return None;
+        }
+        let k = self.bvh.primitive_indices[hit.primitive_id as usize] as usize;
+        Some((k, hit.t))
     }
 
     #[inline]

@@ -32,6 +32,7 @@ use crate::hetero::{self, MediaLen};
 use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
+use crate::simulated::{self, SimMedium, WalksView};
 use crate::sterms::{ObjectTerms, STerms};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
@@ -153,6 +154,7 @@ pub fn assemble_scene(
     unit_mm: f64,
     params: &SParams,
     fast: Option<&FastPath<'_>>,
+    walks: Option<&WalksView<'_>>,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let n = g.corners.len();
     let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
@@ -297,6 +299,36 @@ pub fn assemble_scene(
                     seconds: t.elapsed().as_secs_f64(),
                 });
                 place(&mut rows, r.start, s.rows, Vec::new());
+            }
+            Material::Simulated { .. } => {
+                let t = Instant::now();
+                let Some(walks) = walks else {
+                    return Err(SError::Media {
+                        object: o.name.to_string(),
+                        why: "no walks were stored for it (precompute it with this material)"
+                            .into(),
+                    });
+                };
+                let medium = SimMedium::of(o.material).ok_or_else(|| SError::Media {
+                    object: o.name.to_string(),
+                    why: "its simulated medium is incomplete".into(),
+                })?;
+                let (local, max_column) =
+                    simulated::reweight(walks, r.clone(), &g.area, medium.sigma_a);
+                let entries = local.iter().map(|row| row.len() as u64).sum();
+                for (k, row) in local.into_iter().enumerate() {
+                    rows[r.start + k] = row;
+                }
+                reports.push(AssemblyReport {
+                    name: o.name.to_string(),
+                    radius: 0.0,
+                    capped_from: None,
+                    max_column_energy: max_column,
+                    scaled_columns: 0,
+                    entries,
+                    links: 0,
+                    seconds: t.elapsed().as_secs_f64(),
+                });
             }
             Material::Translucent { profile, .. } => {
                 let t = Instant::now();
@@ -458,6 +490,39 @@ pub fn bundle_materials(
     // must have been built heterogeneous with the same pattern and number of media (only the
     // media's profiles may change).
     for (k, mat) in overrides {
+        if let (Some(new), Some(built)) = (SimMedium::of(mat), m.objects.get(*k)) {
+            let why = match SimMedium::of(&built.material) {
+                Some(b) => simulated::check_override(&b, &new).err(),
+                None => Some(format!(
+                    "it was precomputed as {}; a simulated S needs walks, which only \
+                     translux-precompute runs",
+                    built.material.kind()
+                )),
+            };
+            if let Some(why) = why {
+                return Err(SError::Media {
+                    object: built.name.clone(),
+                    why,
+                });
+            }
+        }
+        if let (
+            Material::Translucent { .. }
+            | Material::Heterogeneous { .. }
+            | Material::ThinSheet { .. },
+            Some(built),
+        ) = (mat, m.objects.get(*k))
+            && matches!(built.material, Material::Simulated { .. })
+        {
+            return Err(SError::Media {
+                object: built.name.clone(),
+                why: format!(
+                    "it was precomputed as simulated, without the optical distances a {} \
+                     material needs; run translux-precompute again to change its kind",
+                    mat.kind()
+                ),
+            });
+        }
         let Material::Heterogeneous {
             materials, pattern, ..
         } = mat
@@ -567,6 +632,11 @@ pub fn material_albedo_emission(m: &Material) -> ([f32; 3], [f32; 3]) {
                 [0.0; 3],
             )
         }
+        // A simulated object: the dipole's total diffuse reflectance of the same medium.
+        Material::Simulated { .. } => (
+            SimMedium::of(m).map_or([0.5; 3], |s| s.opaque_albedo()),
+            [0.0; 3],
+        ),
         // A heterogeneous object as a whole: the mean of its media's total diffuse
         // reflectances, each medium counted once (the precompute writes each patch's own
         // medium's instead, see `patch_albedo`).
@@ -681,6 +751,7 @@ fn assemble_overrides(
         .collect();
     let material_len: &[MediaLen] =
         bytemuck::try_cast_slice(bundle.f32s(arrays::DIST_MATERIAL_LEN)).unwrap_or(&[]);
+    let walks = bundle.walks();
     assemble_scene(
         &g,
         &objects,
@@ -692,5 +763,6 @@ fn assemble_overrides(
         m.unit_mm,
         params,
         fast,
+        walks.as_ref(),
     )
 }

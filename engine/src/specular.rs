@@ -77,6 +77,7 @@ pub fn medium_eta(material: &Material) -> Option<f32> {
         Material::Translucent { profile, .. } => of(profile),
         Material::ThinSheet { reflectance, .. } => of(reflectance),
         Material::Heterogeneous { materials, .. } => materials.first().and_then(of),
+        Material::Simulated { .. } => crate::simulated::SimMedium::of(material).map(|m| m.eta),
         Material::Diffuse { .. } | Material::Emitter { .. } => None,
     }
 }

@@ -300,7 +300,7 @@ pub fn subsurface_objects(
     energy: f32,
 ) -> Vec<SubsurfaceObject> {
     d.iter()
-        .zip(a)
+        .filter_map(|d| a.iter().find(|a| a.name == d.name).map(|a| (d, a)))
         .map(|(d, a)| SubsurfaceObject {
             name: d.name.clone(),
             method: d.method.clone(),
@@ -315,6 +315,7 @@ pub fn subsurface_objects(
             links: a.links,
             entries: a.entries,
             warning: d.warning.clone(),
+            simulation: None,
             seconds: d.seconds + a.seconds,
         })
         .collect()

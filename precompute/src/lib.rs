@@ -51,5 +51,6 @@ pub mod scene;
 pub mod shapes;
 pub mod sheet;
 pub mod simplify;
+pub mod simulate;
 pub mod slinks;
 pub mod voxel;

@@ -240,6 +240,25 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         );
     }
     for o in &ss.objects {
+        if let Some(sim) = &o.simulation {
+            println!(
+                "    {:<16} simulated: {} walks ({} scattering events), noise {:.2}% median / \
+                 {:.2}% max, {} records, {} entries of S, {} lost, {} cut, max column energy \
+                 {:.3}, {:.2} s",
+                o.name,
+                sim.walks,
+                sim.events,
+                100.0 * sim.noise_median,
+                100.0 * sim.noise_max,
+                sim.records,
+                o.entries,
+                sim.lost,
+                sim.cut,
+                o.max_column_energy,
+                o.seconds
+            );
+            continue;
+        }
         println!(
             "    {:<16} {} paths, r ≤ {:.4} (scene units), {} voxels ({} inside, size {:.4}), \
              max column energy {:.3}{}, {:.2} s",

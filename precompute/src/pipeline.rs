@@ -231,6 +231,9 @@ pub enum PrecomputeError {
     Write(#[from] BundleWriteError),
     #[error("cancelled")]
     Cancelled,
+    /// A simulated object that walks cannot run in (an open mesh, say).
+    #[error("{0}")]
+    Simulation(String),
 }
 
 /// Bytes per stored non-zero of F while building: the final CSR (col 4 + val 4), the upper
@@ -430,6 +433,15 @@ pub fn precompute(
             );
         }
     }
+
+    // Simulated objects need closed meshes facing out: refused before any work.
+    crate::simulate::check_meshes(
+        scene
+            .objects
+            .iter()
+            .map(|o| (o.name.as_str(), &o.material, o.triangles.as_slice())),
+    )
+    .map_err(PrecomputeError::Simulation)?;
 
     // Plan: density and the patch count it gives, checked before anything big is made.
     if params.patches == Some(0) {
@@ -678,6 +690,45 @@ pub fn precompute(
     let unit_mm = scene.file.unit_mm;
     let sp = &params.subsurface;
     let media = scene_media(scene, &patches, h);
+    // Random walks of simulated objects, before the distances of the others.
+    let sim_patches: u64 = materials
+        .iter()
+        .filter(|o| matches!(o.material, Material::Simulated { .. }))
+        .map(|o| o.patches.len() as u64)
+        .sum();
+    if sim_patches > 0 {
+        bar.set_length(2 + sim_patches);
+    }
+    let walks = crate::simulate::scene_walks(&geometry, &materials, &sources, unit_mm, &|d| {
+        bar.set_position(d)
+    })
+    .map_err(PrecomputeError::Simulation)?;
+    for (name, info, seconds) in &walks.reports {
+        tell(
+            params,
+            &format!(
+                "note: simulated '{name}': {} walks, {} events in {seconds:.1} s; noise {:.2}% \
+                 median, {:.2}% max; {} records; {} lost, {} cut",
+                info.walks,
+                info.events,
+                100.0 * info.noise_median,
+                100.0 * info.noise_max,
+                info.records,
+                info.lost,
+                info.cut
+            ),
+        );
+    }
+    let walks_view = (!walks.is_empty()).then(|| {
+        translux_proto::bundle::WalksView::new_checked(
+            n as usize,
+            &walks.row_ptr,
+            &walks.col,
+            &walks.bin,
+            &walks.weight,
+        )
+        .expect("the walks build valid records")
+    });
     let (dist, dist_len, dist_kind, dist_reports) = distances::scene_distances(
         &geometry,
         &materials,
@@ -755,6 +806,7 @@ pub fn precompute(
         unit_mm,
         sp,
         None,
+        walks_view.as_ref(),
     )?;
     bar.inc(1);
     for d in &dist_reports {
@@ -767,7 +819,25 @@ pub fn precompute(
         distance_nnz: dist.col.len() as u64,
         links,
         pairwise_distances: if links > 0 { pairwise_distances } else { 0 },
-        objects: distances::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy),
+        walks: walks.col.len() as u64,
+        objects: {
+            let mut o =
+                distances::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy);
+            for (name, info, seconds) in &walks.reports {
+                let a = s_reports.iter().find(|a| &a.name == name);
+                o.push(translux_proto::bundle::SubsurfaceObject {
+                    name: name.clone(),
+                    method: "simulated".into(),
+                    truncation_energy: sp.truncation_energy,
+                    max_column_energy: a.map_or(0.0, |a| a.max_column_energy),
+                    entries: a.map_or(0, |a| a.entries),
+                    simulation: Some(info.clone()),
+                    seconds: seconds + a.map_or(0.0, |a| a.seconds),
+                    ..Default::default()
+                });
+            }
+            o
+        },
     };
     finish(bar, progress, "subsurface", t, &mut stages);
 
@@ -978,6 +1048,29 @@ pub fn precompute(
             data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
+    if !walks.is_empty() {
+        let w = walks.col.len() as u64;
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_ROW_PTR,
+            shape: vec![np + 1],
+            data: ArrayData::U64(walks.row_ptr.clone()),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_COL,
+            shape: vec![w],
+            data: ArrayData::U32(walks.col.clone()),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_BIN,
+            shape: vec![w],
+            data: ArrayData::U32(walks.bin.clone()),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_WEIGHT,
+            shape: vec![w, 3],
+            data: ArrayData::F32(walks.weight.iter().flatten().copied().collect()),
+        });
+    }
     let hierarchy_info = tree.map(|(t, range, info)| {
         arrays_out.push(NamedArray {
             name: arrays::TREE_PERM,

@@ -286,8 +286,50 @@ tagged_enum! {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         specular: Option<Specular>,
     },
+    /// A translucent object whose S is simulated: random walks through a homogeneous medium
+    /// inside the object's actual closed mesh (the paper's "simulation-based" S). A walk
+    /// enters patch i diffusely, scatters (isotropic, or Henyey–Greenstein with `g`) until
+    /// it leaves through patch j (an index-matched boundary when η = 1, else a smooth
+    /// dielectric that reflects by Fresnel), and adds to S_ji. The medium is a Jensen
+    /// `preset` (σs′, σa, η; `sigma_a` and `eta` may replace the preset's), or `sigma_a` with
+    /// `sigma_s_prime` (isotropic) or `sigma_s` and `g`, in mm⁻¹. Walks record their path
+    /// lengths, so a new `sigma_a` re-weights them (e^(−σa L)) without re-simulating;
+    /// scattering, `g` and `eta` are geometry of the walks and need a new precompute.
+    Simulated {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        preset: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sigma_a: Option<[f32; 3]>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sigma_s_prime: Option<[f32; 3]>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sigma_s: Option<[f32; 3]>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        g: Option<f32>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        eta: Option<f32>,
+        /// Walks per patch are added until the relative standard error of the patch's
+        /// re-emitted total (at the built σa) is below this (default 0.01).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        noise: Option<f32>,
+        /// At most this many walks per patch and colour group (default 4096).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        max_walks: Option<u32>,
+        /// Seed of the walks (default 1): the same seed gives the same S.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        seed: Option<u64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        specular: Option<Specular>,
+    },
 }
 }
+
+/// Bounds of [`Material::Simulated`]'s `noise`.
+pub const MIN_SIM_NOISE: f32 = 1e-3;
+pub const MAX_SIM_NOISE: f32 = 0.5;
+/// Bounds of [`Material::Simulated`]'s `max_walks` (per patch and colour group).
+pub const MIN_SIM_WALKS: u32 = 16;
+pub const MAX_SIM_WALKS: u32 = 1_000_000;
 
 /// A glossy reflection on top of a material's diffuse or subsurface answer: the paper's
 /// "one bounce of specularities added in a separate pass". A Fresnel-weighted GGX
@@ -358,6 +400,7 @@ impl Material {
             Material::ThinSheet { .. } => "thin_sheet",
             Material::Emitter { .. } => "emitter",
             Material::Heterogeneous { .. } => "heterogeneous",
+            Material::Simulated { .. } => "simulated",
         }
     }
 
@@ -367,7 +410,8 @@ impl Material {
             Material::Diffuse { specular, .. }
             | Material::Translucent { specular, .. }
             | Material::ThinSheet { specular, .. }
-            | Material::Heterogeneous { specular, .. } => specular.as_ref(),
+            | Material::Heterogeneous { specular, .. }
+            | Material::Simulated { specular, .. } => specular.as_ref(),
             Material::Emitter { .. } => None,
         }
     }
@@ -380,7 +424,8 @@ impl Material {
             Material::Diffuse { specular, .. }
             | Material::Translucent { specular, .. }
             | Material::ThinSheet { specular, .. }
-            | Material::Heterogeneous { specular, .. } => *specular = None,
+            | Material::Heterogeneous { specular, .. }
+            | Material::Simulated { specular, .. } => *specular = None,
             Material::Emitter { .. } => {}
         }
         m
@@ -665,6 +710,100 @@ impl Material {
                     p.validate(&format!("{at}.materials[{i}]"))?;
                 }
                 pattern.validate(&format!("{at}.pattern"), k)
+            }
+            Material::Simulated {
+                preset,
+                sigma_a,
+                sigma_s_prime,
+                sigma_s,
+                g,
+                eta,
+                noise,
+                max_walks,
+                seed: _,
+                specular: _,
+            } => {
+                if let Some(p) = preset
+                    && !DIPOLE_PRESETS.contains(&p.as_str())
+                {
+                    return Err(FieldError::new(
+                        format!("{at}.preset"),
+                        format!(
+                            "\"{p}\" is not a known medium; use one of {}",
+                            DIPOLE_PRESETS.join(", ")
+                        ),
+                    ));
+                }
+                if let Some(a) = sigma_a {
+                    check_vec_range(&format!("{at}.sigma_a"), a, 0.0, MAX_SIGMA)?;
+                }
+                let scattering = match (sigma_s_prime, sigma_s) {
+                    (Some(_), Some(_)) => {
+                        return Err(FieldError::new(
+                            at,
+                            "give `sigma_s_prime` (isotropic) or `sigma_s` with `g`, not both",
+                        ));
+                    }
+                    (Some(s), None) => Some(("sigma_s_prime", s)),
+                    (None, Some(s)) => Some(("sigma_s", s)),
+                    (None, None) => None,
+                };
+                if let Some((name, s)) = scattering {
+                    if preset.is_some() {
+                        return Err(FieldError::new(
+                            format!("{at}.{name}"),
+                            "a preset gives the scattering; leave out `preset` to set it",
+                        ));
+                    }
+                    check_vec_range(&format!("{at}.{name}"), s, 0.0, MAX_SIGMA)?;
+                    for (k, v) in s.iter().enumerate() {
+                        if *v <= 0.0 {
+                            return Err(FieldError::new(
+                                format!("{at}.{name}[{k}]"),
+                                "must be > 0 (a medium that does not scatter has no S)",
+                            ));
+                        }
+                    }
+                } else if preset.is_none() {
+                    return Err(FieldError::new(
+                        at,
+                        "a simulated medium needs `preset`, or `sigma_a` with `sigma_s_prime` \
+                         or `sigma_s`",
+                    ));
+                }
+                if preset.is_none() && sigma_a.is_none() {
+                    return Err(FieldError::new(
+                        format!("{at}.sigma_a"),
+                        "is required without a preset",
+                    ));
+                }
+                if let Some(g) = g {
+                    if sigma_s.is_none() {
+                        return Err(FieldError::new(
+                            format!("{at}.g"),
+                            "goes with `sigma_s` (σs′ = σs (1 − g) is already reduced)",
+                        ));
+                    }
+                    check_range(&format!("{at}.g"), *g, -0.99, 0.99)?;
+                }
+                if let Some(e) = eta {
+                    check_range(&format!("{at}.eta"), *e, 1.0, 3.0)?;
+                }
+                if let Some(n) = noise {
+                    check_range(&format!("{at}.noise"), *n, MIN_SIM_NOISE, MAX_SIM_NOISE)?;
+                }
+                if let Some(w) = max_walks
+                    && !(MIN_SIM_WALKS..=MAX_SIM_WALKS).contains(w)
+                {
+                    return Err(FieldError::new(
+                        format!("{at}.max_walks"),
+                        format!(
+                            "{w} is out of range: walks per patch must be in \
+                             [{MIN_SIM_WALKS}, {MAX_SIM_WALKS}]"
+                        ),
+                    ));
+                }
+                Ok(())
             }
         }
     }

@@ -1,8 +1,8 @@
 //! translux-precompute's integration tests, one binary with a module per subject:
 //! `cli` (the real process, its files, exit codes and messages), `physics` (closed-form
 //! form factors and conservation), `transport` (the solvers and light components),
-//! `subsurface` (S through the pipeline), `slinks` (hierarchical S against pairwise) and
-//! `heterogeneous` (eq. 9 objects).
+//! `subsurface` (S through the pipeline), `slinks` (hierarchical S against pairwise),
+//! `heterogeneous` (eq. 9 objects) and `simulated` (S from random walks).
 //!
 //! Run one subject with `cargo test -p translux-precompute --test it physics::`. One binary
 //! links the crate's dependencies once instead of once per file.
@@ -10,6 +10,7 @@
 mod cli;
 mod heterogeneous;
 mod physics;
+mod simulated;
 mod slinks;
 mod subsurface;
 mod transport;

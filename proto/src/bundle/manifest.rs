@@ -57,6 +57,15 @@ pub mod arrays {
     /// Each cluster node's range `[start, end)` of [`TREE_PERM`], u32 `[M, 2]` (only with
     /// `Manifest::hierarchy`; M = `hierarchy.nodes`).
     pub const TREE_RANGE: &str = "tree_range";
+    /// The random walks of simulated objects (only with `subsurface.walks` > 0): row j's
+    /// records `[sim_row_ptr[j], sim_row_ptr[j + 1])`, u64 `[N + 1]`; each record is a source
+    /// patch (`sim_col`, u32 `[W]`), a path-length bin (`sim_bin`, u32 `[W]`) and the walks'
+    /// share of S_ji at zero absorption (`sim_weight`, f32 `[W, 3]`); see
+    /// `crate::bundle::WalksView`.
+    pub const SIM_ROW_PTR: &str = "sim_row_ptr";
+    pub const SIM_COL: &str = "sim_col";
+    pub const SIM_BIN: &str = "sim_bin";
+    pub const SIM_WEIGHT: &str = "sim_weight";
 }
 
 /// Element type of an array file.
@@ -177,6 +186,9 @@ pub struct SubsurfaceInfo {
     /// ones (what a pairwise S would have stored).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub pairwise_distances: u64,
+    /// Records of the random walks of simulated objects (the `sim_*` arrays); 0: none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub walks: u64,
     pub objects: Vec<SubsurfaceObject>,
 }
 
@@ -214,7 +226,31 @@ pub struct SubsurfaceObject {
     /// A note when something fell back (e.g. no interior found: Euclidean distances used).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,
+    /// The random walks of a simulated object (`method` = `simulated`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub simulation: Option<SimulationInfo>,
     pub seconds: f64,
+}
+
+/// What the random walks of one simulated object did.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SimulationInfo {
+    /// Walks run (every patch, every group of channels with equal σs).
+    pub walks: u64,
+    /// Scattering events (one ray each).
+    pub events: u64,
+    /// Walks that left where the mesh has no surface, and walks cut as negligible.
+    pub lost: u64,
+    pub cut: u64,
+    /// Relative standard error of a patch's re-emitted total at the built σa: median and
+    /// largest over patches (the target is the material's `noise`).
+    pub noise_median: f32,
+    pub noise_max: f32,
+    /// Stored records (source, length bin) of the object's rows.
+    pub records: u64,
+    /// The lowest σa (mm⁻¹) the stored walks serve: an override below it needs new walks.
+    pub sigma_a_floor: [f32; 3],
 }
 
 /// How the transfer matrix T = (I − S F)⁻¹ S was computed and stored, and what storing it

@@ -601,6 +601,35 @@ impl Bundle {
             }
         }
 
+        // The walks of simulated objects: four arrays, with these shapes, when listed.
+        if manifest.subsurface.walks > 0 {
+            let (n1, w) = (counts.patches + 1, manifest.subsurface.walks);
+            for (name, dtype, shape) in [
+                (arrays::SIM_ROW_PTR, DType::U64, vec![n1]),
+                (arrays::SIM_COL, DType::U32, vec![w]),
+                (arrays::SIM_BIN, DType::U32, vec![w]),
+                (arrays::SIM_WEIGHT, DType::F32, vec![w, 3]),
+            ] {
+                let file = array_file_name(name, dtype);
+                let entry = manifest
+                    .arrays
+                    .get(name)
+                    .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+                if entry.dtype != dtype || entry.shape != shape {
+                    return Err(invalid(
+                        &file,
+                        format!(
+                            "manifest lists {} {:?}, expected {} {shape:?} (N = patch_count, \
+                             W = subsurface.walks)",
+                            entry.dtype.name(),
+                            entry.shape,
+                            dtype.name()
+                        ),
+                    ));
+                }
+            }
+        }
+
         // The cluster tree: both arrays, with these shapes, when the manifest says so.
         let n_nodes = match &manifest.hierarchy {
             Some(h) => {
@@ -807,6 +836,10 @@ impl Bundle {
         if self.manifest.hierarchy.is_some() {
             self.check_tree()?;
         }
+        if self.manifest.subsurface.walks > 0 {
+            self.walks_checked()
+                .map_err(|why| invalid(array_file_name(arrays::SIM_ROW_PTR, DType::U64), why))?;
+        }
         crate::csr::CsrView::new_checked(
             n,
             n + self.n_nodes,
@@ -977,6 +1010,26 @@ impl Bundle {
             perm: self.u32s(arrays::TREE_PERM),
             range: bytemuck::try_cast_slice(self.u32s(arrays::TREE_RANGE)).unwrap_or(&[]),
         })
+    }
+
+    /// The random walks of the bundle's simulated objects, when it has any (see
+    /// [`WalksView`]; checked at open).
+    pub fn walks(&self) -> Option<WalksView<'_>> {
+        if self.manifest.subsurface.walks == 0 {
+            return None;
+        }
+        self.walks_checked().ok()
+    }
+
+    fn walks_checked(&self) -> Result<WalksView<'_>, String> {
+        WalksView::new_checked(
+            self.n_patches,
+            self.u64s(arrays::SIM_ROW_PTR),
+            self.u32s(arrays::SIM_COL),
+            self.u32s(arrays::SIM_BIN),
+            bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT))
+                .map_err(|_| "sim_weight is not a whole number of RGB triplets".to_string())?,
+        )
     }
 
     /// Checks the cluster tree: `tree_perm` is a permutation of `0..N` and every node's range

@@ -1,5 +1,6 @@
 //! Typed views of a loaded bundle's arrays beyond the CSR matrices: the environment
-//! visibility, the transfer matrix and the cluster tree. Borrowed from the mapped files.
+//! visibility, the transfer matrix, the cluster tree and the walks of a simulated S.
+//! Borrowed from the mapped files.
 
 /// The environment visibility `[N, rows, cols]` as IEEE half-float bits (verified at open:
 /// finite and ≥ 0); patch i's `rows · cols` bins are [`EnvVisibilityView::row`].
@@ -51,4 +52,77 @@ compile_error!(
 pub struct TreeView<'a> {
     pub perm: &'a [u32],
     pub range: &'a [[u32; 2]],
+}
+
+/// Bins per doubling of path length in the walks of a simulated S: a bin spans 2^(1/16).
+pub const SIM_BINS_PER_OCTAVE: u32 = 16;
+/// The lower edge of bin 0 (mm); shorter paths fall into bin 0.
+pub const SIM_BIN_L0_MM: f64 = 1e-4;
+/// Number of path-length bins: 64 doublings above 0.1 µm.
+pub const SIM_BINS: u32 = 64 * SIM_BINS_PER_OCTAVE;
+
+/// The stored random walks of simulated objects ([`Bundle::walks`](crate::bundle::Bundle::walks)):
+/// row j (a receiver patch) holds records sorted by source patch i, then by bin; a record's
+/// `weight` is its walks' share of S_ji at zero absorption, and
+/// S_ji = Σ_records w · e^(−σa L_bin), L_bin = `SIM_BIN_L0_MM` · 2^((bin + ½)/16) mm.
+#[derive(Debug, Clone, Copy)]
+pub struct WalksView<'a> {
+    pub row_ptr: &'a [u64],
+    pub col: &'a [u32],
+    pub bin: &'a [u32],
+    pub weight: &'a [[f32; 3]],
+}
+
+impl<'a> WalksView<'a> {
+    /// Checks the arrays: `n` rows, increasing pointers that end at the record count,
+    /// sources below `n`, bins below [`SIM_BINS`], weights finite and ≥ 0.
+    pub fn new_checked(
+        n: usize,
+        row_ptr: &'a [u64],
+        col: &'a [u32],
+        bin: &'a [u32],
+        weight: &'a [[f32; 3]],
+    ) -> Result<Self, String> {
+        if row_ptr.len() != n + 1 {
+            return Err(format!(
+                "sim_row_ptr has {} entries, expected {} (N + 1)",
+                row_ptr.len(),
+                n + 1
+            ));
+        }
+        let m = col.len();
+        if bin.len() != m || weight.len() != m {
+            return Err("sim_col, sim_bin and sim_weight differ in length".into());
+        }
+        if row_ptr[0] != 0 || row_ptr[n] != m as u64 || row_ptr.windows(2).any(|w| w[0] > w[1]) {
+            return Err("sim_row_ptr is not increasing from 0 to the record count".into());
+        }
+        if let Some(k) = col.iter().position(|&c| c as usize >= n) {
+            return Err(format!("sim_col[{k}] = {} is not a patch", col[k]));
+        }
+        if let Some(k) = bin.iter().position(|&b| b >= SIM_BINS) {
+            return Err(format!(
+                "sim_bin[{k}] = {} is not a bin (< {SIM_BINS})",
+                bin[k]
+            ));
+        }
+        if let Some(k) = weight
+            .iter()
+            .position(|w| w.iter().any(|v| !v.is_finite() || *v < 0.0))
+        {
+            return Err(format!("sim_weight[{k}] is negative or not finite"));
+        }
+        Ok(Self {
+            row_ptr,
+            col,
+            bin,
+            weight,
+        })
+    }
+
+    /// Row j's records: sources, bins, weights.
+    pub fn row(&self, j: usize) -> (&'a [u32], &'a [u32], &'a [[f32; 3]]) {
+        let (a, b) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
+        (&self.col[a..b], &self.bin[a..b], &self.weight[a..b])
+    }
 }

@@ -158,6 +158,12 @@ impl SMaterials {
                         o.name
                     )));
                 }
+                Material::Simulated { .. } => {
+                    return Ok(Plan::Cpu(format!(
+                        "'{}' is simulated (its walks are re-weighted on the CPU)",
+                        o.name
+                    )));
+                }
             };
             out.objects.push(ObjectParams {
                 class,

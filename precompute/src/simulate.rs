@@ -1,0 +1,176 @@
+//! The random walks of simulated objects (`"type": "simulated"`), stage 1 of their S.
+//!
+//! In: the scene's objects with their source triangles and patch ranges, the patches, the
+//! scene unit. Out: the walks of every simulated object as one scene-wide record array
+//! ([`SceneWalks`], global rows and columns, what the bundle stores as `sim_*`) and a report
+//! per object. The walking itself is `translux_engine::simulated`; this module refuses the
+//! meshes walks cannot run in (open, or closed but wound inward) before any walk starts.
+
+use std::collections::HashMap;
+
+use glam::Vec3;
+use translux_engine::simulated::{self, SimMedium, SimPatches, WalkReport};
+use translux_engine::smatrix::{ObjectMaterial, PatchGeometry};
+use translux_proto::bundle::SimulationInfo;
+use translux_proto::scene::Material;
+
+/// All simulated objects' walks, global indices (rows over every patch of the scene).
+#[derive(Debug, Clone, Default)]
+pub struct SceneWalks {
+    pub row_ptr: Vec<u64>,
+    pub col: Vec<u32>,
+    pub bin: Vec<u32>,
+    pub weight: Vec<[f32; 3]>,
+    /// Per simulated object: its name and what the walks did.
+    pub reports: Vec<(String, SimulationInfo, f64)>,
+}
+
+impl SceneWalks {
+    /// Whether any object was simulated.
+    pub fn is_empty(&self) -> bool {
+        self.reports.is_empty()
+    }
+}
+
+/// Why a mesh cannot hold walks: open edges, or faces wound inward. `None`: closed and
+/// outward. Vertices closer than 1e-6 of the mesh's size are one vertex.
+pub fn closed_mesh_problem(tris: &[[Vec3; 3]]) -> Option<String> {
+    if tris.is_empty() {
+        return Some("it has no triangles".into());
+    }
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for t in tris {
+        for v in t {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+    }
+    let q = ((hi - lo).max_element() * 1e-6).max(f32::MIN_POSITIVE);
+    let key = |v: Vec3| {
+        let k = ((v - lo) / q).round();
+        (k.x as i64, k.y as i64, k.z as i64)
+    };
+    // Directed edge counts: a closed, consistently wound mesh uses each edge once in each
+    // direction.
+    type Vertex = (i64, i64, i64);
+    let mut edges: HashMap<(Vertex, Vertex), i32> = HashMap::new();
+    for t in tris {
+        for k in 0..3 {
+            let (a, b) = (key(t[k]), key(t[(k + 1) % 3]));
+            if a == b {
+                continue;
+            }
+            *edges.entry((a, b)).or_insert(0) += 1;
+        }
+    }
+    let open = edges
+        .iter()
+        .filter(|(e, c)| edges.get(&(e.1, e.0)).copied().unwrap_or(0) != **c)
+        .count();
+    if open > 0 {
+        return Some(format!(
+            "its mesh is not closed ({open} edges have no matching face on the other side): \
+             walks would leave through the holes. Close the mesh (a scanned bunny is open at \
+             the bottom) or use `translucent` with a dipole"
+        ));
+    }
+    let volume: f64 = tris
+        .iter()
+        .map(|t| {
+            let (a, b, c) = (t[0].as_dvec3(), t[1].as_dvec3(), t[2].as_dvec3());
+            a.dot(b.cross(c)) / 6.0
+        })
+        .sum();
+    if volume <= 0.0 {
+        return Some(
+            "its closed mesh is wound inward (negative volume): walks start inside the \
+             object, behind each face; set \"orientation\": \"outward\""
+                .into(),
+        );
+    }
+    None
+}
+
+/// The first simulated object of `objects` (name, material, source triangles) that walks
+/// cannot run in, as a message; checked before any other stage runs.
+pub fn check_meshes<'a>(
+    objects: impl IntoIterator<Item = (&'a str, &'a Material, &'a [[Vec3; 3]])>,
+) -> Result<(), String> {
+    for (name, material, tris) in objects {
+        if matches!(material, Material::Simulated { .. })
+            && let Some(why) = closed_mesh_problem(tris)
+        {
+            return Err(format!("object '{name}' is simulated, but {why}"));
+        }
+    }
+    Ok(())
+}
+
+/// Runs the walks of every simulated object. `sources[k]` are object k's source triangles
+/// (checked for closure again), `progress` gets the number of patches walked so far.
+pub fn scene_walks(
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    sources: &[&[[Vec3; 3]]],
+    unit_mm: f64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<SceneWalks, String> {
+    let n = g.corners.len();
+    let mut rows: Vec<u64> = vec![0; n + 1];
+    let mut per_object = Vec::new();
+    let mut done = 0u64;
+    for (k, o) in objects.iter().enumerate() {
+        let Some(medium) = SimMedium::of(o.material) else {
+            continue;
+        };
+        if let Some(why) = sources.get(k).and_then(|t| closed_mesh_problem(t)) {
+            return Err(format!("object '{}' is simulated, but {why}", o.name));
+        }
+        let r = o.patches.clone();
+        let p = SimPatches {
+            corners: &g.corners[r.clone()],
+            normal: &g.normal[r.clone()],
+            area: &g.area[r.clone()],
+        };
+        let base = done;
+        let w = simulated::simulate(o.name, p, &medium, unit_mm, r.start as u64, &|d| {
+            progress(base + d)
+        })
+        .map_err(|e| e.to_string())?;
+        done += r.len() as u64;
+        for (j, pair) in w.row_ptr.windows(2).enumerate() {
+            rows[r.start + j + 1] = pair[1] - pair[0];
+        }
+        per_object.push((o.name.to_string(), r, w, medium));
+    }
+    let mut out = SceneWalks::default();
+    if per_object.is_empty() {
+        return Ok(out);
+    }
+    for j in 0..n {
+        rows[j + 1] += rows[j];
+    }
+    out.row_ptr = rows;
+    // Objects are in patch order, so their records concatenate in row order.
+    for (name, r, w, medium) in per_object {
+        out.col.extend(w.col.iter().map(|&i| i + r.start as u32));
+        out.bin.extend_from_slice(&w.bin);
+        out.weight.extend_from_slice(&w.weight);
+        let rep: &WalkReport = &w.report;
+        out.reports.push((
+            name,
+            SimulationInfo {
+                walks: rep.walks,
+                events: rep.events,
+                lost: rep.lost,
+                cut: rep.cut,
+                noise_median: rep.noise_median,
+                noise_max: rep.noise_max,
+                records: rep.records,
+                sigma_a_floor: medium.floor(),
+            },
+            rep.seconds,
+        ));
+    }
+    Ok(out)
+}

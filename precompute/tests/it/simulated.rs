@@ -1,0 +1,207 @@
+//! Simulated S through the pipeline: walks stored in the bundle, re-weighted for a new
+//! absorption on a rebuild, and the meshes and settings walks cannot serve refused with a
+//! message that names the problem.
+
+use std::path::Path;
+
+use translux_engine::smatrix::{self, SParams};
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene_file;
+use translux_proto::bundle::Bundle;
+use translux_proto::scene::{Material, SceneFile};
+
+/// A 20 mm box of a scattering medium on nothing, in millimetres.
+fn cube_scene(material: &str) -> String {
+    format!(
+        r#"{{"unit_mm": 1, "objects": [
+            {{"name": "cube", "mesh": {{"shape": "box", "size": [20, 20, 20]}},
+              "material": {material}}}],
+           "lights": [{{"type": "directional", "direction": [0, -1, 0], "irradiance": [1, 1, 1]}}]}}"#
+    )
+}
+
+const MEDIUM: &str = r#"{"type": "simulated", "sigma_s_prime": [0.5, 0.45, 0.35],
+    "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0}"#;
+
+fn write(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn build(dir: &Path, scene: &str, patches: u64) -> Result<Bundle, String> {
+    let path = write(dir, "scene.json", scene);
+    let loaded = load_scene_file(&path).map_err(|e| e.to_string())?;
+    let out = dir.join("bundle");
+    let params = PrecomputeParams {
+        patches: Some(patches),
+        ..Default::default()
+    };
+    precompute(&loaded, &out, &params).map_err(|e| e.to_string())?;
+    Ok(Bundle::open(&out).unwrap())
+}
+
+fn with_sigma_a(b: &Bundle, sigma_a: [f32; 3]) -> Material {
+    let mut m = b.manifest().objects[0].material.clone();
+    if let Material::Simulated { sigma_a: s, .. } = &mut m {
+        *s = Some(sigma_a);
+    }
+    m
+}
+
+/// Σ over all entries of A_j S_ji, per channel.
+fn total(b: &Bundle, s: translux_proto::csr::CsrView<'_, [f32; 3]>) -> [f64; 3] {
+    let area = b.patch_areas();
+    let mut t = [0.0f64; 3];
+    for (j, &aj) in area.iter().enumerate() {
+        for v in s.row(j).1 {
+            for c in 0..3 {
+                t[c] += f64::from(aj) * f64::from(v[c]);
+            }
+        }
+    }
+    t
+}
+
+#[test]
+fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = build(dir.path(), &cube_scene(MEDIUM), 600).unwrap();
+    let m = b.manifest();
+    assert!(m.subsurface.walks > 0);
+    let o = &m.subsurface.objects[0];
+    assert_eq!(o.method, "simulated");
+    let sim = o.simulation.as_ref().unwrap();
+    assert!(sim.walks >= 256 * 600, "{sim:?}");
+    assert!(sim.noise_median <= 0.01 + 1e-6, "{sim:?}");
+    assert!(o.max_column_energy <= 1.0);
+    assert_eq!(sim.lost * 1000 / sim.walks, 0, "{sim:?}");
+    let walks = b.walks().expect("walks are stored");
+    assert_eq!(walks.row_ptr.len(), b.patch_areas().len() + 1);
+
+    // The same absorption rebuilds the stored S exactly.
+    let params = SParams::default();
+    let same = with_sigma_a(&b, [0.004, 0.008, 0.02]);
+    let (s, _) = smatrix::rebuild_from_bundle(&b, &[(0, same)], &params).unwrap();
+    let stored = b.subsurface();
+    assert_eq!(s.col.len(), stored.nnz());
+    let (t0, t1) = (total(&b, stored), total(&b, s.view().unwrap()));
+    for c in 0..3 {
+        assert!((t0[c] - t1[c]).abs() <= 1e-6 * t0[c], "{t0:?} {t1:?}");
+    }
+    // More absorption re-emits less, channel by channel.
+    let more = with_sigma_a(&b, [0.04, 0.008, 0.02]);
+    let (s, _) = smatrix::rebuild_from_bundle(&b, &[(0, more)], &params).unwrap();
+    let t2 = total(&b, s.view().unwrap());
+    assert!(t2[0] < 0.9 * t0[0], "{t2:?} {t0:?}");
+    assert!((t2[1] - t0[1]).abs() <= 1e-6 * t0[1]);
+
+    // What the walks cannot serve is refused, naming the object and what changed.
+    let err =
+        smatrix::rebuild_from_bundle(&b, &[(0, with_sigma_a(&b, [1e-5, 0.008, 0.02]))], &params)
+            .unwrap_err()
+            .to_string();
+    assert!(err.contains("'cube'") && err.contains("below"), "{err}");
+    let mut other = b.manifest().objects[0].material.clone();
+    if let Material::Simulated { sigma_s_prime, .. } = &mut other {
+        *sigma_s_prime = Some([1.0, 1.0, 1.0]);
+    }
+    let err = smatrix::rebuild_from_bundle(&b, &[(0, other)], &params)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("scattering") && err.contains("translux-precompute"),
+        "{err}"
+    );
+    let dipole: Material = translux_proto::parse_json(
+        r#"{"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}}"#,
+    )
+    .unwrap();
+    let err = smatrix::rebuild_from_bundle(&b, &[(0, dipole)], &params)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("precomputed as simulated"), "{err}");
+}
+
+#[test]
+fn the_same_seed_gives_the_same_s_and_another_seed_a_different_one() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let c = tempfile::tempdir().unwrap();
+    let ba = build(a.path(), &cube_scene(MEDIUM), 200).unwrap();
+    let bb = build(b.path(), &cube_scene(MEDIUM), 200).unwrap();
+    let seeded = MEDIUM.replace("\"eta\": 1.0", "\"eta\": 1.0, \"seed\": 5");
+    let bc = build(c.path(), &cube_scene(&seeded), 200).unwrap();
+    assert_eq!(ba.subsurface().val(), bb.subsurface().val());
+    assert_ne!(ba.subsurface().val(), bc.subsurface().val());
+}
+
+#[test]
+fn meshes_walks_cannot_run_in_are_refused() {
+    // An open mesh: a single quad.
+    let dir = tempfile::tempdir().unwrap();
+    let quad = cube_scene(MEDIUM).replace(
+        r#"{"shape": "box", "size": [20, 20, 20]}"#,
+        r#"{"shape": "quad", "size": [20, 20]}"#,
+    );
+    let err = build(dir.path(), &quad, 100).unwrap_err();
+    assert!(
+        err.contains("'cube'") && err.contains("not closed"),
+        "{err}"
+    );
+
+    // The scanned bunny is open at the bottom.
+    let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/stanford-bunny.obj");
+    let scene = cube_scene(MEDIUM).replace(
+        r#"{"shape": "box", "size": [20, 20, 20]}"#,
+        &format!("{:?}", bunny.display().to_string()),
+    );
+    let scene = scene.replace(r#""unit_mm": 1,"#, r#""unit_mm": 1000,"#);
+    let err = build(dir.path(), &scene, 300).unwrap_err();
+    assert!(
+        err.contains("not closed") && err.contains("bunny is open"),
+        "{err}"
+    );
+
+    // A closed box OBJ wound inward, kept as the file winds it.
+    let obj = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\n\
+               f 1 2 3\nf 1 3 4\nf 5 8 7\nf 5 7 6\nf 1 5 6\nf 1 6 2\nf 2 6 7\nf 2 7 3\n\
+               f 3 7 8\nf 3 8 4\nf 4 8 5\nf 4 5 1\n";
+    write(dir.path(), "inward.obj", obj);
+    let scene = cube_scene(MEDIUM)
+        .replace(
+            r#"{"shape": "box", "size": [20, 20, 20]}"#,
+            r#""inward.obj""#,
+        )
+        .replace(
+            r#""material""#,
+            r#""orientation": "as_is", "transform": {"scale": 20}, "material""#,
+        );
+    let err = build(dir.path(), &scene, 100).unwrap_err();
+    assert!(err.contains("wound inward"), "{err}");
+}
+
+#[test]
+fn absurd_walk_settings_are_refused_naming_the_field() {
+    for (field, value, needle) in [
+        ("max_walks", "0", "max_walks"),
+        ("max_walks", "1000000000", "max_walks"),
+        ("noise", "0", "noise"),
+        ("g", "0.5", "g"),
+    ] {
+        let material = MEDIUM.replace(
+            "\"eta\": 1.0",
+            &format!("\"eta\": 1.0, \"{field}\": {value}"),
+        );
+        let text = cube_scene(&material);
+        let file: SceneFile = translux_proto::parse_json(&text).unwrap();
+        let err = file.validate().unwrap_err().to_string();
+        assert!(err.contains(needle), "{field} = {value}: {err}");
+    }
+    let text = cube_scene(r#"{"type": "simulated", "preset": "marble", "sigma_s": [1, 1, 1]}"#);
+    let file: SceneFile = translux_proto::parse_json(&text).unwrap();
+    assert!(file.validate().unwrap_err().to_string().contains("preset"));
+    let text = cube_scene(r#"{"type": "simulated", "sigma_s_prime": [1, 1, 1]}"#);
+    let file: SceneFile = translux_proto::parse_json(&text).unwrap();
+    assert!(file.validate().unwrap_err().to_string().contains("sigma_a"));
+}
