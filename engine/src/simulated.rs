@@ -64,6 +64,8 @@ pub const ABSORPTION_FLOOR: f32 = 1.0 / 16.0;
 pub const CUT_OPTICAL_DEPTH: f32 = 20.0;
 /// A walk is cut after this many scattering events (reported).
 pub const MAX_EVENTS: u32 = 1_000_000;
+/// The size (bounding-box diagonal) an object is scaled to for its walks.
+pub const WALK_FRAME: f32 = 1000.0;
 /// Defaults of the material's fields.
 pub const DEFAULT_NOISE: f32 = 0.01;
 pub const DEFAULT_MAX_WALKS: u32 = 4096;
@@ -456,6 +458,29 @@ pub fn simulate(
 ) -> Result<Walks, SimError> {
     let start = Instant::now();
     let n = p.corners.len();
+    // Walk in a frame where the object is centred and WALK_FRAME across: obvhs's traversal
+    // loses rays near faces of small objects in absolute coordinates (measured: 5% of the
+    // walks of a 16 mm cube modelled in metres, 0.1% scaled to 1 across, left through its
+    // faces; none at 1000 across).
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for t in p.corners {
+        for v in t {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+    }
+    let centre = 0.5 * (lo + hi);
+    let size = (hi - lo).length().max(f32::MIN_POSITIVE);
+    let corners: Vec<[Vec3; 3]> = p
+        .corners
+        .iter()
+        .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
+        .collect();
+    let p = SimPatches {
+        corners: &corners,
+        ..p
+    };
+    let unit_mm = unit_mm * (size / WALK_FRAME) as f64;
     let occ = Occluder::new(p.corners);
     let eps = 1e-5 * occ.diagonal();
     let groups = medium.groups();

@@ -50,6 +50,9 @@ Input (IN.json)
              # direction = where the light travels; irradiance on a surface facing it
       ],
       "queries": {"points": [[x, y, z], ...], "normals": [[nx, ny, nz], ...]},
+      "measure": "normal", # "normal": radiance leaving along the normal; "exitance":
+                           # its cosine-weighted mean over the hemisphere (exitance / pi,
+                           # what a Lambertian radiosity patch carries)
       "spp": 256,          # samples per query point (>= 2, for the standard error)
       "max_depth": 64,     # Mitsuba max_depth (-1 = unbounded)
       "seed": 0,
@@ -313,6 +316,9 @@ def render(desc):
     if spp < 2:
         raise InputError("spp must be at least 2 (the standard error needs two samples)")
     seed = int(desc.get("seed", 0))
+    measure = desc.get("measure", "normal")
+    if measure not in ("normal", "exitance"):
+        raise InputError(f"measure must be normal or exitance, got {measure!r}")
     q = desc.get("queries") or {}
     points = [_vec3(p, "queries.points") for p in q.get("points", [])]
     normals = [_vec3(n, "queries.normals") for n in q.get("normals", [])]
@@ -340,6 +346,7 @@ def render(desc):
         suspect = check_queries(scene, origins, dirs, eps)
         ox, oy, oz = (mi.Float([o[i] for o in origins]) for i in range(3))
         dx, dy, dz = (mi.Float([d[i] for d in dirs]) for i in range(3))
+        px, py, pz = (mi.Float([p[i] for p in points]) for i in range(3))
 
         integrator = scene.integrator()
         sampler = mi.load_dict({"type": "independent"})
@@ -361,6 +368,15 @@ def render(desc):
                                 dr.gather(mi.Float, dz, idx)))
                 sampler.seed(dr.opaque(mi.UInt32, _seed_for(seed, pass_index)), count)
                 pass_index += 1
+                if measure == "exitance":
+                    # A cosine-weighted direction w around the normal per sample; the
+                    # ray comes back along -w to the point: the mean is exitance / pi.
+                    n = -ray.d
+                    w = mi.Frame3f(n).to_world(
+                        mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+                    p = mi.Point3f(dr.gather(mi.Float, px, idx), dr.gather(mi.Float, py, idx),
+                                   dr.gather(mi.Float, pz, idx))
+                    ray = mi.RayDifferential3f(p + eps * w, -w)
                 value, _, _ = integrator.sample(scene, sampler, ray)
                 chans = []
                 bad = mi.UInt32(0)
@@ -491,6 +507,18 @@ def self_test():
         "lights": [{"type": "point", "position": [0, 0, h], "intensity": intensity}],
         "queries": {"points": [[d, 0, 0] for d in ds], "normals": [[0, 0, 1]] * len(ds)},
         "spp": 64, "max_depth": 4, "seed": 1})
+    for d, L, se in zip(ds, out["radiance"], out["std_error"]):
+        r2 = h * h + d * d
+        cos = h / math.sqrt(r2)
+        for c in range(3):
+            report(f"d={d:g} ch{c}", L[c], rho[c] * intensity[c] * cos / (math.pi * r2),
+                   0.01, se[c])
+    # 1b. The same, measured as exitance / pi over the hemisphere (Lambertian: equal).
+    out = run("1b point light over a diffuse square, measured as exitance", {
+        "objects": [floor],
+        "lights": [{"type": "point", "position": [0, 0, h], "intensity": intensity}],
+        "queries": {"points": [[d, 0, 0] for d in ds], "normals": [[0, 0, 1]] * len(ds)},
+        "measure": "exitance", "spp": 256, "max_depth": 4, "seed": 11})
     for d, L, se in zip(ds, out["radiance"], out["std_error"]):
         r2 = h * h + d * d
         cos = h / math.sqrt(r2)

