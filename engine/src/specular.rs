@@ -77,7 +77,10 @@ pub fn medium_eta(material: &Material) -> Option<f32> {
         Material::Translucent { profile, .. } => of(profile),
         Material::ThinSheet { reflectance, .. } => of(reflectance),
         Material::Heterogeneous { materials, .. } => materials.first().and_then(of),
-        Material::Simulated { .. } => crate::simulated::SimMedium::of(material).map(|m| m.eta),
+        Material::Simulated { preset, eta, .. } => Some(
+            eta.or(preset.as_deref().and_then(profile::preset).map(|m| m.eta))
+                .unwrap_or(1.3),
+        ),
         Material::Diffuse { .. } | Material::Emitter { .. } => None,
     }
 }
