@@ -2,6 +2,7 @@
 # Renders the paper's comparison figures into docs/figures/ with the offline commands
 # (no server): Fig. 5 (light components of the Cornell box), Fig. 6 (translucency sweep),
 # Fig. 7 (heterogeneous checkerboard block), Fig. 8 b–c (specular highlights on the bowls),
+# simulated S against the dipole (the tall block, a bowl lit from inside),
 # Fig. 12 (full model vs the two heuristics), and the direct light per pixel against the
 # all-per-vertex picture.
 # docs/figures/README.md says what each image shows.
@@ -10,7 +11,7 @@
 #   PATCHES=6000 SIZE=640x480 bash scripts/figures.sh
 #
 # A few minutes on 2 cores: it builds the two binaries (release), precomputes three bundles
-# into a temporary folder and renders 15 images.
+# into a temporary folder and renders 19 images.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -73,6 +74,42 @@ cat >"$WORK/cornell.json" <<'JSON'
  "camera": {"position": [0, 0.2775, 1.3], "target": [0, 0.2775, 0], "fov_deg": 40}}
 JSON
 precompute "$WORK/cornell.json" cornell
+
+# Simulated S against the dipole (issue 18): the same medium (σs′, σa in mm⁻¹, η = 1) as the
+# validation suite's Mitsuba comparisons, once as a dipole profile and once as random walks
+# inside the actual shape. The Cornell box's tall block, and a thin bowl lit from inside.
+BLOCK_MEDIUM='"sigma_s_prime": [0.5, 0.45, 0.35], "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0'
+BOWL_MEDIUM='"sigma_s_prime": [1.0, 0.8, 0.6], "sigma_a": [0.005, 0.01, 0.02], "eta": 1.0'
+for kind in dipole simulated; do
+  if [ "$kind" = dipole ]; then
+    block="{\"type\": \"translucent\", \"profile\": {\"type\": \"dipole\", $BLOCK_MEDIUM}}"
+    bowl="{\"type\": \"translucent\", \"profile\": {\"type\": \"dipole\", $BOWL_MEDIUM}}"
+  else
+    block="{\"type\": \"simulated\", $BLOCK_MEDIUM}"
+    bowl="{\"type\": \"simulated\", $BOWL_MEDIUM}"
+  fi
+  python3 - "$WORK/cornell.json" "$block" >"$WORK/block_$kind.json" <<'PY'
+import json, sys
+scene = json.load(open(sys.argv[1]))
+for o in scene["objects"]:
+    if o["name"] == "tall_block":
+        o["material"] = json.loads(sys.argv[2])
+scene["name"] = "block"
+print(json.dumps(scene))
+PY
+  cat >"$WORK/bowl_$kind.json" <<JSON
+{"name": "bowl",
+ "objects": [
+  {"name": "table", "mesh": {"shape": "quad", "size": [0.5, 0.5]},
+   "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+  {"name": "bowl", "mesh": {"shape": "bowl", "radius": 0.05, "thickness": 0.004},
+   "material": $bowl}],
+ "lights": [{"type": "point", "position": [0, 0.035, 0], "intensity": [0.02, 0.02, 0.02]}],
+ "camera": {"position": [0, 0.11, 0.2], "target": [0, 0.03, 0], "fov_deg": 45}}
+JSON
+  precompute "$WORK/block_$kind.json" "block_$kind"
+  precompute "$WORK/bowl_$kind.json" "bowl_$kind"
+done
 precompute builtin:cornell_checker checker
 precompute builtin:bowls bowls
 
@@ -118,6 +155,13 @@ done
 GLOSSY+='{"type":"point","position":[0.1,0.45,0.45],"intensity":[0.4,0.4,0.4]}]'
 render bowls fig8_specular.png 0 "$GLOSSY}"
 render bowls fig8_no_specular.png 0 "$GLOSSY,\"specular\":false}"
+
+# Simulated S against the dipole: the tall block under the box's light, and the bowl lit by
+# a lamp inside it (its outside glows only by light that crossed the wall).
+for kind in dipole simulated; do
+  render "block_$kind" "sim_block_$kind.png" "$EV" '{}'
+  render "bowl_$kind" "sim_bowl_$kind.png" -2.5 '{}'
+done
 
 # The direct light per pixel (renders' default) against the same light at the vertices.
 render cornell crisp_pixel.png "$EV" '{"direct_at":"pixel"}'

@@ -31,6 +31,16 @@ pub struct Medium {
     pub eta: f32,
 }
 
+/// The relative index of a medium where neither its material nor its preset states one.
+pub const DEFAULT_ETA: f32 = 1.3;
+
+/// A medium's relative index of refraction: `eta`, else the preset `preset_name`'s, else
+/// [`DEFAULT_ETA`].
+pub fn eta_of(preset_name: Option<&str>, eta: Option<f32>) -> f32 {
+    eta.or_else(|| preset_name.and_then(preset).map(|m| m.eta))
+        .unwrap_or(DEFAULT_ETA)
+}
+
 /// Jensen, Marschner, Levoy and Hanrahan, "A Practical Model for Subsurface Light
 /// Transport", SIGGRAPH 2001, Table 1 (σs′ and σa in mm⁻¹ for R, G, B). η is 1.3 for every
 /// medium but marble (1.5), as the usual reproductions of the table list it.
@@ -99,7 +109,7 @@ pub fn dipole_medium(p: &Profile) -> Option<Medium> {
         } => Some(Medium {
             sigma_s_prime: *s,
             sigma_a: *a,
-            eta: eta.unwrap_or(1.3),
+            eta: eta.unwrap_or(DEFAULT_ETA),
         }),
         _ => None,
     }
@@ -407,7 +417,7 @@ impl ProfileEval {
                     (None, Some(a), Some(s)) => Medium {
                         sigma_s_prime: *s,
                         sigma_a: *a,
-                        eta: eta.unwrap_or(1.3),
+                        eta: eta.unwrap_or(DEFAULT_ETA),
                     },
                     (Some(_), _, _) => return Err(ProfileError::PresetAndCoefficients),
                     _ => return Err(ProfileError::MissingCoefficients),

@@ -134,6 +134,16 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
                 built.kind()
             )));
         }
+        if matches!(material, Material::Simulated { .. })
+            && !matches!(built, Material::Simulated { .. })
+        {
+            return Err(EngineError::unsupported(format!(
+                "materials.{name}: {name:?} was precomputed as {}, and a simulated material \
+                 re-weights the random walks stored for it, which only a simulated object's \
+                 bundle holds; precompute the scene with {name:?} simulated",
+                built.kind()
+            )));
+        }
         // A heterogeneous object's stored per-medium lengths serve new profiles for its
         // media, not another layout of media.
         if let Material::Heterogeneous {
@@ -151,17 +161,6 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
                     built.kind()
                 )));
             }
-        }
-        if material.kind() != "diffuse"
-            && material.kind() != "emitter"
-            && material.kind() != "translucent"
-            && material.kind() != "thin_sheet"
-            && material.kind() != "heterogeneous"
-        {
-            return Err(EngineError::unsupported(format!(
-                "materials.{name}: {} overrides are not supported yet",
-                material.kind()
-            )));
         }
         gloss[k] = Gloss::of(material);
         // A change of `specular` alone leaves the transport as it is: no S rebuild.

@@ -48,6 +48,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use thiserror::Error;
+use translux_proto::bundle::SimulationInfo;
 use translux_proto::scene::Material;
 
 use crate::profile;
@@ -135,7 +136,7 @@ impl SimMedium {
             sigma_s: ss,
             g: gg,
             sigma_a: sa,
-            eta: eta.or(base.map(|b| b.eta)).unwrap_or(1.3),
+            eta: profile::eta_of(preset.as_deref(), *eta),
             noise: noise.unwrap_or(DEFAULT_NOISE),
             max_walks: max_walks.unwrap_or(DEFAULT_MAX_WALKS),
             seed: seed.unwrap_or(DEFAULT_SEED),
@@ -237,25 +238,6 @@ pub struct SimPatches<'a> {
     pub area: &'a [f32],
 }
 
-/// What the walks did.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct WalkReport {
-    /// Walks run (all patches, all colour groups).
-    pub walks: u64,
-    /// Scattering events (one ray each).
-    pub events: u64,
-    /// Walks that left where the mesh has no surface (dropped).
-    pub lost: u64,
-    /// Walks cut for length or events (dropped: negligible at the absorption floor).
-    pub cut: u64,
-    /// Relative standard error reached per patch (at the built σa): median and largest.
-    pub noise_median: f32,
-    pub noise_max: f32,
-    /// Stored (i, bin) records.
-    pub records: u64,
-    pub seconds: f64,
-}
-
 /// The walks of one object: row j (local) lists `(i, bin, w)` sorted by i then bin.
 #[derive(Debug, Clone, Default)]
 pub struct Walks {
@@ -263,7 +245,10 @@ pub struct Walks {
     pub col: Vec<u32>,
     pub bin: Vec<u32>,
     pub weight: Vec<[f32; 3]>,
-    pub report: WalkReport,
+    /// What the walks did (the bundle's per-object record).
+    pub report: SimulationInfo,
+    /// Wall time of the walks, s.
+    pub seconds: f64,
 }
 
 /// Rows of S: per receiver, `(source, S_ji)`.
@@ -623,8 +608,9 @@ pub fn simulate(
             weight[at] = w.map(|v| v / aj);
         }
     }
-    let mut report = WalkReport {
+    let mut report = SimulationInfo {
         records: total as u64,
+        sigma_a_floor: medium.floor(),
         ..Default::default()
     };
     let mut noises: Vec<f32> = Vec::with_capacity(n);
@@ -638,7 +624,6 @@ pub fn simulate(
     noises.sort_by(f32::total_cmp);
     report.noise_median = noises.get(n / 2).copied().unwrap_or(0.0);
     report.noise_max = noises.last().copied().unwrap_or(0.0);
-    report.seconds = start.elapsed().as_secs_f64();
     if report.walks > 0 && report.lost * 20 > report.walks {
         return Err(SimError::Leaky {
             object: name.to_string(),
@@ -652,6 +637,7 @@ pub fn simulate(
         bin,
         weight,
         report,
+        seconds: start.elapsed().as_secs_f64(),
     })
 }
 

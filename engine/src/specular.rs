@@ -77,10 +77,7 @@ pub fn medium_eta(material: &Material) -> Option<f32> {
         Material::Translucent { profile, .. } => of(profile),
         Material::ThinSheet { reflectance, .. } => of(reflectance),
         Material::Heterogeneous { materials, .. } => materials.first().and_then(of),
-        Material::Simulated { preset, eta, .. } => Some(
-            eta.or(preset.as_deref().and_then(profile::preset).map(|m| m.eta))
-                .unwrap_or(1.3),
-        ),
+        Material::Simulated { preset, eta, .. } => Some(profile::eta_of(preset.as_deref(), *eta)),
         Material::Diffuse { .. } | Material::Emitter { .. } => None,
     }
 }

@@ -699,10 +699,9 @@ pub fn precompute(
     if sim_patches > 0 {
         bar.set_length(2 + sim_patches);
     }
-    let walks = crate::simulate::scene_walks(&geometry, &materials, &sources, unit_mm, &|d| {
-        bar.set_position(d)
-    })
-    .map_err(PrecomputeError::Simulation)?;
+    let walks =
+        crate::simulate::scene_walks(&geometry, &materials, unit_mm, &|d| bar.set_position(d))
+            .map_err(PrecomputeError::Simulation)?;
     for (name, info, seconds) in &walks.reports {
         tell(
             params,

@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 
 use glam::Vec3;
-use translux_engine::simulated::{self, SimMedium, SimPatches, WalkReport};
+use translux_engine::simulated::{self, SimMedium, SimPatches};
 use translux_engine::smatrix::{ObjectMaterial, PatchGeometry};
 use translux_proto::bundle::SimulationInfo;
 use translux_proto::scene::Material;
@@ -106,12 +106,11 @@ pub fn check_meshes<'a>(
     Ok(())
 }
 
-/// Runs the walks of every simulated object. `sources[k]` are object k's source triangles
-/// (checked for closure again), `progress` gets the number of patches walked so far.
+/// Runs the walks of every simulated object; their meshes must have passed
+/// [`check_meshes`]. `progress` gets the number of patches walked so far.
 pub fn scene_walks(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],
-    sources: &[&[[Vec3; 3]]],
     unit_mm: f64,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<SceneWalks, String> {
@@ -119,13 +118,10 @@ pub fn scene_walks(
     let mut rows: Vec<u64> = vec![0; n + 1];
     let mut per_object = Vec::new();
     let mut done = 0u64;
-    for (k, o) in objects.iter().enumerate() {
+    for o in objects {
         let Some(medium) = SimMedium::of(o.material) else {
             continue;
         };
-        if let Some(why) = sources.get(k).and_then(|t| closed_mesh_problem(t)) {
-            return Err(format!("object '{}' is simulated, but {why}", o.name));
-        }
         let r = o.patches.clone();
         let p = SimPatches {
             corners: &g.corners[r.clone()],
@@ -141,7 +137,7 @@ pub fn scene_walks(
         for (j, pair) in w.row_ptr.windows(2).enumerate() {
             rows[r.start + j + 1] = pair[1] - pair[0];
         }
-        per_object.push((o.name.to_string(), r, w, medium));
+        per_object.push((o.name.to_string(), r, w));
     }
     let mut out = SceneWalks::default();
     if per_object.is_empty() {
@@ -152,25 +148,11 @@ pub fn scene_walks(
     }
     out.row_ptr = rows;
     // Objects are in patch order, so their records concatenate in row order.
-    for (name, r, w, medium) in per_object {
+    for (name, r, w) in per_object {
         out.col.extend(w.col.iter().map(|&i| i + r.start as u32));
         out.bin.extend_from_slice(&w.bin);
         out.weight.extend_from_slice(&w.weight);
-        let rep: &WalkReport = &w.report;
-        out.reports.push((
-            name,
-            SimulationInfo {
-                walks: rep.walks,
-                events: rep.events,
-                lost: rep.lost,
-                cut: rep.cut,
-                noise_median: rep.noise_median,
-                noise_max: rep.noise_max,
-                records: rep.records,
-                sigma_a_floor: medium.floor(),
-            },
-            rep.seconds,
-        ));
+        out.reports.push((name, w.report, w.seconds));
     }
     Ok(out)
 }

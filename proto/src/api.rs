@@ -494,6 +494,19 @@ pub struct SceneObject {
     pub albedo: [f32; 3],
     pub first_patch: u64,
     pub patch_count: u64,
+    /// For a simulated object: the absorption its walks were weighted for and the lowest one
+    /// an override is served with (no new walks); absent for other materials.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub absorption: Option<Absorption>,
+}
+
+/// The absorption range of a simulated object's stored walks (mm⁻¹ per channel).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Absorption {
+    /// σa of the scene file (the preset's where the file gives none).
+    pub sigma_a: [f32; 3],
+    /// The lowest σa an override may ask for (σa / 16 at precompute).
+    pub sigma_a_min: [f32; 3],
 }
 
 /// `GET /api/v1/scenes/{id}`.

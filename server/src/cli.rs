@@ -27,10 +27,16 @@ use crate::state::{AppState, discover};
 
 /// Where `--demo` keeps its bundles when `--bundles` is not given.
 pub const DEMO_DIR: &str = "demo-bundles";
-/// The demo scene and its bundle id.
-pub const DEMO_SCENE: &str = "builtin:cornell";
-pub const DEMO_ID: &str = "cornell";
-/// Patches of the demo bundle: ready in seconds on two cores.
+/// The demo's bundle ids and scenes, in the order they are precomputed. The viewer opens the
+/// first id in sort order: the bowls, each lit by a lamp inside, glowing through their walls
+/// (skim milk and milky glass-ceramic media at their measured coefficients, in a scene in
+/// metres); then the Cornell box with its marble block and the flower lit from inside its cup.
+pub const DEMO_SCENES: [(&str, &str); 3] = [
+    ("bowls", "builtin:bowls"),
+    ("cornell", "builtin:cornell"),
+    ("flower", "builtin:flower"),
+];
+/// Patches of each demo bundle: ready in seconds on two cores.
 pub const DEMO_PATCHES: u64 = 3000;
 
 /// Serves translux bundles: lights in, per-vertex colours out.
@@ -63,8 +69,9 @@ pub struct Args {
     /// Address to listen on [default: 127.0.0.1:8080].
     #[arg(long, value_name = "HOST:PORT", env = "TRANSLUX_ADDR")]
     pub addr: Option<String>,
-    /// Precompute the built-in Cornell box into DIR/cornell (DIR: --bundles, else
-    /// ./demo-bundles) unless a valid bundle is already there, then serve DIR.
+    /// Precompute the built-in bowls, Cornell box and flower into DIR/bowls, DIR/cornell and
+    /// DIR/flower (DIR: --bundles, else ./demo-bundles) unless valid bundles are already
+    /// there, then serve DIR.
     #[arg(long)]
     pub demo: bool,
     /// A TOML file with any of: bundles, addr, demo, workers, queue, max_batch, deadline_ms.
@@ -243,19 +250,31 @@ pub async fn run(
         tracing::warn!("skipping {id:?} in {}: {error}", dir.display());
         state.set_failed(id, error);
     }
-    if settings.demo && !bundles.iter().any(|(id, _)| id == DEMO_ID) {
-        bundles.push((DEMO_ID.to_string(), dir.join(DEMO_ID)));
+    if settings.demo {
+        for (id, _) in DEMO_SCENES {
+            if !bundles.iter().any(|(b, _)| b == id) {
+                bundles.push((id.to_string(), dir.join(id)));
+            }
+        }
     }
     if bundles.is_empty() {
         tracing::warn!("no bundle under {}; serving no scenes", dir.display());
     }
     let demo_dir = settings.demo.then(|| dir.clone());
     state.load_in_background(bundles, move |state| {
-        if let Some(dir) = demo_dir
-            && let Err(e) = ensure_demo_bundle(&dir)
-        {
-            tracing::error!("{e:#}");
-            state.set_failed(DEMO_ID, format!("{e:#}"));
+        let Some(dir) = demo_dir else {
+            return;
+        };
+        // Each demo scene is served as soon as it is ready, the first while the others are
+        // still being precomputed.
+        for (id, scene) in DEMO_SCENES {
+            match ensure_demo_bundle(&dir, id, scene) {
+                Ok(()) => state.load_one(id, &dir.join(id)),
+                Err(e) => {
+                    tracing::error!("{e:#}");
+                    state.set_failed(id, format!("{e:#}"));
+                }
+            }
         }
     });
 
@@ -295,10 +314,10 @@ pub async fn run(
     Ok(())
 }
 
-/// Makes sure `dir/cornell` holds a valid bundle, precomputing `builtin:cornell` at
-/// [`DEMO_PATCHES`] patches if not.
-pub fn ensure_demo_bundle(dir: &Path) -> anyhow::Result<()> {
-    let out = dir.join(DEMO_ID);
+/// Makes sure `dir/id` holds a valid bundle, precomputing `scene` (one of
+/// [`DEMO_SCENES`]) at [`DEMO_PATCHES`] patches if not.
+pub fn ensure_demo_bundle(dir: &Path, id: &str, scene: &str) -> anyhow::Result<()> {
+    let out = dir.join(id);
     let why = match Bundle::open(&out) {
         Ok(b) => {
             tracing::info!(
@@ -311,18 +330,18 @@ pub fn ensure_demo_bundle(dir: &Path) -> anyhow::Result<()> {
         Err(e) => e,
     };
     tracing::info!(
-        "no valid demo bundle in {} ({why}); precomputing {DEMO_SCENE} at {DEMO_PATCHES} patches",
+        "no valid demo bundle in {} ({why}); precomputing {scene} at {DEMO_PATCHES} patches",
         out.display()
     );
     let t = Instant::now();
-    let scene = load_scene(DEMO_SCENE).with_context(|| format!("cannot load {DEMO_SCENE}"))?;
+    let loaded = load_scene(scene).with_context(|| format!("cannot load {scene}"))?;
     let params = PrecomputeParams {
         patches: Some(DEMO_PATCHES),
         progress: true,
         ..Default::default()
     };
-    let report = precompute(&scene, &out, &params)
-        .with_context(|| format!("cannot precompute {DEMO_SCENE} into {}", out.display()))?;
+    let report = precompute(&loaded, &out, &params)
+        .with_context(|| format!("cannot precompute {scene} into {}", out.display()))?;
     tracing::info!(
         "demo bundle written to {} in {:.1} s: {} patches, {} vertices, nnz(F) {}, {:.1} MB",
         out.display(),

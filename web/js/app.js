@@ -526,6 +526,10 @@ function describeProfile(p) {
 
 /** An object's caption: the media it is drawn with, the picked ones where a preset is picked. */
 function materialCaption(o, u) {
+  if (o.material.type === "simulated") {
+    const m = o.material;
+    return `simulated ${m.preset ?? "(σ values)"}, σa ×${u.scale.toFixed(2)}`;
+  }
   if (o.material.type === "translucent") {
     return u.choice === "scene" ? describeProfile(o.material.profile) : `dipole ${u.choice}`;
   }
@@ -539,6 +543,13 @@ function materialOverride(name) {
   const scaled = (p) => (p.type === "dipole" ? { ...p, scale: +((p.scale ?? 1) * u.scale).toPrecision(4) } : p);
   // The scene's specular coat stays with the new medium.
   const coat = (m) => (o.material.specular ? { ...m, specular: o.material.specular } : m);
+  if (o.material.type === "simulated") {
+    // Absorption only: the walks are re-weighted for the new σa, never re-run. Never below
+    // the floor the walks were stored for (rounding could undershoot it).
+    if (u.scale === 1) return null;
+    const { sigma_a: a, sigma_a_min: lo } = o.absorption;
+    return { ...o.material, sigma_a: a.map((x, c) => Math.max(+(x * u.scale).toPrecision(5), lo[c])) };
+  }
   if (o.material.type === "translucent") {
     const base = u.choice === "scene" ? o.material.profile : { type: "dipole", preset: u.choice };
     if (u.choice === "scene" && u.scale === 1) return null;
@@ -571,8 +582,10 @@ function glossOf(m) {
   const profile = m.type === "translucent" ? m.profile
     : m.type === "thin_sheet" ? m.reflectance
       : m.type === "heterogeneous" ? m.materials[0] : null;
-  const mediumEta = profile && profile.type === "dipole"
-    ? (profile.eta ?? PRESET_ETA[profile.preset] ?? DIPOLE_ETA) : null;
+  const dipoleEta = (p) => p.eta ?? PRESET_ETA[p.preset] ?? DIPOLE_ETA;
+  // A simulated medium's eta follows the same rule (profile::eta_of).
+  const mediumEta = m.type === "simulated" ? dipoleEta(m)
+    : profile && profile.type === "dipole" ? dipoleEta(profile) : null;
   return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_COAT_ETA];
 }
 
@@ -620,6 +633,10 @@ function matUiFrom(o, override) {
     }
     return { choice: "scene", scale: 1 };
   };
+  if (o.material.type === "simulated") {
+    const a = override && override.type === "simulated" && override.sigma_a;
+    return { scale: a ? +(a[0] / o.absorption.sigma_a[0]).toPrecision(4) : 1 };
+  }
   if (o.material.type === "translucent") {
     const p = override && override.type === "translucent" ? override.profile : null;
     return fromProfile(p, o.material.profile);
@@ -637,6 +654,10 @@ function buildMaterials() {
   app.matUi = {};
   for (const o of app.detail.objects) {
     const kind = o.material.type;
+    if (kind === "simulated" && o.absorption) {
+      rows.push(absorptionRow(o));
+      continue;
+    }
     if (kind !== "translucent" && kind !== "heterogeneous") continue;
     const u = matUiFrom(o, app.state.materials[o.name]);
     app.matUi[o.name] = u;
@@ -679,6 +700,32 @@ function buildMaterials() {
   }
   if (!rows.length) rows.push(el("p", { class: "note" }, "This scene has no translucent objects."));
   box.replaceChildren(...rows);
+}
+
+/**
+ * A simulated object's row: an absorption slider (σa ×1/16 … ×8, the lower end the walks'
+ * floor), re-weighting the stored walks; its medium's scattering stays as precomputed.
+ */
+function absorptionRow(o) {
+  const u = matUiFrom(o, app.state.materials[o.name]);
+  app.matUi[o.name] = u;
+  const caption = el("span", { class: "kind" }, materialCaption(o, u));
+  const { sigma_a: a, sigma_a_min: lo } = o.absorption;
+  // The lowest factor every channel allows, on the slider's grid of 0.05.
+  const raw = Math.log2(Math.max(...lo.map((l, c) => (a[c] > 0 ? l / a[c] : 0))));
+  const min = Math.max(-4, Math.ceil(raw / 0.05 - 1e-6) * 0.05);
+  const sl = slider({
+    id: `mat-${o.name}-absorption`, label: "Absorption", min: +min.toFixed(2), max: 3, step: 0.05,
+    value: Math.log2(u.scale),
+    format: (v) => `×${Math.pow(2, v).toFixed(2)}`,
+    title: "Scales the medium's σa; the stored walks are re-weighted, not re-run. Left is more translucent",
+    oninput: (v, ev) => {
+      u.scale = +Math.pow(2, v).toPrecision(4);
+      caption.textContent = materialCaption(o, u);
+      applyMaterial(o.name, ev.timeStamp);
+    },
+  });
+  return el("div", { class: "obj", "data-object": o.name }, [el("div", { class: "oname" }, o.name, " ", caption), sl]);
 }
 
 function buildDisplay() {

@@ -359,6 +359,46 @@ async function checkLinkMaterialLayout(browser) {
  * exposure and tone. Differences cancel what the two pictures do differently elsewhere
  * (antialiasing, the background).
  */
+/**
+ * A simulated object (scene `simulated_cube`, a cube walked at precompute): its row
+ * has an absorption slider, no translucency slider; moving it sends σa × the factor (the
+ * server re-weights the stored walks) and changes the picture.
+ */
+async function checkAbsorption(browser) {
+  const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
+  watchErrors(context);
+  const page = await context.newPage();
+  await page.goto(url + "#scene=simulated_cube");
+  await firstLit(page);
+  await idle(page);
+  const o = await page.evaluate(() => window.translux.app.detail.objects.find((x) => x.material.type === "simulated"));
+  check(o && o.absorption && o.absorption.sigma_a.every((a, c) => a > o.absorption.sigma_a_min[c]),
+    `the scene detail gives the simulated object no absorption range: ${JSON.stringify(o)}`);
+  check(await page.locator(`#mat-${o.name}-scale`).count() === 0, "a simulated object got a translucency slider");
+  const sel = `#mat-${o.name}-absorption`;
+  const min = +(await page.getAttribute(sel, "min"));
+  check(min <= -3.9 && min > -4.05, `the absorption slider goes down to 2^${min}, not the walks' floor 2^-4`);
+  const rect = await objectRect(page, o.name);
+  const before = await pixels(page, rect);
+  for (const v of ["-0.5", "-1", "-1.5", "-2"]) {
+    await page.locator(sel).fill(v);
+    await page.waitForTimeout(40);
+  }
+  await idle(page);
+  const banner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+  check(!banner, `the absorption change was refused: ${banner}`);
+  const after = await pixels(page, rect);
+  const d = diff(before, after);
+  check(d > 2, `σa ×1/4 changed the cube by ${d.toFixed(2)} / 255 only`);
+  const sent = await page.evaluate((n) => window.translux.app.state.materials[n], o.name);
+  check(sent && sent.type === "simulated"
+    && sent.sigma_a.every((a, c) => Math.abs(a / o.absorption.sigma_a[c] - 0.25) < 1e-3),
+    `the override sent is ${JSON.stringify(sent)}`);
+  await shot(page, "11-absorption.png");
+  await context.close();
+  return { object: o.name, pixel_change: +d.toFixed(1), sigma_a: sent.sigma_a };
+}
+
 async function checkSpecular(browser) {
   const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
   watchErrors(context);
@@ -892,6 +932,7 @@ try {
   result.link_and_layout = await checkLinkMaterialLayout(browser);
   result.phone = await checkPhone(browser);
   result.specular = await checkSpecular(browser);
+  result.absorption = await checkAbsorption(browser);
   result.crisp_light = await checkCrispLight(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);

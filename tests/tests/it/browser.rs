@@ -205,6 +205,33 @@ fn viewer_in_a_real_browser() {
         ..Default::default()
     };
     precompute(&scene, &bundles.path().join("cornell"), &params).expect("precompute");
+    // A simulated object for the absorption slider: a 3 cm cube on a floor, lit from above.
+    let cube: translux_proto::scene::SceneFile = serde_json::from_value(serde_json::json!({
+        "name": "simulated_cube",
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [0.2, 0.2]},
+             "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+            {"name": "cube", "mesh": {"shape": "box", "size": [0.03, 0.03, 0.03]},
+             "transform": {"translate": [0, 0.015, 0]},
+             "material": {"type": "simulated", "sigma_s_prime": [0.5, 0.5, 0.5],
+                          "sigma_a": [0.01, 0.02, 0.05], "noise": 0.03}},
+        ],
+        "lights": [{"type": "point", "position": [0.02, 0.08, 0.03], "intensity": [0.01, 0.01, 0.01]}],
+        "camera": {"position": [0.0, 0.07, 0.12], "target": [0, 0.015, 0], "fov_deg": 40},
+    }))
+    .unwrap();
+    let cube = translux_precompute::scene::resolve_scene(
+        cube,
+        Path::new("."),
+        "simulated_cube".into(),
+        "simulated_cube".into(),
+    )
+    .unwrap();
+    let small = PrecomputeParams {
+        patches: Some(1200),
+        ..Default::default()
+    };
+    precompute(&cube, &bundles.path().join("simulated_cube"), &small).expect("precompute");
 
     let out = screenshot_dir();
     let _ = std::fs::remove_dir_all(&out);

@@ -967,6 +967,160 @@ async fn a_corrupt_bundle_is_skipped_and_the_good_one_served() {
     assert_eq!(errors.len(), 1);
 }
 
+/// A simulated object over HTTP: the scene detail gives its absorption range, a `sigma_a`
+/// override is served (S re-weighted from the stored walks, also on the render route), and
+/// what the walks cannot serve is a 400 naming the object and what to do.
+#[tokio::test]
+async fn a_simulated_object_changes_absorption_over_http_and_refuses_the_rest() {
+    let tmp = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap();
+    let scene_file = tmp.path().join("cube.json");
+    std::fs::write(
+        &scene_file,
+        json!({
+            "name": "sim",
+            "objects": [
+                {"name": "floor", "mesh": {"shape": "quad", "size": [0.2, 0.2]},
+                 "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+                {"name": "cube", "mesh": {"shape": "box", "size": [0.02, 0.02, 0.02]},
+                 "transform": {"translate": [0, 0.01, 0]},
+                 "material": {"type": "simulated", "sigma_s_prime": [0.5, 0.5, 0.5],
+                              "sigma_a": [0.01, 0.02, 0.04], "noise": 0.05}},
+            ],
+            "lights": [{"type": "point", "position": [0.03, 0.06, 0.02], "intensity": [0.01, 0.01, 0.01]}],
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let loaded = translux_precompute::scene::load_scene_file(&scene_file).unwrap();
+    let bundles = tmp.path().join("bundles");
+    build_bundle(&loaded, &bundles.join("sim"), 800);
+    let (state, errors) = load_bundles(&bundles);
+    assert!(errors.is_empty(), "{errors:?}");
+    let s = TestServer::start(state).await;
+
+    let detail: SceneDetail = s.get_json("/api/v1/scenes/sim").await;
+    let cube = detail.objects.iter().find(|o| o.name == "cube").unwrap();
+    let range = cube
+        .absorption
+        .clone()
+        .expect("a simulated object's absorption range");
+    assert_eq!(range.sigma_a, [0.01, 0.02, 0.04]);
+    for c in 0..3 {
+        assert!(
+            (range.sigma_a_min[c] - range.sigma_a[c] / 16.0).abs() < 1e-7,
+            "{range:?}"
+        );
+    }
+    assert!(
+        detail
+            .objects
+            .iter()
+            .find(|o| o.name == "floor")
+            .unwrap()
+            .absorption
+            .is_none()
+    );
+
+    let ok = |r: reqwest::Response| async move {
+        let status = r.status();
+        let text = r.text().await.unwrap();
+        assert_eq!(status, StatusCode::OK, "{text}");
+        serde_json::from_str::<RelightResponse>(&text).unwrap()
+    };
+    let base = ok(s.relight("sim", &json!({}), Some("application/json")).await).await;
+    let material = |extra: Value| {
+        let mut m = json!({"type": "simulated", "sigma_s_prime": [0.5, 0.5, 0.5],
+                           "sigma_a": [0.01, 0.02, 0.04], "noise": 0.05});
+        for (k, v) in extra.as_object().unwrap() {
+            m[k] = v.clone();
+        }
+        json!({"materials": {"cube": m}})
+    };
+    // Less absorption: a brighter cube, more light on the floor too.
+    let clearer = ok(s
+        .relight(
+            "sim",
+            &material(json!({"sigma_a": [0.0025, 0.005, 0.01]})),
+            Some("application/json"),
+        )
+        .await)
+    .await;
+    assert!(clearer.stats.materials_ms > 0.0, "{:?}", clearer.stats);
+    let total = |r: &RelightResponse| r.radiance.iter().map(|&v| f64::from(v)).sum::<f64>();
+    assert!(
+        total(&clearer) > 1.01 * total(&base),
+        "{} vs {}",
+        total(&clearer),
+        total(&base)
+    );
+    // The same material as the bundle's gives the bundle's answer, to the solver's 0.5%
+    // residual (a relight after another material starts from that one's answer).
+    let same = ok(s
+        .relight("sim", &material(json!({})), Some("application/json"))
+        .await)
+    .await;
+    let peak = base.radiance.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let worst = same
+        .radiance
+        .iter()
+        .zip(&base.radiance)
+        .map(|(a, b)| (a - b).abs() / peak)
+        .fold(0.0f32, f32::max);
+    eprintln!(
+        "same σa: worst difference {worst} of the peak, totals {} / {}",
+        total(&same),
+        total(&base)
+    );
+    assert!(
+        worst < 0.01,
+        "the bundle's own σa re-weighted differs by {worst} of the peak"
+    );
+    assert!((total(&same) / total(&base) - 1.0).abs() < 0.005);
+
+    for (extra, needles) in [
+        (
+            json!({"sigma_a": [0.0001, 0.02, 0.04]}),
+            vec!["cube", "precompute"],
+        ),
+        (
+            json!({"sigma_s_prime": [0.6, 0.5, 0.5]}),
+            vec!["cube", "precompute"],
+        ),
+    ] {
+        let r = s
+            .relight("sim", &material(extra.clone()), Some("application/json"))
+            .await;
+        assert_eq!(r.status(), StatusCode::BAD_REQUEST, "{extra}");
+        let body: ErrorBody = r.json().await.unwrap();
+        for n in needles {
+            assert!(
+                body.error.message.contains(n),
+                "{extra}: {:?} lacks {n:?}",
+                body.error.message
+            );
+        }
+    }
+    // A dipole on the simulated cube, walks on the diffuse floor: refused, naming what to do.
+    let dipole = json!({"materials": {"cube": {"type": "translucent",
+        "profile": {"type": "dipole", "preset": "marble"}}}});
+    let r = s.relight("sim", &dipole, Some("application/json")).await;
+    assert!(r.status().is_client_error(), "{}", r.status());
+    let walked_floor = json!({"materials": {"floor": {"type": "simulated", "preset": "marble"}}});
+    let r = s
+        .relight("sim", &walked_floor, Some("application/json"))
+        .await;
+    assert!(r.status().is_client_error(), "{}", r.status());
+    let body: ErrorBody = r.json().await.unwrap();
+    assert!(
+        body.error
+            .message
+            .contains("precompute the scene with \"floor\" simulated"),
+        "{}",
+        body.error.message
+    );
+    s.stop().await;
+}
+
 /// POSTs a JSON body to the scene's render endpoint.
 async fn post_render(s: &TestServer, body: &Value, accept: Option<&str>) -> reqwest::Response {
     let mut req = s

@@ -558,14 +558,74 @@ fn a_convex_translucent_cube_matches_the_integrated_dipole() {
     assert!((sum(0) / sum(1) - 1.0).abs() < 0.02);
 }
 
-/// The Cornell box with its tall block a homogeneous scattering medium, against Mitsuba's
-/// volumetric path tracer (`volpath`: the medium inside an index-matched boundary, η = 1 on
-/// both sides, so point lights reach it — a dielectric boundary makes a path tracer's point
-/// lights useless there). translux models the block with the dipole of the same σs′ and σa,
-/// a half-space approximation: this test reports the error that leaves, per group of
-/// patches, and asserts only what the model must get right — the walls, lit mostly by each
-/// other, match, and the block re-emits the right amount of light within a factor that a
-/// wrong unit or a lost channel would break.
+/// A homogeneous, isotropic scattering medium (mm⁻¹) behind an index-matched boundary (η = 1:
+/// a path tracer's point lights reach it), as translux's two S models and as Mitsuba's volume.
+struct Medium {
+    sigma_s_prime: [f32; 3],
+    sigma_a: [f32; 3],
+}
+
+impl Medium {
+    /// The dipole of the same coefficients (a half-space profile).
+    fn dipole(&self) -> Material {
+        Material::Translucent {
+            profile: translux_proto::scene::Profile::Dipole {
+                preset: None,
+                sigma_a: Some(self.sigma_a),
+                sigma_s_prime: Some(self.sigma_s_prime),
+                eta: Some(1.0),
+                scale: None,
+            },
+            specular: None,
+        }
+    }
+
+    /// Random walks in the same medium (`"type": "simulated"`), at `noise` if given.
+    fn simulated(&self, noise: Option<f32>) -> Material {
+        let mut m = json!({"type": "simulated", "sigma_s_prime": self.sigma_s_prime,
+                           "sigma_a": self.sigma_a, "eta": 1.0});
+        if let Some(n) = noise {
+            m["noise"] = json!(n);
+        }
+        translux_proto::parse_json(&m.to_string()).unwrap()
+    }
+
+    /// Mitsuba's volume (m⁻¹): σs = σs′ with an isotropic phase.
+    fn volume(&self) -> serde_json::Value {
+        json!({"type": "volume",
+               "sigma_a": self.sigma_a.map(|v| v * 1000.0),
+               "sigma_s": self.sigma_s_prime.map(|v| v * 1000.0),
+               "g": 0.0, "eta": 1.0})
+    }
+}
+
+/// Per group of probes: the dipole's (`got`) and the simulated S's (`got_sim`) errors
+/// against `reference`, with a table row each (labelled `prefix` + the group's name).
+fn errors_per_group(
+    groups: &[(String, Vec<usize>)],
+    got: &[Rgb],
+    got_sim: &[Rgb],
+    reference: &mitsuba::Reference,
+    prefix: &str,
+    rows: &mut Vec<String>,
+) -> Vec<(String, Errors, Errors)> {
+    groups
+        .iter()
+        .map(|(name, at)| {
+            let (g, r) = pick_at(got, reference, at);
+            let (gs, _) = pick_at(got_sim, reference, at);
+            let (ed, es) = (errors(&g, &r, 0.05), errors(&gs, &r, 0.05));
+            rows.push(table_row(&format!("{prefix}{name}, dipole"), at.len(), &ed));
+            rows.push(table_row(
+                &format!("{prefix}{name}, simulated"),
+                at.len(),
+                &es,
+            ));
+            (name.clone(), ed, es)
+        })
+        .collect()
+}
+
 /// The probes among `probes` (patch indices) that lie on `object`, grouped by the face their
 /// normal points along (±x, ±y, ±z), each group labelled by `label(axis, sign)`.
 fn face_groups(
@@ -619,11 +679,12 @@ fn pick_at(
 /// the same medium inside the same block.
 #[test]
 fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
-    use translux_proto::scene::Profile;
     // A warm, fairly translucent medium (mm⁻¹): albedo σs′/(σs′ + σa) 0.99–0.95, diffusion
     // length 1/σtr ≈ 13, 10, 5 mm, mean free path ≈ 2–3 mm: 60+ of them across the block.
-    let sigma_s_prime = [0.5f32, 0.45, 0.35];
-    let sigma_a = [0.004f32, 0.008, 0.02];
+    let medium = Medium {
+        sigma_s_prime: [0.5, 0.45, 0.35],
+        sigma_a: [0.004, 0.008, 0.02],
+    };
     let with_block = |material: Material| {
         let mut file = builtin_scene("cornell").unwrap();
         for o in &mut file.objects {
@@ -633,24 +694,8 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         }
         file
     };
-    let dipole = with_block(Material::Translucent {
-        profile: Profile::Dipole {
-            preset: None,
-            sigma_a: Some(sigma_a),
-            sigma_s_prime: Some(sigma_s_prime),
-            eta: Some(1.0),
-            scale: None,
-        },
-        specular: None,
-    });
-    let walked = with_block(
-        translux_proto::parse_json(
-            &json!({"type": "simulated", "sigma_s_prime": sigma_s_prime,
-                    "sigma_a": sigma_a, "eta": 1.0})
-            .to_string(),
-        )
-        .unwrap(),
-    );
+    let dipole = with_block(medium.dipole());
+    let walked = with_block(medium.simulated(None));
     let dir = tempfile::tempdir().unwrap();
     let scene = build(dipole, dir.path(), "volume_cornell", 3000);
     let sim_scene = build(walked, dir.path(), "simulated_cornell", 3000);
@@ -682,12 +727,8 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         .into_iter()
         .chain(pick(&others, 150))
         .collect();
-    let volume = json!({"type": "volume",
-        "sigma_a": sigma_a.map(|v| v * 1000.0),
-        "sigma_s": sigma_s_prime.map(|v| v * 1000.0),
-        "g": 0.0, "eta": 1.0});
     let input = json!({
-        "objects": mitsuba::objects_with(b, &[("tall_block".to_owned(), volume)]),
+        "objects": mitsuba::objects_with(b, &[("tall_block".to_owned(), medium.volume())]),
         "lights": lights,
         "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
                     "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
@@ -733,19 +774,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         table_row("block, dipole", nb, &eb),
         table_row("block, simulated", nb, &ebs),
     ];
-    let mut per_face = Vec::new();
-    for (name, at) in &groups {
-        let (g, r) = pick_at(&got, &reference, at);
-        let (gs, _) = pick_at(&got_sim, &reference, at);
-        let (ed, es) = (errors(&g, &r, 0.05), errors(&gs, &r, 0.05));
-        rows.push(table_row(&format!("block {name}, dipole"), at.len(), &ed));
-        rows.push(table_row(
-            &format!("block {name}, simulated"),
-            at.len(),
-            &es,
-        ));
-        per_face.push((name.clone(), es));
-    }
+    let per_face = errors_per_group(&groups, &got, &got_sim, &reference, "block ", &mut rows);
     rows.push(table_row(
         &format!("the other {} objects, dipole block", objects.len() - 1),
         probes.len() - nb,
@@ -796,7 +825,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     // The bottom face (−y) stands on the floor: light that reaches it goes into the floor
     // in Mitsuba and back into the block, while S re-emits it at patches the floor buries
     // (its probes are mostly left out as unreachable, 18 of 32 counted). Reported only.
-    for (name, e) in &per_face {
+    for (name, _, e) in &per_face {
         if e.counted >= 10 && !name.starts_with("-y") {
             assert!(
                 e.median < 0.05,
@@ -812,9 +841,10 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
 /// of the dipole's and of the simulated S's exitance against Mitsuba's volpath in the same
 /// medium (Mitsuba measuring exitance / π, what a radiosity patch carries).
 fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
-    use translux_proto::scene::Profile;
-    let sigma_s_prime = [0.8f32, 0.6, 0.5];
-    let sigma_a = [0.01f32, 0.02, 0.04];
+    let medium = Medium {
+        sigma_s_prime: [0.8, 0.6, 0.5],
+        sigma_a: [0.01, 0.02, 0.04],
+    };
     let cube = |material: Material| -> SceneFile {
         let mut file: SceneFile = translux_proto::parse_json(
             r#"{"objects": [{"name": "cube", "mesh": {"shape": "box", "size": [0.016, 0.016, 0.016]},
@@ -824,24 +854,8 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
         file.objects[0].material = material;
         file
     };
-    let dipole = cube(Material::Translucent {
-        profile: Profile::Dipole {
-            preset: None,
-            sigma_a: Some(sigma_a),
-            sigma_s_prime: Some(sigma_s_prime),
-            eta: Some(1.0),
-            scale: None,
-        },
-        specular: None,
-    });
-    let walked = cube(
-        translux_proto::parse_json(
-            &json!({"type": "simulated", "sigma_s_prime": sigma_s_prime,
-                    "sigma_a": sigma_a, "eta": 1.0, "noise": 0.003})
-            .to_string(),
-        )
-        .unwrap(),
-    );
+    let dipole = cube(medium.dipole());
+    let walked = cube(medium.simulated(Some(0.003)));
     let dir = tempfile::tempdir().unwrap();
     let a = build(dipole, dir.path(), "cube_dipole", 1500);
     let s = build(walked, dir.path(), "cube_simulated", 1500);
@@ -853,12 +867,8 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
     let (ours_sim, _, _) = patch_radiance(&s.bundle, &parsed);
     let all: Vec<usize> = (0..centroids.len()).collect();
     let probes = every(&all, (all.len() / 300).max(1));
-    let volume = json!({"type": "volume",
-        "sigma_a": sigma_a.map(|v| v * 1000.0),
-        "sigma_s": sigma_s_prime.map(|v| v * 1000.0),
-        "g": 0.0, "eta": 1.0});
     let input = json!({
-        "objects": mitsuba::objects_with(b, &[("cube".to_owned(), volume)]),
+        "objects": mitsuba::objects_with(b, &[("cube".to_owned(), medium.volume())]),
         "lights": lights,
         "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
                     "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
@@ -875,15 +885,7 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
     };
     let groups = face_groups(b, &probes, 0, &label);
     let mut rows = Vec::new();
-    let mut out = Vec::new();
-    for (name, at) in &groups {
-        let (g, r) = pick_at(&got, &reference, at);
-        let (gs, _) = pick_at(&got_sim, &reference, at);
-        let (ed, es) = (errors(&g, &r, 0.05), errors(&gs, &r, 0.05));
-        rows.push(table_row(&format!("{name}, dipole"), at.len(), &ed));
-        rows.push(table_row(&format!("{name}, simulated"), at.len(), &es));
-        out.push((name.clone(), ed, es));
-    }
+    let out = errors_per_group(&groups, &got, &got_sim, &reference, "", &mut rows);
     let info = s.bundle.manifest().subsurface.objects[0].clone();
     let sim = info.simulation.clone().unwrap();
     println!(
@@ -922,6 +924,125 @@ fn a_cube_lit_from_one_side_against_volumetric_path_tracing() {
     }
     let lit = faces.iter().find(|c| c.0.starts_with("lit")).unwrap();
     assert!(lit.2.median < 0.15, "lit face: simulated {:?}", lit.2);
+}
+
+/// A thin translucent bowl (outer radius 50 mm, wall 4 mm; σs′ 1.0, 0.8, 0.6 mm⁻¹, σa 0.005,
+/// 0.01, 0.02 mm⁻¹, η = 1) lit by a point light inside it, below the rim, against Mitsuba's
+/// volpath in the same medium: the inside, the rim and the outside (lit only through the
+/// wall), per group the dipole's and the simulated S's errors.
+fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
+    let (radius, thickness) = (0.05f32, 0.004f32);
+    let medium = Medium {
+        sigma_s_prime: [1.0, 0.8, 0.6],
+        sigma_a: [0.005, 0.01, 0.02],
+    };
+    let light = [0.0f32, 0.035, 0.0];
+    let bowl = |material: Material| -> SceneFile {
+        let mut file: SceneFile = serde_json::from_value(json!({"objects": [{"name": "bowl",
+            "mesh": {"shape": "bowl", "radius": radius, "thickness": thickness},
+            "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}))
+        .unwrap();
+        file.objects[0].material = material;
+        file
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let a = build(bowl(medium.dipole()), dir.path(), "bowl_dipole", 2500);
+    let s = build(
+        bowl(medium.simulated(None)),
+        dir.path(),
+        "bowl_simulated",
+        2500,
+    );
+    let b = &a.bundle;
+    assert_eq!(b.patch_corners(), s.bundle.patch_corners());
+    let lights = json!([{"type": "point", "position": light, "intensity": [1, 1, 1]}]);
+    let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
+    let (ours, centroids, normals) = patch_radiance(b, &parsed);
+    let (ours_sim, _, _) = patch_radiance(&s.bundle, &parsed);
+    let all: Vec<usize> = (0..centroids.len()).collect();
+    let probes = every(&all, (all.len() / 400).max(1));
+    let input = json!({
+        "objects": mitsuba::objects_with(b, &[("bowl".to_owned(), medium.volume())]),
+        "lights": lights,
+        "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
+                    "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
+        "measure": "exitance",
+        "spp": 4096, "max_depth": 4096, "rr_depth": 256, "seed": 7,
+    });
+    let reference = mitsuba::run(&input)?;
+    let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
+    let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
+    // Inside (the normal points towards the sphere's centre), the flat rim, and the outside
+    // in two bands: the bottom half, right below the light, and the upper half to the rim.
+    let centre = [0.0f32, radius, 0.0];
+    let mut groups: Vec<(String, Vec<usize>)> = [
+        "inside",
+        "outside, bottom half",
+        "outside, upper half",
+        "rim",
+    ]
+    .iter()
+    .map(|n| (n.to_string(), Vec::new()))
+    .collect();
+    for (q, &k) in probes.iter().enumerate() {
+        let (c, n) = (centroids[k], normals[k]);
+        let d: [f32; 3] = std::array::from_fn(|i| c[i] - centre[i]);
+        let g = if n[1] > 0.99 && c[1] > radius - 1e-4 {
+            3
+        } else if (0..3).map(|i| n[i] * d[i]).sum::<f32>() < 0.0 {
+            0
+        } else if c[1] < 0.5 * radius {
+            1
+        } else {
+            2
+        };
+        groups[g].1.push(q);
+    }
+    let mut rows = Vec::new();
+    let out = errors_per_group(&groups, &got, &got_sim, &reference, "", &mut rows);
+    let info = s.bundle.manifest().subsurface.objects[0].clone();
+    let sim = info.simulation.clone().unwrap();
+    println!(
+        "Bowl (R 50 mm, wall 4 mm) lit from inside by a point light, {} patches; Mitsuba volpath \
+         (exitance) {:.1} s; walks {} in {:.1} s, noise {:.2}% median\n\
+         | faces | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
+         |---|---|---|---|---|---|\n{}",
+        b.manifest().patch_count,
+        reference.seconds,
+        sim.walks,
+        info.seconds,
+        100.0 * sim.noise_median,
+        rows.join("\n")
+    );
+    Some(out)
+}
+
+/// A bowl lit from inside against Mitsuba's volpath: the outside glows only by light that
+/// crossed the wall. On every group the simulated S must be closer than the dipole, in
+/// median and in total, and the outside's total within 10%. (Not the issue's 5% median: the
+/// lamp's light enters collimated, S assumes diffuse entry, so the inside returns ~10% too
+/// much and the outside gets 4–7% too little; see docs/validation.md.)
+#[test]
+fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
+    let Some(groups) = bowl_lit_from_inside() else {
+        return;
+    };
+    for (name, ed, es) in &groups {
+        assert!(
+            es.counted >= 10 && ed.reference_noise < 0.04,
+            "{name}: too few points or Mitsuba too noisy: {ed:?}"
+        );
+        assert!(
+            es.median < ed.median && (es.total_ratio - 1.0).abs() < (ed.total_ratio - 1.0).abs(),
+            "{name}: simulated {es:?} is not closer to Mitsuba than the dipole {ed:?}"
+        );
+        if name.starts_with("outside") {
+            assert!(
+                es.median < 0.12 && (es.total_ratio - 1.0).abs() < 0.1,
+                "{name}: simulated {es:?}"
+            );
+        }
+    }
 }
 
 /// Precomputes `loaded` into `dir/name` with `transport` at about `patches` patches.
