@@ -499,32 +499,24 @@ def self_test():
     floor = {"name": "floor", "positions": floor_v, "indices": floor_t,
              "material": {"type": "diffuse", "albedo": rho}}
 
-    # 1. Point light at height h: L = rho I cos(theta) / (pi r^2).
+    # 1. Point light at height h: L = rho I cos(theta) / (pi r^2), measured as the radiance
+    # along the normal and (1b) as exitance / pi over the hemisphere (Lambertian: equal).
     h, intensity = 2.0, [10.0, 20.0, 5.0]
     ds = [0.0, 0.5, 1.0, 2.0, 4.0]
-    out = run("1 point light over a diffuse square", {
-        "objects": [floor],
-        "lights": [{"type": "point", "position": [0, 0, h], "intensity": intensity}],
-        "queries": {"points": [[d, 0, 0] for d in ds], "normals": [[0, 0, 1]] * len(ds)},
-        "spp": 64, "max_depth": 4, "seed": 1})
-    for d, L, se in zip(ds, out["radiance"], out["std_error"]):
-        r2 = h * h + d * d
-        cos = h / math.sqrt(r2)
-        for c in range(3):
-            report(f"d={d:g} ch{c}", L[c], rho[c] * intensity[c] * cos / (math.pi * r2),
-                   0.01, se[c])
-    # 1b. The same, measured as exitance / pi over the hemisphere (Lambertian: equal).
-    out = run("1b point light over a diffuse square, measured as exitance", {
-        "objects": [floor],
-        "lights": [{"type": "point", "position": [0, 0, h], "intensity": intensity}],
-        "queries": {"points": [[d, 0, 0] for d in ds], "normals": [[0, 0, 1]] * len(ds)},
-        "measure": "exitance", "spp": 256, "max_depth": 4, "seed": 11})
-    for d, L, se in zip(ds, out["radiance"], out["std_error"]):
-        r2 = h * h + d * d
-        cos = h / math.sqrt(r2)
-        for c in range(3):
-            report(f"d={d:g} ch{c}", L[c], rho[c] * intensity[c] * cos / (math.pi * r2),
-                   0.01, se[c])
+    for title, extra in (("1 point light over a diffuse square", {"spp": 64, "seed": 1}),
+                         ("1b point light over a diffuse square, measured as exitance",
+                          {"measure": "exitance", "spp": 256, "seed": 11})):
+        out = run(title, {
+            "objects": [floor],
+            "lights": [{"type": "point", "position": [0, 0, h], "intensity": intensity}],
+            "queries": {"points": [[d, 0, 0] for d in ds], "normals": [[0, 0, 1]] * len(ds)},
+            "max_depth": 4, **extra})
+        for d, L, se in zip(ds, out["radiance"], out["std_error"]):
+            r2 = h * h + d * d
+            cos = h / math.sqrt(r2)
+            for c in range(3):
+                report(f"d={d:g} ch{c}", L[c], rho[c] * intensity[c] * cos / (math.pi * r2),
+                       0.01, se[c])
 
     # 2. Directional light: L = rho E cos(theta) / pi.
     irr = [3.0, 2.0, 1.0]

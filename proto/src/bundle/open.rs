@@ -179,6 +179,34 @@ impl BundleError {
     }
 }
 
+/// Each optional array `(name, dtype, shape)` is listed in the manifest with that dtype and
+/// shape; `legend` names the letters the message's shapes use.
+fn check_listed(
+    manifest: &Manifest,
+    expected: &[(&str, DType, Vec<u64>)],
+    legend: &str,
+) -> Result<(), BundleError> {
+    for (name, dtype, shape) in expected {
+        let file = array_file_name(name, *dtype);
+        let entry = manifest
+            .arrays
+            .get(*name)
+            .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
+        if entry.dtype != *dtype || &entry.shape != shape {
+            return Err(invalid(
+                &file,
+                format!(
+                    "manifest lists {} {:?}, expected {} {shape:?} ({legend})",
+                    entry.dtype.name(),
+                    entry.shape,
+                    dtype.name()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn invalid(file: impl Into<String>, reason: impl Into<String>) -> BundleError {
     BundleError::Invalid {
         file: file.into(),
@@ -557,27 +585,14 @@ impl Bundle {
         // The transfer matrix: both arrays, with these shapes, when the manifest says so.
         if manifest.transfer.is_some() {
             let n = counts.patches;
-            for (name, dtype, shape) in [
-                (arrays::TRANSFER, DType::F16, vec![n, n, 3]),
-                (arrays::TRANSFER_SCALE, DType::F32, vec![n, 3]),
-            ] {
-                let file = array_file_name(name, dtype);
-                let entry = manifest
-                    .arrays
-                    .get(name)
-                    .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
-                if entry.dtype != dtype || entry.shape != shape {
-                    return Err(invalid(
-                        &file,
-                        format!(
-                            "manifest lists {} {:?}, expected {} {shape:?} (N = patch_count)",
-                            entry.dtype.name(),
-                            entry.shape,
-                            dtype.name()
-                        ),
-                    ));
-                }
-            }
+            check_listed(
+                &manifest,
+                &[
+                    (arrays::TRANSFER, DType::F16, vec![n, n, 3]),
+                    (arrays::TRANSFER_SCALE, DType::F32, vec![n, 3]),
+                ],
+                "N = patch_count",
+            )?;
         }
 
         // The environment visibility: listed with its shape when the manifest says so.
@@ -604,57 +619,30 @@ impl Bundle {
         // The walks of simulated objects: four arrays, with these shapes, when listed.
         if manifest.subsurface.walks > 0 {
             let (n1, w) = (counts.patches + 1, manifest.subsurface.walks);
-            for (name, dtype, shape) in [
-                (arrays::SIM_ROW_PTR, DType::U64, vec![n1]),
-                (arrays::SIM_COL, DType::U32, vec![w]),
-                (arrays::SIM_BIN, DType::U32, vec![w]),
-                (arrays::SIM_WEIGHT, DType::F32, vec![w, 3]),
-            ] {
-                let file = array_file_name(name, dtype);
-                let entry = manifest
-                    .arrays
-                    .get(name)
-                    .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
-                if entry.dtype != dtype || entry.shape != shape {
-                    return Err(invalid(
-                        &file,
-                        format!(
-                            "manifest lists {} {:?}, expected {} {shape:?} (N = patch_count, \
-                             W = subsurface.walks)",
-                            entry.dtype.name(),
-                            entry.shape,
-                            dtype.name()
-                        ),
-                    ));
-                }
-            }
+            check_listed(
+                &manifest,
+                &[
+                    (arrays::SIM_ROW_PTR, DType::U64, vec![n1]),
+                    (arrays::SIM_COL, DType::U32, vec![w]),
+                    (arrays::SIM_BIN, DType::U32, vec![w]),
+                    (arrays::SIM_WEIGHT, DType::F32, vec![w, 3]),
+                ],
+                "N = patch_count, W = subsurface.walks",
+            )?;
         }
 
         // The cluster tree: both arrays, with these shapes, when the manifest says so.
         let n_nodes = match &manifest.hierarchy {
             Some(h) => {
                 let n = counts.patches;
-                for (name, shape) in [
-                    (arrays::TREE_PERM, vec![n]),
-                    (arrays::TREE_RANGE, vec![h.nodes, 2]),
-                ] {
-                    let file = array_file_name(name, DType::U32);
-                    let entry = manifest
-                        .arrays
-                        .get(name)
-                        .ok_or_else(|| BundleError::NotListed { file: file.clone() })?;
-                    if entry.dtype != DType::U32 || entry.shape != shape {
-                        return Err(invalid(
-                            &file,
-                            format!(
-                                "manifest lists {} {:?}, expected u32 {shape:?} (N = \
-                                 patch_count, M = hierarchy.nodes)",
-                                entry.dtype.name(),
-                                entry.shape,
-                            ),
-                        ));
-                    }
-                }
+                check_listed(
+                    &manifest,
+                    &[
+                        (arrays::TREE_PERM, DType::U32, vec![n]),
+                        (arrays::TREE_RANGE, DType::U32, vec![h.nodes, 2]),
+                    ],
+                    "N = patch_count, M = hierarchy.nodes",
+                )?;
                 to_usize(h.nodes, MANIFEST_FILE, "hierarchy.nodes")?
             }
             None => 0,

@@ -836,63 +836,81 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     }
 }
 
-/// Per face of a lone 16 mm cube of a scattering medium (σs′ 0.8, 0.6, 0.5 mm⁻¹; σa 0.01,
-/// 0.02, 0.04 mm⁻¹; η = 1) lit on its +x face by a directional light along −x: the errors
-/// of the dipole's and of the simulated S's exitance against Mitsuba's volpath in the same
-/// medium (Mitsuba measuring exitance / π, what a radiosity patch carries).
-fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
-    let medium = Medium {
-        sigma_s_prime: [0.8, 0.6, 0.5],
-        sigma_a: [0.01, 0.02, 0.04],
-    };
-    let cube = |material: Material| -> SceneFile {
-        let mut file: SceneFile = translux_proto::parse_json(
-            r#"{"objects": [{"name": "cube", "mesh": {"shape": "box", "size": [0.016, 0.016, 0.016]},
-                 "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}"#,
-        )
-        .unwrap();
-        file.objects[0].material = material;
-        file
-    };
-    let dipole = cube(medium.dipole());
-    let walked = cube(medium.simulated(Some(0.003)));
+/// One translucent object alone (named `object` in `scene(material)`), its S from the
+/// dipole and from walks in `medium`, lit by `lights`, against Mitsuba's volpath in the same
+/// medium measuring exitance / π (what a radiosity patch carries) at about `probes` patch
+/// centroids; per group of probes (`group` of a probe's centroid and normal names it, in
+/// `names`' order) the dipole's and the simulated S's errors. Prints the table under `title`.
+struct LoneObject<'a> {
+    title: &'a str,
+    object: &'a str,
+    medium: Medium,
+    /// The simulated S's noise target (None: the default).
+    noise: Option<f32>,
+    patches: u64,
+    lights: serde_json::Value,
+    probes: usize,
+    spp: u32,
+    seed: u32,
+    names: &'a [&'a str],
+}
+
+fn lone_object_against_volpath(
+    c: &LoneObject<'_>,
+    scene: &dyn Fn(Material) -> SceneFile,
+    group: &dyn Fn([f32; 3], [f32; 3]) -> usize,
+) -> Option<Vec<(String, Errors, Errors)>> {
     let dir = tempfile::tempdir().unwrap();
-    let a = build(dipole, dir.path(), "cube_dipole", 1500);
-    let s = build(walked, dir.path(), "cube_simulated", 1500);
+    let name = |kind: &str| format!("{}_{kind}", c.object);
+    let a = build(
+        scene(c.medium.dipole()),
+        dir.path(),
+        &name("dipole"),
+        c.patches,
+    );
+    let s = build(
+        scene(c.medium.simulated(c.noise)),
+        dir.path(),
+        &name("simulated"),
+        c.patches,
+    );
     let b = &a.bundle;
     assert_eq!(b.patch_corners(), s.bundle.patch_corners());
-    let lights = json!([{"type": "directional", "direction": [-1, 0, 0], "irradiance": [1, 1, 1]}]);
-    let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
+    let parsed: Vec<translux_proto::light::Light> =
+        serde_json::from_value(c.lights.clone()).unwrap();
     let (ours, centroids, normals) = patch_radiance(b, &parsed);
     let (ours_sim, _, _) = patch_radiance(&s.bundle, &parsed);
     let all: Vec<usize> = (0..centroids.len()).collect();
-    let probes = every(&all, (all.len() / 300).max(1));
+    let probes = every(&all, (all.len() / c.probes).max(1));
     let input = json!({
-        "objects": mitsuba::objects_with(b, &[("cube".to_owned(), medium.volume())]),
-        "lights": lights,
+        "objects": mitsuba::objects_with(b, &[(c.object.to_owned(), c.medium.volume())]),
+        "lights": c.lights,
         "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
                     "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
         "measure": "exitance",
-        "spp": 8192, "max_depth": 4096, "rr_depth": 256, "seed": 5,
+        "spp": c.spp, "max_depth": 4096, "rr_depth": 256, "seed": c.seed,
     });
     let reference = mitsuba::run(&input)?;
     let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
     let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
-    let label = |axis: usize, sign: f32| match (axis, sign > 0.0) {
-        (0, true) => "lit (+x)".to_string(),
-        (0, false) => "far (-x)".to_string(),
-        (a, p) => format!("side ({}{})", if p { "+" } else { "-" }, ["x", "y", "z"][a]),
-    };
-    let groups = face_groups(b, &probes, 0, &label);
+    let mut groups: Vec<(String, Vec<usize>)> = c
+        .names
+        .iter()
+        .map(|n| (n.to_string(), Vec::new()))
+        .collect();
+    for (q, &k) in probes.iter().enumerate() {
+        groups[group(centroids[k], normals[k])].1.push(q);
+    }
     let mut rows = Vec::new();
     let out = errors_per_group(&groups, &got, &got_sim, &reference, "", &mut rows);
     let info = s.bundle.manifest().subsurface.objects[0].clone();
     let sim = info.simulation.clone().unwrap();
     println!(
-        "16 mm cube lit on +x by a directional light, {} patches; Mitsuba volpath (exitance) \
-         {:.1} s; walks {} in {:.1} s, noise {:.2}% median\n\
+        "{}, {} patches; Mitsuba volpath (exitance) {:.1} s; walks {} in {:.1} s, noise \
+         {:.2}% median\n\
          | faces | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
          |---|---|---|---|---|---|\n{}",
+        c.title,
         b.manifest().patch_count,
         reference.seconds,
         sim.walks,
@@ -901,6 +919,63 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
         rows.join("\n")
     );
     Some(out)
+}
+
+/// A lone scene file of one object `name`, with `mesh` and `material`.
+fn alone(name: &str, mesh: serde_json::Value, material: Material) -> SceneFile {
+    let mut file: SceneFile = serde_json::from_value(json!({"objects": [{"name": name,
+        "mesh": mesh, "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}))
+    .unwrap();
+    file.objects[0].material = material;
+    file
+}
+
+/// Per face of a lone 16 mm cube of a scattering medium (σs′ 0.8, 0.6, 0.5 mm⁻¹; σa 0.01,
+/// 0.02, 0.04 mm⁻¹; η = 1) lit on its +x face by a directional light along −x.
+fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
+    let faces = [
+        "far (-x)",
+        "lit (+x)",
+        "side (+y)",
+        "side (+z)",
+        "side (-y)",
+        "side (-z)",
+    ];
+    lone_object_against_volpath(
+        &LoneObject {
+            title: "16 mm cube lit on +x by a directional light",
+            object: "cube",
+            medium: Medium {
+                sigma_s_prime: [0.8, 0.6, 0.5],
+                sigma_a: [0.01, 0.02, 0.04],
+            },
+            noise: Some(0.003),
+            patches: 1500,
+            lights: json!([{"type": "directional", "direction": [-1, 0, 0], "irradiance": [1, 1, 1]}]),
+            probes: 300,
+            spp: 8192,
+            seed: 5,
+            names: &faces,
+        },
+        &|m| {
+            alone(
+                "cube",
+                json!({"shape": "box", "size": [0.016, 0.016, 0.016]}),
+                m,
+            )
+        },
+        &|_, n| {
+            let axis = (0..3)
+                .max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs()))
+                .unwrap();
+            match (axis, n[axis] > 0.0) {
+                (0, false) => 0,
+                (0, true) => 1,
+                (a, true) => 1 + a,
+                (a, false) => 3 + a,
+            }
+        },
+    )
 }
 
 /// A 16 mm cube lit on one face by a directional light, against Mitsuba's volpath in the
@@ -927,94 +1002,53 @@ fn a_cube_lit_from_one_side_against_volumetric_path_tracing() {
 }
 
 /// A thin translucent bowl (outer radius 50 mm, wall 4 mm; σs′ 1.0, 0.8, 0.6 mm⁻¹, σa 0.005,
-/// 0.01, 0.02 mm⁻¹, η = 1) lit by a point light inside it, below the rim, against Mitsuba's
-/// volpath in the same medium: the inside, the rim and the outside (lit only through the
-/// wall), per group the dipole's and the simulated S's errors.
+/// 0.01, 0.02 mm⁻¹, η = 1) lit by a point light inside it, below the rim: the inside (the
+/// normal towards the sphere's centre), the flat rim, and the outside (lit only through the
+/// wall) in two bands, the bottom half right below the light and the upper half to the rim.
 fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
     let (radius, thickness) = (0.05f32, 0.004f32);
-    let medium = Medium {
-        sigma_s_prime: [1.0, 0.8, 0.6],
-        sigma_a: [0.005, 0.01, 0.02],
-    };
-    let light = [0.0f32, 0.035, 0.0];
-    let bowl = |material: Material| -> SceneFile {
-        let mut file: SceneFile = serde_json::from_value(json!({"objects": [{"name": "bowl",
-            "mesh": {"shape": "bowl", "radius": radius, "thickness": thickness},
-            "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}]}))
-        .unwrap();
-        file.objects[0].material = material;
-        file
-    };
-    let dir = tempfile::tempdir().unwrap();
-    let a = build(bowl(medium.dipole()), dir.path(), "bowl_dipole", 2500);
-    let s = build(
-        bowl(medium.simulated(None)),
-        dir.path(),
-        "bowl_simulated",
-        2500,
-    );
-    let b = &a.bundle;
-    assert_eq!(b.patch_corners(), s.bundle.patch_corners());
-    let lights = json!([{"type": "point", "position": light, "intensity": [1, 1, 1]}]);
-    let parsed: Vec<translux_proto::light::Light> = serde_json::from_value(lights.clone()).unwrap();
-    let (ours, centroids, normals) = patch_radiance(b, &parsed);
-    let (ours_sim, _, _) = patch_radiance(&s.bundle, &parsed);
-    let all: Vec<usize> = (0..centroids.len()).collect();
-    let probes = every(&all, (all.len() / 400).max(1));
-    let input = json!({
-        "objects": mitsuba::objects_with(b, &[("bowl".to_owned(), medium.volume())]),
-        "lights": lights,
-        "queries": {"points": probes.iter().map(|&k| centroids[k]).collect::<Vec<_>>(),
-                    "normals": probes.iter().map(|&k| normals[k]).collect::<Vec<_>>()},
-        "measure": "exitance",
-        "spp": 4096, "max_depth": 4096, "rr_depth": 256, "seed": 7,
-    });
-    let reference = mitsuba::run(&input)?;
-    let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
-    let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
-    // Inside (the normal points towards the sphere's centre), the flat rim, and the outside
-    // in two bands: the bottom half, right below the light, and the upper half to the rim.
     let centre = [0.0f32, radius, 0.0];
-    let mut groups: Vec<(String, Vec<usize>)> = [
-        "inside",
-        "outside, bottom half",
-        "outside, upper half",
-        "rim",
-    ]
-    .iter()
-    .map(|n| (n.to_string(), Vec::new()))
-    .collect();
-    for (q, &k) in probes.iter().enumerate() {
-        let (c, n) = (centroids[k], normals[k]);
-        let d: [f32; 3] = std::array::from_fn(|i| c[i] - centre[i]);
-        let g = if n[1] > 0.99 && c[1] > radius - 1e-4 {
-            3
-        } else if (0..3).map(|i| n[i] * d[i]).sum::<f32>() < 0.0 {
-            0
-        } else if c[1] < 0.5 * radius {
-            1
-        } else {
-            2
-        };
-        groups[g].1.push(q);
-    }
-    let mut rows = Vec::new();
-    let out = errors_per_group(&groups, &got, &got_sim, &reference, "", &mut rows);
-    let info = s.bundle.manifest().subsurface.objects[0].clone();
-    let sim = info.simulation.clone().unwrap();
-    println!(
-        "Bowl (R 50 mm, wall 4 mm) lit from inside by a point light, {} patches; Mitsuba volpath \
-         (exitance) {:.1} s; walks {} in {:.1} s, noise {:.2}% median\n\
-         | faces | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
-         |---|---|---|---|---|---|\n{}",
-        b.manifest().patch_count,
-        reference.seconds,
-        sim.walks,
-        info.seconds,
-        100.0 * sim.noise_median,
-        rows.join("\n")
-    );
-    Some(out)
+    lone_object_against_volpath(
+        &LoneObject {
+            title: "Bowl (R 50 mm, wall 4 mm) lit from inside by a point light",
+            object: "bowl",
+            medium: Medium {
+                sigma_s_prime: [1.0, 0.8, 0.6],
+                sigma_a: [0.005, 0.01, 0.02],
+            },
+            noise: None,
+            patches: 2500,
+            lights: json!([{"type": "point", "position": [0.0, 0.035, 0.0], "intensity": [1, 1, 1]}]),
+            probes: 400,
+            spp: 4096,
+            seed: 7,
+            names: &[
+                "inside",
+                "outside, bottom half",
+                "outside, upper half",
+                "rim",
+            ],
+        },
+        &|m| {
+            alone(
+                "bowl",
+                json!({"shape": "bowl", "radius": radius, "thickness": thickness}),
+                m,
+            )
+        },
+        &|c, n| {
+            let d: [f32; 3] = std::array::from_fn(|i| c[i] - centre[i]);
+            if n[1] > 0.99 && c[1] > radius - 1e-4 {
+                3
+            } else if (0..3).map(|i| n[i] * d[i]).sum::<f32>() < 0.0 {
+                0
+            } else if c[1] < 0.5 * radius {
+                1
+            } else {
+                2
+            }
+        },
+    )
 }
 
 /// A bowl lit from inside against Mitsuba's volpath: the outside glows only by light that
