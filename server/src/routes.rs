@@ -310,7 +310,7 @@ async fn scene_detail(
                 albedo: o.albedo,
                 first_patch: o.first_patch,
                 patch_count: o.patch_count,
-                absorption: absorption_of(m, o),
+                absorption: absorption_of(o),
             })
             .collect(),
         lights: m.lights.clone(),
@@ -321,23 +321,15 @@ async fn scene_detail(
     })
 }
 
-/// A simulated object's absorption range: its medium's σa and the floor its walks were
-/// stored for.
+/// A simulated object's absorption range: its medium's σa and the lowest σa its stored walks
+/// serve (the floor `simulated::check_override` applies).
 fn absorption_of(
-    m: &translux_proto::bundle::Manifest,
     o: &translux_proto::bundle::ObjectInfo,
 ) -> Option<translux_proto::api::Absorption> {
     let medium = translux_engine::simulated::SimMedium::of(&o.material)?;
-    let floor = m
-        .subsurface
-        .objects
-        .iter()
-        .find(|s| s.name == o.name)
-        .and_then(|s| s.simulation.as_ref())
-        .map_or(medium.floor(), |s| s.sigma_a_floor);
     Some(translux_proto::api::Absorption {
         sigma_a: medium.sigma_a,
-        sigma_a_min: floor,
+        sigma_a_min: medium.floor(),
     })
 }
 
