@@ -40,6 +40,7 @@
 //! `docs/architecture.md`.
 
 pub mod backend;
+pub mod collimated;
 pub mod environment;
 pub mod envmap;
 pub mod envvis;

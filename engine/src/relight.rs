@@ -16,6 +16,7 @@ use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
+use crate::collimated::TiltOf;
 use crate::error::EngineError;
 use crate::scene::Scene;
 use crate::smatrix::OverrideMaterials;
@@ -259,7 +260,12 @@ struct Prepared {
     note: Option<String>,
     /// Direct light at the opaque diffuse vertices ([`crate::vertexlight`]).
     vertex: Option<VertexDirect>,
+    /// Lamps' collimated entry into simulated objects ([`crate::collimated`]).
+    collimated: Option<Collimated>,
 }
+
+/// Δ of a plan's materials and E_t of its lamps ([`crate::collimated`]).
+type Collimated = (Arc<TiltOf>, Vec<Rgb>);
 
 /// E at the vertices whose direct term is taken at the vertex, and what it replaces.
 struct VertexDirect {
@@ -336,6 +342,41 @@ fn vertex_direct(
     }))
 }
 
+/// Δ and E_t of `plan`'s lamps on its simulated objects ([`crate::collimated`]), when its
+/// components scatter light by S and it has lamps and simulated objects; else a note when
+/// the bundle's walks cannot serve collimated entry.
+fn collimated_entry(
+    scene: &Scene,
+    geo: PatchGeometry<'_>,
+    plan: &RelightPlan,
+    materials_key: &str,
+) -> (Option<Collimated>, Option<String>) {
+    if matches!(
+        plan.components,
+        Components::Direct | Components::InterreflectionOnly
+    ) || !plan
+        .lights
+        .iter()
+        .any(|l| !matches!(l, Light::Environment { .. }))
+    {
+        return (None, None);
+    }
+    let tilt = scene.tilt_for(materials_key, &plan.materials(scene));
+    let ranges = match tilt.as_ref() {
+        TiltOf::None => return (None, None),
+        TiltOf::Unsupported(why) => return (None, Some(why.clone())),
+        TiltOf::Some(t) => t.ranges.clone(),
+    };
+    let e_t = crate::collimated::tilted_irradiance(
+        geo,
+        &scene.occluder,
+        &plan.lights,
+        scene.bundle.manifest().unit_mm,
+        &ranges,
+    );
+    (e_t.map(|e| (tilt, e)), None)
+}
+
 /// The albedo a picture multiplies the per-pixel direct irradiance by for an object of
 /// `material` ([`DirectAt::Pixel`]): a diffuse object's ρ; `None` for the others, which keep
 /// their direct light at the vertices (a translucent object's is smoothed by S).
@@ -361,6 +402,9 @@ pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
 /// - `interreflection_only`: B = Bₑ + P(E + F B)
 /// - `heuristic_a`: B = Bₑ + S E + P F B, i.e. (I − P F)⁻¹(Bₑ + S E)
 /// - `heuristic_b`: B = Bₑ + S E + (I − P F)⁻¹ P F (Bₑ + P E)
+///
+/// Wherever S E appears, the lamps' light into simulated objects adds Δ E_t: it enters
+/// collimated at its own angle, not diffusely ([`crate::collimated`]).
 pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, EngineError>> {
     let b = &scene.bundle;
     let geo = PatchGeometry {
@@ -432,9 +476,16 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
             }
             _ => None,
         };
+        let materials_key = serde_json::to_string(&plan.overrides).unwrap_or_default();
+        let (collimated, tilt_note) = collimated_entry(scene, geo, plan, &materials_key);
+        let note = match (note, tilt_note) {
+            (Some(a), Some(b)) => Some(format!("{a}; {b}")),
+            (a, b) => a.or(b),
+        };
         prepared.push(Some(Prepared {
             irradiance,
-            materials_key: serde_json::to_string(&plan.overrides).unwrap_or_default(),
+            materials_key,
+            collimated,
             materials,
             materials_ms,
             direct_ms,
@@ -631,6 +682,32 @@ fn transport(
             },
         )
     };
+    // Lamps' collimated entry into simulated objects: y = Δ E_t, added where S E is.
+    let tilt = first
+        .collimated
+        .as_ref()
+        .and_then(|(t, _)| match t.as_ref() {
+            TiltOf::Some(t) => Some(t),
+            _ => None,
+        });
+    let y: Option<Vec<f32>> = tilt.map(|t| {
+        let mut e_t = vec![0.0f32; n * ch];
+        for (slot, q) in preps.iter().enumerate() {
+            if let Some((_, et)) = &q.collimated {
+                for j in 0..n {
+                    e_t[j * ch + 3 * slot..j * ch + 3 * slot + 3].copy_from_slice(&et[j]);
+                }
+            }
+        }
+        let mut y = vec![0.0f32; n * ch];
+        crate::collimated::add_first_scatter(t, &e_t, k, &mut y);
+        y
+    });
+    let add_y = |a: &mut [f32]| {
+        if let Some(y) = &y {
+            add(a, y);
+        }
+    };
     let mut se = vec![0.0f32; n * ch];
     match components {
         Components::Direct => {
@@ -642,17 +719,21 @@ fn transport(
         Components::SubsurfaceOnly => {
             s.apply_multi(&e, &mut se, ch);
             add(&mut se, &be);
+            add_y(&mut se);
             return Ok(none(se));
         }
         _ => {}
     }
     if first.use_t {
-        // B = Bₑ + S v + R v, v = E + F Bₑ (R = T − S, stored).
+        // B = Bₑ + S v + R v, v = E + F Bₑ (R = T − S, stored). With lamps' collimated
+        // entry (y = Δ E_t): B = Bₑ + y + T(E + F (Bₑ + y)).
         let t = b
             .transfer()
             .ok_or_else(|| EngineError::internal("the transfer matrix vanished"))?;
         let mut v = vec![0.0f32; n * ch];
-        f.apply_multi(&be, &mut v, ch, &mut Pulled::default());
+        let mut lit = be.clone();
+        add_y(&mut lit);
+        f.apply_multi(&lit, &mut v, ch, &mut Pulled::default());
         add(&mut v, &e);
         let mut bvec = vec![0.0f32; n * ch];
         s.apply_multi(&v, &mut bvec, ch);
@@ -665,7 +746,7 @@ fn transport(
             inverse::apply_stored(t.bits, t.scale, t.n, &v, k, &mut rv);
         }
         add(&mut bvec, &rv);
-        add(&mut bvec, &be);
+        add(&mut bvec, &lit);
         return Ok((
             bvec,
             TransportStats {
@@ -683,6 +764,7 @@ fn transport(
         Components::Full => {
             s.apply_multi(&e, &mut se, ch);
             add(&mut se, &be);
+            add_y(&mut se);
             (s, se)
         }
         Components::InterreflectionOnly | Components::HeuristicB => {
@@ -693,6 +775,7 @@ fn transport(
         Components::HeuristicA => {
             s.apply_multi(&e, &mut se, ch);
             add(&mut se, &be);
+            add_y(&mut se);
             (&p, se)
         }
         Components::Direct | Components::SubsurfaceOnly => unreachable!("handled above"),
@@ -751,6 +834,7 @@ fn transport(
         s.apply_multi(&e, &mut sev, ch);
         add(&mut x, &sev);
         add(&mut x, &be);
+        add_y(&mut x);
     }
     Ok((
         x,

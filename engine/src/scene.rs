@@ -16,6 +16,7 @@ use translux_proto::bundle::{Bundle, BundleError, arrays};
 use translux_proto::scene::Material;
 
 use crate::backend::{Backend, Cpu, SBuild, SceneRef};
+use crate::collimated::TiltOf;
 use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::raycast::Occluder;
@@ -62,6 +63,9 @@ pub struct Scene {
     /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
     /// by every later one ([`crate::sterms`]).
     pub(crate) s_terms: OnceLock<STerms>,
+    /// Δ = S⁽ⁿ⁾ − S of the simulated objects for the last materials key
+    /// ([`crate::collimated`]).
+    pub(crate) tilt_cache: Mutex<Option<(String, Arc<TiltOf>)>>,
     /// Where direct light is evaluated at the viewer's vertices (made on first use).
     pub(crate) vertex_samples: OnceLock<VertexSamples>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
@@ -146,6 +150,22 @@ impl Scene {
         Ok(Some((m, true)))
     }
 
+    /// Δ = S⁽ⁿ⁾ − S of the simulated objects under `materials` (one per manifest object),
+    /// `key` naming that set of materials; the last one is kept.
+    pub fn tilt_for(&self, key: &str, materials: &[&Material]) -> Arc<TiltOf> {
+        if let Ok(cache) = self.tilt_cache.lock()
+            && let Some((k, t)) = cache.as_ref()
+            && k == key
+        {
+            return t.clone();
+        }
+        let t = Arc::new(crate::collimated::tilt_of(&self.bundle, materials));
+        if let Ok(mut cache) = self.tilt_cache.lock() {
+            *cache = Some((key.to_string(), t.clone()));
+        }
+        t
+    }
+
     /// Opens (verifies and maps) the bundle in `dir` and builds its BVH, relit on the CPU
     /// with caches of its own.
     pub fn open(id: impl Into<String>, dir: &Path) -> Result<Scene, BundleError> {
@@ -193,6 +213,7 @@ impl Scene {
             centroids,
             normals,
             material_cache: Mutex::new(None),
+            tilt_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
             vertex_samples: OnceLock::new(),
             warm: Default::default(),

@@ -725,6 +725,7 @@ pub fn precompute(
             &walks.col,
             &walks.bin,
             &walks.weight,
+            Some(&walks.weight_normal),
         )
         .expect("the walks build valid records")
     });
@@ -1068,6 +1069,11 @@ pub fn precompute(
             name: arrays::SIM_WEIGHT,
             shape: vec![w, 3],
             data: ArrayData::F32(walks.weight.iter().flatten().copied().collect()),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_WEIGHT_NORMAL,
+            shape: vec![w, 3],
+            data: ArrayData::F32(walks.weight_normal.iter().flatten().copied().collect()),
         });
     }
     let hierarchy_info = tree.map(|(t, range, info)| {

@@ -21,6 +21,8 @@ pub struct SceneWalks {
     pub col: Vec<u32>,
     pub bin: Vec<u32>,
     pub weight: Vec<[f32; 3]>,
+    /// The same records for collimated entry along the normal (`sim_weight_normal`).
+    pub weight_normal: Vec<[f32; 3]>,
     /// Per simulated object: its name and what the walks did.
     pub reports: Vec<(String, SimulationInfo, f64)>,
 }
@@ -152,6 +154,7 @@ pub fn scene_walks(
         out.col.extend(w.col.iter().map(|&i| i + r.start as u32));
         out.bin.extend_from_slice(&w.bin);
         out.weight.extend_from_slice(&w.weight);
+        out.weight_normal.extend_from_slice(&w.weight_normal);
         out.reports.push((name, w.report, w.seconds));
     }
     Ok(out)

@@ -312,7 +312,8 @@ tagged_enum! {
         /// re-emitted total (at the built σa) is below this (default 0.01).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         noise: Option<f32>,
-        /// At most this many walks per patch and colour group (default 4096).
+        /// At most this many diffuse walks per patch and colour group (default 4096); as
+        /// many again enter collimated.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_walks: Option<u32>,
         /// Seed of the walks (default 1): the same seed gives the same S.

@@ -14,8 +14,12 @@ pub const FORMAT: &str = "translux-bundle";
 /// Bumped whenever the layout changes; this build writes it and reads it and every version
 /// from [`OLDEST_READABLE_VERSION`] on (version 5 added hierarchical F, see
 /// [`Manifest::hierarchy`]; a version 4 bundle is a dense one and reads unchanged; version 6
-/// added hierarchical S, [`SubsurfaceInfo::links`], and reads every version 5 bundle).
-pub const FORMAT_VERSION: u32 = 6;
+/// added hierarchical S, [`SubsurfaceInfo::links`], and reads every version 5 bundle; version
+/// 7 added [`arrays::SIM_WEIGHT_NORMAL`], and a version 6 bundle's walks serve diffuse entry
+/// only).
+pub const FORMAT_VERSION: u32 = 7;
+/// The first version whose walks carry [`arrays::SIM_WEIGHT_NORMAL`].
+pub const SIM_NORMAL_SINCE: u32 = 7;
 /// The oldest bundle version this build still reads.
 pub const OLDEST_READABLE_VERSION: u32 = 4;
 /// The manifest's file name inside a bundle folder.
@@ -66,6 +70,10 @@ pub mod arrays {
     pub const SIM_COL: &str = "sim_col";
     pub const SIM_BIN: &str = "sim_bin";
     pub const SIM_WEIGHT: &str = "sim_weight";
+    /// The records' share of S⁽ⁿ⁾_ji, S for light entering collimated along the inward
+    /// normal instead of diffusely, from walks launched that way (f32 `[W, 3]`, version 7
+    /// on); a record has 0 in whichever weight its walks did not add to.
+    pub const SIM_WEIGHT_NORMAL: &str = "sim_weight_normal";
 }
 
 /// Element type of an array file.

@@ -629,6 +629,13 @@ impl Bundle {
                 ],
                 "N = patch_count, W = subsurface.walks",
             )?;
+            if manifest.version >= SIM_NORMAL_SINCE {
+                check_listed(
+                    &manifest,
+                    &[(arrays::SIM_WEIGHT_NORMAL, DType::F32, vec![w, 3])],
+                    "W = subsurface.walks",
+                )?;
+            }
         }
 
         // The cluster tree: both arrays, with these shapes, when the manifest says so.
@@ -1017,6 +1024,15 @@ impl Bundle {
             self.u32s(arrays::SIM_BIN),
             bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT))
                 .map_err(|_| "sim_weight is not a whole number of RGB triplets".to_string())?,
+            if self.manifest.version >= SIM_NORMAL_SINCE {
+                Some(
+                    bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT_NORMAL)).map_err(
+                        |_| "sim_weight_normal is not a whole number of RGB triplets".to_string(),
+                    )?,
+                )
+            } else {
+                None
+            },
         )
     }
 

@@ -556,12 +556,13 @@ fn manifest_errors_name_manifest_json() {
         "manifest.json: format is \"zip\", expected \"translux-bundle\""
     );
     let (mut m, a) = two_patches();
-    m.version = 7;
+    m.version = FORMAT_VERSION + 1;
     assert_eq!(
         open_err(m, &a),
         format!(
-            "manifest.json: bundle version 7 is not supported (this build reads versions 4 to \
-             {FORMAT_VERSION}); rebuild the bundle with this build's translux-precompute"
+            "manifest.json: bundle version {} is not supported (this build reads versions 4 to \
+             {FORMAT_VERSION}); rebuild the bundle with this build's translux-precompute",
+            FORMAT_VERSION + 1
         )
     );
 }

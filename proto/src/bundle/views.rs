@@ -65,12 +65,15 @@ pub const SIM_BINS: u32 = 64 * SIM_BINS_PER_OCTAVE;
 /// row j (a receiver patch) holds records sorted by source patch i, then by bin; a record's
 /// `weight` is its walks' share of S_ji at zero absorption, and
 /// S_ji = Σ_records w · e^(−σa L_bin), L_bin = `SIM_BIN_L0_MM` · 2^((bin + ½)/16) mm.
+/// `normal` (bundles from version 7 on) is the same for light entering collimated along the
+/// inward normal; it may be below or above `weight`.
 #[derive(Debug, Clone, Copy)]
 pub struct WalksView<'a> {
     pub row_ptr: &'a [u64],
     pub col: &'a [u32],
     pub bin: &'a [u32],
     pub weight: &'a [[f32; 3]],
+    pub normal: Option<&'a [[f32; 3]]>,
 }
 
 impl<'a> WalksView<'a> {
@@ -82,6 +85,7 @@ impl<'a> WalksView<'a> {
         col: &'a [u32],
         bin: &'a [u32],
         weight: &'a [[f32; 3]],
+        normal: Option<&'a [[f32; 3]]>,
     ) -> Result<Self, String> {
         if row_ptr.len() != n + 1 {
             return Err(format!(
@@ -112,11 +116,23 @@ impl<'a> WalksView<'a> {
         {
             return Err(format!("sim_weight[{k}] is negative or not finite"));
         }
+        if let Some(normal) = normal {
+            if normal.len() != m {
+                return Err("sim_weight_normal and sim_weight differ in length".into());
+            }
+            if let Some(k) = normal
+                .iter()
+                .position(|w| w.iter().any(|v| !v.is_finite() || *v < 0.0))
+            {
+                return Err(format!("sim_weight_normal[{k}] is negative or not finite"));
+            }
+        }
         Ok(Self {
             row_ptr,
             col,
             bin,
             weight,
+            normal,
         })
     }
 
@@ -124,5 +140,11 @@ impl<'a> WalksView<'a> {
     pub fn row(&self, j: usize) -> (&'a [u32], &'a [u32], &'a [[f32; 3]]) {
         let (a, b) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
         (&self.col[a..b], &self.bin[a..b], &self.weight[a..b])
+    }
+
+    /// Row j's collimated-entry weights (`None` for a bundle older than version 7).
+    pub fn row_normal(&self, j: usize) -> Option<&'a [[f32; 3]]> {
+        let (a, b) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
+        self.normal.map(|w| &w[a..b])
     }
 }

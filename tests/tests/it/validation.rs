@@ -53,8 +53,22 @@ fn patch_radiance(b: &Bundle, lights: &[translux_proto::light::Light]) -> PatchS
         ..Default::default()
     };
     let s = SparseScatter(b.subsurface());
-    let (x, stats) =
-        radiosity::solve(&Transport::of(b), &s, b.patch_emission(), &e, &params, None).unwrap();
+    // Lamps entering simulated objects collimated (what relights add to S E).
+    let emission: Vec<_> = match translux_engine::collimated::first_scatter(
+        b,
+        lit.geometry(),
+        &lit.occluder,
+        lights,
+    ) {
+        Some(y) => b
+            .patch_emission()
+            .iter()
+            .zip(&y)
+            .map(|(e, y)| std::array::from_fn(|c| e[c] + y[c]))
+            .collect(),
+        None => b.patch_emission().to_vec(),
+    };
+    let (x, stats) = radiosity::solve(&Transport::of(b), &s, &emission, &e, &params, None).unwrap();
     assert!(stats.converged, "{stats:?}");
     let inv_pi = std::f32::consts::FRAC_1_PI;
     (
@@ -980,25 +994,33 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
 
 /// A 16 mm cube lit on one face by a directional light, against Mitsuba's volpath in the
 /// same medium: the far face and the sides, lit only through the cube, are where the
-/// half-space dipole fails; the simulated S must come closer there on every face group.
-/// (Not the 5%: the light enters collimated, S assumes diffuse entry; see
-/// docs/validation.md.)
+/// half-space dipole fails. The light enters collimated, and the simulated S's collimated
+/// walks carry it (`engine/src/collimated.rs`): every face's total within 8% of Mitsuba's,
+/// the lit face's median under 4% and the sides' under 10% (Mitsuba's own noise is 3–3.5%
+/// per point there, 11% on the far face, whose median is therefore not bounded beyond the
+/// dipole's); see docs/validation.md.
 #[test]
 fn a_cube_lit_from_one_side_against_volumetric_path_tracing() {
     let Some(faces) = cube_lit_from_one_side() else {
         return;
     };
     for (name, ed, es) in &faces {
+        assert!(
+            (es.total_ratio - 1.0).abs() < 0.08,
+            "{name}: simulated {es:?} (total)"
+        );
         if name.starts_with("lit") {
+            assert!(es.median < 0.04, "lit face: simulated {es:?}");
             continue;
         }
         assert!(
             es.median < ed.median && (es.total_ratio - 1.0).abs() < (ed.total_ratio - 1.0).abs(),
             "{name}: simulated {es:?} is not closer to Mitsuba than the dipole {ed:?}"
         );
+        if name.starts_with("side") {
+            assert!(es.median < 0.10, "{name}: simulated {es:?}");
+        }
     }
-    let lit = faces.iter().find(|c| c.0.starts_with("lit")).unwrap();
-    assert!(lit.2.median < 0.15, "lit face: simulated {:?}", lit.2);
 }
 
 /// A thin translucent bowl (outer radius 50 mm, wall 4 mm; σs′ 1.0, 0.8, 0.6 mm⁻¹, σa 0.005,
@@ -1052,10 +1074,9 @@ fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
 }
 
 /// A bowl lit from inside against Mitsuba's volpath: the outside glows only by light that
-/// crossed the wall. On every group the simulated S must be closer than the dipole, in
-/// median and in total, and the outside's total within 10%. (Not the 5% median: the
-/// lamp's light enters collimated, S assumes diffuse entry, so the inside returns ~10% too
-/// much and the outside gets 4–7% too little; see docs/validation.md.)
+/// crossed the wall. On every group the simulated S (with the lamp's collimated entry) must
+/// be closer than the dipole, in median and in total; the inside's median under 4%, the
+/// outside's under 8% with its total within 8% (see docs/validation.md).
 #[test]
 fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
     let Some(groups) = bowl_lit_from_inside() else {
@@ -1072,9 +1093,12 @@ fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
         );
         if name.starts_with("outside") {
             assert!(
-                es.median < 0.12 && (es.total_ratio - 1.0).abs() < 0.1,
+                es.median < 0.08 && (es.total_ratio - 1.0).abs() < 0.08,
                 "{name}: simulated {es:?}"
             );
+        }
+        if name.starts_with("inside") {
+            assert!(es.median < 0.04, "{name}: simulated {es:?}");
         }
     }
 }
