@@ -213,7 +213,8 @@ pub fn check_override(built: &SimMedium, new: &SimMedium) -> Result<(), String> 
     if let Some(what) = what {
         return Err(format!(
             "a simulated object's walks are fixed by {what}; only sigma_a can change \
-             without new walks: run translux-precompute again with the new medium"
+             without new walks: walk them again in the new medium with `translux-precompute \
+             BUNDLE --resimulate --materials '{{...}}'`"
         ));
     }
     let floor = built.floor();

@@ -704,7 +704,7 @@ pub fn rebuild_from_bundle(
     overrides: &[(usize, Material)],
     params: &SParams,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
-    assemble_overrides(bundle, overrides, params, None)
+    assemble_overrides(bundle, overrides, params, None, None)
 }
 
 /// [`rebuild_from_bundle`] for a translucency change: objects that are not overridden keep
@@ -726,7 +726,31 @@ pub fn rebuild_with_terms(
         stored: bundle.subsurface(),
         kept: &kept,
     };
-    assemble_overrides(bundle, overrides, params, Some(&fast))
+    assemble_overrides(bundle, overrides, params, Some(&fast), None)
+}
+
+/// S for a bundle whose simulated objects in `overrides` walked again (`walks`, the whole
+/// scene's records after the new walks): those objects' rows re-weighted from `walks`, every
+/// other object's rows kept from the bundle's stored S. What a re-simulation writes
+/// (`translux_precompute::resimulate`). Reports cover the overridden objects.
+pub fn rebuild_with_walks(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    params: &SParams,
+    walks: &WalksView<'_>,
+) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    let objects = bundle.manifest().objects.len();
+    let kept: Vec<bool> = (0..objects)
+        .map(|k| !overrides.iter().any(|(i, _)| *i == k))
+        .collect();
+    // Simulated objects take nothing from the radial terms: none are made.
+    let terms = STerms::new((0..objects).map(|_| None).collect(), 0.0);
+    let fast = FastPath {
+        terms: &terms,
+        stored: bundle.subsurface(),
+        kept: &kept,
+    };
+    assemble_overrides(bundle, overrides, params, Some(&fast), Some(walks))
 }
 
 /// Stage 2 on a bundle with `overrides` applied to its materials.
@@ -735,10 +759,22 @@ fn assemble_overrides(
     overrides: &[(usize, Material)],
     params: &SParams,
     fast: Option<&FastPath<'_>>,
+    walks: Option<&WalksView<'_>>,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let m = bundle.manifest();
     let g = bundle_geometry(bundle);
-    let (materials, stored) = bundle_materials(bundle, overrides)?;
+    let (materials, stored) = match walks {
+        None => bundle_materials(bundle, overrides)?,
+        // The overridden objects walked again in their new media: nothing to check them
+        // against.
+        Some(_) => {
+            let (mut materials, stored) = bundle_materials(bundle, &[])?;
+            for (k, mat) in overrides {
+                materials[*k] = mat.clone();
+            }
+            (materials, stored)
+        }
+    };
     let objects: Vec<ObjectMaterial<'_>> = m
         .objects
         .iter()
@@ -751,7 +787,8 @@ fn assemble_overrides(
         .collect();
     let material_len: &[MediaLen] =
         bytemuck::try_cast_slice(bundle.f32s(arrays::DIST_MATERIAL_LEN)).unwrap_or(&[]);
-    let walks = bundle.walks();
+    let stored_walks = bundle.walks();
+    let walks = walks.or(stored_walks.as_ref());
     assemble_scene(
         &g,
         &objects,
@@ -763,6 +800,6 @@ fn assemble_overrides(
         m.unit_mm,
         params,
         fast,
-        walks.as_ref(),
+        walks,
     )
 }

@@ -269,10 +269,41 @@ fn check_arrays(arrays: &[NamedArray]) -> Result<(), BundleWriteError> {
 /// `out` is left as it was.
 pub fn write_bundle(
     out: &Path,
-    mut manifest: Manifest,
+    manifest: Manifest,
     arrays: Vec<NamedArray>,
 ) -> Result<WriteReport, BundleWriteError> {
+    write_bundle_keeping(out, manifest, arrays, &[])
+}
+
+/// An array file of an existing bundle copied unchanged into a new one
+/// ([`write_bundle_keeping`]): its manifest name and entry, and its bytes.
+#[derive(Debug, Clone)]
+pub struct KeptArray {
+    pub name: String,
+    pub entry: ArrayEntry,
+    pub bytes: Vec<u8>,
+}
+
+/// [`write_bundle`] with some arrays copied from an existing bundle as they are (their
+/// entries, checksums included, carried over): how a bundle is rewritten in place when only
+/// some of its arrays change ([`crate::resimulate`]). `kept` must not name an array of
+/// `arrays`.
+pub fn write_bundle_keeping(
+    out: &Path,
+    mut manifest: Manifest,
+    arrays: Vec<NamedArray>,
+    kept: &[KeptArray],
+) -> Result<WriteReport, BundleWriteError> {
     check_arrays(&arrays)?;
+    if let Some(k) = kept
+        .iter()
+        .find(|k| arrays.iter().any(|a| a.name == k.name))
+    {
+        return Err(BundleWriteError::Name {
+            name: k.name.clone(),
+            reason: "appears twice".into(),
+        });
+    }
     let out_name = match out.file_name() {
         Some(n) => n.to_string_lossy().into_owned(),
         None => return Err(BundleWriteError::BadOut(out.to_path_buf())),
@@ -321,6 +352,12 @@ pub fn write_bundle(
         report.files += 1;
         manifest.arrays.insert(array.name.to_string(), entry);
         // `array.data` is dropped here: peak memory stays at the caller's arrays.
+    }
+    for k in kept {
+        write_file(&tmp.join(&k.entry.file), &k.bytes)?;
+        report.bytes += k.entry.bytes;
+        report.files += 1;
+        manifest.arrays.insert(k.name.clone(), k.entry.clone());
     }
 
     let mut text = serde_json::to_string_pretty(&manifest)

@@ -47,6 +47,7 @@ pub mod obj;
 pub mod orient;
 pub mod patch;
 pub mod pipeline;
+pub mod resimulate;
 pub mod scene;
 pub mod shapes;
 pub mod sheet;

@@ -1,4 +1,6 @@
-//! `translux-precompute SCENE --out DIR [--patches N] [--inverse]`
+//! `translux-precompute SCENE --out DIR [--patches N] [--inverse]`, or
+//! `translux-precompute BUNDLE --resimulate --materials JSON` (simulated objects walk again
+//! in a new medium, [`translux_precompute::resimulate`]).
 //!
 //! Parses the command line, loads the scene, runs [`translux_precompute::pipeline`] and
 //! prints the summary. Exit codes: 0 done, 1 failed (the message says why), 2 bad usage.
@@ -19,11 +21,20 @@ use translux_precompute::slinks::SLinkParams;
 #[derive(Debug, Parser)]
 #[command(name = "translux-precompute", version)]
 struct Cli {
-    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_checker, bowls, flower).
+    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_checker, bowls, flower); with
+    /// `--resimulate`, a bundle folder.
     scene: String,
     /// Folder to write the bundle to (replaced atomically if it exists).
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required_unless_present = "resimulate")]
+    out: Option<PathBuf>,
+    /// Walk the simulated objects named in `--materials` again, in their new media, inside
+    /// the bundle SCENE, and rewrite it in place (atomically): a change of scattering (σs,
+    /// g, η) without the scene's sources. The bundle's transfer matrix T is dropped.
+    #[arg(long, requires = "materials")]
+    resimulate: bool,
+    /// With `--resimulate`: `{"NAME": {"type": "simulated", ...}, ...}`, JSON or `@FILE`.
+    #[arg(long, requires = "resimulate")]
+    materials: Option<String>,
     /// Target patch count (overrides the scene file; builtin:cornell defaults to 24,640).
     #[arg(long)]
     patches: Option<u64>,
@@ -70,6 +81,44 @@ struct Cli {
     env_bins: Option<String>,
 }
 
+/// `--resimulate`: walks again, prints what changed.
+fn resimulate(cli: &Cli) -> anyhow::Result<()> {
+    let text = cli.materials.as_deref().unwrap_or_default();
+    let text = match text.strip_prefix('@') {
+        Some(file) => std::fs::read_to_string(file).with_context(|| format!("reading {file}"))?,
+        None => text.to_string(),
+    };
+    let materials: std::collections::BTreeMap<String, translux_proto::scene::Material> =
+        translux_proto::parse_json(&text).map_err(|e| anyhow::anyhow!("--materials: {e}"))?;
+    let changes: Vec<_> = materials.into_iter().collect();
+    let quiet = cli.quiet;
+    let last = std::sync::atomic::AtomicU64::new(0);
+    let report = translux_precompute::resimulate::resimulate(
+        std::path::Path::new(&cli.scene),
+        &changes,
+        &|done, total| {
+            // A line per tenth, not per batch.
+            let tenth = done * 10 / total.max(1);
+            if !quiet && last.fetch_max(tenth, std::sync::atomic::Ordering::Relaxed) < tenth {
+                eprintln!("walks: {done} of {total} patches");
+            }
+        },
+    )
+    .map_err(anyhow::Error::msg)
+    .with_context(|| format!("re-simulating {}", cli.scene))?;
+    println!("translux-precompute: walked again in {}", cli.scene);
+    for (name, walks, seconds) in &report.objects {
+        println!("  {name:<18} {walks} walks in {seconds:.1} s");
+    }
+    println!("  walk records       {}", report.records);
+    println!("  bundle             {}", human_bytes(report.bundle_bytes));
+    if report.dropped_transfer {
+        println!("  transfer matrix T  dropped (S changed): precompute with --inverse to have it");
+    }
+    println!("  total              {:.1} s", report.seconds);
+    Ok(())
+}
+
 /// `--subsurface`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum SubsurfaceArg {
@@ -96,6 +145,10 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
+    if cli.resimulate {
+        return resimulate(&cli);
+    }
+    let out = cli.out.clone().context("--out DIR is required")?;
     if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
         bail!("--threshold must be in [0, 1), got {}", cli.threshold);
     }
@@ -151,15 +204,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         },
         ..Default::default()
     };
-    let report = pipeline::precompute(&loaded, &cli.out, &params)
+    let report = pipeline::precompute(&loaded, &out, &params)
         .with_context(|| format!("precomputing {}", cli.scene))?;
 
     let ff = &report.form_factors;
-    println!(
-        "translux-precompute: {} -> {}",
-        cli.scene,
-        cli.out.display()
-    );
+    println!("translux-precompute: {} -> {}", cli.scene, out.display());
     println!("  patches            {}", report.patch_count);
     println!("  viewer vertices    {}", report.vertex_count);
     println!("  source triangles   {}", report.occluder_count);

@@ -205,3 +205,73 @@ fn absurd_walk_settings_are_refused_naming_the_field() {
     let file: SceneFile = translux_proto::parse_json(&text).unwrap();
     assert!(file.validate().unwrap_err().to_string().contains("sigma_a"));
 }
+
+#[test]
+fn a_new_scattering_medium_walks_again_in_the_bundle_and_equals_a_fresh_precompute() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a");
+    let b = dir.path().join("b");
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::create_dir_all(&b).unwrap();
+    let old = build(&a, &cube_scene(MEDIUM), 300).unwrap();
+    let new_medium = MEDIUM.replace("[0.5, 0.45, 0.35]", "[1.0, 0.9, 0.7]");
+    let fresh = build(&b, &cube_scene(&new_medium), 300).unwrap();
+    let new: Material = translux_proto::parse_json(&new_medium).unwrap();
+    drop(old);
+
+    // Walked again from the bundle alone: the same S, walks and material as a precompute of
+    // the scene with the new medium (the walks are seeded per patch).
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let report = translux_precompute::resimulate::resimulate(
+        &a.join("bundle"),
+        &[("cube".to_string(), new.clone())],
+        &|d, total| {
+            assert!(d <= total);
+            done.store(d, std::sync::atomic::Ordering::Relaxed);
+        },
+    )
+    .unwrap();
+    assert_eq!(done.into_inner(), report.patches);
+    let re = Bundle::open(&a.join("bundle")).unwrap();
+    assert_eq!(re.manifest().objects[0].material, new);
+    assert_eq!(
+        re.manifest().subsurface.objects[0].simulation,
+        fresh.manifest().subsurface.objects[0].simulation
+    );
+    let (s1, s2) = (re.subsurface(), fresh.subsurface());
+    assert_eq!(s1.col(), s2.col());
+    assert_eq!(s1.val(), s2.val());
+    let (w1, w2) = (re.walks().unwrap(), fresh.walks().unwrap());
+    assert_eq!((w1.col, w1.bin, w1.weight), (w2.col, w2.bin, w2.weight));
+    assert_eq!(w1.normal, w2.normal);
+    // More scattering: the cube re-emits more than before.
+    assert!(total(&re, s1)[0] > 0.0);
+
+    // What cannot walk again is refused, naming it; the bundle is left as it was.
+    let refuse = |name: &str, m: &str| {
+        let m: Material = translux_proto::parse_json(m).unwrap();
+        translux_precompute::resimulate::resimulate(
+            &a.join("bundle"),
+            &[(name.to_string(), m)],
+            &|_, _| {},
+        )
+        .unwrap_err()
+    };
+    let e = refuse("nope", &new_medium);
+    assert!(
+        e.contains("no object \"nope\"") && e.contains("cube"),
+        "{e}"
+    );
+    let e = refuse("cube", r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#);
+    assert!(
+        e.contains("materials.cube") && e.contains("simulated"),
+        "{e}"
+    );
+    let e = refuse(
+        "cube",
+        r#"{"type": "simulated", "sigma_s_prime": [1, 1, 1], "sigma_a": [-1, 0, 0]}"#,
+    );
+    assert!(e.contains("materials.cube.sigma_a"), "{e}");
+    let again = Bundle::open(&a.join("bundle")).unwrap();
+    assert_eq!(again.subsurface().val(), fresh.subsurface().val());
+}
