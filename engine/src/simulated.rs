@@ -213,8 +213,9 @@ pub fn check_override(built: &SimMedium, new: &SimMedium) -> Result<(), String> 
     if let Some(what) = what {
         return Err(format!(
             "a simulated object's walks are fixed by {what}; only sigma_a can change \
-             without new walks: walk them again in the new medium with `translux-precompute \
-             BUNDLE --resimulate --materials '{{...}}'`"
+             without new walks: walk them again in the new medium (`translux-precompute \
+             BUNDLE --resimulate --materials '{{...}}'`, or a server's POST \
+             /api/v1/scenes/ID/resimulate job)"
         ));
     }
     let floor = built.floor();

@@ -364,6 +364,7 @@ pub fn required_role(method: &Method, path: &str) -> Option<Role> {
     let segments: Vec<&str> = rest.split('/').filter(|s| !s.is_empty()).collect();
     Some(match segments.as_slice() {
         ["v1", "scenes"] if method == Method::POST => Role::Editor,
+        ["v1", "scenes", _, "resimulate"] => Role::Editor,
         ["v1", "scenes", _] if method == Method::DELETE => Role::Admin,
         ["v1", "jobs", ..] => Role::Editor,
         _ => Role::Viewer,

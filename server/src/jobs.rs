@@ -1,10 +1,12 @@
-//! Precompute jobs: uploaded scenes turned into bundles in the background.
+//! Precompute jobs: uploaded scenes turned into bundles in the background, and served
+//! scenes' simulated objects walked again in a new medium.
 //!
 //! In: a [`JobSpec`] (a checked scene file in an upload folder, the scene id, the patch
-//! density, who asked) through [`Jobs::submit`]. Out: a bundle at `BUNDLES/ID`, written by
-//! [`translux_precompute::pipeline::precompute`] (to a temporary folder, renamed into place:
-//! a bundle is there whole or not at all), handed to the `on_done` hook that starts serving
-//! it; and a [`JobRecord`] per job that clients poll or stream.
+//! density, who asked; or the new materials of a re-simulation) through [`Jobs::submit`].
+//! Out: a bundle at `BUNDLES/ID`, written by [`translux_precompute::pipeline::precompute`]
+//! or rewritten by [`translux_precompute::resimulate`] (to a temporary folder, renamed into
+//! place: a bundle is there whole or not at all), handed to the `on_done` hook that starts
+//! serving it; and a [`JobRecord`] per job that clients poll or stream.
 //!
 //! - **Bounded**: `workers` jobs run at once (default 1), on their own rayon thread pool of
 //!   `threads` threads, so a precompute does not starve relighting; at most `queue` jobs wait,
@@ -32,6 +34,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
 use translux_precompute::pipeline::{Observer, PrecomputeError, PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene_file;
+use translux_proto::scene::Material;
 
 use crate::error::AppError;
 
@@ -93,6 +96,9 @@ pub struct JobRecord {
     pub started: Option<u64>,
     pub finished: Option<u64>,
     pub result: Option<JobResult>,
+    /// A re-simulation: the objects walked again (`None`: an upload's precompute).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resimulate: Option<Vec<String>>,
 }
 
 /// Settings of the job pool.
@@ -142,6 +148,9 @@ pub struct JobSpec {
     pub scene_file: PathBuf,
     pub patches: Option<u64>,
     pub max_edge: Option<f32>,
+    /// A re-simulation of the scene's bundle with these materials (by object name) instead
+    /// of a precompute of `scene_file`.
+    pub resimulate: Option<Vec<(String, Material)>>,
 }
 
 /// Called with `(scene id, bundle folder)` when a job's bundle is in place.
@@ -330,6 +339,7 @@ impl Jobs {
                 scene_file: PathBuf::new(),
                 patches: r.patches,
                 max_edge: r.max_edge,
+                resimulate: None,
             };
             table
                 .jobs
@@ -462,6 +472,10 @@ impl Jobs {
             started: None,
             finished: None,
             result: None,
+            resimulate: spec
+                .resimulate
+                .as_ref()
+                .map(|m| m.iter().map(|(name, _)| name.clone()).collect()),
         };
         write_record(&cfg.jobs_dir, &record)
             .map_err(|e| AppError::internal(format!("cannot save the job record: {e:#}")))?;
@@ -606,6 +620,9 @@ impl Jobs {
             if entry.cancel.load(Ordering::Relaxed) {
                 return Err("cancelled".to_string());
             }
+            if let Some(materials) = &spec.resimulate {
+                return self.resimulate(entry, &out, materials, t);
+            }
             let mut scene = load_scene_file(&spec.scene_file)
                 .map_err(|e| strip_dir(&e.to_string(), &self.upload_dir(&spec.id)))?;
             // The bundle's `source` is shown to every viewer: name the upload, not the
@@ -672,6 +689,46 @@ impl Jobs {
                 });
             }
         }
+    }
+}
+
+impl Jobs {
+    /// A re-simulation job's work: the walks (stage `walks`, per patch), then the bundle
+    /// rewritten in place. It cannot be cancelled once running.
+    fn resimulate(
+        &self,
+        entry: &Arc<Entry>,
+        out: &Path,
+        materials: &[(String, Material)],
+        t: Instant,
+    ) -> Result<JobResult, String> {
+        let jobs_dir = &self.inner.config.jobs_dir;
+        entry.update(jobs_dir, false, |r| {
+            r.stage = Some("walks".into());
+            r.stage_percent = 0.0;
+        });
+        let report = self.inner.rayon.install(|| {
+            translux_precompute::resimulate::resimulate(out, materials, &|done, total| {
+                let fraction = done as f64 / total.max(1) as f64;
+                let key = (fraction * 100.0).floor() as u64;
+                if entry.last_percent.swap(key, Ordering::Relaxed) == key {
+                    return;
+                }
+                entry.update(jobs_dir, false, |r| {
+                    r.stage_percent = r.stage_percent.max(100.0 * fraction);
+                    r.percent = r.percent.max(95.0 * fraction);
+                });
+            })
+        })?;
+        let bundle = translux_proto::bundle::Bundle::open(out).map_err(|e| e.to_string())?;
+        let m = bundle.manifest();
+        Ok(JobResult {
+            patches: m.patch_count,
+            vertices: m.vertex_count,
+            nnz_f: m.form_factors.nnz,
+            bundle_bytes: report.bundle_bytes,
+            seconds: t.elapsed().as_secs_f64(),
+        })
     }
 }
 
@@ -874,6 +931,7 @@ mod tests {
             scene_file: scene,
             patches: Some(40_000),
             max_edge: None,
+            resimulate: None,
         })
         .unwrap();
         let t0 = Instant::now();
@@ -911,6 +969,7 @@ mod tests {
             started: Some(2),
             finished: None,
             result: None,
+            resimulate: None,
         };
         write_record(&cfg.jobs_dir, &r).unwrap();
         let done_id = Jobs::new_id();

@@ -379,6 +379,7 @@ pub fn routes() -> Vec<(Method, &'static str)> {
     vec![
         (Method::POST, "/api/v1/scenes"),
         (Method::DELETE, "/api/v1/scenes/{id}"),
+        (Method::POST, "/api/v1/scenes/{id}/resimulate"),
         (Method::GET, "/api/v1/jobs"),
         (Method::GET, "/api/v1/jobs/{id}"),
         (Method::GET, "/api/v1/jobs/{id}/events"),
@@ -397,6 +398,7 @@ pub fn app(state: AppState, team: Team) -> Router {
             post(upload).layer(DefaultBodyLimit::max(body_limit)),
         )
         .route("/api/v1/scenes/{id}", delete(delete_scene))
+        .route("/api/v1/scenes/{id}/resimulate", post(resimulate))
         .route("/api/v1/jobs", get(list_jobs))
         .route("/api/v1/jobs/{id}", get(get_job).delete(cancel_job))
         .route("/api/v1/jobs/{id}/events", get(job_events))
@@ -425,6 +427,77 @@ async fn upload(
         form,
     )
     .await
+}
+
+/// The body of `POST /api/v1/scenes/{id}/resimulate`.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ResimulateRequest {
+    materials: std::collections::BTreeMap<String, translux_proto::scene::Material>,
+}
+
+/// `POST /api/v1/scenes/{id}/resimulate`: the named simulated objects walk again in their
+/// new media ([`translux_precompute::resimulate`]) as a job; the bundle is rewritten in
+/// place and served again when it is done. What the job would refuse (no such object, not
+/// simulated, an invalid medium) is a 400 here, before anything is queued.
+async fn resimulate(
+    State(team): State<Team>,
+    crate::extract::SceneId(id): crate::extract::SceneId,
+    identity: Option<Extension<Identity>>,
+    body: Result<crate::extract::JsonBody<ResimulateRequest>, AppError>,
+) -> Result<Response, AppError> {
+    let scene = team.state.lookup(&id)?;
+    let crate::extract::JsonBody(req) = body?;
+    if req.materials.is_empty() {
+        return Err(AppError::invalid(
+            "materials: name at least one simulated object to walk again",
+        ));
+    }
+    let objects = &scene.bundle.manifest().objects;
+    for (name, material) in &req.materials {
+        let at = format!("materials.{name}");
+        let Some(o) = objects.iter().find(|o| &o.name == name) else {
+            let names: Vec<&str> = objects.iter().map(|o| o.name.as_str()).collect();
+            return Err(AppError::invalid(format!(
+                "{at}: scene {id:?} has no object {name:?} (its objects are {})",
+                names.join(", ")
+            )));
+        };
+        material
+            .validate(&at)
+            .map_err(|e| AppError::invalid(e.to_string()))?;
+        if !matches!(
+            o.material,
+            translux_proto::scene::Material::Simulated { .. }
+        ) || translux_engine::simulated::SimMedium::of(material).is_none()
+        {
+            return Err(AppError::invalid(format!(
+                "{at}: only a simulated object walks again, with a simulated material                  ({name:?} was precomputed as {}; this material is {})",
+                o.material.kind(),
+                material.kind()
+            )));
+        }
+    }
+    if !team.bundles.join(&id).join("manifest.json").is_file() {
+        return Err(AppError::invalid(format!(
+            "scene {id:?} is not a bundle of this server's bundles folder"
+        )));
+    }
+    let owner = identity.map_or_else(|| "local".to_string(), |Extension(i)| i.name.to_string());
+    let record = team.jobs.submit(crate::jobs::JobSpec {
+        id: Jobs::new_id(),
+        scene: id,
+        owner,
+        scene_file: PathBuf::new(),
+        patches: None,
+        max_edge: None,
+        resimulate: Some(req.materials.into_iter().collect()),
+    })?;
+    let mut r = (StatusCode::ACCEPTED, Json(&record)).into_response();
+    if let Ok(v) = axum::http::HeaderValue::from_str(&format!("/api/v1/jobs/{}", record.id)) {
+        r.headers_mut().insert(axum::http::header::LOCATION, v);
+    }
+    Ok(r)
 }
 
 /// Whether `who` may see job `r`: its owner, or an admin.

@@ -435,6 +435,7 @@ pub async fn accept<R>(
         scene_file: dir.join(&scene_name),
         patches: got.patches,
         max_edge: got.max_edge,
+        resimulate: None,
     })?;
     staging.0 = None;
     tracing::info!(

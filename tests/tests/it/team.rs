@@ -1294,3 +1294,140 @@ async fn tokens_never_reach_the_log() {
         );
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
+    // A simulated cube precomputed into the bundles folder.
+    let bundles = bundles_with(&[]);
+    let scene = bundles.path().join("cube.json");
+    let medium = |s: f32| {
+        json!({"type": "simulated", "sigma_s_prime": [s, s, s],
+               "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0})
+    };
+    std::fs::write(
+        &scene,
+        json!({"unit_mm": 1, "objects": [{"name": "cube",
+                 "mesh": {"shape": "box", "size": [20, 20, 20]}, "material": medium(0.5)}],
+               "lights": [{"type": "directional", "direction": [0, -1, 0],
+                           "irradiance": [1, 1, 1]}]})
+        .to_string(),
+    )
+    .unwrap();
+    let loaded = translux_precompute::scene::load_scene_file(&scene).unwrap();
+    let params = translux_precompute::pipeline::PrecomputeParams {
+        patches: Some(200),
+        progress: false,
+        ..Default::default()
+    };
+    translux_precompute::pipeline::precompute(&loaded, &bundles.path().join("cube"), &params)
+        .unwrap();
+    std::fs::remove_file(&scene).unwrap();
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let before = s.relight("cube", Some(VIEWER)).await;
+    let post = |token: &'static str, body: Value| {
+        let r = s
+            .req(
+                reqwest::Method::POST,
+                "/api/v1/scenes/cube/resimulate",
+                Some(token),
+            )
+            .header(CONTENT_TYPE, "application/json")
+            .body(body.to_string());
+        async move {
+            let r = r.send().await.unwrap();
+            let status = r.status();
+            let location = r
+                .headers()
+                .get(LOCATION)
+                .map(|v| v.to_str().unwrap().to_string());
+            (status, r.json::<Value>().await.unwrap(), location)
+        }
+    };
+
+    // Refused before anything is queued, naming the problem.
+    let (status, _, _) = post(VIEWER, json!({"materials": {"cube": medium(1.0)}})).await;
+    assert_eq!(status, StatusCode::FORBIDDEN);
+    for (body, says) in [
+        (
+            json!({"materials": {"ball": medium(1.0)}}),
+            "no object \"ball\"",
+        ),
+        (
+            json!({"materials": {"cube": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}}),
+            "only a simulated object",
+        ),
+        (
+            json!({"materials": {"cube": {"type": "simulated", "sigma_s_prime": [1, 1, 1],
+                                          "sigma_a": [-1, 0, 0]}}}),
+            "materials.cube.sigma_a",
+        ),
+        (json!({"materials": {}}), "at least one"),
+        (
+            json!({"materials": {"cube": medium(1.0)}, "x": 1}),
+            "unknown field",
+        ),
+    ] {
+        let (status, e, _) = post(EDITOR, body.clone()).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{body}: {e}");
+        let message = e["error"]["message"].as_str().unwrap();
+        assert!(message.contains(says), "{body}: {message}");
+    }
+    assert!(
+        s.get_json("/api/v1/jobs", Some(EDITOR)).await["jobs"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
+
+    // Before: a relight with the new scattering is refused, saying to walk again.
+    let r = s
+        .req(
+            reqwest::Method::POST,
+            "/api/v1/scenes/cube/relight",
+            Some(VIEWER),
+        )
+        .header(CONTENT_TYPE, "application/json")
+        .body(json!({"materials": {"cube": medium(1.0)}}).to_string())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
+    assert!(r.text().await.unwrap().contains("--resimulate"));
+
+    // The job: walks, the bundle rewritten, the scene served with the new medium.
+    let (status, job, location) = post(EDITOR, json!({"materials": {"cube": medium(1.0)}})).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    assert_eq!(
+        location.as_deref(),
+        Some(format!("/api/v1/jobs/{id}").as_str())
+    );
+    assert_eq!(job["resimulate"], json!(["cube"]));
+    let done = s.wait_job(&id, EDITOR).await;
+    assert_eq!(done["state"], "done", "{done}");
+    assert_eq!(done["stage"], "walks");
+    assert!(done["result"]["patches"].as_u64().unwrap() > 100, "{done}");
+    let detail = s.get_json("/api/v1/scenes/cube", Some(VIEWER)).await;
+    assert_eq!(
+        detail["objects"][0]["material"]["sigma_s_prime"],
+        json!([1.0, 1.0, 1.0]),
+        "{detail}"
+    );
+    let after = s.relight("cube", Some(VIEWER)).await;
+    assert_eq!(after.vertex_count, before.vertex_count);
+    let changed = after
+        .radiance
+        .iter()
+        .zip(&before.radiance)
+        .filter(|(a, b)| (*a - *b).abs() > 1e-3 * b.abs().max(1e-6))
+        .count();
+    assert!(
+        changed > after.radiance.len() / 2,
+        "{changed} values changed"
+    );
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+}
