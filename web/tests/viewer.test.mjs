@@ -92,8 +92,10 @@ function diff(a, b) {
   return s / a.grid.length;
 }
 
-/** Waits until no relight is in flight or pending and the last frame is drawn. */
-async function idle(page, timeout = 30000) {
+/** Waits until no relight is in flight or pending and the last frame is drawn. Generous:
+ * in CI the viewer shares 2 cores with Mitsuba and the walks of the validation tests, and a
+ * relight can then wait tens of seconds (what is checked is the state reached, not how soon). */
+async function idle(page, timeout = 90000) {
   await page.waitForFunction(() => {
     const a = window.translux.app;
     return a.link && a.link.state === "open" && !a.link.inFlight && !a.link.pending && !a.needDraw;
