@@ -43,7 +43,7 @@ use translux_server::team::{Team, TeamArgs};
 /// Patches of the test bundle: enough for a picture worth looking at, quick to precompute.
 const PATCHES: u64 = 1200;
 /// The whole browser session may take this long before it is killed.
-const SESSION_LIMIT: Duration = Duration::from_secs(420);
+const SESSION_LIMIT: Duration = Duration::from_secs(600);
 /// The viewer token of the team server (a test value: 24 characters or more, as
 /// `translux-server token hash` wants).
 const VIEWER_TOKEN: &str = "tlx_browser_test_viewer_0123456789abcdef0123456789abcdef";
