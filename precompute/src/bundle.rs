@@ -276,12 +276,12 @@ pub fn write_bundle(
 }
 
 /// An array file of an existing bundle copied unchanged into a new one
-/// ([`write_bundle_keeping`]): its manifest name and entry, and its bytes.
+/// ([`write_bundle_keeping`]): its manifest name and entry, and the file to copy.
 #[derive(Debug, Clone)]
 pub struct KeptArray {
     pub name: String,
     pub entry: ArrayEntry,
-    pub bytes: Vec<u8>,
+    pub from: PathBuf,
 }
 
 /// [`write_bundle`] with some arrays copied from an existing bundle as they are (their
@@ -354,7 +354,12 @@ pub fn write_bundle_keeping(
         // `array.data` is dropped here: peak memory stays at the caller's arrays.
     }
     for k in kept {
-        write_file(&tmp.join(&k.entry.file), &k.bytes)?;
+        // File to file (never the whole bundle in memory), then flushed like the others.
+        let to = tmp.join(&k.entry.file);
+        fs::copy(&k.from, &to).map_err(io_err("copying", &k.from))?;
+        File::open(&to)
+            .and_then(|f| f.sync_all())
+            .map_err(io_err("syncing", &to))?;
         report.bytes += k.entry.bytes;
         report.files += 1;
         manifest.arrays.insert(k.name.clone(), k.entry.clone());

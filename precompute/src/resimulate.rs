@@ -16,7 +16,7 @@ use std::time::Instant;
 
 use translux_engine::simulated::SimMedium;
 use translux_engine::smatrix::{self, ObjectMaterial, SParams};
-use translux_proto::bundle::{Bundle, WalksView, arrays};
+use translux_proto::bundle::{Bundle, Manifest, WalksView, arrays};
 use translux_proto::scene::Material;
 
 use crate::bundle::{KeptArray, NamedArray, write_bundle_keeping};
@@ -31,23 +31,20 @@ pub struct ResimulateReport {
     pub records: u64,
     pub bundle_bytes: u64,
     pub patches: u64,
+    pub vertices: u64,
+    pub nnz_f: u64,
     /// Whether a transfer matrix T was dropped.
     pub dropped_transfer: bool,
     pub seconds: f64,
 }
 
-/// Walks the simulated objects named in `changes` again with their new materials and
-/// rewrites the bundle in `dir` (see the module docs). `progress(done, total)` counts
-/// patches walked. Errors name the object and the problem; on any error the bundle is left
-/// as it was.
-pub fn resimulate(
-    dir: &Path,
+/// `changes` by object index, checked against the bundle's manifest: at least one, each an
+/// object precomputed simulated, named once, with a valid simulated material. The errors
+/// name the field (`materials.NAME...`). What a server checks before queueing a job.
+pub fn check_changes(
+    m: &Manifest,
     changes: &[(String, Material)],
-    progress: &(dyn Fn(u64, u64) + Sync),
-) -> Result<ResimulateReport, String> {
-    let start = Instant::now();
-    let bundle = Bundle::open(dir).map_err(|e| e.to_string())?;
-    let m = bundle.manifest();
+) -> Result<Vec<(usize, Material)>, String> {
     if changes.is_empty() {
         return Err("materials: name at least one simulated object to walk again".into());
     }
@@ -62,17 +59,13 @@ pub fn resimulate(
             ));
         };
         material.validate(&at).map_err(|e| e.to_string())?;
-        if !matches!(m.objects[k].material, Material::Simulated { .. }) {
+        let built = &m.objects[k].material;
+        if !matches!(built, Material::Simulated { .. }) || SimMedium::of(material).is_none() {
             return Err(format!(
-                "{at}: {name:?} was precomputed as {}; only simulated objects can walk again \
-                 (their patches are closed meshes); precompute the scene with it simulated",
-                m.objects[k].material.kind()
-            ));
-        }
-        if SimMedium::of(material).is_none() {
-            return Err(format!(
-                "{at}: a simulated material with its medium (a preset, or sigma_a with \
-                 sigma_s_prime or sigma_s)"
+                "{at}: only a simulated object walks again, with a simulated material that \
+                 names its medium ({name:?} was precomputed as {}; this material is {})",
+                built.kind(),
+                material.kind()
             ));
         }
         if overrides.iter().any(|(i, _)| *i == k) {
@@ -80,6 +73,22 @@ pub fn resimulate(
         }
         overrides.push((k, material.clone()));
     }
+    Ok(overrides)
+}
+
+/// Walks the simulated objects named in `changes` again with their new materials and
+/// rewrites the bundle in `dir` (see the module docs). `progress(done, total)` counts
+/// patches walked. Errors name the object and the problem; on any error the bundle is left
+/// as it was.
+pub fn resimulate(
+    dir: &Path,
+    changes: &[(String, Material)],
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<ResimulateReport, String> {
+    let start = Instant::now();
+    let bundle = Bundle::open(dir).map_err(|e| e.to_string())?;
+    let m = bundle.manifest();
+    let overrides = check_changes(m, changes)?;
     let old = bundle
         .walks()
         .ok_or_else(|| "the bundle holds no walks (precompute it again)".to_string())?;
@@ -204,15 +213,13 @@ pub fn resimulate(
         if replaced || dropped {
             continue;
         }
-        let bytes =
-            std::fs::read(dir.join(&entry.file)).map_err(|e| format!("{}: {e}", entry.file))?;
         kept.push(KeptArray {
             name: name.clone(),
             entry: entry.clone(),
-            bytes,
+            from: dir.join(&entry.file),
         });
     }
-    let patches = m.patch_count;
+    let (patches, vertices, nnz_f) = (m.patch_count, m.vertex_count, m.form_factors.nnz);
     drop(bundle);
     let written =
         write_bundle_keeping(dir, manifest, new_arrays, &kept).map_err(|e| e.to_string())?;
@@ -225,6 +232,8 @@ pub fn resimulate(
         records,
         bundle_bytes: written.bytes,
         patches,
+        vertices,
+        nnz_f,
         dropped_transfer,
         seconds: start.elapsed().as_secs_f64(),
     })

@@ -720,12 +720,10 @@ impl Jobs {
                 });
             })
         })?;
-        let bundle = translux_proto::bundle::Bundle::open(out).map_err(|e| e.to_string())?;
-        let m = bundle.manifest();
         Ok(JobResult {
-            patches: m.patch_count,
-            vertices: m.vertex_count,
-            nnz_f: m.form_factors.nnz,
+            patches: report.patches,
+            vertices: report.vertices,
+            nnz_f: report.nnz_f,
             bundle_bytes: report.bundle_bytes,
             seconds: t.elapsed().as_secs_f64(),
         })

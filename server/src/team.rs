@@ -448,36 +448,9 @@ async fn resimulate(
 ) -> Result<Response, AppError> {
     let scene = team.state.lookup(&id)?;
     let crate::extract::JsonBody(req) = body?;
-    if req.materials.is_empty() {
-        return Err(AppError::invalid(
-            "materials: name at least one simulated object to walk again",
-        ));
-    }
-    let objects = &scene.bundle.manifest().objects;
-    for (name, material) in &req.materials {
-        let at = format!("materials.{name}");
-        let Some(o) = objects.iter().find(|o| &o.name == name) else {
-            let names: Vec<&str> = objects.iter().map(|o| o.name.as_str()).collect();
-            return Err(AppError::invalid(format!(
-                "{at}: scene {id:?} has no object {name:?} (its objects are {})",
-                names.join(", ")
-            )));
-        };
-        material
-            .validate(&at)
-            .map_err(|e| AppError::invalid(e.to_string()))?;
-        if !matches!(
-            o.material,
-            translux_proto::scene::Material::Simulated { .. }
-        ) || translux_engine::simulated::SimMedium::of(material).is_none()
-        {
-            return Err(AppError::invalid(format!(
-                "{at}: only a simulated object walks again, with a simulated material                  ({name:?} was precomputed as {}; this material is {})",
-                o.material.kind(),
-                material.kind()
-            )));
-        }
-    }
+    let changes: Vec<_> = req.materials.into_iter().collect();
+    translux_precompute::resimulate::check_changes(scene.bundle.manifest(), &changes)
+        .map_err(AppError::invalid)?;
     if !team.bundles.join(&id).join("manifest.json").is_file() {
         return Err(AppError::invalid(format!(
             "scene {id:?} is not a bundle of this server's bundles folder"
@@ -491,7 +464,7 @@ async fn resimulate(
         scene_file: PathBuf::new(),
         patches: None,
         max_edge: None,
-        resimulate: Some(req.materials.into_iter().collect()),
+        resimulate: Some(changes),
     })?;
     let mut r = (StatusCode::ACCEPTED, Json(&record)).into_response();
     if let Ok(v) = axum::http::HeaderValue::from_str(&format!("/api/v1/jobs/{}", record.id)) {
