@@ -1,6 +1,7 @@
 //! The built-in scenes, made only of procedural shapes (no files needed).
 //!
-//! In: a scene name (`cornell`, `bowls`, `flower`, `cornell_checker`). Out: the
+//! In: a scene name (`cornell`, `bowls`, `flower`, `cornell_checker`, and the animated
+//! `rolling`). Out: the
 //! [`SceneFile`] a user could have written by hand — objects with shapes, transforms and
 //! materials, default lights, a camera and a patch density — which
 //! [`crate::scene::load_scene`] (`builtin:NAME`) validates and turns into triangles like any
@@ -13,7 +14,7 @@ use translux_proto::scene::{
 };
 
 /// The names `builtin:NAME` accepts.
-pub const BUILTIN_SCENES: [&str; 4] = ["cornell", "bowls", "flower", "cornell_checker"];
+pub const BUILTIN_SCENES: [&str; 5] = ["cornell", "bowls", "flower", "cornell_checker", "rolling"];
 
 /// The built-in scene called `name`, or `None` if there is none.
 pub fn builtin_scene(name: &str) -> Option<SceneFile> {
@@ -22,6 +23,7 @@ pub fn builtin_scene(name: &str) -> Option<SceneFile> {
         "bowls" => Some(bowls()),
         "flower" => Some(flower()),
         "cornell_checker" => Some(cornell_checker()),
+        "rolling" => Some(rolling()),
         _ => None,
     }
 }
@@ -39,6 +41,7 @@ fn object(
     material: Material,
 ) -> ObjectDesc {
     ObjectDesc {
+        keyframes: None,
         name: name.to_owned(),
         mesh: MeshRef::Shape(shape),
         transform: Some(Transform {
@@ -144,6 +147,7 @@ fn cornell() -> SceneFile {
         dipole_preset("marble"),
     ));
     SceneFile {
+        animation: None,
         name: Some("cornell".to_owned()),
         objects,
         lights: vec![Light::Point {
@@ -268,6 +272,7 @@ fn bowls() -> SceneFile {
         })
         .collect();
     SceneFile {
+        animation: None,
         name: Some("bowls".to_owned()),
         objects,
         lights,
@@ -358,6 +363,7 @@ fn flower() -> SceneFile {
         ));
     }
     SceneFile {
+        animation: None,
         name: Some("flower".to_owned()),
         objects,
         lights: vec![Light::Point {
@@ -378,6 +384,101 @@ fn flower() -> SceneFile {
     }
 }
 
+/// Frames of `builtin:rolling` (two seconds at 24 fps, as the paper's 48-frame gallop).
+pub const ROLLING_FRAMES: u32 = 48;
+
+/// An animated scene: a marble ball rolls across a floor past a lamp standing behind it, a
+/// skim-milk cube slides the other way and turns; lit from behind, each glows through as it
+/// crosses in front of the lamp (a sequence: one bundle per frame, see
+/// [`translux_proto::animation`]).
+fn rolling() -> SceneFile {
+    use translux_proto::animation::{Animation, Keyframe};
+    let last = ROLLING_FRAMES - 1;
+    let radius = 0.06f32;
+    let (x0, x1) = (-0.5f32, 0.5f32);
+    // Rolling without slipping: the ball turns (x1 − x0) / r radians about −Z.
+    let turn = -((x1 - x0) / radius).to_degrees();
+    let key = |frame: u32, translate: [f32; 3], rotate_deg: [f32; 3]| Keyframe {
+        frame,
+        translate,
+        rotate_deg,
+        scale: None,
+    };
+    let mut ball = object(
+        "ball",
+        Shape::Sphere {
+            radius,
+            segments: Some(24),
+        },
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0],
+        dipole_preset("marble"),
+    );
+    ball.transform = None;
+    ball.keyframes = Some(vec![
+        key(0, [x0, radius, 0.0], [0.0, 0.0, 0.0]),
+        key(last, [x1, radius, 0.0], [0.0, 0.0, turn]),
+    ]);
+    let side = 0.08f32;
+    let mut cube = object(
+        "cube",
+        Shape::Box {
+            size: [side, side, side],
+            inward: false,
+        },
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0],
+        dipole_preset("skimmilk"),
+    );
+    cube.transform = None;
+    cube.keyframes = Some(vec![
+        key(0, [0.45, side / 2.0, -0.16], [0.0, 0.0, 0.0]),
+        key(last, [-0.45, side / 2.0, -0.16], [0.0, 90.0, 0.0]),
+    ]);
+    let objects = vec![
+        object(
+            "floor",
+            Shape::Quad { size: [1.4, 0.7] },
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            diffuse([0.45, 0.5, 0.42]),
+        ),
+        ball,
+        cube,
+    ];
+    SceneFile {
+        animation: Some(Animation {
+            frames: ROLLING_FRAMES,
+            fps: 24.0,
+            first_number: 0,
+        }),
+        name: Some("rolling".to_owned()),
+        objects,
+        lights: vec![
+            // The lamp behind the path, low: what glows through the ball and the cube.
+            Light::Point {
+                position: [0.0, 0.07, -0.3],
+                intensity: [0.12, 0.11, 0.09],
+            },
+            Light::Point {
+                position: [0.3, 0.6, 0.5],
+                intensity: [0.1, 0.1, 0.1],
+            },
+        ],
+        unit_mm: DEFAULT_UNIT_MM,
+        patches: Some(PatchDensity {
+            target: Some(2_000),
+            max_edge: None,
+        }),
+        camera: Some(Camera {
+            position: [0.0, 0.28, 0.95],
+            target: [0.0, 0.05, -0.08],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 40.0,
+        }),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -389,6 +490,27 @@ mod tests {
             Ok(s) => s,
             Err(e) => panic!("builtin:{name}: {e}"),
         }
+    }
+
+    /// The scene of a built-in, or for an animated one its first, middle and last frames.
+    fn load_frames(name: &str) -> Vec<LoadedScene> {
+        let file = builtin_scene(name).expect(name);
+        let Some(a) = file.animation else {
+            return vec![load(name)];
+        };
+        [0, a.frames / 2, a.frames - 1]
+            .into_iter()
+            .map(|k| {
+                crate::scene::resolve_frame(
+                    &file,
+                    std::path::Path::new("."),
+                    name.into(),
+                    format!("builtin:{name}"),
+                    k,
+                )
+                .unwrap_or_else(|e| panic!("builtin:{name} frame {k}: {e}"))
+            })
+            .collect()
     }
 
     fn normal(t: &[Vec3; 3]) -> Vec3 {
@@ -468,22 +590,23 @@ mod tests {
             }
             assert_eq!(file.unit_mm, 1000.0);
             assert!(file.camera.is_some() && !file.lights.is_empty());
-            let s = load(name);
-            assert_eq!(s.name, name);
-            assert_eq!(s.source, format!("builtin:{name}"));
-            assert_eq!(s.objects.len(), file.objects.len());
-            for o in &s.objects {
-                assert!(!o.triangles.is_empty(), "{name}/{}", o.name);
-                assert_eq!(o.dropped_degenerate, 0, "{name}/{}", o.name);
-            }
-            for (i, a) in s.objects.iter().enumerate() {
-                for b in &s.objects[i + 1..] {
-                    assert!(
-                        !objects_cross(a, b),
-                        "{name}: {} crosses {}",
-                        a.name,
-                        b.name
-                    );
+            for s in load_frames(name) {
+                assert_eq!(s.name, name);
+                assert_eq!(s.source, format!("builtin:{name}"));
+                assert_eq!(s.objects.len(), file.objects.len());
+                for o in &s.objects {
+                    assert!(!o.triangles.is_empty(), "{name}/{}", o.name);
+                    assert_eq!(o.dropped_degenerate, 0, "{name}/{}", o.name);
+                }
+                for (i, a) in s.objects.iter().enumerate() {
+                    for b in &s.objects[i + 1..] {
+                        assert!(
+                            !objects_cross(a, b),
+                            "{name}: {} crosses {}",
+                            a.name,
+                            b.name
+                        );
+                    }
                 }
             }
         }

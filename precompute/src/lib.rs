@@ -49,6 +49,7 @@ pub mod patch;
 pub mod pipeline;
 pub mod resimulate;
 pub mod scene;
+pub mod sequence;
 pub mod shapes;
 pub mod sheet;
 pub mod simplify;

@@ -24,7 +24,9 @@ struct Cli {
     /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_checker, bowls, flower); with
     /// `--resimulate`, a bundle folder.
     scene: String,
-    /// Folder to write the bundle to (replaced atomically if it exists).
+    /// Folder to write the bundle to (replaced atomically if it exists). For an animated
+    /// scene, the sequence folder: one bundle per frame and `sequence.json`; a rerun keeps
+    /// the frames whose inputs did not change (it resumes).
     #[arg(long, required_unless_present = "resimulate")]
     out: Option<PathBuf>,
     /// Walk the simulated objects named in `--materials` again, in their new media, inside
@@ -119,6 +121,70 @@ fn resimulate(cli: &Cli) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// An animated scene: one bundle per frame in `out` ([`translux_precompute::sequence`]).
+fn sequence(
+    cli: &Cli,
+    source: &scene::SceneSource,
+    out: &std::path::Path,
+    params: &PrecomputeParams,
+) -> anyhow::Result<()> {
+    use translux_precompute::sequence::{FrameOutcome, precompute_sequence};
+    let quiet = cli.quiet;
+    let report = precompute_sequence(source, out, params, &|f, total| {
+        if quiet {
+            return;
+        }
+        let what = match &f.outcome {
+            FrameOutcome::Computed { patches, bytes } => {
+                format!("precomputed, {patches} patches, {}", human_bytes(*bytes))
+            }
+            FrameOutcome::Resumed => "kept from the last run (same inputs)".into(),
+            FrameOutcome::SharedWith(k) => format!("the same scene as frame {k}: shares it"),
+        };
+        eprintln!(
+            "frame {} of {total} ({}): {what} in {:.2} s",
+            f.frame + 1,
+            f.folder,
+            f.seconds
+        );
+    })
+    .with_context(|| format!("precomputing {}", cli.scene))?;
+    let n = report.frames.len().max(1);
+    let computed: Vec<f64> = report
+        .frames
+        .iter()
+        .filter(|f| matches!(f.outcome, FrameOutcome::Computed { .. }))
+        .map(|f| f.seconds)
+        .collect();
+    println!(
+        "translux-precompute: {} -> {} (sequence, {} frames)",
+        cli.scene,
+        out.display(),
+        report.frames.len()
+    );
+    println!(
+        "  frames             {} precomputed, {} kept from the last run, {} shared with an \
+         earlier frame",
+        report.computed(),
+        report.resumed(),
+        report.shared()
+    );
+    if !computed.is_empty() {
+        println!(
+            "  per frame          {:.2} s mean, {:.2} s max",
+            computed.iter().sum::<f64>() / computed.len() as f64,
+            computed.iter().fold(0.0f64, |m, s| m.max(*s))
+        );
+    }
+    println!(
+        "  bundles            {} in all, {} per frame",
+        human_bytes(report.bytes),
+        human_bytes(report.bytes / n as u64)
+    );
+    println!("  total              {:.1} s", report.seconds);
+    Ok(())
+}
+
 /// `--subsurface`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum SubsurfaceArg {
@@ -176,7 +242,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             .context("setting up the thread pool")?;
     }
     let t0 = Instant::now();
-    let loaded = scene::load_scene(&cli.scene)?;
+    let source = scene::read_scene(&cli.scene)?;
+    let animated = source.file.animation.is_some();
+    let loaded = if animated {
+        None
+    } else {
+        Some(scene::resolve_scene(
+            source.file.clone(),
+            &source.base_dir,
+            source.name.clone(),
+            source.source.clone(),
+        )?)
+    };
     let load_s = t0.elapsed().as_secs_f64();
     let params = PrecomputeParams {
         patches: cli.patches,
@@ -203,6 +280,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             },
         },
         ..Default::default()
+    };
+    let Some(loaded) = loaded else {
+        return sequence(&cli, &source, &out, &params);
     };
     let report = pipeline::precompute(&loaded, &out, &params)
         .with_context(|| format!("precomputing {}", cli.scene))?;

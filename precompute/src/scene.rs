@@ -142,6 +142,12 @@ pub enum SceneError {
         mesh: String,
         detail: String,
     },
+    /// An animated scene where one frame was expected ([`resolve_frame`] reads its frames).
+    #[error(
+        "{scene}: the scene is animated ({frames} frames): precompute it as a sequence \
+         (translux-precompute writes one bundle per frame), or read one frame of it"
+    )]
+    Animated { scene: String, frames: u32 },
     /// The transform produced non-finite coordinates.
     #[error("{scene}: {object}: the transform gives non-finite coordinates (mesh {mesh})")]
     NonFinite {
@@ -166,17 +172,41 @@ fn json_detail(e: &JsonError) -> String {
 
 /// Loads `builtin:NAME` or a scene file.
 pub fn load_scene(spec: &str) -> Result<LoadedScene, SceneError> {
+    let r = read_scene(spec)?;
+    resolve_scene(r.file, &r.base_dir, r.name, r.source)
+}
+
+/// A scene file read and parsed, its meshes not loaded yet: an animated scene's frames
+/// resolve from it one by one ([`resolve_frame`]).
+#[derive(Debug, Clone)]
+pub struct SceneSource {
+    pub file: SceneFile,
+    /// Where its relative mesh paths start.
+    pub base_dir: PathBuf,
+    /// The file's `name`, else its stem (`NAME` for `builtin:NAME`).
+    pub name: String,
+    /// The spec, for messages.
+    pub source: String,
+}
+
+/// Reads and parses `builtin:NAME` or a scene file (not validated yet).
+pub fn read_scene(spec: &str) -> Result<SceneSource, SceneError> {
     if let Some(name) = spec.strip_prefix("builtin:") {
         let file = builtin_scene(name).ok_or_else(|| SceneError::UnknownBuiltin {
             name: name.to_owned(),
         })?;
-        return resolve_scene(file, Path::new("."), name.to_owned(), spec.to_owned());
+        return Ok(SceneSource {
+            file,
+            base_dir: PathBuf::from("."),
+            name: name.to_owned(),
+            source: spec.to_owned(),
+        });
     }
-    load_scene_file(Path::new(spec))
+    read_scene_file(Path::new(spec))
 }
 
-/// Reads, parses, validates and resolves a JSON scene file.
-pub fn load_scene_file(path: &Path) -> Result<LoadedScene, SceneError> {
+/// Reads and parses a JSON scene file.
+pub fn read_scene_file(path: &Path) -> Result<SceneSource, SceneError> {
     let scene = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
         scene: scene.clone(),
@@ -197,7 +227,18 @@ pub fn load_scene_file(path: &Path) -> Result<LoadedScene, SceneError> {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    resolve_scene(file, base_dir, name, scene)
+    Ok(SceneSource {
+        file,
+        base_dir: base_dir.to_path_buf(),
+        name,
+        source: scene,
+    })
+}
+
+/// Reads, parses, validates and resolves a JSON scene file.
+pub fn load_scene_file(path: &Path) -> Result<LoadedScene, SceneError> {
+    let r = read_scene_file(path)?;
+    resolve_scene(r.file, &r.base_dir, r.name, r.source)
 }
 
 /// Validates `file` and builds every object's triangles; mesh paths are relative to
@@ -212,13 +253,90 @@ pub fn resolve_scene(
         scene: source.clone(),
         error,
     })?;
+    if let Some(a) = &file.animation {
+        return Err(SceneError::Animated {
+            scene: source,
+            frames: a.frames,
+        });
+    }
+    resolve_objects(file, base_dir, name, source, &[])
+}
+
+/// Frame `frame` of an animated scene `file` as a static scene: each `{frame}` mesh path
+/// read for that frame's file number, each keyframed object moved to where its keyframes put
+/// it (after its `transform`). The result has no `animation`: it precomputes like any
+/// scene. An error names a frame out of range or a missing frame file.
+pub fn resolve_frame(
+    file: &SceneFile,
+    base_dir: &Path,
+    name: String,
+    source: String,
+    frame: u32,
+) -> Result<LoadedScene, SceneError> {
+    file.validate().map_err(|error| SceneError::Invalid {
+        scene: source.clone(),
+        error,
+    })?;
+    let Some(anim) = file.animation else {
+        return Err(SceneError::Invalid {
+            scene: source,
+            error: FieldError::new("animation", "the scene is not animated"),
+        });
+    };
+    if frame >= anim.frames {
+        return Err(SceneError::Invalid {
+            scene: source,
+            error: FieldError::new(
+                "animation.frames",
+                format!(
+                    "frame {frame} is out of range: the scene has {} frames (0 to {})",
+                    anim.frames,
+                    anim.frames - 1
+                ),
+            ),
+        });
+    }
+    let mut still = file.clone();
+    still.animation = None;
+    let mut motion = Vec::with_capacity(still.objects.len());
+    for (i, o) in still.objects.iter_mut().enumerate() {
+        if let MeshRef::Path(p) = &mut o.mesh
+            && translux_proto::animation::is_frame_pattern(p)
+        {
+            *p = translux_proto::animation::frame_mesh_path(p, anim.first_number + frame).map_err(
+                |e| SceneError::Invalid {
+                    scene: source.clone(),
+                    error: FieldError::new(format!("objects[{i}].mesh"), e),
+                },
+            )?;
+        }
+        motion.push(
+            o.keyframes
+                .take()
+                .map(|keys| translux_proto::animation::Keyframe::at(&keys, frame)),
+        );
+    }
+    resolve_objects(still, base_dir, name, source, &motion)
+}
+
+/// The objects of the static `file`, each moved by `motion[i]` (if any) after its transform.
+fn resolve_objects(
+    file: SceneFile,
+    base_dir: &Path,
+    name: String,
+    source: String,
+    motion: &[Option<Transform>],
+) -> Result<LoadedScene, SceneError> {
     // Meshes load in parallel; errors are reported in object order.
     use rayon::prelude::*;
     let results: Vec<Result<LoadedObject, SceneError>> = file
         .objects
         .par_iter()
         .enumerate()
-        .map(|(i, desc)| load_object(i, desc, base_dir, &source))
+        .map(|(i, desc)| {
+            let moved = motion.get(i).and_then(Option::as_ref);
+            load_object(i, desc, base_dir, &source, moved)
+        })
         .collect();
     let mut objects = results.into_iter().collect::<Result<Vec<_>, _>>()?;
     orient_objects(&file, &mut objects);
@@ -235,6 +353,7 @@ fn load_object(
     desc: &ObjectDesc,
     base_dir: &Path,
     scene: &str,
+    motion: Option<&Transform>,
 ) -> Result<LoadedObject, SceneError> {
     let object = format!("objects[{index}] \"{}\"", desc.name);
     // Media by OBJ material: the `usemtl` group of every face, mapped to the pattern's names.
@@ -314,7 +433,7 @@ fn load_object(
         Some(n) if raw.len() as u64 > n => crate::simplify::simplify(&raw, n as usize).triangles,
         _ => raw,
     };
-    let transformed = apply_transform(raw, desc.transform.as_ref());
+    let transformed = apply_transform(apply_transform(raw, desc.transform.as_ref()), motion);
     if transformed.iter().flatten().any(|v| !v.is_finite()) {
         return Err(SceneError::NonFinite {
             scene: scene.to_owned(),

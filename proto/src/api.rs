@@ -105,6 +105,10 @@ pub struct RelightRequest {
     /// its own shadows (the viewer does); the rest of the transport is unchanged.
     #[serde(default, skip_serializing_if = "DirectAt::is_vertex")]
     pub direct_at: DirectAt,
+    /// The frame of an animated scene (0-based; absent: frame 0). A frame out of range is
+    /// a 400 that names it; a still scene has frame 0 only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u32>,
 }
 
 /// Where the direct light of diffuse objects is evaluated (docs/transport.md).
@@ -346,6 +350,9 @@ pub struct RenderRequest {
     /// the vertices, the relight answer's picture).
     #[serde(default = "pixel")]
     pub direct_at: DirectAt,
+    /// As in [`RelightRequest::frame`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u32>,
 }
 
 fn default_width() -> u32 {
@@ -374,6 +381,7 @@ impl Default for RenderRequest {
             cull_backfaces: true,
             specular: true,
             direct_at: DirectAt::Pixel,
+            frame: None,
         }
     }
 }
@@ -387,6 +395,7 @@ impl RenderRequest {
             components: self.components,
             solver: self.solver,
             direct_at: self.direct_at,
+            frame: self.frame,
         }
     }
 
@@ -398,6 +407,7 @@ impl RenderRequest {
             components: relight.components,
             solver: relight.solver,
             direct_at: relight.direct_at,
+            frame: relight.frame,
             ..Default::default()
         }
     }
@@ -477,6 +487,17 @@ pub struct SceneSummary {
     pub patches: u64,
     pub vertices: u64,
     pub objects: usize,
+    /// Frames of an animated scene (1 for a still one); `patches` and `vertices` are frame
+    /// 0's.
+    #[serde(default = "one_frame")]
+    pub frames: u32,
+    /// Playback rate of an animated scene.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f32>,
+}
+
+fn one_frame() -> u32 {
+    1
 }
 
 /// `GET /api/v1/scenes`.
@@ -531,8 +552,18 @@ pub struct SceneDetail {
     pub camera: Camera,
     pub form_factors: FormFactorInfo,
     pub stages: Vec<StageTime>,
-    /// Bytes of the bundle on disk.
+    /// Bytes of the bundle on disk (every frame's for an animated scene).
     pub bundle_bytes: u64,
+    /// Frames of an animated scene (1 for a still one); the rest describes the frame asked
+    /// for (`?frame=K`, default 0).
+    #[serde(default = "one_frame")]
+    pub frames: u32,
+    /// Playback rate of an animated scene.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f32>,
+    /// The frame described.
+    #[serde(default)]
+    pub frame: u32,
 }
 
 /// One object's triangle range in `GET /api/v1/scenes/{id}/mesh`.

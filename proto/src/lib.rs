@@ -5,6 +5,8 @@
 //!
 //! - [`scene`]: the JSON scene file (objects, meshes, materials, profiles), with
 //!   [`scene::SceneFile::validate`] naming the field and rule of any bad value.
+//! - [`animation`]: animated scenes (frames, per-frame meshes, keyframes) and the
+//!   `sequence.json` of their precomputed frames.
 //! - [`light`]: lights and cameras, shared by scene files and relight requests.
 //! - [`csr`]: the compressed-sparse-row layout of F, with a checked borrowed view.
 //! - [`bundle`]: the on-disk bundle — manifest, array files, and the verifying loader.
@@ -19,6 +21,7 @@
 //! assert_eq!(scene.unit_mm, 1000.0);
 //! ```
 
+pub mod animation;
 pub mod api;
 pub mod bundle;
 pub mod csr;

@@ -22,6 +22,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::animation::{Animation, Keyframe, frame_mesh_path, is_frame_pattern};
 use crate::tagged::tagged_enum;
 
 use crate::light::{Camera, Light};
@@ -55,6 +56,10 @@ pub struct SceneFile {
     /// Default camera for the viewer and the renderer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<Camera>,
+    /// Makes the scene a sequence of frames (see [`crate::animation`]): objects may then
+    /// read a mesh file per frame (`{frame}` in the path) and move by `keyframes`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub animation: Option<Animation>,
 }
 
 /// How finely surfaces are split into patches.
@@ -95,6 +100,10 @@ pub struct ObjectDesc {
     /// Which way the mesh's faces point (default `auto`). See [`Orientation`].
     #[serde(default, skip_serializing_if = "Orientation::is_auto")]
     pub orientation: Orientation,
+    /// In an animated scene: where the object is at each frame, applied after `transform`
+    /// (see [`crate::animation::Keyframe`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keyframes: Option<Vec<Keyframe>>,
 }
 
 /// Which way an object's faces are made to point. A face's front is the side its corners
@@ -512,9 +521,35 @@ impl SceneFile {
                 }
             }
         }
+        if let Some(a) = &self.animation {
+            a.validate()?;
+        }
         let mut seen = std::collections::HashSet::new();
         for (i, o) in self.objects.iter().enumerate() {
             let at = format!("objects[{i}]");
+            if let Some(keys) = &o.keyframes {
+                let Some(a) = &self.animation else {
+                    return Err(FieldError::new(
+                        format!("{at}.keyframes"),
+                        "keyframes need an animated scene: add `\"animation\": {\"frames\": N}`",
+                    ));
+                };
+                Keyframe::validate_all(keys, &format!("{at}.keyframes"), a.frames)?;
+            }
+            if let MeshRef::Path(p) = &o.mesh
+                && is_frame_pattern(p)
+            {
+                if self.animation.is_none() {
+                    return Err(FieldError::new(
+                        format!("{at}.mesh"),
+                        format!(
+                            "\"{p}\" is a per-frame pattern ({{frame}}), but the scene has no \
+                             `animation`: add `\"animation\": {{\"frames\": N}}`"
+                        ),
+                    ));
+                }
+                frame_mesh_path(p, 0).map_err(|e| FieldError::new(format!("{at}.mesh"), e))?;
+            }
             if o.name.trim().is_empty() {
                 return Err(FieldError::new(format!("{at}.name"), "must not be empty"));
             }

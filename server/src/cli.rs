@@ -31,13 +31,18 @@ pub const DEMO_DIR: &str = "demo-bundles";
 /// first id in sort order: the bowls, each lit by a lamp inside, glowing through their walls
 /// (skim milk and milky glass-ceramic media at their measured coefficients, in a scene in
 /// metres); then the Cornell box with its marble block and the flower lit from inside its cup.
-pub const DEMO_SCENES: [(&str, &str); 3] = [
+/// Last, the animated `rolling` (48 frames, one bundle each): a marble ball rolling past a
+/// lamp.
+pub const DEMO_SCENES: [(&str, &str); 4] = [
     ("bowls", "builtin:bowls"),
     ("cornell", "builtin:cornell"),
     ("flower", "builtin:flower"),
+    ("rolling", "builtin:rolling"),
 ];
 /// Patches of each demo bundle: ready in seconds on two cores.
 pub const DEMO_PATCHES: u64 = 3000;
+/// Patches of each frame of an animated demo scene.
+pub const DEMO_FRAME_PATCHES: u64 = 1500;
 
 /// Serves translux bundles: lights in, per-vertex colours out.
 #[derive(Debug, Clone, Parser)]
@@ -318,6 +323,11 @@ pub async fn run(
 /// [`DEMO_SCENES`]) at [`DEMO_PATCHES`] patches if not.
 pub fn ensure_demo_bundle(dir: &Path, id: &str, scene: &str) -> anyhow::Result<()> {
     let out = dir.join(id);
+    let source = translux_precompute::scene::read_scene(scene)
+        .with_context(|| format!("cannot load {scene}"))?;
+    if source.file.animation.is_some() {
+        return ensure_demo_sequence(&out, &source);
+    }
     let why = match Bundle::open(&out) {
         Ok(b) => {
             tracing::info!(
@@ -350,6 +360,45 @@ pub fn ensure_demo_bundle(dir: &Path, id: &str, scene: &str) -> anyhow::Result<(
         report.vertex_count,
         report.nnz_f,
         report.bundle_bytes as f64 / 1e6
+    );
+    Ok(())
+}
+
+/// An animated demo scene: its frames precomputed into `out` unless they are there already
+/// (the sequence precompute keeps every frame whose inputs did not change, so a complete
+/// sequence costs one pass over the meshes and an interrupted one resumes).
+fn ensure_demo_sequence(
+    out: &Path,
+    source: &translux_precompute::scene::SceneSource,
+) -> anyhow::Result<()> {
+    let t = Instant::now();
+    let params = PrecomputeParams {
+        patches: Some(DEMO_FRAME_PATCHES),
+        ..Default::default()
+    };
+    let report =
+        translux_precompute::sequence::precompute_sequence(source, out, &params, &|f, n| {
+            if !matches!(
+                f.outcome,
+                translux_precompute::sequence::FrameOutcome::Resumed
+            ) {
+                tracing::info!(
+                    "demo {}: frame {} of {n} ready in {:.2} s",
+                    source.source,
+                    f.frame + 1,
+                    f.seconds
+                );
+            }
+        })
+        .with_context(|| format!("cannot precompute {} into {}", source.source, out.display()))?;
+    tracing::info!(
+        "demo sequence {} ready in {:.1} s: {} frames ({} precomputed now, {} kept), {:.1} MB",
+        out.display(),
+        t.elapsed().as_secs_f64(),
+        report.frames.len(),
+        report.computed(),
+        report.resumed(),
+        report.bytes as f64 / 1e6
     );
     Ok(())
 }

@@ -92,6 +92,33 @@ where
     }
 }
 
+/// `?frame=K` of a scene route (an animated scene's frame; absent: frame 0); a value that is
+/// not a whole number is a 400 in the JSON error format.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameQuery(pub Option<u32>);
+
+impl<S> FromRequestParts<S> for FrameQuery
+where
+    S: Send + Sync,
+{
+    type Rejection = AppError;
+
+    async fn from_request_parts(parts: &mut Parts, _state: &S) -> Result<Self, Self::Rejection> {
+        let query = parts.uri.query().unwrap_or("");
+        for pair in query.split('&') {
+            let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
+            if k == "frame" {
+                return v.parse::<u32>().map(|f| FrameQuery(Some(f))).map_err(|_| {
+                    AppError::bad_request(format!(
+                        "bad frame {v:?}: a frame is a whole number from 0 (`?frame=12`)"
+                    ))
+                });
+            }
+        }
+        Ok(FrameQuery(None))
+    }
+}
+
 /// Who a request is from, for the worker pool's fair order: the `X-Client-Id` header
 /// (trimmed, at most [`MAX_CLIENT_ID`] bytes kept) when a client sends one, so one user's
 /// scripts count as one client across connections; otherwise the connection (peer address

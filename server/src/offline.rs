@@ -25,9 +25,9 @@ use clap::Subcommand;
 use serde::de::DeserializeOwned;
 use translux_proto::api::{Exposure, RelightRequest, RelightResponse, RenderRequest, ToneMap};
 
+use crate::state::Scene;
 use translux_engine::picture::{self, MeshFormat, PictureFormat};
 use translux_engine::relight;
-use translux_engine::scene::Scene;
 
 /// The offline commands: one bundle, one request, one file out, no HTTP.
 #[derive(Debug, Clone, Subcommand)]
@@ -168,8 +168,9 @@ fn read_request<T: DeserializeOwned>(path: Option<&Path>) -> anyhow::Result<T> {
     translux_proto::parse_json(text).with_context(|| format!("invalid request in {name}"))
 }
 
-/// Opens the bundle and builds its relight state; the id is the folder's name.
-fn open_scene(dir: &Path) -> anyhow::Result<Scene> {
+/// Opens the bundle (or sequence folder) and builds its relight state; the id is the
+/// folder's name; `frame` picks an animated scene's frame (the request's `frame`).
+fn open_scene(dir: &Path, frame: Option<u32>) -> anyhow::Result<std::sync::Arc<Scene>> {
     let id = dir
         .file_name()
         .and_then(|n| n.to_str())
@@ -185,7 +186,9 @@ fn open_scene(dir: &Path) -> anyhow::Result<Scene> {
         scene.bundle.manifest().vertex_count,
         t.elapsed().as_secs_f64() * 1e3
     );
-    Ok(scene)
+    std::sync::Arc::new(scene)
+        .frame(frame)
+        .map_err(|e| anyhow::anyhow!("{}", e.message))
 }
 
 /// Writes `bytes` to `out` through a temporary file beside it, so that a reader never sees
@@ -222,7 +225,7 @@ fn render(a: &RenderArgs) -> anyhow::Result<()> {
     if let Some(t) = a.tone {
         req.tone = t;
     }
-    let scene = open_scene(&a.bundle)?;
+    let scene = open_scene(&a.bundle, req.frame)?;
     let plan = picture::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let plan = picture::RenderPlan { format, ..plan };
     let out = picture::run(&scene, &plan).map_err(|e| anyhow::anyhow!("{}", e.message))?;
@@ -253,7 +256,7 @@ fn export(a: &ExportArgs) -> anyhow::Result<()> {
         _ => MeshFormat::Ply,
     };
     let req: RelightRequest = read_request(a.request.as_deref())?;
-    let scene = open_scene(&a.bundle)?;
+    let scene = open_scene(&a.bundle, req.frame)?;
     let plan = relight::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let tone = a.tone.unwrap_or(ToneMap::Srgb);
     let exposure = a.exposure.unwrap_or_default();
@@ -285,7 +288,7 @@ fn exposure_note(asked: Exposure, used: f32) -> String {
 fn relight_command(a: &RelightArgs) -> anyhow::Result<()> {
     let ext = extension(&a.out, &["f32", "json"])?;
     let req: RelightRequest = read_request(a.request.as_deref())?;
-    let scene = open_scene(&a.bundle)?;
+    let scene = open_scene(&a.bundle, req.frame)?;
     let plan = relight::plan(&scene, req).map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let out = relight::run(&scene, &plan).map_err(|e| anyhow::anyhow!("{}", e.message))?;
     let vertex_count = out.radiance.len();

@@ -22,7 +22,9 @@ use translux_proto::api::{
 };
 
 use crate::error::AppError;
-use crate::extract::{BODY_LIMIT, ClientKey, Format, JsonBody, SceneId, accept_picture, negotiate};
+use crate::extract::{
+    BODY_LIMIT, ClientKey, Format, FrameQuery, JsonBody, SceneId, accept_picture, negotiate,
+};
 use crate::pool::{Done, Work};
 use crate::state::{AppState, Scene, SceneState};
 use crate::ws;
@@ -203,7 +205,7 @@ fn health(state: &AppState) -> HealthReport {
                     _ => None,
                 },
                 bundle_bytes: match &s {
-                    SceneState::Ready(scene) => Some(scene.bundle.total_bytes()),
+                    SceneState::Ready(scene) => Some(scene.total_bytes()),
                     _ => None,
                 },
             })
@@ -259,7 +261,8 @@ async fn openapi() -> Response {
     json_bytes(OPENAPI_JSON)
 }
 
-fn summary(scene: &Scene) -> SceneSummary {
+/// `GET /api/v1/scenes`' entry for `scene`.
+pub(crate) fn summary(scene: &Scene) -> SceneSummary {
     let m = scene.bundle.manifest();
     SceneSummary {
         id: scene.id.clone(),
@@ -267,6 +270,8 @@ fn summary(scene: &Scene) -> SceneSummary {
         patches: m.patch_count,
         vertices: m.vertex_count,
         objects: m.objects.len(),
+        frames: scene.frame_count(),
+        fps: scene.sequence.as_ref().map(|s| s.fps),
     }
 }
 
@@ -288,8 +293,10 @@ async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError
 async fn scene_detail(
     State(state): State<AppState>,
     SceneId(id): SceneId,
+    FrameQuery(frame): FrameQuery,
 ) -> Result<Response, AppError> {
-    let scene = find_scene(&state, &id)?;
+    let whole = find_scene(&state, &id)?;
+    let scene = whole.frame(frame)?;
     let m = scene.bundle.manifest();
     to_json(&SceneDetail {
         id: scene.id.clone(),
@@ -317,7 +324,10 @@ async fn scene_detail(
         camera: m.camera,
         form_factors: m.form_factors.clone(),
         stages: m.stages.clone(),
-        bundle_bytes: scene.bundle.total_bytes(),
+        bundle_bytes: whole.total_bytes(),
+        frames: whole.frame_count(),
+        fps: whole.sequence.as_ref().map(|s| s.fps),
+        frame: frame.unwrap_or(0),
     })
 }
 
@@ -357,8 +367,9 @@ fn mesh_of(scene: &Scene) -> Mesh {
 async fn scene_mesh(
     State(state): State<AppState>,
     SceneId(id): SceneId,
+    FrameQuery(frame): FrameQuery,
 ) -> Result<Response, AppError> {
-    let scene = find_scene(&state, &id)?;
+    let scene = find_scene(&state, &id)?.frame(frame)?;
     if let Some(bytes) = scene.mesh_json.get() {
         return Ok(json_bytes(bytes.clone()));
     }
@@ -382,6 +393,7 @@ async fn relight(
     let scene = find_scene(&state, &id)?;
     let format = negotiate(&headers)?;
     let JsonBody(req) = body?;
+    let scene = scene.frame(req.frame)?;
     let plan = relight::plan(&scene, req)?;
     let answer = state
         .pool()
@@ -462,6 +474,7 @@ async fn render(
     let scene = find_scene(&state, &id)?;
     let format = accept_picture(&headers)?;
     let JsonBody(req) = body?;
+    let scene = scene.frame(req.frame)?;
     let plan = picture::RenderPlan {
         format,
         ..picture::plan(&scene, req)?

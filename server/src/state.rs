@@ -9,6 +9,7 @@ use std::sync::{Arc, OnceLock, RwLock};
 
 use axum::body::Bytes;
 use tokio::sync::watch;
+use translux_proto::animation::{SEQUENCE_FILE, SequenceManifest};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE};
 
 use crate::backend::Backend;
@@ -25,6 +26,62 @@ pub struct Scene {
     inner: Arc<translux_engine::scene::Scene>,
     /// `GET /mesh`'s JSON, serialised on first use.
     pub(crate) mesh_json: OnceLock<Bytes>,
+    /// An animated scene's frames (a sequence folder, `docs/scenes.md#animation`); the
+    /// scene itself is then frame 0.
+    pub sequence: Option<Arc<Sequence>>,
+}
+
+/// The frames of an animated scene, each a bundle opened on its own; frames that share a
+/// bundle folder share one opened scene.
+#[derive(Debug)]
+pub struct Sequence {
+    /// The sequence folder (`sequence.json` and the frame bundles).
+    pub dir: PathBuf,
+    pub fps: f32,
+    pub frames: Vec<Arc<Scene>>,
+    /// Distinct bundles among the frames.
+    pub bundles: usize,
+}
+
+impl Scene {
+    /// Frame `frame` of this scene (`None`: the scene itself, frame 0 of a sequence), or a
+    /// 400 naming the frame and the range.
+    pub fn frame(self: &Arc<Self>, frame: Option<u32>) -> Result<Arc<Scene>, AppError> {
+        let Some(k) = frame else {
+            return Ok(self.clone());
+        };
+        let count = self.frame_count();
+        match &self.sequence {
+            Some(seq) if (k as usize) < seq.frames.len() => Ok(seq.frames[k as usize].clone()),
+            None if k == 0 => Ok(self.clone()),
+            _ => Err(AppError::bad_request(format!(
+                "frame {k} is out of range: scene {:?} has {count} frame{} (0 to {})",
+                self.id,
+                if count == 1 { "" } else { "s" },
+                count - 1
+            ))),
+        }
+    }
+
+    /// Frames: 1 for a still scene.
+    pub fn frame_count(&self) -> u32 {
+        self.sequence.as_ref().map_or(1, |s| s.frames.len() as u32)
+    }
+
+    /// Bytes of its bundles (every distinct frame's for a sequence).
+    pub fn total_bytes(&self) -> u64 {
+        match &self.sequence {
+            None => self.bundle.total_bytes(),
+            Some(seq) => {
+                let mut seen = std::collections::HashSet::new();
+                seq.frames
+                    .iter()
+                    .filter(|f| seen.insert(Arc::as_ptr(&f.inner)))
+                    .map(|f| f.bundle.total_bytes())
+                    .sum()
+            }
+        }
+    }
 }
 
 impl std::ops::Deref for Scene {
@@ -40,15 +97,74 @@ impl Scene {
         Scene::open_with(id, dir, &Resources::default())
     }
 
-    /// Opens the bundle in `dir` relit with `resources` (the server's backend and caches).
+    /// Opens the bundle in `dir` relit with `resources` (the server's backend and caches);
+    /// a sequence folder (`sequence.json` beside one bundle per frame) opens every frame.
     pub fn open_with(
         id: impl Into<String>,
         dir: &Path,
         resources: &Resources,
     ) -> Result<Scene, BundleError> {
+        let id = id.into();
+        if dir.join(SEQUENCE_FILE).is_file() {
+            return Scene::open_sequence(id, dir, resources);
+        }
+        if dir.join(".journal.json").is_file() && !dir.join(MANIFEST_FILE).is_file() {
+            return Err(BundleError::Invalid {
+                file: SEQUENCE_FILE.into(),
+                reason: "missing: this animated scene's precompute has not finished (run the \
+                         same translux-precompute command again to resume it)"
+                    .into(),
+            });
+        }
         Ok(Scene::wrap(translux_engine::scene::Scene::open_with(
             id, dir, resources,
         )?))
+    }
+
+    /// Opens the sequence in `dir`: every distinct frame bundle once, verified like any.
+    fn open_sequence(id: String, dir: &Path, resources: &Resources) -> Result<Scene, BundleError> {
+        let text =
+            std::fs::read_to_string(dir.join(SEQUENCE_FILE)).map_err(|error| BundleError::Io {
+                file: SEQUENCE_FILE.into(),
+                error,
+            })?;
+        let manifest: SequenceManifest =
+            translux_proto::parse_json(&text).map_err(|e| BundleError::Invalid {
+                file: SEQUENCE_FILE.into(),
+                reason: e.to_string(),
+            })?;
+        manifest.validate().map_err(|reason| BundleError::Invalid {
+            file: SEQUENCE_FILE.into(),
+            reason,
+        })?;
+        let mut opened: BTreeMap<&str, Arc<Scene>> = BTreeMap::new();
+        let mut frames = Vec::with_capacity(manifest.frames.len());
+        for folder in &manifest.frames {
+            if let Some(s) = opened.get(folder.as_str()) {
+                frames.push(s.clone());
+                continue;
+            }
+            let scene =
+                translux_engine::scene::Scene::open_with(id.clone(), &dir.join(folder), resources)
+                    .map_err(|e| BundleError::Invalid {
+                        file: format!("{folder}/{}", e.file()),
+                        reason: e.to_string(),
+                    })?;
+            let scene = Arc::new(Scene::wrap(scene));
+            opened.insert(folder, scene.clone());
+            frames.push(scene);
+        }
+        let first = frames[0].inner.clone();
+        Ok(Scene {
+            inner: first,
+            mesh_json: OnceLock::new(),
+            sequence: Some(Arc::new(Sequence {
+                dir: dir.to_path_buf(),
+                fps: manifest.fps,
+                bundles: opened.len(),
+                frames,
+            })),
+        })
     }
 
     /// An opened bundle relit with `resources`.
@@ -67,6 +183,7 @@ impl Scene {
         Scene {
             inner: Arc::new(inner),
             mesh_json: OnceLock::new(),
+            sequence: None,
         }
     }
 }
@@ -287,7 +404,7 @@ impl AppState {
 
     /// Bytes of the bundles that ready scenes map.
     pub fn mapped_bytes(&self) -> u64 {
-        self.scenes().iter().map(|s| s.bundle.total_bytes()).sum()
+        self.scenes().iter().map(|s| s.total_bytes()).sum()
     }
 
     pub fn pool(&self) -> &Pool {
@@ -396,7 +513,7 @@ pub type Discovered = (Vec<(String, PathBuf)>, Vec<(String, String)>);
 /// UTF-8 and does not start with `.` (a writer's temporaries); `dir` itself, under its own
 /// name, if it holds a `manifest.json`. Folders that cannot be ids come back as errors.
 pub fn discover(dir: &Path) -> Result<Discovered, String> {
-    if dir.join(MANIFEST_FILE).is_file() {
+    if dir.join(MANIFEST_FILE).is_file() || dir.join(SEQUENCE_FILE).is_file() {
         let id = folder_name(dir).unwrap_or_else(|| "bundle".to_string());
         return Ok((vec![(id, dir.to_path_buf())], Vec::new()));
     }

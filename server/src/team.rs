@@ -32,7 +32,6 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 use axum::{Extension, Json, Router};
 use serde_json::json;
-use translux_proto::api::SceneSummary;
 use translux_proto::bundle::{Bundle, OpenOptions};
 
 use crate::auth::{Auth, Identity, RateLimit, Role};
@@ -295,15 +294,12 @@ impl Team {
 fn evict(state: &AppState, budget: &MemoryBudget, keep: &str) {
     for victim in budget.victims(keep) {
         if let Some(SceneState::Ready(scene)) = state.scene_state(&victim) {
-            let m = scene.bundle.manifest();
-            let summary = SceneSummary {
-                id: scene.id.clone(),
-                name: m.name.clone(),
-                patches: m.patch_count,
-                vertices: m.vertex_count,
-                objects: m.objects.len(),
-            };
-            let dir = scene.bundle.dir().to_path_buf();
+            let summary = crate::routes::summary(&scene);
+            // A sequence reopens from its folder, not from frame 0's bundle.
+            let dir = scene
+                .sequence
+                .as_ref()
+                .map_or_else(|| scene.bundle.dir().to_path_buf(), |s| s.dir.clone());
             state.set_evicted(victim.clone(), Arc::new(EvictedScene { dir, summary }));
             tracing::info!(scene = %victim, "evicted to stay within the memory budget");
         }
@@ -314,6 +310,15 @@ fn evict(state: &AppState, budget: &MemoryBudget, keep: &str) {
 /// at twice its triangles), centroids and normals, the mesh JSON once made, and the S
 /// matrix and materials of the cached override set.
 pub fn host_bytes(scene: &Scene) -> u64 {
+    if let Some(seq) = &scene.sequence {
+        let mut seen = std::collections::HashSet::new();
+        return seq
+            .frames
+            .iter()
+            .filter(|f| seen.insert(Arc::as_ptr(f)))
+            .map(|f| host_bytes(f))
+            .sum();
+    }
     let b = &scene.bundle;
     let occluder = b.manifest().occluder_count * 36 * 2;
     let patches = b.manifest().patch_count * 24;

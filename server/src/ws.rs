@@ -372,8 +372,8 @@ struct Conn {
     settings: FrameSettings,
     /// The relight being computed: its seq and the pool's ticket.
     in_flight: Option<(u64, Ticket)>,
-    /// The newest request not yet submitted.
-    pending: Option<(u64, relight::RelightPlan)>,
+    /// The newest request not yet submitted, with the frame it relights.
+    pending: Option<(u64, relight::RelightPlan, Arc<Scene>)>,
     /// When to try submitting `pending` again after the queue was full.
     retry_at: Option<tokio::time::Instant>,
     dropped: u64,
@@ -386,9 +386,9 @@ impl Conn {
         if self.in_flight.is_some() {
             return None;
         }
-        let (seq, plan) = self.pending.take()?;
+        let (seq, plan, scene) = self.pending.take()?;
         match self.state.pool().submit(
-            self.scene.engine(),
+            scene.engine(),
             Work::Relight(plan.clone()),
             self.client.clone(),
         ) {
@@ -398,7 +398,7 @@ impl Conn {
                 None
             }
             Err(e) if e.code == "queue_full" => {
-                self.pending = Some((seq, plan));
+                self.pending = Some((seq, plan, scene));
                 self.retry_at = Some(tokio::time::Instant::now() + RETRY_FULL);
                 None
             }
@@ -408,14 +408,16 @@ impl Conn {
 
     /// Handles a checked relight: plan it (errors answered at once), then latest wins.
     fn relight(&mut self, seq: u64, request: Result<RelightRequest, String>) -> Option<Message> {
-        let plan = request
-            .map_err(AppError::bad_request)
-            .and_then(|r| relight::plan(&self.scene, r).map_err(AppError::from));
-        let plan = match plan {
+        let plan = request.map_err(AppError::bad_request).and_then(|r| {
+            let scene = self.scene.frame(r.frame)?;
+            let plan = relight::plan(&scene, r).map_err(AppError::from)?;
+            Ok((plan, scene))
+        });
+        let (plan, scene) = match plan {
             Ok(p) => p,
             Err(e) => return Some(error_message(seq, &e)),
         };
-        if self.pending.replace((seq, plan)).is_some() {
+        if self.pending.replace((seq, plan, scene)).is_some() {
             self.dropped += 1;
             self.state.metrics().ws_dropped.inc();
         }

@@ -16,6 +16,7 @@ pub fn data_dir() -> PathBuf {
 /// to [`data_dir`].
 pub fn bunny(x: f32, z: f32, yaw_deg: f32, material: Material) -> ObjectDesc {
     ObjectDesc {
+        keyframes: None,
         name: "bunny".into(),
         mesh: MeshRef::Path("stanford-bunny.obj".into()),
         transform: Some(Transform {

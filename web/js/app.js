@@ -39,7 +39,7 @@ const $ = (id) => document.getElementById(id);
 
 const metrics = {
   firstLitMs: null, // performance.now() of the first frame drawn with server radiance
-  frames: [], // { seq, t, ms (server), transport } per radiance frame drawn
+  frames: [], // { seq, t, ms (server), transport, frame (animation) } per radiance frame drawn
   inputs: [], // { seq, t } per state change not yet shown
   latencies: [], // input-to-photon, ms, one per input event
   draws: 0,
@@ -77,7 +77,15 @@ const app = {
     cull: true,
     specular: true,
     pixelDirect: true,
+    frame: 0, // the animation frame relit (animated scenes)
   },
+  // Animated scenes (detail.frames > 1): the viewer mesh of each frame fetched so far, the
+  // frame each request asked for, the frame whose mesh is on screen, and playback.
+  meshes: new Map(), // frame → Promise of its mesh
+  sentFrame: new Map(), // seq → frame
+  meshFrame: 0,
+  playing: false,
+  lastStep: 0,
   frameDirect: false, // whether the radiance on screen left the direct light to the pixels
   sentDirect: new Map(), // seq → whether that request asked for "direct_at": "pixel"
   matUi: {},
@@ -116,6 +124,7 @@ function relightRequest() {
   const req = { lights, components: s.components };
   if (Object.keys(s.materials).length) req.materials = s.materials;
   if (pixelDirectOn()) req.direct_at = "pixel";
+  if (frameCount() > 1) req.frame = s.frame;
   return req;
 }
 
@@ -136,7 +145,9 @@ function changed(t) {
   if (metrics.inputs.length > 2000) metrics.inputs.splice(0, 1000);
   const req = relightRequest();
   app.sentDirect.set(app.seq, req.direct_at === "pixel");
+  app.sentFrame.set(app.seq, app.state.frame);
   for (const k of app.sentDirect.keys()) if (k < app.seq - 256) app.sentDirect.delete(k);
+  for (const k of app.sentFrame.keys()) if (k < app.seq - 256) app.sentFrame.delete(k);
   app.link.submit(app.seq, req);
   scheduleHash();
   app.needDraw = true;
@@ -157,6 +168,12 @@ function scheduleHash() {
 
 function onFrame(radiance, info) {
   if (info.seq < app.shownSeq) return; // an older answer overtaken by a newer one
+  // An animated scene: the answer belongs to the frame its request asked for; its mesh
+  // (fetched before the request was sent) goes on screen with it.
+  const f = app.sentFrame.get(info.seq);
+  if (f !== undefined && f !== app.meshFrame && app.meshReady && app.meshReady.has(f)) {
+    showMesh(app.meshReady.get(f), f);
+  }
   try {
     app.renderer.setRadiance(radiance);
   } catch (e) {
@@ -173,7 +190,7 @@ function onFrame(radiance, info) {
   app.needDraw = true;
   if (app.errors.request && info.seq >= (app.errorSeq ?? 0)) setBanner("request", null);
   if (app.errors.app) setBanner("app", null);
-  metrics.frames.push({ seq: info.seq, t: performance.now(), ms: info.stats ? info.stats.ms : null, transport: info.transport });
+  metrics.frames.push({ seq: info.seq, t: performance.now(), ms: info.stats ? info.stats.ms : null, transport: info.transport, frame: f ?? 0 });
   if (metrics.frames.length > 5000) metrics.frames.splice(0, 2500);
   if (app.autoExposure) {
     app.autoExposure = false;
@@ -256,6 +273,90 @@ function signedIn() {
   start();
 }
 
+// ---- animation ----------------------------------------------------------------------
+
+/** Frames of the scene shown (1 for a still scene). */
+function frameCount() {
+  return app.detail && app.detail.frames > 1 ? app.detail.frames : 1;
+}
+
+/** The mesh URL of frame `f` of scene `id` (`?frame=` only for animated scenes). */
+function meshUrl(id, f) {
+  const base = `/api/v1/scenes/${encodeURIComponent(id)}/mesh`;
+  return frameCount() > 1 ? `${base}?frame=${f}` : base;
+}
+
+/** Frame `f`'s viewer mesh, fetched once (frames may differ in topology, so each has its own). */
+function meshFor(f) {
+  if (!app.meshes.has(f)) {
+    const p = getJson(meshUrl(app.state.scene, f)).then((m) => {
+      app.meshReady.set(f, m);
+      return m;
+    });
+    p.catch(() => app.meshes.delete(f));
+    app.meshes.set(f, p);
+  }
+  return app.meshes.get(f);
+}
+
+function showMesh(mesh, f) {
+  app.mesh = mesh;
+  app.meshFrame = f;
+  app.renderer.setMesh(mesh.positions, mesh.normals, mesh.indices);
+  updateSurfaces();
+}
+
+/** Shows frame `f`: its mesh is fetched first, then the relight for it is asked for. */
+async function setFrame(f, t) {
+  const n = frameCount();
+  f = ((f % n) + n) % n;
+  app.state.frame = f;
+  $("frame").value = String(f);
+  $("frame-label").textContent = `${f + 1} / ${n}`;
+  try {
+    await meshFor(f);
+  } catch (e) {
+    setBanner("app", `Cannot load frame ${f}: ${e.message}`);
+    setPlaying(false);
+    return;
+  }
+  if (app.state.frame !== f) return; // overtaken while the mesh loaded
+  meshFor((f + 1) % n).catch(() => {}); // the next one, ahead of playback
+  changed(t);
+}
+
+function setPlaying(on) {
+  app.playing = on && frameCount() > 1;
+  $("play").textContent = app.playing ? "❚❚" : "▶";
+  $("play").setAttribute("aria-pressed", String(app.playing));
+  app.lastStep = performance.now();
+  app.needDraw = true;
+}
+
+/**
+ * Playback: the next frame is asked for once the current one is on screen and its time
+ * (1 / fps) is up, so a slow server slows the animation down instead of skipping frames.
+ */
+function stepPlayback(now) {
+  if (!app.playing) return;
+  app.needDraw = true;
+  const fps = (app.detail && app.detail.fps) || 24;
+  const shown = app.sentFrame.get(app.shownSeq);
+  if (shown !== app.state.frame || app.shownSeq < app.seq) return;
+  if (now - app.lastStep < 1000 / fps) return;
+  app.lastStep = now;
+  setFrame(app.state.frame + 1);
+}
+
+function buildTimeline() {
+  const n = frameCount();
+  $("timeline").hidden = n <= 1;
+  $("frame").max = String(n - 1);
+  $("frame").value = String(app.state.frame);
+  $("frame-label").textContent = `${app.state.frame + 1} / ${n}`;
+  setPlaying(false);
+}
+
 function defaultLights() {
   return app.detail.lights.filter((l) => l.type !== "environment");
 }
@@ -268,19 +369,25 @@ async function loadScene(id, fromHash) {
   app.seq = 0;
   const hash = fromHash ? decodeHash(location.hash).state : {};
   let detail, mesh;
+  app.meshes = new Map();
+  app.meshReady = new Map();
+  app.sentFrame = new Map();
   try {
-    [detail, mesh] = await Promise.all([
-      getJson(`/api/v1/scenes/${encodeURIComponent(id)}`),
-      getJson(`/api/v1/scenes/${encodeURIComponent(id)}/mesh`),
-    ]);
+    detail = await getJson(`/api/v1/scenes/${encodeURIComponent(id)}`);
+    app.detail = detail;
+    app.state.scene = id;
+    const n = frameCount();
+    app.state.frame = Number.isInteger(hash.frame) && hash.frame < n ? hash.frame : 0;
+    if (hash.frame !== undefined && hash.frame >= n) {
+      app.hashProblems.push(`frame=${hash.frame} is out of range (the scene has ${n} frame${n === 1 ? "" : "s"})`);
+    }
+    mesh = await meshFor(app.state.frame);
   } catch (e) {
     if (isDenial(e.status)) askForToken(e.status, e.serverMessage);
     else setBanner("app", `Cannot load scene “${id}”: ${e.message}`);
     return;
   }
-  app.detail = detail;
-  app.mesh = mesh;
-  app.renderer.setMesh(mesh.positions, mesh.normals, mesh.indices);
+  showMesh(mesh, app.state.frame);
   app.bbox = bbox(mesh.positions);
   app.camera.sceneRadius = length(sub(app.bbox.max, app.bbox.min)) / 2;
   const s = app.state;
@@ -298,6 +405,7 @@ async function loadScene(id, fromHash) {
   app.selected = 0;
   $("scene").value = id;
   buildPanels();
+  buildTimeline();
   app.link = new Link(id, { onFrame, onRequestError, onConnection, onInFlight, onDenied: askForToken, onNotice: (m) => {
     app.restNotice = m;
     setBanner("notice", m);
@@ -1004,6 +1112,7 @@ function highlightsOn() {
 
 function frame() {
   requestAnimationFrame(frame);
+  stepPlayback(performance.now());
   const c = app.renderer.canvas;
   const sizeChanged = c.width !== Math.round(c.clientWidth * Math.min(devicePixelRatio || 1, 2));
   if (!app.needDraw && !sizeChanged) return;
@@ -1050,6 +1159,7 @@ function updateStats(now) {
     `direct light ${app.frameDirect ? "per pixel" : app.state.pixelDirect ? `per vertex (over ${MAX_SHADOWED_LIGHTS} lights)` : "per vertex"}`,
     `input→photon ${f(med, 0)} ms (median of ${lat.length})`,
     app.detail ? `${app.detail.patches} patches · ${app.detail.vertices} vertices` : "",
+    frameCount() > 1 ? `frame ${app.meshFrame + 1} of ${frameCount()} at ${app.detail.fps ?? 24} fps${app.playing ? " · playing" : ""}` : "",
   ];
   $("stats").textContent = lines.filter(Boolean).join("\n");
 }
@@ -1118,6 +1228,10 @@ async function boot() {
       if (app.gizmoBox) app.gizmoBox.checked = app.gizmo;
       app.needDraw = true;
     }
+    if (ev.key === " " && frameCount() > 1) {
+      ev.preventDefault();
+      setPlaying(!app.playing);
+    }
     if ((ev.key === "Delete" || ev.key === "Backspace") && app.state.lights[app.selected]) {
       app.state.lights.splice(app.selected, 1);
       buildLights();
@@ -1158,6 +1272,11 @@ async function boot() {
     if (app.scenes.some((s) => s.id === state.scene)) loadScene(state.scene, true);
     else setBanner("link", `Scene “${state.scene}” does not exist on this server; still showing “${app.state.scene}”.`);
   });
+  $("play").onclick = () => setPlaying(!app.playing);
+  $("frame").oninput = (ev) => {
+    setPlaying(false);
+    setFrame(+ev.target.value, ev.timeStamp);
+  };
   $("signin").addEventListener("submit", signIn);
   $("panel-toggle").onclick = togglePanel;
   requestAnimationFrame(frame);

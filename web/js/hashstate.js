@@ -1,6 +1,6 @@
 // The view state in the URL hash, so a view can be bookmarked and shared:
 //   #scene=cornell&comp=full&ev=-1&tone=filmic&cam=px,py,pz,tx,ty,tz,fov
-//    &lights=[...]&mat={...}&env=builtin:sky,rotation,scale&cull=0&spec=0&pd=0
+//    &lights=[...]&mat={...}&env=builtin:sky,rotation,scale&cull=0&spec=0&pd=0&frame=12
 // `lights` and `mat` are the API's JSON (RelightRequest.lights and .materials); absent fields
 // mean the scene's defaults. Bad values are reported, never silently dropped.
 
@@ -26,6 +26,7 @@ export function encodeHash(s) {
   if (!s.cull) p.set("cull", "0");
   if (s.specular === false) p.set("spec", "0");
   if (s.pixelDirect === false) p.set("pd", "0");
+  if (s.frame) p.set("frame", String(s.frame));
   return "#" + p.toString();
 }
 
@@ -78,6 +79,11 @@ export function decodeHash(hash) {
   if (p.has("cull")) out.cull = p.get("cull") !== "0";
   if (p.has("spec")) out.specular = p.get("spec") !== "0";
   if (p.has("pd")) out.pixelDirect = p.get("pd") !== "0";
+  if (p.has("frame")) {
+    const f = Number(p.get("frame"));
+    if (Number.isInteger(f) && f >= 0) out.frame = f;
+    else problems.push(`frame=${p.get("frame")} must be a whole number from 0`);
+  }
   return { state: out, problems };
 }
 

@@ -401,6 +401,64 @@ async function checkAbsorption(browser) {
   return { object: o.name, pixel_change: +d.toFixed(1), sigma_a: sent.sigma_a };
 }
 
+/**
+ * An animated scene (scene `gallop`, 48 frames: a marble block crossing the floor): the
+ * timeline appears, play shows frame after frame in order with each frame's mesh and its
+ * relight, pause stops, scrubbing relights the frame asked for, the hash keeps the frame,
+ * and a frame out of range is a 400 naming it.
+ */
+async function checkAnimation(browser) {
+  const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
+  watchErrors(context);
+  const page = await context.newPage();
+  await page.goto(url + "#scene=gallop");
+  await firstLit(page);
+  const detail = await page.evaluate(() => window.translux.app.detail);
+  check(detail.frames === 48 && detail.fps > 0, `the scene detail gives ${detail.frames} frames at ${detail.fps} fps`);
+  check(await page.locator("#timeline").isVisible(), "an animated scene shows no timeline");
+  check(+(await page.getAttribute("#frame", "max")) === 47, "the frame slider does not end at frame 47");
+  const first = await pixels(page);
+  const n0 = await page.evaluate(() => window.translux.metrics.frames.length);
+  await page.click("#play");
+  await page.waitForFunction(() => window.translux.app.meshFrame >= 8, null, { timeout: 90000, polling: 50 });
+  await page.click("#play");
+  check(!(await page.evaluate(() => window.translux.app.playing)), "pause did not stop the animation");
+  await idle(page);
+  const shown = await page.evaluate((n) => window.translux.metrics.frames.slice(n).map((f) => f.frame), n0);
+  const distinct = [...new Set(shown)];
+  check(distinct.length >= 8, `playing showed frames ${JSON.stringify(shown)} only`);
+  check(shown.every((f, i) => i === 0 || f >= shown[i - 1]), `frames were shown out of order: ${JSON.stringify(shown)}`);
+  const stopped = await page.evaluate(() => window.translux.app.meshFrame);
+  await page.waitForTimeout(300);
+  check(await page.evaluate(() => window.translux.app.meshFrame) === stopped, "frames kept coming after pause");
+
+  await page.locator("#frame").fill("40");
+  await page.waitForFunction(() => window.translux.app.meshFrame === 40, null, { timeout: 90000, polling: 50 });
+  await idle(page);
+  const at40 = await page.evaluate(() => {
+    const a = window.translux.app;
+    return { verts: a.mesh.positions.length / 3, radiance: a.radiance.length / 3, label: document.getElementById("frame-label").textContent };
+  });
+  check(at40.verts === at40.radiance, `frame 40's mesh has ${at40.verts} vertices, its radiance ${at40.radiance}`);
+  check(at40.label === "41 / 48", `the timeline says ${at40.label}`);
+  const later = await pixels(page);
+  const d = diff(first, later);
+  check(d > 0.5, `frame 40 looks like frame 0 (${d.toFixed(2)} / 255)`);
+  await page.waitForFunction(() => location.hash.includes("frame=40"), null, { timeout: 5000 });
+  await shot(page, "12-animation.png");
+  const refused = await page.evaluate(async () => {
+    const r = await fetch("/api/v1/scenes/gallop/relight", {
+      method: "POST", headers: { "content-type": "application/json", accept: "application/json" },
+      body: JSON.stringify({ frame: 48 }),
+    });
+    return { status: r.status, body: await r.json() };
+  });
+  check(refused.status === 400 && /frame 48 is out of range/.test(refused.body.error.message),
+    `frame 48 answered ${JSON.stringify(refused)}`);
+  await context.close();
+  return { frames_played: distinct.length, played: shown.length, pixel_change: +d.toFixed(1) };
+}
+
 async function checkSpecular(browser) {
   const context = await newContext(browser, { viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
   watchErrors(context);
@@ -664,13 +722,14 @@ const browser = await chromium.launch({
 });
 const result = { event: "result" };
 const pageErrors = [];
-// TRANSLUX_TEST_ONLY=specular,crisp runs steps 13 and 14 alone (against any server with
-// builtin:cornell).
+// TRANSLUX_TEST_ONLY=specular,crisp,animation runs those steps alone (against any server
+// with builtin:cornell, and the 48-frame `gallop` sequence for `animation`).
 if (process.env.TRANSLUX_TEST_ONLY) {
   try {
     const only = process.env.TRANSLUX_TEST_ONLY.split(",");
     if (only.includes("specular")) result.specular = await checkSpecular(browser);
     if (only.includes("crisp")) result.crisp_light = await checkCrispLight(browser);
+    if (only.includes("animation")) result.animation = await checkAnimation(browser);
   } finally {
     await browser.close();
   }
@@ -936,6 +995,7 @@ try {
   result.specular = await checkSpecular(browser);
   result.absorption = await checkAbsorption(browser);
   result.crisp_light = await checkCrispLight(browser);
+  result.animation = await checkAnimation(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {

@@ -2,11 +2,13 @@
 //! `cli` (the real process, its files, exit codes and messages), `physics` (closed-form
 //! form factors and conservation), `transport` (the solvers and light components),
 //! `subsurface` (S through the pipeline), `slinks` (hierarchical S against pairwise),
-//! `heterogeneous` (eq. 9 objects) and `simulated` (S from random walks).
+//! `heterogeneous` (eq. 9 objects), `simulated` (S from random walks) and `animation`
+//! (animated scenes: one bundle per frame).
 //!
 //! Run one subject with `cargo test -p translux-precompute --test it physics::`. One binary
 //! links the crate's dependencies once instead of once per file.
 
+mod animation;
 mod cli;
 mod heterogeneous;
 mod physics;

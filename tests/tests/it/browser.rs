@@ -232,6 +232,34 @@ fn viewer_in_a_real_browser() {
         ..Default::default()
     };
     precompute(&cube, &bundles.path().join("simulated_cube"), &small).expect("precompute");
+    // An animated scene for the timeline: 48 frames of a marble block crossing a floor and
+    // turning, lit from above (one bundle per frame).
+    let gallop = serde_json::json!({
+        "name": "gallop",
+        "animation": {"frames": 48, "fps": 24},
+        "patches": {"target": 300},
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [1.2, 0.6]},
+             "material": {"type": "diffuse", "albedo": [0.3, 0.55, 0.25]}},
+            {"name": "block", "mesh": {"shape": "box", "size": [0.12, 0.2, 0.12]},
+             "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}},
+             "keyframes": [{"frame": 0, "translate": [-0.45, 0.1, 0]},
+                           {"frame": 47, "translate": [0.45, 0.1, 0], "rotate_deg": [0, 180, 0]}]},
+        ],
+        "lights": [{"type": "point", "position": [0.0, 0.6, 0.3], "intensity": [0.6, 0.6, 0.6]}],
+        "camera": {"position": [0.0, 0.45, 1.1], "target": [0, 0.08, 0], "fov_deg": 45},
+    });
+    let gallop_file = bundles.path().join("gallop.json");
+    std::fs::write(&gallop_file, gallop.to_string()).unwrap();
+    let src = translux_precompute::scene::read_scene_file(&gallop_file).unwrap();
+    std::fs::remove_file(&gallop_file).unwrap();
+    translux_precompute::sequence::precompute_sequence(
+        &src,
+        &bundles.path().join("gallop"),
+        &PrecomputeParams::default(),
+        &|_, _| {},
+    )
+    .expect("the 48-frame sequence precomputes");
 
     let out = screenshot_dir();
     let _ = std::fs::remove_dir_all(&out);

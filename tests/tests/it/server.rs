@@ -2029,3 +2029,138 @@ async fn render_answers_a_linear_exr_for_accept_image_x_exr() {
     }
     s.stop().await;
 }
+
+/// An animated scene (`docs/scenes.md#animation`): a sequence folder is one scene with
+/// `frames`; `frame` in a relight or render picks the frame, `?frame=` the mesh and detail;
+/// each frame's answer is that frame bundle's own relight; a frame out of range is a 400
+/// naming it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_animated_scene_is_served_frame_by_frame() {
+    let tmp = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap();
+    let scene_file = tmp.path().join("roll.json");
+    std::fs::write(
+        &scene_file,
+        json!({
+            "name": "roll",
+            "animation": {"frames": 6, "fps": 30},
+            "patches": {"target": 400},
+            "objects": [
+                {"name": "floor", "mesh": {"shape": "quad", "size": [1, 1]},
+                 "material": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
+                {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.08, "segments": 12},
+                 "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}},
+                 "keyframes": [{"frame": 0, "translate": [-0.3, 0.08, 0]},
+                               {"frame": 5, "translate": [0.3, 0.08, 0], "rotate_deg": [0, 0, -200]}]}
+            ],
+            "lights": [{"type": "point", "position": [0.25, 0.5, 0.2], "intensity": [1, 1, 1]}],
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let src = translux_precompute::scene::read_scene_file(&scene_file).unwrap();
+    let bundles = tmp.path().join("bundles");
+    let params = translux_precompute::pipeline::PrecomputeParams::default();
+    let report = translux_precompute::sequence::precompute_sequence(
+        &src,
+        &bundles.join("roll"),
+        &params,
+        &|_, _| {},
+    )
+    .unwrap();
+    assert_eq!(report.computed(), 6);
+    let (state, errors) = load_bundles(&bundles);
+    assert!(errors.is_empty(), "{errors:?}");
+    let s = TestServer::start(state).await;
+
+    let list: SceneList = s.get_json("/api/v1/scenes").await;
+    assert_eq!(list.scenes.len(), 1);
+    assert_eq!((list.scenes[0].frames, list.scenes[0].fps), (6, Some(30.0)));
+    let detail: SceneDetail = s.get_json("/api/v1/scenes/roll?frame=4").await;
+    assert_eq!((detail.frames, detail.frame), (6, 4));
+
+    // The ball moves to the right frame by frame, in the mesh as in the bundles.
+    let mut xs = Vec::new();
+    for k in 0..6 {
+        let mesh: Mesh = s
+            .get_json(&format!("/api/v1/scenes/roll/mesh?frame={k}"))
+            .await;
+        let o = mesh.objects.iter().find(|o| o.name == "ball").unwrap();
+        let tri = &mesh.indices
+            [3 * o.first_triangle as usize..3 * (o.first_triangle + o.triangle_count) as usize];
+        let x = tri
+            .iter()
+            .map(|&v| mesh.positions[3 * v as usize])
+            .sum::<f32>()
+            / tri.len() as f32;
+        assert!(
+            (x - (-0.3 + 0.12 * k as f32)).abs() < 0.01,
+            "frame {k}: ball at x = {x}"
+        );
+        xs.push(x);
+    }
+
+    // Each frame's relight is that frame bundle's own answer, and the frames differ.
+    let mut answers = Vec::new();
+    for k in [0u32, 3, 5] {
+        let r = s
+            .relight("roll", &json!({"frame": k}), Some("application/json"))
+            .await;
+        assert_eq!(r.status(), StatusCode::OK);
+        let got: RelightResponse = r.json().await.unwrap();
+        let alone = translux_server::state::Scene::open(
+            "alone",
+            &bundles.join("roll").join(format!("frame-{k:04}")),
+        )
+        .unwrap();
+        let plan =
+            translux_engine::relight::plan(&alone, translux_proto::parse_json("{}").unwrap())
+                .unwrap();
+        let want = translux_engine::relight::run(&alone, &plan).unwrap();
+        let want: Vec<f32> = want.radiance.iter().flatten().copied().collect();
+        assert_eq!(got.radiance.len(), want.len());
+        let worst = got
+            .radiance
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs() / b.abs().max(1e-3))
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "frame {k}: {worst}");
+        answers.push(got.radiance);
+    }
+    assert_ne!(answers[0], answers[1]);
+
+    // Frames out of range and frames of a still scene.
+    expect_error(
+        s.relight("roll", &json!({"frame": 6}), None).await,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["frame 6 is out of range", "6 frames (0 to 5)"],
+    )
+    .await;
+    expect_error(
+        s.get("/api/v1/scenes/roll/mesh?frame=-1").await,
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+        &["bad frame \"-1\""],
+    )
+    .await;
+    let r = s
+        .client
+        .post(s.url("/api/v1/scenes/roll/render"))
+        .header(CONTENT_TYPE, "application/json")
+        .body(json!({"frame": 9, "width": 32, "height": 24}).to_string())
+        .send()
+        .await
+        .unwrap();
+    expect_error(r, StatusCode::BAD_REQUEST, "bad_request", &["frame 9"]).await;
+    let r = s
+        .client
+        .post(s.url("/api/v1/scenes/roll/render"))
+        .header(CONTENT_TYPE, "application/json")
+        .body(json!({"frame": 2, "width": 32, "height": 24}).to_string())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    s.stop().await;
+}

@@ -465,8 +465,10 @@ fn a_convex_translucent_cube_matches_the_integrated_dipole() {
     use translux_proto::scene::{MeshRef, ObjectDesc, Profile, Shape};
     let edge_m = 0.02f32;
     let file = SceneFile {
+        animation: None,
         name: Some("cube".into()),
         objects: vec![ObjectDesc {
+            keyframes: None,
             name: "cube".into(),
             mesh: MeshRef::Shape(Shape::Box {
                 size: [edge_m; 3],

@@ -1,0 +1,257 @@
+//! Animated scenes through the real `translux-precompute`: per-frame OBJ files (a numbered
+//! pattern), keyframed transforms, one bundle per frame with `sequence.json`, frames shared
+//! when nothing moved, resuming, and the errors a user meets.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use translux_proto::animation::{SEQUENCE_FILE, SequenceManifest};
+use translux_proto::bundle::Bundle;
+
+fn precompute(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_translux-precompute"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// An OBJ box 10 cm wide and `h` tall standing on y = 0, faces outward.
+fn box_obj(h: f32) -> String {
+    let mut s = String::new();
+    for x in [-0.05f32, 0.05] {
+        for y in [0.0f32, h] {
+            for z in [-0.05f32, 0.05] {
+                s += &format!("v {x} {y} {z}\n");
+            }
+        }
+    }
+    for q in [
+        [1, 2, 4, 3],
+        [5, 7, 8, 6],
+        [1, 5, 6, 2],
+        [3, 4, 8, 7],
+        [1, 3, 7, 5],
+        [2, 6, 8, 4],
+    ] {
+        s += &format!(
+            "f {} {} {}\nf {} {} {}\n",
+            q[0], q[1], q[2], q[0], q[2], q[3]
+        );
+    }
+    s
+}
+
+/// A 4-frame scene in `dir`: a floor, a box read from `blk_01.obj` … `blk_04.obj` (frames 0
+/// and 1 the same file content), and a sphere keyframed from x = 0.2 (frames 0–1) to
+/// x = −0.2 (frame 3).
+fn write_scene(dir: &Path) -> std::path::PathBuf {
+    for (k, h) in [(1, 0.1f32), (2, 0.1), (3, 0.11), (4, 0.13)] {
+        std::fs::write(dir.join(format!("blk_{k:02}.obj")), box_obj(h)).unwrap();
+    }
+    let scene = serde_json::json!({
+        "animation": {"frames": 4, "fps": 12, "first_number": 1},
+        "patches": {"target": 500},
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [1, 1]},
+             "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+            {"name": "blk", "mesh": "blk_{frame:02}.obj",
+             "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}}},
+            {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.05, "segments": 12},
+             "transform": {"translate": [0, 0.05, 0]},
+             "material": {"type": "diffuse", "albedo": [0.8, 0.2, 0.2]},
+             "keyframes": [{"frame": 0, "translate": [0.2, 0, 0]},
+                           {"frame": 1, "translate": [0.2, 0, 0]},
+                           {"frame": 3, "translate": [-0.2, 0, 0.1]}]}
+        ],
+        "lights": [{"type": "point", "position": [0, 0.6, 0.3], "intensity": [1, 1, 1]}]
+    });
+    let path = dir.join("anim.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&scene).unwrap()).unwrap();
+    path
+}
+
+fn sequence(out: &Path) -> SequenceManifest {
+    let text = std::fs::read_to_string(out.join(SEQUENCE_FILE)).unwrap();
+    let m: SequenceManifest = serde_json::from_str(&text).unwrap();
+    m.validate().unwrap();
+    m
+}
+
+/// Mean position of object `name`'s patch corners in a bundle.
+fn centre(b: &Bundle, name: &str) -> [f32; 3] {
+    let o = b
+        .manifest()
+        .objects
+        .iter()
+        .find(|o| o.name == name)
+        .unwrap();
+    let r = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+    let corners = &b.patch_corners()[r];
+    let mut c = [0.0f32; 3];
+    for t in corners {
+        for v in t {
+            for k in 0..3 {
+                c[k] += v[k];
+            }
+        }
+    }
+    c.map(|x| x / (3 * corners.len()) as f32)
+}
+
+#[test]
+fn an_animated_scene_becomes_one_bundle_per_frame_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = write_scene(dir.path());
+    let out = dir.path().join("anim");
+    let args = [scene.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    let o = precompute(&args);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains("3 precomputed, 0 kept from the last run, 1 shared"),
+        "{t}"
+    );
+    assert!(
+        t.contains("frame 2 of 4 (frame-0000): the same scene as frame 0"),
+        "{t}"
+    );
+
+    let m = sequence(&out);
+    assert_eq!(m.fps, 12.0);
+    assert_eq!(
+        m.frames,
+        ["frame-0000", "frame-0000", "frame-0002", "frame-0003"]
+    );
+    // The keyframed ball where its keyframes put it (after its own transform), the box as
+    // tall as each frame's file.
+    let want_ball = [
+        [0.2, 0.05, 0.0],
+        [0.2, 0.05, 0.0],
+        [0.0, 0.05, 0.05],
+        [-0.2, 0.05, 0.1],
+    ];
+    let want_blk = [0.05f32, 0.05, 0.055, 0.065];
+    for (k, folder) in m.frames.iter().enumerate() {
+        let b = Bundle::open(&out.join(folder)).unwrap();
+        let ball = centre(&b, "ball");
+        for c in 0..3 {
+            assert!(
+                (ball[c] - want_ball[k][c]).abs() < 2e-3,
+                "frame {k}: the ball's centre is {ball:?}, its keyframes say {:?}",
+                want_ball[k]
+            );
+        }
+        let blk = centre(&b, "blk");
+        // The centre of a box's surface (area-weighted over patches of similar size) is at
+        // half its height only roughly: compare between frames instead.
+        assert!(
+            (blk[1] - want_blk[k]).abs() < 0.01,
+            "frame {k}: the box's centre height {} (its file's box: {})",
+            blk[1],
+            want_blk[k]
+        );
+    }
+
+    // The same command again: everything is kept.
+    let o = precompute(&args);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains("0 precomputed, 3 kept from the last run, 1 shared"),
+        "{t}"
+    );
+
+    // One frame's file changes: only that frame is precomputed again.
+    std::fs::write(dir.path().join("blk_04.obj"), box_obj(0.15)).unwrap();
+    let o = precompute(&args);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains("1 precomputed, 2 kept from the last run, 1 shared"),
+        "{t}"
+    );
+    let b = Bundle::open(&out.join("frame-0003")).unwrap();
+    assert!((centre(&b, "blk")[1] - 0.075).abs() < 0.01);
+
+    // A frame file gone: the error names the file and the frame, and sequence.json is
+    // withdrawn until the sequence is whole again.
+    std::fs::remove_file(dir.path().join("blk_03.obj")).unwrap();
+    let o = precompute(&args);
+    let t = text(&o);
+    assert!(!o.status.success(), "{t}");
+    assert!(
+        t.contains("frame 2 (of frames 0 to 3)")
+            && t.contains("blk_03.obj")
+            && t.contains("not found"),
+        "{t}"
+    );
+    assert!(!out.join(SEQUENCE_FILE).exists());
+}
+
+#[test]
+fn animation_mistakes_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = write_scene(dir.path());
+    let text_of = |body: serde_json::Value| {
+        let p = dir.path().join("bad.json");
+        std::fs::write(&p, body.to_string()).unwrap();
+        let out = dir.path().join("bad-out");
+        let o = precompute(&[p.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        assert!(!o.status.success());
+        text(&o)
+    };
+    let mut s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&scene).unwrap()).unwrap();
+
+    let mut late = s.clone();
+    late["objects"][2]["keyframes"][2]["frame"] = 4.into();
+    let t = text_of(late);
+    assert!(
+        t.contains("objects[2].keyframes[2].frame") && t.contains("frame 4 is out of range"),
+        "{t}"
+    );
+
+    let mut still = s.clone();
+    still.as_object_mut().unwrap().remove("animation");
+    let t = text_of(still.clone());
+    assert!(
+        t.contains("objects[1].mesh") && t.contains("per-frame pattern"),
+        "{t}"
+    );
+    still["objects"][1]["mesh"] = "blk_01.obj".into();
+    let t = text_of(still);
+    assert!(
+        t.contains("objects[2].keyframes") && t.contains("animated scene"),
+        "{t}"
+    );
+
+    s["objects"][1]["mesh"] = "blk_{frame:x}.obj".into();
+    let t = text_of(s.clone());
+    assert!(t.contains("{frame:0N}"), "{t}");
+
+    // An existing bundle is not overwritten by a sequence.
+    let bundle = dir.path().join("a-bundle");
+    let o = precompute(&[
+        "builtin:cornell",
+        "--out",
+        bundle.to_str().unwrap(),
+        "--patches",
+        "300",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = precompute(&[scene.to_str().unwrap(), "--out", bundle.to_str().unwrap()]);
+    let t = text(&o);
+    assert!(
+        !o.status.success() && t.contains("not a sequence folder"),
+        "{t}"
+    );
+    assert!(Bundle::open(&bundle).is_ok());
+}
