@@ -387,15 +387,16 @@ fn flower() -> SceneFile {
 /// Frames of `builtin:rolling` (two seconds at 24 fps, as the paper's 48-frame gallop).
 pub const ROLLING_FRAMES: u32 = 48;
 
-/// An animated scene: a marble ball rolls across a floor past a lamp standing behind it, a
-/// skim-milk cube slides the other way and turns; lit from behind, each glows through as it
+/// An animated scene: a skim-milk ball (Jensen et al.'s measured medium, as the bowls' blob)
+/// rolls across a floor past a lamp standing behind it, an apple cube slides the other way
+/// and turns; lit from behind, each glows through as it
 /// crosses in front of the lamp (a sequence: one bundle per frame, see
 /// [`translux_proto::animation`]).
 fn rolling() -> SceneFile {
     use translux_proto::animation::{Animation, Keyframe};
     let last = ROLLING_FRAMES - 1;
-    let radius = 0.06f32;
-    let (x0, x1) = (-0.5f32, 0.5f32);
+    let radius = 0.025f32;
+    let (x0, x1) = (-0.3f32, 0.3f32);
     // Rolling without slipping: the ball turns (x1 − x0) / r radians about −Z.
     let turn = -((x1 - x0) / radius).to_degrees();
     let key = |frame: u32, translate: [f32; 3], rotate_deg: [f32; 3]| Keyframe {
@@ -412,14 +413,14 @@ fn rolling() -> SceneFile {
         },
         [0.0, 0.0, 0.0],
         [0.0, 0.0, 0.0],
-        dipole_preset("marble"),
+        dipole_preset("skimmilk"),
     );
     ball.transform = None;
     ball.keyframes = Some(vec![
         key(0, [x0, radius, 0.0], [0.0, 0.0, 0.0]),
         key(last, [x1, radius, 0.0], [0.0, 0.0, turn]),
     ]);
-    let side = 0.08f32;
+    let side = 0.04f32;
     let mut cube = object(
         "cube",
         Shape::Box {
@@ -428,17 +429,17 @@ fn rolling() -> SceneFile {
         },
         [0.0, 0.0, 0.0],
         [0.0, 0.0, 0.0],
-        dipole_preset("skimmilk"),
+        dipole_preset("apple"),
     );
     cube.transform = None;
     cube.keyframes = Some(vec![
-        key(0, [0.45, side / 2.0, -0.16], [0.0, 0.0, 0.0]),
-        key(last, [-0.45, side / 2.0, -0.16], [0.0, 90.0, 0.0]),
+        key(0, [0.28, side / 2.0, 0.09], [0.0, 0.0, 0.0]),
+        key(last, [-0.28, side / 2.0, 0.09], [0.0, 90.0, 0.0]),
     ]);
     let objects = vec![
         object(
             "floor",
-            Shape::Quad { size: [1.4, 0.7] },
+            Shape::Quad { size: [0.9, 0.5] },
             [0.0, 0.0, 0.0],
             [0.0, 0.0, 0.0],
             diffuse([0.45, 0.5, 0.42]),
@@ -457,12 +458,12 @@ fn rolling() -> SceneFile {
         lights: vec![
             // The lamp behind the path, low: what glows through the ball and the cube.
             Light::Point {
-                position: [0.0, 0.07, -0.3],
-                intensity: [0.12, 0.11, 0.09],
+                position: [0.0, 0.03, -0.09],
+                intensity: [0.02, 0.018, 0.015],
             },
             Light::Point {
-                position: [0.3, 0.6, 0.5],
-                intensity: [0.1, 0.1, 0.1],
+                position: [0.2, 0.5, 0.4],
+                intensity: [0.02, 0.02, 0.02],
             },
         ],
         unit_mm: DEFAULT_UNIT_MM,
@@ -471,8 +472,8 @@ fn rolling() -> SceneFile {
             max_edge: None,
         }),
         camera: Some(Camera {
-            position: [0.0, 0.28, 0.95],
-            target: [0.0, 0.05, -0.08],
+            position: [0.0, 0.14, 0.5],
+            target: [0.0, 0.02, -0.03],
             up: [0.0, 1.0, 0.0],
             fov_deg: 40.0,
         }),

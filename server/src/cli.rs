@@ -31,7 +31,7 @@ pub const DEMO_DIR: &str = "demo-bundles";
 /// first id in sort order: the bowls, each lit by a lamp inside, glowing through their walls
 /// (skim milk and milky glass-ceramic media at their measured coefficients, in a scene in
 /// metres); then the Cornell box with its marble block and the flower lit from inside its cup.
-/// Last, the animated `rolling` (48 frames, one bundle each): a marble ball rolling past a
+/// Last, the animated `rolling` (48 frames, one bundle each): a skim-milk ball rolling past a
 /// lamp.
 pub const DEMO_SCENES: [(&str, &str); 4] = [
     ("bowls", "builtin:bowls"),

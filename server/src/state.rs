@@ -457,9 +457,18 @@ impl AppState {
         match Scene::open_with(id, dir, &self.inner.resources) {
             Ok(scene) => {
                 let m = scene.bundle.manifest();
+                let frames = match &scene.sequence {
+                    Some(s) => format!(
+                        " (frame 0 of {} frames in {} bundles, {:.1} MB in all)",
+                        s.frames.len(),
+                        s.bundles,
+                        scene.total_bytes() as f64 / 1e6
+                    ),
+                    None => String::new(),
+                };
                 tracing::info!(
                     "serving {id:?} ({}, from {}): {} patches, {} vertices, {} objects, \
-                     nnz(F) {}, {:.1} MB, loaded in {:.2} s",
+                     nnz(F) {}, {:.1} MB{frames}, loaded in {:.2} s",
                     m.name,
                     m.source,
                     m.patch_count,
