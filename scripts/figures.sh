@@ -3,8 +3,9 @@
 # (no server): Fig. 5 (light components of the Cornell box), Fig. 6 (translucency sweep),
 # Fig. 7 (heterogeneous checkerboard block), Fig. 8 b–c (specular highlights on the bowls),
 # simulated S against the dipole (the tall block, a bowl lit from inside),
-# Fig. 12 (full model vs the two heuristics), and the direct light per pixel against the
-# all-per-vertex picture.
+# Fig. 12 (full model vs the two heuristics), the direct light per pixel against the
+# all-per-vertex picture, and Figs. 1 and 10 (the two horses, frames of their animation,
+# and the light only the full model has) where ../shared/data/horse.obj is.
 # docs/figures/README.md says what each image shows.
 #
 #   bash scripts/figures.sh            # 3000 patches per scene, 400×300 images
@@ -166,5 +167,41 @@ done
 # The direct light per pixel (renders' default) against the same light at the vertices.
 render cornell crisp_pixel.png "$EV" '{"direct_at":"pixel"}'
 render cornell crisp_vertex.png "$EV" '{"direct_at":"vertex"}'
+
+# Fig. 8 c: the same glossy bowls under the sky alone (environment light, its specular
+# reflection included).
+render bowls fig8_environment.png 0 \
+  "${GLOSSY%%\"lights\"*}\"lights\":[{\"type\":\"environment\",\"map\":\"builtin:sky\",\"scale\":1}]}"
+
+# Figs. 1 and 10: the two horses of examples/scenes/horses-gallop.json (48 frames; F and S
+# per frame, as the paper's gallop) with a glossy coat. (b)/(d): the light that only the
+# full model has — full minus subsurface scattering alone, the paper's "missing light
+# transport component" — from two linear EXR renders (tests/examples/exrdiff.rs).
+HORSES=examples/scenes/horses-gallop.json
+if [ -f ../shared/data/horse.obj ]; then
+  cargo build --release --quiet -p translux-tests --example exrdiff
+  echo "precompute $HORSES (48 frames, $PATCHES patches each)"
+  "$BIN/translux-precompute" "$HORSES" --out "$WORK/horses" --patches "$PATCHES" --quiet >/dev/null
+  COAT='"specular":{"roughness":0.3}'
+  HMAT="\"materials\":{\"horse_marble\":{\"type\":\"translucent\",\"profile\":{\"type\":\"dipole\",\"preset\":\"marble\"},$COAT},\"horse_milk\":{\"type\":\"translucent\",\"profile\":{\"type\":\"dipole\",\"preset\":\"skimmilk\"},$COAT}}"
+  horses() { # OUT-STEM FRAME EV EXTRA-JSON
+    render horses "$1.png" "$3" "{\"frame\":$2,$HMAT$4}"
+    for c in full subsurface_only; do
+      printf '%s' "{\"frame\":$2,\"components\":\"$c\",$HMAT$4}" >"$WORK/request.json"
+      RUST_LOG=warn "$BIN/translux-server" render --bundle "$WORK/horses" \
+        --request "$WORK/request.json" --out "$WORK/$c.exr" --width "$WIDTH" --height "$HEIGHT"
+    done
+    echo "render $1_missing.png"
+    "$BIN/examples/exrdiff" "$WORK/full.exr" "$WORK/subsurface_only.exr" "$OUT/$1_missing.png" \
+      "$(awk "BEGIN{print $3 + 1.5}")" filmic
+  }
+  horses fig1_horses 20 0 ''
+  horses fig1_horses_relit 20 0 \
+    ',"camera":{"position":[1.5,0.45,1.3],"target":[0.05,0.12,0],"fov_deg":40},"lights":[{"type":"spot","position":[-0.9,0.9,0.8],"direction":[0.9,-0.8,-0.8],"intensity":[4,3.6,3],"inner_deg":20,"outer_deg":35}]'
+  horses fig10_frame08 8 0 ''
+  horses fig10_frame36 36 0 ''
+else
+  echo "skipping Figs. 1 and 10: ../shared/data/horse.obj is not there"
+fi
 
 echo "wrote $(ls "$OUT"/*.png | wc -l) images to $OUT"

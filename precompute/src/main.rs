@@ -130,6 +130,11 @@ fn sequence(
 ) -> anyhow::Result<()> {
     use translux_precompute::sequence::{FrameOutcome, precompute_sequence};
     let quiet = cli.quiet;
+    // One line per frame instead of every frame's stage bars.
+    let params = &PrecomputeParams {
+        progress: false,
+        ..params.clone()
+    };
     let report = precompute_sequence(source, out, params, &|f, total| {
         if quiet {
             return;

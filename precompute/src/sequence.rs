@@ -141,6 +141,16 @@ pub fn precompute_sequence(
     // A sequence being redone is not served half old, half new.
     remove_if_present(&out.join(SEQUENCE_FILE))?;
 
+    // Every frame tells the same notes (an object turned outward, a mesh simplified): each
+    // is told once, for the first frame that has it.
+    let once = std::sync::Arc::new(OnceNotes {
+        inner: params.observer.clone(),
+        told: Default::default(),
+    });
+    let params = &PrecomputeParams {
+        observer: Some(once),
+        ..params.clone()
+    };
     let settings = settings_key(params);
     let mut seen: BTreeMap<String, u32> = BTreeMap::new();
     let mut folders: Vec<String> = Vec::with_capacity(anim.frames as usize);
@@ -230,6 +240,40 @@ pub fn precompute_sequence(
         bytes,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// An observer that passes each distinct note on once (to `inner`, or stderr without one)
+/// and everything else through.
+#[derive(Debug)]
+struct OnceNotes {
+    inner: Option<std::sync::Arc<dyn crate::pipeline::Observer>>,
+    told: std::sync::Mutex<std::collections::BTreeSet<String>>,
+}
+
+impl crate::pipeline::Observer for OnceNotes {
+    fn progress(&self, stage: &str, done: u64, total: u64) {
+        if let Some(o) = &self.inner {
+            o.progress(stage, done, total);
+        }
+    }
+
+    fn cancelled(&self) -> bool {
+        self.inner.as_ref().is_some_and(|o| o.cancelled())
+    }
+
+    fn note(&self, message: &str) {
+        let new = self
+            .told
+            .lock()
+            .map(|mut t| t.insert(message.to_string()))
+            .unwrap_or(true);
+        if new {
+            match &self.inner {
+                Some(o) => o.note(message),
+                None => eprintln!("{message}"),
+            }
+        }
+    }
 }
 
 /// `out` must be a new folder, an empty one or an earlier sequence (its journal or its

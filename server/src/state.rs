@@ -10,7 +10,7 @@ use std::sync::{Arc, OnceLock, RwLock};
 use axum::body::Bytes;
 use tokio::sync::watch;
 use translux_proto::animation::{SEQUENCE_FILE, SequenceManifest};
-use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE};
+use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, OpenOptions};
 
 use crate::backend::Backend;
 use crate::config::ServerParams;
@@ -104,9 +104,20 @@ impl Scene {
         dir: &Path,
         resources: &Resources,
     ) -> Result<Scene, BundleError> {
+        Scene::open_checked(id, dir, resources, OpenOptions::default())
+    }
+
+    /// [`Scene::open_with`] verifying as `options` say (a scene reopened after eviction
+    /// skips the checksums: it was verified when first opened).
+    pub fn open_checked(
+        id: impl Into<String>,
+        dir: &Path,
+        resources: &Resources,
+        options: OpenOptions,
+    ) -> Result<Scene, BundleError> {
         let id = id.into();
         if dir.join(SEQUENCE_FILE).is_file() {
-            return Scene::open_sequence(id, dir, resources);
+            return Scene::open_sequence(id, dir, resources, options);
         }
         if dir.join(".journal.json").is_file() && !dir.join(MANIFEST_FILE).is_file() {
             return Err(BundleError::Invalid {
@@ -116,13 +127,17 @@ impl Scene {
                     .into(),
             });
         }
-        Ok(Scene::wrap(translux_engine::scene::Scene::open_with(
-            id, dir, resources,
-        )?))
+        let bundle = Bundle::open_with(dir, options)?;
+        Ok(Scene::from_bundle_with(id, bundle, resources))
     }
 
     /// Opens the sequence in `dir`: every distinct frame bundle once, verified like any.
-    fn open_sequence(id: String, dir: &Path, resources: &Resources) -> Result<Scene, BundleError> {
+    fn open_sequence(
+        id: String,
+        dir: &Path,
+        resources: &Resources,
+        options: OpenOptions,
+    ) -> Result<Scene, BundleError> {
         let text =
             std::fs::read_to_string(dir.join(SEQUENCE_FILE)).map_err(|error| BundleError::Io {
                 file: SEQUENCE_FILE.into(),
@@ -144,13 +159,13 @@ impl Scene {
                 frames.push(s.clone());
                 continue;
             }
-            let scene =
-                translux_engine::scene::Scene::open_with(id.clone(), &dir.join(folder), resources)
-                    .map_err(|e| BundleError::Invalid {
-                        file: format!("{folder}/{}", e.file()),
-                        reason: e.to_string(),
-                    })?;
-            let scene = Arc::new(Scene::wrap(scene));
+            let bundle = Bundle::open_with(&dir.join(folder), options).map_err(|e| {
+                BundleError::Invalid {
+                    file: format!("{folder}/{}", e.file()),
+                    reason: e.to_string(),
+                }
+            })?;
+            let scene = Arc::new(Scene::from_bundle_with(id.clone(), bundle, resources));
             opened.insert(folder, scene.clone());
             frames.push(scene);
         }

@@ -32,7 +32,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 use axum::{Extension, Json, Router};
 use serde_json::json;
-use translux_proto::bundle::{Bundle, OpenOptions};
+use translux_proto::bundle::OpenOptions;
 
 use crate::auth::{Auth, Identity, RateLimit, Role};
 use crate::budget::{EvictedScene, MemoryBudget, parse_bytes};
@@ -251,13 +251,14 @@ impl Team {
                 let t = std::time::Instant::now();
                 let opened = tokio::task::spawn_blocking(move || {
                     // Verified when first opened; the folder is replaced only by a rename.
-                    Bundle::open_with(
+                    Scene::open_checked(
+                        sid,
                         &dir,
+                        &resources,
                         OpenOptions {
                             verify_checksums: false,
                         },
                     )
-                    .map(|b| Scene::from_bundle_with(sid, b, &resources))
                 })
                 .await
                 .map_err(|e| AppError::internal(format!("the reload task failed: {e}")))?;
@@ -452,6 +453,14 @@ async fn resimulate(
     body: Result<crate::extract::JsonBody<ResimulateRequest>, AppError>,
 ) -> Result<Response, AppError> {
     let scene = team.state.lookup(&id)?;
+    if scene.sequence.is_some() {
+        return Err(AppError::invalid(format!(
+            "scene {id:?} is animated ({} frames, one bundle each): re-simulate it by \
+             precomputing its scene file again with the new medium (translux-precompute keeps \
+             what did not change)",
+            scene.frame_count()
+        )));
+    }
     let crate::extract::JsonBody(req) = body?;
     let changes: Vec<_> = req.materials.into_iter().collect();
     translux_precompute::resimulate::check_changes(scene.bundle.manifest(), &changes)
@@ -602,7 +611,12 @@ async fn delete_scene(
     team.budget.forget(&id);
     let dir = team.bundles.join(&id);
     let from_here = match &old {
-        SceneState::Ready(s) => s.bundle.dir() == dir.as_path(),
+        SceneState::Ready(s) => {
+            s.sequence
+                .as_ref()
+                .map_or_else(|| s.bundle.dir(), |q| q.dir.as_path())
+                == dir.as_path()
+        }
         SceneState::Evicted(e) => e.dir == dir,
         _ => true,
     };

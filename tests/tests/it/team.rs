@@ -1431,3 +1431,120 @@ async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
         leftovers(&s.bundles)
     );
 }
+
+/// An animated scene on a team server: the memory budget evicts and reopens the whole
+/// sequence (every frame answers as before), re-simulation is refused with a message, and a
+/// delete removes the sequence folder, frames and all.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_animated_scene_is_evicted_reopened_and_deleted_whole() {
+    let bundles = bundles_with(&["still"]);
+    let scene_file = bundles.path().join("slide.json");
+    std::fs::write(
+        &scene_file,
+        json!({
+            "animation": {"frames": 4, "fps": 8},
+            "patches": {"target": 300},
+            "objects": [
+                {"name": "floor", "mesh": {"shape": "quad", "size": [1, 1]},
+                 "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+                {"name": "box", "mesh": {"shape": "box", "size": [0.1, 0.1, 0.1]},
+                 "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}},
+                 "keyframes": [{"frame": 0, "translate": [-0.3, 0.05, 0]},
+                               {"frame": 3, "translate": [0.3, 0.05, 0]}]}
+            ],
+            "lights": [{"type": "point", "position": [0, 0.5, 0.2], "intensity": [1, 1, 1]}],
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let src = translux_precompute::scene::read_scene_file(&scene_file).unwrap();
+    std::fs::remove_file(&scene_file).unwrap();
+    translux_precompute::sequence::precompute_sequence(
+        &src,
+        &bundles.path().join("slide"),
+        &Default::default(),
+        &|_, _| {},
+    )
+    .unwrap();
+    let frame = |s: &Server, k: u32| {
+        let c = s.client.clone();
+        let url = s.url("/api/v1/scenes/slide/relight");
+        async move {
+            let r = c
+                .post(url)
+                .header(ACCEPT, "application/json")
+                .header(CONTENT_TYPE, "application/json")
+                .header(AUTHORIZATION, format!("Bearer {EDITOR}"))
+                .body(json!({"frame": k}).to_string())
+                .send()
+                .await
+                .unwrap();
+            let status = r.status();
+            let text = r.text().await.unwrap();
+            assert_eq!(status, StatusCode::OK, "frame {k}: {text}");
+            serde_json::from_str::<RelightResponse>(&text)
+                .unwrap()
+                .radiance
+        }
+    };
+    let args = TeamArgs {
+        memory_budget: Some(1),
+        ..Default::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    let want: Vec<Vec<f32>> = futures_frames(&s, &frame).await;
+    // The still scene evicts the sequence; the next frame reopens all of it.
+    s.relight("still", Some(EDITOR)).await;
+    let health = s.get_json("/healthz", Some(EDITOR)).await;
+    assert!(
+        health["scene_states"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|x| x["id"] == "slide" && x["state"] == "evicted"),
+        "{health}"
+    );
+    assert_eq!(futures_frames(&s, &frame).await, want);
+
+    let r = s
+        .req(
+            reqwest::Method::POST,
+            "/api/v1/scenes/slide/resimulate",
+            Some(EDITOR),
+        )
+        .header(CONTENT_TYPE, "application/json")
+        .body(r#"{"materials": {}}"#)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
+    assert!(r.text().await.unwrap().contains("is animated (4 frames"));
+
+    let r = s
+        .req(reqwest::Method::DELETE, "/api/v1/scenes/slide", Some(ADMIN))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK, "{}", r.text().await.unwrap());
+    let t = Instant::now();
+    while bundles.path().join("slide").exists() || !leftovers(bundles.path()).is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "the sequence folder stayed"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Every frame of `slide` relit, in order.
+async fn futures_frames<F, Fut>(s: &Server, frame: &F) -> Vec<Vec<f32>>
+where
+    F: Fn(&Server, u32) -> Fut,
+    Fut: std::future::Future<Output = Vec<f32>>,
+{
+    let mut out = Vec::new();
+    for k in 0..4 {
+        out.push(frame(s, k).await);
+    }
+    out
+}
