@@ -2,7 +2,7 @@
 //! per-frame mesh files and keyframed transforms, and the `sequence.json` that
 //! `translux-precompute` writes beside one bundle per frame.
 //!
-//! In: a [`crate::scene::SceneFile`] with `animation` set. Out: for frame k, the static scene
+//! In: a scene file (`scene::SceneFile`) with `animation` set. Out: for frame k, the static scene
 //! of that frame ([`frame_mesh_path`], [`Keyframe::at`]); after the precompute, a
 //! [`SequenceManifest`] naming each frame's bundle folder.
 //!
@@ -20,7 +20,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::scene::{Scale, Transform};
+use crate::transform::{Scale, Transform};
 use crate::validate::{FieldError, check_finite, check_vec_finite};
 
 /// The most frames a scene may have (a minute at 60 fps and then some).

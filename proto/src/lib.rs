@@ -28,6 +28,7 @@ pub mod csr;
 pub mod light;
 pub mod scene;
 mod tagged;
+pub mod transform;
 pub mod validate;
 
 pub use validate::FieldError;

@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::animation::{Animation, Keyframe, frame_mesh_path, is_frame_pattern};
 use crate::tagged::tagged_enum;
+pub use crate::transform::{Scale, Transform};
 
 use crate::light::{Camera, Light};
 use crate::validate::{FieldError, check_finite, check_range, check_vec_finite, check_vec_range};
@@ -222,36 +223,6 @@ tagged_enum! {
         segments: Option<u32>,
     },
 }
-}
-
-/// Scale, rotate, translate.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields)]
-pub struct Transform {
-    #[serde(default)]
-    pub translate: [f32; 3],
-    /// Rotation in degrees about X, then Y, then Z.
-    #[serde(default)]
-    pub rotate_deg: [f32; 3],
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub scale: Option<Scale>,
-}
-
-/// A uniform or per-axis scale.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
-#[serde(untagged)]
-pub enum Scale {
-    Uniform(f32),
-    PerAxis([f32; 3]),
-}
-
-impl Scale {
-    pub fn as_vec(self) -> [f32; 3] {
-        match self {
-            Scale::Uniform(s) => [s, s, s],
-            Scale::PerAxis(v) => v,
-        }
-    }
 }
 
 tagged_enum! {
