@@ -155,12 +155,6 @@ fn sequence(
     })
     .with_context(|| format!("precomputing {}", cli.scene))?;
     let n = report.frames.len().max(1);
-    let computed: Vec<f64> = report
-        .frames
-        .iter()
-        .filter(|f| matches!(f.outcome, FrameOutcome::Computed { .. }))
-        .map(|f| f.seconds)
-        .collect();
     println!(
         "translux-precompute: {} -> {} (sequence, {} frames)",
         cli.scene,
@@ -174,12 +168,8 @@ fn sequence(
         report.resumed(),
         report.shared()
     );
-    if !computed.is_empty() {
-        println!(
-            "  per frame          {:.2} s mean, {:.2} s max",
-            computed.iter().sum::<f64>() / computed.len() as f64,
-            computed.iter().fold(0.0f64, |m, s| m.max(*s))
-        );
+    if let Some((mean, max)) = report.seconds_per_frame() {
+        println!("  per frame          {mean:.2} s mean, {max:.2} s max");
     }
     println!(
         "  bundles            {} in all, {} per frame",

@@ -18,6 +18,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Instant;
 
+pub use translux_proto::animation::JOURNAL_FILE;
 use translux_proto::animation::{
     SEQUENCE_FILE, SEQUENCE_FORMAT, SEQUENCE_VERSION, SequenceManifest,
 };
@@ -25,9 +26,6 @@ use xxhash_rust::xxh3::Xxh3;
 
 use crate::pipeline::{PrecomputeError, PrecomputeParams, precompute};
 use crate::scene::{LoadedScene, SceneError, SceneSource, resolve_frame};
-
-/// The journal of a sequence folder: frame folder → hash of its inputs.
-pub const JOURNAL_FILE: &str = ".journal.json";
 
 /// What happened to one frame.
 #[derive(Debug, Clone, PartialEq)]
@@ -74,6 +72,18 @@ impl SequenceReport {
     /// Frames sharing an earlier frame's bundle.
     pub fn shared(&self) -> usize {
         self.count(|o| matches!(o, FrameOutcome::SharedWith(_)))
+    }
+
+    /// Mean and longest time of the frames precomputed now, s (`None` if none was).
+    pub fn seconds_per_frame(&self) -> Option<(f64, f64)> {
+        let s: Vec<f64> = self
+            .frames
+            .iter()
+            .filter(|f| matches!(f.outcome, FrameOutcome::Computed { .. }))
+            .map(|f| f.seconds)
+            .collect();
+        let mean = s.iter().sum::<f64>() / s.len().max(1) as f64;
+        (!s.is_empty()).then(|| (mean, s.iter().fold(0.0f64, |m, v| m.max(*v))))
     }
 
     fn count(&self, f: impl Fn(&FrameOutcome) -> bool) -> usize {

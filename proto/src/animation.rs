@@ -28,6 +28,9 @@ pub const MAX_FRAMES: u32 = 10_000;
 
 /// The file beside the frame bundles that makes a folder a sequence.
 pub const SEQUENCE_FILE: &str = "sequence.json";
+/// The journal beside the frame bundles while (and after) a sequence is precomputed: per
+/// frame folder, a hash of what it was computed from (how a rerun resumes).
+pub const JOURNAL_FILE: &str = ".journal.json";
 /// [`SequenceManifest::format`].
 pub const SEQUENCE_FORMAT: &str = "translux-sequence";
 /// [`SequenceManifest::version`].

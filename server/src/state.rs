@@ -9,7 +9,7 @@ use std::sync::{Arc, OnceLock, RwLock};
 
 use axum::body::Bytes;
 use tokio::sync::watch;
-use translux_proto::animation::{SEQUENCE_FILE, SequenceManifest};
+use translux_proto::animation::{JOURNAL_FILE, SEQUENCE_FILE, SequenceManifest};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, OpenOptions};
 
 use crate::backend::Backend;
@@ -44,12 +44,11 @@ pub struct Sequence {
 }
 
 impl Scene {
-    /// Frame `frame` of this scene (`None`: the scene itself, frame 0 of a sequence), or a
-    /// 400 naming the frame and the range.
+    /// Frame `frame` of this scene (`None`: frame 0), or a 400 naming the frame and the
+    /// range. A sequence's frames are scenes of their own (each with its own mesh JSON),
+    /// so frame 0 asked with or without `frame` is one and the same.
     pub fn frame(self: &Arc<Self>, frame: Option<u32>) -> Result<Arc<Scene>, AppError> {
-        let Some(k) = frame else {
-            return Ok(self.clone());
-        };
+        let k = frame.unwrap_or(0);
         let count = self.frame_count();
         match &self.sequence {
             Some(seq) if (k as usize) < seq.frames.len() => Ok(seq.frames[k as usize].clone()),
@@ -119,7 +118,7 @@ impl Scene {
         if dir.join(SEQUENCE_FILE).is_file() {
             return Scene::open_sequence(id, dir, resources, options);
         }
-        if dir.join(".journal.json").is_file() && !dir.join(MANIFEST_FILE).is_file() {
+        if dir.join(JOURNAL_FILE).is_file() && !dir.join(MANIFEST_FILE).is_file() {
             return Err(BundleError::Invalid {
                 file: SEQUENCE_FILE.into(),
                 reason: "missing: this animated scene's precompute has not finished (run the \

@@ -1106,7 +1106,7 @@ struct GallopRow {
 /// patches a frame, else 4,000 and 9,000), opens every frame and relights them in order, as
 /// the viewer's playback does.
 fn measure_gallop(a: &Args, work: &Path, backend: &Backend) -> anyhow::Result<GallopRow> {
-    use translux_precompute::sequence::{FrameOutcome, precompute_sequence};
+    use translux_precompute::sequence::precompute_sequence;
     let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/scenes/horses-gallop.json");
     let mut src = translux_precompute::scene::read_scene_file(&file)?;
     // Each horse simplified to `tris` triangles (every triangle is at least one patch).
@@ -1136,12 +1136,7 @@ fn measure_gallop(a: &Args, work: &Path, backend: &Backend) -> anyhow::Result<Ga
         );
     })?;
     let total_s = t0.elapsed().as_secs_f64();
-    let computed: Vec<f64> = report
-        .frames
-        .iter()
-        .filter(|f| matches!(f.outcome, FrameOutcome::Computed { .. }))
-        .map(|f| f.seconds)
-        .collect();
+    let (frame_s_mean, frame_s_max) = report.seconds_per_frame().unwrap_or_default();
     let t = Instant::now();
     let manifest: translux_proto::animation::SequenceManifest = serde_json::from_str(
         &std::fs::read_to_string(dir.join(translux_proto::animation::SEQUENCE_FILE))?,
@@ -1200,8 +1195,8 @@ fn measure_gallop(a: &Args, work: &Path, backend: &Backend) -> anyhow::Result<Ga
         frames: report.frames.len(),
         computed: report.computed(),
         patches: n,
-        frame_s_mean: computed.iter().sum::<f64>() / computed.len().max(1) as f64,
-        frame_s_max: computed.iter().fold(0.0, |m: f64, v| m.max(*v)),
+        frame_s_mean,
+        frame_s_max,
         f_s_mean: f_s / k,
         s_s_mean: s_s / k,
         bundle_mib_per_frame: bytes as f64 / k / (1u64 << 20) as f64,

@@ -339,7 +339,6 @@ function setPlaying(on) {
  */
 function stepPlayback(now) {
   if (!app.playing) return;
-  app.needDraw = true;
   const fps = (app.detail && app.detail.fps) || 24;
   const shown = app.sentFrame.get(app.shownSeq);
   if (shown !== app.state.frame || app.shownSeq < app.seq) return;

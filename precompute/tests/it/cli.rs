@@ -6,14 +6,14 @@ use std::process::{Command, Output};
 
 use translux_proto::bundle::Bundle;
 
-fn precompute(args: &[&str]) -> Output {
+pub(crate) fn precompute(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_translux-precompute"))
         .args(args)
         .output()
         .expect("the binary runs")
 }
 
-fn text(o: &Output) -> String {
+pub(crate) fn text(o: &Output) -> String {
     format!(
         "{}{}",
         String::from_utf8_lossy(&o.stdout),
