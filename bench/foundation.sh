@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Foundation benchmark: builtin:cornell at 6,000 and 24,640 patches through the real
+# Foundation benchmark: builtin:cornell_paper at 6,000 and 24,640 patches through the real
 # translux-precompute binary. Prints a markdown table (form-factor time, occlusion rays/s,
 # nnz(F), bundle bytes, peak RSS) and appends it, with the date and machine, to
 # bench/results/foundation-DATE.md. Not a test: nothing here asserts a time.
@@ -21,7 +21,7 @@ rule="|---|---|---|---|---|---|---|---|---|---|"
 rows=()
 for n in "${sizes[@]}"; do
   start=$(date +%s.%N)
-  summary=$("$bin" builtin:cornell --out "$work/cornell-$n" --patches "$n" -q)
+  summary=$("$bin" builtin:cornell_paper --out "$work/cornell-$n" --patches "$n" -q)
   end=$(date +%s.%N)
   get() { printf '%s\n' "$summary" | grep -m1 "$1" ; }
   patches=$(get '^  patches ' | awk '{print $2}')
@@ -39,7 +39,7 @@ for n in "${sizes[@]}"; do
 done
 
 report=$(
-  echo "## builtin:cornell form factors — $(date -u +%Y-%m-%d), $(nproc) cores, $cpu"
+  echo "## builtin:cornell_paper form factors — $(date -u +%Y-%m-%d), $(nproc) cores, $cpu"
   echo
   echo "$header"
   echo "$rule"

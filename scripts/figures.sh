@@ -11,8 +11,8 @@
 #   bash scripts/figures.sh            # 3000 patches per scene, 400×300 images
 #   PATCHES=6000 SIZE=640x480 bash scripts/figures.sh
 #
-# A few minutes on 2 cores: it builds the two binaries (release), precomputes three bundles
-# into a temporary folder and renders 19 images.
+# A few minutes on 2 cores: it builds the two binaries (release), precomputes its bundles
+# into a temporary folder and renders the images.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -40,7 +40,7 @@ render() { # BUNDLE OUT.png EXPOSURE REQUEST-JSON
     --out "$OUT/$2" --width "$WIDTH" --height "$HEIGHT" --exposure "$3" --tone filmic
 }
 
-# The Cornell box of builtin:cornell with the tall block's marble 8× more translucent (the
+# The Cornell box of builtin:cornell_paper with the tall block's marble 8× more translucent (the
 # dipole's mean free path × 8): at a few thousand patches (4 cm each) real marble scatters
 # within about one patch and looks opaque. Distances are stored to twice the truncation
 # radius, so the sweep below can go up to scale 16 without new geometry work.
@@ -112,6 +112,8 @@ JSON
   precompute "$WORK/bowl_$kind.json" "bowl_$kind"
 done
 precompute builtin:cornell_checker checker
+precompute builtin:cornell cornell_glow
+precompute builtin:cornell_paper cornell_paper
 precompute builtin:bowls bowls
 
 # Fig. 5: direct, inter-reflection only, subsurface only, full (the paper's order). The
@@ -133,6 +135,12 @@ done
 
 # Fig. 7: the tall block a checkerboard of marble and an orange medium.
 render checker fig7_checker.png "$EV" '{}'
+
+# The Cornell box as the viewer shows it (builtin:cornell: the block's marble ×16, a spot
+# hidden behind it, the ceiling lamp dimmed) beside the paper's (builtin:cornell_paper, real
+# marble, the ceiling lamp alone), each under its own lights, from the same camera.
+render cornell_glow cornell_glow.png -2.5 '{}'
+render cornell_paper cornell_paper.png -2 '{}'
 
 # Fig. 12: the bowls lit from inside: full model, heuristic A, heuristic B.
 for c in full heuristic_a heuristic_b; do

@@ -1,7 +1,7 @@
 //! The built-in scenes, made only of procedural shapes (no files needed).
 //!
-//! In: a scene name (`cornell`, `bowls`, `flower`, `cornell_checker`, and the animated
-//! `rolling`). Out: the
+//! In: a scene name (`cornell`, `cornell_paper`, `bowls`, `flower`, `cornell_checker`, and
+//! the animated `rolling`). Out: the
 //! [`SceneFile`] a user could have written by hand — objects with shapes, transforms and
 //! materials, default lights, a camera and a patch density — which
 //! [`crate::scene::load_scene`] (`builtin:NAME`) validates and turns into triangles like any
@@ -14,12 +14,20 @@ use translux_proto::scene::{
 };
 
 /// The names `builtin:NAME` accepts.
-pub const BUILTIN_SCENES: [&str; 5] = ["cornell", "bowls", "flower", "cornell_checker", "rolling"];
+pub const BUILTIN_SCENES: [&str; 6] = [
+    "cornell",
+    "cornell_paper",
+    "bowls",
+    "flower",
+    "cornell_checker",
+    "rolling",
+];
 
 /// The built-in scene called `name`, or `None` if there is none.
 pub fn builtin_scene(name: &str) -> Option<SceneFile> {
     match name {
         "cornell" => Some(cornell()),
+        "cornell_paper" => Some(cornell_paper()),
         "bowls" => Some(bowls()),
         "flower" => Some(flower()),
         "cornell_checker" => Some(cornell_checker()),
@@ -89,9 +97,11 @@ fn dipole(sigma_a: [f32; 3], sigma_s_prime: [f32; 3]) -> Material {
     }
 }
 
-/// The paper's Cornell box: a 0.555 m room (x, z ∈ [−0.2775, 0.2775], y ∈ [0, 0.555]) of six
-/// inward-facing quads, a short yellow diffuse box and a tall marble block.
-fn cornell() -> SceneFile {
+/// The paper's Cornell box (Table 1, Figs. 5–6): a 0.555 m room (x, z ∈ [−0.2775, 0.2775],
+/// y ∈ [0, 0.555]) of six inward-facing quads, a short yellow diffuse box and a tall block of
+/// real marble (Jensen et al.'s measured coefficients), lit by one lamp under the ceiling.
+/// At 16.5 cm, real marble carries light about a centimetre: the block looks opaque.
+fn cornell_paper() -> SceneFile {
     let (h, top) = (CORNELL_HALF, CORNELL_HEIGHT);
     let wall = [2.0 * h, 2.0 * h];
     let white = [0.725, 0.71, 0.68];
@@ -148,7 +158,7 @@ fn cornell() -> SceneFile {
     ));
     SceneFile {
         animation: None,
-        name: Some("cornell".to_owned()),
+        name: Some("cornell_paper".to_owned()),
         objects,
         lights: vec![Light::Point {
             position: [0.0, 0.50, 0.0],
@@ -167,6 +177,61 @@ fn cornell() -> SceneFile {
         }),
     }
 }
+
+/// How many times marble's mean free path the block of `builtin:cornell` has (the dipole's
+/// `scale`): the look of a 1:16 model of the box, whose block would be about 1 cm thick.
+pub const CORNELL_BLOCK_SCALE: f32 = 16.0;
+
+/// The spot light hidden behind the tall block of `builtin:cornell`, aimed at the block's
+/// back face. The block (0.165 m square, turned 17° about Y, centred at x = −0.09, z =
+/// −0.08) has its back face centred at (−0.114, 0.165, −0.159) with outward normal
+/// (−sin 17°, 0, −cos 17°) = (−0.292, 0, −0.956); the spot stands 7 cm out along that
+/// normal (5 cm in front of the back wall) and its 55° cone just covers the face, so
+/// nearly all its light enters the block.
+pub fn cornell_back_spot() -> Light {
+    Light::Spot {
+        position: [-0.134, 0.165, -0.226],
+        intensity: [4.0, 4.0, 4.0],
+        direction: [0.292, 0.0, 0.956],
+        inner_deg: 40.0,
+        outer_deg: 55.0,
+    }
+}
+
+/// The Cornell box as translux shows it first: the paper's box ([`cornell_paper`]) with the
+/// tall block's marble at [`CORNELL_BLOCK_SCALE`] × its mean free path and a spot light
+/// hidden behind the block ([`cornell_back_spot`]) besides the ceiling lamp (dimmed to
+/// [`CORNELL_CEILING_DIMMING`] of the paper's), so light that
+/// crossed the block makes its edges and front glow warm (a diffuse block of the same
+/// colour would stay flat and hard-edged). The translucency slider goes from ×2 to ×128 of
+/// real marble; `builtin:cornell_paper` is the paper's scene as it was measured.
+fn cornell() -> SceneFile {
+    let mut s = cornell_paper();
+    s.name = Some("cornell".to_owned());
+    for o in s.objects.iter_mut().filter(|o| o.name == "tall_block") {
+        o.material = Material::Translucent {
+            profile: Profile::Dipole {
+                preset: Some("marble".to_owned()),
+                sigma_a: None,
+                sigma_s_prime: None,
+                eta: None,
+                scale: Some(CORNELL_BLOCK_SCALE),
+            },
+            specular: None,
+        };
+    }
+    // The ceiling lamp at 3/8 of the paper's, so that the glow is not washed out.
+    for l in &mut s.lights {
+        if let Light::Point { intensity, .. } = l {
+            *intensity = intensity.map(|x| x * CORNELL_CEILING_DIMMING);
+        }
+    }
+    s.lights.push(cornell_back_spot());
+    s
+}
+
+/// The ceiling lamp of `builtin:cornell` against the paper's (0.8 W/sr → 0.3 W/sr).
+pub const CORNELL_CEILING_DIMMING: f32 = 0.375;
 
 /// Edge of the checkerboard cells of `cornell_checker`'s tall block (m): about a third of
 /// the block's 0.165 m width.
@@ -192,7 +257,7 @@ pub fn checker_orange() -> Profile {
 /// block's mid-height vertically (six layers, none thinner than 0.045 m); no face of the
 /// block lies on a cell plane.
 fn cornell_checker() -> SceneFile {
-    let mut s = cornell();
+    let mut s = cornell_paper();
     s.name = Some("cornell_checker".to_owned());
     let marble = Profile::Dipole {
         preset: Some("marble".to_owned()),
@@ -697,6 +762,105 @@ mod tests {
             assert_eq!(bottom.len(), 2);
             assert!(bottom.iter().all(|t| normal(t).y < -0.999));
         }
+    }
+
+    #[test]
+    fn cornell_hides_a_spot_behind_a_translucent_block_and_cornell_paper_does_not() {
+        let paper = builtin_scene("cornell_paper").unwrap();
+        let shown = builtin_scene("cornell").unwrap();
+        assert_eq!(
+            paper.lights.len(),
+            1,
+            "the paper's box has the ceiling lamp only"
+        );
+        assert_eq!(shown.lights.len(), 2);
+        match (&shown.lights[0], &paper.lights[0]) {
+            (
+                Light::Point {
+                    position: a,
+                    intensity: ia,
+                },
+                Light::Point {
+                    position: b,
+                    intensity: ib,
+                },
+            ) => {
+                assert_eq!(a, b, "the ceiling lamp stays where it was");
+                assert_eq!(ia[0], CORNELL_CEILING_DIMMING * ib[0]);
+            }
+            other => panic!("{other:?}"),
+        }
+        let scale_of = |f: &SceneFile| match &f.objects.iter().find(|o| o.name == "tall_block") {
+            Some(ObjectDesc {
+                material:
+                    Material::Translucent {
+                        profile: Profile::Dipole { preset, scale, .. },
+                        ..
+                    },
+                ..
+            }) if preset.as_deref() == Some("marble") => scale.unwrap_or(1.0),
+            o => panic!("{o:?}"),
+        };
+        assert_eq!(scale_of(&paper), 1.0);
+        assert_eq!(scale_of(&shown), CORNELL_BLOCK_SCALE);
+        // Same geometry otherwise.
+        let (a, b) = (load("cornell"), load("cornell_paper"));
+        for (x, y) in a.objects.iter().zip(&b.objects) {
+            assert_eq!(x.triangles, y.triangles, "{}", x.name);
+        }
+
+        // The spot: inside the room, between the block's back face and the back wall, not
+        // inside the block, and its inner cone (full intensity) all on the back face.
+        let Light::Spot {
+            position,
+            direction,
+            inner_deg,
+            outer_deg,
+            ..
+        } = cornell_back_spot()
+        else {
+            panic!("not a spot")
+        };
+        assert!(inner_deg < outer_deg);
+        let (p, d) = (Vec3::from(position), Vec3::from(direction).normalize());
+        assert!(p.x.abs() < CORNELL_HALF - 0.02 && p.z > -CORNELL_HALF + 0.02);
+        assert!(p.y > 0.0 && p.y < CORNELL_HEIGHT);
+        let block = object(&a, "tall_block");
+        let back: Vec<&[Vec3; 3]> = block
+            .triangles
+            .iter()
+            .filter(|t| normal(t).dot(-d) > 0.99)
+            .collect();
+        assert_eq!(back.len(), 2, "the spot faces one face of the block");
+        let n = normal(back[0]);
+        assert!(
+            n.dot(p - back[0][0]) > 0.05,
+            "the spot is not 5 cm behind the face"
+        );
+        let inside = |x: Vec3, t: &[Vec3; 3]| {
+            (0..3).all(|i| (t[(i + 1) % 3] - t[i]).cross(x - t[i]).dot(n) >= 0.0)
+        };
+        let u = d.any_orthonormal_vector();
+        let v = d.cross(u);
+        let (sin, cos) = inner_deg.to_radians().sin_cos();
+        for k in 0..16 {
+            let phi = k as f32 * std::f32::consts::TAU / 16.0;
+            let ray = cos * d + sin * (phi.cos() * u + phi.sin() * v);
+            let hit = p + ray * (n.dot(back[0][0] - p) / n.dot(ray));
+            assert!(
+                back.iter().any(|t| inside(hit, t)),
+                "the inner cone's edge at {phi} rad misses the back face ({hit})"
+            );
+        }
+        let (lo, hi) = bbox(block);
+        assert!(
+            p.cmplt(lo).any() || p.cmpgt(hi).any(),
+            "inside the block's box"
+        );
+        // Behind the block as the camera looks: farther from the camera than the block.
+        let cam = Vec3::from(shown.camera.unwrap().position);
+        let centre = (lo + hi) * 0.5;
+        assert!((p - cam).length() > (centre - cam).length() + 0.1);
     }
 
     #[test]

@@ -21,7 +21,7 @@ use translux_precompute::slinks::SLinkParams;
 #[derive(Debug, Parser)]
 #[command(name = "translux-precompute", version)]
 struct Cli {
-    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_checker, bowls, flower); with
+    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_paper, cornell_checker, bowls, flower, rolling); with
     /// `--resimulate`, a bundle folder.
     scene: String,
     /// Folder to write the bundle to (replaced atomically if it exists). For an animated

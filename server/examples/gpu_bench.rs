@@ -1,4 +1,4 @@
-//! GPU vs CPU backend on `builtin:cornell`: what the transport costs per relight.
+//! GPU vs CPU backend on `builtin:cornell_paper`: what the transport costs per relight.
 //!
 //! Measures, per backend (the CPU, then the wgpu adapter), the paper's Table 1 columns:
 //! relight with the transfer matrix T (one relight, batches of 8 and 64: one pass over T per
@@ -173,7 +173,7 @@ fn main() -> anyhow::Result<()> {
         .join(format!("cornell-{}", a.patches));
     if Bundle::open(&dir).map_or(true, |b| b.transfer().is_none()) {
         eprintln!(
-            "precomputing builtin:cornell at {} patches with T into {}",
+            "precomputing builtin:cornell_paper at {} patches with T into {}",
             a.patches,
             dir.display()
         );
@@ -183,7 +183,7 @@ fn main() -> anyhow::Result<()> {
             progress: true,
             ..Default::default()
         };
-        precompute(&load_scene("builtin:cornell")?, &dir, &params)?;
+        precompute(&load_scene("builtin:cornell_paper")?, &dir, &params)?;
     }
     let scene = Scene::open("cornell", &dir)?;
     let b = &scene.bundle;
@@ -192,7 +192,7 @@ fn main() -> anyhow::Result<()> {
     let t_bytes = (t.bits.len() * 2) as u64;
     let f = b.form_factors();
     let s = b.subsurface();
-    println!("# GPU benchmark: builtin:cornell, {n} patches");
+    println!("# GPU benchmark: builtin:cornell_paper, {n} patches");
     println!(
         "\nnnz(F) {}, nnz(S) {}, T (f16 RGB) {:.1} MiB; CPU threads {}",
         f.nnz(),

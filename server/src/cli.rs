@@ -329,15 +329,18 @@ pub fn ensure_demo_bundle(dir: &Path, id: &str, scene: &str) -> anyhow::Result<(
         return ensure_demo_sequence(&out, &source);
     }
     let why = match Bundle::open(&out) {
-        Ok(b) => {
-            tracing::info!(
-                "demo bundle {} is ready ({} patches)",
-                out.display(),
-                b.manifest().patch_count
-            );
-            return Ok(());
-        }
-        Err(e) => e,
+        Ok(b) => match demo_bundle_outdated(&b, &source.file) {
+            None => {
+                tracing::info!(
+                    "demo bundle {} is ready ({} patches)",
+                    out.display(),
+                    b.manifest().patch_count
+                );
+                return Ok(());
+            }
+            Some(why) => why,
+        },
+        Err(e) => e.to_string(),
     };
     tracing::info!(
         "no valid demo bundle in {} ({why}); precomputing {scene} at {DEMO_PATCHES} patches",
@@ -362,6 +365,21 @@ pub fn ensure_demo_bundle(dir: &Path, id: &str, scene: &str) -> anyhow::Result<(
         report.bundle_bytes as f64 / 1e6
     );
     Ok(())
+}
+
+/// Why a demo bundle no longer shows `file` (a built-in scene whose lights or materials
+/// changed since the bundle was written, by an older translux), or `None` if it does.
+fn demo_bundle_outdated(b: &Bundle, file: &translux_proto::scene::SceneFile) -> Option<String> {
+    let m = b.manifest();
+    if m.lights != file.lights {
+        return Some("it was built with other lights than the scene has now".into());
+    }
+    let same = m.objects.len() == file.objects.len()
+        && m.objects
+            .iter()
+            .zip(&file.objects)
+            .all(|(a, b)| a.name == b.name && a.material == b.material);
+    (!same).then(|| "it was built with other objects or materials than the scene has now".into())
 }
 
 /// An animated demo scene: its frames precomputed into `out` unless they are there already

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! cargo run --release -p translux-tests --example hierarchy -- \
-//!     [--scene builtin:cornell] [--patches 24640] [--accuracy 0.25,0.15] [--lights 16] \
+//!     [--scene builtin:cornell_paper] [--patches 24640] [--accuracy 0.25,0.15] [--lights 16] \
 //!     [--samples 8] [--cone 60] [--no-dense [--rows 200]]
 //! ```
 //!
@@ -55,7 +55,7 @@ struct Args {
 
 fn args() -> anyhow::Result<Args> {
     let mut a = Args {
-        scene: "builtin:cornell".into(),
+        scene: "builtin:cornell_paper".into(),
         patches: 24_640,
         accuracy: vec![HierarchyParams::default().accuracy],
         lights: 16,
@@ -301,7 +301,7 @@ fn peak_rss() -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
-/// builtin:cornell with the scanned bunny for the short box, everything diffuse.
+/// builtin:cornell_paper with the scanned bunny for the short box, everything diffuse.
 fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScene> {
     use translux_proto::scene::Material;
     let data = translux_tests::scans::data_dir();
@@ -310,8 +310,8 @@ fn cornell_with_bunny() -> anyhow::Result<translux_precompute::scene::LoadedScen
         "{} is missing: the scanned meshes are read from ../shared/data beside the repository",
         data.join("stanford-bunny.obj").display()
     );
-    let mut file =
-        translux_precompute::builtin::builtin_scene("cornell").context("builtin cornell")?;
+    let mut file = translux_precompute::builtin::builtin_scene("cornell_paper")
+        .context("builtin cornell_paper")?;
     let short = file
         .objects
         .iter()

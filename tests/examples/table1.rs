@@ -1,6 +1,6 @@
 //! The paper's Table 1 on this machine, and translux against a path tracer.
 //!
-//! In: the paper's four scenes, built here: the Cornell box (`builtin:cornell`), bowls and
+//! In: the paper's four scenes, built here: the Cornell box (`builtin:cornell_paper`), bowls and
 //! the Stanford bunny (`builtin:bowls` with the bunny from `../shared/data/` in place of
 //! its blob), the flower (`builtin:flower`, thin sheets, the paper's rose) and two horses on
 //! a green floor (`../shared/data/horse.obj`). Out: a Markdown table with the paper's
@@ -267,7 +267,7 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                     out.push(Spec {
                         key: "cornell",
                         title: "Cornell box",
-                        file: builtin_scene("cornell").context("builtin cornell")?,
+                        file: builtin_scene("cornell_paper").context("builtin cornell_paper")?,
                         base_dir: PathBuf::from("."),
                         patches,
                         note: String::new(),
@@ -279,7 +279,7 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
                 // The tall block's marble as random walks (`"type": "simulated"`): the
                 // "translucency change" column is then an absorption change (σa re-weights
                 // the stored walks), the only edit a simulated S serves without new walks.
-                let mut file = builtin_scene("cornell").context("builtin cornell")?;
+                let mut file = builtin_scene("cornell_paper").context("builtin cornell_paper")?;
                 for o in &mut file.objects {
                     if o.name == "tall_block" {
                         o.material = translux_proto::parse_json(

@@ -57,7 +57,7 @@ fn column_energy(row_ptr: &[u64], col: &[u32], val: &[[f32; 3]], area: &[f32]) -
 fn cornell_checker_block_is_a_checkerboard_of_two_media() {
     let dir = tempfile::tempdir().unwrap();
     let het = build("builtin:cornell_checker", dir.path(), "checker", 1500);
-    let hom = build("builtin:cornell", dir.path(), "cornell", 1500);
+    let hom = build("builtin:cornell_paper", dir.path(), "cornell", 1500);
     let n = het.manifest().patch_count as usize;
     assert_eq!(
         n,

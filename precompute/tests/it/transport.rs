@@ -57,10 +57,10 @@ fn rel_diff(a: &[Rgb], b: &[Rgb]) -> f64 {
     (num / den).sqrt()
 }
 
-/// A small translucent Cornell box (marble block) and its default lights' E.
+/// A small translucent Cornell box (the paper's, real marble) and its ceiling lamp's E.
 fn translucent_cornell(patches: u64) -> (tempfile::TempDir, Bundle, Vec<Rgb>) {
     let dir = tempfile::tempdir().unwrap();
-    let scene = load_scene("builtin:cornell").unwrap();
+    let scene = load_scene("builtin:cornell_paper").unwrap();
     let out = dir.path().join("cornell");
     let params = PrecomputeParams {
         patches: Some(patches),

@@ -449,3 +449,51 @@ fn render_writes_a_linear_exr_by_extension_and_rejects_other_extensions() {
     }
     assert!(!tmp.path().join("x.jpg").exists());
 }
+
+/// `--demo` keeps a demo bundle that still shows its scene and precomputes one again when
+/// the built-in scene's lights or materials changed since it was written (an older
+/// translux's bundle), instead of serving the old look.
+#[test]
+fn a_demo_bundle_of_an_older_scene_is_precomputed_again() {
+    use translux_server::cli::ensure_demo_bundle;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c");
+    let manifest = out.join("manifest.json");
+    ensure_demo_bundle(dir.path(), "c", "builtin:cornell").unwrap();
+    let scene = translux_precompute::builtin::builtin_scene("cornell").unwrap();
+    assert_eq!(Bundle::open(&out).unwrap().manifest().lights, scene.lights);
+    let written = std::fs::metadata(&manifest).unwrap().modified().unwrap();
+    ensure_demo_bundle(dir.path(), "c", "builtin:cornell").unwrap();
+    assert_eq!(
+        std::fs::metadata(&manifest).unwrap().modified().unwrap(),
+        written,
+        "an up-to-date demo bundle was written again"
+    );
+
+    // As an older version wrote it: the paper's single ceiling lamp, real marble.
+    let paper = translux_precompute::builtin::builtin_scene("cornell_paper").unwrap();
+    let mut m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&manifest).unwrap()).unwrap();
+    m["lights"] = serde_json::to_value(&paper.lights).unwrap();
+    std::fs::write(&manifest, serde_json::to_vec(&m).unwrap()).unwrap();
+    assert_eq!(Bundle::open(&out).unwrap().manifest().lights, paper.lights);
+    ensure_demo_bundle(dir.path(), "c", "builtin:cornell").unwrap();
+    assert_eq!(Bundle::open(&out).unwrap().manifest().lights, scene.lights);
+
+    let mut m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&manifest).unwrap()).unwrap();
+    let block = m["objects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .position(|o| o["name"] == "tall_block")
+        .unwrap();
+    m["objects"][block]["material"]["profile"]["scale"] = serde_json::json!(1.0);
+    std::fs::write(&manifest, serde_json::to_vec(&m).unwrap()).unwrap();
+    ensure_demo_bundle(dir.path(), "c", "builtin:cornell").unwrap();
+    let b = Bundle::open(&out).unwrap();
+    assert_eq!(
+        b.manifest().objects[block].material,
+        scene.objects[block].material
+    );
+}

@@ -514,8 +514,11 @@ fn check_glb(glb: &[u8], bundle: &Bundle, source: &Value) {
         }
         lit += usize::from(want.iter().any(|&c| c > 0.05));
     }
+    // Not blank. The export is of the direct light alone (step 7 leaves `direct` on) from
+    // the ceiling lamp dragged low, at the exposure the first frame set (the spot's hot
+    // spot behind the block): most of the box is in shadow, exactly 0.
     assert!(
-        lit > n / 4,
+        lit > n / 20,
         "only {lit} of {n} vertices are lit in the .glb"
     );
 }
