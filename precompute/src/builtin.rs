@@ -186,8 +186,8 @@ pub const CORNELL_BLOCK_SCALE: f32 = 16.0;
 /// back face. The block (0.165 m square, turned 17° about Y, centred at x = −0.09, z =
 /// −0.08) has its back face centred at (−0.114, 0.165, −0.159) with outward normal
 /// (−sin 17°, 0, −cos 17°) = (−0.292, 0, −0.956); the spot stands 7 cm out along that
-/// normal (5 cm in front of the back wall) and its 55° cone just covers the face, so
-/// nearly all its light enters the block.
+/// normal (5 cm in front of the back wall). Its full-intensity 40° inner cone falls wholly
+/// on the face; the falloff out to 55° spills a little past the face's sides.
 pub fn cornell_back_spot() -> Light {
     Light::Spot {
         position: [-0.134, 0.165, -0.226],
