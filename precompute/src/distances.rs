@@ -70,6 +70,78 @@ pub struct DistanceReport {
     pub voxel_size: f32,
     pub warning: Option<String>,
     pub seconds: f64,
+    /// Taken from a [`DistanceCache`]: the object only moved rigidly since the frame that
+    /// computed them.
+    pub reused: bool,
+}
+
+/// The optical distances of homogeneous translucent objects, kept across the frames of an
+/// animation ([`crate::sequence`]). An object that only moved rigidly — every patch with
+/// the same area, the same distances and normal angles between sampled patch pairs, and
+/// the same stored radius — has the same distances between its patches (its patches come
+/// out of the subdivision in the same order), so a later frame takes them from here
+/// instead of tracing paths through a new voxel grid. (The grid is laid along the world's
+/// axes, so a fresh computation of a turned object differs by the grid's discretisation;
+/// the reused one is the same in every frame.)
+#[derive(Default)]
+pub struct DistanceCache {
+    objects: std::sync::Mutex<std::collections::HashMap<String, CachedDistances>>,
+}
+
+impl std::fmt::Debug for DistanceCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("DistanceCache")
+    }
+}
+
+struct CachedDistances {
+    shape: RigidShape,
+    rows: Vec<Vec<(u32, f32)>>,
+    report: DistanceReport,
+}
+
+/// What stays the same when an object moves rigidly: its radius, patch areas, and the
+/// distance and normal angle between patches `i` and `(7919 i + 13) mod n`.
+struct RigidShape {
+    radius: f32,
+    area: Vec<f32>,
+    probe: Vec<(f32, f32)>,
+}
+
+impl RigidShape {
+    fn of(g: &PatchGeometry, r: std::ops::Range<usize>, radius: f32) -> Self {
+        let n = r.len();
+        let (c, nor) = (&g.centroid[r.clone()], &g.normal[r.clone()]);
+        let probe = (0..n)
+            .map(|i| {
+                let j = (7919 * i + 13) % n;
+                (c[i].distance(c[j]), nor[i].dot(nor[j]))
+            })
+            .collect();
+        RigidShape {
+            radius,
+            area: g.area[r].to_vec(),
+            probe,
+        }
+    }
+
+    /// The same object moved rigidly (float rounding of the transform aside).
+    fn matches(&self, o: &RigidShape) -> bool {
+        let scale = self.probe.iter().fold(1e-12f32, |m, p| m.max(p.0));
+        let amax = self.area.iter().fold(1e-30f32, |m, &a| m.max(a));
+        self.radius == o.radius
+            && self.area.len() == o.area.len()
+            && self
+                .area
+                .iter()
+                .zip(&o.area)
+                .all(|(a, b)| (a - b).abs() <= 1e-4 * amax)
+            && self
+                .probe
+                .iter()
+                .zip(&o.probe)
+                .all(|(a, b)| (a.0 - b.0).abs() <= 1e-4 * scale && (a.1 - b.1).abs() <= 1e-4)
+    }
 }
 
 /// Straight-line distances between centroids within `r_max`: the fallback when an object
@@ -142,6 +214,10 @@ pub fn estimate_paths(
 /// for a thin sheet's other side, else [`KIND_SAME`]), aligned with the CSR entries.
 /// Also returns the per-medium lengths of every stored distance (aligned with the CSR
 /// entries; all 0 outside heterogeneous objects).
+/// With a `cache`, a homogeneous translucent object that only moved rigidly since a frame
+/// that stored its distances there takes them from it ([`DistanceReport::reused`]); every
+/// one computed here is stored in it.
+#[allow(clippy::too_many_arguments)]
 pub fn scene_distances(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],
@@ -150,6 +226,7 @@ pub fn scene_distances(
     unit_mm: f64,
     params: &SParams,
     voxels: &VoxelParams,
+    cache: Option<&DistanceCache>,
 ) -> Result<SceneDistances, DistanceError> {
     let mut rows: Vec<Vec<(u32, f32)>> = vec![Vec::new(); g.corners.len()];
     let mut kinds: Vec<Vec<u32>> = vec![Vec::new(); g.corners.len()];
@@ -194,6 +271,26 @@ pub fn scene_distances(
                 why: "by_obj_material needs the medium of every patch".into(),
             }
             .into());
+        }
+        // A homogeneous object seen before in another pose: its distances again.
+        let rigid = (field.is_none() && matches!(o.material, Material::Translucent { .. }))
+            .then_some(cache)
+            .flatten()
+            .map(|c| (c, RigidShape::of(g, r.clone(), radius)));
+        if let Some((c, shape)) = &rigid {
+            let objects = c.objects.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(hit) = objects.get(o.name).filter(|h| h.shape.matches(shape)) {
+                let base = r.start as u32;
+                for (i, row) in hit.rows.iter().enumerate() {
+                    rows[r.start + i] = row.iter().map(|&(j, d)| (base + j, d)).collect();
+                }
+                reports.push(DistanceReport {
+                    seconds: t.elapsed().as_secs_f64(),
+                    reused: true,
+                    ..hit.report.clone()
+                });
+                continue;
+            }
         }
         let mut local_lens: Vec<Vec<MediaLen>> = Vec::new();
         let (local, stats, warning) = match voxel::optical_distances_media(
@@ -249,13 +346,7 @@ pub fn scene_distances(
             Err(e) => return Err(e.into()),
         };
         let base = r.start as u32;
-        for (i, row) in local.into_iter().enumerate() {
-            rows[r.start + i] = row.into_iter().map(|(j, d)| (base + j, d)).collect();
-        }
-        for (i, l) in local_lens.into_iter().enumerate() {
-            lens[r.start + i] = l;
-        }
-        reports.push(DistanceReport {
+        let report = DistanceReport {
             name: o.name.to_string(),
             method: match stats.map(|s| s.method) {
                 Some(voxel::Method::Voxel) => "voxel".into(),
@@ -268,7 +359,25 @@ pub fn scene_distances(
             voxel_size: stats.map_or(0.0, |s| s.voxel_size),
             warning,
             seconds: t.elapsed().as_secs_f64(),
-        });
+            reused: false,
+        };
+        if let Some((c, shape)) = rigid {
+            c.objects.lock().unwrap_or_else(|e| e.into_inner()).insert(
+                o.name.to_string(),
+                CachedDistances {
+                    shape,
+                    rows: local.clone(),
+                    report: report.clone(),
+                },
+            );
+        }
+        for (i, row) in local.into_iter().enumerate() {
+            rows[r.start + i] = row.into_iter().map(|(j, d)| (base + j, d)).collect();
+        }
+        for (i, l) in local_lens.into_iter().enumerate() {
+            lens[r.start + i] = l;
+        }
+        reports.push(report);
     }
     // Per-medium lengths aligned with the CSR entries (zeros for homogeneous rows).
     let mut material_len = Vec::new();
@@ -361,6 +470,7 @@ pub fn sheet_object_distances(
             voxel_size: 0.0,
             warning,
             seconds: start.elapsed().as_secs_f64(),
+            reused: false,
         },
     ))
 }

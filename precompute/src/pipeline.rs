@@ -64,6 +64,9 @@ pub struct PrecomputeParams {
     /// receiver through whole cluster nodes. Needs the hierarchical F's tree. `None`: S is
     /// stored pair by pair.
     pub subsurface_links: Option<crate::slinks::SLinkParams>,
+    /// Optical distances kept from earlier frames of an animation
+    /// ([`crate::distances::DistanceCache`]; [`crate::sequence`] sets it).
+    pub distance_cache: Option<std::sync::Arc<crate::distances::DistanceCache>>,
 }
 
 /// How F is computed and stored.
@@ -744,7 +747,18 @@ pub fn precompute(
         unit_mm,
         sp,
         &params.voxels,
+        params.distance_cache.as_deref(),
     )?;
+    for d in dist_reports.iter().filter(|d| d.reused) {
+        tell(
+            params,
+            &format!(
+                "note: '{}' only moved rigidly since an earlier frame: its optical distances \
+                 were reused",
+                d.name
+            ),
+        );
+    }
     bar.inc(1);
     // The estimate was an upper bound; should the stored paths still outgrow the budget,
     // stop here, before S (the larger half) is assembled.

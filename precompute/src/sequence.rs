@@ -9,6 +9,10 @@
 //! - **Sharing.** A frame whose resolved scene (triangles, materials, lights, settings) is the
 //!   same as an earlier frame's — a held pose, a pause — points at that frame's folder
 //!   instead of precomputing again.
+//! - **Rigid objects.** A homogeneous translucent object that only moves rigidly (keyframes
+//!   that translate and turn it) keeps the optical distances between its patches from the
+//!   first frame that computed them ([`crate::distances::DistanceCache`]): a later frame
+//!   skips its paths (the voxel tracing of a non-convex object is most of S's time).
 //! - **Resuming.** `OUT/.journal.json` records, per frame folder, a hash of what it was
 //!   computed from. Running the same command again (after an interruption, or after editing
 //!   some frames) precomputes only the frames whose hash is missing or changed.
@@ -157,8 +161,10 @@ pub fn precompute_sequence(
         inner: params.observer.clone(),
         told: Default::default(),
     });
+    // Objects that only move rigidly keep their optical distances from frame to frame.
     let params = &PrecomputeParams {
         observer: Some(once),
+        distance_cache: Some(Default::default()),
         ..params.clone()
     };
     let settings = settings_key(params);

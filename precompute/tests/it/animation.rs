@@ -251,3 +251,161 @@ fn animation_mistakes_are_named() {
     );
     assert!(Bundle::open(&bundle).is_ok());
 }
+
+/// Records the notes a precompute tells.
+#[derive(Debug, Default)]
+struct Notes(std::sync::Mutex<Vec<String>>);
+
+impl translux_precompute::pipeline::Observer for Notes {
+    fn progress(&self, _: &str, _: u64, _: u64) {}
+    fn note(&self, message: &str) {
+        self.0.lock().unwrap().push(message.to_owned());
+    }
+}
+
+/// A 3-frame scene: a floor and a marble block (×4 its mean free path) keyframed from
+/// x = −0.2 to x = 0.2 while it turns 90° about Y, `last_scale` times as large in the last
+/// frame.
+fn rigid_scene(dir: &Path, last_scale: f32) -> translux_precompute::scene::SceneSource {
+    let scene = serde_json::json!({
+        "name": "slide",
+        "animation": {"frames": 3, "fps": 12},
+        "patches": {"target": 500},
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [1, 1]},
+             "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+            {"name": "blk", "mesh": {"shape": "box", "size": [0.1, 0.16, 0.1]},
+             "transform": {"translate": [0, 0.08, 0]},
+             "material": {"type": "translucent",
+                          "profile": {"type": "dipole", "preset": "marble", "scale": 4}},
+             "keyframes": [{"frame": 0, "translate": [-0.2, 0, 0]},
+                           {"frame": 2, "translate": [0.2, 0, 0.1], "rotate_deg": [0, 90, 0],
+                            "scale": last_scale}]}
+        ],
+        "lights": [{"type": "point", "position": [0, 0.6, 0.3], "intensity": [1, 1, 1]}]
+    });
+    let path = dir.join("slide.json");
+    std::fs::write(&path, scene.to_string()).unwrap();
+    translux_precompute::scene::read_scene_file(&path).unwrap()
+}
+
+/// Object `name`'s optical distances in a bundle, rows and columns in the object's own
+/// patch numbering, with its S rows (green) alike.
+#[allow(clippy::type_complexity)]
+fn object_rows(b: &Bundle, name: &str) -> (Vec<Vec<(u32, f32)>>, Vec<Vec<(u32, f32)>>) {
+    let o = b
+        .manifest()
+        .objects
+        .iter()
+        .find(|o| o.name == name)
+        .unwrap();
+    let r = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+    let base = r.start as u32;
+    let (d, s) = (b.distances(), b.subsurface());
+    let pick = |cols: &[u32], val: &mut dyn Iterator<Item = f32>| {
+        cols.iter().map(|&j| j - base).zip(val).collect::<Vec<_>>()
+    };
+    let dist = r
+        .clone()
+        .map(|i| {
+            let (c, v) = d.row(i);
+            pick(c, &mut v.iter().copied())
+        })
+        .collect();
+    let sm = r
+        .map(|i| {
+            let (c, v) = s.row(i);
+            pick(c, &mut v.iter().map(|x| x[1]))
+        })
+        .collect();
+    (dist, sm)
+}
+
+/// A block that only slides and turns keeps its optical distances from the first frame;
+/// they equal a fresh precompute of the frame, and so does its S. A block that also grows
+/// gets new ones.
+#[test]
+fn a_rigidly_moving_object_keeps_its_optical_distances_between_frames() {
+    use std::sync::Arc;
+    use translux_precompute::pipeline::{PrecomputeParams, precompute};
+    use translux_precompute::sequence::precompute_sequence;
+    let dir = tempfile::tempdir().unwrap();
+    let src = rigid_scene(dir.path(), 1.0);
+    let notes = Arc::new(Notes::default());
+    let params = PrecomputeParams {
+        observer: Some(notes.clone()),
+        ..Default::default()
+    };
+    let out = dir.path().join("slide");
+    let report = precompute_sequence(&src, &out, &params, &|_, _| {}).unwrap();
+    assert_eq!(report.computed(), 3);
+    let notes = notes.0.lock().unwrap().clone();
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.contains("'blk' only moved rigidly") && n.contains("reused")),
+        "{notes:?}"
+    );
+    let frame = |k: u32| Bundle::open(&out.join(format!("frame-{k:04}"))).unwrap();
+    let (d0, _) = object_rows(&frame(0), "blk");
+    assert!(
+        d0.iter().map(Vec::len).sum::<usize>() > 1000,
+        "too few distances to compare"
+    );
+    for k in [1, 2] {
+        assert_eq!(
+            object_rows(&frame(k), "blk").0,
+            d0,
+            "frame {k} computed its own"
+        );
+    }
+    // The frame precomputed on its own (no cache): the same distances to float rounding of
+    // the turned centroids, and the same S.
+    let last = translux_precompute::scene::resolve_frame(
+        &src.file,
+        &src.base_dir,
+        src.name.clone(),
+        src.source.clone(),
+        2,
+    )
+    .unwrap();
+    let alone = dir.path().join("alone");
+    precompute(&last, &alone, &PrecomputeParams::default()).unwrap();
+    let (da, sa) = object_rows(&Bundle::open(&alone).unwrap(), "blk");
+    let (_, s2) = object_rows(&frame(2), "blk");
+    let close = |a: &[Vec<(u32, f32)>], b: &[Vec<(u32, f32)>], what: &str| {
+        assert_eq!(a.len(), b.len());
+        let peak = b.iter().flatten().fold(0f32, |m, e| m.max(e.1.abs()));
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert_eq!(x.len(), y.len(), "{what} row {i}: other pairs");
+            for (p, q) in x.iter().zip(y) {
+                assert_eq!(p.0, q.0, "{what} row {i}");
+                assert!(
+                    (p.1 - q.1).abs() <= 1e-4 * peak,
+                    "{what} row {i}: {p:?} vs {q:?}"
+                );
+            }
+        }
+    };
+    close(&d0, &da, "distances");
+    close(&s2, &sa, "S");
+
+    // Grown by half in the last frame: not the same object any more.
+    let grown = rigid_scene(dir.path(), 1.5);
+    let out = dir.path().join("grown");
+    precompute_sequence(&grown, &out, &PrecomputeParams::default(), &|_, _| {}).unwrap();
+    let longest = |k: u32| {
+        let b = Bundle::open(&out.join(format!("frame-{k:04}"))).unwrap();
+        object_rows(&b, "blk")
+            .0
+            .iter()
+            .flatten()
+            .fold(0f32, |m, e| m.max(e.1))
+    };
+    assert!(
+        longest(2) > 1.3 * longest(0),
+        "{} vs {}",
+        longest(2),
+        longest(0)
+    );
+}
