@@ -1165,6 +1165,67 @@ fn hierarchical_f_agrees_with_dense_f_on_the_cornell_box() {
     }
 }
 
+/// Hierarchical F against dense F on `loaded` at about `patches` patches, relit by random
+/// point and spot lights: the per-vertex errors and the operator errors, printed.
+fn hierarchical_against_dense(
+    loaded: &LoadedScene,
+    patches: u64,
+    what: &str,
+) -> (compare::Accuracy, Vec<f64>) {
+    let dir = tempfile::tempdir().unwrap();
+    let dense = bundle_with(
+        loaded,
+        dir.path(),
+        "dense",
+        patches,
+        FormFactorMethod::Dense,
+    );
+    let hier = bundle_with(
+        loaded,
+        dir.path(),
+        "hier",
+        patches,
+        FormFactorMethod::Hierarchical(HierarchyParams::default()),
+    );
+    let acc = compare::relight_accuracy(&dense, &hier, &compare::random_lights(&dense, 8, 17));
+    eprintln!("{what}: {acc:?}");
+    let ops = compare::fields(&hier, 3)
+        .into_iter()
+        .map(|(field, x)| {
+            let e = compare::operator_error(&dense, &hier, &x);
+            eprintln!("{what}: operator error, {field}: {e:.2e}");
+            e
+        })
+        .collect();
+    (acc, ops)
+}
+
+/// The same comparison on a closed room modelled as six wall OBJs with a box on the floor,
+/// and on the bowls (thin walls, inside and outside faces in separate clusters).
+#[test]
+fn hierarchical_f_agrees_with_dense_f_on_a_closed_room_and_the_bowls() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = RoomSpec::metres([2.0, -0.5, 3.0]);
+    spec.patches = 3000;
+    let room = load_scene_file(&rooms::write_room(dir.path(), &spec)).unwrap();
+    let bowls = translux_precompute::scene::load_scene("builtin:bowls").unwrap();
+    for (loaded, what) in [(&room, "closed room"), (&bowls, "bowls")] {
+        let (acc, ops) = hierarchical_against_dense(loaded, 3000, what);
+        assert!(acc.lit.count > 500, "{what}: {acc:?}");
+        assert!(
+            acc.lit.median < 0.015 && acc.lit.p90 < 0.04,
+            "{what}: {acc:?}"
+        );
+        if acc.shadowed.count > 100 {
+            assert!(
+                acc.shadowed.median < 0.04 && acc.shadowed.p90 < 0.15,
+                "{what}: {acc:?}"
+            );
+        }
+        assert!(ops.iter().all(|&e| e < 0.015), "{what}: {ops:?}");
+    }
+}
+
 /// A room split in two by a 1 cm wall, the light on one side: the other side stays dark
 /// with a hierarchical F (clusters of the floor and ceiling span both sides).
 #[test]
