@@ -593,6 +593,7 @@ function buildLightEditor() {
 }
 
 function addLight(type, t) {
+  if (!app.bbox) return; // no scene on screen yet
   const c = scale(add(app.bbox.min, app.bbox.max), 0.5);
   const above = [c[0], app.bbox.min[1] + (app.bbox.max[1] - app.bbox.min[1]) * 0.8, c[2]];
   const light = type === "point" ? { type, position: above, intensity: [0.5, 0.5, 0.5] }
@@ -1072,6 +1073,7 @@ function onWheel(ev) {
 }
 
 function fit() {
+  if (!app.bbox) return;
   const { w, h } = cssSize();
   app.camera.fit(app.bbox.min, app.bbox.max, w / h);
   app.needDraw = true;
@@ -1085,13 +1087,16 @@ function draw(withGizmo = app.gizmo) {
   r.resize();
   const { w, h } = cssSize();
   const m = app.camera.matrices(w / Math.max(h, 1));
+  // A scene's detail arrives before its mesh (and bounds): a frame drawn in between has
+  // neither gizmo nor highlights.
+  const loaded = !!(app.detail && app.bbox);
   r.draw(m, {
     exposure: app.state.exposure,
     tone: app.state.tone,
     cullBackfaces: app.state.cull,
     background: [0.031, 0.035, 0.043],
-    gizmo: withGizmo && app.detail ? gizmoGeometry() : null,
-    highlights: app.detail ? {
+    gizmo: withGizmo && loaded ? gizmoGeometry() : null,
+    highlights: loaded ? {
       lights: app.state.lights,
       unitMm: app.detail.unit_mm,
       specular: highlightsOn(),
