@@ -158,9 +158,21 @@ fn euclidean_rows(c: &[Vec3], r_max: f32) -> Vec<Vec<(u32, f32)>> {
         .collect()
 }
 
-/// What [`scene_distances`] returns: the distances (CSR), their per-medium lengths and their
-/// kinds (both aligned with the CSR entries), and a report per translucent object.
-pub type SceneDistances = (Csr<f32>, Vec<MediaLen>, Vec<u32>, Vec<DistanceReport>);
+/// What [`scene_distances`] returns.
+#[derive(Debug)]
+pub struct SceneDistances {
+    /// The distances (CSR, global indices).
+    pub dist: Csr<f32>,
+    /// Their per-medium lengths, aligned with the CSR entries.
+    pub material_len: Vec<MediaLen>,
+    /// Their kinds, aligned with the CSR entries.
+    pub kind: Vec<u32>,
+    /// A report per translucent object.
+    pub reports: Vec<DistanceReport>,
+    /// Per object: the distances on demand of an object asked for that way (its rows in
+    /// `dist` are empty; [`crate::slinks::collapse`] traces what its cut uses).
+    pub on_demand: Vec<Option<voxel::Oracle>>,
+}
 
 /// Bytes the subsurface stage holds per stored path at its peak, counted from its buffers:
 /// the path as a row entry (column and length, 8) and its kind (4) while the rows are
@@ -217,6 +229,9 @@ pub fn estimate_paths(
 /// With a `cache`, a homogeneous translucent object that only moved rigidly since a frame
 /// that stored its distances there takes them from it ([`DistanceReport::reused`]); every
 /// one computed here is stored in it.
+/// A homogeneous translucent object with `on_demand[k]` set gets no pairs: its grid is
+/// prepared ([`voxel::Oracle`]) for a hierarchical S's cut to trace only the distances it
+/// uses.
 #[allow(clippy::too_many_arguments)]
 pub fn scene_distances(
     g: &PatchGeometry,
@@ -227,7 +242,9 @@ pub fn scene_distances(
     params: &SParams,
     voxels: &VoxelParams,
     cache: Option<&DistanceCache>,
+    on_demand: &[bool],
 ) -> Result<SceneDistances, DistanceError> {
+    let mut oracles: Vec<Option<voxel::Oracle>> = (0..objects.len()).map(|_| None).collect();
     let mut rows: Vec<Vec<(u32, f32)>> = vec![Vec::new(); g.corners.len()];
     let mut kinds: Vec<Vec<u32>> = vec![Vec::new(); g.corners.len()];
     let mut lens: Vec<Vec<MediaLen>> = vec![Vec::new(); g.corners.len()];
@@ -271,6 +288,34 @@ pub fn scene_distances(
                 why: "by_obj_material needs the medium of every patch".into(),
             }
             .into());
+        }
+        if field.is_none()
+            && matches!(o.material, Material::Translucent { .. })
+            && on_demand.get(k).copied().unwrap_or(false)
+        {
+            let (oracle, warning) = match voxel::Oracle::new(o.name, tris, cen, nor, radius, voxels)
+            {
+                Ok(oracle) => (oracle, None),
+                Err(VoxelError::NoInterior { .. }) => (
+                    voxel::Oracle::straight(cen, radius),
+                    Some(no_interior(o.name)),
+                ),
+                Err(e) => return Err(e.into()),
+            };
+            let stats = oracle.stats();
+            reports.push(DistanceReport {
+                name: o.name.to_string(),
+                method: method_name(Some(stats.method), warning.is_some()),
+                radius,
+                voxels: stats.voxels as u64,
+                interior_voxels: stats.interior_voxels as u64,
+                voxel_size: stats.voxel_size,
+                warning,
+                seconds: t.elapsed().as_secs_f64(),
+                reused: false,
+            });
+            oracles[k] = Some(oracle);
+            continue;
         }
         // A homogeneous object seen before in another pose: its distances again.
         let rigid = (field.is_none() && matches!(o.material, Material::Translucent { .. }))
@@ -334,25 +379,14 @@ pub fn scene_distances(
                         })
                         .collect();
                 }
-                (
-                    rows,
-                    None,
-                    Some(format!(
-                        "'{}' has no interior (open or broken mesh): straight-line distances used",
-                        o.name
-                    )),
-                )
+                (rows, None, Some(no_interior(o.name)))
             }
             Err(e) => return Err(e.into()),
         };
         let base = r.start as u32;
         let report = DistanceReport {
             name: o.name.to_string(),
-            method: match stats.map(|s| s.method) {
-                Some(voxel::Method::Voxel) => "voxel".into(),
-                Some(voxel::Method::Euclidean) => "euclidean".into(),
-                None => "euclidean (fallback)".into(),
-            },
+            method: method_name(stats.map(|s| s.method), stats.is_none()),
             radius,
             voxels: stats.map_or(0, |s| s.voxels as u64),
             interior_voxels: stats.map_or(0, |s| s.interior_voxels as u64),
@@ -399,7 +433,27 @@ pub fn scene_distances(
     }
     let n = rows.len();
     let d = Csr::from_rows(n, rows).map_err(SError::Matrix)?;
-    Ok((d, material_len, kind, reports))
+    Ok(SceneDistances {
+        dist: d,
+        material_len,
+        kind,
+        reports,
+        on_demand: oracles,
+    })
+}
+
+/// The warning for an object without interior, whose distances fall back to straight lines.
+fn no_interior(name: &str) -> String {
+    format!("'{name}' has no interior (open or broken mesh): straight-line distances used")
+}
+
+/// The report's name of a method (`fallback`: straight lines for want of an interior).
+fn method_name(method: Option<voxel::Method>, fallback: bool) -> String {
+    match method {
+        _ if fallback => "euclidean (fallback)".into(),
+        Some(voxel::Method::Voxel) => "voxel".into(),
+        _ => "euclidean".into(),
+    }
 }
 
 /// The manifest's per-object record, from both stages' reports.

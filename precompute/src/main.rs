@@ -15,7 +15,7 @@ use translux_precompute::formfactor::FormFactorParams;
 use translux_precompute::hierarchy::HierarchyParams;
 use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
-use translux_precompute::slinks::SLinkParams;
+use translux_precompute::slinks::{SLinkParams, Trace};
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
 #[derive(Debug, Parser)]
@@ -65,6 +65,12 @@ struct Cli {
     /// least R / S_ACCURACY; accepted 0.05 to 1.
     #[arg(long, default_value_t = SLinkParams::default().accuracy)]
     s_accuracy: f32,
+    /// Hierarchical S only: how translucent objects' optical paths are traced. `on-demand`:
+    /// only those the cut uses; `all`: every path within the profile's radius, then the
+    /// cut from those; `auto` (default): on demand where the cut keeps under a quarter of
+    /// the paths. The bundle is the same either way, bit for bit.
+    #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
+    s_trace: TraceArg,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -180,6 +186,14 @@ fn sequence(
     Ok(())
 }
 
+/// `--s-trace`.
+#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
+enum TraceArg {
+    Auto,
+    OnDemand,
+    All,
+}
+
 /// `--subsurface`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum SubsurfaceArg {
@@ -265,6 +279,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             SubsurfaceArg::Pairwise => None,
             SubsurfaceArg::Hierarchical => Some(SLinkParams {
                 accuracy: cli.s_accuracy,
+                trace: match cli.s_trace {
+                    TraceArg::Auto => Trace::Auto,
+                    TraceArg::OnDemand => Trace::OnDemand,
+                    TraceArg::All => Trace::All,
+                },
             }),
         },
         environment: match cli.env_bins.as_deref() {

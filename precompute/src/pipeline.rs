@@ -205,7 +205,8 @@ pub enum PrecomputeError {
         "the subsurface stage would need about {} (~{paths:.2e} stored optical paths in \
          {object:?}, every patch pair within {radius:.4} scene units, {} bytes each while \
          building, with F), more than the {} allowed; use fewer patches (simplify_to for a \
-         scanned mesh) or a less translucent profile",
+         scanned mesh), a less translucent profile, or --subsurface hierarchical (which \
+         traces only the paths its cut uses)",
         human_bytes(*estimate),
         distances::PEAK_BYTES_PER_PATH,
         human_bytes(*limit)
@@ -577,15 +578,32 @@ pub fn precompute(
         &params.subsurface,
     )?;
     let f_kept = (nnz_est * 8.0) as u64 + patches.len() as u64 * 200;
-    let path_total: u64 = paths.iter().map(|p| p.1).sum();
+    // A hierarchical S traced on demand never lists a homogeneous translucent object's
+    // pairs: it holds its direct pairs and links only.
+    let on_demand_bound = |name: &str| -> Option<u64> {
+        params
+            .subsurface_links
+            .as_ref()
+            .filter(|sl| sl.trace != crate::slinks::Trace::All)?;
+        if !matches!(params.transport, FormFactorMethod::Hierarchical(_)) {
+            return None;
+        }
+        let o = materials.iter().find(|o| o.name == name)?;
+        matches!(o.material, Material::Translucent { .. })
+            .then(|| o.patches.len() as u64 * crate::slinks::ENTRIES_BOUND)
+    };
+    let held: Vec<(String, u64, f32)> = paths
+        .iter()
+        .map(|(name, p, r)| {
+            let p = on_demand_bound(name).map_or(*p, |b| b.min(*p));
+            (name.clone(), p, *r)
+        })
+        .collect();
+    let path_total: u64 = held.iter().map(|p| p.1).sum();
     let subsurface_estimate =
         f_kept.saturating_add(path_total.saturating_mul(distances::PEAK_BYTES_PER_PATH));
     if subsurface_estimate > limit {
-        let (object, most, radius) = paths
-            .iter()
-            .max_by_key(|p| p.1)
-            .cloned()
-            .unwrap_or_default();
+        let (object, most, radius) = held.iter().max_by_key(|p| p.1).cloned().unwrap_or_default();
         return Err(PrecomputeError::SubsurfaceOutOfMemory {
             object,
             paths: most,
@@ -739,7 +757,29 @@ pub fn precompute(
         )
         .expect("the walks build valid records")
     });
-    let (dist, dist_len, dist_kind, dist_reports) = distances::scene_distances(
+    // A hierarchical S traces the distances of homogeneous translucent objects on demand
+    // (the cut first, then only the paths it uses) where that saves work.
+    let on_demand: Vec<bool> = match (&params.subsurface_links, &tree) {
+        (Some(sl), Some((t, _, _))) => {
+            let reach = materials
+                .iter()
+                .map(|o| smatrix::stored_radius(o, unit_mm, sp))
+                .collect::<Result<Vec<_>, _>>()?;
+            let pairs: Vec<u64> = materials
+                .iter()
+                .map(|o| paths.iter().find(|p| p.0 == o.name).map_or(0, |p| p.1))
+                .collect();
+            crate::slinks::trace_on_demand(t, &geometry, &materials, &reach, &pairs, sp, sl)
+        }
+        _ => vec![false; materials.len()],
+    };
+    let distances::SceneDistances {
+        dist,
+        material_len: dist_len,
+        kind: dist_kind,
+        reports: mut dist_reports,
+        on_demand: oracles,
+    } = distances::scene_distances(
         &geometry,
         &materials,
         &sources,
@@ -748,6 +788,7 @@ pub fn precompute(
         sp,
         &params.voxels,
         params.distance_cache.as_deref(),
+        &on_demand,
     )?;
     for d in dist_reports.iter().filter(|d| d.reused) {
         tell(
@@ -784,11 +825,19 @@ pub fn precompute(
         .collect();
     // A hierarchical S: far pairs of translucent objects become links to whole nodes.
     let t_links = Instant::now();
-    let pairwise_distances = dist.col.len() as u64;
+    // Objects traced on demand never had their pairs listed: their share of what a
+    // pairwise S would have stored is the estimate made before F.
+    let pairwise_distances = dist.col.len() as u64
+        + materials
+            .iter()
+            .zip(&oracles)
+            .filter(|(_, o)| o.is_some())
+            .filter_map(|(m, _)| paths.iter().find(|p| p.0 == m.name).map(|p| p.1))
+            .sum::<u64>();
     let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
-                t, &geometry, &materials, &stored, &dist, &dist_len, &dist_kind, sp, sl,
+                t, &geometry, &materials, &stored, &dist, &dist_len, &dist_kind, &oracles, sp, sl,
             )?;
             if c.links > 0 {
                 geometry.nodes = Some(c.nodes);
@@ -797,14 +846,25 @@ pub fn precompute(
         }
         _ => (dist, dist_len, dist_kind, 0),
     };
+    let cut_seconds = t_links.elapsed().as_secs_f64();
+    // The paths an on-demand object traced belong to its stage-1 time.
+    for (m, _) in materials.iter().zip(&oracles).filter(|(_, o)| o.is_some()) {
+        if let Some(d) = dist_reports.iter_mut().find(|d| d.name == m.name) {
+            d.seconds += cut_seconds;
+        }
+    }
     if links > 0 {
         tell(
             params,
             &format!(
                 "note: hierarchical S: {links} links to cluster nodes beside {} direct pairs, \
-                 from {pairwise_distances} pairwise distances (cut in {:.2} s)",
+                 against {pairwise_distances} pairwise distances{} (cut in {cut_seconds:.2} s)",
                 dist.col.len() as u64 - links,
-                t_links.elapsed().as_secs_f64()
+                if oracles.iter().any(Option::is_some) {
+                    ", estimated; only the distances the cut uses were traced"
+                } else {
+                    ""
+                },
             ),
         );
     }

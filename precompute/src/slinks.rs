@@ -28,12 +28,23 @@
 //! - otherwise its children are visited; a patch i with a stored distance becomes a direct
 //!   entry, evaluated as in a pairwise S.
 //!
+//! The distances come one of two ways ([`Trace`]), with the same result bit for bit: from
+//! stage 1's pairwise distances (every pair within the stored radius, then the cut), or on
+//! demand ([`Oracle`], homogeneous translucent objects): every receiver's cut is made first
+//! from geometry alone (a candidate whose straight line already exceeds the reach is left
+//! out, an optical path being never shorter), then only the distances it uses are traced —
+//! a run from each receiver to its close candidates, one from each distant candidate (a
+//! patch a loose node of the tree leaves to many near fields) to the receivers listing it,
+//! and one from each linked node's representative to the receivers linking it. Runs stop
+//! once their targets are settled. A large or very translucent object (the bowls' bunny in
+//! skim milk: every patch within reach of every other) then never lists its O(n²) pairs.
+//!
 //! Thin sheets are cut the same way along their geodesics, a node being linked only when its
 //! normal cone is at most 45° wide (so it holds one side) and the link taking its
 //! representative's kind (same side or other side). Heterogeneous objects keep their
 //! pairwise distances (each carries its own per-medium lengths).
 
-use std::ops::RangeInclusive;
+use std::ops::{Range, RangeInclusive};
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -46,10 +57,17 @@ use translux_proto::csr::Csr;
 use translux_proto::scene::Material;
 
 use crate::hierarchy::{Child, ClusterTree};
+use crate::voxel::Oracle;
 
 /// Widest normal cone (half-angle, radians: 45°) of a node a thin sheet's receiver may link:
 /// the sheet's two sides face apart, so such a node holds one side.
 const SHEET_CONE: f32 = std::f32::consts::FRAC_PI_4;
+
+/// Entries (direct pairs and links) per patch a hierarchical S at the default accuracy
+/// stays under, for the memory estimate made before any of it runs: measured 450 on the
+/// bowls' bunny at 14k patches and 900 on the whole scan at 69k (skim milk, whose profile
+/// reaches across the whole object); links grow about as log n.
+pub const ENTRIES_BOUND: u64 = 2_000;
 
 /// The accuracies a precompute accepts ([`SLinkParams::check`]).
 pub const ACCURACY_RANGE: RangeInclusive<f32> = 0.05..=1.0;
@@ -61,12 +79,87 @@ pub struct SLinkParams {
     /// at least ρ/θ. Smaller is more accurate and stores more. Default 0.5; accepted 0.05
     /// to 1.
     pub accuracy: f32,
+    /// How a homogeneous translucent object's optical distances are traced.
+    pub trace: Trace,
 }
 
 impl Default for SLinkParams {
     fn default() -> Self {
-        Self { accuracy: 0.5 }
+        Self {
+            accuracy: 0.5,
+            trace: Trace::Auto,
+        }
     }
+}
+
+/// How the optical distances of a homogeneous translucent object are traced for a
+/// hierarchical S. Both give the same distances, bit for bit, hence the same bundle.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Trace {
+    /// On demand where the cut keeps under a quarter of the pairs within the radius (a
+    /// large or very translucent object: a receiver's near patches lie a few patch sizes
+    /// away, far inside the profile's reach), every pair otherwise (an object about as
+    /// small as the reach, where the near runs would go about as far as the full ones and
+    /// the node runs would come on top).
+    #[default]
+    Auto,
+    /// Only the distances the cut uses ([`crate::voxel::Oracle`]).
+    OnDemand,
+    /// Every pair within the radius first, then the cut from those (as a pairwise S
+    /// stores them).
+    All,
+}
+
+/// Per object: whether its distances are traced on demand (`Trace` of `params`; for
+/// [`Trace::Auto`] the cut's entries, counted on up to 256 evenly spaced receivers, against
+/// `pairs[k]`, the estimate of what tracing every pair stores). `reach[k]` is how far the
+/// object's distances are kept (`None`: it has none).
+pub fn trace_on_demand(
+    tree: &ClusterTree,
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    reach: &[Option<f32>],
+    pairs: &[u64],
+    sp: &SParams,
+    params: &SLinkParams,
+) -> Vec<bool> {
+    let roots = cut_roots(tree, objects);
+    if params.trace == Trace::All {
+        return vec![false; objects.len()];
+    }
+    let ranges = tree.ranges();
+    let pos = positions(tree);
+    let rep = representatives(tree, g);
+    let cutter = Cutter::new(tree, &ranges, &pos, g, sp, params);
+    objects
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            let (Some((root, false)), Some(Some(reach))) = (roots[k], reach.get(k)) else {
+                return false;
+            };
+            if params.trace == Trace::OnDemand {
+                return true;
+            }
+            let r = o.patches.clone();
+            let rows = r.len().min(256);
+            let kept: u64 = (0..rows)
+                .into_par_iter()
+                .map(|s| {
+                    let j = r.start + s * r.len() / rows;
+                    let (mut near, mut far) = (Vec::new(), Vec::new());
+                    cutter.cut(j, root, *reach, false, &mut near, &mut far);
+                    let x = g.centroid[j];
+                    let close = |p: u32| x.distance(g.centroid[p as usize]) <= *reach;
+                    (near.into_iter().filter(|&i| close(i)).count()
+                        + far.into_iter().filter(|&q| close(rep[q as usize])).count())
+                        as u64
+                })
+                .sum();
+            let kept = kept as f64 / rows as f64 * r.len() as f64;
+            4.0 * kept < pairs.get(k).copied().unwrap_or(0) as f64
+        })
+        .collect()
 }
 
 impl SLinkParams {
@@ -123,10 +216,129 @@ fn representatives(tree: &ClusterTree, g: &PatchGeometry) -> Vec<u32> {
         .collect()
 }
 
+/// Each patch's position in the tree's order.
+fn positions(tree: &ClusterTree) -> Vec<u32> {
+    let mut pos = vec![0u32; tree.perm.len()];
+    for (k, &p) in tree.perm.iter().enumerate() {
+        pos[p as usize] = k as u32;
+    }
+    pos
+}
+
+/// Per object: the root of its subtree and whether it is a thin sheet, for the objects a
+/// hierarchical S cuts (homogeneous translucent objects and thin sheets of two patches or
+/// more whose patches form one subtree; objects are split apart at the top of the tree, so
+/// one without stays pairwise).
+pub fn cut_roots(tree: &ClusterTree, objects: &[ObjectMaterial<'_>]) -> Vec<Option<(Child, bool)>> {
+    let pos = positions(tree);
+    objects
+        .iter()
+        .map(|o| {
+            let r = o.patches.clone();
+            let sheet = match o.material {
+                Material::Translucent { .. } => false,
+                Material::ThinSheet { .. } => true,
+                _ => return None,
+            };
+            if r.len() < 2 {
+                return None;
+            }
+            let lo = r.clone().map(|p| pos[p]).min().unwrap_or(0);
+            let root = tree.subtree([lo, lo + r.len() as u32])?;
+            Some((root, sheet))
+        })
+        .collect()
+}
+
+/// The geometric part of a receiver's cut (the module docs), shared by both ways of
+/// finding the distances: it names the patches the receiver may take directly and the
+/// nodes it may link, before any optical distance is known.
+struct Cutter<'a> {
+    tree: &'a ClusterTree,
+    ranges: &'a [[u32; 2]],
+    /// Position of each patch in the tree's order.
+    pos: &'a [u32],
+    g: &'a PatchGeometry,
+    theta: f32,
+    near_factor: f32,
+}
+
+impl<'a> Cutter<'a> {
+    fn new(
+        tree: &'a ClusterTree,
+        ranges: &'a [[u32; 2]],
+        pos: &'a [u32],
+        g: &'a PatchGeometry,
+        sp: &SParams,
+        params: &SLinkParams,
+    ) -> Self {
+        Cutter {
+            tree,
+            ranges,
+            pos,
+            g,
+            theta: params.accuracy,
+            near_factor: sp.quadrature.near_factor,
+        }
+    }
+
+    /// Receiver j's cut below `root`: patches (other than j) into `direct`, far nodes into
+    /// `far`; nodes wholly beyond `reach` are dropped.
+    fn cut(
+        &self,
+        j: usize,
+        root: Child,
+        reach: f32,
+        sheet: bool,
+        direct: &mut Vec<u32>,
+        far: &mut Vec<u32>,
+    ) {
+        let x = self.g.centroid[j];
+        let mut stack = vec![root];
+        while let Some(c) = stack.pop() {
+            match c {
+                Child::Patch(i) => {
+                    if i as usize != j {
+                        direct.push(i);
+                    }
+                }
+                Child::Node(q) => {
+                    let q = q as usize;
+                    let range = self.ranges[q];
+                    if (range[0]..range[1]).contains(&self.pos[j]) {
+                        stack.extend_from_slice(&self.tree.children(q));
+                        continue;
+                    }
+                    let (centre, rho) = self.tree.sphere(q);
+                    let de = x.distance(centre);
+                    if de - rho > reach {
+                        continue;
+                    }
+                    // On a sheet a link stands for one side only (normals within SHEET_CONE
+                    // of their mean), of its representative's kind.
+                    let is_far = rho <= self.theta * de
+                        && de - rho >= self.near_factor * self.g.size[j]
+                        && (!sheet || self.tree.cone(q) <= SHEET_CONE);
+                    if is_far {
+                        far.push(q as u32);
+                    } else {
+                        stack.extend_from_slice(&self.tree.children(q));
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Per receiver j (local): its direct sources and its links, each (patch or node, optical
+/// distance, kind).
+type Cut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32)>);
+
 /// Replaces the pairwise distances of every homogeneous translucent object and thin sheet
 /// (of two patches or more) by direct pairs and links (the module docs); other rows are
 /// copied. `stored[k]` is how far object k's distances reach; `sp` gives the quadrature's
-/// near-pair rule.
+/// near-pair rule. An object with an [`Oracle`] in `on_demand` has no pairwise rows in
+/// `dist`: its cut is made first and only the distances it uses are traced.
 #[expect(
     clippy::too_many_arguments,
     reason = "stage 1's arrays as the pipeline holds them"
@@ -139,10 +351,10 @@ pub fn collapse(
     dist: &Csr<f32>,
     material_len: &[MediaLen],
     kind: &[u32],
+    on_demand: &[Option<Oracle>],
     sp: &SParams,
     params: &SLinkParams,
 ) -> Result<Collapsed, SError> {
-    let near_factor = sp.quadrature.near_factor;
     let n = g.corners.len();
     let ranges = tree.ranges();
     let m = ranges.len();
@@ -155,33 +367,14 @@ pub fn collapse(
         range: ranges.clone(),
         area: translux_engine::transport::node_areas(view, &g.area),
     };
-    let mut pos = vec![0u32; n];
-    for (k, &p) in tree.perm.iter().enumerate() {
-        pos[p as usize] = k as u32;
-    }
+    let pos = positions(tree);
     let rep = representatives(tree, g);
-    let theta = params.accuracy;
+    let cutter = Cutter::new(tree, &ranges, &pos, g, sp, params);
 
-    // The objects cut: homogeneous translucent objects and sheets with a subtree of their
-    // own (objects are split apart first; one without stays pairwise): (object, root,
-    // whether it is a sheet).
-    let cut: Vec<(usize, Child, bool)> = objects
-        .iter()
+    let cut: Vec<(usize, Child, bool)> = cut_roots(tree, objects)
+        .into_iter()
         .enumerate()
-        .filter_map(|(k, o)| {
-            let r = o.patches.clone();
-            let sheet = match o.material {
-                Material::Translucent { .. } => false,
-                Material::ThinSheet { .. } => true,
-                _ => return None,
-            };
-            if r.len() < 2 {
-                return None;
-            }
-            let lo = r.clone().map(|p| pos[p]).min().unwrap_or(0);
-            let root = tree.subtree([lo, lo + r.len() as u32])?;
-            Some((k, root, sheet))
-        })
+        .filter_map(|(k, c)| c.map(|(root, sheet)| (k, root, sheet)))
         .collect();
     let mut is_cut = vec![false; n];
     for &(k, _, _) in &cut {
@@ -216,81 +409,10 @@ pub fn collapse(
     for &(k, root, sheet) in &cut {
         let r = objects[k].patches.clone();
         let reach = stored.get(k).copied().unwrap_or(0.0);
-        // Per receiver j (local): its direct sources and its links.
-        type Cut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32)>);
-        // What reaches each receiver j: the stored entries (source i, receiver j) turned
-        // around, as stored (a sheet's entry i → j need not equal j → i).
-        let mut incoming: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
-        for i in r.clone() {
-            for e in dist.row_ptr[i] as usize..dist.row_ptr[i + 1] as usize {
-                let j = dist.col[e] as usize;
-                if r.contains(&j) {
-                    let kd = kind.get(e).copied().unwrap_or(KIND_SAME);
-                    incoming[j - r.start].push(((i - r.start) as u32, dist.val[e], kd));
-                }
-            }
-        }
-        let cuts: Vec<Cut> = r
-            .clone()
-            .into_par_iter()
-            .map_init(
-                || (vec![f32::INFINITY; r.len()], vec![KIND_SAME; r.len()]),
-                |(dj, kj), j| {
-                    let into = &incoming[j - r.start];
-                    for &(i, d, kd) in into {
-                        dj[i as usize] = d;
-                        kj[i as usize] = kd;
-                    }
-                    let x = g.centroid[j];
-                    let (mut direct, mut links) = (Vec::new(), Vec::new());
-                    let mut stack = vec![root];
-                    while let Some(c) = stack.pop() {
-                        match c {
-                            Child::Patch(i) => {
-                                let d = dj[i as usize - r.start];
-                                if i as usize != j && d.is_finite() {
-                                    direct.push((i, d, kj[i as usize - r.start]));
-                                }
-                            }
-                            Child::Node(q) => {
-                                let q = q as usize;
-                                let range = ranges[q];
-                                if (range[0]..range[1]).contains(&pos[j]) {
-                                    stack.extend_from_slice(&tree.children(q));
-                                    continue;
-                                }
-                                let (centre, rho) = tree.sphere(q);
-                                let de = x.distance(centre);
-                                if de - rho > reach {
-                                    continue;
-                                }
-                                // On a sheet a link stands for one side only (normals within
-                                // SHEET_CONE of their mean), of its representative's kind.
-                                let far = rho <= theta * de
-                                    && de - rho >= near_factor * g.size[j]
-                                    && (!sheet || tree.cone(q) <= SHEET_CONE);
-                                let lr = rep[q] as usize - r.start;
-                                let d = dj[lr];
-                                if far && d.is_finite() {
-                                    links.push((q as u32, d, kj[lr]));
-                                } else if !far {
-                                    stack.extend_from_slice(&tree.children(q));
-                                }
-                                // A far node whose representative lies beyond the stored
-                                // reach is dropped: only its edge is within reach, where the
-                                // profile has spent all but its truncation energy.
-                            }
-                        }
-                    }
-                    for &(i, _, _) in into {
-                        dj[i as usize] = f32::INFINITY;
-                    }
-                    direct.sort_unstable_by_key(|e| e.0);
-                    links.sort_unstable_by_key(|e| e.0);
-                    (direct, links)
-                },
-            )
-            .collect();
+        let cuts = match on_demand.get(k).and_then(Option::as_ref) {
+            Some(oracle) if !sheet => cut_on_demand(&cutter, &rep, r.clone(), root, reach, oracle),
+            _ => cut_pairwise(&cutter, &rep, r.clone(), root, reach, sheet, dist, kind),
+        };
         // Direct pairs are stored by source (row i lists its receivers j); receivers come
         // in increasing order, so every row stays sorted.
         for (jl, (direct, _)) in cuts.iter().enumerate() {
@@ -331,4 +453,196 @@ pub fn collapse(
         nodes,
         links: links_total,
     })
+}
+
+/// The cut of one object from its stored pairwise distances (thin sheets, and the reference
+/// a test compares the on-demand cut with): what reaches each receiver j is the stored
+/// entries (source i, receiver j) turned around, as stored (a sheet's entry i → j need not
+/// equal j → i).
+#[expect(
+    clippy::too_many_arguments,
+    reason = "one object's share of collapse's inputs"
+)]
+fn cut_pairwise(
+    cutter: &Cutter<'_>,
+    rep: &[u32],
+    r: Range<usize>,
+    root: Child,
+    reach: f32,
+    sheet: bool,
+    dist: &Csr<f32>,
+    kind: &[u32],
+) -> Vec<Cut> {
+    let mut incoming: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
+    for i in r.clone() {
+        for e in dist.row_ptr[i] as usize..dist.row_ptr[i + 1] as usize {
+            let j = dist.col[e] as usize;
+            if r.contains(&j) {
+                let kd = kind.get(e).copied().unwrap_or(KIND_SAME);
+                incoming[j - r.start].push(((i - r.start) as u32, dist.val[e], kd));
+            }
+        }
+    }
+    r.clone()
+        .into_par_iter()
+        .map_init(
+            || (vec![f32::INFINITY; r.len()], vec![KIND_SAME; r.len()]),
+            |(dj, kj), j| {
+                let into = &incoming[j - r.start];
+                for &(i, d, kd) in into {
+                    dj[i as usize] = d;
+                    kj[i as usize] = kd;
+                }
+                let (mut near, mut far) = (Vec::new(), Vec::new());
+                cutter.cut(j, root, reach, sheet, &mut near, &mut far);
+                let mut direct: Vec<(u32, f32, u32)> = near
+                    .into_iter()
+                    .filter_map(|i| {
+                        let l = i as usize - r.start;
+                        dj[l].is_finite().then(|| (i, dj[l], kj[l]))
+                    })
+                    .collect();
+                // A far node whose representative lies beyond the stored reach is dropped:
+                // only its edge is within reach, where the profile has spent all but its
+                // truncation energy.
+                let mut links: Vec<(u32, f32, u32)> = far
+                    .into_iter()
+                    .filter_map(|q| {
+                        let l = rep[q as usize] as usize - r.start;
+                        dj[l].is_finite().then(|| (q, dj[l], kj[l]))
+                    })
+                    .collect();
+                for &(i, _, _) in into {
+                    dj[i as usize] = f32::INFINITY;
+                }
+                direct.sort_unstable_by_key(|e| e.0);
+                links.sort_unstable_by_key(|e| e.0);
+                (direct, links)
+            },
+        )
+        .collect()
+}
+
+/// The cut of one homogeneous translucent object whose distances are traced on demand:
+/// every receiver's cut first (geometry only; candidates whose straight line already
+/// exceeds the reach are left out, an optical path being never shorter), then the
+/// distances it uses: one run per receiver to its direct patches, one per linked node from
+/// its representative to the receivers linking it. Distances are symmetric, so each
+/// equals the stored pairwise one ([`Oracle`]) and the cut equals [`cut_pairwise`]'s.
+fn cut_on_demand(
+    cutter: &Cutter<'_>,
+    rep: &[u32],
+    r: Range<usize>,
+    root: Child,
+    reach: f32,
+    oracle: &Oracle,
+) -> Vec<Cut> {
+    let g = cutter.g;
+    let base = r.start as u32;
+    let within = |a: u32, b: u32| g.centroid[a as usize].distance(g.centroid[b as usize]) <= reach;
+    // Per receiver: its direct candidates (local) and far nodes.
+    let geo: Vec<(Vec<u32>, Vec<u32>)> = r
+        .clone()
+        .into_par_iter()
+        .map(|j| {
+            let (mut near, mut far) = (Vec::new(), Vec::new());
+            cutter.cut(j, root, reach, false, &mut near, &mut far);
+            near.retain(|&i| within(i, j as u32));
+            far.retain(|&q| within(rep[q as usize], j as u32));
+            near.iter_mut().for_each(|i| *i -= base);
+            near.sort_unstable();
+            far.sort_unstable();
+            (near, far)
+        })
+        .collect();
+    // Direct: from each receiver to its close candidates; a distant candidate (a patch a
+    // loose node of the tree leaves to many receivers' near fields) gets one run of its
+    // own to every receiver listing it, rather than stretching each of their runs.
+    let close = 2.0 * cutter.near_factor;
+    let mut distant: std::collections::HashMap<u32, Vec<u32>> = std::collections::HashMap::new();
+    let jobs: Vec<(u32, Vec<u32>)> = geo
+        .iter()
+        .enumerate()
+        .map(|(jl, (near, _))| {
+            let j = jl as u32 + base;
+            let limit = close * g.size[j as usize];
+            let (mut mine, mut far_off) = (Vec::new(), Vec::new());
+            for &i in near {
+                if g.centroid[(i + base) as usize].distance(g.centroid[j as usize]) <= limit {
+                    mine.push(i);
+                } else {
+                    far_off.push(i);
+                }
+            }
+            for i in far_off {
+                distant.entry(i).or_default().push(jl as u32);
+            }
+            (jl as u32, mine)
+        })
+        .collect();
+    let close_d = oracle.solve(&jobs);
+    let mut pair_d: Vec<std::collections::HashMap<u32, f32>> = vec![Default::default(); r.len()];
+    for ((jl, mine), ds) in jobs.iter().zip(&close_d) {
+        let m = &mut pair_d[*jl as usize];
+        for (&i, &d) in mine.iter().zip(ds) {
+            m.insert(i, d);
+        }
+    }
+    drop(close_d);
+    let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
+    let far_d = oracle.solve(&far_jobs);
+    for ((i, receivers), ds) in far_jobs.iter().zip(&far_d) {
+        for (&jl, &d) in receivers.iter().zip(ds) {
+            pair_d[jl as usize].insert(*i, d);
+        }
+    }
+    drop(jobs);
+    let direct_d: Vec<Vec<f32>> = geo
+        .iter()
+        .zip(&pair_d)
+        .map(|((near, _), m)| near.iter().map(|i| m[i]).collect())
+        .collect();
+    drop(pair_d);
+    // Links: from each linked node's representative to the receivers linking it.
+    let mut linkers: std::collections::HashMap<u32, Vec<u32>> = std::collections::HashMap::new();
+    for (jl, (_, far)) in geo.iter().enumerate() {
+        for &q in far {
+            linkers.entry(q).or_default().push(jl as u32);
+        }
+    }
+    let mut node_list: Vec<u32> = linkers.keys().copied().collect();
+    node_list.sort_unstable();
+    let jobs: Vec<(u32, Vec<u32>)> = node_list
+        .iter()
+        .map(|q| {
+            (
+                rep[*q as usize] - base,
+                linkers.remove(q).unwrap_or_default(),
+            )
+        })
+        .collect();
+    let link_d = oracle.solve(&jobs);
+    // Back to receivers: (node, distance) per receiver.
+    let mut by_receiver: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
+    for ((q, (_, receivers)), ds) in node_list.iter().zip(&jobs).zip(&link_d) {
+        for (&jl, &d) in receivers.iter().zip(ds) {
+            if d.is_finite() {
+                by_receiver[jl as usize].push((*q, d, KIND_SAME));
+            }
+        }
+    }
+    geo.into_iter()
+        .zip(direct_d)
+        .zip(by_receiver)
+        .map(|(((near, _), ds), mut links)| {
+            let direct: Vec<(u32, f32, u32)> = near
+                .into_iter()
+                .zip(ds)
+                .filter(|(_, d)| d.is_finite())
+                .map(|(i, d)| (i + base, d, KIND_SAME))
+                .collect();
+            links.sort_unstable_by_key(|e| e.0);
+            (direct, links)
+        })
+        .collect()
 }

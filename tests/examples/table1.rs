@@ -192,7 +192,10 @@ fn args() -> anyhow::Result<Args> {
             }
             "--s-accuracy" => {
                 let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
-                a.s_links = Some(SLinkParams { accuracy: theta });
+                a.s_links = Some(SLinkParams {
+                    accuracy: theta,
+                    ..SLinkParams::default()
+                });
             }
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \

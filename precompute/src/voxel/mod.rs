@@ -57,10 +57,12 @@ use translux_proto::csr::{Csr, CsrBuilder, CsrError};
 use crate::hetero::MEDIA;
 
 mod grid;
+mod oracle;
 mod paths;
 
 pub use crate::hetero::{MediaLen, MediumField};
 use grid::*;
+pub use oracle::Oracle;
 use paths::*;
 
 /// Parameters of [`optical_distances`].
@@ -157,6 +159,23 @@ pub struct DistanceStats {
     pub seconds: f64,
     /// Stored pairs (nnz).
     pub pairs: u64,
+}
+
+impl DistanceStats {
+    /// Straight lines between centroids ([`Method::Euclidean`]): no grid.
+    pub fn straight(seconds: f64, pairs: u64) -> DistanceStats {
+        DistanceStats {
+            method: Method::Euclidean,
+            voxels: 0,
+            interior_voxels: 0,
+            voxel_size: 0.0,
+            grid: [0; 3],
+            sources: 0,
+            unattached: 0,
+            seconds,
+            pairs,
+        }
+    }
 }
 
 /// Why distances could not be computed.
@@ -287,26 +306,7 @@ pub fn optical_distances_media(
     media: Option<&MediumField<'_>>,
 ) -> Result<(Distances, DistanceStats), VoxelError> {
     let start = Instant::now();
-    let object = || object_name.to_string();
-    if centroids.len() != normals.len() {
-        return Err(VoxelError::LengthMismatch {
-            object: object(),
-            centroids: centroids.len(),
-            normals: normals.len(),
-        });
-    }
-    if !(max_radius.is_finite() && max_radius > 0.0) {
-        return Err(VoxelError::BadRadius {
-            object: object(),
-            radius: max_radius,
-        });
-    }
-    if centroids.len() >= NONE as usize {
-        return Err(VoxelError::TooManyPatches {
-            object: object(),
-            patches: centroids.len(),
-        });
-    }
+    check_inputs(object_name, centroids, normals, max_radius)?;
     let per_patch = matches!(media, Some(MediumField::PerPatch(_)));
     if !params.force_voxels && !per_patch && is_convex(source_tris, params.convex_tolerance) {
         let all: Vec<u32> = (0..centroids.len() as u32).collect();
@@ -339,17 +339,7 @@ pub fn optical_distances_media(
                 .collect();
             d.material_len = per_row.concat();
         }
-        let stats = DistanceStats {
-            method: Method::Euclidean,
-            voxels: 0,
-            interior_voxels: 0,
-            voxel_size: 0.0,
-            grid: [0; 3],
-            sources: 0,
-            unattached: 0,
-            seconds: start.elapsed().as_secs_f64(),
-            pairs: d.nnz(),
-        };
+        let stats = DistanceStats::straight(start.elapsed().as_secs_f64(), d.nnz());
         return Ok((d, stats));
     }
     voxel_distances(
@@ -362,6 +352,37 @@ pub fn optical_distances_media(
         media,
         start,
     )
+}
+
+/// Refuses inputs no path can be traced for: centroids and normals of different lengths, a
+/// radius that is not finite and positive, more patches than 32-bit columns hold.
+fn check_inputs(
+    object_name: &str,
+    centroids: &[Vec3],
+    normals: &[Vec3],
+    max_radius: f32,
+) -> Result<(), VoxelError> {
+    let object = || object_name.to_string();
+    if centroids.len() != normals.len() {
+        return Err(VoxelError::LengthMismatch {
+            object: object(),
+            centroids: centroids.len(),
+            normals: normals.len(),
+        });
+    }
+    if !(max_radius.is_finite() && max_radius > 0.0) {
+        return Err(VoxelError::BadRadius {
+            object: object(),
+            radius: max_radius,
+        });
+    }
+    if centroids.len() >= NONE as usize {
+        return Err(VoxelError::TooManyPatches {
+            object: object(),
+            patches: centroids.len(),
+        });
+    }
+    Ok(())
 }
 
 /// Appends rows in order (each checked by [`CsrBuilder`]) with their per-medium lengths.

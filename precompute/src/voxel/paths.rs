@@ -55,6 +55,9 @@ pub(super) struct Scratch {
     pub(super) reached_len: Vec<[u32; MEDIA]>,
     /// Media shares g_k / g of each candidate (`None`: split the straight segment instead).
     pub(super) cand_share: Vec<Option<MediaLen>>,
+    /// `want[v]`: where voxel v sits in a [`dijkstra_to`] run's target list (NONE when it is
+    /// not a target); grid-sized, allocated on the first such run.
+    pub(super) want: Vec<u32>,
 }
 
 impl Scratch {
@@ -69,6 +72,7 @@ impl Scratch {
             mlen: Vec::new(),
             reached_len: Vec::new(),
             cand_share: Vec::new(),
+            want: Vec::new(),
         }
     }
 }
@@ -180,6 +184,178 @@ pub(super) fn dijkstra(
     s.touched.clear();
 }
 
+/// [`dijkstra`] towards some voxels only (homogeneous media): stops as soon as every voxel
+/// of `want` (interior voxels) is settled, or nothing within `gmax` is left, and leaves in
+/// `s.reached` (index in `want`, length) for those it settled. Dial's buckets settle a voxel
+/// at its final length, so each length equals a full run's, bit for bit.
+pub(super) fn dijkstra_to(
+    src: u32,
+    offsets: &[(isize, u32); 26],
+    gmax: u32,
+    want: &[u32],
+    s: &mut Scratch,
+) {
+    s.reached.clear();
+    if s.want.len() != s.dist.len() {
+        s.want = vec![NONE; s.dist.len()];
+    }
+    let mut left = 0usize;
+    for (k, &v) in want.iter().enumerate() {
+        if s.want[v as usize] == NONE {
+            s.want[v as usize] = k as u32;
+            left += 1;
+        }
+    }
+    s.dist[src as usize] = 0;
+    s.touched.push(src);
+    s.buckets[0].push((src, 0));
+    let mut pending = 1usize;
+    let mut k = 0usize;
+    'run: while pending > 0 && left > 0 {
+        let slot = k % 4;
+        let mut cur = std::mem::take(&mut s.buckets[slot]);
+        pending -= cur.len();
+        for &(v, g) in &cur {
+            if g != s.dist[v as usize] {
+                continue; // superseded by a shorter path
+            }
+            let w = s.want[v as usize];
+            if w != NONE {
+                s.reached.push((w, g));
+                s.want[v as usize] = NONE;
+                left -= 1;
+                if left == 0 {
+                    cur.clear();
+                    s.buckets[slot] = cur;
+                    break 'run;
+                }
+            }
+            for &(off, w) in offsets {
+                let nb = (v as isize + off) as usize;
+                let ng = g + w;
+                if ng > gmax || ng >= s.dist[nb] {
+                    continue;
+                }
+                if s.dist[nb] == NONE {
+                    s.touched.push(nb as u32);
+                }
+                s.dist[nb] = ng;
+                s.buckets[(ng / UNIT) as usize % 4].push((nb as u32, ng));
+                pending += 1;
+            }
+        }
+        cur.clear();
+        s.buckets[slot] = cur;
+        k += 1;
+    }
+    for b in &mut s.buckets {
+        b.clear();
+    }
+    for &v in want {
+        s.want[v as usize] = NONE;
+    }
+    for &v in &s.touched {
+        s.dist[v as usize] = NONE;
+    }
+    s.touched.clear();
+}
+
+/// The graph-length bound of a run from an entry voxel whose patches lie up to `own_offset`
+/// from it: r(i, j) ≤ R needs g·|Δv|/ch ≤ R + |Δv| − |Δc| ≤ R + off_i + off_j, and
+/// |Δv|/ch ≥ 1/1.1281, so g ≤ 1.1281 (R + off_i + off_j) covers every such pair.
+pub(super) fn graph_bound(r: f64, own_offset: f64, max_offset: f64, vs: f64) -> u32 {
+    let reach = CHAMFER_MAX_RATIO * 1.001 * (r + own_offset + max_offset) / vs;
+    (reach * f64::from(UNIT))
+        .ceil()
+        .min(f64::from(NONE - 4 * W[2])) as u32
+}
+
+/// The detour (scene units, 0 for a straight graph path) of a graph path of length `glen`
+/// between entry voxels `a` and `b` over the straight chord between their centres, and
+/// whether the path is straight (g = ch exactly, in integers).
+pub(super) fn detour(grid: &Grid, a: u32, b: u32, glen: u32) -> (f64, bool) {
+    let (src, c) = (grid.coords(a as usize), grid.coords(b as usize));
+    let dv = [c[0] - src[0], c[1] - src[1], c[2] - src[2]];
+    let ch = chamfer(dv);
+    let straight = u64::from(glen) == ch;
+    if ch == 0 {
+        return (0.0, straight);
+    }
+    let chord = DVec3::new(dv[0] as f64, dv[1] as f64, dv[2] as f64).length();
+    (
+        (f64::from(glen) * chord / ch as f64 - chord).max(0.0) * grid.size,
+        straight,
+    )
+}
+
+/// An object's voxel grid as the paths need it: which voxels are interior, each patch's
+/// entry voxel (the interior voxel nearest to the point half a voxel below its centroid;
+/// NONE when none is near: the patch is unattached) and its offset |centre(v_i) − c_i|, which
+/// bounds how much the voxel chord |Δv| can exceed the centroid chord |Δc|.
+pub(super) struct Traced {
+    pub(super) grid: Grid,
+    pub(super) inside: Vec<bool>,
+    pub(super) interior_voxels: usize,
+    pub(super) entry: Vec<u32>,
+    pub(super) offset: Vec<f64>,
+    pub(super) max_offset: f64,
+    pub(super) offsets: [(isize, u32); 26],
+}
+
+impl Traced {
+    pub(super) fn new(
+        object_name: &str,
+        tris: &[[Vec3; 3]],
+        centroids: &[Vec3],
+        normals: &[Vec3],
+        params: &VoxelParams,
+    ) -> Result<Traced, VoxelError> {
+        let n = centroids.len();
+        if tris.is_empty() {
+            return Err(VoxelError::NoInterior {
+                object: object_name.to_string(),
+                voxels: 0,
+            });
+        }
+        let (lo, hi) = bounds(tris);
+        let grid = Grid::choose(lo, hi, params.max_voxels);
+        let inside = classify_interior(tris, &grid);
+        let interior_voxels = inside.par_iter().filter(|&&b| b).count();
+        if interior_voxels == 0 {
+            return Err(VoxelError::NoInterior {
+                object: object_name.to_string(),
+                voxels: grid.len(),
+            });
+        }
+        let vs = grid.size;
+        let entry: Vec<u32> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let p = centroids[i] - normals[i] * (0.5 * vs as f32);
+                entry_voxel(&grid, &inside, grid.grid_pos(p)).unwrap_or(NONE)
+            })
+            .collect();
+        let offset: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|i| match entry[i] {
+                NONE => 0.0,
+                v => grid.centre(v as usize).distance(centroids[i].as_dvec3()),
+            })
+            .collect();
+        let max_offset = offset.iter().cloned().fold(0.0, f64::max);
+        let offsets = neighbour_offsets(&grid);
+        Ok(Traced {
+            grid,
+            inside,
+            interior_voxels,
+            entry,
+            offset,
+            max_offset,
+            offsets,
+        })
+    }
+}
+
 /// One row of the result, (column, distance), sorted by column.
 pub(super) type Row = Vec<(u32, f32)>;
 
@@ -258,42 +434,16 @@ pub(super) fn voxel_distances(
     start: Instant,
 ) -> Result<(Distances, DistanceStats), VoxelError> {
     let n = centroids.len();
-    if tris.is_empty() {
-        return Err(VoxelError::NoInterior {
-            object: object_name.to_string(),
-            voxels: 0,
-        });
-    }
-    let (lo, hi) = bounds(tris);
-    let grid = Grid::choose(lo, hi, params.max_voxels);
-    let inside = classify_interior(tris, &grid);
-    let interior_voxels = inside.par_iter().filter(|&&b| b).count();
-    if interior_voxels == 0 {
-        return Err(VoxelError::NoInterior {
-            object: object_name.to_string(),
-            voxels: grid.len(),
-        });
-    }
+    let Traced {
+        grid,
+        inside,
+        interior_voxels,
+        entry,
+        offset,
+        max_offset,
+        offsets,
+    } = Traced::new(object_name, tris, centroids, normals, params)?;
     let vs = grid.size;
-
-    // Entry voxels: the interior voxel nearest to the point half a voxel below the centroid.
-    let entry: Vec<u32> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let p = centroids[i] - normals[i] * (0.5 * vs as f32);
-            entry_voxel(&grid, &inside, grid.grid_pos(p)).unwrap_or(NONE)
-        })
-        .collect();
-    // Entry offset |centre(v_i) − c_i| (scene units), which bounds how much the voxel
-    // chord |Δv| can exceed the centroid chord |Δc|.
-    let offset: Vec<f64> = (0..n)
-        .into_par_iter()
-        .map(|i| match entry[i] {
-            NONE => 0.0,
-            v => grid.centre(v as usize).distance(centroids[i].as_dvec3()),
-        })
-        .collect();
-    let max_offset = offset.iter().cloned().fold(0.0, f64::max);
 
     // Groups sorted by their smallest member, so that after a batch of groups every row
     // below the next group's smallest member is complete and can be written out.
@@ -333,8 +483,6 @@ pub(super) fn voxel_distances(
         .collect();
     let hash_all = (unattached > 0).then(|| PointHash::new(centroids, &all, max_radius));
     let hash_loose = (unattached > 0).then(|| PointHash::new(centroids, &loose, max_radius));
-
-    let offsets = neighbour_offsets(&grid);
 
     // Media labels of the interior voxels (heterogeneous objects).
     let labels: Option<Vec<u8>> = media.map(|field| match field {
@@ -398,33 +546,17 @@ pub(super) fn voxel_distances(
             .iter()
             .map(|&i| offset[i as usize])
             .fold(0.0, f64::max);
-        // r(i, j) ≤ R needs g·|Δv|/ch ≤ R + |Δv| − |Δc| ≤ R + off_i + off_j, and
-        // |Δv|/ch ≥ 1/1.1281, so g ≤ 1.1281 (R + off_i + off_j) covers every such pair.
-        let reach = CHAMFER_MAX_RATIO * 1.001 * (r + own_offset + max_offset) / vs;
-        let gmax = (reach * f64::from(UNIT))
-            .ceil()
-            .min(f64::from(NONE - 4 * W[2])) as u32;
+        let gmax = graph_bound(r, own_offset, max_offset, vs);
         dijkstra(g.voxel, &offsets, &group_of, gmax, labels.as_deref(), s);
         // Candidates (j, detour), once per source: the detour over the straight voxel chord,
         // in scene units (0 when g = ch). The same for every member of the group. With media,
         // also each candidate's shares g_k / g of the graph path (all in the source voxel's
         // medium when g = 0).
-        let src = grid.coords(g.voxel as usize);
         s.candidates.clear();
         s.cand_share.clear();
         for (k, &(gj, glen)) in s.reached.iter().enumerate() {
             let other = &groups[gj as usize];
-            let c = grid.coords(other.voxel as usize);
-            let dv = [c[0] - src[0], c[1] - src[1], c[2] - src[2]];
-            let ch = chamfer(dv);
-            // A straight graph path (g = ch exactly, in integers).
-            let straight_path = u64::from(glen) == ch;
-            let detour = if ch == 0 {
-                0.0
-            } else {
-                let chord = DVec3::new(dv[0] as f64, dv[1] as f64, dv[2] as f64).length();
-                (f64::from(glen) * chord / ch as f64 - chord).max(0.0) * vs
-            };
+            let (detour, straight_path) = detour(&grid, g.voxel, other.voxel, glen);
             if detour <= r {
                 let members = &by_voxel[other.members.clone()];
                 s.candidates

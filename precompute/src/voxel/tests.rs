@@ -642,3 +642,78 @@ fn bunny_has_interior_and_local_pairs() {
     eprintln!("bunny: {found}/{close} pairs within r/4 found");
     assert!(found as f64 >= 0.9 * close as f64);
 }
+
+/// Every distance the oracle gives equals the stored one bit for bit, and it gives none
+/// where none is stored: a U (paths round the bend), two separate boxes in one object
+/// (no path between them: another piece of the interior), and a box above a plate thinner
+/// than a voxel (the plate's patches are unattached: straight lines).
+#[test]
+fn the_oracle_gives_exactly_the_stored_distances() {
+    let s = 0.1;
+    let mut two_boxes = shape_triangles(&Shape::Box {
+        size: [0.1, 0.1, 0.1],
+        inward: false,
+    });
+    let other: Vec<[Vec3; 3]> = two_boxes
+        .iter()
+        .map(|t| t.map(|v| v + Vec3::new(0.15, 0.0, 0.0)))
+        .collect();
+    two_boxes.extend(other);
+    // A box above a plate thinner than a voxel: the plate has no interior of its own.
+    let mut box_and_plate = shape_triangles(&Shape::Box {
+        size: [0.1, 0.1, 0.1],
+        inward: false,
+    });
+    box_and_plate.extend(
+        shape_triangles(&Shape::Box {
+            size: [0.3, 0.002, 0.3],
+            inward: false,
+        })
+        .iter()
+        .map(|t| t.map(|v| v - Vec3::new(0.0, 0.16, 0.0))),
+    );
+    for (name, tris, radius, voxels) in [
+        ("u", u_shape(s, s), 0.25f32, 60_000usize),
+        ("two boxes", two_boxes, 0.3, 40_000),
+        ("box and plate", box_and_plate, 0.2, 20_000),
+    ] {
+        let (c, n) = patches_of(&tris, 900);
+        let params = VoxelParams {
+            max_voxels: voxels,
+            force_voxels: true,
+            ..Default::default()
+        };
+        let (d, st) = optical_distances(name, &tris, &c, &n, radius, &params).unwrap();
+        let oracle = Oracle::new(name, &tris, &c, &n, radius, &params).unwrap();
+        assert_eq!(oracle.stats().method, Method::Voxel);
+        let all: Vec<u32> = (0..c.len() as u32).collect();
+        // Every patch asks for every patch, a few jobs sharing a source.
+        let mut jobs: Vec<(u32, Vec<u32>)> = all.iter().map(|&i| (i, all.clone())).collect();
+        jobs.push((3, all[..10].to_vec()));
+        let rows = oracle.solve(&jobs);
+        let (mut found, mut missing) = (0usize, 0usize);
+        for ((i, targets), row) in jobs.iter().zip(&rows) {
+            for (&j, &got) in targets.iter().zip(row) {
+                match d.get(*i as usize, j as usize) {
+                    Some(want) => {
+                        assert_eq!(got.to_bits(), want.to_bits(), "{name}: {i} → {j}");
+                        found += 1;
+                    }
+                    None => {
+                        assert!(got.is_infinite(), "{name}: {i} → {j} not stored, got {got}");
+                        missing += 1;
+                    }
+                }
+            }
+        }
+        eprintln!(
+            "{name}: {} patches, {found} distances found, {missing} beyond reach; {} unattached",
+            c.len(),
+            st.unattached
+        );
+        assert!(found > 0 && missing > 0, "{name}: a test of both cases");
+        if name == "box and plate" {
+            assert!(st.unattached > 0, "the plate's patches are unattached");
+        }
+    }
+}

@@ -191,7 +191,9 @@ pub struct SubsurfaceInfo {
     #[serde(default, skip_serializing_if = "is_zero")]
     pub links: u64,
     /// With links: the distances stage 1 found pair by pair, before the cut replaced the far
-    /// ones (what a pairwise S would have stored).
+    /// ones (what a pairwise S would have stored). For an object whose paths were traced on
+    /// demand, never listed pair by pair, its share is the estimate made before the
+    /// precompute (pairs of patches within the reach, counted on sample rows).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub pairwise_distances: u64,
     /// Records of the random walks of simulated objects (the `sim_*` arrays); 0: none.
