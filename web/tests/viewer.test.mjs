@@ -119,7 +119,7 @@ async function newContext(browser, options) {
 
 /** Waits for a page's first lit frame and for it to settle. */
 async function firstLit(page) {
-  await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
+  await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 90000 });
   await idle(page);
 }
 
