@@ -68,7 +68,8 @@ struct Cli {
     /// Hierarchical S only: how translucent objects' optical paths are traced. `on-demand`:
     /// only those the cut uses; `all`: every path within the profile's radius, then the
     /// cut from those; `auto` (default): on demand where the cut keeps under a quarter of
-    /// the paths. The bundle is the same either way, bit for bit.
+    /// the paths or they exceed 2,000 per patch. The bundle is the same either way, bit for
+    /// bit.
     #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
     s_trace: TraceArg,
     /// Dense F only: drop form factors below this value and report the power they carried.

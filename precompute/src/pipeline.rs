@@ -834,6 +834,7 @@ pub fn precompute(
             .filter(|(_, o)| o.is_some())
             .filter_map(|(m, _)| paths.iter().find(|p| p.0 == m.name).map(|p| p.1))
             .sum::<u64>();
+    let mut cut_object_seconds = vec![0.0f64; materials.len()];
     let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
@@ -842,15 +843,21 @@ pub fn precompute(
             if c.links > 0 {
                 geometry.nodes = Some(c.nodes);
             }
+            cut_object_seconds = c.seconds;
             (c.dist, c.material_len, c.kind, c.links)
         }
         _ => (dist, dist_len, dist_kind, 0),
     };
     let cut_seconds = t_links.elapsed().as_secs_f64();
     // The paths an on-demand object traced belong to its stage-1 time.
-    for (m, _) in materials.iter().zip(&oracles).filter(|(_, o)| o.is_some()) {
+    for ((m, _), secs) in materials
+        .iter()
+        .zip(&oracles)
+        .zip(&cut_object_seconds)
+        .filter(|((_, o), _)| o.is_some())
+    {
         if let Some(d) = dist_reports.iter_mut().find(|d| d.name == m.name) {
-            d.seconds += cut_seconds;
+            d.seconds += secs;
         }
     }
     if links > 0 {

@@ -98,7 +98,8 @@ impl Default for SLinkParams {
 pub enum Trace {
     /// On demand where the cut keeps under a quarter of the pairs within the radius (a
     /// large or very translucent object: a receiver's near patches lie a few patch sizes
-    /// away, far inside the profile's reach), every pair otherwise (an object about as
+    /// away, far inside the profile's reach) or the pairs exceed [`ENTRIES_BOUND`] per
+    /// patch (what the memory estimate counted), every pair otherwise (an object about as
     /// small as the reach, where the near runs would go about as far as the full ones and
     /// the node runs would come on top).
     #[default]
@@ -123,10 +124,10 @@ pub fn trace_on_demand(
     sp: &SParams,
     params: &SLinkParams,
 ) -> Vec<bool> {
-    let roots = cut_roots(tree, objects);
     if params.trace == Trace::All {
         return vec![false; objects.len()];
     }
+    let roots = cut_roots(tree, objects);
     let ranges = tree.ranges();
     let pos = positions(tree);
     let rep = representatives(tree, g);
@@ -157,7 +158,10 @@ pub fn trace_on_demand(
                 })
                 .sum();
             let kept = kept as f64 / rows as f64 * r.len() as f64;
-            4.0 * kept < pairs.get(k).copied().unwrap_or(0) as f64
+            // Also on demand whenever every pair would outgrow what the memory estimate
+            // made before F counted for it (ENTRIES_BOUND per patch).
+            let pairs = pairs.get(k).copied().unwrap_or(0);
+            4.0 * kept < pairs as f64 || pairs > r.len() as u64 * ENTRIES_BOUND
         })
         .collect()
 }
@@ -187,6 +191,8 @@ pub struct Collapsed {
     pub kind: Vec<u32>,
     pub nodes: Nodes,
     pub links: u64,
+    /// Seconds each object's cut took (0 for objects not cut), tracing included.
+    pub seconds: Vec<f64>,
 }
 
 /// Per node: the representative patch (nearest the area-weighted centroid).
@@ -406,7 +412,9 @@ pub fn collapse(
         })
         .collect();
     let mut links_total = 0u64;
+    let mut seconds = vec![0.0f64; objects.len()];
     for &(k, root, sheet) in &cut {
+        let t = std::time::Instant::now();
         let r = objects[k].patches.clone();
         let reach = stored.get(k).copied().unwrap_or(0.0);
         let cuts = match on_demand.get(k).and_then(Option::as_ref) {
@@ -429,6 +437,7 @@ pub fn collapse(
                     .map(|(q, d, kd)| (n as u32 + q, d, [0.0; MEDIA], kd)),
             );
         }
+        seconds[k] = t.elapsed().as_secs_f64();
     }
     let linked = links_total > 0;
     let mut material_len = Vec::new();
@@ -452,6 +461,7 @@ pub fn collapse(
         kind: kinds,
         nodes,
         links: links_total,
+        seconds,
     })
 }
 
@@ -580,47 +590,40 @@ fn cut_on_demand(
             (jl as u32, mine)
         })
         .collect();
-    let close_d = oracle.solve(&jobs);
-    let mut pair_d: Vec<std::collections::HashMap<u32, f32>> = vec![Default::default(); r.len()];
-    for ((jl, mine), ds) in jobs.iter().zip(&close_d) {
-        let m = &mut pair_d[*jl as usize];
-        for (&i, &d) in mine.iter().zip(ds) {
-            m.insert(i, d);
+    // Each receiver's distances aligned with its (sorted) candidates.
+    let mut direct_d: Vec<Vec<f32>> = geo
+        .iter()
+        .map(|(near, _)| vec![f32::INFINITY; near.len()])
+        .collect();
+    let mut put = |jl: u32, i: u32, d: f32| {
+        let (near, _) = &geo[jl as usize];
+        if let Ok(k) = near.binary_search(&i) {
+            direct_d[jl as usize][k] = d;
         }
-    }
-    drop(close_d);
-    let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
-    let far_d = oracle.solve(&far_jobs);
-    for ((i, receivers), ds) in far_jobs.iter().zip(&far_d) {
-        for (&jl, &d) in receivers.iter().zip(ds) {
-            pair_d[jl as usize].insert(*i, d);
+    };
+    for ((jl, mine), ds) in jobs.iter().zip(oracle.solve(&jobs)) {
+        for (&i, d) in mine.iter().zip(ds) {
+            put(*jl, i, d);
         }
     }
     drop(jobs);
-    let direct_d: Vec<Vec<f32>> = geo
-        .iter()
-        .zip(&pair_d)
-        .map(|((near, _), m)| near.iter().map(|i| m[i]).collect())
-        .collect();
-    drop(pair_d);
+    let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
+    for ((i, receivers), ds) in far_jobs.iter().zip(oracle.solve(&far_jobs)) {
+        for (&jl, d) in receivers.iter().zip(ds) {
+            put(jl, *i, d);
+        }
+    }
     // Links: from each linked node's representative to the receivers linking it.
-    let mut linkers: std::collections::HashMap<u32, Vec<u32>> = std::collections::HashMap::new();
+    let mut linkers: std::collections::BTreeMap<u32, Vec<u32>> = Default::default();
     for (jl, (_, far)) in geo.iter().enumerate() {
         for &q in far {
             linkers.entry(q).or_default().push(jl as u32);
         }
     }
-    let mut node_list: Vec<u32> = linkers.keys().copied().collect();
-    node_list.sort_unstable();
-    let jobs: Vec<(u32, Vec<u32>)> = node_list
-        .iter()
-        .map(|q| {
-            (
-                rep[*q as usize] - base,
-                linkers.remove(q).unwrap_or_default(),
-            )
-        })
-        .collect();
+    let (node_list, jobs): (Vec<u32>, Vec<(u32, Vec<u32>)>) = linkers
+        .into_iter()
+        .map(|(q, receivers)| (q, (rep[q as usize] - base, receivers)))
+        .unzip();
     let link_d = oracle.solve(&jobs);
     // Back to receivers: (node, distance) per receiver.
     let mut by_receiver: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
