@@ -235,6 +235,13 @@ pub struct ObjectTerms {
     /// Entry e's terms are `term_ptr[e]..term_ptr[e + 1]`.
     term_ptr: Vec<u32>,
     terms: Vec<Term>,
+    /// Source i (the column) of each entry.
+    src: Vec<u32>,
+    /// The entries by receiver: row j's are `by_row[row_ptr[j]..row_ptr[j + 1]]`, sorted by
+    /// source (the order the transpose of the columns gives), so a rebuild writes S's rows
+    /// in parallel instead of transposing its columns.
+    row_ptr: Vec<u32>,
+    by_row: Vec<u32>,
 }
 
 impl ObjectTerms {
@@ -289,6 +296,26 @@ impl ObjectTerms {
             out.terms.extend(terms);
             out.col_ptr.push(out.row.len() as u32);
         }
+        // The row index: a counting sort of the entries by receiver, sources ascending.
+        let entries = out.row.len();
+        out.src = Vec::with_capacity(entries);
+        for i in 0..n {
+            let len = out.col_ptr[i + 1] - out.col_ptr[i];
+            out.src.extend(std::iter::repeat_n(i as u32, len as usize));
+        }
+        out.row_ptr = vec![0u32; n + 1];
+        for &j in &out.row {
+            out.row_ptr[j as usize + 1] += 1;
+        }
+        for j in 0..n {
+            out.row_ptr[j + 1] += out.row_ptr[j];
+        }
+        let mut next = out.row_ptr[..n].to_vec();
+        out.by_row = vec![0u32; entries];
+        for (e, &j) in out.row.iter().enumerate() {
+            out.by_row[next[j as usize] as usize] = e as u32;
+            next[j as usize] += 1;
+        }
         out
     }
 
@@ -298,32 +325,78 @@ impl ObjectTerms {
     /// assembly.
     pub fn assemble(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> ObjectS {
         let n = self.col_ptr.len() - 1;
-        let columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
+        // Every entry's value (None: not kept), in parallel over the entries.
+        let vals: Vec<Option<[f32; 3]>> = (0..self.row.len())
             .into_par_iter()
-            .map(|i| {
-                let mut col = Vec::new();
-                for e in self.col_ptr[i] as usize..self.col_ptr[i + 1] as usize {
-                    let tab = if self.opposite[e] { other } else { same };
-                    // The self term is each column's first entry (`build`).
-                    let self_term = e == self.col_ptr[i] as usize;
-                    if !self_term && self.dist[e] >= tab.r_max() {
-                        continue;
-                    }
-                    let mut s = [0.0f32; 3];
-                    for t in &self.terms[self.term_ptr[e] as usize..self.term_ptr[e + 1] as usize] {
-                        let v = t.eval(tab);
-                        for c in 0..3 {
-                            s[c] += v[c];
-                        }
-                    }
-                    if self_term || s.iter().any(|&v| v > 0.0) {
-                        col.push((self.row[e], s));
+            .map(|e| {
+                let tab = if self.opposite[e] { other } else { same };
+                // The self term is each column's first entry (`build`).
+                let self_term = e == self.col_ptr[self.src[e] as usize] as usize;
+                if !self_term && self.dist[e] >= tab.r_max() {
+                    return None;
+                }
+                let mut s = [0.0f32; 3];
+                for t in &self.terms[self.term_ptr[e] as usize..self.term_ptr[e + 1] as usize] {
+                    let v = t.eval(tab);
+                    for c in 0..3 {
+                        s[c] += v[c];
                     }
                 }
-                col
+                (self_term || s.iter().any(|&v| v > 0.0)).then_some(s)
             })
             .collect();
-        subsurface::bound_and_transpose(columns, area)
+        // Each column's energy, in the column's order (as `subsurface::bound_and_transpose`
+        // sums it): the divisor of each channel (1 where the column is not scaled).
+        let columns: Vec<([f32; 3], f32, f32, bool)> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let mut total = [0.0f32; 3];
+                let range = self.col_ptr[i] as usize..self.col_ptr[i + 1] as usize;
+                for (val, &j) in vals[range.clone()].iter().zip(&self.row[range]) {
+                    if let Some(s) = val {
+                        let j = j as usize;
+                        for c in 0..3 {
+                            total[c] += area[j] * s[c] / area[i];
+                        }
+                    }
+                }
+                let worst = total.iter().cloned().fold(0.0f32, f32::max);
+                let div = if worst > 1.0 {
+                    total.map(|t| if t > 1.0 { t } else { 1.0 })
+                } else {
+                    [1.0; 3]
+                };
+                (div, worst, total[1], worst > 1.0)
+            })
+            .collect();
+        let mut report = subsurface::EnergyReport::default();
+        let mut mean = 0.0f64;
+        for &(_, worst, green, scaled) in &columns {
+            report.max_column = report.max_column.max(worst);
+            mean += green as f64;
+            report.scaled_columns += scaled as usize;
+        }
+        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+        // Rows, each from the row index, sources ascending.
+        let rows: Vec<Vec<(u32, [f32; 3])>> = (0..n)
+            .into_par_iter()
+            .map(|j| {
+                self.by_row[self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize]
+                    .iter()
+                    .filter_map(|&e| {
+                        let i = self.src[e as usize];
+                        let div = columns[i as usize].0;
+                        vals[e as usize].map(|s| (i, std::array::from_fn(|c| s[c] / div[c])))
+                    })
+                    .collect()
+            })
+            .collect();
+        report.nnz = rows.iter().map(|r| r.len() as u64).sum();
+        ObjectS {
+            rows,
+            links: Vec::new(),
+            report,
+        }
     }
 
     /// Stored entries (the self terms included).
@@ -338,7 +411,8 @@ impl ObjectTerms {
             + self.dist.len() * 4
             + self.opposite.len()
             + self.term_ptr.len() * 4
-            + self.terms.len() * std::mem::size_of::<Term>()) as u64
+            + self.terms.len() * std::mem::size_of::<Term>()
+            + (self.src.len() + self.row_ptr.len() + self.by_row.len()) * 4) as u64
     }
 }
 
@@ -535,5 +609,103 @@ mod tests {
             (got - 0.5).abs() < 0.5 * 0.02,
             "∫ 1 over the triangle = {got}"
         );
+    }
+
+    /// The rows a rebuild writes from its row index equal, bit for bit, the transpose of
+    /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
+    /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
+    /// columns are and are not scaled, with pairs past the table's reach left out.
+    #[test]
+    fn rows_from_the_row_index_equal_the_transposed_columns() {
+        use crate::smatrix::{PatchGeometry, object_patches};
+        use translux_proto::csr::CsrBuilder;
+        // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.
+        let point = |x: f32, y: f32| {
+            if x <= 3.0 {
+                Vec3::new(x, y, 0.0)
+            } else {
+                Vec3::new(3.0, y, x - 3.0)
+            }
+        };
+        let mut corners = Vec::new();
+        for a in 0..6 {
+            for b in 0..6 {
+                let (x, y) = (a as f32, b as f32);
+                corners.push([point(x, y), point(x + 1.0, y), point(x + 1.0, y + 1.0)]);
+                corners.push([point(x, y), point(x + 1.0, y + 1.0), point(x, y + 1.0)]);
+            }
+        }
+        let g = PatchGeometry::from_corners(corners);
+        let n = g.area.len();
+        let mut d = CsrBuilder::new(n);
+        for i in 0..n {
+            let row: Vec<(u32, f32)> = (0..n)
+                .filter(|&j| j != i)
+                .map(|j| (j as u32, g.centroid[i].distance(g.centroid[j])))
+                .filter(|&(_, r)| r < 5.0)
+                .collect();
+            d.push_row(&row).unwrap();
+        }
+        let d = d.finish();
+        let p = object_patches(&g, 0..n);
+        let params = SubsurfaceParams::default();
+        let t = ObjectTerms::build(p, d.view().unwrap(), false, &|_| false, &params);
+        // The bound weighs columns by area: every third patch counted 6 times as large
+        // drives its neighbours' columns past 1.
+        let area: Vec<f32> = (0..n)
+            .map(|i| {
+                if i % 3 == 0 {
+                    6.0 * g.area[i]
+                } else {
+                    g.area[i]
+                }
+            })
+            .collect();
+        let mut scaled = 0;
+        for (scale, reach) in [(0.3, 5.0), (1.0, 3.0), (4.0, 5.0)] {
+            let tab = table(scale, reach);
+            let got = t.assemble(&area, &tab, &tab);
+            // The reference: each column summed, bounded and transposed.
+            let columns: Vec<Vec<(u32, [f32; 3])>> = (0..n)
+                .map(|i| {
+                    let mut col = Vec::new();
+                    for e in t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize {
+                        let self_term = e == t.col_ptr[i] as usize;
+                        if !self_term && t.dist[e] >= tab.r_max() {
+                            continue;
+                        }
+                        let mut v = [0.0f32; 3];
+                        for term in &t.terms[t.term_ptr[e] as usize..t.term_ptr[e + 1] as usize] {
+                            let x = term.eval(&tab);
+                            for c in 0..3 {
+                                v[c] += x[c];
+                            }
+                        }
+                        if self_term || v.iter().any(|&x| x > 0.0) {
+                            col.push((t.row[e], v));
+                        }
+                    }
+                    col
+                })
+                .collect();
+            let want = subsurface::bound_and_transpose(columns, &area);
+            assert_eq!(got.rows, want.rows, "scale {scale}, reach {reach}");
+            assert_eq!(got.report.nnz, want.report.nnz);
+            assert_eq!(got.report.scaled_columns, want.report.scaled_columns);
+            assert_eq!(
+                got.report.max_column.to_bits(),
+                want.report.max_column.to_bits()
+            );
+            assert_eq!(
+                got.report.mean_column.to_bits(),
+                want.report.mean_column.to_bits()
+            );
+            assert!(
+                got.report.nnz > n as u64,
+                "pairs were kept at scale {scale}"
+            );
+            scaled += got.report.scaled_columns;
+        }
+        assert!(scaled > 0, "no column was scaled: the bound went untested");
     }
 }

@@ -637,6 +637,11 @@ pub fn add_links(
     let mut scaled = 0usize;
     let mut mean = 0.0f64;
     for i in 0..local {
+        mean += (direct[i][1] + far[i][1]) as f64;
+        // A column no linked node reaches was bounded with its direct entries alone.
+        if far[i] == [0.0; 3] {
+            continue;
+        }
         let mut any = false;
         for c in 0..3 {
             let total = direct[i][c] + far[i][c];
@@ -646,7 +651,6 @@ pub fn add_links(
                 any = true;
             }
         }
-        mean += (direct[i][1] + far[i][1]) as f64;
         scaled += any as usize;
     }
     if scaled > 0 {

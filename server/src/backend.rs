@@ -536,11 +536,14 @@ impl translux_engine::backend::Backend for Backend {
             }
         }
         let template = slot.as_ref().expect("set above");
+        let t_assemble = std::time::Instant::now();
         let built = match template.assemble(ctx, &format!("{} S", scene.id), &m, &sp.quadrature) {
             Ok(d) => d,
             Err(e) => return cpu("the device rebuild of S failed", &e),
         };
         drop(slot);
+        let assemble_ms = t_assemble.elapsed().as_secs_f64() * 1e3;
+        let t_bind = std::time::Instant::now();
         let csr = built.csr;
         let sys = match GpuSystem::with_f(
             ctx,
@@ -557,6 +560,12 @@ impl translux_engine::backend::Backend for Backend {
             old.release(ctx);
         }
         *over = Some((key.to_string(), sys));
+        tracing::debug!(
+            scene = %scene.id,
+            assemble_ms,
+            bind_ms = t_bind.elapsed().as_secs_f64() * 1e3,
+            "S rebuilt on the GPU"
+        );
         Ok(SBuild::Device(csr))
     }
 

@@ -1002,6 +1002,14 @@ fn machine() -> String {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Logs only when asked for (RUST_LOG, e.g. translux_server=debug for the device
+    // rebuild's timings).
+    if std::env::var_os("RUST_LOG").is_some() {
+        tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+            .with_writer(std::io::stderr)
+            .init();
+    }
     let a = args()?;
     let b = Backend::start(a.backend).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
     eprintln!("backend: {}", b.describe());

@@ -545,23 +545,17 @@ fn on_demand_equals_the_pairwise_cut(path: &std::path::Path, dir: &std::path::Pa
     );
 }
 
+/// The U is traced through voxels (its paths bend round the base). (Convex objects, where
+/// paths are straight lines, are held to every stored pair by the unit test
+/// `voxel::tests::the_oracle_gives_exactly_the_stored_distances`.)
 #[test]
-fn on_demand_distances_equal_the_pairwise_cut_on_a_u_and_a_cube() {
+fn on_demand_distances_equal_the_pairwise_cut_on_a_u() {
     let dir = tempfile::tempdir().unwrap();
-    // The U is traced through voxels (its paths bend round the base); the cube is convex
-    // (straight lines).
     let u = scene(
         dir.path(),
         r#""u.obj","transform":{"translate":[-30,0,-10]}"#,
     );
     on_demand_equals_the_pairwise_cut(&u, &dir.path().join("u"));
-    let cube = dir.path().join("cube");
-    std::fs::create_dir_all(&cube).unwrap();
-    let c = scene(
-        &cube,
-        r#"{"shape":"box","size":[40,40,40]},"transform":{"translate":[0,20,0]}"#,
-    );
-    on_demand_equals_the_pairwise_cut(&c, &cube);
 }
 
 /// The scanned bunny as users have it: open at the bottom, in metres, very translucent

@@ -273,3 +273,75 @@ pub fn s_column_bound(
     }
     reports
 }
+
+/// Twin of `s_node_energy.wgsl` and `s_link_bound.wgsl` (a hierarchical S, after
+/// [`s_column_bound`]): e_k per linked node over its column N + k, then per patch column of
+/// an object with links, far = Σ e_k over the nodes holding it; where direct + far passes 1
+/// (and direct > 0) the direct entries are scaled by max(1 − far, 0) / direct. Columns no
+/// linked node reaches are left alone. Adds to `reports` as the kernel does.
+pub fn s_link_bound(
+    t: &super::subsurface::STemplate,
+    val: &mut [Rgb],
+    reports: &mut [super::subsurface::ColumnReport],
+) {
+    if !t.has_links() {
+        return;
+    }
+    let area = |p: usize| t.patches[4 * p][3];
+    let energy: Vec<Rgb> = (0..t.nodes)
+        .map(|k| {
+            let c = t.n + k;
+            let mut e = [0.0f32; 3];
+            for &p in &t.perm[t.col_ptr[c] as usize..t.col_ptr[c + 1] as usize] {
+                let j = t.entries[p as usize][1] as usize;
+                for ch in 0..3 {
+                    e[ch] += area(j) * val[p as usize][ch] / area(c);
+                }
+            }
+            e
+        })
+        .collect();
+    for i in 0..t.n {
+        if t.patches[4 * i + 2][3] == 0.0 {
+            continue;
+        }
+        let mut far = [0.0f32; 3];
+        for &k in &t.far[t.far[i] as usize..t.far[i + 1] as usize] {
+            for ch in 0..3 {
+                far[ch] += energy[k as usize][ch];
+            }
+        }
+        if far == [0.0; 3] {
+            continue;
+        }
+        let range = t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize;
+        let mut direct = [0.0f32; 3];
+        for &p in &t.perm[range.clone()] {
+            let j = t.entries[p as usize][1] as usize;
+            for ch in 0..3 {
+                direct[ch] += area(j) * val[p as usize][ch] / area(i);
+            }
+        }
+        let total: Rgb = std::array::from_fn(|ch| direct[ch] + far[ch]);
+        let rep = &mut reports[t.object(i)];
+        rep.max_column = rep
+            .max_column
+            .max(total.iter().cloned().fold(0.0f32, f32::max));
+        let mut scale = [1.0f32; 3];
+        let mut any = false;
+        for ch in 0..3 {
+            if total[ch] > 1.0 && direct[ch] > 0.0 {
+                scale[ch] = (1.0 - far[ch]).max(0.0) / direct[ch];
+                any = true;
+            }
+        }
+        if any {
+            rep.scaled_columns += 1;
+            for &p in &t.perm[range.clone()] {
+                for ch in 0..3 {
+                    val[p as usize][ch] *= scale[ch];
+                }
+            }
+        }
+    }
+}

@@ -12,6 +12,8 @@ pub const JACOBI_UPDATE: &str = include_str!("kernels/jacobi_update.wgsl");
 pub const REDUCE_SUM: &str = include_str!("kernels/reduce_sum.wgsl");
 pub const S_ENTRIES: &str = include_str!("kernels/s_entries.wgsl");
 pub const S_COLUMN_BOUND: &str = include_str!("kernels/s_column_bound.wgsl");
+pub const S_NODE_ENERGY: &str = include_str!("kernels/s_node_energy.wgsl");
+pub const S_LINK_BOUND: &str = include_str!("kernels/s_link_bound.wgsl");
 
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
@@ -132,6 +134,10 @@ pub struct Kernels {
     pub(crate) s_column_bound: Kernel,
     pub(crate) s_entries_pipeline: wgpu::ComputePipeline,
     pub(crate) s_column_bound_pipeline: wgpu::ComputePipeline,
+    pub(crate) s_node_energy: Kernel,
+    pub(crate) s_link_bound: Kernel,
+    pub(crate) s_node_energy_pipeline: wgpu::ComputePipeline,
+    pub(crate) s_link_bound_pipeline: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -175,7 +181,23 @@ impl Kernels {
             S_COLUMN_BOUND,
             &[Read, Read, Read, Read, Read, ReadWrite, ReadWrite],
         );
+        let s_node_energy = Kernel::new(
+            device,
+            "s_node_energy",
+            S_NODE_ENERGY,
+            &[Read, Read, Read, Read, Read, ReadWrite],
+        );
+        let s_link_bound = Kernel::new(
+            device,
+            "s_link_bound",
+            S_LINK_BOUND,
+            &[Read, Read, Read, Read, ReadWrite, ReadWrite, Read, Read],
+        );
         Kernels {
+            s_node_energy_pipeline: s_node_energy.pipeline(device, &[]),
+            s_link_bound_pipeline: s_link_bound.pipeline(device, &[]),
+            s_node_energy,
+            s_link_bound,
             s_entries_pipeline: s_entries.pipeline(device, &[]),
             s_column_bound_pipeline: s_column_bound.pipeline(device, &[]),
             s_entries,

@@ -13,6 +13,8 @@
 //! | `reduce_sum` | appends Σ of the partials to a residual history | same name |
 //! | `s_entries` | every entry of S from its stored quadrature plan and the profile tables | same name |
 //! | `s_column_bound` | Σ_j A_j S_ji ≤ A_i per column, offending columns scaled | same name |
+//! | `s_node_energy` | a hierarchical S: what each linked node re-emits, e_k | `s_link_bound` |
+//! | `s_link_bound` | a hierarchical S: the bound with the e_k of the nodes holding each patch | same name |
 //!
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage
@@ -297,6 +299,16 @@ impl GpuContext {
         staging: &wgpu::Buffer,
         bytes: u64,
     ) -> Result<Vec<u8>, GpuError> {
+        self.read_back_as(staging, bytes)
+    }
+
+    /// [`GpuContext::read_back`] straight into a vector of `T` (one copy out of the mapped
+    /// range; `bytes` a multiple of `T`'s size).
+    pub(crate) fn read_back_as<T: bytemuck::Pod>(
+        &self,
+        staging: &wgpu::Buffer,
+        bytes: u64,
+    ) -> Result<Vec<T>, GpuError> {
         let (tx, rx) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
             let _ = tx.send(r);
@@ -311,7 +323,7 @@ impl GpuContext {
             let view = staging
                 .get_mapped_range(0..bytes)
                 .map_err(|e| GpuError::Readback(e.to_string()))?;
-            view.to_vec()
+            bytemuck::pod_collect_to_vec(&view[..])
         };
         staging.unmap();
         self.check_uncaptured()?;

@@ -20,6 +20,15 @@
 //!    `s_column_bound` enforces Σ_j A_j S_ji ≤ A_i per column as the CPU does. Nothing
 //!    geometric is recomputed, nothing is uploaded but the tables.
 //!
+//! A hierarchical S (links from receivers to whole nodes of the cluster tree,
+//! `translux_precompute::slinks`) is rebuilt the same way: its links are entries of the
+//! node columns N + k, evaluated as far pairs with the node's area (S_{j,N+k} = A_k R(r)),
+//! and two more kernels hold every column to the energy bound with them, as the CPU's
+//! `subsurface::add_links` does: `s_node_energy` sums what each node re-emits
+//! (e_k = Σ_j A_j S_{j,N+k} / A_k), and `s_link_bound` adds to each patch column the e_k of
+//! the linked nodes that hold the patch, scaling the column's direct entries where the sum
+//! passes 1.
+//!
 //! Heterogeneous objects (eq. 9 over per-medium lengths) are rebuilt on the CPU: [`Plan`]
 //! says so, and the relight reports where S was built (`stats.materials_on`).
 
@@ -104,11 +113,9 @@ impl SMaterials {
         params: &SParams,
     ) -> Result<Plan, SError> {
         let m = bundle.manifest();
-        if m.subsurface.links > 0 {
-            // The device template holds patch pairs only; the CPU sums the links (one
-            // lookup each) and the solve on the device applies S with them.
+        if m.subsurface.links > 0 && bundle.tree().is_none() {
             return Ok(Plan::Cpu(
-                "a hierarchical S (links to cluster nodes) is rebuilt on the CPU".into(),
+                "a hierarchical S without its cluster tree is rebuilt on the CPU".into(),
             ));
         }
         if params.quadrature.samples.pow(2) > MAX_SAMPLES {
@@ -183,6 +190,9 @@ impl SMaterials {
 #[derive(Debug, Clone)]
 pub struct STemplate {
     pub n: usize,
+    /// Nodes of the cluster tree a hierarchical S links to (0 without links): S has
+    /// `n + nodes` columns, node k's being column n + k.
+    pub nodes: usize,
     pub classes: Vec<Class>,
     /// Per object: entries kept for pairs closer than this (translucent objects, sheets).
     pub radius: Vec<f32>,
@@ -194,13 +204,19 @@ pub struct STemplate {
     /// Polar plans: 4 rows (corner 0 and the factor, corner 1, corner 2, the plane's
     /// normal); point plans: 1 row (the excess path).
     pub aux: Vec<[f32; 4]>,
-    /// Columns (sources i): `perm[col_ptr[i]..col_ptr[i + 1]]` are the positions of column
-    /// i's entries in row order, in the CPU assembly's order (self term first).
+    /// Columns (sources i, then nodes N + k): `perm[col_ptr[i]..col_ptr[i + 1]]` are the
+    /// positions of column i's entries in row order, in the CPU assembly's order (self term
+    /// first).
     pub col_ptr: Vec<u32>,
     pub perm: Vec<u32>,
-    /// Per patch 4 rows: (corner 0, area), (corner 1, size), (corner 2, 0), (normal, object
-    /// index as a float).
+    /// Per patch 4 rows: (corner 0, area), (corner 1, size), (corner 2, linked), (normal,
+    /// object index as a float), `linked` 1 when the patch's object has links; then per node
+    /// 4 rows: (0, area), (0, 0), (0, 0), (0, object index), so that a link (source N + k)
+    /// reads its node's area and object where a pair reads its source patch's.
     pub patches: Vec<[f32; 4]>,
+    /// Per patch, the linked nodes that hold it (what `s_link_bound` adds to its column):
+    /// words `far[i]..far[i + 1]` of this same array, nodes ascending; empty without links.
+    pub far: Vec<u32>,
 }
 
 /// One entry of a column while the template is built: (j, r, mode | opposite << 2, aux).
@@ -237,6 +253,10 @@ impl STemplate {
     ) -> STemplate {
         let man = bundle.manifest();
         let n = g.corners.len();
+        // Links are read only with the tree they refer to (`bundle_geometry` gives it for a
+        // hierarchical S).
+        let tree = g.nodes.as_ref().filter(|_| man.subsurface.links > 0);
+        let nodes = tree.map_or(0, |t| t.range.len());
         let classes: Vec<Class> = m.objects.iter().map(|o| o.class).collect();
         let radius: Vec<f32> = m
             .reach
@@ -249,7 +269,7 @@ impl STemplate {
             })
             .collect();
         let mut object_of = vec![0u32; n];
-        let mut columns: Vec<Vec<ColumnEntry>> = vec![Vec::new(); n];
+        let mut columns: Vec<Vec<ColumnEntry>> = vec![Vec::new(); n + nodes];
         let distances = bundle.distances();
         let kinds = bundle.distance_kinds();
         for (k, o) in man.objects.iter().enumerate() {
@@ -301,7 +321,38 @@ impl STemplate {
                     }
                 });
         }
-        // Rows: entries of row j sorted by source, as the CPU's transpose leaves them.
+        // Links: receiver j's stored entries in node columns, within its object's radius
+        // (a node's links in receiver order, as the CPU sums them).
+        let mut linked = vec![false; man.objects.len()];
+        if nodes > 0 {
+            for (k, o) in man.objects.iter().enumerate() {
+                if !matches!(classes[k], Class::Translucent | Class::Sheet) {
+                    continue;
+                }
+                let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+                for j in range {
+                    let first = distances.row_ptr()[j] as usize;
+                    let (cols, ds) = distances.row(j);
+                    for (e, (&c, &r)) in cols.iter().zip(ds).enumerate() {
+                        let c = c as usize;
+                        if c < n || c >= n + nodes || r >= radius[k] {
+                            continue;
+                        }
+                        let opposite = classes[k] == Class::Sheet
+                            && kinds.get(first + e).copied().unwrap_or(0) == KIND_OPPOSITE;
+                        columns[c].push((
+                            j as u32,
+                            r,
+                            MODE_FAR | (opposite as u32) << 2,
+                            Vec::new(),
+                        ));
+                        linked[k] = true;
+                    }
+                }
+            }
+        }
+        // Rows: entries of row j sorted by source (nodes after patches), as the CPU's
+        // transpose and its links leave them.
         let mut row_ptr = vec![0u64; n + 1];
         for col in &columns {
             for e in col {
@@ -331,17 +382,48 @@ impl STemplate {
             }
             col_ptr.push(perm.len() as u32);
         }
-        let mut patches = Vec::with_capacity(4 * n);
-        for (i, obj) in object_of.iter().enumerate() {
+        let mut patches = Vec::with_capacity(4 * (n + nodes));
+        for (i, &obj) in object_of.iter().enumerate() {
             let c = g.corners[i];
+            let flag = if linked[obj as usize] { 1.0 } else { 0.0 };
             patches.push([c[0].x, c[0].y, c[0].z, g.area[i]]);
             patches.push([c[1].x, c[1].y, c[1].z, g.size[i]]);
-            patches.push([c[2].x, c[2].y, c[2].z, 0.0]);
+            patches.push([c[2].x, c[2].y, c[2].z, flag]);
             // The object's index as a float: exact below 2²⁴ objects.
-            patches.push([g.normal[i].x, g.normal[i].y, g.normal[i].z, *obj as f32]);
+            patches.push([g.normal[i].x, g.normal[i].y, g.normal[i].z, obj as f32]);
+        }
+        // Nodes: the tree splits objects apart at its top, so a linked node's patches are
+        // one object's (its first patch's).
+        let mut far_lists: Vec<Vec<u32>> = vec![Vec::new(); if nodes > 0 { n } else { 0 }];
+        if let Some(t) = tree {
+            for k in 0..nodes {
+                let members = t.members(k);
+                let obj = members.first().map_or(0, |&p| object_of[p as usize]);
+                patches.push([0.0, 0.0, 0.0, t.area[k]]);
+                patches.push([0.0; 4]);
+                patches.push([0.0; 4]);
+                patches.push([0.0, 0.0, 0.0, obj as f32]);
+                if col_ptr[n + k + 1] > col_ptr[n + k] {
+                    for &p in members {
+                        far_lists[p as usize].push(k as u32);
+                    }
+                }
+            }
+        }
+        let mut far = Vec::new();
+        if nodes > 0 {
+            let mut at = n as u32 + 1;
+            far.push(at);
+            for l in &far_lists {
+                at += l.len() as u32;
+                far.push(at);
+            }
+            far.extend(far_lists.into_iter().flatten());
         }
         STemplate {
             n,
+            nodes,
+            far,
             classes,
             radius,
             row_ptr,
@@ -399,7 +481,19 @@ impl STemplate {
             + alloc_size(16 * self.patches.len() as u64)
             + alloc_size(4 * (self.n as u64 + 1))
             + alloc_size(4 * nnz)
+            + alloc_size(4 * self.far.len().max(1) as u64)
+            + alloc_size(12 * self.nodes.max(1) as u64)
             + 16
+    }
+
+    /// Columns of S: the patches, then the nodes a hierarchical S links to.
+    pub fn n_cols(&self) -> usize {
+        self.n + self.nodes
+    }
+
+    /// Whether any column reaches nodes (the link kernels run).
+    pub fn has_links(&self) -> bool {
+        self.nodes > 0 && self.col_ptr[self.n_cols()] > self.col_ptr[self.n]
     }
 }
 
@@ -484,13 +578,17 @@ struct EntryParams {
     _pad: [u32; 3],
 }
 
-/// Keep in sync with `Params` in `s_column_bound.wgsl`.
+/// Keep in sync with `Params` in `s_column_bound.wgsl`, `s_node_energy.wgsl` and
+/// `s_link_bound.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct ColumnParams {
+    /// Patches.
     n: u32,
     groups_x: u32,
-    _pad: [u32; 2],
+    /// Nodes (the link kernels).
+    nodes: u32,
+    _pad: u32,
 }
 
 /// Per object, how its columns stood against energy conservation: the largest
@@ -512,6 +610,12 @@ pub struct GpuSTemplate {
     patches: wgpu::Buffer,
     row_ptr: wgpu::Buffer,
     col: wgpu::Buffer,
+    far: wgpu::Buffer,
+    /// e_k per node, written by `s_node_energy` (12 bytes a node).
+    node_energy: wgpu::Buffer,
+    /// The read-back buffer of the last rebuild and its size, kept for the next one (a
+    /// slider's rebuilds all read the same number of values back).
+    read: std::sync::Mutex<Option<(wgpu::Buffer, u64)>>,
     bytes: u64,
 }
 
@@ -538,7 +642,8 @@ impl GpuSTemplate {
     pub fn upload(ctx: &GpuContext, what: &str, t: STemplate) -> Result<GpuSTemplate, GpuError> {
         let largest = (16 * t.nnz() as u64)
             .max(16 * t.aux.len() as u64)
-            .max(16 * t.patches.len() as u64);
+            .max(16 * t.patches.len() as u64)
+            .max(4 * t.far.len() as u64);
         if largest > ctx.tile_bytes() {
             return Err(GpuError::MatrixTooLarge {
                 what: format!("{what}: S's {} entries", t.nnz()),
@@ -549,29 +654,42 @@ impl GpuSTemplate {
         let bytes = t.device_bytes();
         ctx.reserve(what, bytes)?;
         let rel: Vec<u32> = t.row_ptr.iter().map(|&p| p as u32).collect();
+        // Without links the link kernels never run; their buffers hold one word.
+        let far: &[u32] = if t.far.is_empty() { &[0] } else { &t.far };
         let made = ctx.scoped(|| {
             Ok((
-                storage_init(ctx, what, bytemuck::cast_slice(&t.entries)),
-                storage_init(ctx, what, bytemuck::cast_slice(&t.aux)),
-                storage_init(ctx, what, bytemuck::cast_slice(&t.col_ptr)),
-                storage_init(ctx, what, bytemuck::cast_slice(&t.perm)),
-                storage_init(ctx, what, bytemuck::cast_slice(&t.patches)),
-                storage_init(ctx, what, bytemuck::cast_slice(&rel)),
-                storage_init(ctx, what, bytemuck::cast_slice(&t.col)),
+                (
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.entries)),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.aux)),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.col_ptr)),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.perm)),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.patches)),
+                ),
+                (
+                    storage_init(ctx, what, bytemuck::cast_slice(&rel)),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.col)),
+                    storage_init(ctx, what, bytemuck::cast_slice(far)),
+                    storage_zeroed(ctx, what, 12 * t.nodes.max(1) as u64),
+                ),
             ))
         });
         match made {
-            Ok((entries, aux, col_ptr, perm, patches, row_ptr, col)) => Ok(GpuSTemplate {
-                template: t,
-                entries,
-                aux,
-                col_ptr,
-                perm,
-                patches,
-                row_ptr,
-                col,
-                bytes,
-            }),
+            Ok(((entries, aux, col_ptr, perm, patches), (row_ptr, col, far, node_energy))) => {
+                Ok(GpuSTemplate {
+                    template: t,
+                    entries,
+                    aux,
+                    col_ptr,
+                    perm,
+                    patches,
+                    row_ptr,
+                    col,
+                    far,
+                    node_energy,
+                    read: std::sync::Mutex::new(None),
+                    bytes,
+                })
+            }
             Err(e) => {
                 ctx.release(bytes);
                 Err(e)
@@ -603,7 +721,7 @@ impl GpuSTemplate {
         let s = GpuCsr::from_device(
             ctx,
             what,
-            (t.n, t.n, t.nnz()),
+            (t.n, t.n_cols(), t.nnz()),
             (self.row_ptr.clone(), self.col.clone(), val),
             val_bytes,
         );
@@ -611,7 +729,7 @@ impl GpuSTemplate {
             s,
             csr: Csr {
                 n_rows: t.n,
-                n_cols: t.n,
+                n_cols: t.n_cols(),
                 row_ptr: t.row_ptr.clone(),
                 col: t.col.clone(),
                 val: values,
@@ -712,10 +830,31 @@ impl GpuSTemplate {
                 &ColumnParams {
                     n: t.n as u32,
                     groups_x: cg.0,
-                    _pad: [0; 2],
+                    nodes: t.nodes as u32,
+                    _pad: 0,
                 },
             );
-            let val_read = staging(ctx, "S read", val_bytes);
+            let ng = grid((t.nodes.max(1) as u32).div_ceil(WG));
+            let np = uniform(
+                ctx,
+                what,
+                &ColumnParams {
+                    n: t.n as u32,
+                    groups_x: ng.0,
+                    nodes: t.nodes as u32,
+                    _pad: 0,
+                },
+            );
+            let kept = self
+                .read
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .take()
+                .filter(|(_, size)| *size == val_bytes);
+            let val_read = match kept {
+                Some((b, _)) => b,
+                None => staging(ctx, "S read", val_bytes),
+            };
             let report_read = staging(ctx, "S report read", report_bytes);
             let mut enc = ctx.device.create_command_encoder(&Default::default());
             if input.is_none() {
@@ -756,11 +895,58 @@ impl GpuSTemplate {
                 pass.set_bind_group(0, &bg, &[]);
                 pass.dispatch_workgroups(cg.0, cg.1, 1);
             }
+            if bound && t.has_links() {
+                // What each node re-emits through its links, then each patch column with
+                // the nodes that hold it (after the direct bound, as the CPU's add_links).
+                let bg = k.s_node_energy.bind(
+                    &ctx.device,
+                    &np,
+                    &[
+                        &self.col_ptr,
+                        &self.perm,
+                        &self.entries,
+                        &self.patches,
+                        &val,
+                        &self.node_energy,
+                    ],
+                );
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_node_energy_pipeline);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(ng.0, ng.1, 1);
+                drop(pass);
+                let bg = k.s_link_bound.bind(
+                    &ctx.device,
+                    &cp,
+                    &[
+                        &self.col_ptr,
+                        &self.perm,
+                        &self.entries,
+                        &self.patches,
+                        &val,
+                        &report,
+                        &self.node_energy,
+                        &self.far,
+                    ],
+                );
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_link_bound_pipeline);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(cg.0, cg.1, 1);
+            }
             enc.copy_buffer_to_buffer(&val, 0, &val_read, 0, val_bytes);
             enc.copy_buffer_to_buffer(&report, 0, &report_read, 0, report_bytes);
             ctx.queue.submit([enc.finish()]);
-            let values = ctx.read_back(&val_read, val_bytes)?;
-            let report = ctx.read_back(&report_read, report_bytes)?;
+            let t0 = std::time::Instant::now();
+            // The values as RGB triplets, one copy out of the mapped range.
+            let values: Vec<Rgb> = ctx.read_back_as(&val_read, val_bytes)?;
+            *self.read.lock().unwrap_or_else(|p| p.into_inner()) = Some((val_read, val_bytes));
+            let report: Vec<u32> = ctx.read_back_as(&report_read, report_bytes)?;
+            tracing::debug!(
+                entries = nnz,
+                ms = t0.elapsed().as_secs_f64() * 1e3,
+                "S kernels and read-back"
+            );
             Ok((val, values, report))
         });
         let (val, values, report) = match made {
@@ -770,16 +956,15 @@ impl GpuSTemplate {
                 return Err(e);
             }
         };
-        let flat: Vec<f32> = bytemuck::pod_collect_to_vec(&values[..12 * nnz]);
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&report[..8 * m.objects.len()]);
-        let reports = words
+        let mut values = values;
+        values.truncate(nnz);
+        let reports = report[..2 * m.objects.len()]
             .chunks_exact(2)
             .map(|w| ColumnReport {
                 max_column: f32::from_bits(w[0]),
                 scaled_columns: w[1],
             })
             .collect();
-        let values = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         Ok((val, values, reports, val_bytes))
     }
 }
