@@ -173,7 +173,7 @@ impl Kernels {
             device,
             "s_entries",
             S_ENTRIES,
-            &[Read, Read, Read, Read, Read, Read, ReadWrite],
+            &[Read, Read, Read, Read, Read, Read, ReadWrite, Read],
         );
         let s_column_bound = Kernel::new(
             device,

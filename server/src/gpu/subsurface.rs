@@ -217,6 +217,10 @@ pub struct STemplate {
     /// Per patch, the linked nodes that hold it (what `s_link_bound` adds to its column):
     /// words `far[i]..far[i + 1]` of this same array, nodes ascending; empty without links.
     pub far: Vec<u32>,
+    /// The order `s_entries` evaluates the entries in: polar plans, then point plans, then
+    /// far pairs and links, then diagonals, so the threads of a warp share a plan's cost
+    /// (a polar plan takes m² × K ray steps, a far pair one lookup).
+    pub order: Vec<u32>,
 }
 
 /// One entry of a column while the template is built: (j, r, mode | opposite << 2, aux).
@@ -420,10 +424,19 @@ impl STemplate {
             }
             far.extend(far_lists.into_iter().flatten());
         }
+        let mut order: Vec<u32> = (0..nnz as u32).collect();
+        let rank = |meta: u32| match meta & 3 {
+            MODE_POLAR => 0u8,
+            MODE_POINTS => 1,
+            MODE_FAR => 2,
+            _ => 3,
+        };
+        order.sort_by_key(|&e| rank(entries[e as usize][3]));
         STemplate {
             n,
             nodes,
             far,
+            order,
             classes,
             radius,
             row_ptr,
@@ -483,6 +496,7 @@ impl STemplate {
             + alloc_size(4 * nnz)
             + alloc_size(4 * self.far.len().max(1) as u64)
             + alloc_size(12 * self.nodes.max(1) as u64)
+            + alloc_size(4 * nnz)
             + 16
     }
 
@@ -611,6 +625,7 @@ pub struct GpuSTemplate {
     row_ptr: wgpu::Buffer,
     col: wgpu::Buffer,
     far: wgpu::Buffer,
+    order: wgpu::Buffer,
     /// e_k per node, written by `s_node_energy` (12 bytes a node).
     node_energy: wgpu::Buffer,
     /// The read-back buffer of the last rebuild and its size, kept for the next one (a
@@ -670,26 +685,29 @@ impl GpuSTemplate {
                     storage_init(ctx, what, bytemuck::cast_slice(&t.col)),
                     storage_init(ctx, what, bytemuck::cast_slice(far)),
                     storage_zeroed(ctx, what, 12 * t.nodes.max(1) as u64),
+                    storage_init(ctx, what, bytemuck::cast_slice(&t.order)),
                 ),
             ))
         });
         match made {
-            Ok(((entries, aux, col_ptr, perm, patches), (row_ptr, col, far, node_energy))) => {
-                Ok(GpuSTemplate {
-                    template: t,
-                    entries,
-                    aux,
-                    col_ptr,
-                    perm,
-                    patches,
-                    row_ptr,
-                    col,
-                    far,
-                    node_energy,
-                    read: std::sync::Mutex::new(None),
-                    bytes,
-                })
-            }
+            Ok((
+                (entries, aux, col_ptr, perm, patches),
+                (row_ptr, col, far, node_energy, order),
+            )) => Ok(GpuSTemplate {
+                template: t,
+                entries,
+                aux,
+                col_ptr,
+                perm,
+                patches,
+                row_ptr,
+                col,
+                far,
+                order,
+                node_energy,
+                read: std::sync::Mutex::new(None),
+                bytes,
+            }),
             Err(e) => {
                 ctx.release(bytes);
                 Err(e)
@@ -869,6 +887,7 @@ impl GpuSTemplate {
                         &objs,
                         &dirs,
                         &val,
+                        &self.order,
                     ],
                 );
                 let mut pass = enc.begin_compute_pass(&Default::default());
@@ -934,18 +953,28 @@ impl GpuSTemplate {
                 pass.set_bind_group(0, &bg, &[]);
                 pass.dispatch_workgroups(cg.0, cg.1, 1);
             }
+            // The kernels, waited for on their own (so the log can tell them from the
+            // read-back), then the copies.
+            let t0 = std::time::Instant::now();
+            ctx.queue.submit([enc.finish()]);
+            ctx.device
+                .poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            let kernels_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let t0 = std::time::Instant::now();
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
             enc.copy_buffer_to_buffer(&val, 0, &val_read, 0, val_bytes);
             enc.copy_buffer_to_buffer(&report, 0, &report_read, 0, report_bytes);
             ctx.queue.submit([enc.finish()]);
-            let t0 = std::time::Instant::now();
             // The values as RGB triplets, one copy out of the mapped range.
             let values: Vec<Rgb> = ctx.read_back_as(&val_read, val_bytes)?;
             *self.read.lock().unwrap_or_else(|p| p.into_inner()) = Some((val_read, val_bytes));
             let report: Vec<u32> = ctx.read_back_as(&report_read, report_bytes)?;
             tracing::debug!(
                 entries = nnz,
-                ms = t0.elapsed().as_secs_f64() * 1e3,
-                "S kernels and read-back"
+                kernels_ms,
+                read_back_ms = t0.elapsed().as_secs_f64() * 1e3,
+                "S on the device"
             );
             Ok((val, values, report))
         });

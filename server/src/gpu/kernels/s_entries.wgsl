@@ -45,6 +45,9 @@ struct Params {
 // (cos θ_k, sin θ_k) of the K directions, computed once on the CPU.
 @group(0) @binding(6) var<storage, read> dirs: array<vec2<f32>>;
 @group(0) @binding(7) var<storage, read_write> val: array<f32>;
+// The entries in the order they are evaluated (by plan: polar, points, far, diagonal), so a
+// warp's threads share one plan's cost; each still writes its own value.
+@group(0) @binding(8) var<storage, read> order: array<u32>;
 
 var<private> xs: array<vec3<f32>, MAX_SAMPLES>;
 var<private> ys: array<vec3<f32>, MAX_SAMPLES>;
@@ -169,10 +172,11 @@ fn polar(x: vec3<f32>, t0: vec3<f32>, t1: vec3<f32>, t2: vec3<f32>, nrm: vec3<f3
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32) {
     let g = wid.x + wid.y * p.groups_x;
-    let idx = g * WG + li;
-    if (idx >= p.count) {
+    let slot = g * WG + li;
+    if (slot >= p.count) {
         return;
     }
+    let idx = order[slot];
     let e = entries[idx];
     let src = e.x;
     let dst = e.y;
