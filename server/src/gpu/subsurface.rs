@@ -841,28 +841,20 @@ impl GpuSTemplate {
                     _pad: [0; 3],
                 },
             );
-            let cg = grid((t.n as u32).div_ceil(WG));
-            let cp = uniform(
-                ctx,
-                what,
-                &ColumnParams {
+            // One thread a column: patches (`s_column_bound`, `s_link_bound`) or nodes
+            // (`s_node_energy`).
+            let columns = |count: usize| {
+                let g = grid((count.max(1) as u32).div_ceil(WG));
+                let params = ColumnParams {
                     n: t.n as u32,
-                    groups_x: cg.0,
+                    groups_x: g.0,
                     nodes: t.nodes as u32,
                     _pad: 0,
-                },
-            );
-            let ng = grid((t.nodes.max(1) as u32).div_ceil(WG));
-            let np = uniform(
-                ctx,
-                what,
-                &ColumnParams {
-                    n: t.n as u32,
-                    groups_x: ng.0,
-                    nodes: t.nodes as u32,
-                    _pad: 0,
-                },
-            );
+                };
+                (g, uniform(ctx, what, &params))
+            };
+            let (cg, cp) = columns(t.n);
+            let (ng, np) = columns(t.nodes);
             let kept = self
                 .read
                 .lock()

@@ -584,38 +584,12 @@ mod relight_on_both_backends {
 fn a_translucency_change_on_a_hierarchical_s_is_rebuilt_on_the_device() {
     use translux_engine::relight;
     use translux_engine::scene::Scene;
-    use translux_precompute::pipeline::{PrecomputeParams, precompute};
-    use translux_precompute::slinks::SLinkParams;
     use translux_proto::api::RelightRequest;
-    use translux_proto::scene::{Material, Profile};
     use translux_server::backend::Backend;
     let Some(_) = ctx() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("cornell");
-    let mut loaded = translux_precompute::scene::load_scene("builtin:cornell").unwrap();
-    let k = loaded
-        .objects
-        .iter()
-        .position(|o| o.name == "tall_block")
-        .unwrap();
-    let m = Material::Translucent {
-        profile: Profile::Dipole {
-            preset: Some("marble".into()),
-            sigma_a: None,
-            sigma_s_prime: None,
-            eta: None,
-            scale: Some(8.0),
-        },
-        specular: None,
-    };
-    loaded.objects[k].material = m.clone();
-    loaded.file.objects[k].material = m;
-    let params = PrecomputeParams {
-        patches: Some(1500),
-        subsurface_links: Some(SLinkParams::default()),
-        ..Default::default()
-    };
-    precompute(&loaded, &dir, &params).unwrap();
+    hierarchical_cornell(&dir, 1500);
     let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
         "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":6}}}}"#;
     let run = |backend: &Backend| {
@@ -992,41 +966,10 @@ mod s_rebuild {
         dev.release(ctx);
     }
 
-    /// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
-    /// the near field), precomputed with a hierarchical S at `patches`.
     fn hierarchical_bundle(patches: u64) -> (tempfile::TempDir, Bundle) {
-        use translux_precompute::slinks::SLinkParams;
         let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("cornell");
-        let mut loaded = load_scene("builtin:cornell").unwrap();
-        let k = loaded
-            .objects
-            .iter()
-            .position(|o| o.name == "tall_block")
-            .unwrap();
-        let m = Material::Translucent {
-            profile: Profile::Dipole {
-                preset: Some("marble".into()),
-                sigma_a: None,
-                sigma_s_prime: None,
-                eta: None,
-                scale: Some(8.0),
-            },
-            specular: None,
-        };
-        loaded.objects[k].material = m.clone();
-        loaded.file.objects[k].material = m;
-        let params = PrecomputeParams {
-            patches: Some(patches),
-            subsurface_links: Some(SLinkParams::default()),
-            environment: translux_engine::envvis::EnvVisParams {
-                bins: None,
-                ..Default::default()
-            },
-            ..Default::default()
-        };
-        precompute(&loaded, &dir, &params).unwrap();
-        (tmp, Bundle::open(&dir).unwrap())
+        let b = super::hierarchical_cornell(&tmp.path().join("cornell"), patches);
+        (tmp, b)
     }
 
     /// A hierarchical S (links to cluster nodes) rebuilt on the device: its links are
@@ -1139,18 +1082,13 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
     }
 }
 
-/// A hierarchical S (links to F's cluster nodes) solved on the device: S reads the vector
-/// F's pull makes, and the answer matches the CPU's prefix-sum pull.
-#[test]
-fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
-    use translux_engine::transport::{Transport, subsurface_operator};
+/// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
+/// the near field), precomputed into `out` with a hierarchical S at `patches`.
+fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::bundle::Bundle {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::slinks::SLinkParams;
     use translux_proto::scene::{Material, Profile};
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("cornell");
     let mut loaded = translux_precompute::scene::load_scene("builtin:cornell").unwrap();
-    // The block 8 times as translucent, so its profile reaches past the near field.
     let k = loaded
         .objects
         .iter()
@@ -1169,7 +1107,7 @@ fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
     loaded.objects[k].material = m.clone();
     loaded.file.objects[k].material = m;
     let params = PrecomputeParams {
-        patches: Some(3000),
+        patches: Some(patches),
         subsurface_links: Some(SLinkParams::default()),
         environment: translux_engine::envvis::EnvVisParams {
             bins: None,
@@ -1177,8 +1115,17 @@ fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
         },
         ..Default::default()
     };
-    precompute(&loaded, &out, &params).unwrap();
-    let b = translux_proto::bundle::Bundle::open(&out).unwrap();
+    precompute(&loaded, out, &params).unwrap();
+    translux_proto::bundle::Bundle::open(out).unwrap()
+}
+
+/// A hierarchical S (links to F's cluster nodes) solved on the device: S reads the vector
+/// F's pull makes, and the answer matches the CPU's prefix-sum pull.
+#[test]
+fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
+    use translux_engine::transport::{Transport, subsurface_operator};
+    let dir = tempfile::tempdir().unwrap();
+    let b = hierarchical_cornell(&dir.path().join("cornell"), 3000);
     let f = Transport::of(&b);
     let s = b.subsurface();
     let n = f.n();
