@@ -38,6 +38,7 @@ use crate::linalg::{Rgb, Scatter, SparseScatter};
 use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
 use crate::simulated::{self, SimMedium};
+use crate::smatrix::SimTilts;
 
 /// Δ = S⁽ⁿ⁾ − S of a scene's simulated objects under one set of materials.
 #[derive(Debug)]
@@ -74,14 +75,22 @@ impl Tilt {
 
 /// Δ for `bundle` with each object's material as in `materials` (one per manifest object).
 pub fn tilt_of(bundle: &Bundle, materials: &[&Material]) -> TiltOf {
+    tilt_of_with(bundle, materials, Vec::new())
+}
+
+/// [`tilt_of`] with the Δ of some objects already made (`given`, by object index, for
+/// their material in `materials`: [`crate::smatrix::rebuild_with_terms_and_tilt`] makes
+/// them beside S); the other simulated objects' Δ are re-weighted here.
+pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilts) -> TiltOf {
     let objects = &bundle.manifest().objects;
-    let simulated: Vec<(Range<usize>, SimMedium)> = objects
+    let simulated: Vec<(usize, Range<usize>, SimMedium)> = objects
         .iter()
         .zip(materials)
-        .filter_map(|(o, m)| {
+        .enumerate()
+        .filter_map(|(k, (o, m))| {
             let medium = SimMedium::of(m)?;
             let r = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
-            Some((r, medium))
+            Some((k, r, medium))
         })
         .collect();
     if simulated.is_empty() {
@@ -99,8 +108,14 @@ pub fn tilt_of(bundle: &Bundle, materials: &[&Material]) -> TiltOf {
     }
     let n = bundle.patch_areas().len();
     let mut rows: Vec<Vec<(u32, Rgb)>> = vec![Vec::new(); n];
-    for (r, medium) in &simulated {
-        let Some(local) = simulated::reweight_tilt(&walks, r.clone(), medium.sigma_a) else {
+    for (k, r, medium) in &simulated {
+        let made = given
+            .iter()
+            .position(|(g, _)| g == k)
+            .map(|p| given.swap_remove(p).1);
+        let Some(local) =
+            made.or_else(|| simulated::reweight_tilt(&walks, r.clone(), medium.sigma_a))
+        else {
             return TiltOf::None;
         };
         for (k, row) in local.into_iter().enumerate() {
@@ -110,7 +125,7 @@ pub fn tilt_of(bundle: &Bundle, materials: &[&Material]) -> TiltOf {
     match Csr::from_rows(n, &rows) {
         Ok(delta) => TiltOf::Some(Tilt {
             delta,
-            ranges: simulated.into_iter().map(|(r, _)| r).collect(),
+            ranges: simulated.into_iter().map(|(_, r, _)| r).collect(),
         }),
         Err(e) => TiltOf::Unsupported(format!("collimated entry: {e}")),
     }

@@ -284,36 +284,79 @@ fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
         .collect()
 }
 
-/// Rows `rows` (global) of `walks` summed per source at absorption `sigma_a`, each
-/// record's value made by `value(w, w⁽ⁿ⁾)` (w⁽ⁿ⁾ = w without collimated weights).
+/// Rows `rows` (global) of `walks` summed per source at absorption `sigma_a` in one pass
+/// over the records: S_ji from the diffuse weights w, and with `tilt` also
+/// Δ_ji = S⁽ⁿ⁾_ji − S_ji from w⁽ⁿ⁾ − w (the walks must carry collimated weights then).
+/// Δ's row has the same sources as S's.
 fn sum_rows(
     walks: &WalksView<'_>,
     rows: std::ops::Range<usize>,
     sigma_a: [f32; 3],
-    value: impl Fn(&[f32; 3], &[f32; 3]) -> [f32; 3] + Sync,
-) -> Rows {
+    tilt: bool,
+) -> (Rows, Option<Rows>) {
     let att = attenuation(sigma_a);
-    rows.into_par_iter()
+    let both: Vec<_> = rows
+        .into_par_iter()
         .map(|j| {
             let (cols, bins, ws) = walks.row(j);
-            let wn = walks.row_normal(j).unwrap_or(ws);
+            let wn = if tilt { walks.row_normal(j) } else { None };
             let mut row: Vec<(u32, [f32; 3])> = Vec::new();
-            for (((&i, &b), w), n) in cols.iter().zip(bins).zip(ws).zip(wn) {
+            let mut delta: Vec<(u32, [f32; 3])> = Vec::new();
+            for (k, ((&i, &b), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
                 let a = att[b as usize];
-                let x = value(w, n);
-                let v = [x[0] * a[0], x[1] * a[1], x[2] * a[2]];
+                let v = [w[0] * a[0], w[1] * a[1], w[2] * a[2]];
+                let d = wn.map(|wn| {
+                    let n = wn[k];
+                    [
+                        (n[0] - w[0]) * a[0],
+                        (n[1] - w[1]) * a[1],
+                        (n[2] - w[2]) * a[2],
+                    ]
+                });
                 match row.last_mut() {
                     Some((c, acc)) if *c == i => {
-                        for k in 0..3 {
-                            acc[k] += v[k];
+                        for ch in 0..3 {
+                            acc[ch] += v[ch];
+                        }
+                        if let (Some(d), Some((_, dacc))) = (d, delta.last_mut()) {
+                            for ch in 0..3 {
+                                dacc[ch] += d[ch];
+                            }
                         }
                     }
-                    _ => row.push((i, v)),
+                    _ => {
+                        row.push((i, v));
+                        if let Some(d) = d {
+                            delta.push((i, d));
+                        }
+                    }
                 }
             }
-            row
+            (row, delta)
         })
-        .collect()
+        .collect();
+    let (s, delta): (Rows, Rows) = both.into_iter().unzip();
+    (s, tilt.then_some(delta))
+}
+
+/// The largest column energy Σ_j A_j S_ji / A_i of `rows` (local rows of global
+/// sources, starting at global row `first`), areas global.
+fn max_column_energy(rows: &Rows, first: usize, area: &[f32]) -> f32 {
+    let mut energy = vec![[0.0f64; 3]; area.len()];
+    for (k, row) in rows.iter().enumerate() {
+        let aj = area[first + k] as f64;
+        for (i, v) in row {
+            for c in 0..3 {
+                energy[*i as usize][c] += aj * v[c] as f64;
+            }
+        }
+    }
+    energy
+        .iter()
+        .zip(area)
+        .filter(|(_, a)| **a > 0.0)
+        .map(|(e, a)| e.iter().fold(0.0f64, |m, v| m.max(*v)) / *a as f64)
+        .fold(0.0f64, f64::max) as f32
 }
 
 /// The re-weighted S of one simulated object: rows `rows` (global) of `walks`, as local
@@ -325,23 +368,23 @@ pub fn reweight(
     area: &[f32],
     sigma_a: [f32; 3],
 ) -> (Rows, f32) {
-    let out = sum_rows(walks, rows.clone(), sigma_a, |w, _| *w);
-    let mut energy = vec![[0.0f64; 3]; area.len()];
-    for (k, row) in out.iter().enumerate() {
-        let aj = area[rows.start + k] as f64;
-        for (i, v) in row {
-            for c in 0..3 {
-                energy[*i as usize][c] += aj * v[c] as f64;
-            }
-        }
-    }
-    let max = energy
-        .iter()
-        .zip(area)
-        .filter(|(_, a)| **a > 0.0)
-        .map(|(e, a)| e.iter().fold(0.0f64, |m, v| m.max(*v)) / *a as f64)
-        .fold(0.0f64, f64::max) as f32;
+    let (out, _) = sum_rows(walks, rows.clone(), sigma_a, false);
+    let max = max_column_energy(&out, rows.start, area);
     (out, max)
+}
+
+/// [`reweight`] and [`reweight_tilt`] in one pass over the records (an absorption change
+/// needs both, and reading the records is most of the work): S, Δ = S⁽ⁿ⁾ − S (`None`
+/// when the walks carry no collimated weights) and S's largest column energy.
+pub fn reweight_with_tilt(
+    walks: &WalksView<'_>,
+    rows: std::ops::Range<usize>,
+    area: &[f32],
+    sigma_a: [f32; 3],
+) -> (Rows, Option<Rows>, f32) {
+    let (out, delta) = sum_rows(walks, rows.clone(), sigma_a, walks.normal.is_some());
+    let max = max_column_energy(&out, rows.start, area);
+    (out, delta, max)
 }
 
 /// S⁽ⁿ⁾ − S of one simulated object at absorption `sigma_a` (see the module docs): rows
@@ -353,9 +396,7 @@ pub fn reweight_tilt(
     sigma_a: [f32; 3],
 ) -> Option<Rows> {
     walks.normal?;
-    Some(sum_rows(walks, rows, sigma_a, |w, n| {
-        [n[0] - w[0], n[1] - w[1], n[2] - w[2]]
-    }))
+    sum_rows(walks, rows, sigma_a, true).1
 }
 
 /// An orthonormal frame around unit `n` (Duff et al. 2017).
@@ -1069,6 +1110,56 @@ mod tests {
             sc[4][5],
             sa[4][5]
         );
+    }
+
+    #[test]
+    fn one_pass_gives_s_and_the_collimated_difference() {
+        // Δ from the fused pass against S⁽ⁿ⁾ re-weighted on its own (the collimated
+        // weights read as if they were the diffuse ones) minus S, at two absorptions.
+        let m = mesh([12.0, 12.0, 12.0], 4);
+        let n = m.tris.len();
+        let w = walks(&m, &medium(1.0, 0.02, 1.0));
+        let normal_only =
+            WalksView::new_checked(n, &w.row_ptr, &w.col, &w.bin, &w.weight_normal, None)
+                .expect("valid walks");
+        for sigma_a in [[0.02f32; 3], [0.05, 0.1, 0.2]] {
+            let (s, delta, max) = reweight_with_tilt(&view(&w), 0..n, &m.area, sigma_a);
+            let delta = delta.expect("collimated weights");
+            let (s_alone, max_alone) = reweight(&view(&w), 0..n, &m.area, sigma_a);
+            assert_eq!(s, s_alone, "S is the same with or without Δ");
+            assert_eq!(max, max_alone);
+            let (s_n, _) = reweight(&normal_only, 0..n, &m.area, sigma_a);
+            let (mut d2, mut n2, mut entries) = (0.0f64, 0.0f64, 0usize);
+            for j in 0..n {
+                assert_eq!(delta[j].len(), s[j].len(), "Δ's row {j} has S's sources");
+                // S⁽ⁿ⁾'s sources are a subset of the union; compare by source.
+                let get = |row: &[(u32, [f32; 3])], i: u32| {
+                    row.iter()
+                        .find(|(c, _)| *c == i)
+                        .map_or([0.0; 3], |(_, v)| *v)
+                };
+                for &(i, d) in &delta[j] {
+                    let want = get(&s_n[j], i);
+                    let have = get(&s[j], i);
+                    for c in 0..3 {
+                        let x = (want[c] - have[c]) as f64;
+                        d2 += (d[c] as f64 - x).powi(2);
+                        n2 += x * x;
+                    }
+                    entries += 1;
+                }
+                // Every source S⁽ⁿ⁾ has in this row is one of Δ's.
+                for (i, _) in &s_n[j] {
+                    assert!(delta[j].iter().any(|(c, _)| c == i), "row {j} source {i}");
+                }
+            }
+            assert!(entries > n, "{entries} entries");
+            let rel = (d2 / n2).sqrt();
+            assert!(
+                rel < 1e-5,
+                "σa {sigma_a:?}: ‖Δ − (S⁽ⁿ⁾ − S)‖ / ‖S⁽ⁿ⁾ − S‖ = {rel}"
+            );
+        }
     }
 
     #[test]

@@ -20,6 +20,7 @@
 //! the sources i of S_ji), with a report per translucent object.
 
 use std::ops::Range;
+use std::sync::Mutex;
 use std::time::Instant;
 
 use glam::Vec3;
@@ -313,8 +314,24 @@ pub fn assemble_scene(
                     object: o.name.to_string(),
                     why: "its simulated medium is incomplete".into(),
                 })?;
-                let (local, max_column) =
-                    simulated::reweight(walks, r.clone(), &g.area, medium.sigma_a);
+                let sink = fast.and_then(|f| f.tilt);
+                let (local, max_column) = match sink {
+                    Some(sink) => {
+                        let (local, delta, max) = simulated::reweight_with_tilt(
+                            walks,
+                            r.clone(),
+                            &g.area,
+                            medium.sigma_a,
+                        );
+                        if let Some(delta) = delta
+                            && let Ok(mut sink) = sink.lock()
+                        {
+                            sink.push((k, delta));
+                        }
+                        (local, max)
+                    }
+                    None => simulated::reweight(walks, r.clone(), &g.area, medium.sigma_a),
+                };
                 let entries = local.iter().map(|row| row.len() as u64).sum();
                 for (k, row) in local.into_iter().enumerate() {
                     rows[r.start + k] = row;
@@ -689,13 +706,21 @@ impl OverrideMaterials {
 
 /// What a translucency change reuses ([`assemble_scene`]): the radial terms of the
 /// bundle's translucent objects and thin sheets, its stored S, and which objects (by index)
-/// keep their stored rows.
+/// keep their stored rows. With `tilt`, simulated objects assembled here also leave their
+/// Δ = S⁽ⁿ⁾ − S there (made in the same pass over their walks, [`crate::collimated`]).
 #[derive(Debug, Clone, Copy)]
 pub struct FastPath<'a> {
     pub terms: &'a STerms,
     pub stored: CsrView<'a, [f32; 3]>,
     pub kept: &'a [bool],
+    pub tilt: Option<&'a Mutex<SimTilts>>,
 }
+
+/// Δ = S⁽ⁿ⁾ − S of simulated objects, per object index: local rows of `(global i, Δ_ji)`.
+pub type SimTilts = Vec<(usize, simulated::Rows)>;
+
+/// S, its assembly reports, and the Δ made beside it ([`rebuild_with_terms_and_tilt`]).
+pub type WithTilt = (Csr<[f32; 3]>, Vec<AssemblyReport>, SimTilts);
 
 /// Rebuilds S for a bundle with some objects' materials replaced (by object index), from
 /// the stored distances: no voxels, no rays. Objects not overridden keep their material.
@@ -725,8 +750,33 @@ pub fn rebuild_with_terms(
         terms,
         stored: bundle.subsurface(),
         kept: &kept,
+        tilt: None,
     };
     assemble_overrides(bundle, overrides, params, Some(&fast), None)
+}
+
+/// [`rebuild_with_terms`] for a relight, which with lamps also needs Δ = S⁽ⁿ⁾ − S of the
+/// overridden simulated objects ([`crate::collimated`]): made in the same pass over their
+/// walks as S (an absorption change reads the records once, not twice).
+pub fn rebuild_with_terms_and_tilt(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    params: &SParams,
+    terms: &STerms,
+) -> Result<WithTilt, SError> {
+    let kept: Vec<bool> = (0..bundle.manifest().objects.len())
+        .map(|k| !overrides.iter().any(|(i, _)| *i == k))
+        .collect();
+    let sink = Mutex::new(Vec::new());
+    let fast = FastPath {
+        terms,
+        stored: bundle.subsurface(),
+        kept: &kept,
+        tilt: Some(&sink),
+    };
+    let (s, reports) = assemble_overrides(bundle, overrides, params, Some(&fast), None)?;
+    let tilts = sink.into_inner().unwrap_or_else(|e| e.into_inner());
+    Ok((s, reports, tilts))
 }
 
 /// S for a bundle whose simulated objects in `overrides` walked again (`walks`, the whole
@@ -749,6 +799,7 @@ pub fn rebuild_with_walks(
         terms: &terms,
         stored: bundle.subsurface(),
         kept: &kept,
+        tilt: None,
     };
     assemble_overrides(bundle, overrides, params, Some(&fast), Some(walks))
 }

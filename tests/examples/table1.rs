@@ -23,7 +23,10 @@
 //! Flags: `--quick`, `--full` (the paper's polygon counts: Cornell 24,640, the whole bunny
 //! and 73,256 patches, the rose at 72,474, two horses at ~63,000), `--scenes cornell,bowls,flower,horses`, `--backend auto|cpu|gpu`,
 //! `--no-mitsuba`, `--reps N`, `--out DIR` (default `bench/results`), `--t-max N` (largest
-//! patch count for which T is computed; the dense LU is O(N³) and needs 22 N² bytes).
+//! patch count for which T is computed; the dense LU is O(N³) and needs 22 N² bytes),
+//! `--keep DIR` (bundles are kept in DIR, and a scene whose bundle is already there is
+//! relit again without its precompute: for profiling relights of long precomputes; the
+//! kept bundle is not checked against the scene, so empty DIR after changing either).
 //!
 //! Sizes: by default the bunny (69k triangles) and the horse (97k) are simplified
 //! (`simplify_to`) to keep the run short; `--full` runs the paper's polygon counts, which
@@ -44,6 +47,7 @@ use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::resolve_scene;
 use translux_precompute::slinks::SLinkParams;
+use translux_proto::bundle::MANIFEST_FILE;
 use translux_proto::light::Light;
 use translux_proto::scene::{
     ExpTerm, Material, MeshRef, ObjectDesc, PatchDensity, Profile, SceneFile, Shape, Transform,
@@ -141,6 +145,9 @@ struct Args {
     t_max: u64,
     /// `--subsurface hierarchical`: S with links to cluster nodes.
     s_links: Option<SLinkParams>,
+    /// `--keep DIR`: bundles are kept in DIR, and one already there is relit again instead
+    /// of precomputed (for profiling the relight of a scene whose precompute is long).
+    keep: Option<PathBuf>,
 }
 
 fn args() -> anyhow::Result<Args> {
@@ -157,6 +164,7 @@ fn args() -> anyhow::Result<Args> {
         out: root.join("bench/results"),
         t_max: 6_100,
         s_links: None,
+        keep: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -183,6 +191,7 @@ fn args() -> anyhow::Result<Args> {
             "--reps" => a.reps = it.next().context("--reps N")?.parse()?,
             "--out" => a.out = PathBuf::from(it.next().context("--out DIR")?),
             "--t-max" => a.t_max = it.next().context("--t-max N")?.parse()?,
+            "--keep" => a.keep = Some(PathBuf::from(it.next().context("--keep DIR")?)),
             "--subsurface" => {
                 a.s_links = match it.next().as_deref() {
                     Some("pairwise") => None,
@@ -200,7 +209,7 @@ fn args() -> anyhow::Result<Args> {
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
                  --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface pairwise|hierarchical, \
-                 --s-accuracy X)"
+                 --s-accuracy X, --keep DIR)"
             ),
         }
     }
@@ -638,11 +647,25 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         spec.patches,
         if inverse { ", with T" } else { "" }
     );
+    // With --keep, a bundle already kept for this scene and size is relit again (its
+    // precompute figures are then its manifest's stage times).
+    let reuse = a.keep.is_some() && dir.join(MANIFEST_FILE).is_file();
     let t0 = Instant::now();
-    let report = precompute(&loaded, &dir, &params)?;
+    let nnz_f = if reuse {
+        eprintln!("   reusing the bundle kept in {}", dir.display());
+        None
+    } else {
+        Some(precompute(&loaded, &dir, &params)?.nnz_f)
+    };
     let precompute_s = t0.elapsed().as_secs_f64();
     let scene = Scene::open_with(spec.key, &dir, &backend.resources())?;
     let m = scene.bundle.manifest();
+    let precompute_s = if reuse {
+        m.stages.iter().map(|s| s.seconds).sum()
+    } else {
+        precompute_s
+    };
+    let nnz_f = nnz_f.unwrap_or_else(|| scene.bundle.form_factors().nnz() as u64);
     let stage = |names: &[&str]| -> f64 {
         m.stages
             .iter()
@@ -671,7 +694,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         },
         precompute_s,
         bundle_mib: scene.bundle.total_bytes() as f64 / (1 << 20) as f64,
-        nnz_f: report.nnz_f,
+        nnz_f,
         nnz_s: scene.bundle.subsurface().nnz() as u64,
         backend: backend.name().to_owned(),
         paper: Some(spec.paper.clone()),
@@ -789,7 +812,9 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         row.mitsuba = against_mitsuba(&scene, a.quick)?;
     }
     drop(scene);
-    std::fs::remove_dir_all(&dir).ok();
+    if a.keep.is_none() {
+        std::fs::remove_dir_all(&dir).ok();
+    }
     Ok(row)
 }
 
@@ -1018,17 +1043,28 @@ fn main() -> anyhow::Result<()> {
     let scratch = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target");
     std::fs::create_dir_all(&scratch)
         .with_context(|| format!("cannot create {}", scratch.display()))?;
-    let work = tempfile::Builder::new()
-        .prefix("table1-")
-        .tempdir_in(&scratch)?;
+    // The temporary folder (without --keep) lives until the end of main.
+    let (work, _temp) = match &a.keep {
+        Some(dir) => {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("--keep: cannot create {}", dir.display()))?;
+            (dir.clone(), None)
+        }
+        None => {
+            let t = tempfile::Builder::new()
+                .prefix("table1-")
+                .tempdir_in(&scratch)?;
+            (t.path().to_path_buf(), Some(t))
+        }
+    };
     let gallop = if a.scenes.iter().any(|s| s == "gallop") {
-        Some(measure_gallop(&a, work.path(), &b)?)
+        Some(measure_gallop(&a, &work, &b)?)
     } else {
         None
     };
     let mut rows = Vec::new();
     for spec in specs(&a)? {
-        let row = measure(&spec, &a, work.path(), &b)
+        let row = measure(&spec, &a, &work, &b)
             .with_context(|| format!("{} at {} patches", spec.title, spec.patches))?;
         eprintln!("{}", serde_json::to_string(&row)?);
         rows.push(row);

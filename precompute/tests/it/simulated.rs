@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use translux_engine::collimated::{self, TiltOf};
 use translux_engine::smatrix::{self, SParams};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene_file;
@@ -91,10 +92,33 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
     }
     // More absorption re-emits less, channel by channel.
     let more = with_sigma_a(&b, [0.04, 0.008, 0.02]);
-    let (s, _) = smatrix::rebuild_from_bundle(&b, &[(0, more)], &params).unwrap();
+    let (s, _) = smatrix::rebuild_from_bundle(&b, &[(0, more.clone())], &params).unwrap();
     let t2 = total(&b, s.view().unwrap());
     assert!(t2[0] < 0.9 * t0[0], "{t2:?} {t0:?}");
     assert!((t2[1] - t0[1]).abs() <= 1e-6 * t0[1]);
+
+    // A relight's absorption change makes S and Δ = S⁽ⁿ⁾ − S in one pass over the walks
+    // (smatrix::rebuild_with_terms_and_tilt): the same S as the rebuild above, and the
+    // same Δ as re-weighting Δ on its own.
+    let terms = smatrix::terms_of_bundle(&b, &params.quadrature);
+    let (s_both, _, tilts) =
+        smatrix::rebuild_with_terms_and_tilt(&b, &[(0, more.clone())], &params, &terms).unwrap();
+    assert_eq!(s_both.val, s.val);
+    assert_eq!(tilts.len(), 1);
+    let fused = collimated::tilt_of_with(&b, &[&more], tilts);
+    let alone = collimated::tilt_of(&b, &[&more]);
+    let (TiltOf::Some(fused), TiltOf::Some(alone)) = (fused, alone) else {
+        panic!("the walks carry collimated weights");
+    };
+    assert_eq!(fused.ranges, alone.ranges);
+    assert_eq!(fused.delta.col, alone.delta.col);
+    assert_eq!(fused.delta.val, alone.delta.val);
+    assert!(fused.delta.val.iter().any(|v| v[0] != 0.0));
+    let at_built = collimated::tilt_of(&b, &[&b.manifest().objects[0].material]);
+    let TiltOf::Some(at_built) = at_built else {
+        panic!("the walks carry collimated weights");
+    };
+    assert_ne!(at_built.delta.val, fused.delta.val, "Δ follows σa");
 
     // What the walks cannot serve is refused, naming the object and what changed.
     let err =

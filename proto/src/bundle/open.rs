@@ -1013,27 +1013,44 @@ impl Bundle {
         if self.manifest.subsurface.walks == 0 {
             return None;
         }
-        self.walks_checked().ok()
+        // Every record was checked when the bundle was opened (`check_contents`), and the
+        // arrays are mapped read-only: the view is made without reading them again (an
+        // absorption change asks for it each time, and the check reads every record).
+        let (row_ptr, col, bin, weight, normal) = self.walk_arrays().ok()?;
+        Some(WalksView {
+            row_ptr,
+            col,
+            bin,
+            weight,
+            normal,
+        })
     }
 
-    fn walks_checked(&self) -> Result<WalksView<'_>, String> {
-        WalksView::new_checked(
-            self.n_patches,
+    /// The walk arrays, cast (weights as RGB triplets), not checked.
+    fn walk_arrays(&self) -> Result<WalkArrays<'_>, String> {
+        let weight = bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT))
+            .map_err(|_| "sim_weight is not a whole number of RGB triplets".to_string())?;
+        let normal = if self.manifest.version >= SIM_NORMAL_SINCE {
+            Some(
+                bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT_NORMAL)).map_err(|_| {
+                    "sim_weight_normal is not a whole number of RGB triplets".to_string()
+                })?,
+            )
+        } else {
+            None
+        };
+        Ok((
             self.u64s(arrays::SIM_ROW_PTR),
             self.u32s(arrays::SIM_COL),
             self.u32s(arrays::SIM_BIN),
-            bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT))
-                .map_err(|_| "sim_weight is not a whole number of RGB triplets".to_string())?,
-            if self.manifest.version >= SIM_NORMAL_SINCE {
-                Some(
-                    bytemuck::try_cast_slice(self.f32s(arrays::SIM_WEIGHT_NORMAL)).map_err(
-                        |_| "sim_weight_normal is not a whole number of RGB triplets".to_string(),
-                    )?,
-                )
-            } else {
-                None
-            },
-        )
+            weight,
+            normal,
+        ))
+    }
+
+    fn walks_checked(&self) -> Result<WalksView<'_>, String> {
+        let (row_ptr, col, bin, weight, normal) = self.walk_arrays()?;
+        WalksView::new_checked(self.n_patches, row_ptr, col, bin, weight, normal)
     }
 
     /// Checks the cluster tree: `tree_perm` is a permutation of `0..N` and every node's range
@@ -1225,6 +1242,15 @@ impl Bundle {
         self.manifest_bytes + self.manifest.arrays.values().map(|e| e.bytes).sum::<u64>()
     }
 }
+
+/// A [`WalksView`]'s arrays: row pointers, sources, bins, weights, collimated weights.
+type WalkArrays<'a> = (
+    &'a [u64],
+    &'a [u32],
+    &'a [u32],
+    &'a [[f32; 3]],
+    Option<&'a [[f32; 3]]>,
+);
 
 #[cfg(test)]
 #[path = "tests.rs"]
