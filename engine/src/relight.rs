@@ -51,19 +51,7 @@ impl RelightPlan {
     /// Each object's material as the transport sees it: the override where the plan has
     /// one, else the bundle's (one per manifest object).
     pub fn materials<'a>(&'a self, scene: &'a Scene) -> Vec<&'a Material> {
-        scene
-            .bundle
-            .manifest()
-            .objects
-            .iter()
-            .enumerate()
-            .map(|(k, o)| {
-                self.overrides
-                    .iter()
-                    .find(|(i, _)| *i == k)
-                    .map_or(&o.material, |(_, m)| m)
-            })
-            .collect()
+        crate::smatrix::materials_with(&scene.bundle, &self.overrides)
     }
 }
 

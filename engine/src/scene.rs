@@ -122,17 +122,7 @@ impl Scene {
                 if !tilts.is_empty() {
                     // The simulated objects' Δ came from the same pass over their walks:
                     // kept for this set of materials, where tilt_for finds it.
-                    let objects = &self.bundle.manifest().objects;
-                    let materials: Vec<&Material> = objects
-                        .iter()
-                        .enumerate()
-                        .map(|(k, o)| {
-                            overrides
-                                .iter()
-                                .find(|(i, _)| *i == k)
-                                .map_or(&o.material, |(_, m)| m)
-                        })
-                        .collect();
+                    let materials = smatrix::materials_with(&self.bundle, overrides);
                     let t = crate::collimated::tilt_of_with(&self.bundle, &materials, tilts);
                     if let Ok(mut cache) = self.tilt_cache.lock() {
                         *cache = Some((key.clone(), Arc::new(t)));

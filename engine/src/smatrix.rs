@@ -472,6 +472,26 @@ pub fn translucent_table(
     Ok((Tabulated::new(&eval, radius, 4096), capped_from))
 }
 
+/// Each object's material with `overrides` (by object index) applied: the override where
+/// there is one, else the bundle's (one per manifest object).
+pub fn materials_with<'a>(
+    bundle: &'a Bundle,
+    overrides: &'a [(usize, Material)],
+) -> Vec<&'a Material> {
+    bundle
+        .manifest()
+        .objects
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            overrides
+                .iter()
+                .find(|(i, _)| *i == k)
+                .map_or(&o.material, |(_, m)| m)
+        })
+        .collect()
+}
+
 /// The bundle's materials with `overrides` applied (by object index), and how far each
 /// object's stored distances reach (0 for objects without any). Refuses a heterogeneous
 /// override the stored per-medium lengths cannot serve.
@@ -480,17 +500,9 @@ pub fn bundle_materials(
     overrides: &[(usize, Material)],
 ) -> Result<(Vec<Material>, Vec<f32>), SError> {
     let m = bundle.manifest();
-    let materials: Vec<Material> = m
-        .objects
-        .iter()
-        .enumerate()
-        .map(|(k, o)| {
-            overrides
-                .iter()
-                .find(|(i, _)| *i == k)
-                .map(|(_, mat)| mat.clone())
-                .unwrap_or_else(|| o.material.clone())
-        })
+    let materials: Vec<Material> = materials_with(bundle, overrides)
+        .into_iter()
+        .cloned()
         .collect();
     let stored: Vec<f32> = m
         .objects
