@@ -5,22 +5,29 @@
 //! thin sheets; `smatrix::terms_of_bundle` does a whole bundle), the quadrature settings.
 //! Out: [`STerms`], which [`crate::smatrix::assemble_scene`] uses in
 //! place of the quadrature of [`crate::subsurface`] whenever a profile changes: every entry
-//! S_ji is a sum of at most [`POLAR_BINS`] (or [`POINT_BINS`]) terms of one table lookup
-//! each, where the quadrature took up to m² × K (768 by default) lookups of W.
+//! S_ji is a sum of at most [`MAX_TERMS`] terms of one table lookup each (3 to 7 for most
+//! near pairs), where the quadrature took up to m² × K (768 by default) lookups of W.
 //!
-//! Why this is exact where it matters. Every quadrature plan is linear in the profile:
+//! Why this is accurate at every translucency. Every quadrature plan is linear in the
+//! profile: S_ji = ∫ R(ρ) dμ(ρ) for a positive measure μ on the radii the pair spans, fixed by
+//! geometry:
 //! - far pairs: A_i R(r_ij), one term;
 //! - polar integration (the self term, coplanar and sheet near pairs):
 //!   Σ_rays c (W(ρ_out) − W(ρ_in)) = ∫ n(ρ) R(ρ) 2πρ dρ, where n(ρ) counts (with weights c) the
-//!   rays that cover radius ρ — a step function fixed by geometry. Over a bin [a, b] the term
-//!   n̄ (W(b) − W(a)) with n̄ the bin's area-weighted mean of n is exact when n is constant on
-//!   the bin or R is. The first bin runs from 0 to the first ray end, where n is constant:
-//!   the profile's peak is integrated exactly at any translucency, and only the tail, where
-//!   rays leave the triangle, is binned (geometric bins);
-//! - point samples (near pairs across an edge): Σ c R(ρ_q), the samples grouped into
-//!   geometric bins of ρ, each group's mass at its mass-weighted mean radius.
+//!   rays that cover radius ρ — a step function. From 0 to the first ray end n is constant,
+//!   and that head is one exact term n W(ρ₁): the profile's peak is integrated exactly at any
+//!   translucency;
+//! - point samples (near pairs across an edge): Σ c R(ρ_q).
 //!
-//! The binning error is checked against the full quadrature at translucency scales ×0.25 to
+//! Past the head, the radii are cut into coarse geometric bins (each spanning a ratio of at
+//! most [`GAUSS_RATIO`]), and each bin's part of μ is replaced by its three-node Gauss rule,
+//! computed from μ's moments (exact ones for the polar step function): positive weights at
+//! radii inside the bin that integrate every polynomial of degree ≤ 5 in ρ exactly. Over a
+//! bin whose radii differ by a factor of two the profile — a sum of exponentials over
+//! powers of ρ — is that smooth at every translucency, and where it is steep across a bin
+//! (less translucent), the bin is in the tail, far below the entry's head.
+//!
+//! The error is checked against the full quadrature at translucency scales ×0.25 to
 //! ×4 (`tests` below, and `precompute/tests/it/subsurface.rs` through a bundle).
 
 use std::ops::Range;
@@ -32,13 +39,13 @@ use translux_proto::csr::CsrView;
 use crate::sheet;
 use crate::subsurface::{self, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated};
 
-/// Terms of a polar-integration entry: the exact first bin and geometric bins after it.
-/// Measured against the quadrature on the Cornell block (marble, skim milk, ketchup at
-/// ×0.25 to ×4) and the flower's sheets, a column's re-emitted energy moves by at most
-/// 0.15% and 0.27%; with 12 polar and 16 point bins a single plan was off by up to 0.7%.
-pub const POLAR_BINS: usize = 32;
-/// Terms of a point-sample entry.
-pub const POINT_BINS: usize = 24;
+/// Each coarse bin of an entry's radii spans at most this ratio (ρ_max / ρ_min).
+pub const GAUSS_RATIO: f64 = 1.5;
+/// At most this many coarse bins per entry: an entry has at most 3 terms per bin, and one
+/// more (the exact head) for polar integration.
+pub const GAUSS_BINS: usize = 10;
+/// The most terms one entry can have.
+pub const MAX_TERMS: usize = 3 * GAUSS_BINS + 1;
 
 /// One radial term: `weight · R(r)` or `weight · W(r)` at r = `root`² (the root is
 /// stored: the table's grid is uniform in √r, so a lookup is a multiply).
@@ -60,10 +67,13 @@ impl Term {
 }
 
 /// Which tabulated function a [`Term`] weighs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Of {
-    /// The profile R(r).
-    R,
+    /// The profile R(r). The node stands for the radii √r ∈ [`lo`, `hi`] (a Gauss node's
+    /// share of its bin; a point for far pairs): where a table ends inside that cell, the
+    /// term counts the part of the cell below the table's end, so S changes continuously
+    /// as the truncation radius sweeps over an entry's radii.
+    R { lo: f32, hi: f32 },
     /// Its integral W(r) = ∫₀^r R 2πr′ dr′.
     W,
 }
@@ -73,7 +83,19 @@ impl Term {
     #[inline]
     pub fn eval(&self, tab: &Tabulated) -> [f32; 3] {
         let v = match self.of {
-            Of::R => tab.r_root(self.root),
+            Of::R { lo, hi } => {
+                let end = tab.root_max();
+                if hi <= end {
+                    tab.r_root(self.root)
+                } else if lo >= end {
+                    [0.0; 3]
+                } else {
+                    // The covered part of the cell (by area, ρ = root²), at R just inside
+                    // the table when the node itself is past its end.
+                    let f = (end * end - lo * lo) / (hi * hi - lo * lo);
+                    tab.r_root(self.root.min(end * (1.0 - 1e-6))).map(|v| v * f)
+                }
+            }
             Of::W => tab.w_root(self.root),
         };
         v.map(|x| x * self.weight)
@@ -90,7 +112,10 @@ pub fn reduce(
     out: &mut Vec<Term>,
 ) {
     match *plan {
-        Quadrature::Far { area_i } => out.push(Term::new(r, area_i, Of::R)),
+        Quadrature::Far { area_i } => {
+            let root = r.max(0.0).sqrt();
+            out.push(Term::new(r, area_i, Of::R { lo: root, hi: root }))
+        }
         Quadrature::Points {
             tri_j,
             excess,
@@ -102,7 +127,7 @@ pub fn reduce(
                 .iter()
                 .flat_map(|x| ys.iter().map(move |y| x.distance(*y) + excess))
                 .collect();
-            point_bins(&rho, c, out);
+            point_terms(&rho, c, out);
         }
         Quadrature::Polar {
             tri,
@@ -118,102 +143,260 @@ pub fn reduce(
                     events.push((hi, -c));
                 });
             }
-            polar_bins(events, out);
+            polar_terms(events, out);
         }
     }
 }
 
-/// Geometric bin edges: 0, then `first` to `last` in `bins − 1` equal ratios.
-fn edges(first: f32, last: f32, bins: usize) -> Vec<f32> {
-    let mut e = vec![0.0f32];
-    if last <= first {
-        e.push(last.max(first));
-        return e;
+/// Geometric edges from `first` to `last`, each bin spanning a ratio of at most
+/// [`GAUSS_RATIO`] (wider when more than [`GAUSS_BINS`] bins would be needed).
+fn coarse_edges(first: f64, last: f64) -> Vec<f64> {
+    if !(last > first && first > 0.0) {
+        return vec![first.min(last), last.max(first)];
     }
-    let ratio = (last / first) as f64;
-    let k = bins - 1;
-    for b in 0..=k {
-        e.push((first as f64 * ratio.powf(b as f64 / k as f64)) as f32);
-    }
-    // Exact ends (powf rounding).
-    *e.last_mut().expect("two edges at least") = last;
+    let ratio = last / first;
+    let bins = (ratio.ln() / GAUSS_RATIO.ln())
+        .ceil()
+        .clamp(1.0, GAUSS_BINS as f64) as usize;
+    let mut e: Vec<f64> = (0..=bins)
+        .map(|b| first * ratio.powf(b as f64 / bins as f64))
+        .collect();
+    e[bins] = last;
     e
 }
 
-/// Polar terms from the rays' (radius, ±weight) ends: the coverage n(ρ) swept in order,
-/// its area mass ∫ n 2πρ dρ summed per bin.
-fn polar_bins(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
+/// The moments ∫ tᵏ dμ, k = 0..5, of a positive measure μ on one coarse bin, in the bin's
+/// own coordinate t = (ρ − a) / h (so that they stay well conditioned).
+#[derive(Debug, Clone, Copy)]
+struct Moments {
+    m: [f64; 6],
+    /// The smallest and largest t with mass.
+    support: (f64, f64),
+}
+
+impl Default for Moments {
+    fn default() -> Self {
+        Moments {
+            m: [0.0; 6],
+            support: (f64::INFINITY, f64::NEG_INFINITY),
+        }
+    }
+}
+
+impl Moments {
+    fn cover(&mut self, t0: f64, t1: f64) {
+        self.support = (self.support.0.min(t0), self.support.1.max(t1));
+    }
+
+    /// A point mass `w` at t.
+    fn point(&mut self, t: f64, w: f64) {
+        self.cover(t, t);
+        let mut p = w;
+        for m in &mut self.m {
+            *m += p;
+            p *= t;
+        }
+    }
+
+    /// dμ = c ρ dρ for t in [t0, t1], ρ = a + h t: ∫ tᵏ c (a + h t) h dt.
+    fn ring(&mut self, (t0, t1): (f64, f64), a: f64, h: f64, c: f64) {
+        self.cover(t0, t1);
+        let (mut p0, mut p1) = (t0, t1);
+        for k in 0..6 {
+            // p0 = t0^(k+1), p1 = t1^(k+1) here.
+            let first = a * (p1 - p0) / (k + 1) as f64;
+            let second = h * (p1 * t1 - p0 * t0) / (k + 2) as f64;
+            self.m[k] += c * h * (first + second);
+            p0 *= t0;
+            p1 *= t1;
+        }
+    }
+}
+
+/// Appends the Gauss rule of a bin's measure as R terms: three nodes, whose sum integrates
+/// every polynomial of degree ≤ 5 in ρ over the measure exactly (two nodes, or one, when
+/// the measure's support has fewer points). Nodes lie inside the support and weights are
+/// positive, so the sum is a positive combination of R at radii the entry really spans.
+///
+/// Written here: a Gauss rule for an arbitrary discrete or piecewise measure, from its
+/// moments, is a few lines of closed form for three nodes; the quadrature crates only
+/// tabulate the classical weight functions.
+fn gauss_terms(m: &Moments, a: f64, h: f64, out: &mut Vec<Term>) {
+    let m0 = m.m[0];
+    if !(m0 > 0.0 && m0.is_finite()) {
+        return;
+    }
+    let raw: [f64; 6] = m.m.map(|v| v / m0);
+    let mu = raw[1];
+    // Central moments c_k = E[(t − μ)^k] by the binomial expansion.
+    let central = |k: usize| {
+        let mut sum = 0.0;
+        let mut binom = 1.0;
+        for (j, &r) in raw.iter().enumerate().take(k + 1) {
+            sum += binom * r * (-mu).powi((k - j) as i32);
+            binom = binom * (k - j) as f64 / (j + 1) as f64;
+        }
+        sum
+    };
+    let var = central(2);
+    // Each node stands for the support between the midpoints to its neighbours.
+    let (low, high) = m.support;
+    let mut push = |x: &[(f64, f64)]| {
+        let root = |t: f64| (a + h * t).max(0.0).sqrt() as f32;
+        for (k, &(t, w)) in x.iter().enumerate() {
+            let lo = if k == 0 { low } else { 0.5 * (x[k - 1].0 + t) };
+            let hi = if k + 1 == x.len() {
+                high
+            } else {
+                0.5 * (t + x[k + 1].0)
+            };
+            out.push(Term::new(
+                (a + h * t) as f32,
+                (m0 * w) as f32,
+                Of::R {
+                    lo: root(lo.min(t)),
+                    hi: root(hi.max(t)),
+                },
+            ));
+        }
+    };
+    if var.is_nan() || var <= 1e-12 {
+        push(&[(mu, 1.0)]);
+        return;
+    }
+    let sd = var.sqrt();
+    // Standardized: E[x] = 0, E[x²] = 1, x = (t − μ) / sd.
+    let g = central(3) / (sd * sd * sd);
+    let k = central(4) / (var * var);
+    let q = central(5) / (var * var * sd);
+    let inside = |x: f64| (-1e-9..=1.0 + 1e-9).contains(&(mu + sd * x));
+    let two = || {
+        // Roots of x² − g x − 1, the second orthogonal polynomial.
+        let root = (g * g + 4.0).sqrt();
+        let (x1, x2) = ((g - root) / 2.0, (g + root) / 2.0);
+        [(x1, x2 / (x2 - x1)), (x2, -x1 / (x2 - x1))]
+    };
+    // k − g² − 1 ≥ 0, zero exactly when the support has two points.
+    let det = k - g * g - 1.0;
+    let three = (det > 1e-9).then(|| {
+        // x³ + b2 x² + b1 x + b0 orthogonal to 1, x, x².
+        let b2 = (g + g * k - q) / det;
+        let b1 = -k - g * b2;
+        let b0 = -g - b2;
+        // Three real roots, by the trigonometric form of the depressed cubic.
+        let p = b1 - b2 * b2 / 3.0;
+        let r = 2.0 * b2 * b2 * b2 / 27.0 - b2 * b1 / 3.0 + b0;
+        if p.is_nan() || p >= 0.0 {
+            return None;
+        }
+        let amp = 2.0 * (-p / 3.0).sqrt();
+        let phi = ((3.0 * r / (2.0 * p)) * (-3.0 / p).sqrt())
+            .clamp(-1.0, 1.0)
+            .acos()
+            / 3.0;
+        let x: [f64; 3] = std::array::from_fn(|i| {
+            amp * (phi - 2.0 * std::f64::consts::PI * i as f64 / 3.0).cos() - b2 / 3.0
+        });
+        // Weights from E[1] = 1, E[x] = 0, E[x²] = 1 (Lagrange basis).
+        let w: [f64; 3] = std::array::from_fn(|i| {
+            let (j, l) = ((i + 1) % 3, (i + 2) % 3);
+            (1.0 + x[j] * x[l]) / ((x[i] - x[j]) * (x[i] - x[l]))
+        });
+        (w.iter().all(|&w| w > 0.0 && w.is_finite()) && x.iter().all(|&x| inside(x)))
+            .then(|| std::array::from_fn::<_, 3, _>(|i| (x[i], w[i])))
+    });
+    let rule: Vec<(f64, f64)> = match three.flatten() {
+        Some(r) => r.to_vec(),
+        None => two().to_vec(),
+    };
+    let mut rule: Vec<(f64, f64)> = rule.iter().map(|&(x, w)| (mu + sd * x, w)).collect();
+    rule.sort_by(|p, q| p.0.total_cmp(&q.0));
+    push(&rule);
+}
+
+/// Polar terms from the rays' (radius, ±weight) ends. The coverage n(ρ) is swept in order:
+/// from 0 to the first ray end (where n is constant) one exact term n̄ W(first); past it the
+/// measure n(ρ) 2πρ dρ, in coarse geometric bins, each replaced by its Gauss rule.
+fn polar_terms(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
     if events.is_empty() {
         return;
     }
     events.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let last = events.last().map_or(0.0, |e| e.0);
+    let last = events.last().map_or(0.0, |e| e.0) as f64;
     let first = events
         .iter()
-        .map(|e| e.0)
+        .map(|e| e.0 as f64)
         .find(|&r| r > 1e-6 * last)
         .unwrap_or(last);
-    let e = edges(first, last, POLAR_BINS);
-    let mut mass = vec![0.0f64; e.len() - 1];
-    // Area of the ring [a, b] (π dropped on both sides of n̄ = mass / ring).
-    let ring = |a: f64, b: f64| b * b - a * a;
-    let bins = mass.len();
+    let e = coarse_edges(first, last);
+    let mut bins = vec![Moments::default(); e.len() - 1];
+    let mut head = 0.0f64;
     let (mut n, mut prev, mut bin) = (0.0f64, 0.0f64, 0usize);
     for &(r, dn) in &events {
         let r = r as f64;
-        // n holds on [prev, r]: spread its mass over the bins that interval crosses.
-        let mut a = prev;
-        while n != 0.0 && a < r {
-            while bin + 1 < bins && e[bin + 1] as f64 <= a {
-                bin += 1;
+        let mut lo = prev;
+        if n > 0.0 && lo < r {
+            // The head [0, first]: its area mass (π dropped, W carries it).
+            let end = r.min(first);
+            if lo < end {
+                head += n * (end * end - lo * lo);
+                lo = end;
             }
-            let end = if bin + 1 == bins {
-                r
-            } else {
-                (e[bin + 1] as f64).min(r)
-            };
-            mass[bin] += n * ring(a, end);
-            a = end;
+            while lo < r {
+                while bin + 1 < bins.len() && e[bin + 1] <= lo {
+                    bin += 1;
+                }
+                let end = if bin + 1 == bins.len() {
+                    r
+                } else {
+                    e[bin + 1].min(r)
+                };
+                let (a, h) = (e[bin], (e[bin + 1] - e[bin]).max(f64::MIN_POSITIVE));
+                bins[bin].ring(
+                    ((lo - a) / h, (end - a) / h),
+                    a,
+                    h,
+                    2.0 * std::f64::consts::PI * n,
+                );
+                lo = end;
+            }
         }
         prev = prev.max(r);
         n += dn as f64;
     }
-    // Σ_b n̄_b (W(e_{b+1}) − W(e_b)) regrouped by edge: one W lookup per edge, n̄ being 0
-    // past the last edge and W(e_0) = W(0) = 0.
-    let mean = |b: usize| {
-        let area = ring(e[b] as f64, e[b + 1] as f64);
-        if area > 0.0 { mass[b] / area } else { 0.0 }
-    };
-    for (k, &edge) in e.iter().enumerate().skip(1) {
-        let weight = mean(k - 1) - if k < mass.len() { mean(k) } else { 0.0 };
-        if weight != 0.0 {
-            out.push(Term::new(edge, weight as f32, Of::W));
-        }
+    if head > 0.0 && first > 0.0 {
+        out.push(Term::new(
+            first as f32,
+            (head / (first * first)) as f32,
+            Of::W,
+        ));
+    }
+    for (b, m) in bins.iter().enumerate() {
+        gauss_terms(m, e[b], e[b + 1] - e[b], out);
     }
 }
 
-/// Point terms: radii `rho`, each of weight `c`, grouped into geometric bins, each group at
-/// its mean radius.
-fn point_bins(rho: &[f32], c: f32, out: &mut Vec<Term>) {
-    let last = rho.iter().cloned().fold(0.0f32, f32::max);
+/// Point terms: radii `rho`, each of weight `c`, in coarse geometric bins, each replaced by
+/// its Gauss rule (the first bin reaches down to 0, where samples may touch).
+fn point_terms(rho: &[f32], c: f32, out: &mut Vec<Term>) {
+    let last = rho.iter().cloned().fold(0.0f32, f32::max) as f64;
     let first = rho
         .iter()
-        .cloned()
+        .map(|&r| r as f64)
         .filter(|&r| r > 1e-6 * last)
-        .fold(f32::INFINITY, f32::min)
+        .fold(f64::INFINITY, f64::min)
         .min(last);
-    let e = edges(first, last, POINT_BINS);
-    let mut sum = vec![(0.0f64, 0u32); e.len() - 1];
+    let mut e = coarse_edges(first, last);
+    e[0] = 0.0;
+    let mut bins = vec![Moments::default(); e.len() - 1];
     for &r in rho {
-        let b = e[1..].partition_point(|&edge| edge < r).min(sum.len() - 1);
-        sum[b].0 += r as f64;
-        sum[b].1 += 1;
+        let r = r as f64;
+        let b = e[1..].partition_point(|&edge| edge < r).min(bins.len() - 1);
+        let h = (e[b + 1] - e[b]).max(f64::MIN_POSITIVE);
+        bins[b].point((r - e[b]) / h, c as f64);
     }
-    for (s, k) in sum {
-        if k > 0 {
-            let mean = (s / k as f64) as f32;
-            out.push(Term::new(mean, c * k as f32, Of::R));
-        }
+    for (b, m) in bins.iter().enumerate() {
+        gauss_terms(m, e[b], e[b + 1] - e[b], out);
     }
 }
 
@@ -486,15 +669,11 @@ mod tests {
             .fold(0.0, f32::max)
     }
 
-    fn check(plan: Quadrature, r: f32, xs: &[Vec3], tol: f32, what: &str) {
+    fn check(plan: Quadrature, r: f32, xs: &[Vec3], tol: f32, what: &str) -> usize {
         let params = SubsurfaceParams::default();
         let mut terms = Vec::new();
         reduce(&plan, r, xs, &params, &mut terms);
-        assert!(
-            terms.len() <= POINT_BINS.max(POLAR_BINS),
-            "{what}: {}",
-            terms.len()
-        );
+        assert!(terms.len() <= MAX_TERMS, "{what}: {}", terms.len());
         for scale in [0.25, 1.0, 4.0] {
             let tab = table(scale, 200.0);
             let exact = plan.eval(r, xs, &tab, &params);
@@ -511,6 +690,7 @@ mod tests {
                 "{what} at ×{scale}: terms {got:?} vs quadrature {exact:?} ({e:.2e})"
             );
         }
+        terms.len()
     }
 
     #[test]
@@ -546,7 +726,7 @@ mod tests {
                 self_plan,
                 0.0,
                 &xs,
-                5e-3,
+                1e-3,
                 &format!("self term, side {side}"),
             );
             let near = Quadrature::Polar {
@@ -558,7 +738,7 @@ mod tests {
                 near,
                 side * 0.5,
                 &xs,
-                5e-3,
+                1e-3,
                 &format!("coplanar pair, side {side}"),
             );
             let across = Quadrature::Points {
@@ -570,9 +750,26 @@ mod tests {
                 across,
                 side * 0.5,
                 &xs,
-                5e-3,
+                1e-3,
                 &format!("across an edge, side {side}"),
             );
+            // A coplanar pair two cells away (near, not touching): its radii span a ratio of
+            // about 2, two Gauss bins.
+            let shifted = b.map(|v| v + Vec3::new(2.0 * side, 0.0, 0.0));
+            let apart = Quadrature::Polar {
+                tri: shifted,
+                normal: n,
+                factor: 1.0,
+            };
+            // (At side 5 and ×0.25 the blue profile falls ~300× across the pair: 1.4e-3.)
+            let terms = check(
+                apart,
+                side * 2.5,
+                &xs,
+                2e-3,
+                &format!("coplanar pair two cells apart, side {side}"),
+            );
+            assert!(terms <= 6, "{terms} terms for a pair two cells apart");
             let far = Quadrature::Far { area_i: area };
             // Only the table lookup differs: linear in √r instead of r within a grid cell.
             check(
@@ -586,7 +783,7 @@ mod tests {
     }
 
     #[test]
-    fn a_self_term_first_bin_is_exact_for_a_constant_profile_too() {
+    fn a_self_term_is_exact_for_a_constant_profile_too() {
         // R ≡ 1: W(ρ) = πρ², the polar integral is the triangle's area whatever the bins.
         let t = [Vec3::ZERO, Vec3::X, Vec3::Z];
         let xs = subsurface::samples(&t, 4);
@@ -597,17 +794,97 @@ mod tests {
         };
         let mut terms = Vec::new();
         reduce(&plan, 0.0, &xs, &SubsurfaceParams::default(), &mut terms);
-        let w = |r: f32| std::f32::consts::PI * r * r;
+        assert_eq!(terms[0].of, Of::W, "the head is one exact W term");
         let got: f32 = terms
             .iter()
-            .map(|t| {
-                assert_eq!(t.of, Of::W);
-                t.weight * w(t.root * t.root)
+            .map(|t| match t.of {
+                Of::W => t.weight * std::f32::consts::PI * t.root.powi(4),
+                Of::R { .. } => t.weight,
             })
             .sum();
+        // The rays' own sum (what the quadrature computes), which the terms must equal.
+        let params = SubsurfaceParams::default();
+        let mut rays = 0.0f64;
+        for &x in &xs {
+            subsurface::polar_intervals(x, &t, Vec3::Y, params.directions, |lo, hi| {
+                rays += std::f64::consts::PI * (hi as f64 * hi as f64 - lo as f64 * lo as f64);
+            });
+        }
+        let rays = (rays / (xs.len() as f64 * params.directions as f64)) as f32;
         assert!(
-            (got - 0.5).abs() < 0.5 * 0.02,
-            "∫ 1 over the triangle = {got}"
+            (got - rays).abs() < rays * 1e-4 && (got - 0.5).abs() < 0.5 * 0.02,
+            "∫ 1 over the triangle = {got} (rays: {rays}, area 0.5)"
+        );
+    }
+
+    /// A bin's three-node rule integrates ρᵏ, k ≤ 5, exactly over the measure it replaces
+    /// (a discrete one and the polar ring measure c ρ dρ), with nodes inside the bin and
+    /// positive weights; a two-point support gets its two points back.
+    #[test]
+    fn a_bins_gauss_rule_is_exact_to_degree_five() {
+        let (a, h) = (2.0f64, 2.0f64);
+        // Uneven samples in [2, 4] with uneven weights.
+        let pts: Vec<(f64, f64)> = (0..40)
+            .map(|k| {
+                let u = (k as f64 * 0.618_034).fract();
+                (a + h * u * u, 0.5 + u)
+            })
+            .collect();
+        let mut m = Moments::default();
+        for &(r, w) in &pts {
+            m.point((r - a) / h, w);
+        }
+        let mut out = Vec::new();
+        gauss_terms(&m, a, h, &mut out);
+        assert_eq!(out.len(), 3);
+        for k in 0..=5 {
+            let want: f64 = pts.iter().map(|&(r, w)| w * r.powi(k)).sum();
+            let got: f64 = out
+                .iter()
+                .map(|t| t.weight as f64 * (t.root as f64).powi(2 * k))
+                .sum();
+            assert!((got - want).abs() <= 1e-5 * want, "ρ^{k}: {got} vs {want}");
+        }
+        for t in &out {
+            let r = t.root * t.root;
+            assert!(t.weight > 0.0 && (2.0..=4.0).contains(&r), "{t:?}");
+        }
+        // The ring measure 3 ρ dρ on [2.5, 3.5] (t in [0.25, 0.75]): ∫ ρᵏ 3ρ dρ.
+        let mut m = Moments::default();
+        m.ring((0.25, 0.75), a, h, 3.0);
+        let mut out = Vec::new();
+        gauss_terms(&m, a, h, &mut out);
+        for k in 0..=5 {
+            let want = 3.0 * (3.5f64.powi(k + 2) - 2.5f64.powi(k + 2)) / (k + 2) as f64;
+            let got: f64 = out
+                .iter()
+                .map(|t| t.weight as f64 * (t.root as f64).powi(2 * k))
+                .sum();
+            assert!(
+                (got - want).abs() <= 1e-5 * want,
+                "ring ρ^{k}: {got} vs {want}"
+            );
+        }
+        // Two points: the rule is those points.
+        let mut m = Moments::default();
+        m.point(0.1, 2.0);
+        m.point(0.9, 1.0);
+        let mut out = Vec::new();
+        gauss_terms(&m, a, h, &mut out);
+        let mut got: Vec<(f32, f32)> = out
+            .iter()
+            .filter(|t| t.weight > 1e-6)
+            .map(|t| (t.root * t.root, t.weight))
+            .collect();
+        got.sort_by(|x, y| x.0.total_cmp(&y.0));
+        assert_eq!(got.len(), 2, "{out:?}");
+        assert!(
+            (got[0].0 - 2.2).abs() < 1e-4 && (got[0].1 - 2.0).abs() < 1e-4,
+            "{got:?}"
+        );
+        assert!(
+            (got[1].0 - 3.8).abs() < 1e-4 && (got[1].1 - 1.0).abs() < 1e-4,
+            "{got:?}"
         );
     }
 

@@ -247,6 +247,12 @@ impl Tabulated {
         self.r_max
     }
 
+    /// √ of the radius the table ends at.
+    #[inline]
+    pub fn root_max(&self) -> f32 {
+        (self.radii.len() - 1) as f32 / self.root_scale
+    }
+
     /// The grid radii r_k = r_max (k / N)², and R and W at them (N + 1 each): what the GPU
     /// rebuild of S uploads to interpolate exactly as [`Tabulated::r`] and [`Tabulated::w`] do.
     pub fn grid(&self) -> (&[f32], &[[f32; 3]], &[[f32; 3]]) {
