@@ -5,8 +5,9 @@
 //! thin sheets; `smatrix::terms_of_bundle` does a whole bundle), the quadrature settings.
 //! Out: [`STerms`], which [`crate::smatrix::assemble_scene`] uses in
 //! place of the quadrature of [`crate::subsurface`] whenever a profile changes: every entry
-//! S_ji is a sum of at most [`MAX_TERMS`] terms of one table lookup each (3 to 7 for most
-//! near pairs), where the quadrature took up to m² × K (768 by default) lookups of W.
+//! S_ji is a sum of at most [`MAX_TERMS`] terms of one table lookup each (4–6 on average:
+//! 3.9 M for 722 k entries of the 24k Cornell box's block), where the quadrature took up to
+//! m² × K (768 by default) lookups of W.
 //!
 //! Why this is accurate at every translucency. Every quadrature plan is linear in the
 //! profile: S_ji = ∫ R(ρ) dμ(ρ) for a positive measure μ on the radii the pair spans, fixed by
@@ -23,7 +24,7 @@
 //! most [`GAUSS_RATIO`]), and each bin's part of μ is replaced by its three-node Gauss rule,
 //! computed from μ's moments (exact ones for the polar step function): positive weights at
 //! radii inside the bin that integrate every polynomial of degree ≤ 5 in ρ exactly. Over a
-//! bin whose radii differ by a factor of two the profile — a sum of exponentials over
+//! bin whose radii differ by at most that ratio the profile — a sum of exponentials over
 //! powers of ρ — is that smooth at every translucency, and where it is steep across a bin
 //! (less translucent), the bin is in the tail, far below the entry's head.
 //!
