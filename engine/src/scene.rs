@@ -13,6 +13,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use glam::Vec3;
 use translux_proto::bundle::{Bundle, BundleError, arrays};
+use translux_proto::csr::ValidCsr;
 use translux_proto::scene::Material;
 
 use crate::backend::{Backend, Cpu, SBuild, SceneRef};
@@ -21,7 +22,7 @@ use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::raycast::Occluder;
 use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
-use crate::sterms::STerms;
+use crate::sterms::{STerms, Scratch};
 use crate::vertexlight::VertexSamples;
 
 /// What the scenes of one process share: the backend they relight on and the cache of
@@ -63,6 +64,8 @@ pub struct Scene {
     /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
     /// by every later one ([`crate::sterms`]).
     pub(crate) s_terms: OnceLock<STerms>,
+    /// The buffers a translucency change writes S through, kept for the next one.
+    pub(crate) s_scratch: Mutex<Scratch>,
     /// Δ = S⁽ⁿ⁾ − S of the simulated objects for the last materials key
     /// ([`crate::collimated`]).
     pub(crate) tilt_cache: Mutex<Option<(String, Arc<TiltOf>)>>,
@@ -90,15 +93,63 @@ impl Scene {
         {
             return Ok(Some((m.clone(), false)));
         }
-        // On the device when the backend can (crate::gpu::subsurface), else on the CPU.
         let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
-        let (s, built_on) = match self
+        let (s, built_on, in_place) = match self.rewrite_last(&key, overrides) {
+            Some(s) => (s.map_err(invalid)?, "cpu", true),
+            None => {
+                let (s, on) = self.build_s(&key, overrides)?;
+                (s, on, false)
+            }
+        };
+        let mut albedo = self.bundle.patch_albedo().to_vec();
+        let mut emission = self.bundle.patch_emission().to_vec();
+        for (k, m) in overrides {
+            let o = &self.bundle.manifest().objects[*k];
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            let (rho, be) = material_albedo_emission(m);
+            albedo[range.clone()].fill(rho);
+            emission[range.clone()].fill(be);
+            if matches!(m, Material::Heterogeneous { .. }) {
+                // Each patch at its own medium's total diffuse reflectance.
+                let media = self.bundle.u32s(arrays::PATCH_MATERIAL);
+                for p in range {
+                    albedo[p] = patch_albedo(m, media.get(p).copied().unwrap_or(0));
+                }
+            }
+        }
+        let m = Arc::new(OverrideMaterials {
+            key: key.clone(),
+            overrides: overrides.to_vec(),
+            s,
+            albedo,
+            emission,
+            built_on,
+            in_place,
+        });
+        if let Ok(mut cache) = self.material_cache.lock() {
+            *cache = Some((key, m.clone()));
+        }
+        Ok(Some((m, true)))
+    }
+
+    /// S for `overrides` built afresh: on the device when the backend can
+    /// (crate::gpu::subsurface), else on the CPU from the radial terms.
+    fn build_s(
+        &self,
+        key: &str,
+        overrides: &[(usize, Material)],
+    ) -> Result<(ValidCsr<[f32; 3]>, &'static str), EngineError> {
+        let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
+        let built = match self
             .resources
             .backend
-            .rebuild_s(self.view(), &key, overrides)
+            .rebuild_s(self.view(), key, overrides)
             .map_err(invalid)?
         {
-            SBuild::Device(s) => (s, "gpu"),
+            SBuild::Device(s) => (
+                ValidCsr::new(s).map_err(|e| invalid(smatrix::SError::Matrix(e)))?,
+                "gpu",
+            ),
             SBuild::Cpu(why) => {
                 if let Some(why) = why {
                     tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
@@ -125,39 +176,60 @@ impl Scene {
                     let materials = smatrix::materials_with(&self.bundle, overrides);
                     let t = crate::collimated::tilt_of_with(&self.bundle, &materials, tilts);
                     if let Ok(mut cache) = self.tilt_cache.lock() {
-                        *cache = Some((key.clone(), Arc::new(t)));
+                        *cache = Some((key.to_string(), Arc::new(t)));
                     }
                 }
                 (s, "cpu")
             }
         };
-        let mut albedo = self.bundle.patch_albedo().to_vec();
-        let mut emission = self.bundle.patch_emission().to_vec();
-        for (k, m) in overrides {
-            let o = &self.bundle.manifest().objects[*k];
-            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
-            let (rho, be) = material_albedo_emission(m);
-            albedo[range.clone()].fill(rho);
-            emission[range.clone()].fill(be);
-            if matches!(m, Material::Heterogeneous { .. }) {
-                // Each patch at its own medium's total diffuse reflectance.
-                let media = self.bundle.u32s(arrays::PATCH_MATERIAL);
-                for p in range {
-                    albedo[p] = patch_albedo(m, media.get(p).copied().unwrap_or(0));
-                }
+        Ok(built)
+    }
+
+    /// A translucency change since the last S built on the CPU (only translucent objects' or
+    /// thin sheets' profiles differ, [`smatrix::changed_profiles`]): the last S with those
+    /// objects' values rewritten in place, taken from the cache (copied only while a relight
+    /// still holds it). `None` when S must be built afresh.
+    fn rewrite_last(
+        &self,
+        key: &str,
+        overrides: &[(usize, Material)],
+    ) -> Option<Result<ValidCsr<[f32; 3]>, smatrix::SError>> {
+        let terms = self.s_terms.get()?;
+        let (last, changed) = {
+            let mut cache = self.material_cache.lock().ok()?;
+            let (_, m) = cache.as_ref()?;
+            if m.built_on != "cpu" {
+                return None;
             }
-        }
-        let m = Arc::new(OverrideMaterials {
-            key: key.clone(),
-            s,
-            albedo,
-            emission,
-            built_on,
-        });
-        if let Ok(mut cache) = self.material_cache.lock() {
-            *cache = Some((key, m.clone()));
-        }
-        Ok(Some((m, true)))
+            let changed = smatrix::changed_profiles(&m.overrides, overrides, terms)?;
+            let (last_key, m) = cache.take()?;
+            // The simulated objects are as they were: so is their Δ.
+            if let Ok(mut tilt) = self.tilt_cache.lock()
+                && let Some((k, _)) = tilt.as_mut()
+                && *k == last_key
+            {
+                *k = key.to_string();
+            }
+            (m, changed)
+        };
+        let s = match Arc::try_unwrap(last) {
+            Ok(m) => m.s,
+            Err(shared) => shared.s.clone(),
+        };
+        let params = SParams::default();
+        let mut scratch = self.s_scratch.lock().unwrap_or_else(|p| p.into_inner());
+        Some(
+            smatrix::rewrite_with_terms(
+                &self.bundle,
+                s,
+                overrides,
+                &changed,
+                &params,
+                terms,
+                &mut scratch,
+            )
+            .map(|(s, _)| s),
+        )
     }
 
     /// Δ = S⁽ⁿ⁾ − S of the simulated objects under `materials` (one per manifest object),
@@ -225,6 +297,7 @@ impl Scene {
             material_cache: Mutex::new(None),
             tilt_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
+            s_scratch: Mutex::new(Scratch::default()),
             vertex_samples: OnceLock::new(),
             warm: Default::default(),
             resources: resources.clone(),
@@ -260,10 +333,12 @@ impl Scene {
         self.resources.backend.as_ref()
     }
 
-    /// Host bytes held by the cached override materials (S, ρ, Bₑ) and S's radial terms,
-    /// 0 when none.
+    /// Host bytes held by the cached override materials (S, ρ, Bₑ), S's radial terms and
+    /// the buffers a change writes S through, 0 when none.
     pub fn material_cache_bytes(&self) -> u64 {
-        self.s_terms.get().map_or(0, STerms::bytes) + self.override_bytes()
+        self.s_terms.get().map_or(0, STerms::bytes)
+            + self.override_bytes()
+            + self.s_scratch.lock().map_or(0, |s| s.bytes())
     }
 
     fn override_bytes(&self) -> u64 {
@@ -272,7 +347,8 @@ impl Scene {
             .ok()
             .and_then(|c| {
                 c.as_ref().map(|(_, m)| {
-                    (m.s.row_ptr.len() * 8 + m.s.col.len() * 4 + m.s.val.len() * 12) as u64
+                    let s = m.s.csr();
+                    (s.row_ptr.len() * 8 + s.col.len() * 4 + s.val.len() * 12) as u64
                         + m.albedo.len() as u64 * 24
                 })
             })

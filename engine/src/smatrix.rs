@@ -26,7 +26,7 @@ use std::time::Instant;
 use glam::Vec3;
 use thiserror::Error;
 use translux_proto::bundle::{Bundle, arrays};
-use translux_proto::csr::{Csr, CsrBuilder, CsrError, CsrView};
+use translux_proto::csr::{Csr, CsrBuilder, CsrError, CsrView, ValidCsr};
 use translux_proto::scene::{Material, Profile};
 
 use crate::hetero::{self, MediaLen};
@@ -34,7 +34,7 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
-use crate::sterms::{ObjectTerms, STerms};
+use crate::sterms::{ObjectTerms, Placement, STerms, Scratch};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 use rayon::prelude::*;
@@ -156,11 +156,13 @@ pub fn assemble_scene(
     params: &SParams,
     fast: Option<&FastPath<'_>>,
     walks: Option<&WalksView<'_>>,
-) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+) -> Result<(ValidCsr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let n = g.corners.len();
     let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
     let mut reports = Vec::new();
     let terms = fast.map(|f| f.terms);
+    // Objects summed from their terms: laid out now, their values written into the matrix.
+    let mut pending: Vec<(usize, &ObjectTerms, f32)> = Vec::new();
     for (k, o) in objects.iter().enumerate() {
         let r = o.patches.clone();
         if let Some(f) = fast.filter(|f| f.kept.get(k) == Some(&true)) {
@@ -168,6 +170,24 @@ pub fn assemble_scene(
                 let (cols, vals) = f.stored.row(j);
                 rows[j] = cols.iter().copied().zip(vals.iter().copied()).collect();
             }
+            continue;
+        }
+        // Objects summed from terms: the pattern (zeros) now, the values written once the
+        // matrix stands.
+        let sheet = matches!(o.material, Material::ThinSheet { .. });
+        if matches!(
+            o.material,
+            Material::Translucent { .. } | Material::ThinSheet { .. }
+        ) && let Some(t) = terms.and_then(|t| t.get(k, sheet))
+        {
+            for (j, row) in t
+                .pattern(r.start, g.nodes.is_some())
+                .into_iter()
+                .enumerate()
+            {
+                rows[r.start + j] = row;
+            }
+            pending.push((k, t, stored_radius.get(k).copied().unwrap_or(0.0)));
             continue;
         }
         match o.material {
@@ -183,41 +203,17 @@ pub fn assemble_scene(
                 ..
             } => {
                 let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let (s, report) = match terms.and_then(|t| t.get(k, true)) {
-                    Some(t) => {
-                        let start = Instant::now();
-                        let (tr, tt, capped_from) = sheet::tables(
-                            o.name,
-                            (reflectance, transmittance),
-                            reach,
-                            unit_mm,
-                            params,
-                        )?;
-                        let s = t.assemble(&g.area[r.clone()], &tr, &tt);
-                        let report = AssemblyReport {
-                            name: o.name.to_string(),
-                            radius: tr.r_max().max(tt.r_max()),
-                            capped_from,
-                            max_column_energy: s.report.max_column,
-                            scaled_columns: s.report.scaled_columns as u64,
-                            entries: s.report.nnz,
-                            links: 0,
-                            seconds: start.elapsed().as_secs_f64(),
-                        };
-                        (s, report)
-                    }
-                    None => sheet::object_s(
-                        o.name,
-                        (reflectance, transmittance),
-                        object_patches(g, r.clone()),
-                        r.clone(),
-                        distances,
-                        dist_kind,
-                        reach,
-                        unit_mm,
-                        params,
-                    )?,
-                };
+                let (s, report) = sheet::object_s(
+                    o.name,
+                    (reflectance, transmittance),
+                    object_patches(g, r.clone()),
+                    r.clone(),
+                    distances,
+                    dist_kind,
+                    reach,
+                    unit_mm,
+                    params,
+                )?;
                 let (mut s, mut report) = (s, report);
                 if let Some(nodes) = &g.nodes {
                     // Links read the table of their kind (the representative's side).
@@ -243,7 +239,7 @@ pub fn assemble_scene(
                     report.links = s.links.iter().map(|l| l.len() as u64).sum();
                 }
                 place(&mut rows, r.start, s.rows, s.links);
-                reports.push(report);
+                reports.push((k, report));
             }
             Material::Heterogeneous { materials, .. } => {
                 let t = Instant::now();
@@ -289,16 +285,19 @@ pub fn assemble_scene(
                     &tabs,
                     &params.quadrature,
                 );
-                reports.push(AssemblyReport {
-                    name: o.name.to_string(),
-                    radius,
-                    capped_from,
-                    max_column_energy: s.report.max_column,
-                    scaled_columns: s.report.scaled_columns as u64,
-                    entries: s.report.nnz,
-                    links: 0,
-                    seconds: t.elapsed().as_secs_f64(),
-                });
+                reports.push((
+                    k,
+                    AssemblyReport {
+                        name: o.name.to_string(),
+                        radius,
+                        capped_from,
+                        max_column_energy: s.report.max_column,
+                        scaled_columns: s.report.scaled_columns as u64,
+                        entries: s.report.nnz,
+                        links: 0,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ));
                 place(&mut rows, r.start, s.rows, Vec::new());
             }
             Material::Simulated { .. } => {
@@ -336,16 +335,19 @@ pub fn assemble_scene(
                 for (k, row) in local.into_iter().enumerate() {
                     rows[r.start + k] = row;
                 }
-                reports.push(AssemblyReport {
-                    name: o.name.to_string(),
-                    radius: 0.0,
-                    capped_from: None,
-                    max_column_energy: max_column,
-                    scaled_columns: 0,
-                    entries,
-                    links: 0,
-                    seconds: t.elapsed().as_secs_f64(),
-                });
+                reports.push((
+                    k,
+                    AssemblyReport {
+                        name: o.name.to_string(),
+                        radius: 0.0,
+                        capped_from: None,
+                        max_column_energy: max_column,
+                        scaled_columns: 0,
+                        entries,
+                        links: 0,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ));
             }
             Material::Translucent { profile, .. } => {
                 let t = Instant::now();
@@ -353,35 +355,33 @@ pub fn assemble_scene(
                 let (tab, capped_from) =
                     translucent_table(o.name, profile, reach, unit_mm, params)?;
                 let radius = tab.r_max();
-                let s = match terms.and_then(|t| t.get(k, false)) {
-                    Some(t) => t.assemble(&g.area[r.clone()], &tab, &tab),
-                    None => {
-                        // This object's block of the distances, within the radius.
-                        let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
-                        subsurface::assemble(
-                            object_patches(g, r.clone()),
-                            block.view(),
-                            &tab,
-                            &params.quadrature,
-                        )
-                    }
-                };
+                // This object's block of the distances, within the radius.
+                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
+                let s = subsurface::assemble(
+                    object_patches(g, r.clone()),
+                    block.view(),
+                    &tab,
+                    &params.quadrature,
+                );
                 let mut s = s;
                 if let Some(nodes) = &g.nodes {
                     let links = node_links(distances, dist_kind, r.clone(), nodes, &|_| &tab);
                     subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
                 }
                 let links = s.links.iter().map(|l| l.len() as u64).sum();
-                reports.push(AssemblyReport {
-                    name: o.name.to_string(),
-                    radius,
-                    capped_from,
-                    max_column_energy: s.report.max_column,
-                    scaled_columns: s.report.scaled_columns as u64,
-                    entries: s.report.nnz,
-                    links,
-                    seconds: t.elapsed().as_secs_f64(),
-                });
+                reports.push((
+                    k,
+                    AssemblyReport {
+                        name: o.name.to_string(),
+                        radius,
+                        capped_from,
+                        max_column_energy: s.report.max_column,
+                        scaled_columns: s.report.scaled_columns as u64,
+                        entries: s.report.nnz,
+                        links,
+                        seconds: t.elapsed().as_secs_f64(),
+                    },
+                ));
                 place(&mut rows, r.start, s.rows, s.links);
             }
         }
@@ -401,7 +401,88 @@ pub fn assemble_scene(
     for row in &rows {
         b.push_row(row)?;
     }
-    Ok((b.finish(), reports))
+    drop(rows);
+    let mut s = b.finish_valid();
+    let mut scratch = Scratch::default();
+    for (k, t, reach) in pending {
+        let report;
+        (s, report) = write_terms(s, g, &objects[k], t, reach, unit_mm, params, &mut scratch)?;
+        reports.push((k, report));
+    }
+    reports.sort_by_key(|r| r.0);
+    Ok((s, reports.into_iter().map(|r| r.1).collect()))
+}
+
+/// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its
+/// rows of `s` (laid out by [`ObjectTerms::pattern`]), `reach` being how far its stored
+/// distances go.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the matrix, the object and its terms, and the settings its tables are made with"
+)]
+fn write_terms(
+    s: ValidCsr<[f32; 3]>,
+    g: &PatchGeometry,
+    o: &ObjectMaterial<'_>,
+    t: &ObjectTerms,
+    reach: f32,
+    unit_mm: f64,
+    params: &SParams,
+    scratch: &mut Scratch,
+) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {
+    let start = Instant::now();
+    let (same, other, capped_from) = match o.material {
+        Material::Translucent { profile, .. } => {
+            let (tab, capped) = translucent_table(o.name, profile, reach, unit_mm, params)?;
+            (tab, None, capped)
+        }
+        Material::ThinSheet {
+            reflectance,
+            transmittance,
+            ..
+        } => {
+            let (tr, tt, capped) =
+                sheet::tables(o.name, (reflectance, transmittance), reach, unit_mm, params)?;
+            (tr, Some(tt), capped)
+        }
+        _ => {
+            return Err(SError::Media {
+                object: o.name.to_string(),
+                why: "only translucent objects and thin sheets are summed from terms".into(),
+            });
+        }
+    };
+    let r = o.patches.clone();
+    let at = Placement {
+        start: r.start,
+        n: g.corners.len(),
+        nodes: g.nodes.as_ref(),
+    };
+    let mut out = None;
+    let s = s.rewrite(r.clone(), |rows| {
+        out = Some(t.write(
+            &g.area[r.clone()],
+            &same,
+            other.as_ref().unwrap_or(&same),
+            at,
+            rows,
+            scratch,
+        ))
+    })?;
+    let (e, links) = out.unwrap_or_default();
+    let report = AssemblyReport {
+        name: o.name.to_string(),
+        radius: same
+            .r_max()
+            .max(other.as_ref().map_or(0.0, Tabulated::r_max)),
+        capped_from,
+        max_column_energy: e.max_column,
+        scaled_columns: e.scaled_columns as u64,
+        entries: e.nnz,
+        links,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok((s, report))
 }
 
 /// Receiver j's links to whole nodes for the rows `r` of a hierarchical S: S_{j,N+k} =
@@ -608,13 +689,18 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
             let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
             let block = ObjectBlock::of(bundle.distances(), range.clone(), |_, d, _| d < reach);
             let opposite = |e: usize| kinds.get(block.entries[e]) == Some(&sheet::KIND_OPPOSITE);
-            Some(ObjectTerms::build(
-                object_patches(&g, range),
+            let t = ObjectTerms::build(
+                object_patches(&g, range.clone()),
                 block.view(),
                 sheet,
                 &opposite,
                 params,
-            ))
+            );
+            // A hierarchical S also links rows to whole nodes (see `assemble_scene`).
+            Some(match g.nodes {
+                Some(_) => t.with_links(bundle.distances(), kinds, range, reach),
+                None => t,
+            })
         })
         .collect();
     STerms::new(objects, t.elapsed().as_secs_f64())
@@ -707,19 +793,22 @@ pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
 pub struct OverrideMaterials {
     /// The overrides, as JSON: which override set this is (the backend's key too).
     pub key: String,
-    pub s: Csr<[f32; 3]>,
+    /// The overrides themselves (what a translucency change compares with).
+    pub overrides: Vec<(usize, Material)>,
+    pub s: ValidCsr<[f32; 3]>,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
     /// Where S was rebuilt: `gpu` or `cpu`.
     pub built_on: &'static str,
+    /// S is the last override set's, with the profiles that changed written into it in
+    /// place ([`rewrite_with_terms`]), not built afresh.
+    pub in_place: bool,
 }
 
 impl OverrideMaterials {
-    /// S as a view (built by `smatrix::assemble_scene`, valid by construction).
+    /// S as a view (no pass over it: S is valid by construction).
     pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
-        self.s
-            .view()
-            .expect("assemble_scene builds a valid CSR matrix")
+        self.s.view()
     }
 }
 
@@ -739,7 +828,7 @@ pub struct FastPath<'a> {
 pub type SimTilts = Vec<(usize, simulated::Rows)>;
 
 /// S, its assembly reports, and the Δ made beside it ([`rebuild_with_terms_and_tilt`]).
-pub type WithTilt = (Csr<[f32; 3]>, Vec<AssemblyReport>, SimTilts);
+pub type WithTilt = (ValidCsr<[f32; 3]>, Vec<AssemblyReport>, SimTilts);
 
 /// Rebuilds S for a bundle with some objects' materials replaced (by object index), from
 /// the stored distances: no voxels, no rays. Objects not overridden keep their material.
@@ -748,7 +837,7 @@ pub fn rebuild_from_bundle(
     overrides: &[(usize, Material)],
     params: &SParams,
 ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
-    assemble_overrides(bundle, overrides, params, None, None)
+    assemble_overrides(bundle, overrides, params, None, None).map(|(s, r)| (s.into_csr(), r))
 }
 
 /// [`rebuild_from_bundle`] for a translucency change: objects that are not overridden keep
@@ -771,7 +860,7 @@ pub fn rebuild_with_terms(
         kept: &kept,
         tilt: None,
     };
-    assemble_overrides(bundle, overrides, params, Some(&fast), None)
+    assemble_overrides(bundle, overrides, params, Some(&fast), None).map(|(s, r)| (s.into_csr(), r))
 }
 
 /// [`rebuild_with_terms`] for a relight, which with lamps also needs Δ = S⁽ⁿ⁾ − S of the
@@ -821,6 +910,84 @@ pub fn rebuild_with_walks(
         tilt: None,
     };
     assemble_overrides(bundle, overrides, params, Some(&fast), Some(walks))
+        .map(|(s, r)| (s.into_csr(), r))
+}
+
+/// The objects whose S a change from overrides `before` to `after` rewrites in place
+/// ([`rewrite_with_terms`]): `Some` when the two list the same objects in the same order
+/// and every material that differs is a translucent profile for a translucent object, or
+/// a sheet's profiles for a thin sheet, that `terms` sums (a translucency slider); `None`
+/// when anything else differs, so S must be built again.
+pub fn changed_profiles(
+    before: &[(usize, Material)],
+    after: &[(usize, Material)],
+    terms: &STerms,
+) -> Option<Vec<usize>> {
+    if before.len() != after.len() {
+        return None;
+    }
+    let mut changed = Vec::new();
+    for ((k, a), (k2, b)) in before.iter().zip(after) {
+        if k != k2 {
+            return None;
+        }
+        if a == b {
+            continue;
+        }
+        let sums = match (a, b) {
+            (Material::Translucent { .. }, Material::Translucent { .. }) => {
+                terms.get(*k, false).is_some()
+            }
+            (Material::ThinSheet { .. }, Material::ThinSheet { .. }) => {
+                terms.get(*k, true).is_some()
+            }
+            _ => false,
+        };
+        if !sums {
+            return None;
+        }
+        changed.push(*k);
+    }
+    Some(changed)
+}
+
+/// A translucency change written into the last S: `s` was built by
+/// [`rebuild_with_terms_and_tilt`] (or this) for overrides that differ from `overrides` only
+/// in the objects `changed` ([`changed_profiles`]); their values are summed from `terms`
+/// into `s` in place (its pattern holds every stored entry, so no row is built and nothing
+/// is copied), every other value stays; `scratch` holds the buffers between changes.
+/// Reports cover the objects written.
+pub fn rewrite_with_terms(
+    bundle: &Bundle,
+    mut s: ValidCsr<[f32; 3]>,
+    overrides: &[(usize, Material)],
+    changed: &[usize],
+    params: &SParams,
+    terms: &STerms,
+    scratch: &mut Scratch,
+) -> Result<(ValidCsr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    let m = bundle.manifest();
+    let g = bundle_geometry(bundle);
+    let (materials, stored) = bundle_materials(bundle, overrides)?;
+    let mut reports = Vec::with_capacity(changed.len());
+    for &k in changed {
+        let o = &m.objects[k];
+        let object = ObjectMaterial {
+            name: &o.name,
+            material: &materials[k],
+            patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
+        };
+        let sheet = matches!(materials[k], Material::ThinSheet { .. });
+        let t = terms.get(k, sheet).ok_or_else(|| SError::Media {
+            object: o.name.clone(),
+            why: "it has no radial terms to rewrite S from".into(),
+        })?;
+        let reach = stored.get(k).copied().unwrap_or(0.0);
+        let report;
+        (s, report) = write_terms(s, &g, &object, t, reach, m.unit_mm, params, scratch)?;
+        reports.push(report);
+    }
+    Ok((s, reports))
 }
 
 /// Stage 2 on a bundle with `overrides` applied to its materials.
@@ -830,7 +997,7 @@ fn assemble_overrides(
     params: &SParams,
     fast: Option<&FastPath<'_>>,
     walks: Option<&WalksView<'_>>,
-) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+) -> Result<(ValidCsr<[f32; 3]>, Vec<AssemblyReport>), SError> {
     let m = bundle.manifest();
     let g = bundle_geometry(bundle);
     let (materials, stored) = match walks {

@@ -242,7 +242,10 @@ pub fn solve_system(
     };
     let mut method = params.method;
     let (iterations, residual) = match params.method {
-        Method::Jacobi | Method::GaussSeidel => jacobi(&mut sys, b, &b2, &mut x, params),
+        Method::Jacobi | Method::GaussSeidel => {
+            let (it, res, _) = jacobi(&mut sys, b, &b2, &mut x, params);
+            (it, res)
+        }
         Method::BiCgStab => bicgstab(&mut sys, b, &b2, &mut x, params),
         Method::Auto => {
             // A few Jacobi sweeps measure the contraction q; (tol/r)^(1/ln q) more to go.
@@ -252,15 +255,9 @@ pub fn solve_system(
                 max_iterations: PROBE.min(params.max_iterations),
                 ..*params
             };
-            let r0 = {
-                let mut y = vec![0.0f32; b.len()];
-                sys.apply(&x, &mut y);
-                let r: Vec<f32> = b.iter().zip(&y).map(|(b, y)| b - y).collect();
-                channel_residuals(&dots(&r, &r, ch), &b2)
-                    .into_iter()
-                    .fold(0.0, f64::max)
-            };
-            let (it, res) = jacobi(&mut sys, b, &b2, &mut x, &first);
+            // The probe's first residual check is the start's own residual (r0): no product
+            // of its own.
+            let (it, res, r0) = jacobi(&mut sys, b, &b2, &mut x, &first);
             let tol = params.tolerance as f64;
             if res <= tol || it >= params.max_iterations {
                 method = Method::Jacobi;
@@ -282,7 +279,8 @@ pub fn solve_system(
                 };
                 let (it2, res2) = if more <= AUTO_SWITCH as f64 {
                     method = Method::Jacobi;
-                    jacobi(&mut sys, b, &b2, &mut x, &rest)
+                    let (it, res, _) = jacobi(&mut sys, b, &b2, &mut x, &rest);
+                    (it, res)
                 } else {
                     method = Method::BiCgStab;
                     bicgstab(&mut sys, b, &b2, &mut x, &rest)
@@ -308,19 +306,21 @@ pub fn solve_system(
     Ok((x, stats))
 }
 
-/// Jacobi or Gauss-Seidel; returns (iterations, largest relative residual).
+/// Jacobi or Gauss-Seidel; returns (iterations, largest relative residual of the answer,
+/// that of the start: the first check, which the automatic choice reuses as r0).
 fn jacobi(
     sys: &mut System<'_>,
     b: &[f32],
     b2: &[f64],
     x: &mut [f32],
     params: &SolveParams,
-) -> (u32, f64) {
+) -> (u32, f64, f64) {
     let ch = sys.ch;
     let tol = params.tolerance as f64;
     let mut kfx = vec![0.0f32; b.len()];
     let mut r = vec![0.0f32; b.len()];
     let mut iterations = 0;
+    let mut first = None;
     loop {
         // r = b + K F x − x: the residual of x, and also the Jacobi step.
         sys.kf(x, &mut kfx);
@@ -330,8 +330,11 @@ fn jacobi(
         let residual = channel_residuals(&dots(&r, &r, ch), b2)
             .into_iter()
             .fold(0.0, f64::max);
+        let first = *first.get_or_insert(residual);
         if residual <= tol || iterations >= params.max_iterations {
-            return (iterations, residual);
+            // x itself, not the step x + r already paid for: a request made again starts
+            // from its own answer and must answer the same.
+            return (iterations, residual, first);
         }
         iterations += 1;
         match (params.method, sys.k.diagonal()) {

@@ -7,7 +7,10 @@
 //! place of the quadrature of [`crate::subsurface`] whenever a profile changes: every entry
 //! S_ji is a sum of at most [`MAX_TERMS`] terms of one table lookup each (4–6 on average:
 //! 3.9 M for 722 k entries of the 24k Cornell box's block), where the quadrature took up to
-//! m² × K (768 by default) lookups of W.
+//! m² × K (768 by default) lookups of W. [`ObjectTerms::write`] writes an object's S from
+//! them into its rows of the scene's S, laid out once by [`ObjectTerms::pattern`] (every
+//! stored entry and link, 0 where the profile does not reach), so a later change writes
+//! the same rows in place.
 //!
 //! Why this is accurate at every translucency. Every quadrature plan is linear in the
 //! profile: S_ji = ∫ R(ρ) dμ(ρ) for a positive measure μ on the radii the pair spans, fixed by
@@ -38,7 +41,9 @@ use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 
 use crate::sheet;
-use crate::subsurface::{self, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated};
+use crate::subsurface::{
+    self, EnergyReport, Nodes, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated,
+};
 
 /// Each coarse bin of an entry's radii spans at most this ratio (ρ_max / ρ_min).
 pub const GAUSS_RATIO: f64 = 1.5;
@@ -49,20 +54,41 @@ pub const GAUSS_BINS: usize = 10;
 pub const MAX_TERMS: usize = 3 * GAUSS_BINS + 1;
 
 /// One radial term: `weight · R(r)` or `weight · W(r)` at r = `root`² (the root is
-/// stored: the table's grid is uniform in √r, so a lookup is a multiply).
+/// stored: the table's grid is uniform in √r, so a lookup is a multiply). 16 bytes: which
+/// function it weighs is packed into the cell ([`Term::of`]; a negative `lo` marks W), so a
+/// change reads a fifth less than with an enum beside it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Term {
     pub root: f32,
     pub weight: f32,
-    pub of: Of,
+    /// The cell [`Of::R`] stands for, or −1 for [`Of::W`].
+    lo: f32,
+    hi: f32,
 }
 
 impl Term {
     fn new(r: f32, weight: f32, of: Of) -> Term {
+        let (lo, hi) = match of {
+            Of::R { lo, hi } => (lo.max(0.0), hi.max(0.0)),
+            Of::W => (-1.0, -1.0),
+        };
         Term {
             root: r.max(0.0).sqrt(),
             weight,
-            of,
+            lo,
+            hi,
+        }
+    }
+
+    /// Which tabulated function it weighs.
+    pub fn of(&self) -> Of {
+        if self.lo < 0.0 {
+            Of::W
+        } else {
+            Of::R {
+                lo: self.lo,
+                hi: self.hi,
+            }
         }
     }
 }
@@ -79,27 +105,111 @@ pub enum Of {
     W,
 }
 
-impl Term {
-    /// The term's value under the profile tabulated by `tab`.
+/// A table that terms are summed under: its end (√ of its radius) computed once, and R's
+/// cells laid out for the common term (R at a node inside the table), each cell's start
+/// and rise side by side in one 32-byte row, so that term is one multiply and one row read.
+#[derive(Debug, Clone)]
+pub struct TermTable<'a> {
+    tab: &'a Tabulated,
+    end: f32,
+    /// Cells per unit of √r, and their count.
+    scale: f32,
+    cells_f: f32,
+    /// R at each cell's start, then its rise over the cell (per channel), then padding.
+    cells: Vec<[f32; 8]>,
+}
+
+impl<'a> TermTable<'a> {
+    pub fn new(tab: &'a Tabulated) -> TermTable<'a> {
+        let (_, r, _) = tab.grid();
+        let n = r.len() - 1;
+        let end = tab.root_max();
+        let cells = (0..n)
+            .map(|k| {
+                let mut c = [0.0f32; 8];
+                for ch in 0..3 {
+                    c[ch] = r[k][ch];
+                    c[3 + ch] = r[k + 1][ch] - r[k][ch];
+                }
+                c
+            })
+            .collect();
+        TermTable {
+            tab,
+            end,
+            scale: tab.root_scale(),
+            cells_f: n as f32,
+            cells,
+        }
+    }
+
+    /// The table's radius.
+    pub fn r_max(&self) -> f32 {
+        self.tab.r_max()
+    }
+
+    /// R at √r = `root`, 0 past the table (as [`Tabulated::r_root`]).
     #[inline]
-    pub fn eval(&self, tab: &Tabulated) -> [f32; 3] {
-        let v = match self.of {
-            Of::R { lo, hi } => {
-                let end = tab.root_max();
-                if hi <= end {
-                    tab.r_root(self.root)
-                } else if lo >= end {
-                    [0.0; 3]
-                } else {
-                    // The covered part of the cell (by area, ρ = root²), at R just inside
-                    // the table when the node itself is past its end.
-                    let f = (end * end - lo * lo) / (hi * hi - lo * lo);
-                    tab.r_root(self.root.min(end * (1.0 - 1e-6))).map(|v| v * f)
+    pub fn r_root(&self, root: f32) -> [f32; 3] {
+        let x = root.max(0.0) * self.scale;
+        if x < self.cells_f {
+            let k = x as usize;
+            let f = x - k as f32;
+            let c = &self.cells[k];
+            std::array::from_fn(|ch| c[ch] + f * c[3 + ch])
+        } else {
+            [0.0; 3]
+        }
+    }
+
+    /// Σ of `terms` under this table.
+    #[inline]
+    pub fn sum(&self, terms: &[Term]) -> [f32; 3] {
+        let mut s = [0.0f32; 3];
+        for t in terms {
+            let x = t.root * self.scale;
+            if t.lo >= 0.0 && t.hi <= self.end && x < self.cells_f {
+                // R inside the table: Tabulated::r_root's interpolation, from one row.
+                let k = x as usize;
+                let f = x - k as f32;
+                let c = &self.cells[k];
+                for ch in 0..3 {
+                    s[ch] += (c[ch] + f * c[3 + ch]) * t.weight;
+                }
+            } else {
+                let v = self.eval(t);
+                for ch in 0..3 {
+                    s[ch] += v[ch];
                 }
             }
-            Of::W => tab.w_root(self.root),
+        }
+        s
+    }
+
+    /// One term's value.
+    #[inline]
+    pub fn eval(&self, t: &Term) -> [f32; 3] {
+        let (tab, end) = (self.tab, self.end);
+        let v = if t.lo < 0.0 {
+            tab.w_root(t.root)
+        } else if t.hi <= end {
+            tab.r_root(t.root)
+        } else if t.lo >= end {
+            [0.0; 3]
+        } else {
+            // The covered part of the cell (by area, ρ = root²), at R just inside the table
+            // when the node itself is past its end.
+            let f = (end * end - t.lo * t.lo) / (t.hi * t.hi - t.lo * t.lo);
+            tab.r_root(t.root.min(end * (1.0 - 1e-6))).map(|v| v * f)
         };
-        v.map(|x| x * self.weight)
+        v.map(|x| x * t.weight)
+    }
+}
+
+impl Term {
+    /// The term's value under the profile tabulated by `tab`.
+    pub fn eval(&self, tab: &Tabulated) -> [f32; 3] {
+        TermTable::new(tab).eval(self)
     }
 }
 
@@ -426,6 +536,49 @@ pub struct ObjectTerms {
     /// in parallel instead of transposing its columns.
     row_ptr: Vec<u32>,
     by_row: Vec<u32>,
+    /// A hierarchical S's links from each receiver to whole cluster nodes
+    /// ([`ObjectTerms::with_links`]; empty without a tree).
+    links: Links,
+}
+
+/// One object's links to cluster nodes, by local receiver: row j's are
+/// `ptr[j]..ptr[j + 1]`, in column order.
+#[derive(Debug, Default)]
+struct Links {
+    ptr: Vec<u32>,
+    /// The node's column in S (N + k).
+    col: Vec<u32>,
+    /// √ of the optical distance to the node's representative (a table lookup's argument).
+    root: Vec<f32>,
+    /// A sheet's link read through the transmittance (the stored entry's kind).
+    opposite: Vec<bool>,
+}
+
+/// The per-entry buffers a write of S fills, kept between translucency changes: fresh
+/// ones cost page faults (on the bowls' bunny, 4.8 M entries and 6.7 M links, about as much
+/// as the sums themselves).
+#[derive(Debug, Default)]
+pub struct Scratch {
+    vals: Vec<[f32; 3]>,
+    links: Vec<[f32; 3]>,
+}
+
+impl Scratch {
+    /// Bytes held.
+    pub fn bytes(&self) -> u64 {
+        ((self.vals.capacity() + self.links.capacity()) * 12) as u64
+    }
+}
+
+/// Where one object's rows of the scene's S are written ([`ObjectTerms::write`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Placement<'a> {
+    /// The object's first patch (its local row 0).
+    pub start: usize,
+    /// Patches in the scene (N: node columns start there).
+    pub n: usize,
+    /// The cluster tree the links refer to.
+    pub nodes: Option<&'a Nodes>,
 }
 
 impl ObjectTerms {
@@ -505,82 +658,303 @@ impl ObjectTerms {
 
     /// S of the object (local indices) under the profiles tabulated by `same` (a
     /// translucent object's profile, or a sheet's reflectance) and `other` (a sheet's
-    /// transmittance): the same entries, skips and energy bound as the quadrature's
-    /// assembly.
+    /// transmittance), without links: the same entries, skips and energy bound as the
+    /// quadrature's assembly. [`ObjectTerms::write`] into a local pattern, entries written 0
+    /// left out.
     pub fn assemble(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> ObjectS {
-        let n = self.col_ptr.len() - 1;
-        // Every entry's value (None: not kept), in parallel over the entries.
-        let vals: Vec<Option<[f32; 3]>> = (0..self.row.len())
-            .into_par_iter()
-            .map(|e| {
-                let tab = if self.opposite[e] { other } else { same };
-                // The self term is each column's first entry (`build`).
-                let self_term = e == self.col_ptr[self.src[e] as usize] as usize;
-                if !self_term && self.dist[e] >= tab.r_max() {
-                    return None;
-                }
-                let mut s = [0.0f32; 3];
-                for t in &self.terms[self.term_ptr[e] as usize..self.term_ptr[e + 1] as usize] {
-                    let v = t.eval(tab);
-                    for c in 0..3 {
-                        s[c] += v[c];
-                    }
-                }
-                (self_term || s.iter().any(|&v| v > 0.0)).then_some(s)
-            })
+        let pattern = self.pattern(0, false);
+        let cols: Vec<Vec<u32>> = pattern
+            .iter()
+            .map(|r| r.iter().map(|e| e.0).collect())
             .collect();
-        // Each column's energy, in the column's order (as `subsurface::bound_and_transpose`
-        // sums it): the divisor of each channel (1 where the column is not scaled).
-        let columns: Vec<([f32; 3], f32, f32, bool)> = (0..n)
-            .into_par_iter()
-            .map(|i| {
-                let mut total = [0.0f32; 3];
-                let range = self.col_ptr[i] as usize..self.col_ptr[i + 1] as usize;
-                for (val, &j) in vals[range.clone()].iter().zip(&self.row[range]) {
-                    if let Some(s) = val {
-                        let j = j as usize;
-                        for c in 0..3 {
-                            total[c] += area[j] * s[c] / area[i];
-                        }
-                    }
-                }
-                let worst = total.iter().cloned().fold(0.0f32, f32::max);
-                let div = if worst > 1.0 {
-                    total.map(|t| if t > 1.0 { t } else { 1.0 })
-                } else {
-                    [1.0; 3]
-                };
-                (div, worst, total[1], worst > 1.0)
-            })
+        let mut vals: Vec<Vec<[f32; 3]>> =
+            pattern.iter().map(|r| vec![[0.0; 3]; r.len()]).collect();
+        let out = cols
+            .iter()
+            .zip(vals.iter_mut())
+            .map(|(c, v)| (c.as_slice(), v.as_mut_slice()))
             .collect();
-        let mut report = subsurface::EnergyReport::default();
-        let mut mean = 0.0f64;
-        for &(_, worst, green, scaled) in &columns {
-            report.max_column = report.max_column.max(worst);
-            mean += green as f64;
-            report.scaled_columns += scaled as usize;
-        }
-        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
-        // Rows, each from the row index, sources ascending.
-        let rows: Vec<Vec<(u32, [f32; 3])>> = (0..n)
-            .into_par_iter()
-            .map(|j| {
-                self.by_row[self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize]
-                    .iter()
-                    .filter_map(|&e| {
-                        let i = self.src[e as usize];
-                        let div = columns[i as usize].0;
-                        vals[e as usize].map(|s| (i, std::array::from_fn(|c| s[c] / div[c])))
-                    })
+        let at = Placement {
+            start: 0,
+            n: area.len(),
+            nodes: None,
+        };
+        let (report, _) = self.write(area, same, other, at, out, &mut Scratch::default());
+        let rows = cols
+            .into_iter()
+            .zip(vals)
+            .enumerate()
+            .map(|(j, (c, v))| {
+                c.into_iter()
+                    .zip(v)
+                    .filter(|&(i, s)| i as usize == j || s.iter().any(|&x| x > 0.0))
                     .collect()
             })
             .collect();
-        report.nnz = rows.iter().map(|r| r.len() as u64).sum();
         ObjectS {
             rows,
             links: Vec::new(),
             report,
         }
+    }
+
+    /// Adds the links of rows `r` (this object's patches) to whole cluster nodes, from the
+    /// scene's stored distances `d` (columns ≥ N are nodes) out to `reach`; `kinds` tells a
+    /// sheet's other-side entries.
+    pub fn with_links(
+        mut self,
+        d: CsrView<'_, f32>,
+        kinds: &[u32],
+        r: Range<usize>,
+        reach: f32,
+    ) -> Self {
+        let n = d.n_rows();
+        let mut l = Links {
+            ptr: vec![0],
+            ..Default::default()
+        };
+        for j in r {
+            let first = d.row_ptr()[j] as usize;
+            let (cols, ds) = d.row(j);
+            for (e, (&c, &dist)) in cols.iter().zip(ds).enumerate() {
+                if c as usize >= n && dist < reach {
+                    l.col.push(c);
+                    l.root.push(dist.max(0.0).sqrt());
+                    l.opposite
+                        .push(self.sheet && kinds.get(first + e) == Some(&sheet::KIND_OPPOSITE));
+                }
+            }
+            l.ptr.push(l.col.len() as u32);
+        }
+        self.links = l;
+        self
+    }
+
+    /// The object's rows of S with every stored entry and link at zero (global columns):
+    /// the pattern that [`ObjectTerms::write`] fills. Row j lists its sources (the object's
+    /// patches, ascending), then (with `links`) its links.
+    pub fn pattern(&self, start: usize, links: bool) -> Vec<Vec<(u32, [f32; 3])>> {
+        let n = self.row_ptr.len() - 1;
+        (0..n)
+            .into_par_iter()
+            .map(|j| {
+                let entries = &self.by_row[self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize];
+                let mut row: Vec<(u32, [f32; 3])> = entries
+                    .iter()
+                    .map(|&e| (start as u32 + self.src[e as usize], [0.0; 3]))
+                    .collect();
+                if let Some(l) = self.links.ptr.get(j..j + 2).filter(|_| links) {
+                    row.extend(
+                        self.links.col[l[0] as usize..l[1] as usize]
+                            .iter()
+                            .map(|&c| (c, [0.0; 3])),
+                    );
+                }
+                row
+            })
+            .collect()
+    }
+
+    /// Writes the object's S under the profiles tabulated by `same` and `other` (as
+    /// [`ObjectTerms::assemble`]) into `rows`, its rows of the scene's S laid out as
+    /// [`ObjectTerms::pattern`] made them: entries past the table's reach are written 0,
+    /// links are node k's A_k P(r) while r is within reach, and the energy bound is enforced
+    /// on every column with the links counted ([`subsurface::add_links`]). `area` is the
+    /// object's patch areas; without `at.nodes` the rows hold no links. Every value is written, so the rows may hold any earlier
+    /// values: a translucency change writes the last S's values in place.
+    pub fn write(
+        &self,
+        area: &[f32],
+        same: &Tabulated,
+        other: &Tabulated,
+        at: Placement<'_>,
+        mut rows: Vec<(&[u32], &mut [[f32; 3]])>,
+        scratch: &mut Scratch,
+    ) -> (EnergyReport, u64) {
+        let n = self.col_ptr.len() - 1;
+        assert_eq!(rows.len(), n, "one row per patch of the object");
+        let (same, other) = (TermTable::new(same), TermTable::new(other));
+        // Every entry's value (0 where not kept), in parallel over the entries.
+        let vals = &mut scratch.vals;
+        vals.clear();
+        vals.par_extend((0..self.row.len()).into_par_iter().map(|e| {
+            let tab = if self.opposite[e] { &other } else { &same };
+            // The self term is each column's first entry (`build`).
+            let self_term = e == self.col_ptr[self.src[e] as usize] as usize;
+            if !self_term && self.dist[e] >= tab.r_max() {
+                return [0.0; 3];
+            }
+            let s = tab.sum(&self.terms[self.term_ptr[e] as usize..self.term_ptr[e + 1] as usize]);
+            if self_term || s.iter().any(|&v| v > 0.0) {
+                s
+            } else {
+                [0.0; 3]
+            }
+        }));
+        let vals = &scratch.vals;
+        // Each column's energy and its divisor per channel (1 where not scaled).
+        let columns: Vec<([f32; 3], [f32; 3], u32)> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let mut total = [0.0f32; 3];
+                let range = self.col_ptr[i] as usize..self.col_ptr[i + 1] as usize;
+                let mut kept = 0;
+                for (s, &j) in vals[range.clone()].iter().zip(&self.row[range]) {
+                    let j = j as usize;
+                    kept += (j == i || s.iter().any(|&v| v > 0.0)) as u32;
+                    for c in 0..3 {
+                        total[c] += area[j] * s[c] / area[i];
+                    }
+                }
+                (total, total.map(|t| t.max(1.0)), kept)
+            })
+            .collect();
+        let mut report = EnergyReport::default();
+        let mut mean = 0.0f64;
+        for (total, _, kept) in &columns {
+            let worst = total.iter().cloned().fold(0.0f32, f32::max);
+            report.max_column = report.max_column.max(worst);
+            mean += total[1] as f64;
+            report.scaled_columns += (worst > 1.0) as usize;
+            report.nnz += *kept as u64;
+        }
+        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+        // A column only scaled in some channel keeps its divisor 1 in the others.
+        let div: Vec<[f32; 3]> = columns
+            .iter()
+            .map(|(total, div, _)| {
+                if total.iter().any(|&t| t > 1.0) {
+                    *div
+                } else {
+                    [1.0; 3]
+                }
+            })
+            .collect();
+        // Links: node k's A_k P(r), read through the table of the entry's kind.
+        let link_vals = &mut scratch.links;
+        link_vals.clear();
+        if let Some(nodes) = at.nodes {
+            link_vals.par_extend((0..self.links.col.len()).into_par_iter().map(|e| {
+                let tab = if self.links.opposite[e] {
+                    &other
+                } else {
+                    &same
+                };
+                let a = nodes.area[self.links.col[e] as usize - at.n];
+                tab.r_root(self.links.root[e]).map(|v| v * a)
+            }));
+        }
+        let link_vals = &scratch.links;
+        let linked = match at.nodes {
+            Some(_) => (0..self.links.col.len())
+                .into_par_iter()
+                .filter(|&e| {
+                    let tab = if self.links.opposite[e] {
+                        &other
+                    } else {
+                        &same
+                    };
+                    self.links.root[e] < tab.end
+                })
+                .count(),
+            None => 0,
+        };
+        let mut scale = vec![[1.0f32; 3]; n];
+        if let (Some(nodes), true) = (at.nodes, linked > 0) {
+            // e_k per node (Σ_j A_j S_{j,N+k} / A_k), spread over its member patches; summed
+            // per block of rows in parallel, then the blocks in order.
+            let blocks = rayon::current_num_threads() * 4;
+            let per = n.div_ceil(blocks).max(1);
+            let parts: Vec<Vec<[f32; 3]>> = (0..n.div_ceil(per))
+                .into_par_iter()
+                .map(|b| {
+                    let mut ek = vec![[0.0f32; 3]; nodes.range.len()];
+                    for (j, a) in area.iter().enumerate().skip(b * per).take(per) {
+                        let l = self.links.ptr[j] as usize..self.links.ptr[j + 1] as usize;
+                        for (&c, v) in self.links.col[l.clone()].iter().zip(&link_vals[l]) {
+                            let k = c as usize - at.n;
+                            for ch in 0..3 {
+                                ek[k][ch] += a * v[ch] / nodes.area[k];
+                            }
+                        }
+                    }
+                    ek
+                })
+                .collect();
+            let mut ek = vec![[0.0f32; 3]; nodes.range.len()];
+            for part in &parts {
+                for (e, p) in ek.iter_mut().zip(part) {
+                    for ch in 0..3 {
+                        e[ch] += p[ch];
+                    }
+                }
+            }
+            let mut far = vec![[0.0f32; 3]; n];
+            for (k, e) in ek.iter().enumerate() {
+                if e.iter().all(|&v| v == 0.0) {
+                    continue;
+                }
+                for &p in nodes.members(k) {
+                    let i = p as usize - at.start;
+                    for c in 0..3 {
+                        far[i][c] += e[c];
+                    }
+                }
+            }
+            let mut mean = 0.0f64;
+            for i in 0..n {
+                let direct: [f32; 3] = std::array::from_fn(|c| columns[i].0[c] / div[i][c]);
+                mean += (direct[1] + far[i][1]) as f64;
+                if far[i] == [0.0; 3] {
+                    continue;
+                }
+                let mut any = false;
+                for c in 0..3 {
+                    let total = direct[c] + far[i][c];
+                    report.max_column = report.max_column.max(total);
+                    if total > 1.0 && direct[c] > 0.0 {
+                        scale[i][c] = (1.0 - far[i][c]).max(0.0) / direct[c];
+                        any = true;
+                    }
+                }
+                report.scaled_columns += any as usize;
+            }
+            report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+            report.nnz += linked as u64;
+        }
+        // The rows: each entry bounded by its column, then the row's links.
+        rows.par_iter_mut()
+            .enumerate()
+            .for_each(|(j, (cols, out))| {
+                let entries = &self.by_row[self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize];
+                let links = match self.links.ptr.get(j..j + 2).filter(|_| at.nodes.is_some()) {
+                    Some(l) => l[0] as usize..l[1] as usize,
+                    None => 0..0,
+                };
+                assert_eq!(
+                    out.len(),
+                    entries.len() + links.len(),
+                    "row {j} is not laid out as ObjectTerms::pattern made it"
+                );
+                debug_assert!(
+                    entries
+                        .iter()
+                        .zip(cols.iter())
+                        .all(|(&e, &c)| c as usize == at.start + self.src[e as usize] as usize)
+                );
+                for (o, &e) in out.iter_mut().zip(entries) {
+                    let i = self.src[e as usize] as usize;
+                    let v = vals[e as usize];
+                    *o = std::array::from_fn(|c| v[c] / div[i][c] * scale[i][c]);
+                }
+                let tail = &mut out[entries.len()..];
+                if link_vals.is_empty() {
+                    tail.fill([0.0; 3]);
+                } else {
+                    tail.copy_from_slice(&link_vals[links]);
+                }
+            });
+        (report, linked as u64)
     }
 
     /// Stored entries (the self terms included).
@@ -596,7 +970,9 @@ impl ObjectTerms {
             + self.opposite.len()
             + self.term_ptr.len() * 4
             + self.terms.len() * std::mem::size_of::<Term>()
-            + (self.src.len() + self.row_ptr.len() + self.by_row.len()) * 4) as u64
+            + (self.src.len() + self.row_ptr.len() + self.by_row.len()) * 4
+            + (self.links.ptr.len() + self.links.col.len() + self.links.root.len()) * 4
+            + self.links.opposite.len()) as u64
     }
 }
 
@@ -795,10 +1171,10 @@ mod tests {
         };
         let mut terms = Vec::new();
         reduce(&plan, 0.0, &xs, &SubsurfaceParams::default(), &mut terms);
-        assert_eq!(terms[0].of, Of::W, "the head is one exact W term");
+        assert_eq!(terms[0].of(), Of::W, "the head is one exact W term");
         let got: f32 = terms
             .iter()
-            .map(|t| match t.of {
+            .map(|t| match t.of() {
                 Of::W => t.weight * std::f32::consts::PI * t.root.powi(4),
                 Of::R { .. } => t.weight,
             })

@@ -247,6 +247,11 @@ impl Tabulated {
         self.r_max
     }
 
+    /// Grid cells per unit of √r (the grid is uniform in √r).
+    pub fn root_scale(&self) -> f32 {
+        self.root_scale
+    }
+
     /// √ of the radius the table ends at.
     #[inline]
     pub fn root_max(&self) -> f32 {

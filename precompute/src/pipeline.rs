@@ -896,6 +896,7 @@ pub fn precompute(
         None,
         walks_view.as_ref(),
     )?;
+    let smat = smat.into_csr();
     bar.inc(1);
     for d in &dist_reports {
         if let Some(w) = &d.warning {

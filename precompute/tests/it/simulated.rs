@@ -103,7 +103,7 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
     let terms = smatrix::terms_of_bundle(&b, &params.quadrature);
     let (s_both, _, tilts) =
         smatrix::rebuild_with_terms_and_tilt(&b, &[(0, more.clone())], &params, &terms).unwrap();
-    assert_eq!(s_both.val, s.val);
+    assert_eq!(s_both.csr().val, s.val);
     assert_eq!(tilts.len(), 1);
     let fused = collimated::tilt_of_with(&b, &[&more], tilts);
     let alone = collimated::tilt_of(&b, &[&more]);

@@ -199,6 +199,19 @@ fn column_energy(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>) -> Vec<[f64; 3]>
     out
 }
 
+/// `s` without its zero entries off the diagonal.
+fn nonzero(s: &translux_proto::csr::Csr<Rgb>) -> translux_proto::csr::Csr<Rgb> {
+    let rows: Vec<Vec<(u32, Rgb)>> = (0..s.n_rows)
+        .map(|j| {
+            (s.row_ptr[j] as usize..s.row_ptr[j + 1] as usize)
+                .map(|e| (s.col[e], s.val[e]))
+                .filter(|&(i, v)| i as usize == j || v != [0.0; 3])
+                .collect()
+        })
+        .collect();
+    translux_proto::csr::Csr::from_rows(s.n_cols, rows).unwrap()
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
@@ -279,9 +292,37 @@ fn compare(c: &Case<'_>, seed: u64) {
         let (s_hier, _) = smatrix::rebuild_from_bundle(hier, &over, &params).unwrap();
         // The translucency change's path (terms for the pairs, one lookup per link) agrees.
         let (s_fast, _) = smatrix::rebuild_with_terms(hier, &over, &params, &terms).unwrap();
-        assert_eq!(s_fast.col, s_hier.col);
+        // A translucency change from the other scale writes its values into that S in place
+        // (engine::scene's path): the same matrix, bit for bit.
+        let other: Vec<(usize, Material)> = c
+            .objects
+            .iter()
+            .map(|&k| (k, (c.material)(k, 5.0 - scale)))
+            .collect();
+        let (last, _, _) =
+            smatrix::rebuild_with_terms_and_tilt(hier, &other, &params, &terms).unwrap();
+        let changed = smatrix::changed_profiles(&other, &over, &terms).unwrap();
+        assert_eq!(changed, c.objects);
+        let (in_place, _) = smatrix::rewrite_with_terms(
+            hier,
+            last,
+            &over,
+            &changed,
+            &params,
+            &terms,
+            &mut Default::default(),
+        )
+        .unwrap();
+        assert!(
+            in_place.csr() == &s_fast,
+            "×{scale}: in place differs from afresh"
+        );
+        // The terms' S keeps every stored entry (0 past the profile's reach); the
+        // quadrature's leaves those out.
+        let (s_fast, hier_nz) = (nonzero(&s_fast), nonzero(&s_hier));
+        assert_eq!(s_fast.col, hier_nz.col);
         let (mut d2, mut s2) = (0.0f64, 0.0f64);
-        for (a, b) in s_fast.val.iter().zip(&s_hier.val) {
+        for (a, b) in s_fast.val.iter().zip(&hier_nz.val) {
             for ch in 0..3 {
                 d2 += ((a[ch] - b[ch]) as f64).powi(2);
                 s2 += (b[ch] as f64).powi(2);
