@@ -486,8 +486,8 @@ fn write_terms(
 }
 
 /// Receiver j's links to whole nodes for the rows `r` of a hierarchical S: S_{j,N+k} =
-/// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while r is within the
-/// table's reach. Empty rows when the distances hold no links.
+/// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while √r is within
+/// the table's end. Empty rows when the distances hold no links.
 fn node_links<'t>(
     distances: CsrView<'_, f32>,
     dist_kind: &[u32],
@@ -509,9 +509,13 @@ fn node_links<'t>(
                         .get(first + e)
                         .copied()
                         .unwrap_or(sheet::KIND_SAME));
-                    (d < t.r_max()).then(|| {
+                    // Looked up by √r against the table's end, as the radial terms'
+                    // rebuild (`sterms`) does: a distance within an ulp of the end is then
+                    // in or out of both alike.
+                    let root = d.max(0.0).sqrt();
+                    (root < t.root_max()).then(|| {
                         let a = nodes.area[c as usize - n];
-                        (c, t.r(d).map(|v| v * a))
+                        (c, t.r_root(root).map(|v| v * a))
                     })
                 })
                 .collect()

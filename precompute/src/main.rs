@@ -69,9 +69,16 @@ struct Cli {
     /// only those the cut uses; `all`: every path within the profile's radius, then the
     /// cut from those; `auto` (default): on demand where the cut keeps under a quarter of
     /// the paths or they exceed 2,000 per patch. The bundle is the same either way, bit for
-    /// bit.
+    /// bit, with `--s-exact-links`.
     #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
     s_trace: TraceArg,
+    /// Hierarchical S traced on demand only: trace every path on the full voxel grid. By
+    /// default the runs from linked nodes and distant direct patches find their targets 16
+    /// voxels away or more on a grid of twice the voxel edge (about an eighth of the work;
+    /// those distances then differ slightly from `--s-trace all`'s); with this flag the
+    /// bundle equals `--s-trace all`'s bit for bit.
+    #[arg(long)]
+    s_exact_links: bool,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -285,6 +292,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     TraceArg::OnDemand => Trace::OnDemand,
                     TraceArg::All => Trace::All,
                 },
+                coarse_links: !cli.s_exact_links,
             }),
         },
         environment: match cli.env_bins.as_deref() {

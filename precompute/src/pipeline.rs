@@ -835,6 +835,7 @@ pub fn precompute(
             .filter_map(|(m, _)| paths.iter().find(|p| p.0 == m.name).map(|p| p.1))
             .sum::<u64>();
     let mut cut_object_seconds = vec![0.0f64; materials.len()];
+    let mut node_runs = (0u64, 0u64);
     let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
@@ -844,6 +845,7 @@ pub fn precompute(
                 geometry.nodes = Some(c.nodes);
             }
             cut_object_seconds = c.seconds;
+            node_runs = c.node_runs;
             (c.dist, c.material_len, c.kind, c.links)
         }
         _ => (dist, dist_len, dist_kind, 0),
@@ -868,9 +870,13 @@ pub fn precompute(
                  against {pairwise_distances} pairwise distances{} (cut in {cut_seconds:.2} s)",
                 dist.col.len() as u64 - links,
                 if oracles.iter().any(Option::is_some) {
-                    ", estimated; only the distances the cut uses were traced"
+                    format!(
+                        ", estimated; only the distances the cut uses were traced: {} linked \
+                         nodes' runs, {} of them on the grid of twice the voxel edge",
+                        node_runs.0, node_runs.1
+                    )
                 } else {
-                    ""
+                    String::new()
                 },
             ),
         );

@@ -28,16 +28,20 @@
 //! - otherwise its children are visited; a patch i with a stored distance becomes a direct
 //!   entry, evaluated as in a pairwise S.
 //!
-//! The distances come one of two ways ([`Trace`]), with the same result bit for bit: from
-//! stage 1's pairwise distances (every pair within the stored radius, then the cut), or on
-//! demand ([`Oracle`], homogeneous translucent objects): every receiver's cut is made first
-//! from geometry alone (a candidate whose straight line already exceeds the reach is left
-//! out, an optical path being never shorter), then only the distances it uses are traced —
-//! a run from each receiver to its close candidates, one from each distant candidate (a
-//! patch a loose node of the tree leaves to many near fields) to the receivers listing it,
-//! and one from each linked node's representative to the receivers linking it. Runs stop
-//! once their targets are settled. A large or very translucent object (the bowls' bunny in
-//! skim milk: every patch within reach of every other) then never lists its O(n²) pairs.
+//! The distances come one of two ways ([`Trace`]): from stage 1's pairwise distances (every
+//! pair within the stored radius, then the cut), or on demand ([`Oracle`], homogeneous
+//! translucent objects): every receiver's cut is made first from geometry alone (a
+//! candidate whose straight line already exceeds the reach is left out, an optical path
+//! being never shorter), then only the distances it uses are traced — a run from each
+//! receiver to its close candidates, one from each distant candidate (a patch a loose node
+//! of the tree leaves to many near fields) to the receivers listing it, and one from each
+//! linked node's representative to the receivers linking it. Runs stop once their targets
+//! are settled. A large or very translucent object (the bowls' bunny in skim milk: every
+//! patch within reach of every other) then never lists its O(n²) pairs. The two ways give
+//! the same distances bit for bit, except that by default ([`SLinkParams::coarse_links`])
+//! the node runs and the distant candidates' runs find their targets 16 voxels away or
+//! more on a grid of twice the voxel edge, an eighth of the voxels to settle
+//! ([`Oracle::solve_far`]).
 //!
 //! Thin sheets are cut the same way along their geodesics, a node being linked only when its
 //! normal cone is at most 45° wide (so it holds one side) and the link taking its
@@ -81,6 +85,14 @@ pub struct SLinkParams {
     pub accuracy: f32,
     /// How a homogeneous translucent object's optical distances are traced.
     pub trace: Trace,
+    /// Traced on demand only: the runs from linked nodes' representatives and from distant
+    /// direct candidates find their targets at least [`crate::voxel::FAR_RUN_VOXELS`]
+    /// coarse voxels away (16 voxels) on a grid of twice the voxel edge
+    /// ([`Oracle::solve_far`]), settling about an eighth of the voxels; those distances then
+    /// differ slightly from [`Trace::All`]'s (on the scanned bunny in skim milk, S stays as
+    /// close to the pairwise S: `precompute/tests/it/slinks.rs`). Default true; `false`
+    /// keeps the bundle equal to `Trace::All`'s bit for bit (`--s-exact-links`).
+    pub coarse_links: bool,
 }
 
 impl Default for SLinkParams {
@@ -88,6 +100,7 @@ impl Default for SLinkParams {
         Self {
             accuracy: 0.5,
             trace: Trace::Auto,
+            coarse_links: true,
         }
     }
 }
@@ -193,6 +206,10 @@ pub struct Collapsed {
     pub links: u64,
     /// Seconds each object's cut took (0 for objects not cut), tracing included.
     pub seconds: Vec<f64>,
+    /// Linked nodes whose distances were traced on demand (one run each from the
+    /// representative), and how many of those ran on the coarse grid
+    /// ([`SLinkParams::coarse_links`]).
+    pub node_runs: (u64, u64),
 }
 
 /// Per node: the representative patch (nearest the area-weighted centroid).
@@ -267,6 +284,7 @@ struct Cutter<'a> {
     g: &'a PatchGeometry,
     theta: f32,
     near_factor: f32,
+    coarse_links: bool,
 }
 
 impl<'a> Cutter<'a> {
@@ -285,6 +303,7 @@ impl<'a> Cutter<'a> {
             g,
             theta: params.accuracy,
             near_factor: sp.quadrature.near_factor,
+            coarse_links: params.coarse_links,
         }
     }
 
@@ -412,13 +431,22 @@ pub fn collapse(
         })
         .collect();
     let mut links_total = 0u64;
+    let mut node_runs = (0u64, 0u64);
     let mut seconds = vec![0.0f64; objects.len()];
     for &(k, root, sheet) in &cut {
         let t = std::time::Instant::now();
         let r = objects[k].patches.clone();
         let reach = stored.get(k).copied().unwrap_or(0.0);
         let cuts = match on_demand.get(k).and_then(Option::as_ref) {
-            Some(oracle) if !sheet => cut_on_demand(&cutter, &rep, r.clone(), root, reach, oracle),
+            Some(oracle) if !sheet => cut_on_demand(
+                &cutter,
+                &rep,
+                r.clone(),
+                root,
+                reach,
+                oracle,
+                &mut node_runs,
+            ),
             _ => cut_pairwise(&cutter, &rep, r.clone(), root, reach, sheet, dist, kind),
         };
         // Direct pairs are stored by source (row i lists its receivers j); receivers come
@@ -462,6 +490,7 @@ pub fn collapse(
         nodes,
         links: links_total,
         seconds,
+        node_runs,
     })
 }
 
@@ -546,6 +575,7 @@ fn cut_on_demand(
     root: Child,
     reach: f32,
     oracle: &Oracle,
+    runs: &mut (u64, u64),
 ) -> Vec<Cut> {
     let g = cutter.g;
     let base = r.start as u32;
@@ -608,7 +638,12 @@ fn cut_on_demand(
     }
     drop(jobs);
     let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
-    for ((i, receivers), ds) in far_jobs.iter().zip(oracle.solve(&far_jobs)) {
+    let far_d = if cutter.coarse_links {
+        oracle.solve_far(&far_jobs).0
+    } else {
+        oracle.solve(&far_jobs)
+    };
+    for ((i, receivers), ds) in far_jobs.iter().zip(far_d) {
         for (&jl, d) in receivers.iter().zip(ds) {
             put(jl, *i, d);
         }
@@ -624,7 +659,13 @@ fn cut_on_demand(
         .into_iter()
         .map(|(q, receivers)| (q, (rep[q as usize] - base, receivers)))
         .unzip();
-    let link_d = oracle.solve(&jobs);
+    let (link_d, coarse) = if cutter.coarse_links {
+        oracle.solve_far(&jobs)
+    } else {
+        (oracle.solve(&jobs), 0)
+    };
+    runs.0 += jobs.len() as u64;
+    runs.1 += coarse as u64;
     // Back to receivers: (node, distance) per receiver.
     let mut by_receiver: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
     for ((q, (_, receivers)), ds) in node_list.iter().zip(&jobs).zip(&link_d) {

@@ -201,15 +201,17 @@ fn args() -> anyhow::Result<Args> {
             }
             "--s-accuracy" => {
                 let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
-                a.s_links = Some(SLinkParams {
-                    accuracy: theta,
-                    ..SLinkParams::default()
-                });
+                a.s_links.get_or_insert_with(SLinkParams::default).accuracy = theta;
+            }
+            "--s-exact-links" => {
+                a.s_links
+                    .get_or_insert_with(SLinkParams::default)
+                    .coarse_links = false;
             }
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
                  --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface pairwise|hierarchical, \
-                 --s-accuracy X, --keep DIR)"
+                 --s-accuracy X, --s-exact-links, --keep DIR)"
             ),
         }
     }

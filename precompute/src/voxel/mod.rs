@@ -62,7 +62,7 @@ mod paths;
 
 pub use crate::hetero::{MediaLen, MediumField};
 use grid::*;
-pub use oracle::Oracle;
+pub use oracle::{FAR_RUN_VOXELS, Oracle};
 use paths::*;
 
 /// Parameters of [`optical_distances`].

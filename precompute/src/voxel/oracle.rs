@@ -18,6 +18,9 @@ pub struct Oracle {
     radius: f32,
     /// `None`: straight lines (a convex object, or the fallback for one without interior).
     traced: Option<TracedPaths>,
+    /// The same interior on a grid of twice the voxel edge ([`Traced::coarsened`]), for
+    /// [`Oracle::solve_far`]; `None` with `traced`.
+    coarse: Option<TracedPaths>,
     stats: DistanceStats,
 }
 
@@ -41,6 +44,40 @@ struct TracedPaths {
     /// edge, a separate shell), never to find it.
     piece: Vec<u32>,
     free: Mutex<Vec<Scratch>>,
+}
+
+impl TracedPaths {
+    /// The paths over `t`, with the number of distinct entry voxels (run sources) and of
+    /// unattached patches.
+    fn new(t: Traced) -> (TracedPaths, usize, usize) {
+        let n = t.entry.len();
+        let mut by_voxel: Vec<u32> = (0..n as u32).collect();
+        by_voxel.par_sort_unstable_by_key(|&i| (t.entry[i as usize], i));
+        let mut own_offset = vec![0.0f64; n];
+        let (mut sources, mut unattached) = (0usize, 0usize);
+        for run in by_voxel.chunk_by(|&a, &b| t.entry[a as usize] == t.entry[b as usize]) {
+            if t.entry[run[0] as usize] == NONE {
+                unattached += run.len();
+                continue;
+            }
+            sources += 1;
+            let m = run
+                .iter()
+                .map(|&i| t.offset[i as usize])
+                .fold(0.0, f64::max);
+            for &i in run {
+                own_offset[i as usize] = m;
+            }
+        }
+        let piece = pieces_of(&t, &t.entry);
+        let tp = TracedPaths {
+            t,
+            own_offset,
+            piece,
+            free: Mutex::new(Vec::new()),
+        };
+        (tp, sources, unattached)
+    }
 }
 
 /// Labels the connected pieces of the interior (26-neighbour steps, as the paths take) and
@@ -72,6 +109,11 @@ fn pieces_of(t: &Traced, voxels: &[u32]) -> Vec<u32> {
         .collect()
 }
 
+/// How far (in coarse voxel edges, straight line) a target must lie from its source for
+/// [`Oracle::solve_far`] to find it on the coarse grid: 8 coarse edges, 16 of the fine
+/// grid's, so a coarse voxel's worth of corner is at most about 1/8 of the path.
+pub const FAR_RUN_VOXELS: f32 = 8.0;
+
 /// Distances from one source patch to the targets, [`f32::INFINITY`] for a target farther
 /// than the radius (or the source itself).
 pub type Row = Vec<f32>;
@@ -94,26 +136,9 @@ impl Oracle {
             return Ok(Oracle::straight(centroids, max_radius));
         }
         let t = Traced::new(object_name, source_tris, centroids, normals, params)?;
-        let n = centroids.len();
-        let mut by_voxel: Vec<u32> = (0..n as u32).collect();
-        by_voxel.par_sort_unstable_by_key(|&i| (t.entry[i as usize], i));
-        let mut own_offset = vec![0.0f64; n];
-        let (mut sources, mut unattached) = (0usize, 0usize);
-        for run in by_voxel.chunk_by(|&a, &b| t.entry[a as usize] == t.entry[b as usize]) {
-            if t.entry[run[0] as usize] == NONE {
-                unattached += run.len();
-                continue;
-            }
-            sources += 1;
-            let m = run
-                .iter()
-                .map(|&i| t.offset[i as usize])
-                .fold(0.0, f64::max);
-            for &i in run {
-                own_offset[i as usize] = m;
-            }
-        }
-        let piece = pieces_of(&t, &t.entry);
+        let (coarse, _, _) = TracedPaths::new(t.coarsened(centroids));
+        let (fine, sources, unattached) = TracedPaths::new(t);
+        let t = &fine.t;
         let stats = DistanceStats {
             method: Method::Voxel,
             voxels: t.grid.len(),
@@ -128,12 +153,8 @@ impl Oracle {
         Ok(Oracle {
             centroids: centroids.to_vec(),
             radius: max_radius,
-            traced: Some(TracedPaths {
-                t,
-                own_offset,
-                piece,
-                free: Mutex::new(Vec::new()),
-            }),
+            traced: Some(fine),
+            coarse: Some(coarse),
             stats,
         })
     }
@@ -145,6 +166,7 @@ impl Oracle {
             centroids: centroids.to_vec(),
             radius: max_radius,
             traced: None,
+            coarse: None,
             stats: DistanceStats::straight(0.0, 0),
         }
     }
@@ -173,12 +195,73 @@ impl Oracle {
     /// target (aligned with the targets). Sources that share an entry voxel share one
     /// Dijkstra run, which stops once all their targets are settled. Parallel.
     pub fn solve(&self, jobs: &[(u32, Vec<u32>)]) -> Vec<Row> {
-        let Some(tp) = &self.traced else {
-            return jobs
-                .par_iter()
-                .map(|(i, ts)| ts.iter().map(|&j| self.euclidean(*i, j)).collect())
-                .collect();
+        match &self.traced {
+            Some(tp) => self.solve_on(tp, jobs),
+            None => self.solve_straight(jobs),
+        }
+    }
+
+    /// As [`Oracle::solve`], except that the targets lying at least [`FAR_RUN_VOXELS`]
+    /// coarse voxel edges from their source (in a straight line) are found by a run on the
+    /// grid of twice the voxel edge ([`Traced::coarsened`]): an eighth of the voxels, so a
+    /// run settles about an eighth as many; the job's nearer targets keep a run on the fine
+    /// grid, which stops at the farthest of them. The far distances are no longer those
+    /// [`optical_distances`] stores: the coarse interior covers the fine one, so a path may
+    /// cut a corner up to about a coarse voxel shorter (`voxel::tests`: within a coarse
+    /// voxel and 4% of the path, the median unchanged). For the links of a hierarchical S,
+    /// whose nodes are evaluated at one representative point anyway. Returns the rows and
+    /// how many jobs had a run on the coarse grid.
+    pub fn solve_far(&self, jobs: &[(u32, Vec<u32>)]) -> (Vec<Row>, usize) {
+        let (Some(tp), Some(coarse)) = (&self.traced, &self.coarse) else {
+            return (self.solve(jobs), 0);
         };
+        let far = FAR_RUN_VOXELS * coarse.t.grid.size as f32;
+        // Per job, the positions of its far and near targets.
+        let split: Vec<(Vec<u32>, Vec<u32>)> = jobs
+            .par_iter()
+            .map(|(i, ts)| {
+                let c = self.centroids[*i as usize];
+                (0..ts.len() as u32)
+                    .partition(|&k| c.distance(self.centroids[ts[k as usize] as usize]) >= far)
+            })
+            .collect();
+        let part = |far_part: bool| -> (Vec<usize>, Vec<(u32, Vec<u32>)>) {
+            split
+                .iter()
+                .enumerate()
+                .filter_map(|(k, (f, n))| {
+                    let ks = if far_part { f } else { n };
+                    (!ks.is_empty()).then(|| {
+                        let (i, ts) = &jobs[k];
+                        (k, (*i, ks.iter().map(|&x| ts[x as usize]).collect()))
+                    })
+                })
+                .unzip()
+        };
+        let mut out: Vec<Row> = jobs.iter().map(|(_, ts)| vec![0.0; ts.len()]).collect();
+        let mut coarse_jobs = 0;
+        for (far_part, tp) in [(true, coarse), (false, tp)] {
+            let (which, sub) = part(far_part);
+            if far_part {
+                coarse_jobs = sub.len();
+            }
+            for (&k, row) in which.iter().zip(self.solve_on(tp, &sub)) {
+                let (f, n) = &split[k];
+                for (&x, d) in (if far_part { f } else { n }).iter().zip(row) {
+                    out[k][x as usize] = d;
+                }
+            }
+        }
+        (out, coarse_jobs)
+    }
+
+    fn solve_straight(&self, jobs: &[(u32, Vec<u32>)]) -> Vec<Row> {
+        jobs.par_iter()
+            .map(|(i, ts)| ts.iter().map(|&j| self.euclidean(*i, j)).collect())
+            .collect()
+    }
+
+    fn solve_on(&self, tp: &TracedPaths, jobs: &[(u32, Vec<u32>)]) -> Vec<Row> {
         let t = &tp.t;
         let mut order: Vec<u32> = (0..jobs.len() as u32).collect();
         order.par_sort_unstable_by_key(|&k| t.entry[jobs[k as usize].0 as usize]);

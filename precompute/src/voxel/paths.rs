@@ -354,6 +354,61 @@ impl Traced {
             offsets,
         })
     }
+
+    /// The same object on a grid of twice the voxel edge (an eighth of the voxels), for
+    /// long runs whose every target is far from the source ([`super::Oracle::solve_far`]).
+    /// Coarse voxel X spans fine voxels 2X − 1 and 2X along each axis, and is interior when
+    /// any of its 2 × 2 × 2 fine voxels is: the coarse interior covers the fine one, so every
+    /// fine path has a coarse counterpart (a target reachable on the fine grid is reachable
+    /// here, and no piece of the interior splits), and a patch enters through the coarse
+    /// voxel holding its fine entry voxel (unattached patches stay unattached).
+    pub(super) fn coarsened(&self, centroids: &[Vec3]) -> Traced {
+        let fine = &self.grid;
+        let grid = Grid {
+            origin: fine.origin - DVec3::splat(fine.size),
+            size: 2.0 * fine.size,
+            dims: fine.dims.map(|d| (d - 1) / 2 + 2),
+        };
+        let up = |v: usize| -> usize {
+            let [x, y, z] = fine.coords(v).map(|c| (c as usize).div_ceil(2));
+            grid.index(x, y, z)
+        };
+        let mut inside = vec![false; grid.len()];
+        for (v, _) in self.inside.iter().enumerate().filter(|(_, b)| **b) {
+            inside[up(v)] = true;
+        }
+        let interior_voxels = inside.iter().filter(|&&b| b).count();
+        let entry: Vec<u32> = self
+            .entry
+            .iter()
+            .map(|&v| {
+                if v == NONE {
+                    NONE
+                } else {
+                    up(v as usize) as u32
+                }
+            })
+            .collect();
+        let offset: Vec<f64> = entry
+            .iter()
+            .zip(centroids)
+            .map(|(&v, c)| match v {
+                NONE => 0.0,
+                v => grid.centre(v as usize).distance(c.as_dvec3()),
+            })
+            .collect();
+        let max_offset = offset.iter().cloned().fold(0.0, f64::max);
+        let offsets = neighbour_offsets(&grid);
+        Traced {
+            grid,
+            inside,
+            interior_voxels,
+            entry,
+            offset,
+            max_offset,
+            offsets,
+        }
+    }
 }
 
 /// One row of the result, (column, distance), sorted by column.

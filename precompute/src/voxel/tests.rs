@@ -717,3 +717,123 @@ fn the_oracle_gives_exactly_the_stored_distances() {
         }
     }
 }
+
+/// Long runs on the grid of twice the voxel edge ([`Oracle::solve_far`]) give distances
+/// close to the fine grid's: on the U (paths round the bend) within a coarse voxel and 4%,
+/// with the median far smaller; no target the fine grid reaches is lost; two boxes apart by
+/// several voxels stay apart (the coarse interior does not bridge the gap); and a job's
+/// near targets keep the fine grid, bit for bit.
+#[test]
+fn far_runs_on_the_coarse_grid_stay_close_to_the_fine_distances() {
+    let s = 0.1;
+    let mut two_boxes = shape_triangles(&Shape::Box {
+        size: [0.1, 0.1, 0.1],
+        inward: false,
+    });
+    let other: Vec<[Vec3; 3]> = two_boxes
+        .iter()
+        .map(|t| t.map(|v| v + Vec3::new(0.15, 0.0, 0.0)))
+        .collect();
+    two_boxes.extend(other);
+    for (name, tris, radius, voxels) in [
+        ("u", u_shape(s, s), 1.0f32, 200_000usize),
+        ("two boxes", two_boxes, 0.5, 100_000),
+    ] {
+        let (c, n) = patches_of(&tris, 1500);
+        let params = VoxelParams {
+            max_voxels: voxels,
+            force_voxels: true,
+            ..Default::default()
+        };
+        let oracle = Oracle::new(name, &tris, &c, &n, radius, &params).unwrap();
+        let coarse = 2.0 * oracle.stats().voxel_size;
+        let far = FAR_RUN_VOXELS * coarse;
+        // Every patch to every patch far enough for the coarse grid.
+        let jobs: Vec<(u32, Vec<u32>)> = (0..c.len() as u32)
+            .map(|i| {
+                let ts = (0..c.len() as u32)
+                    .filter(|&j| c[i as usize].distance(c[j as usize]) >= far)
+                    .collect();
+                (i, ts)
+            })
+            .filter(|(_, ts): &(u32, Vec<u32>)| !ts.is_empty())
+            .collect();
+        let fine = oracle.solve(&jobs);
+        let (rough, went) = oracle.solve_far(&jobs);
+        assert_eq!(went, jobs.len(), "{name}: every job is far");
+        let mut rel = Vec::new();
+        let (mut worst, mut apart) = (0.0f32, 0usize);
+        for ((i, ts), (a, b)) in jobs.iter().zip(fine.iter().zip(&rough)) {
+            for (&j, (&x, &y)) in ts.iter().zip(a.iter().zip(b)) {
+                if name == "two boxes" && (c[*i as usize].x < 0.075) != (c[j as usize].x < 0.075) {
+                    assert!(
+                        x.is_infinite() && y.is_infinite(),
+                        "{name}: {i} → {j} bridged"
+                    );
+                    apart += 1;
+                    continue;
+                }
+                if x.is_infinite() {
+                    // Beyond the reach: so on the coarse grid too, unless a corner cut
+                    // brought it back within.
+                    if y.is_finite() {
+                        assert!(y > radius - coarse, "{name}: {y} found, fine none");
+                    }
+                    continue;
+                }
+                if y.is_infinite() {
+                    assert!(x > radius - coarse, "{name}: fine {x}, coarse lost it");
+                    continue;
+                }
+                let e = (y - x).abs();
+                assert!(
+                    e <= coarse + 0.04 * x,
+                    "{name}: coarse {y} against fine {x} (coarse voxel {coarse})"
+                );
+                worst = worst.max(e / x);
+                rel.push(f64::from(e / x));
+            }
+        }
+        rel.sort_unstable_by(f64::total_cmp);
+        let median = rel[rel.len() / 2];
+        eprintln!(
+            "{name}: {} jobs, {} distances, median {:.3}%, worst {:.2}% of the path; {apart} \
+             pairs across the gap",
+            jobs.len(),
+            rel.len(),
+            100.0 * median,
+            100.0 * worst
+        );
+        assert!(median < 0.01, "{name}: median {median}");
+        if name == "two boxes" {
+            assert!(apart > 0, "the boxes stay apart");
+        }
+        // A job's near targets stay on the fine grid, bit for bit; its far ones go coarse.
+        let all = vec![(0u32, (0..c.len() as u32).collect::<Vec<_>>())];
+        let (a, went) = oracle.solve_far(&all);
+        assert_eq!(went, 1);
+        let b = oracle.solve(&all);
+        let (mut same, mut near) = (0, 0);
+        for (j, (x, y)) in a[0].iter().zip(&b[0]).enumerate() {
+            if c[0].distance(c[j]) < far {
+                assert_eq!(x.to_bits(), y.to_bits(), "{name}: near target {j}");
+                near += 1;
+            } else if x == y {
+                same += 1;
+            }
+        }
+        assert!(
+            near > 0 && same > 0,
+            "{name}: {near} near, {same} far alike"
+        );
+        let near_only: Vec<(u32, Vec<u32>)> = vec![(
+            0,
+            (0..c.len() as u32)
+                .filter(|&j| c[0].distance(c[j as usize]) < far)
+                .collect(),
+        )];
+        let (a, went) = oracle.solve_far(&near_only);
+        assert_eq!(went, 0);
+        assert_eq!(a, oracle.solve(&near_only));
+    }
+}
