@@ -769,10 +769,30 @@ pub fn precompute(
                 .iter()
                 .map(|o| paths.iter().find(|p| p.0 == o.name).map_or(0, |p| p.1))
                 .collect();
-            crate::slinks::trace_on_demand(t, &geometry, &materials, &reach, &pairs, sp, sl)
+            let reuse = params.distance_cache.is_some();
+            crate::slinks::trace_on_demand(t, &geometry, &materials, &reach, &pairs, sp, sl, reuse)
         }
         _ => vec![false; materials.len()],
     };
+    if on_demand.iter().any(|&d| d) {
+        let names = |want: bool| -> Vec<&str> {
+            materials
+                .iter()
+                .zip(&on_demand)
+                .filter(|(o, d)| **d == want && matches!(o.material, Material::Translucent { .. }))
+                .map(|(o, _)| o.name)
+                .collect()
+        };
+        tell(
+            params,
+            &format!(
+                "note: hierarchical S: optical paths traced on demand in {:?}, every pair \
+                 within reach in {:?}",
+                names(true),
+                names(false)
+            ),
+        );
+    }
     let distances::SceneDistances {
         dist,
         material_len: dist_len,

@@ -46,7 +46,7 @@ use translux_engine::scene::Scene;
 use translux_precompute::builtin::builtin_scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::resolve_scene;
-use translux_precompute::slinks::SLinkParams;
+use translux_precompute::slinks::{SLinkParams, Trace};
 use translux_proto::bundle::MANIFEST_FILE;
 use translux_proto::light::Light;
 use translux_proto::scene::{
@@ -203,6 +203,15 @@ fn args() -> anyhow::Result<Args> {
                 let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
                 a.s_links.get_or_insert_with(SLinkParams::default).accuracy = theta;
             }
+            "--s-trace" => {
+                a.s_links.get_or_insert_with(SLinkParams::default).trace =
+                    match it.next().as_deref() {
+                        Some("auto") => Trace::Auto,
+                        Some("on-demand") => Trace::OnDemand,
+                        Some("all") => Trace::All,
+                        other => bail!("--s-trace auto|on-demand|all, not {other:?}"),
+                    };
+            }
             "--s-exact-links" => {
                 a.s_links
                     .get_or_insert_with(SLinkParams::default)
@@ -211,7 +220,7 @@ fn args() -> anyhow::Result<Args> {
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
                  --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface pairwise|hierarchical, \
-                 --s-accuracy X, --s-exact-links, --keep DIR)"
+                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --keep DIR)"
             ),
         }
     }
