@@ -67,9 +67,9 @@ struct Cli {
     s_accuracy: f32,
     /// Hierarchical S only: how translucent objects' optical paths are traced. `on-demand`:
     /// only those the cut uses; `all`: every path within the profile's radius, then the
-    /// cut from those; `auto` (default): on demand (with `--s-exact-links` or in an animation:
-    /// where the cut keeps under a quarter of the paths or they exceed 2,000 per patch). The bundle is
-    /// the same either way, bit for bit, with `--s-exact-links`.
+    /// cut from those; `auto` (default): on demand (with `--s-exact-links` or in an
+    /// animation: where the cut keeps under a quarter of the paths or they exceed 2,000 per
+    /// patch). The bundle is the same either way, bit for bit, with `--s-exact-links`.
     #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
     s_trace: TraceArg,
     /// Hierarchical S traced on demand only: trace every path on the full voxel grid. By

@@ -114,12 +114,13 @@ pub enum Trace {
     /// coarse grid made it the faster way on every object measured (the 60 mm U in marble
     /// 39 s against 50 s, the bowls 29 s against 31 s with their bunny). With exact links,
     /// or in an animation (where an object that only moved rigidly reuses the distances
-    /// traced pair by pair for an earlier frame), on demand where the cut keeps under a quarter of the pairs within the radius (a
-    /// large or very translucent object: a receiver's near patches lie a few patch sizes
-    /// away, far inside the profile's reach) or the pairs exceed [`ENTRIES_BOUND`] per
-    /// patch (what the memory estimate counted), every pair otherwise (an object about as
-    /// small as the reach, where the near runs would go about as far as the full ones and
-    /// the exact node runs would come on top: the U 67 s against 52 s).
+    /// traced pair by pair for an earlier frame), on demand where the cut keeps under a
+    /// quarter of the pairs within the radius (a large or very translucent object: a
+    /// receiver's near patches lie a few patch sizes away, far inside the profile's reach)
+    /// or the pairs exceed [`ENTRIES_BOUND`] per patch (what the memory estimate counted),
+    /// every pair otherwise (an object about as small as the reach, where the near runs
+    /// would go about as far as the full ones and the exact node runs would come on top:
+    /// the U 67 s against 52 s).
     #[default]
     Auto,
     /// Only the distances the cut uses ([`crate::voxel::Oracle`]).
@@ -316,6 +317,18 @@ impl<'a> Cutter<'a> {
             theta: params.accuracy,
             near_factor: sp.quadrature.near_factor,
             coarse_links: params.coarse_links,
+        }
+    }
+
+    /// The distances of runs whose targets are mostly far (linked nodes, distant
+    /// candidates): those 16 voxels away or more on the coarse grid with
+    /// [`SLinkParams::coarse_links`], every one on the full grid otherwise; and how many
+    /// jobs had a coarse run.
+    fn far_runs(&self, oracle: &Oracle, jobs: &[(u32, Vec<u32>)]) -> (Vec<Vec<f32>>, usize) {
+        if self.coarse_links {
+            oracle.solve_far(jobs)
+        } else {
+            (oracle.solve(jobs), 0)
         }
     }
 
@@ -650,12 +663,7 @@ fn cut_on_demand(
     }
     drop(jobs);
     let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
-    let far_d = if cutter.coarse_links {
-        oracle.solve_far(&far_jobs).0
-    } else {
-        oracle.solve(&far_jobs)
-    };
-    for ((i, receivers), ds) in far_jobs.iter().zip(far_d) {
+    for ((i, receivers), ds) in far_jobs.iter().zip(cutter.far_runs(oracle, &far_jobs).0) {
         for (&jl, d) in receivers.iter().zip(ds) {
             put(jl, *i, d);
         }
@@ -671,11 +679,7 @@ fn cut_on_demand(
         .into_iter()
         .map(|(q, receivers)| (q, (rep[q as usize] - base, receivers)))
         .unzip();
-    let (link_d, coarse) = if cutter.coarse_links {
-        oracle.solve_far(&jobs)
-    } else {
-        (oracle.solve(&jobs), 0)
-    };
+    let (link_d, coarse) = cutter.far_runs(oracle, &jobs);
     runs.0 += jobs.len() as u64;
     runs.1 += coarse as u64;
     // Back to receivers: (node, distance) per receiver.

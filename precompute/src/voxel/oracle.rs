@@ -8,7 +8,10 @@
 //!
 //! Every distance equals the one [`optical_distances`] stores for the same pair, bit for
 //! bit: the same entry voxels, the same graph-length bound, the same detour correction;
-//! Dijkstra stops once its targets are settled, and settled lengths are final.
+//! Dijkstra stops once its targets are settled, and settled lengths are final. (Except the
+//! far targets of [`Oracle::solve_far`], found on a coarser grid.)
+
+use std::sync::OnceLock;
 
 use super::*;
 
@@ -18,9 +21,9 @@ pub struct Oracle {
     radius: f32,
     /// `None`: straight lines (a convex object, or the fallback for one without interior).
     traced: Option<TracedPaths>,
-    /// The same interior on a grid of twice the voxel edge ([`Traced::coarsened`]), for
-    /// [`Oracle::solve_far`]; `None` with `traced`.
-    coarse: Option<TracedPaths>,
+    /// The same interior on a grid of twice the voxel edge ([`Traced::coarsened`]), built
+    /// by the first [`Oracle::solve_far`] that has far targets (never with exact links).
+    coarse: OnceLock<TracedPaths>,
     stats: DistanceStats,
 }
 
@@ -136,7 +139,6 @@ impl Oracle {
             return Ok(Oracle::straight(centroids, max_radius));
         }
         let t = Traced::new(object_name, source_tris, centroids, normals, params)?;
-        let (coarse, _, _) = TracedPaths::new(t.coarsened(centroids));
         let (fine, sources, unattached) = TracedPaths::new(t);
         let t = &fine.t;
         let stats = DistanceStats {
@@ -154,7 +156,7 @@ impl Oracle {
             centroids: centroids.to_vec(),
             radius: max_radius,
             traced: Some(fine),
-            coarse: Some(coarse),
+            coarse: OnceLock::new(),
             stats,
         })
     }
@@ -166,7 +168,7 @@ impl Oracle {
             centroids: centroids.to_vec(),
             radius: max_radius,
             traced: None,
-            coarse: None,
+            coarse: OnceLock::new(),
             stats: DistanceStats::straight(0.0, 0),
         }
     }
@@ -212,10 +214,10 @@ impl Oracle {
     /// whose nodes are evaluated at one representative point anyway. Returns the rows and
     /// how many jobs had a run on the coarse grid.
     pub fn solve_far(&self, jobs: &[(u32, Vec<u32>)]) -> (Vec<Row>, usize) {
-        let (Some(tp), Some(coarse)) = (&self.traced, &self.coarse) else {
-            return (self.solve(jobs), 0);
+        let Some(tp) = &self.traced else {
+            return (self.solve_straight(jobs), 0);
         };
-        let far = FAR_RUN_VOXELS * coarse.t.grid.size as f32;
+        let far = FAR_RUN_VOXELS * 2.0 * tp.t.grid.size as f32;
         // Per job, the positions of its far and near targets.
         let split: Vec<(Vec<u32>, Vec<u32>)> = jobs
             .par_iter()
@@ -240,12 +242,19 @@ impl Oracle {
         };
         let mut out: Vec<Row> = jobs.iter().map(|(_, ts)| vec![0.0; ts.len()]).collect();
         let mut coarse_jobs = 0;
-        for (far_part, tp) in [(true, coarse), (false, tp)] {
+        for far_part in [true, false] {
             let (which, sub) = part(far_part);
-            if far_part {
-                coarse_jobs = sub.len();
+            if sub.is_empty() {
+                continue;
             }
-            for (&k, row) in which.iter().zip(self.solve_on(tp, &sub)) {
+            let grid = if far_part {
+                coarse_jobs = sub.len();
+                self.coarse
+                    .get_or_init(|| TracedPaths::new(tp.t.coarsened(&self.centroids)).0)
+            } else {
+                tp
+            };
+            for (&k, row) in which.iter().zip(self.solve_on(grid, &sub)) {
                 let (f, n) = &split[k];
                 for (&x, d) in (if far_part { f } else { n }).iter().zip(row) {
                     out[k][x as usize] = d;

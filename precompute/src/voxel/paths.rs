@@ -335,16 +335,35 @@ impl Traced {
                 entry_voxel(&grid, &inside, grid.grid_pos(p)).unwrap_or(NONE)
             })
             .collect();
-        let offset: Vec<f64> = (0..n)
-            .into_par_iter()
-            .map(|i| match entry[i] {
+        Ok(Traced::with_entries(
+            grid,
+            inside,
+            interior_voxels,
+            entry,
+            centroids,
+        ))
+    }
+
+    /// The rest from the grid, its interior and the patches' entry voxels: each patch's
+    /// offset from its entry voxel's centre, the largest, and the stencil.
+    fn with_entries(
+        grid: Grid,
+        inside: Vec<bool>,
+        interior_voxels: usize,
+        entry: Vec<u32>,
+        centroids: &[Vec3],
+    ) -> Traced {
+        let offset: Vec<f64> = entry
+            .par_iter()
+            .zip(centroids)
+            .map(|(&v, c)| match v {
                 NONE => 0.0,
-                v => grid.centre(v as usize).distance(centroids[i].as_dvec3()),
+                v => grid.centre(v as usize).distance(c.as_dvec3()),
             })
             .collect();
         let max_offset = offset.iter().cloned().fold(0.0, f64::max);
         let offsets = neighbour_offsets(&grid);
-        Ok(Traced {
+        Traced {
             grid,
             inside,
             interior_voxels,
@@ -352,11 +371,11 @@ impl Traced {
             offset,
             max_offset,
             offsets,
-        })
+        }
     }
 
     /// The same object on a grid of twice the voxel edge (an eighth of the voxels), for
-    /// long runs whose every target is far from the source ([`super::Oracle::solve_far`]).
+    /// the targets far from their source ([`super::Oracle::solve_far`]).
     /// Coarse voxel X spans fine voxels 2X − 1 and 2X along each axis, and is interior when
     /// any of its 2 × 2 × 2 fine voxels is: the coarse interior covers the fine one, so every
     /// fine path has a coarse counterpart (a target reachable on the fine grid is reachable
@@ -389,25 +408,7 @@ impl Traced {
                 }
             })
             .collect();
-        let offset: Vec<f64> = entry
-            .iter()
-            .zip(centroids)
-            .map(|(&v, c)| match v {
-                NONE => 0.0,
-                v => grid.centre(v as usize).distance(c.as_dvec3()),
-            })
-            .collect();
-        let max_offset = offset.iter().cloned().fold(0.0, f64::max);
-        let offsets = neighbour_offsets(&grid);
-        Traced {
-            grid,
-            inside,
-            interior_voxels,
-            entry,
-            offset,
-            max_offset,
-            offsets,
-        }
+        Traced::with_entries(grid, inside, interior_voxels, entry, centroids)
     }
 }
 

@@ -643,6 +643,20 @@ fn bunny_has_interior_and_local_pairs() {
     assert!(found as f64 >= 0.9 * close as f64);
 }
 
+/// Two 0.1 cubes in one object, 0.05 apart along x.
+fn two_boxes() -> Vec<[Vec3; 3]> {
+    let mut tris = shape_triangles(&Shape::Box {
+        size: [0.1, 0.1, 0.1],
+        inward: false,
+    });
+    let other: Vec<[Vec3; 3]> = tris
+        .iter()
+        .map(|t| t.map(|v| v + Vec3::new(0.15, 0.0, 0.0)))
+        .collect();
+    tris.extend(other);
+    tris
+}
+
 /// Every distance the oracle gives equals the stored one bit for bit, and it gives none
 /// where none is stored: a U (paths round the bend), two separate boxes in one object
 /// (no path between them: another piece of the interior), and a box above a plate thinner
@@ -650,15 +664,6 @@ fn bunny_has_interior_and_local_pairs() {
 #[test]
 fn the_oracle_gives_exactly_the_stored_distances() {
     let s = 0.1;
-    let mut two_boxes = shape_triangles(&Shape::Box {
-        size: [0.1, 0.1, 0.1],
-        inward: false,
-    });
-    let other: Vec<[Vec3; 3]> = two_boxes
-        .iter()
-        .map(|t| t.map(|v| v + Vec3::new(0.15, 0.0, 0.0)))
-        .collect();
-    two_boxes.extend(other);
     // A box above a plate thinner than a voxel: the plate has no interior of its own.
     let mut box_and_plate = shape_triangles(&Shape::Box {
         size: [0.1, 0.1, 0.1],
@@ -674,7 +679,7 @@ fn the_oracle_gives_exactly_the_stored_distances() {
     );
     for (name, tris, radius, voxels) in [
         ("u", u_shape(s, s), 0.25f32, 60_000usize),
-        ("two boxes", two_boxes, 0.3, 40_000),
+        ("two boxes", two_boxes(), 0.3, 40_000),
         ("box and plate", box_and_plate, 0.2, 20_000),
     ] {
         let (c, n) = patches_of(&tris, 900);
@@ -726,18 +731,9 @@ fn the_oracle_gives_exactly_the_stored_distances() {
 #[test]
 fn far_runs_on_the_coarse_grid_stay_close_to_the_fine_distances() {
     let s = 0.1;
-    let mut two_boxes = shape_triangles(&Shape::Box {
-        size: [0.1, 0.1, 0.1],
-        inward: false,
-    });
-    let other: Vec<[Vec3; 3]> = two_boxes
-        .iter()
-        .map(|t| t.map(|v| v + Vec3::new(0.15, 0.0, 0.0)))
-        .collect();
-    two_boxes.extend(other);
     for (name, tris, radius, voxels) in [
         ("u", u_shape(s, s), 1.0f32, 200_000usize),
-        ("two boxes", two_boxes, 0.5, 100_000),
+        ("two boxes", two_boxes(), 0.5, 100_000),
     ] {
         let (c, n) = patches_of(&tris, 1500);
         let params = VoxelParams {
