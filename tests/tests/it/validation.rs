@@ -210,8 +210,15 @@ fn closed_room_against_mitsuba(
             100.0 * e.median
         );
         // The tail: shadow edges and hot spots at the vertices take the direct light at
-        // the vertex (engine::vertexlight; the patch mean gave 10.4% in the Cornell box).
-        assert!(e.p90 < 0.07, "{what}: p90 error {:.2}% > 7%", 100.0 * e.p90);
+        // the vertex, and the indirect light on a mesh's edges is reconstructed there
+        // (engine::vertexlight; the patch mean gave 10.4% in the Cornell box, the direct
+        // light alone 5.25%, both 3.89%). The bar is 4%; the half point more is
+        // the reference's own noise (0.6% per point).
+        assert!(
+            e.p90 < 0.045,
+            "{what}: p90 error {:.2}% > 4.5%",
+            100.0 * e.p90
+        );
         // Energy: inter-reflection neither gained nor lost overall.
         assert!(
             (e.total_ratio - 1.0).abs() < 0.03,
