@@ -98,9 +98,9 @@ impl Reconstruction {
         counts: &[bool],
     ) -> Reconstruction {
         let v = positions.len();
-        // Vertex → the counted patches that use it, as one flat list.
+        // Vertex → the patches that use it, as one flat list.
         let mut start = vec![0u32; v + 1];
-        for (t, _) in triangles.iter().zip(counts).filter(|(_, c)| **c) {
+        for t in triangles {
             for &q in t {
                 start[q as usize + 1] += 1;
             }
@@ -110,12 +110,7 @@ impl Reconstruction {
         }
         let mut fill = start.clone();
         let mut around = vec![0u32; start[v] as usize];
-        for (k, (t, _)) in triangles
-            .iter()
-            .zip(counts)
-            .enumerate()
-            .filter(|(_, (_, c))| **c)
-        {
+        for (k, t) in triangles.iter().enumerate() {
             for &q in t {
                 around[fill[q as usize] as usize] = k as u32;
                 fill[q as usize] += 1;
@@ -132,7 +127,12 @@ impl Reconstruction {
         let rows: Vec<Vec<(u32, f32)>> = (0..v)
             .into_par_iter()
             .map(|q| {
-                let first = ring(q);
+                let all = ring(q);
+                let first: Vec<u32> = all
+                    .iter()
+                    .copied()
+                    .filter(|&k| counts[k as usize])
+                    .collect();
                 let mean = || {
                     let total: f64 = first.iter().map(|&k| areas[k as usize] as f64).sum();
                     first
@@ -146,31 +146,33 @@ impl Reconstruction {
                 }
                 // A vertex its patches surround (each edge from it shared by two of them)
                 // keeps the mean: there it is already the field at the vertex to first
-                // order, and a wider fit would only blur it.
-                let surrounded = first.iter().all(|&k| {
+                // order, and a wider fit would only blur it. So does one beside patches
+                // that are pressed against another object (the floor round a block): the
+                // patches across that outline are partly covered, and a gradient taken
+                // from them runs the wrong way.
+                let surrounded = all.iter().all(|&k| {
                     triangles[k as usize]
                         .iter()
                         .filter(|&&r| r as usize != q)
                         .all(|&r| {
-                            first
-                                .iter()
+                            all.iter()
                                 .filter(|&&j| triangles[j as usize].contains(&r))
                                 .count()
                                 == 2
                         })
                 });
-                if surrounded {
+                if surrounded || first.len() < all.len() {
                     return mean();
                 }
                 // The two rings, each patch once, with its weight in the fit.
                 let mut fit: Vec<(u32, f64)> = Vec::with_capacity(4 * first.len());
-                for &k in first {
+                for &k in &first {
                     fit.push((k, areas[k as usize] as f64));
                 }
-                for &k in first {
+                for &k in &first {
                     for &r in &triangles[k as usize] {
                         for &j in ring(r as usize) {
-                            if !fit.iter().any(|&(m, _)| m == j) {
+                            if counts[j as usize] && !fit.iter().any(|&(m, _)| m == j) {
                                 fit.push((j, SECOND_RING * areas[j as usize] as f64));
                             }
                         }
@@ -594,6 +596,24 @@ mod tests {
         );
         for q in 0..3 {
             assert_eq!(one.row(q).collect::<Vec<_>>(), vec![(0, 1.0)]);
+        }
+        // Beside a patch that does not count (pressed against another object), a vertex
+        // keeps the mean of those that do, edge or not.
+        let mut some = counts.clone();
+        some[0] = false;
+        let r = Reconstruction::new(&pos, &tris, &normals, &areas, &up, &some);
+        for &q in &tris[0] {
+            let row: Vec<(usize, f32)> = r.row(q as usize).collect();
+            let ring = tris
+                .iter()
+                .enumerate()
+                .filter(|(k, t)| *k != 0 && t.contains(&q))
+                .count();
+            assert_eq!(row.len(), ring, "{row:?}");
+            assert!(
+                row.iter()
+                    .all(|&(k, w)| k != 0 && (w - 1.0 / ring as f32).abs() < 1e-6)
+            );
         }
         // Patches that do not count take no part; a vertex with none has an empty row.
         let none =

@@ -212,7 +212,7 @@ fn closed_room_against_mitsuba(
         // The tail: shadow edges and hot spots at the vertices take the direct light at
         // the vertex, and the indirect light on a mesh's edges is reconstructed there
         // (engine::vertexlight; the patch mean gave 10.4% in the Cornell box, the direct
-        // light alone 5.25%, both 3.89%). The bar is 4%; the half point more is
+        // light alone 5.25%, both 3.85%). The bar is 4%; the half point more is
         // the reference's own noise (0.6% per point).
         assert!(
             e.p90 < 0.045,
