@@ -269,7 +269,9 @@ struct VertexDirect {
 
 /// The direct light of `plan`'s point, spot and directional lights at the vertices of
 /// opaque surfaces (under the plan's materials and components); `None` without such
-/// lights or vertices.
+/// vertices. Without such lights E(v) is 0 and the vertices still take their indirect
+/// light through [`crate::vertexlight::VertexMeans`], so that an environment's answer
+/// is the same alone as beside a lamp.
 fn vertex_direct(
     scene: &Scene,
     geo: PatchGeometry<'_>,
@@ -282,9 +284,6 @@ fn vertex_direct(
         .filter(|l| !matches!(l, Light::Environment { .. }))
         .cloned()
         .collect();
-    if lights.is_empty() {
-        return Ok(None);
-    }
     let materials = plan.materials(scene);
     let samples = scene.vertex_samples();
     let opaque = crate::vertexlight::opaque_objects(&materials, plan.components);
@@ -295,6 +294,9 @@ fn vertex_direct(
     let (point, normal) = samples.geometry(&which);
     let unit_mm = b.manifest().unit_mm;
     let direct = |geo: PatchGeometry<'_>| {
+        if lights.is_empty() {
+            return Ok(vec![[0.0; 3]; geo.centroid.len()]);
+        }
         crate::radiosity::direct_irradiance(geo, &scene.occluder, &lights, unit_mm)
             .map_err(|e| EngineError::unsupported(e.to_string()))
     };
