@@ -23,11 +23,13 @@
 //! The indirect part ρ F B stays interpolated (it varies slowly), but to the vertex rather
 //! than as a plain mean: on a mesh's edges the patches lie on one side of the vertex, and
 //! a linear fit over its two rings ([`Reconstruction`]) takes the gradient into account.
-//! Everything else stays the patch mean: everything
-//! on translucent objects and sheets, whose S already smooths the direct light over a
-//! mean free path (an exact E at a vertex would be the wrong answer there), except in
-//! the components that take them as opaque at ρ̄ (`direct`, `interreflection_only`). Environment
-//! lights stay per patch too: their visibility is stored per patch only.
+//!
+//! Translucent objects and sheets keep the plain patch mean of everything: their S already
+//! smooths the direct light over a mean free path (an exact E at a vertex would be the
+//! wrong answer there), except in the components that take them as opaque at ρ̄
+//! (`direct`, `interreflection_only`). Environment lights' direct term stays per patch
+//! (their visibility is stored per patch only) and is interpolated with the indirect
+//! part; a relight without point, spot or directional lights goes the same way, E(v) = 0.
 
 use glam::Vec3;
 use translux_proto::api::Components;
@@ -68,8 +70,9 @@ pub struct VertexSamples {
 /// unevenly, the indirect light at its edges was 13–40% off. Here the field is fitted as
 /// c + g·u (u in the vertex's tangent plane) by least squares over the patches of the
 /// vertex's two rings that face the same way, weighted by area, and c is the value: exact
-/// for linear fields, so also one-sided. Where the fit is ill-posed (a ring that is a
-/// line, too few patches) the row is the plain area-weighted mean. How far the answer may
+/// for linear fields, so also one-sided. Where the patches surround the vertex, where some
+/// of them do not count (pressed against another object), or where the fit is ill-posed (a
+/// ring that is a line, too few patches), the row is the plain area-weighted mean. How far the answer may
 /// run past its patches is limited in [`VertexMeans::new`].
 #[derive(Debug, Clone, Default)]
 pub struct Reconstruction {
@@ -150,6 +153,9 @@ impl Reconstruction {
                 // that are pressed against another object (the floor round a block): the
                 // patches across that outline are partly covered, and a gradient taken
                 // from them runs the wrong way.
+                if first.len() < all.len() {
+                    return mean();
+                }
                 let surrounded = all.iter().all(|&k| {
                     triangles[k as usize]
                         .iter()
@@ -161,7 +167,7 @@ impl Reconstruction {
                                 == 2
                         })
                 });
-                if surrounded || first.len() < all.len() {
+                if surrounded {
                     return mean();
                 }
                 // The two rings, each patch once, with its weight in the fit.
