@@ -57,9 +57,11 @@ struct Cli {
     #[arg(long, default_value_t = HierarchyParams::default().accuracy)]
     accuracy: f32,
     /// How S is stored inside translucent objects: `pairwise` (one entry per patch pair
-    /// within the profile's reach) or `hierarchical` (near pairs as pairs, far parts of the
-    /// object through whole cluster nodes of F's tree; needs `--transport hierarchical`).
-    #[arg(long, value_enum, default_value_t = SubsurfaceArg::Pairwise)]
+    /// within the profile's reach), `hierarchical` (near pairs as pairs, far parts of the
+    /// object through whole cluster nodes of F's tree; needs `--transport hierarchical`),
+    /// or `auto` (default): hierarchical with the hierarchical transport unless `--inverse`
+    /// asks for T (which needs a pairwise S), pairwise otherwise.
+    #[arg(long, value_enum, default_value_t = SubsurfaceArg::Auto)]
     subsurface: SubsurfaceArg,
     /// Hierarchical S only: a node of radius R is linked whole only from a distance of at
     /// least R / S_ACCURACY; accepted 0.05 to 1.
@@ -205,6 +207,7 @@ enum TraceArg {
 /// `--subsurface`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum SubsurfaceArg {
+    Auto,
     Pairwise,
     Hierarchical,
 }
@@ -272,6 +275,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         )?)
     };
     let load_s = t0.elapsed().as_secs_f64();
+    let subsurface_links = match cli.subsurface {
+        SubsurfaceArg::Pairwise => None,
+        SubsurfaceArg::Auto if cli.inverse || matches!(transport, FormFactorMethod::Dense) => None,
+        SubsurfaceArg::Auto | SubsurfaceArg::Hierarchical => Some(SLinkParams {
+            accuracy: cli.s_accuracy,
+            trace: match cli.s_trace {
+                TraceArg::Auto => Trace::Auto,
+                TraceArg::OnDemand => Trace::OnDemand,
+                TraceArg::All => Trace::All,
+            },
+            coarse_links: !cli.s_exact_links,
+        }),
+    };
     let params = PrecomputeParams {
         patches: cli.patches,
         max_edge: cli.max_edge,
@@ -283,18 +299,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
         progress: !cli.quiet,
         inverse: cli.inverse,
-        subsurface_links: match cli.subsurface {
-            SubsurfaceArg::Pairwise => None,
-            SubsurfaceArg::Hierarchical => Some(SLinkParams {
-                accuracy: cli.s_accuracy,
-                trace: match cli.s_trace {
-                    TraceArg::Auto => Trace::Auto,
-                    TraceArg::OnDemand => Trace::OnDemand,
-                    TraceArg::All => Trace::All,
-                },
-                coarse_links: !cli.s_exact_links,
-            }),
-        },
+        subsurface_links,
         environment: match cli.env_bins.as_deref() {
             None => Default::default(),
             Some(text) => translux_engine::envvis::EnvVisParams {

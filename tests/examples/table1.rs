@@ -24,6 +24,8 @@
 //! and 73,256 patches, the rose at 72,474, two horses at ~63,000), `--scenes cornell,bowls,flower,horses`, `--backend auto|cpu|gpu`,
 //! `--no-mitsuba`, `--reps N`, `--out DIR` (default `bench/results`), `--t-max N` (largest
 //! patch count for which T is computed; the dense LU is O(N³) and needs 22 N² bytes),
+//! `--subsurface auto|pairwise|hierarchical` (default `auto`, as `translux-precompute`'s: a
+//! hierarchical S where T is not computed, pairwise where it is),
 //! `--keep DIR` (bundles are kept in DIR, and a scene whose bundle is already there is
 //! relit again without its precompute: for profiling relights of long precomputes; the
 //! kept bundle is not checked against the scene, so empty DIR after changing either).
@@ -145,6 +147,9 @@ struct Args {
     t_max: u64,
     /// `--subsurface hierarchical`: S with links to cluster nodes.
     s_links: Option<SLinkParams>,
+    /// `--subsurface auto` (the default, as `translux-precompute`'s): a hierarchical S where
+    /// T is not computed (above `--t-max` patches), pairwise where it is.
+    s_auto: bool,
     /// `--keep DIR`: bundles are kept in DIR, and one already there is relit again instead
     /// of precomputed (for profiling the relight of a scene whose precompute is long).
     keep: Option<PathBuf>,
@@ -164,6 +169,7 @@ fn args() -> anyhow::Result<Args> {
         out: root.join("bench/results"),
         t_max: 6_100,
         s_links: None,
+        s_auto: true,
         keep: None,
     };
     let mut it = std::env::args().skip(1);
@@ -193,17 +199,20 @@ fn args() -> anyhow::Result<Args> {
             "--t-max" => a.t_max = it.next().context("--t-max N")?.parse()?,
             "--keep" => a.keep = Some(PathBuf::from(it.next().context("--keep DIR")?)),
             "--subsurface" => {
-                a.s_links = match it.next().as_deref() {
-                    Some("pairwise") => None,
-                    Some("hierarchical") => Some(SLinkParams::default()),
-                    other => bail!("--subsurface pairwise|hierarchical, not {other:?}"),
+                (a.s_auto, a.s_links) = match it.next().as_deref() {
+                    Some("auto") => (true, None),
+                    Some("pairwise") => (false, None),
+                    Some("hierarchical") => (false, Some(SLinkParams::default())),
+                    other => bail!("--subsurface auto|pairwise|hierarchical, not {other:?}"),
                 }
             }
             "--s-accuracy" => {
+                a.s_auto = false;
                 let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
                 a.s_links.get_or_insert_with(SLinkParams::default).accuracy = theta;
             }
             "--s-trace" => {
+                a.s_auto = false;
                 a.s_links.get_or_insert_with(SLinkParams::default).trace =
                     match it.next().as_deref() {
                         Some("auto") => Trace::Auto,
@@ -213,13 +222,14 @@ fn args() -> anyhow::Result<Args> {
                     };
             }
             "--s-exact-links" => {
+                a.s_auto = false;
                 a.s_links
                     .get_or_insert_with(SLinkParams::default)
                     .coarse_links = false;
             }
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
-                 --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface pairwise|hierarchical, \
+                 --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface auto|pairwise|hierarchical, \
                  --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --keep DIR)"
             ),
         }
@@ -644,11 +654,16 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
     )?;
     let dir = work.join(format!("{}-{}", spec.key, spec.patches));
     // T needs a pairwise S.
-    let inverse = spec.patches <= a.t_max && a.s_links.is_none();
+    let s_links = match (a.s_auto, spec.patches <= a.t_max) {
+        (true, true) => None,
+        (true, false) => Some(SLinkParams::default()),
+        (false, _) => a.s_links,
+    };
+    let inverse = spec.patches <= a.t_max && s_links.is_none();
     let params = PrecomputeParams {
         patches: Some(spec.patches),
         inverse,
-        subsurface_links: a.s_links,
+        subsurface_links: s_links,
         progress: true,
         ..Default::default()
     };

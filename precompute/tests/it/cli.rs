@@ -181,6 +181,48 @@ fn hierarchical_subsurface_from_the_command_line() {
     );
 }
 
+/// By default (`--subsurface auto`) a translucent object's S is hierarchical, as the
+/// default transport allows; `--inverse` (T needs a pairwise S), `--transport dense` and
+/// `--subsurface pairwise` keep it pair by pair.
+#[test]
+fn the_default_subsurface_is_hierarchical_where_it_can_be() {
+    let dir = tempfile::tempdir().unwrap();
+    write(
+        &dir.path().join("scene.json"),
+        r#"{
+          "unit_mm": 1,
+          "patches": {"target": 1200},
+          "objects": [
+            {"name": "cube", "mesh": {"shape": "box", "size": [40, 40, 40]},
+             "material": {"type": "translucent",
+                          "profile": {"type": "dipole", "preset": "skimmilk"}}}
+          ],
+          "lights": [{"type": "point", "position": [0, 100, 0], "intensity": [1, 1, 1]}]
+        }"#,
+    );
+    let scene = dir.path().join("scene.json");
+    let links = |extra: &[&str]| {
+        let out = dir.path().join(format!("b{}", extra.len()));
+        let mut a = vec![scene.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        a.extend_from_slice(extra);
+        let o = precompute(&a);
+        assert!(o.status.success(), "{extra:?}: {}", text(&o));
+        let b = Bundle::open(&out).unwrap();
+        (
+            b.manifest().subsurface.links,
+            b.manifest().transfer.is_some(),
+        )
+    };
+    let (by_default, _) = links(&[]);
+    assert!(by_default > 0, "the default S has no links");
+    assert_eq!(links(&["--subsurface", "pairwise"]), (0, false));
+    assert_eq!(links(&["--inverse", "--subsurface", "auto"]), (0, true));
+    assert_eq!(
+        links(&["--transport", "dense", "--subsurface", "auto", "-q"]).0,
+        0
+    );
+}
+
 #[test]
 fn a_users_scene_file_with_an_obj_becomes_a_bundle() {
     let dir = tempfile::tempdir().unwrap();
