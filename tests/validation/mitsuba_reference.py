@@ -293,7 +293,7 @@ def build_scene(desc):
     if "volume" in kinds:
         integrator = "volpathmis" if any(_chromatic(o) for o in desc["objects"]) else "volpath"
     integrator = str(desc.get("integrator", integrator))
-    if integrator not in ("path", "volpath", "volpathmis", "prbvolpath"):
+    if integrator not in ("path", "volpath", "volpathmis"):
         raise InputError(f"integrator must be path, volpath or volpathmis, got {integrator!r}")
     scene_dict["integrator"] = {
         "type": integrator,
@@ -400,8 +400,12 @@ def _scaled(desc, k):
 
 def render(desc):
     """Render the queries of a scene description; return the output dict."""
-    scale = _medium_scale(desc)
-    desc = _scaled(desc, scale)
+    try:
+        scale = _medium_scale(desc)
+        desc = _scaled(desc, scale)
+    except (TypeError, ValueError, AttributeError):
+        # Malformed input: left as it is, for the checks below to name the field.
+        scale = 1.0
     spp = int(desc.get("spp", 256))
     if spp < 2:
         raise InputError("spp must be at least 2 (the standard error needs two samples)")
