@@ -277,7 +277,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     let load_s = t0.elapsed().as_secs_f64();
     let subsurface_links = match cli.subsurface {
         SubsurfaceArg::Pairwise => None,
-        SubsurfaceArg::Auto if cli.inverse || matches!(transport, FormFactorMethod::Dense) => None,
+        SubsurfaceArg::Auto if !pipeline::hierarchical_s_by_default(&transport, cli.inverse) => {
+            None
+        }
         SubsurfaceArg::Auto | SubsurfaceArg::Hierarchical => Some(SLinkParams {
             accuracy: cli.s_accuracy,
             trace: match cli.s_trace {

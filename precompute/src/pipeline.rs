@@ -78,6 +78,13 @@ pub enum FormFactorMethod {
     Hierarchical(HierarchyParams),
 }
 
+/// Whether `--subsurface auto` (`translux-precompute`'s default, and the server's uploads')
+/// stores a hierarchical S: it needs the hierarchical F's tree, and T (`inverse`) needs a
+/// pairwise S.
+pub fn hierarchical_s_by_default(transport: &FormFactorMethod, inverse: bool) -> bool {
+    !inverse && matches!(transport, FormFactorMethod::Hierarchical(_))
+}
+
 impl Default for FormFactorMethod {
     /// Hierarchical, at the default accuracy.
     fn default() -> Self {

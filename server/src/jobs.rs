@@ -32,7 +32,9 @@ use anyhow::Context;
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
-use translux_precompute::pipeline::{Observer, PrecomputeError, PrecomputeParams, precompute};
+use translux_precompute::pipeline::{
+    Observer, PrecomputeError, PrecomputeParams, hierarchical_s_by_default, precompute,
+};
 use translux_precompute::scene::load_scene_file;
 use translux_precompute::slinks::SLinkParams;
 use translux_proto::scene::Material;
@@ -633,16 +635,17 @@ impl Jobs {
                 .file_name()
                 .map_or_else(|| "scene.json".into(), |f| f.to_string_lossy().into_owned());
             scene.source = format!("upload:{}/{file}", spec.id);
-            // As `translux-precompute`'s default (`--subsurface auto`): the hierarchical F,
-            // and so a hierarchical S in translucent objects (no T is made for uploads).
-            let params = PrecomputeParams {
+            // As `translux-precompute`'s default (`--subsurface auto`); no T is made for
+            // uploads.
+            let mut params = PrecomputeParams {
                 patches: spec.patches,
                 max_edge: spec.max_edge,
                 progress: false,
                 observer: Some(observer.clone()),
-                subsurface_links: Some(SLinkParams::default()),
                 ..Default::default()
             };
+            params.subsurface_links = hierarchical_s_by_default(&params.transport, params.inverse)
+                .then(SLinkParams::default);
             let report = self
                 .inner
                 .rayon

@@ -46,7 +46,9 @@ use translux_engine::radiosity::Rgb;
 use translux_engine::relight;
 use translux_engine::scene::Scene;
 use translux_precompute::builtin::builtin_scene;
-use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::pipeline::{
+    FormFactorMethod, PrecomputeParams, hierarchical_s_by_default, precompute,
+};
 use translux_precompute::scene::resolve_scene;
 use translux_precompute::slinks::{SLinkParams, Trace};
 use translux_proto::bundle::MANIFEST_FILE;
@@ -654,10 +656,11 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
     )?;
     let dir = work.join(format!("{}-{}", spec.key, spec.patches));
     // T needs a pairwise S.
-    let s_links = match (a.s_auto, spec.patches <= a.t_max) {
-        (true, true) => None,
-        (true, false) => Some(SLinkParams::default()),
-        (false, _) => a.s_links,
+    let s_links = if a.s_auto {
+        hierarchical_s_by_default(&FormFactorMethod::default(), spec.patches <= a.t_max)
+            .then(SLinkParams::default)
+    } else {
+        a.s_links
     };
     let inverse = spec.patches <= a.t_max && s_links.is_none();
     let params = PrecomputeParams {

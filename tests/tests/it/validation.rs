@@ -942,18 +942,20 @@ fn lone_object_against_volpath(
     // triangles go all the way round them, so a face's border, where the query point and
     // the vertex's own value depend on the side, is left out), every other one.
     let mut seconds = reference.seconds;
-    let pos = s.bundle.vertex_positions();
-    let mut angle = vec![0.0f32; pos.len()];
-    for t in s.bundle.triangle_vertices() {
-        for k in 0..3 {
-            let p = glam::Vec3::from(pos[t[k] as usize]);
-            let a = glam::Vec3::from(pos[t[(k + 1) % 3] as usize]) - p;
-            let b = glam::Vec3::from(pos[t[(k + 2) % 3] as usize]) - p;
-            angle[t[k] as usize] += a.angle_between(b);
+    let (vp, vn) = vertex_queries(&s.bundle);
+    let mut angle = vec![0.0f32; vp.len()];
+    if !c.deep.is_empty() {
+        let pos = s.bundle.vertex_positions();
+        for t in s.bundle.triangle_vertices() {
+            for k in 0..3 {
+                let p = glam::Vec3::from(pos[t[k] as usize]);
+                let a = glam::Vec3::from(pos[t[(k + 1) % 3] as usize]) - p;
+                let b = glam::Vec3::from(pos[t[(k + 2) % 3] as usize]) - p;
+                angle[t[k] as usize] += a.angle_between(b);
+            }
         }
     }
     for &(g, spp) in c.deep {
-        let (vp, vn) = vertex_queries(&s.bundle);
         let at: Vec<usize> = (0..vp.len())
             .filter(|&v| {
                 (angle[v] - std::f32::consts::TAU).abs() < 1e-3
