@@ -22,8 +22,42 @@
 //! (F B) and from environment maps stays diffuse, and so does every object that is not
 //! simulated: Δ is zero there.
 //!
+//! **The direction of the slant.** S(μ₀) cannot tell which way a lamp slants: light entering
+//! at a slant toward +x leaves mostly toward +x (on a 16 mm cube lit 60° off the normal, the
+//! face ahead of the beam gets 1.6× the face behind it, where S(μ₀) gives both the same).
+//! Bundles from version 8 on also carry S's first harmonic in the tilt, G_u and G_v: for a
+//! beam travelling along d₀ into patch i, with u₀ = d₀·û_i and v₀ = d₀·v̂_i its components
+//! along the patch's tangent frame ([`crate::simulated::tangent_frame`]),
+//!
+//! ```text
+//!   S(d₀) = S + (3μ₀ − 2) Δ + u₀ G_u + v₀ G_v
+//! ```
+//!
+//! G_u is estimated from the same diffuse walks: each entered along its own direction, so
+//! projecting their exits on u (G_u = 4 E[w u_in], as E[u²] = ¼ over cosine-weighted
+//! directions) is the least-squares slope of S in u, and it averages to zero over diffuse
+//! light (the diffuse S is unchanged).
+//!
+//! **The beam seen through the object.** A diffuse walk that leaves without scattering
+//! (across an edge of a cube, through a thin wall) is part of S: diffuse light crossing a
+//! corner leaves in many directions. A lamp's beam crossing unscattered leaves in one, as a
+//! beam, not as exitance, so S⁽ⁿ⁾ leaves it out; but S(μ₀) above would still count the
+//! diffuse U with weight 1 − (3μ₀ − 2) = 3 − 3μ₀ (1.5× at 60°; on a 16 mm cube lit by
+//! 4 × 4 patches a face, 20% of what its sides got). Version 8 stores U apart, and a lamp
+//! uses S − U where S stands:
+//!
+//! ```text
+//!   S(d₀) = (S − U) + (3μ₀ − 2)(S⁽ⁿ⁾ − S + U) + u₀ G_u + v₀ G_v
+//!         = S + (3μ₀ − 2) Δ + u₀ G_u + v₀ G_v + (3μ₀ − 3) U
+//! ```
+//!
+//! The lamps' part is then one product over the pattern of Δ, whose every entry holds
+//! [Δ, G_u, G_v, U]_ji (they share S's sources), with [E_t, E_u, E_v, E_w]_i per source,
+//! E_u,i = Σ_lamps E_i u₀, E_w,i = Σ_lamps E_i (3μ₀ − 3).
+//!
 //! In: the bundle's walks, each object's material (built or overridden), the lamps. Out:
-//! [`Tilt`] (Δ over the simulated objects' patches) and [`tilted_irradiance`] (E_t).
+//! [`Tilt`] (Δ, G_u, G_v and U over the simulated objects' patches) and
+//! [`tilted_irradiance`] ([E_t; E_u; E_v; E_w]).
 
 use std::ops::Range;
 
@@ -34,19 +68,24 @@ use translux_proto::csr::{Csr, CsrView};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
-use crate::linalg::{Rgb, Scatter, SparseScatter};
+use crate::linalg::Rgb;
 use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
 use crate::simulated::{self, SimMedium};
 use crate::smatrix::SimTilts;
 
-/// Δ = S⁽ⁿ⁾ − S of a scene's simulated objects under one set of materials.
+/// Δ = S⁽ⁿ⁾ − S of a scene's simulated objects under one set of materials, with G_u, G_v
+/// and U beside it when the walks carry them.
 #[derive(Debug)]
 pub struct Tilt {
-    /// N × N, rows and columns only within simulated objects; entries of either sign.
-    pub delta: Csr<Rgb>,
+    /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U]_ji
+    /// (the last three 0 for walks without lamp weights), of either sign.
+    pub delta: Csr<[Rgb; 4]>,
     /// The simulated objects' patch ranges (where E_t is needed).
     pub ranges: Vec<Range<usize>>,
+    /// Each patch's tangent frame (û, v̂) where `delta` has G_u, G_v and U (zero outside the
+    /// simulated objects); empty otherwise.
+    pub frames: Vec<(Vec3, Vec3)>,
 }
 
 /// What a scene's simulated objects can do with collimated light.
@@ -61,12 +100,13 @@ pub enum TiltOf {
 }
 
 impl Tilt {
-    /// Δ as a [`Scatter`] (valid by construction).
-    pub fn scatter(&self) -> SparseScatter<'_> {
-        SparseScatter(self.view())
+    /// Whether the lamps' slant direction and unscattered beam are modelled (G_u, G_v and U
+    /// are stored: bundles from version 8 on).
+    pub fn has_harmonic(&self) -> bool {
+        !self.frames.is_empty()
     }
 
-    fn view(&self) -> CsrView<'_, Rgb> {
+    fn view(&self) -> CsrView<'_, [Rgb; 4]> {
         self.delta
             .view()
             .expect("Tilt::of builds a valid CSR matrix")
@@ -107,7 +147,8 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
         );
     }
     let n = bundle.patch_areas().len();
-    let mut rows: Vec<Vec<(u32, Rgb)>> = vec![Vec::new(); n];
+    let harmonic = walks.lamp.is_some();
+    let mut rows: Vec<Vec<(u32, [Rgb; 4])>> = vec![Vec::new(); n];
     for (k, r, medium) in &simulated {
         let made = given
             .iter()
@@ -122,40 +163,72 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
             rows[r.start + k] = row;
         }
     }
+    let frames = if harmonic {
+        let corners = crate::smatrix::bundle_geometry(bundle).corners;
+        let normals = bundle.patch_normals();
+        let mut f = vec![(Vec3::ZERO, Vec3::ZERO); n];
+        for (_, r, _) in &simulated {
+            for i in r.clone() {
+                f[i] = simulated::tangent_frame(&corners[i], Vec3::from(normals[i]));
+            }
+        }
+        f
+    } else {
+        Vec::new()
+    };
     match Csr::from_rows(n, &rows) {
         Ok(delta) => TiltOf::Some(Tilt {
             delta,
             ranges: simulated.into_iter().map(|(_, r, _)| r).collect(),
+            frames,
         }),
         Err(e) => TiltOf::Unsupported(format!("collimated entry: {e}")),
     }
 }
 
-/// E_t = Σ_lamps E (3 μ₀ − 2) at the patches of `ranges` (zero elsewhere), with the same
-/// shadow rays and fall-off as the direct irradiance ([`PointLights::each`]); environment
-/// lights are skipped (their light enters diffusely). `None` when no lamp is given.
+/// [E_t, E_u, E_v, E_w] per patch (E_u, E_v and E_w 0 when `tilt` has no harmonic) at the
+/// patches of the simulated objects (zero elsewhere): E_t = Σ_lamps E (3 μ₀ − 2), E_u = Σ_lamps E u₀,
+/// E_v = Σ_lamps E v₀ (u₀, v₀: the beam's travel direction along the patch's tangent
+/// frame) and E_w = Σ_lamps E (3 μ₀ − 3), with the same shadow rays and fall-off as the direct irradiance
+/// ([`PointLights::each`]); environment lights are skipped (their light enters diffusely).
+/// `None` when no lamp is given.
 pub fn tilted_irradiance(
     geo: PatchGeometry<'_>,
     occ: &Occluder,
     lights: &[Light],
     unit_mm: f64,
-    ranges: &[Range<usize>],
-) -> Option<Vec<Rgb>> {
+    tilt: &Tilt,
+) -> Option<Vec<[Rgb; 4]>> {
     let lamps = PointLights::new(lights, occ, unit_mm);
     if lamps.is_empty() {
         return None;
     }
-    let mut out = vec![[0.0f32; 3]; geo.centroid.len()];
-    for r in ranges {
+    let n = geo.centroid.len();
+    let mut out = vec![[[0.0f32; 3]; 4]; n];
+    let harmonic = tilt.has_harmonic();
+    for r in &tilt.ranges {
         out[r.clone()]
             .par_iter_mut()
-            .zip(&geo.centroid[r.clone()])
-            .zip(&geo.normal[r.clone()])
-            .for_each(|((e, &p), &n)| {
-                lamps.each(p, n, |l: Vec3, c| {
-                    let k = 3.0 * l.dot(n).clamp(0.0, 1.0) - 2.0;
-                    for ch in 0..3 {
-                        e[ch] += c[ch] * k;
+            .enumerate()
+            .for_each(|(k, e)| {
+                let i = r.start + k;
+                let (p, nrm) = (geo.centroid[i], geo.normal[i]);
+                let (fu, fv) = if harmonic {
+                    tilt.frames[i]
+                } else {
+                    (Vec3::ZERO, Vec3::ZERO)
+                };
+                lamps.each(p, nrm, |l: Vec3, c| {
+                    // l points toward the lamp: the beam travels along −l.
+                    let mu0 = l.dot(nrm).clamp(0.0, 1.0);
+                    let mut w = [3.0 * mu0 - 2.0, -l.dot(fu), -l.dot(fv), 3.0 * mu0 - 3.0];
+                    if !harmonic {
+                        w[3] = 0.0;
+                    }
+                    for (e, w) in e.iter_mut().zip(w) {
+                        for ch in 0..3 {
+                            e[ch] += c[ch] * w;
+                        }
                     }
                 });
             });
@@ -163,13 +236,30 @@ pub fn tilted_irradiance(
     Some(out)
 }
 
-/// y = Δ E_t for `k` stacked plans (`e_t` is `[patch][plan][rgb]`), added to `out`.
-pub fn add_first_scatter(tilt: &Tilt, e_t: &[f32], k: usize, out: &mut [f32]) {
-    let mut y = vec![0.0f32; out.len()];
-    tilt.scatter().apply_multi(e_t, &mut y, 3 * k);
-    for (o, v) in out.iter_mut().zip(y) {
-        *o += v;
-    }
+/// y_j += Σ_i Δ_ji E_t,i + G_u,ji E_u,i + G_v,ji E_v,i + U_ji E_w,i for `k` stacked plans:
+/// `e` is `[patch][plan][E_t, E_u, E_v, E_w][rgb]` (12 k values per patch), `out`
+/// `[patch][plan][rgb]`. Written by hand: four RGB matrices on one pattern, which no sparse
+/// crate's product takes.
+pub fn add_first_scatter(tilt: &Tilt, e: &[f32], k: usize, out: &mut [f32]) {
+    let view = tilt.view();
+    out.par_chunks_mut(3 * k)
+        .with_min_len(64)
+        .enumerate()
+        .for_each(|(j, yj)| {
+            let (cols, vals) = view.row(j);
+            for (&i, v) in cols.iter().zip(vals) {
+                let ei = &e[i as usize * 12 * k..(i as usize + 1) * 12 * k];
+                for (plan, y) in yj.chunks_exact_mut(3).enumerate() {
+                    let ep = &ei[12 * plan..12 * plan + 12];
+                    for c in 0..3 {
+                        y[c] += v[0][c] * ep[c]
+                            + v[1][c] * ep[3 + c]
+                            + v[2][c] * ep[6 + c]
+                            + v[3][c] * ep[9 + c];
+                    }
+                }
+            }
+        });
 }
 
 /// y = Δ E_t for `lights` on `bundle` with its own materials, per patch: what a relight
@@ -191,8 +281,8 @@ pub fn first_scatter(
     let TiltOf::Some(tilt) = tilt_of(bundle, &materials) else {
         return None;
     };
-    let e_t = tilted_irradiance(geo, occ, lights, bundle.manifest().unit_mm, &tilt.ranges)?;
-    let mut y = vec![0.0f32; 3 * e_t.len()];
-    add_first_scatter(&tilt, bytemuck::cast_slice(&e_t), 1, &mut y);
+    let e_t = tilted_irradiance(geo, occ, lights, bundle.manifest().unit_mm, &tilt)?;
+    let mut y = vec![0.0f32; 3 * tilt.view().n_rows()];
+    add_first_scatter(&tilt, e_t.as_flattened().as_flattened(), 1, &mut y);
     Some(bytemuck::cast_slice(&y).to_vec())
 }

@@ -252,8 +252,8 @@ struct Prepared {
     collimated: Option<Collimated>,
 }
 
-/// Δ of a plan's materials and E_t of its lamps ([`crate::collimated`]).
-type Collimated = (Arc<TiltOf>, Vec<Rgb>);
+/// The tilt of a plan's materials and [E_t, E_u, E_v, E_w] of its lamps ([`crate::collimated`]).
+type Collimated = (Arc<TiltOf>, Vec<[Rgb; 4]>);
 
 /// E at the vertices whose direct term is taken at the vertex, and what it replaces.
 struct VertexDirect {
@@ -352,17 +352,17 @@ fn collimated_entry(
         return (None, None);
     }
     let tilt = scene.tilt_for(materials_key, &plan.materials(scene));
-    let ranges = match tilt.as_ref() {
+    let t = match tilt.as_ref() {
         TiltOf::None => return (None, None),
         TiltOf::Unsupported(why) => return (None, Some(why.clone())),
-        TiltOf::Some(t) => t.ranges.clone(),
+        TiltOf::Some(t) => t,
     };
     let e_t = crate::collimated::tilted_irradiance(
         geo,
         &scene.occluder,
         &plan.lights,
         scene.bundle.manifest().unit_mm,
-        &ranges,
+        t,
     );
     (e_t.map(|e| (tilt, e)), None)
 }
@@ -681,11 +681,13 @@ fn transport(
             _ => None,
         });
     let y: Option<Vec<f32>> = tilt.map(|t| {
-        let mut e_t = vec![0.0f32; n * ch];
+        // [E_t, E_u, E_v, E_w] per patch and plan.
+        let mut e_t = vec![0.0f32; n * 4 * ch];
         for (slot, q) in preps.iter().enumerate() {
             if let Some((_, et)) = &q.collimated {
-                for j in 0..n {
-                    e_t[j * ch + 3 * slot..j * ch + 3 * slot + 3].copy_from_slice(&et[j]);
+                for (j, v) in et.iter().enumerate() {
+                    let at = j * 4 * ch + 12 * slot;
+                    e_t[at..at + 12].copy_from_slice(v.as_flattened());
                 }
             }
         }

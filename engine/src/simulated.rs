@@ -72,7 +72,8 @@ use crate::raycast::Occluder;
 use crate::specular::fresnel_dielectric;
 
 pub use translux_proto::bundle::{
-    SIM_BIN_L0_MM as BIN_L0_MM, SIM_BINS as BINS, SIM_BINS_PER_OCTAVE as BINS_PER_OCTAVE, WalksView,
+    SIM_BIN_L0_MM as BIN_L0_MM, SIM_BINS as BINS, SIM_BINS_PER_OCTAVE as BINS_PER_OCTAVE,
+    SIM_TILT_ONE as TILT_ONE, SIM_UNSCATTERED as UNSCATTERED, WalksView,
 };
 
 /// Walks are kept while they matter at this fraction of the built σa (per channel).
@@ -101,10 +102,39 @@ pub fn bin_of(len_mm: f64) -> u32 {
     b.min(BINS - 1)
 }
 
-/// The length (mm) a bin stands for: its geometric centre.
+/// The length (mm) a bin stands for: its geometric centre (a record's [`UNSCATTERED`] flag
+/// is ignored).
 #[inline]
 pub fn bin_length_mm(b: u32) -> f64 {
+    let b = b & !UNSCATTERED;
     BIN_L0_MM * ((b as f64 + 0.5) / BINS_PER_OCTAVE as f64).exp2()
+}
+
+/// A record's G_u and G_v per channel from its packed tilt ratios (`lamp`, see
+/// [`WalksView`]) and its diffuse weight `w`: G = 4 w r.
+#[inline]
+pub fn unpack_tilt(lamp: &[u32; 3], w: &[f32; 3]) -> [[f32; 3]; 2] {
+    let k = 4.0 / TILT_ONE;
+    [
+        std::array::from_fn(|c| (lamp[c] as u16 as i16) as f32 * k * w[c]),
+        std::array::from_fn(|c| ((lamp[c] >> 16) as u16 as i16) as f32 * k * w[c]),
+    ]
+}
+
+/// The packed tilt ratios of G_u and G_v (per channel) against a record's diffuse weight w:
+/// |G| ≤ 4 w by construction (|u_in| ≤ 1), rounded to i16 fixed point.
+fn pack_tilt(g: &[[f32; 3]; 2], w: &[f32; 3]) -> [u32; 3] {
+    std::array::from_fn(|c| {
+        let r = |x: f32| {
+            let q = if w[c] > 0.0 {
+                (x / (4.0 * w[c])).clamp(-1.0, 1.0)
+            } else {
+                0.0
+            };
+            ((q * TILT_ONE).round() as i16) as u16 as u32
+        };
+        r(g[0][c]) | (r(g[1][c]) << 16)
+    })
 }
 
 /// The medium of a simulated material, resolved (preset filled in), in mm⁻¹.
@@ -265,6 +295,10 @@ pub struct Walks {
     pub weight: Vec<[f32; 3]>,
     /// The same records for collimated entry along the normal (see the module docs).
     pub weight_normal: Vec<[f32; 3]>,
+    /// The records' G_u and G_v, S's first harmonic in the tilt of collimated entry, packed
+    /// ([`unpack_tilt`]); records of walks that left without scattering (U) have
+    /// [`UNSCATTERED`] in their bin (see the module docs).
+    pub weight_lamp: Vec<[u32; 3]>,
     /// What the walks did (the bundle's per-object record).
     pub report: SimulationInfo,
     /// Wall time of the walks, s.
@@ -273,6 +307,10 @@ pub struct Walks {
 
 /// Rows of S: per receiver, `(source, S_ji)`.
 pub type Rows = Vec<Vec<(u32, [f32; 3])>>;
+
+/// Rows of the lamps' tilt: per receiver, `(source, [Δ_ji, G_u,ji, G_v,ji, U_ji])` (the last
+/// three 0 for walks without lamp weights).
+pub type TiltRows = Vec<Vec<(u32, [[f32; 3]; 4])>>;
 
 /// e^(−σa L_b) for every bin and channel, σa in mm⁻¹.
 fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
@@ -285,25 +323,27 @@ fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
 }
 
 /// Rows `rows` (global) of `walks` summed per source at absorption `sigma_a` in one pass
-/// over the records: S_ji from the diffuse weights w, and with `tilt` also
-/// Δ_ji = S⁽ⁿ⁾_ji − S_ji from w⁽ⁿ⁾ − w (the walks must carry collimated weights then).
-/// Δ's row has the same sources as S's.
+/// over the records: S_ji from the diffuse weights w, and with `tilt` also the tilt rows
+/// (the walks must carry collimated weights then): Δ_ji = S⁽ⁿ⁾_ji − S_ji from w⁽ⁿ⁾ − w, and
+/// where the walks carry lamp weights G_u,ji, G_v,ji and U_ji beside it (0 otherwise), which
+/// [`crate::collimated`] applies to E_t, E_u, E_v and E_w. The tilt rows have S's sources.
 fn sum_rows(
     walks: &WalksView<'_>,
     rows: std::ops::Range<usize>,
     sigma_a: [f32; 3],
     tilt: bool,
-) -> (Rows, Option<Rows>) {
+) -> (Rows, Option<TiltRows>) {
     let att = attenuation(sigma_a);
     let both: Vec<_> = rows
         .into_par_iter()
         .map(|j| {
             let (cols, bins, ws) = walks.row(j);
             let wn = if tilt { walks.row_normal(j) } else { None };
+            let wt = if tilt { walks.row_lamp(j) } else { None };
             let mut row: Vec<(u32, [f32; 3])> = Vec::new();
-            let mut delta: Vec<(u32, [f32; 3])> = Vec::new();
+            let mut delta: Vec<(u32, [[f32; 3]; 4])> = Vec::new();
             for (k, ((&i, &b), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
-                let a = att[b as usize];
+                let a = att[(b & !UNSCATTERED) as usize];
                 let v = [w[0] * a[0], w[1] * a[1], w[2] * a[2]];
                 let d = wn.map(|wn| {
                     let n = wn[k];
@@ -313,14 +353,27 @@ fn sum_rows(
                         (n[2] - w[2]) * a[2],
                     ]
                 });
+                let d = d.map(|d| {
+                    let mut t = [d, [0.0; 3], [0.0; 3], [0.0; 3]];
+                    if b & UNSCATTERED != 0 {
+                        t[3] = v;
+                    } else if let Some(wt) = wt {
+                        let [gu, gv] = unpack_tilt(&wt[k], w);
+                        t[1] = [gu[0] * a[0], gu[1] * a[1], gu[2] * a[2]];
+                        t[2] = [gv[0] * a[0], gv[1] * a[1], gv[2] * a[2]];
+                    }
+                    t
+                });
                 match row.last_mut() {
                     Some((c, acc)) if *c == i => {
                         for ch in 0..3 {
                             acc[ch] += v[ch];
                         }
                         if let (Some(d), Some((_, dacc))) = (d, delta.last_mut()) {
-                            for ch in 0..3 {
-                                dacc[ch] += d[ch];
+                            for (acc, d) in dacc.iter_mut().zip(d) {
+                                for ch in 0..3 {
+                                    acc[ch] += d[ch];
+                                }
                             }
                         }
                     }
@@ -335,7 +388,7 @@ fn sum_rows(
             (row, delta)
         })
         .collect();
-    let (s, delta): (Rows, Rows) = both.into_iter().unzip();
+    let (s, delta): (Rows, TiltRows) = both.into_iter().unzip();
     (s, tilt.then_some(delta))
 }
 
@@ -381,22 +434,45 @@ pub fn reweight_with_tilt(
     rows: std::ops::Range<usize>,
     area: &[f32],
     sigma_a: [f32; 3],
-) -> (Rows, Option<Rows>, f32) {
+) -> (Rows, Option<TiltRows>, f32) {
     let (out, delta) = sum_rows(walks, rows.clone(), sigma_a, walks.normal.is_some());
     let max = max_column_energy(&out, rows.start, area);
     (out, delta, max)
 }
 
-/// S⁽ⁿ⁾ − S of one simulated object at absorption `sigma_a` (see the module docs): rows
-/// `rows` (global) as local rows of `(global i, value)`, values of either sign; `None` when
-/// the walks carry no collimated weights (a bundle older than version 7).
+/// S⁽ⁿ⁾ − S of one simulated object at absorption `sigma_a` (see the module docs), with
+/// G_u, G_v and U beside it when the walks carry lamp weights (the tilt rows of `sum_rows`):
+/// rows `rows` (global) as local rows of `(global i, [Δ, G_u, G_v, U])`, values of either
+/// sign; `None` when the walks carry no collimated weights (a bundle older than version 7).
 pub fn reweight_tilt(
     walks: &WalksView<'_>,
     rows: std::ops::Range<usize>,
     sigma_a: [f32; 3],
-) -> Option<Rows> {
+) -> Option<TiltRows> {
     walks.normal?;
     sum_rows(walks, rows, sigma_a, true).1
+}
+
+/// Patch i's tangent frame for the tilt of collimated light (u along its first edge, v =
+/// n × u), from its corners and outward unit normal: the walks and the lamps use the same
+/// one.
+pub fn tangent_frame(corners: &[Vec3; 3], n: Vec3) -> (Vec3, Vec3) {
+    let e = corners[1] - corners[0];
+    let u = (e - n * e.dot(n)).normalize_or_zero();
+    (u, n.cross(u))
+}
+
+/// How a walk enters its patch.
+#[derive(Debug, Clone, Copy)]
+enum Entry {
+    /// Cosine-weighted about the inward normal (the paper's diffuse entry).
+    Diffuse,
+    /// Collimated along the inward normal.
+    Normal,
+    /// Collimated, travelling along the given unit direction outside (tests compare the
+    /// tilt model against it).
+    #[cfg(test)]
+    Along(Vec3),
 }
 
 /// An orthonormal frame around unit `n` (Duff et al. 2017).
@@ -456,27 +532,37 @@ struct Walker<'a> {
 }
 
 impl Walker<'_> {
-    /// One walk from local patch i, entering diffusely or (`collimated`) along the inward
-    /// normal; returns how it ended and its entry weight.
-    fn walk(&mut self, i: usize, collimated: bool, rng: &mut ChaCha8Rng) -> (End, f32) {
+    /// One walk from local patch i, entering as `entry` says; returns how it ended, its
+    /// entry weight and the tangential part of its incident direction outside (zero along
+    /// the normal).
+    fn walk(&mut self, i: usize, entry: Entry, rng: &mut ChaCha8Rng) -> (End, f32, Vec3) {
         let [a, b, c] = self.p.corners[i];
         let (u1, u2): (f32, f32) = (rng.random(), rng.random());
         let su = u1.sqrt();
         let x = a * (1.0 - su) + b * (su * (1.0 - u2)) + c * (su * u2);
         let n = self.p.normal[i];
-        // Diffuse incidence: cos θ of the incoming direction is √u (cosine-weighted).
-        let cos_o = if collimated {
-            1.0
-        } else {
-            rng.random::<f32>().sqrt()
+        // The incident direction outside, travelling in: diffuse incidence has cos θ = √u
+        // (cosine-weighted) and a uniform azimuth.
+        let d_out = match entry {
+            Entry::Diffuse => around(-n, rng.random::<f32>().sqrt(), rng.random()),
+            Entry::Normal => {
+                // The azimuth a diffuse entry would draw (keeps the streams as they were).
+                let _: f32 = rng.random();
+                -n
+            }
+            #[cfg(test)]
+            Entry::Along(d) => d,
         };
+        let cos_o = (-d_out.dot(n)).clamp(0.0, 1.0);
+        let tangent = d_out + n * cos_o;
         let (mut d, w) = if self.eta == 1.0 {
-            (around(-n, cos_o, rng.random()), 1.0)
+            (d_out, 1.0)
         } else {
+            // Refracted: the tangential part shrinks by η, the normal part makes it unit.
             let t = 1.0 - fresnel_dielectric(cos_o, self.eta);
-            let sin_t = (1.0 - cos_o * cos_o).max(0.0).sqrt() / self.eta;
-            let cos_t = (1.0 - sin_t * sin_t).max(0.0).sqrt();
-            (around(-n, cos_t, rng.random()), t)
+            let dt = tangent / self.eta;
+            let cos_t = (1.0 - dt.length_squared()).max(0.0).sqrt();
+            ((dt - n * cos_t).normalize(), t)
         };
         let mut pos = x - n * self.eps;
         let mut len = 0.0f32;
@@ -525,7 +611,7 @@ impl Walker<'_> {
             }
         };
         self.events += events as u64;
-        (end, w)
+        (end, w, tangent)
     }
 }
 
@@ -570,9 +656,9 @@ pub fn simulate(
     let groups = medium.groups();
     let floor = medium.floor();
     let done = AtomicU64::new(0);
-    // Per source patch: its records (j, bin, w and w⁽ⁿ⁾ per channel) merged, its walk counts
-    // and noise.
-    type Record = (u32, u32, [f32; 3], [f32; 3]);
+    // Per source patch: its records (j, bin, w, w⁽ⁿ⁾ and the lamp weights per channel)
+    // merged, its walk counts and noise.
+    type Record = (u32, u32, [f32; 3], [f32; 3], [[f32; 3]; 2]);
     type Source = (Vec<Record>, u64, u64, u64, u64, f32);
     let sources: Vec<Source> = (0..n)
         .into_par_iter()
@@ -590,6 +676,7 @@ pub fn simulate(
             |w, i| {
                 let mut recs: Vec<Record> = Vec::new();
                 let (mut walks, mut lost, mut cut) = (0u64, 0u64, 0u64);
+                let (tu, tv) = tangent_frame(&p.corners[i], p.normal[i]);
                 let mut noise = 0.0f32;
                 let events_before = w.events;
                 for (gi, group) in groups.iter().enumerate() {
@@ -606,16 +693,33 @@ pub fn simulate(
                     };
                     let mut rng = ChaCha8Rng::seed_from_u64(medium.seed);
                     rng.set_stream(((first_patch + i as u64) << 2) | gi as u64);
-                    let mut group_recs: Vec<(u32, u32, f32, f32)> = Vec::new();
+                    // (j, bin, w, w⁽ⁿ⁾, [4 w u_in, 4 w v_in, w unscattered])
+                    let mut group_recs: Vec<(u32, u32, f32, f32, [f32; 2])> = Vec::new();
                     let (mut sum, mut sum2, mut count) = (0.0f64, 0.0f64, 0u32);
                     while count < medium.max_walks {
                         for _ in 0..BATCH.min(medium.max_walks - count) {
                             count += 1;
-                            let (end, weight) = w.walk(i, false, &mut rng);
+                            let (end, weight, tangent) = w.walk(i, Entry::Diffuse, &mut rng);
                             let ret = match end {
-                                End::Out { j, len, .. } => {
+                                End::Out { j, len, scattered } => {
                                     let mm = len as f64 * unit_mm;
-                                    group_recs.push((j, bin_of(mm), weight, 0.0));
+                                    // The first harmonic in the tilt: 4 E[w u_in] (E[u²] = ¼
+                                    // under cosine-weighted incidence), from the walks that
+                                    // scattered (a lamp's unscattered beam is not exitance).
+                                    // The others are U, which lamps leave out: records of
+                                    // their own, flagged in the bin.
+                                    let (lamp, bin) = if scattered {
+                                        (
+                                            [
+                                                4.0 * weight * tangent.dot(tu),
+                                                4.0 * weight * tangent.dot(tv),
+                                            ],
+                                            bin_of(mm),
+                                        )
+                                    } else {
+                                        ([0.0; 2], bin_of(mm) | UNSCATTERED)
+                                    };
+                                    group_recs.push((j, bin, weight, 0.0, lamp));
                                     let att: f64 = group
                                         .iter()
                                         .map(|&c| (-(medium.sigma_a[c] as f64) * mm).exp())
@@ -654,7 +758,7 @@ pub fn simulate(
                     }
                     // As many walks entering collimated along the normal (S⁽ⁿ⁾).
                     for _ in 0..count {
-                        match w.walk(i, true, &mut rng) {
+                        match w.walk(i, Entry::Normal, &mut rng) {
                             // A lamp seen through the object (no scattering) is not
                             // diffuse exitance: left out (see the module docs).
                             (
@@ -664,25 +768,35 @@ pub fn simulate(
                                     scattered: true,
                                 },
                                 weight,
+                                _,
                             ) => {
-                                group_recs.push((j, bin_of(len as f64 * unit_mm), 0.0, weight));
+                                group_recs.push((
+                                    j,
+                                    bin_of(len as f64 * unit_mm),
+                                    0.0,
+                                    weight,
+                                    [0.0; 2],
+                                ));
                             }
-                            (End::Out { .. }, _) => {}
-                            (End::Lost, _) => lost += 1,
-                            (End::Cut, _) => cut += 1,
+                            (End::Out { .. }, ..) => {}
+                            (End::Lost, ..) => lost += 1,
+                            (End::Cut, ..) => cut += 1,
                         }
                     }
                     walks += 2 * count as u64;
                     // S_ji = A_i / (A_j n) Σ w: the A_j is applied when rows are made.
                     let scale = p.area[i] / count as f32;
                     group_recs.sort_unstable_by_key(|r| (r.0, r.1));
-                    for (j, b, wt, wn) in group_recs {
-                        let (mut v, mut vn) = ([0.0f32; 3], [0.0f32; 3]);
+                    for (j, b, wt, wn, lamp) in group_recs {
+                        let (mut v, mut vn, mut g) = ([0.0f32; 3], [0.0f32; 3], [[0.0f32; 3]; 2]);
                         for &c in group {
                             v[c] = wt * scale;
                             vn[c] = wn * scale;
+                            for (g, l) in g.iter_mut().zip(lamp) {
+                                g[c] = l * scale;
+                            }
                         }
-                        recs.push((j, b, v, vn));
+                        recs.push((j, b, v, vn, g));
                     }
                 }
                 recs.sort_unstable_by_key(|r| (r.0, r.1));
@@ -693,6 +807,9 @@ pub fn simulate(
                             for c in 0..3 {
                                 m.2[c] += r.2[c];
                                 m.3[c] += r.3[c];
+                                for k in 0..2 {
+                                    m.4[k][c] += r.4[k][c];
+                                }
                             }
                         }
                         _ => merged.push(r),
@@ -721,9 +838,10 @@ pub fn simulate(
     let mut bin = vec![0u32; total];
     let mut weight = vec![[0.0f32; 3]; total];
     let mut weight_normal = vec![[0.0f32; 3]; total];
+    let mut weight_lamp = vec![[0u32; 3]; total];
     let mut next = counts.clone();
     for (i, (recs, ..)) in sources.iter().enumerate() {
-        for &(j, b, w, wn) in recs {
+        for &(j, b, w, wn, g) in recs {
             let at = next[j as usize] as usize;
             next[j as usize] += 1;
             col[at] = i as u32;
@@ -731,6 +849,7 @@ pub fn simulate(
             let aj = p.area[j as usize].max(f32::MIN_POSITIVE);
             weight[at] = w.map(|v| v / aj);
             weight_normal[at] = wn.map(|v| v / aj);
+            weight_lamp[at] = pack_tilt(&g, &w);
         }
     }
     let mut report = SimulationInfo {
@@ -762,6 +881,7 @@ pub fn simulate(
         bin,
         weight,
         weight_normal,
+        weight_lamp,
         report,
         seconds: start.elapsed().as_secs_f64(),
     })
@@ -897,7 +1017,11 @@ mod tests {
     /// The same for collimated entry along the normal: S + (S⁽ⁿ⁾ − S).
     fn column_energy_normal(m: &Mesh, w: &Walks, sigma_a: [f32; 3]) -> Vec<[f64; 3]> {
         let n = m.tris.len();
-        let tilt = reweight_tilt(&view(w), 0..n, sigma_a).expect("collimated weights");
+        let tilt: Rows = reweight_tilt(&view(w), 0..n, sigma_a)
+            .expect("collimated weights")
+            .into_iter()
+            .map(|row| row.into_iter().map(|(i, t)| (i, t[0])).collect())
+            .collect();
         let mut e = column_energy(m, w, sigma_a);
         for (i, t) in energy_of_rows(m, &tilt).iter().enumerate() {
             for c in 0..3 {
@@ -1112,6 +1236,167 @@ mod tests {
         );
     }
 
+    /// Per face of `m`, the power leaving it (scattered light only, at absorption
+    /// `sigma_a`) for unit irradiance on each patch of `sources` by a beam travelling along
+    /// `d0`, from `per` walks per patch entering along `d0` themselves: what the tilt model
+    /// approximates, walked directly.
+    fn beam_exits(m: &Mesh, sigma_s: f32, sigma_a: f32, sources: &[usize], d0: Vec3) -> [f64; 6] {
+        const PER: u32 = 40_000;
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for v in m.tris.iter().flatten() {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+        let (centre, size) = (0.5 * (lo + hi), (hi - lo).length());
+        let corners: Vec<[Vec3; 3]> = m
+            .tris
+            .iter()
+            .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
+            .collect();
+        let unit_mm = size / WALK_FRAME;
+        let occ = Occluder::new(&corners);
+        let p = SimPatches {
+            corners: &corners,
+            normal: &m.normal,
+            area: &m.area,
+        };
+        let per_source: Vec<[f64; 6]> = sources
+            .par_iter()
+            .map(|&i| {
+                let mut w = Walker {
+                    p,
+                    occ: &occ,
+                    sigma_s: sigma_s * unit_mm,
+                    g: 0.0,
+                    eta: 1.0,
+                    eps: 1e-5 * occ.diagonal(),
+                    max_len: f32::INFINITY,
+                    events: 0,
+                };
+                let mut rng = ChaCha8Rng::seed_from_u64(99);
+                rng.set_stream(i as u64);
+                let mut out = [0.0f64; 6];
+                for _ in 0..PER {
+                    if let (
+                        End::Out {
+                            j,
+                            len,
+                            scattered: true,
+                        },
+                        weight,
+                        _,
+                    ) = w.walk(i, Entry::Along(d0), &mut rng)
+                    {
+                        let att = (-(sigma_a as f64) * (len * unit_mm) as f64).exp();
+                        out[m.face[j as usize]] += weight as f64 * att;
+                    }
+                }
+                out.map(|v| v * m.area[i] as f64 / PER as f64)
+            })
+            .collect();
+        let mut out = [0.0f64; 6];
+        for s in per_source {
+            for f in 0..6 {
+                out[f] += s[f];
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_first_harmonic_follows_a_slanted_beam() {
+        // A 16 mm cube (mean free path 1.25 mm, index-matched), its top lit by a beam 60°
+        // off the normal travelling toward −x: light leaves mostly through the face ahead
+        // of it (−x). S(μ₀) alone gives −x and +x the same share and counts the diffuse
+        // walks' unscattered exits 1.5 times; with the first harmonic (G_u, G_v from the
+        // diffuse walks) and U taken out, the model must follow the beam walked directly.
+        let m = mesh([16.0, 16.0, 16.0], 4);
+        let n = m.tris.len();
+        let (sigma_s, sigma_a) = (0.8, 0.01);
+        // G is noisier than S (each walk adds ±4 u w): many walks per patch.
+        let w = walks(
+            &m,
+            &SimMedium {
+                noise: 0.0,
+                max_walks: 16_384,
+                ..medium(sigma_s, sigma_a, 1.0)
+            },
+        );
+        let v = view(&w).with_lamp(&w.weight_lamp).expect("lamp weights");
+        let (s, _) = reweight(&v, 0..n, &m.area, [sigma_a; 3]);
+        let tilt = reweight_tilt(&v, 0..n, [sigma_a; 3]).expect("collimated weights");
+        let top: Vec<usize> = (0..n).filter(|&i| m.face[i] == 5).collect();
+        let names = ["-x", "+x", "-y", "+y", "-z", "+z"];
+        for d0 in [Vec3::new(-0.866, 0.0, -0.5), Vec3::new(-0.5, 0.3, -0.8124)] {
+            let d0 = d0.normalize();
+            let truth = beam_exits(&m, sigma_s, sigma_a, &top, d0);
+            // Per face: S(μ₀) and S(μ₀) + u₀ G_u + v₀ G_v + (3μ₀ − 3) U, summed as A_j S_ji.
+            let (mut slant, mut harmonic) = ([0.0f64; 6], [0.0f64; 6]);
+            for j in 0..n {
+                let f = m.face[j];
+                let aj = m.area[j] as f64;
+                for &(c, val) in &s[j] {
+                    let i = c as usize;
+                    if m.face[i] == 5 {
+                        slant[f] += aj * val[1] as f64;
+                        harmonic[f] += aj * val[1] as f64;
+                    }
+                }
+                for &(c, val) in &tilt[j] {
+                    let i = c as usize;
+                    if m.face[i] != 5 {
+                        continue;
+                    }
+                    let mu0 = -d0.dot(m.normal[i]);
+                    let (fu, fv) = tangent_frame(&m.tris[i], m.normal[i]);
+                    let k = [3.0 * mu0 - 2.0, d0.dot(fu), d0.dot(fv), 3.0 * mu0 - 3.0];
+                    slant[f] += aj * k[0] as f64 * val[0][1] as f64;
+                    for (k, v) in k.iter().zip(val) {
+                        harmonic[f] += aj * *k as f64 * v[1] as f64;
+                    }
+                }
+            }
+            for f in 0..5 {
+                eprintln!(
+                    "beam {d0:?} → {}: walked {:.4}, S(μ₀) {:.3}×, with the harmonic and U {:.3}×",
+                    names[f],
+                    truth[f],
+                    slant[f] / truth[f],
+                    harmonic[f] / truth[f]
+                );
+            }
+            // The faces ahead of and behind the beam: the worst of the two, much better.
+            let worst = |m: &[f64; 6]| {
+                [0, 1]
+                    .iter()
+                    .map(|&f| (m[f] / truth[f] - 1.0).abs())
+                    .fold(0.0f64, f64::max)
+            };
+            let (e_slant, e_model) = (worst(&slant), worst(&harmonic));
+            assert!(
+                e_model < 0.5 * e_slant,
+                "±x: the model's error {e_model} against S(μ₀)'s {e_slant}"
+            );
+            if d0.z < -0.6 {
+                continue;
+            }
+            // At 60°: S(μ₀) is off by over 30% there, the model within a few per cent, and
+            // the bottom too. (The sides along the slant, ±y, come out 15–18% low: S(μ₀)'s
+            // straight line in μ₀ under-predicts them at a grazing 60°; docs/validation.md.)
+            assert!(e_slant > 0.3, "{e_slant}");
+            for f in [0, 1, 4] {
+                let err = (harmonic[f] / truth[f] - 1.0).abs();
+                assert!(
+                    err < 0.06,
+                    "{}: {} against {}",
+                    names[f],
+                    harmonic[f],
+                    truth[f]
+                );
+            }
+        }
+    }
+
     #[test]
     fn one_pass_gives_s_and_the_collimated_difference() {
         // Δ from the fused pass against S⁽ⁿ⁾ re-weighted on its own (the collimated
@@ -1138,7 +1423,7 @@ mod tests {
                         .find(|(c, _)| *c == i)
                         .map_or([0.0; 3], |(_, v)| *v)
                 };
-                for &(i, d) in &delta[j] {
+                for &(i, [d, ..]) in &delta[j] {
                     let want = get(&s_n[j], i);
                     let have = get(&s[j], i);
                     for c in 0..3 {

@@ -828,8 +828,9 @@ pub struct FastPath<'a> {
     pub tilt: Option<&'a Mutex<SimTilts>>,
 }
 
-/// Δ = S⁽ⁿ⁾ − S of simulated objects, per object index: local rows of `(global i, Δ_ji)`.
-pub type SimTilts = Vec<(usize, simulated::Rows)>;
+/// The lamps' tilt of simulated objects (Δ = S⁽ⁿ⁾ − S, G_u, G_v, U), per object index:
+/// local rows of `(global i, [Δ_ji, G_u,ji, G_v,ji, U_ji])`.
+pub type SimTilts = Vec<(usize, simulated::TiltRows)>;
 
 /// S, its assembly reports, and the Δ made beside it ([`rebuild_with_terms_and_tilt`]).
 pub type WithTilt = (ValidCsr<[f32; 3]>, Vec<AssemblyReport>, SimTilts);

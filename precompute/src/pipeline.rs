@@ -762,6 +762,7 @@ pub fn precompute(
             &walks.weight,
             Some(&walks.weight_normal),
         )
+        .and_then(|v| v.with_lamp(&walks.weight_lamp))
         .expect("the walks build valid records")
     });
     // A hierarchical S traces the distances of homogeneous translucent objects on demand
@@ -1196,6 +1197,11 @@ pub fn precompute(
             name: arrays::SIM_WEIGHT_NORMAL,
             shape: vec![w, 3],
             data: ArrayData::F32(walks.weight_normal.iter().flatten().copied().collect()),
+        });
+        arrays_out.push(NamedArray {
+            name: arrays::SIM_WEIGHT_LAMP,
+            shape: vec![w, 3],
+            data: ArrayData::U32(walks.weight_lamp.iter().flatten().copied().collect()),
         });
     }
     let hierarchy_info = tree.map(|(t, range, info)| {

@@ -92,10 +92,10 @@ pub fn resimulate(
     let old = bundle
         .walks()
         .ok_or_else(|| "the bundle holds no walks (precompute it again)".to_string())?;
-    let Some(old_normal) = old.normal else {
+    let (Some(old_normal), Some(old_lamp)) = (old.normal, old.lamp) else {
         return Err(format!(
-            "the bundle is format version {} (its walks have no collimated weights): \
-             precompute the scene again",
+            "the bundle is format version {} (its walks have no collimated or lamp \
+             weights): precompute the scene again",
             m.version
         ));
     };
@@ -128,13 +128,14 @@ pub fn resimulate(
     let mut walks = SceneWalks::default();
     walks.row_ptr.push(0);
     for j in 0..n {
-        let (col, bin, weight, normal) = if renewed(j) {
+        let (col, bin, weight, normal, lamp) = if renewed(j) {
             let r = fresh.row_ptr[j] as usize..fresh.row_ptr[j + 1] as usize;
             (
                 &fresh.col[r.clone()],
                 &fresh.bin[r.clone()],
                 &fresh.weight[r.clone()],
-                &fresh.weight_normal[r],
+                &fresh.weight_normal[r.clone()],
+                &fresh.weight_lamp[r],
             )
         } else {
             let r = old.row_ptr[j] as usize..old.row_ptr[j + 1] as usize;
@@ -142,13 +143,15 @@ pub fn resimulate(
                 &old.col[r.clone()],
                 &old.bin[r.clone()],
                 &old.weight[r.clone()],
-                &old_normal[r],
+                &old_normal[r.clone()],
+                &old_lamp[r],
             )
         };
         walks.col.extend_from_slice(col);
         walks.bin.extend_from_slice(bin);
         walks.weight.extend_from_slice(weight);
         walks.weight_normal.extend_from_slice(normal);
+        walks.weight_lamp.extend_from_slice(lamp);
         walks.row_ptr.push(walks.col.len() as u64);
     }
     let view = WalksView::new_checked(
@@ -158,7 +161,8 @@ pub fn resimulate(
         &walks.bin,
         &walks.weight,
         Some(&walks.weight_normal),
-    )?;
+    )?
+    .with_lamp(&walks.weight_lamp)?;
     let (s, reports) = smatrix::rebuild_with_walks(&bundle, &overrides, &SParams::default(), &view)
         .map_err(|e| e.to_string())?;
 
@@ -204,6 +208,11 @@ pub fn resimulate(
             arrays::SIM_WEIGHT_NORMAL,
             vec![records, 3],
             walks.weight_normal.iter().flatten().copied().collect(),
+        ),
+        NamedArray::u32(
+            arrays::SIM_WEIGHT_LAMP,
+            vec![records, 3],
+            walks.weight_lamp.iter().flatten().copied().collect(),
         ),
     ];
     let mut kept = Vec::new();

@@ -23,6 +23,8 @@ pub struct SceneWalks {
     pub weight: Vec<[f32; 3]>,
     /// The same records for collimated entry along the normal (`sim_weight_normal`).
     pub weight_normal: Vec<[f32; 3]>,
+    /// Their lamp-only parts: G_u, G_v and U (`sim_weight_lamp`).
+    pub weight_lamp: Vec<[u32; 3]>,
     /// Per simulated object: its name and what the walks did.
     pub reports: Vec<(String, SimulationInfo, f64)>,
 }
@@ -155,6 +157,7 @@ pub fn scene_walks(
         out.bin.extend_from_slice(&w.bin);
         out.weight.extend_from_slice(&w.weight);
         out.weight_normal.extend_from_slice(&w.weight_normal);
+        out.weight_lamp.extend_from_slice(&w.weight_lamp);
         out.reports.push((name, w.report, w.seconds));
     }
     Ok(out)

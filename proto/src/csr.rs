@@ -62,6 +62,17 @@ impl CsrValue for f32 {
     }
 }
 
+/// Four RGB values per entry (the lamps' tilt of a simulated S: Δ, G_u, G_v and U).
+impl CsrValue for [[f32; 3]; 4] {
+    fn is_finite_value(&self) -> bool {
+        self.iter().flatten().all(|v| v.is_finite())
+    }
+
+    fn all_finite(values: &[Self]) -> bool {
+        all_finite_f32(values.as_flattened().as_flattened())
+    }
+}
+
 impl CsrValue for [f32; 3] {
     fn is_finite_value(&self) -> bool {
         self.iter().all(|v| v.is_finite())

@@ -97,9 +97,9 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
     assert!(t2[0] < 0.9 * t0[0], "{t2:?} {t0:?}");
     assert!((t2[1] - t0[1]).abs() <= 1e-6 * t0[1]);
 
-    // A relight's absorption change makes S and Δ = S⁽ⁿ⁾ − S in one pass over the walks
-    // (smatrix::rebuild_with_terms_and_tilt): the same S as the rebuild above, and the
-    // same Δ as re-weighting Δ on its own.
+    // A relight's absorption change makes S and the lamps' tilt (Δ = S⁽ⁿ⁾ − S, G_u, G_v, U)
+    // in one pass over the walks (smatrix::rebuild_with_terms_and_tilt): the same S as the
+    // rebuild above, and the same tilt as re-weighting it on its own.
     let terms = smatrix::terms_of_bundle(&b, &params.quadrature);
     let (s_both, _, tilts) =
         smatrix::rebuild_with_terms_and_tilt(&b, &[(0, more.clone())], &params, &terms).unwrap();
@@ -113,7 +113,14 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
     assert_eq!(fused.ranges, alone.ranges);
     assert_eq!(fused.delta.col, alone.delta.col);
     assert_eq!(fused.delta.val, alone.delta.val);
-    assert!(fused.delta.val.iter().any(|v| v[0] != 0.0));
+    // Δ, and the lamps' G_u, G_v and U beside it (format version 8).
+    for part in 0..4 {
+        assert!(
+            fused.delta.val.iter().any(|v| v[part][0] != 0.0),
+            "part {part} of the tilt is all 0"
+        );
+    }
+    assert!(fused.has_harmonic());
     let at_built = collimated::tilt_of(&b, &[&b.manifest().objects[0].material]);
     let TiltOf::Some(at_built) = at_built else {
         panic!("the walks carry collimated weights");

@@ -16,10 +16,13 @@ pub const FORMAT: &str = "translux-bundle";
 /// [`Manifest::hierarchy`]; a version 4 bundle is a dense one and reads unchanged; version 6
 /// added hierarchical S, [`SubsurfaceInfo::links`], and reads every version 5 bundle; version
 /// 7 added [`arrays::SIM_WEIGHT_NORMAL`], and a version 6 bundle's walks serve diffuse entry
-/// only).
-pub const FORMAT_VERSION: u32 = 7;
+/// only; version 8 added [`arrays::SIM_WEIGHT_LAMP`], and a version 7 bundle's lamps
+/// enter by their angle to the normal alone).
+pub const FORMAT_VERSION: u32 = 8;
 /// The first version whose walks carry [`arrays::SIM_WEIGHT_NORMAL`].
 pub const SIM_NORMAL_SINCE: u32 = 7;
+/// The first version whose walks carry [`arrays::SIM_WEIGHT_LAMP`].
+pub const SIM_LAMP_SINCE: u32 = 8;
 /// The oldest bundle version this build still reads.
 pub const OLDEST_READABLE_VERSION: u32 = 4;
 /// The manifest's file name inside a bundle folder.
@@ -74,6 +77,16 @@ pub mod arrays {
     /// normal instead of diffusely, from walks launched that way (f32 `[W, 3]`, version 7
     /// on); a record has 0 in whichever weight its walks did not add to.
     pub const SIM_WEIGHT_NORMAL: &str = "sim_weight_normal";
+    /// The records' share of what only lamps' collimated light uses (u32 `[W, 3]`, version 8
+    /// on): G_u and G_v, how S_ji changes as the beam entering patch i tilts along the
+    /// patch's tangent u (its first edge) and v (normal × u), 4 Σ w·u_in and 4 Σ w·v_in over
+    /// the diffuse walks that scattered (u_in, v_in: the tangent components of each walk's
+    /// incident direction outside). |G| ≤ 4 w, so each is stored per channel as the ratio
+    /// G / (4 w) in i16 fixed point (`SIM_TILT_ONE` = 1): the low 16 bits G_u's, the high
+    /// G_v's. U, the diffuse walks' share that left without scattering (which a lamp's beam
+    /// does not have), is in records of their own, flagged in `sim_bin` by
+    /// `SIM_UNSCATTERED`.
+    pub const SIM_WEIGHT_LAMP: &str = "sim_weight_lamp";
 }
 
 /// Element type of an array file.

@@ -636,6 +636,13 @@ impl Bundle {
                     "W = subsurface.walks",
                 )?;
             }
+            if manifest.version >= SIM_LAMP_SINCE {
+                check_listed(
+                    &manifest,
+                    &[(arrays::SIM_WEIGHT_LAMP, DType::U32, vec![w, 3])],
+                    "W = subsurface.walks",
+                )?;
+            }
         }
 
         // The cluster tree: both arrays, with these shapes, when the manifest says so.
@@ -1016,13 +1023,14 @@ impl Bundle {
         // Every record was checked when the bundle was opened (`check_contents`), and the
         // arrays are mapped read-only: the view is made without reading them again (an
         // absorption change asks for it each time, and the check reads every record).
-        let (row_ptr, col, bin, weight, normal) = self.walk_arrays().ok()?;
+        let (row_ptr, col, bin, weight, normal, lamp) = self.walk_arrays().ok()?;
         Some(WalksView {
             row_ptr,
             col,
             bin,
             weight,
             normal,
+            lamp,
         })
     }
 
@@ -1039,18 +1047,32 @@ impl Bundle {
         } else {
             None
         };
+        let lamp = if self.manifest.version >= SIM_LAMP_SINCE {
+            Some(
+                bytemuck::try_cast_slice(self.u32s(arrays::SIM_WEIGHT_LAMP)).map_err(|_| {
+                    "sim_weight_lamp is not a whole number of RGB triplets".to_string()
+                })?,
+            )
+        } else {
+            None
+        };
         Ok((
             self.u64s(arrays::SIM_ROW_PTR),
             self.u32s(arrays::SIM_COL),
             self.u32s(arrays::SIM_BIN),
             weight,
             normal,
+            lamp,
         ))
     }
 
     fn walks_checked(&self) -> Result<WalksView<'_>, String> {
-        let (row_ptr, col, bin, weight, normal) = self.walk_arrays()?;
-        WalksView::new_checked(self.n_patches, row_ptr, col, bin, weight, normal)
+        let (row_ptr, col, bin, weight, normal, lamp) = self.walk_arrays()?;
+        let view = WalksView::new_checked(self.n_patches, row_ptr, col, bin, weight, normal)?;
+        match lamp {
+            Some(t) => view.with_lamp(t),
+            None => Ok(view),
+        }
     }
 
     /// Checks the cluster tree: `tree_perm` is a permutation of `0..N` and every node's range
@@ -1243,13 +1265,15 @@ impl Bundle {
     }
 }
 
-/// A [`WalksView`]'s arrays: row pointers, sources, bins, weights, collimated weights.
+/// A [`WalksView`]'s arrays: row pointers, sources, bins, weights, collimated weights,
+/// lamp weights.
 type WalkArrays<'a> = (
     &'a [u64],
     &'a [u32],
     &'a [u32],
     &'a [[f32; 3]],
     Option<&'a [[f32; 3]]>,
+    Option<&'a [[u32; 3]]>,
 );
 
 #[cfg(test)]

@@ -60,13 +60,21 @@ pub const SIM_BINS_PER_OCTAVE: u32 = 16;
 pub const SIM_BIN_L0_MM: f64 = 1e-4;
 /// Number of path-length bins: 64 doublings above 0.1 µm.
 pub const SIM_BINS: u32 = 64 * SIM_BINS_PER_OCTAVE;
+/// Set in a record's `sim_bin` (version 8 on): its walks entered diffusely and left without
+/// scattering (U, which lamps leave out); the bin is the rest of the bits.
+pub const SIM_UNSCATTERED: u32 = 1 << 31;
+/// Fixed-point scale of the tilt ratios in `sim_weight_lamp` (i16, ±1 = ±32767).
+pub const SIM_TILT_ONE: f32 = 32767.0;
 
 /// The stored random walks of simulated objects ([`Bundle::walks`](crate::bundle::Bundle::walks)):
 /// row j (a receiver patch) holds records sorted by source patch i, then by bin; a record's
 /// `weight` is its walks' share of S_ji at zero absorption, and
 /// S_ji = Σ_records w · e^(−σa L_bin), L_bin = `SIM_BIN_L0_MM` · 2^((bin + ½)/16) mm.
 /// `normal` (bundles from version 7 on) is the same for light entering collimated along the
-/// inward normal; it may be below or above `weight`.
+/// inward normal; it may be below or above `weight`. `lamp` (version 8 on) is the
+/// records' G_u and G_v (the first harmonic of S_ji in the tilt of collimated light
+/// entering i), per channel as two i16 ratios to 4 `weight` packed in a u32
+/// (`arrays::SIM_WEIGHT_LAMP`); records whose bin has [`SIM_UNSCATTERED`] are U.
 #[derive(Debug, Clone, Copy)]
 pub struct WalksView<'a> {
     pub row_ptr: &'a [u64],
@@ -74,6 +82,7 @@ pub struct WalksView<'a> {
     pub bin: &'a [u32],
     pub weight: &'a [[f32; 3]],
     pub normal: Option<&'a [[f32; 3]]>,
+    pub lamp: Option<&'a [[u32; 3]]>,
 }
 
 impl<'a> WalksView<'a> {
@@ -104,7 +113,7 @@ impl<'a> WalksView<'a> {
         if let Some(k) = col.iter().position(|&c| c as usize >= n) {
             return Err(format!("sim_col[{k}] = {} is not a patch", col[k]));
         }
-        if let Some(k) = bin.iter().position(|&b| b >= SIM_BINS) {
+        if let Some(k) = bin.iter().position(|&b| b & !SIM_UNSCATTERED >= SIM_BINS) {
             return Err(format!(
                 "sim_bin[{k}] = {} is not a bin (< {SIM_BINS})",
                 bin[k]
@@ -133,7 +142,21 @@ impl<'a> WalksView<'a> {
             bin,
             weight,
             normal,
+            lamp: None,
         })
+    }
+
+    /// The view with lamp weights (`sim_weight_lamp`), checked: one per record, and only
+    /// beside collimated weights (every bit pattern is a ratio in [−1, 1]).
+    pub fn with_lamp(mut self, lamp: &'a [[u32; 3]]) -> Result<Self, String> {
+        if self.normal.is_none() {
+            return Err("sim_weight_lamp without sim_weight_normal".into());
+        }
+        if lamp.len() != self.col.len() {
+            return Err("sim_weight_lamp and sim_weight differ in length".into());
+        }
+        self.lamp = Some(lamp);
+        Ok(self)
     }
 
     /// Row j's records: sources, bins, weights.
@@ -146,5 +169,11 @@ impl<'a> WalksView<'a> {
     pub fn row_normal(&self, j: usize) -> Option<&'a [[f32; 3]]> {
         let (a, b) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
         self.normal.map(|w| &w[a..b])
+    }
+
+    /// Row j's lamp weights (`None` for a bundle older than version 8).
+    pub fn row_lamp(&self, j: usize) -> Option<&'a [[u32; 3]]> {
+        let (a, b) = (self.row_ptr[j] as usize, self.row_ptr[j + 1] as usize);
+        self.lamp.map(|w| &w[a..b])
     }
 }

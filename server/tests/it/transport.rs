@@ -481,3 +481,100 @@ fn lamps_enter_a_simulated_object_collimated_on_every_path() {
     let diffuse = to_vertices(&diffuse);
     assert!(worst_rel(&diffuse, &expect, 1e-3) > 0.05);
 }
+
+#[test]
+fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
+    // The same lone cube lit by a directional light along (−0.866, 0, −0.5): it enters +x at
+    // μ₀ = 0.87 and +z at 0.5. B = S E + y with y summed here from the bundle's records,
+    // y_j = Σ records e^(−σa L) [(w⁽ⁿ⁾ − w)(3μ₀ − 2) + G_u u₀ + G_v v₀ + U (3μ₀ − 3)] E_i
+    // (u₀, v₀ the beam's direction along source i's tangent frame, G unpacked from the
+    // record's ratios, U the weight of records flagged unscattered); the same through T,
+    // the iterative solver and the subsurface-only relight. Leaving out the harmonic and U
+    // (S(μ₀) alone) differs.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cube.json");
+    std::fs::write(
+        &file,
+        r#"{"unit_mm": 1, "objects":[{"name":"cube","mesh":{"shape":"box","size":[16,16,16]},
+            "material":{"type":"simulated","sigma_s_prime":[0.8,0.6,0.5],
+                        "sigma_a":[0.01,0.02,0.04],"eta":1.0}}],
+           "lights":[{"type":"directional","direction":[-0.866,0,-0.5],"irradiance":[1,1,1]}]}"#,
+    )
+    .unwrap();
+    let scene = Scene::open(
+        "cube",
+        &build(file.to_str().unwrap(), dir.path(), "cube", 400, true),
+    )
+    .unwrap();
+    let b = &scene.bundle;
+    assert_eq!(b.manifest().form_factors.nnz, 0);
+    let e = translux_engine::radiosity::BundleLighting::new(b)
+        .irradiance(&b.manifest().lights)
+        .unwrap();
+    let d0 = glam::Vec3::new(-0.866, 0.0, -0.5).normalize();
+    let corners = translux_engine::smatrix::bundle_geometry(b).corners;
+    let normals = b.patch_normals();
+    let walks = b.walks().unwrap();
+    let (normal, lamp) = (walks.normal.unwrap(), walks.lamp.expect("version 8 walks"));
+    let sigma_a = [0.01f32, 0.02, 0.04];
+    let mut plain = vec![[0.0f32; 3]; e.len()];
+    use translux_engine::radiosity::Scatter;
+    translux_engine::radiosity::SparseScatter(b.subsurface()).apply(&e, &mut plain);
+    let (mut full_y, mut mu_only_y) = (plain.clone(), plain.clone());
+    for j in 0..e.len() {
+        let (cols, bins, ws) = walks.row(j);
+        let at = walks.row_ptr[j] as usize;
+        for (k, ((&i, &bin), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
+            let i = i as usize;
+            if e[i] == [0.0; 3] {
+                continue;
+            }
+            let n = glam::Vec3::from(normals[i]);
+            let mu0 = (-d0.dot(n)).clamp(0.0, 1.0);
+            let (fu, fv) = translux_engine::simulated::tangent_frame(&corners[i], n);
+            let l = translux_engine::simulated::bin_length_mm(bin);
+            let wn = normal[at + k];
+            let [gu, gv] = translux_engine::simulated::unpack_tilt(&lamp[at + k], w);
+            let unscattered = bin & translux_proto::bundle::SIM_UNSCATTERED != 0;
+            for c in 0..3 {
+                let a = (-(sigma_a[c] as f64) * l).exp() as f32 * e[i][c];
+                let tilt = (wn[c] - w[c]) * (3.0 * mu0 - 2.0);
+                let more = if unscattered {
+                    w[c] * (3.0 * mu0 - 3.0)
+                } else {
+                    gu[c] * d0.dot(fu) + gv[c] * d0.dot(fv)
+                };
+                full_y[j][c] += a * (tilt + more);
+                mu_only_y[j][c] += a * tilt;
+            }
+        }
+    }
+    let to_vertices = |x: &[Rgb]| {
+        translux_engine::radiosity::vertex_radiance(
+            b.triangle_vertices(),
+            b.patch_areas(),
+            b.vertex_positions().len(),
+            x,
+        )
+    };
+    let expect = to_vertices(&full_y);
+    let sub = relight::run(&scene, &plan(&scene, r#"{"components":"subsurface_only"}"#))
+        .unwrap()
+        .radiance;
+    let via_t = relight::run(&scene, &plan(&scene, "{}")).unwrap();
+    assert_eq!(via_t.stats.solver, "inverse");
+    let full = tight(&scene, "{}").radiance;
+    for (what, got) in [
+        ("subsurface_only", &sub),
+        ("T", &via_t.radiance),
+        ("iterative", &full),
+    ] {
+        let w = worst_rel(got, &expect, 1e-3);
+        eprintln!("{what}: worst {w:.2e} against S E + y from the records");
+        assert!(w < 1e-4, "{what} differs from S E + y by {w}");
+    }
+    let mu_only = to_vertices(&mu_only_y);
+    let w = worst_rel(&mu_only, &expect, 1e-3);
+    eprintln!("S(μ₀) alone: worst {w:.3}");
+    assert!(w > 0.05, "the harmonic and U change the answer: {w}");
+}

@@ -1025,9 +1025,25 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
         "side (-y)",
         "side (-z)",
     ];
+    lit_cube(
+        "16 mm cube lit on +x by a directional light",
+        [-1.0, 0.0, 0.0],
+        &[(0, 131072)],
+        &faces,
+    )
+}
+
+/// The same cube lit by a directional light travelling along `direction`, its faces named
+/// `faces` (−x, +x, +y, +z, −y, −z), the groups `deep` compared again at vertices.
+fn lit_cube(
+    title: &str,
+    direction: [f32; 3],
+    deep: &[(usize, u32)],
+    faces: &[&str],
+) -> Option<Vec<(String, Errors, Errors)>> {
     lone_object_against_volpath(
         &LoneObject {
-            title: "16 mm cube lit on +x by a directional light",
+            title,
             object: "cube",
             medium: Medium {
                 sigma_s_prime: [0.8, 0.6, 0.5],
@@ -1035,12 +1051,12 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
             },
             noise: Some(0.003),
             patches: 1500,
-            lights: json!([{"type": "directional", "direction": [-1, 0, 0], "irradiance": [1, 1, 1]}]),
+            lights: json!([{"type": "directional", "direction": direction, "irradiance": [1, 1, 1]}]),
             probes: 300,
             spp: 8192,
-            deep: &[(0, 131072)],
+            deep,
             seed: 5,
-            names: &faces,
+            names: faces,
         },
         &|m| {
             alone(
@@ -1097,6 +1113,53 @@ fn a_cube_lit_from_one_side_against_volumetric_path_tracing() {
     }
 }
 
+/// The cube lit at a slant, by a directional light travelling along (−0.866, 0, −0.5): it
+/// enters +x 30° and +z 60° off their normals. The direction of the slant decides where the
+/// light leaves (more through the faces ahead of the beams, −x and −z), and a beam that
+/// crosses an edge unscattered is not exitance: the lamps' first harmonic and U
+/// (`engine/src/collimated.rs`) carry both. With S(μ₀) alone the totals were 5–17% over
+/// Mitsuba's (+x 8.5%, +y 17%) and the lit faces' p90 27–44%. Now: the lit and far faces'
+/// totals within 5%, the lit faces' medians under the 5% and the far faces' at
+/// 5.0–5.4% (−x at the viewer's vertices), held to 6.5%; the sides along the slant (±y)
+/// come out 7–10% low, the straight line in μ₀ at 60° (docs/validation.md), held to 12%.
+#[test]
+fn a_cube_lit_at_a_slant_against_volumetric_path_tracing() {
+    let faces = [
+        "far (-x)",
+        "lit (+x)",
+        "side (+y)",
+        "lit (+z)",
+        "side (-y)",
+        "far (-z)",
+    ];
+    let Some(faces) = lit_cube(
+        "16 mm cube lit at a slant, along (-0.866, 0, -0.5)",
+        [-0.866, 0.0, -0.5],
+        &[(0, 131072)],
+        &faces,
+    ) else {
+        return;
+    };
+    for (name, ed, es) in &faces {
+        assert!(
+            (es.total_ratio - 1.0).abs() < (ed.total_ratio - 1.0).abs(),
+            "{name}: simulated {es:?} is not closer to Mitsuba than the dipole {ed:?}"
+        );
+        let side = name.starts_with("side");
+        let bar = if side { 0.12 } else { 0.05 };
+        assert!(
+            (es.total_ratio - 1.0).abs() < bar,
+            "{name}: simulated {es:?} (total)"
+        );
+        if name.starts_with("lit") {
+            assert!(es.median < 0.05, "{name}: simulated {es:?}");
+        }
+        if name == "far (-z)" || name.contains("at vertices") {
+            assert!(es.median < 0.065, "{name}: simulated {es:?}");
+        }
+    }
+}
+
 /// A thin translucent bowl (outer radius 50 mm, wall 4 mm; σs′ 1.0, 0.8, 0.6 mm⁻¹, σa 0.005,
 /// 0.01, 0.02 mm⁻¹, η = 1) lit by a point light inside it, below the rim: the inside (the
 /// normal towards the sphere's centre), the flat rim, and the outside (lit only through the
@@ -1112,7 +1175,7 @@ fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
                 sigma_s_prime: [1.0, 0.8, 0.6],
                 sigma_a: [0.005, 0.01, 0.02],
             },
-            noise: None,
+            noise: Some(0.002),
             patches: 2500,
             lights: json!([{"type": "point", "position": [0.0, 0.035, 0.0], "intensity": [1, 1, 1]}]),
             probes: 400,
@@ -1150,8 +1213,11 @@ fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
 
 /// A bowl lit from inside against Mitsuba's volumetric path tracer: the outside glows only by light that
 /// crossed the wall. On every group the simulated S (with the lamp's collimated entry) must
-/// be closer than the dipole, in median and in total; the inside's median under 4%, the
-/// outside's under 8% with its total within 8% (see docs/validation.md).
+/// be closer than the dipole, in median and in total; the inside's and the outside's
+/// medians under the 5% with the outside's total within 5% (see docs/validation.md).
+/// The walks use `"noise": 0.002`: at the default 1% (S's noise in a patch's re-emitted
+/// total) the light through the wall, a third of it spread over many patches, is noisier,
+/// and the outside's median was 5–6% for that alone.
 #[test]
 fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
     let Some(groups) = bowl_lit_from_inside() else {
@@ -1168,12 +1234,12 @@ fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
         );
         if name.starts_with("outside") {
             assert!(
-                es.median < 0.08 && (es.total_ratio - 1.0).abs() < 0.08,
+                es.median < 0.05 && (es.total_ratio - 1.0).abs() < 0.05,
                 "{name}: simulated {es:?}"
             );
         }
         if name.starts_with("inside") {
-            assert!(es.median < 0.04, "{name}: simulated {es:?}");
+            assert!(es.median < 0.05, "{name}: simulated {es:?}");
         }
     }
 }
