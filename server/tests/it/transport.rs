@@ -421,6 +421,59 @@ fn s_normal_times(b: &Bundle, e: &[Rgb], sigma_a: [f32; 3]) -> Vec<Rgb> {
         .collect()
 }
 
+/// A lone simulated 16 mm cube (σs′ 0.8, 0.6, 0.5; σa 0.01, 0.02, 0.04 mm⁻¹; η = 1; F = 0)
+/// lit by `lights` (JSON), precomputed with T into `dir`.
+fn lone_simulated_cube(dir: &Path, lights: &str) -> Scene {
+    let file = dir.join("cube.json");
+    std::fs::write(
+        &file,
+        format!(
+            r#"{{"unit_mm": 1, "objects":[{{"name":"cube","mesh":{{"shape":"box","size":[16,16,16]}},
+                "material":{{"type":"simulated","sigma_s_prime":[0.8,0.6,0.5],
+                            "sigma_a":[0.01,0.02,0.04],"eta":1.0}}}}],
+               "lights":{lights}}}"#
+        ),
+    )
+    .unwrap();
+    let scene = Scene::open(
+        "cube",
+        &build(file.to_str().unwrap(), dir, "cube", 400, true),
+    )
+    .unwrap();
+    assert_eq!(scene.bundle.manifest().form_factors.nnz, 0);
+    scene
+}
+
+/// Per-patch values at the viewer's vertices, as a relight answers.
+fn at_vertices(b: &Bundle, x: &[Rgb]) -> Vec<Rgb> {
+    translux_engine::radiosity::vertex_radiance(
+        b.triangle_vertices(),
+        b.patch_areas(),
+        b.vertex_positions().len(),
+        x,
+    )
+}
+
+/// The subsurface-only relight, the one through T and the iterative solver all answer
+/// `expect` (vertex values; `what` names it) to 1e-4.
+fn every_path_gives(scene: &Scene, expect: &[Rgb], what: &str) {
+    let sub = relight::run(scene, &plan(scene, r#"{"components":"subsurface_only"}"#))
+        .unwrap()
+        .radiance;
+    let via_t = relight::run(scene, &plan(scene, "{}")).unwrap();
+    assert_eq!(via_t.stats.solver, "inverse");
+    let full = tight(scene, "{}").radiance;
+    for (path, got) in [
+        ("subsurface_only", &sub),
+        ("T", &via_t.radiance),
+        ("iterative", &full),
+    ] {
+        let w = worst_rel(got, expect, 1e-3);
+        eprintln!("{path}: worst {w:.2e} against {what}");
+        assert!(w < 1e-4, "{path} differs from {what} by {w}");
+    }
+}
+
 #[test]
 fn lamps_enter_a_simulated_object_collimated_on_every_path() {
     // A lone simulated cube (F = 0) lit by a directional light along its −x: the lit face's
@@ -428,57 +481,23 @@ fn lamps_enter_a_simulated_object_collimated_on_every_path() {
     // bundle's records; the same through T and the iterative solver, and a diffuse-entry
     // answer (the plain S E) differs.
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("cube.json");
-    std::fs::write(
-        &file,
-        r#"{"unit_mm": 1, "objects":[{"name":"cube","mesh":{"shape":"box","size":[16,16,16]},
-            "material":{"type":"simulated","sigma_s_prime":[0.8,0.6,0.5],
-                        "sigma_a":[0.01,0.02,0.04],"eta":1.0}}],
-           "lights":[{"type":"directional","direction":[-1,0,0],"irradiance":[1,1,1]}]}"#,
-    )
-    .unwrap();
-    let scene = Scene::open(
-        "cube",
-        &build(file.to_str().unwrap(), dir.path(), "cube", 400, true),
-    )
-    .unwrap();
+    let scene = lone_simulated_cube(
+        dir.path(),
+        r#"[{"type":"directional","direction":[-1,0,0],"irradiance":[1,1,1]}]"#,
+    );
     let b = &scene.bundle;
-    assert_eq!(b.manifest().form_factors.nnz, 0);
     let e = translux_engine::radiosity::BundleLighting::new(b)
         .irradiance(&b.manifest().lights)
         .unwrap();
     let lit = e.iter().filter(|v| v[0] > 0.0).count();
     assert!(lit > 20 && lit < e.len() / 4, "{lit} lit patches");
-    let expect_patch = s_normal_times(b, &e, [0.01, 0.02, 0.04]);
-    let to_vertices = |x: &[Rgb]| {
-        translux_engine::radiosity::vertex_radiance(
-            b.triangle_vertices(),
-            b.patch_areas(),
-            b.vertex_positions().len(),
-            x,
-        )
-    };
-    let expect = to_vertices(&expect_patch);
-    let sub = relight::run(&scene, &plan(&scene, r#"{"components":"subsurface_only"}"#))
-        .unwrap()
-        .radiance;
-    let via_t = relight::run(&scene, &plan(&scene, "{}")).unwrap();
-    assert_eq!(via_t.stats.solver, "inverse");
-    let full = tight(&scene, "{}").radiance;
-    for (what, got) in [
-        ("subsurface_only", &sub),
-        ("T", &via_t.radiance),
-        ("iterative", &full),
-    ] {
-        let w = worst_rel(got, &expect, 1e-3);
-        eprintln!("{what}: worst {w:.2e} against S(n) E from the records");
-        assert!(w < 1e-4, "{what} differs from S(n) E by {w}");
-    }
+    let expect = at_vertices(b, &s_normal_times(b, &e, [0.01, 0.02, 0.04]));
+    every_path_gives(&scene, &expect, "S(n) E from the records");
     // Diffuse entry (the stored S alone) sends more back out of the lit face: B differs.
     use translux_engine::radiosity::Scatter;
     let mut diffuse = vec![[0.0f32; 3]; e.len()];
     translux_engine::radiosity::SparseScatter(b.subsurface()).apply(&e, &mut diffuse);
-    let diffuse = to_vertices(&diffuse);
+    let diffuse = at_vertices(b, &diffuse);
     assert!(worst_rel(&diffuse, &expect, 1e-3) > 0.05);
 }
 
@@ -492,22 +511,11 @@ fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
     // the iterative solver and the subsurface-only relight. Leaving out the harmonic and U
     // (S(μ₀) alone) differs.
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("cube.json");
-    std::fs::write(
-        &file,
-        r#"{"unit_mm": 1, "objects":[{"name":"cube","mesh":{"shape":"box","size":[16,16,16]},
-            "material":{"type":"simulated","sigma_s_prime":[0.8,0.6,0.5],
-                        "sigma_a":[0.01,0.02,0.04],"eta":1.0}}],
-           "lights":[{"type":"directional","direction":[-0.866,0,-0.5],"irradiance":[1,1,1]}]}"#,
-    )
-    .unwrap();
-    let scene = Scene::open(
-        "cube",
-        &build(file.to_str().unwrap(), dir.path(), "cube", 400, true),
-    )
-    .unwrap();
+    let scene = lone_simulated_cube(
+        dir.path(),
+        r#"[{"type":"directional","direction":[-0.866,0,-0.5],"irradiance":[1,1,1]}]"#,
+    );
     let b = &scene.bundle;
-    assert_eq!(b.manifest().form_factors.nnz, 0);
     let e = translux_engine::radiosity::BundleLighting::new(b)
         .irradiance(&b.manifest().lights)
         .unwrap();
@@ -549,31 +557,9 @@ fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
             }
         }
     }
-    let to_vertices = |x: &[Rgb]| {
-        translux_engine::radiosity::vertex_radiance(
-            b.triangle_vertices(),
-            b.patch_areas(),
-            b.vertex_positions().len(),
-            x,
-        )
-    };
-    let expect = to_vertices(&full_y);
-    let sub = relight::run(&scene, &plan(&scene, r#"{"components":"subsurface_only"}"#))
-        .unwrap()
-        .radiance;
-    let via_t = relight::run(&scene, &plan(&scene, "{}")).unwrap();
-    assert_eq!(via_t.stats.solver, "inverse");
-    let full = tight(&scene, "{}").radiance;
-    for (what, got) in [
-        ("subsurface_only", &sub),
-        ("T", &via_t.radiance),
-        ("iterative", &full),
-    ] {
-        let w = worst_rel(got, &expect, 1e-3);
-        eprintln!("{what}: worst {w:.2e} against S E + y from the records");
-        assert!(w < 1e-4, "{what} differs from S E + y by {w}");
-    }
-    let mu_only = to_vertices(&mu_only_y);
+    let expect = at_vertices(b, &full_y);
+    every_path_gives(&scene, &expect, "S E + y from the records");
+    let mu_only = at_vertices(b, &mu_only_y);
     let w = worst_rel(&mu_only, &expect, 1e-3);
     eprintln!("S(μ₀) alone: worst {w:.3}");
     assert!(w > 0.05, "the harmonic and U change the answer: {w}");
