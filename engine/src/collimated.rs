@@ -221,10 +221,8 @@ pub fn tilted_irradiance(
                 lamps.each(p, nrm, |l: Vec3, c| {
                     // l points toward the lamp: the beam travels along −l.
                     let mu0 = l.dot(nrm).clamp(0.0, 1.0);
-                    let mut w = [3.0 * mu0 - 2.0, -l.dot(fu), -l.dot(fv), 3.0 * mu0 - 3.0];
-                    if !harmonic {
-                        w[3] = 0.0;
-                    }
+                    // Without lamp weights (version 7) the tilt's G and U parts are 0.
+                    let w = [3.0 * mu0 - 2.0, -l.dot(fu), -l.dot(fv), 3.0 * mu0 - 3.0];
                     for (e, w) in e.iter_mut().zip(w) {
                         for ch in 0..3 {
                             e[ch] += c[ch] * w;
@@ -262,7 +260,8 @@ pub fn add_first_scatter(tilt: &Tilt, e: &[f32], k: usize, out: &mut [f32]) {
         });
 }
 
-/// y = Δ E_t for `lights` on `bundle` with its own materials, per patch: what a relight
+/// y = Δ E_t + G_u E_u + G_v E_v + U E_w ([`add_first_scatter`]) for `lights` on `bundle`
+/// with its own materials, per patch: what a relight
 /// adds to S E (it enters the transport like emission, B = Bₑ + y + S(E + F B)). `None`
 /// when there is nothing to add (no lamp, no simulated object, or walks without
 /// collimated weights).

@@ -393,8 +393,9 @@ pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
 /// - `heuristic_a`: B = Bₑ + S E + P F B, i.e. (I − P F)⁻¹(Bₑ + S E)
 /// - `heuristic_b`: B = Bₑ + S E + (I − P F)⁻¹ P F (Bₑ + P E)
 ///
-/// Wherever S E appears, the lamps' light into simulated objects adds Δ E_t: it enters
-/// collimated at its own angle, not diffusely ([`crate::collimated`]).
+/// Wherever S E appears, the lamps' light into simulated objects adds
+/// Δ E_t + G_u E_u + G_v E_v + U E_w: it enters collimated at its own angle and direction,
+/// not diffusely ([`crate::collimated`]).
 pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, EngineError>> {
     let b = &scene.bundle;
     let geo = PatchGeometry {
@@ -672,7 +673,8 @@ fn transport(
             },
         )
     };
-    // Lamps' collimated entry into simulated objects: y = Δ E_t, added where S E is.
+    // Lamps' collimated entry into simulated objects: y = Δ E_t + G_u E_u + G_v E_v + U E_w,
+    // added where S E is.
     let tilt = first
         .collimated
         .as_ref()
@@ -718,7 +720,7 @@ fn transport(
     }
     if first.use_t {
         // B = Bₑ + S v + R v, v = E + F Bₑ (R = T − S, stored). With lamps' collimated
-        // entry (y = Δ E_t): B = Bₑ + y + T(E + F (Bₑ + y)).
+        // entry (y, above): B = Bₑ + y + T(E + F (Bₑ + y)).
         let t = b
             .transfer()
             .ok_or_else(|| EngineError::internal("the transfer matrix vanished"))?;
