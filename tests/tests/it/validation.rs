@@ -1213,8 +1213,9 @@ fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
 
 /// A bowl lit from inside against Mitsuba's volumetric path tracer: the outside glows only by light that
 /// crossed the wall. On every group the simulated S (with the lamp's collimated entry) must
-/// be closer than the dipole, in median and in total; the inside's and the outside's
-/// medians under the 5% with the outside's total within 5% (see docs/validation.md).
+/// be closer than the dipole, in median and in total; the inside's median under 4% (it is
+/// 3.3%), the outside's under the 5% with its total within 5% (see
+/// docs/validation.md).
 /// The walks use `"noise": 0.002`: at the default 1% (S's noise in a patch's re-emitted
 /// total) the light through the wall, a third of it spread over many patches, is noisier,
 /// and the outside's median was 5–6% for that alone.
@@ -1239,7 +1240,7 @@ fn a_bowl_lit_from_inside_against_volumetric_path_tracing() {
             );
         }
         if name.starts_with("inside") {
-            assert!(es.median < 0.05, "{name}: simulated {es:?}");
+            assert!(es.median < 0.04, "{name}: simulated {es:?}");
         }
     }
 }
