@@ -831,9 +831,9 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         if let Some(st) = last {
             row.change_iterations = Some(st.iterations);
             row.change_note = format!(
-                "S rebuild {:.0} ms + solve {:.0} ms (the first change, which reduces S to \
-                 radial terms: {first_ms:.0} ms)",
-                st.materials_ms, st.solve_ms
+                "S rebuild {:.0} ms + solve {:.0} ms + direct light {:.0} ms (the first change, \
+                 which reduces S to radial terms: {first_ms:.0} ms)",
+                st.materials_ms, st.solve_ms, st.direct_ms
             );
         }
     }
