@@ -661,12 +661,10 @@ impl ObjectTerms {
                 next[*j as usize] += 1;
                 (src[s], dist[s], opp[s]) = (i as u32, *r, *o);
                 len[s] = range.len() as u32;
+                // A W term's `hi` is −1: it never lowers the maximum from 0.
                 hi_max[s] = terms[range.clone()]
                     .iter()
-                    .filter_map(|t| match t.of() {
-                        Of::R { hi, .. } => Some(hi),
-                        Of::W => None,
-                    })
+                    .map(|t| t.hi)
                     .fold(0.0, f32::max);
             }
         }
@@ -705,7 +703,7 @@ impl ObjectTerms {
         }
     }
 
-    /// Entry e's term k as [`Term`] (the slow path's).
+    /// Stored term `t` (an index into `packed`) as a [`Term`], for the slow path.
     fn term(&self, t: usize) -> Term {
         let [root, weight] = self.packed[t];
         let [lo, hi] = self.bounds[t];

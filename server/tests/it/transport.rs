@@ -422,8 +422,9 @@ fn s_normal_times(b: &Bundle, e: &[Rgb], sigma_a: [f32; 3]) -> Vec<Rgb> {
 }
 
 /// A lone simulated 16 mm cube (σs′ 0.8, 0.6, 0.5; σa 0.01, 0.02, 0.04 mm⁻¹; η = 1; F = 0)
-/// lit by `lights` (JSON), precomputed with T into `dir`.
-fn lone_simulated_cube(dir: &Path, lights: &str) -> Scene {
+/// lit by `lights` (JSON), precomputed with T into `dir`, and the irradiance its lights give
+/// each patch.
+fn lone_simulated_cube(dir: &Path, lights: &str) -> (Scene, Vec<Rgb>) {
     let file = dir.join("cube.json");
     std::fs::write(
         &file,
@@ -441,7 +442,11 @@ fn lone_simulated_cube(dir: &Path, lights: &str) -> Scene {
     )
     .unwrap();
     assert_eq!(scene.bundle.manifest().form_factors.nnz, 0);
-    scene
+    let b = &scene.bundle;
+    let e = translux_engine::radiosity::BundleLighting::new(b)
+        .irradiance(&b.manifest().lights)
+        .unwrap();
+    (scene, e)
 }
 
 /// Per-patch values at the viewer's vertices, as a relight answers.
@@ -481,14 +486,11 @@ fn lamps_enter_a_simulated_object_collimated_on_every_path() {
     // bundle's records; the same through T and the iterative solver, and a diffuse-entry
     // answer (the plain S E) differs.
     let dir = tempfile::tempdir().unwrap();
-    let scene = lone_simulated_cube(
+    let (scene, e) = lone_simulated_cube(
         dir.path(),
         r#"[{"type":"directional","direction":[-1,0,0],"irradiance":[1,1,1]}]"#,
     );
     let b = &scene.bundle;
-    let e = translux_engine::radiosity::BundleLighting::new(b)
-        .irradiance(&b.manifest().lights)
-        .unwrap();
     let lit = e.iter().filter(|v| v[0] > 0.0).count();
     assert!(lit > 20 && lit < e.len() / 4, "{lit} lit patches");
     let expect = at_vertices(b, &s_normal_times(b, &e, [0.01, 0.02, 0.04]));
@@ -511,14 +513,11 @@ fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
     // the iterative solver and the subsurface-only relight. Leaving out the harmonic and U
     // (S(μ₀) alone) differs.
     let dir = tempfile::tempdir().unwrap();
-    let scene = lone_simulated_cube(
+    let (scene, e) = lone_simulated_cube(
         dir.path(),
         r#"[{"type":"directional","direction":[-0.866,0,-0.5],"irradiance":[1,1,1]}]"#,
     );
     let b = &scene.bundle;
-    let e = translux_engine::radiosity::BundleLighting::new(b)
-        .irradiance(&b.manifest().lights)
-        .unwrap();
     let d0 = glam::Vec3::new(-0.866, 0.0, -0.5).normalize();
     let corners = translux_engine::smatrix::bundle_geometry(b).corners;
     let normals = b.patch_normals();
