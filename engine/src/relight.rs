@@ -10,7 +10,8 @@ use std::time::Instant;
 
 use crate::inverse;
 use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
-use crate::solver::{SolveError, solve_system};
+use crate::scene::Warm;
+use crate::solver::{Primed, SolveError, solve_primed};
 use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
@@ -782,16 +783,35 @@ fn transport(
     }
     let suffix = format!("|{}", components.as_str());
     let key = format!("{}{suffix}", first.materials_key);
-    let warm_one = scene.warm.get_or_latest(&key, &suffix);
-    let warm: Option<Vec<f32>> = warm_one.as_ref().filter(|w| w.len() == 3 * n).map(|w| {
+    // A kept solution is one RGB system; the batch's k systems all start from it.
+    let spread = |w: &Vec<f32>| -> Option<Vec<f32>> {
+        (w.len() == 3 * n).then(|| {
+            (0..n)
+                .flat_map(|j| {
+                    std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
+                        .flatten()
+                        .copied()
+                })
+                .collect()
+        })
+    };
+    let last = |v: &[f32]| -> Vec<f32> {
         (0..n)
-            .flat_map(|j| {
-                std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
-                    .flatten()
-                    .copied()
-            })
+            .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
             .collect()
-    });
+    };
+    let kept = scene.warm.get_or_latest(&key, &suffix);
+    let warm: Option<Vec<f32>> = kept.as_ref().and_then(|(w, _)| spread(&w.x));
+    // F x₀ holds under any materials (F is the bundle's); K F x₀ only under the same ones.
+    let fx = kept
+        .as_ref()
+        .and_then(|(w, _)| w.fx.as_ref())
+        .and_then(spread);
+    let kfx = kept
+        .as_ref()
+        .filter(|(_, same)| *same)
+        .and_then(|(w, _)| w.kfx.as_ref())
+        .and_then(spread);
     // The full transport (K = S) on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
     let on_gpu = (components == Components::Full)
         .then(|| {
@@ -805,21 +825,38 @@ fn transport(
             )
         })
         .flatten();
-    let (mut x, st) = match on_gpu {
-        Some(r) => r,
-        None => solve_system(&f, kop, &rhs, ch, params, warm.as_deref()).map_err(|e| match e {
-            SolveError::Overflow => EngineError::invalid(format!("lights: {e}")),
-            e => EngineError::internal(e.to_string()),
-        })?,
+    let (mut x, st, products) = match on_gpu {
+        Some((x, st)) => (x, st, None),
+        None => {
+            let primed = fx.as_deref().map(|fx| Primed {
+                fx,
+                kfx: kfx.as_deref(),
+            });
+            let s =
+                solve_primed(&f, kop, &rhs, ch, params, warm.as_deref(), primed).map_err(|e| {
+                    match e {
+                        SolveError::Overflow => EngineError::invalid(format!("lights: {e}")),
+                        e => EngineError::internal(e.to_string()),
+                    }
+                })?;
+            (s.x, s.stats, Some((s.fx, s.kfx)))
+        }
     };
     // Keep the last system's answer for the next relight with these materials (never one
-    // that overflowed: it would poison the next solve).
+    // that overflowed: it would poison the next solve), with its products when the CPU
+    // solved it.
     if x.iter().all(|v| v.is_finite()) {
+        let (fx, kfx) = match &products {
+            Some((fx, kfx)) => (Some(last(fx)), Some(last(kfx))),
+            None => (None, None),
+        };
         scene.warm.put(
             key,
-            (0..n)
-                .flat_map(|j| x[j * ch + ch - 3..j * ch + ch].iter().copied())
-                .collect(),
+            Warm {
+                x: last(&x),
+                fx,
+                kfx,
+            },
         );
     }
     if components == Components::HeuristicB {

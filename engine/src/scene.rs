@@ -360,32 +360,42 @@ impl Scene {
 /// (a light moved, a translucency slider moved) starts from it. Keyed by materials and
 /// components; the few most recent.
 #[derive(Debug, Default)]
-pub struct WarmCache(Mutex<Vec<(String, Arc<Vec<f32>>)>>);
+pub struct WarmCache(Mutex<Vec<(String, Arc<Warm>)>>);
+
+/// One kept solution (one RGB system: 3 values per patch) with the products its solve
+/// ended on, F x and K F x, when the CPU solved it ([`crate::solver::Solved`]): a solve
+/// started from x takes them for its first residual check instead of computing it.
+#[derive(Debug, Clone)]
+pub struct Warm {
+    pub x: Vec<f32>,
+    pub fx: Option<Vec<f32>>,
+    pub kfx: Option<Vec<f32>>,
+}
 
 const WARM_ENTRIES: usize = 8;
 
 impl WarmCache {
-    pub(crate) fn get(&self, key: &str) -> Option<Arc<Vec<f32>>> {
+    pub(crate) fn get(&self, key: &str) -> Option<Arc<Warm>> {
         let cache = self.0.lock().ok()?;
         cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
     }
 
-    /// The solution stored under `key`, else the most recent one whose key ends with
-    /// `suffix` (the same components under other materials: a translucency change starts
-    /// from the previous scale's answer, which the solver iterates to its tolerance like
-    /// any other start).
-    pub(crate) fn get_or_latest(&self, key: &str, suffix: &str) -> Option<Arc<Vec<f32>>> {
-        self.get(key).or_else(|| {
+    /// The solution stored under `key` (`true`: its K is this one's), else the most recent
+    /// one whose key ends with `suffix` (`false`: the same components under other
+    /// materials: a translucency change starts from the previous scale's answer, which the
+    /// solver iterates to its tolerance like any other start).
+    pub(crate) fn get_or_latest(&self, key: &str, suffix: &str) -> Option<(Arc<Warm>, bool)> {
+        self.get(key).map(|w| (w, true)).or_else(|| {
             let cache = self.0.lock().ok()?;
             cache
                 .iter()
                 .rev()
                 .find(|(k, _)| k.ends_with(suffix))
-                .map(|(_, v)| v.clone())
+                .map(|(_, v)| (v.clone(), false))
         })
     }
 
-    pub(crate) fn put(&self, key: String, value: Vec<f32>) {
+    pub(crate) fn put(&self, key: String, value: Warm) {
         if let Ok(mut cache) = self.0.lock() {
             cache.retain(|(k, _)| *k != key);
             if cache.len() >= WARM_ENTRIES {

@@ -94,7 +94,8 @@ pub struct SolveStats {
     /// Iterations (the most any system needed).
     pub iterations: u32,
     /// Matrix-vector products: passes over F and K (Jacobi: one per iteration plus the
-    /// residual check; BiCGSTAB: two per iteration plus one per true-residual check).
+    /// residual check; BiCGSTAB: two per iteration plus one per true-residual check). A
+    /// first check from [`Primed`] products counts none, even where it applies K alone.
     pub products: u32,
     /// Relative residual of the returned x (the largest over the channels).
     pub residual: f32,
@@ -132,26 +133,45 @@ struct System<'a> {
     f: &'a Transport<'a>,
     k: &'a dyn Scatter,
     ch: usize,
+    /// F x and K F x of the last x passed to [`System::kf`].
     fx: Vec<f32>,
+    kfx: Vec<f32>,
     pulled: Pulled,
     products: u32,
+    /// F x₀ (and K F x₀) of the start, known from the solve that answered x₀: the first
+    /// call of [`System::kf`], which every method makes on the start, takes them instead.
+    primed: Option<(Vec<f32>, Option<Vec<f32>>)>,
 }
 
 impl System<'_> {
-    /// y = K F x (one product).
-    fn kf(&mut self, x: &[f32], y: &mut [f32]) {
-        self.f
-            .apply_multi(x, &mut self.fx, self.ch, &mut self.pulled);
-        self.k.apply_multi(&self.fx, y, self.ch);
-        self.products += 1;
+    /// `self.kfx` = K F x (one product), `self.fx` = F x.
+    fn kf(&mut self, x: &[f32]) {
+        match self.primed.take() {
+            Some((fx, Some(kfx))) => {
+                self.fx = fx;
+                self.kfx = kfx;
+            }
+            Some((fx, None)) => {
+                self.fx = fx;
+                self.k.apply_multi(&self.fx, &mut self.kfx, self.ch);
+            }
+            None => {
+                self.f
+                    .apply_multi(x, &mut self.fx, self.ch, &mut self.pulled);
+                self.k.apply_multi(&self.fx, &mut self.kfx, self.ch);
+                self.products += 1;
+            }
+        }
     }
 
     /// y = (I − K F) x.
     fn apply(&mut self, x: &[f32], y: &mut [f32]) {
-        self.kf(x, y);
-        y.par_iter_mut().zip(x.par_iter()).for_each(|(y, x)| {
-            *y = *x - *y;
-        });
+        self.kf(x);
+        y.par_iter_mut()
+            .zip(x.par_iter().zip(self.kfx.par_iter()))
+            .for_each(|(y, (x, k))| {
+                *y = *x - *k;
+            });
     }
 }
 
@@ -188,6 +208,26 @@ fn channel_residuals(r2: &[f64], b2: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// What the solve that answered x₀ computed last, so a solve started from x₀ skips (part
+/// of) its first product: F x₀, valid as long as F is the same (a bundle's F never
+/// changes), and K F x₀, valid only under the same K. Both `ch` values per patch, as x₀.
+#[derive(Debug, Clone, Copy)]
+pub struct Primed<'a> {
+    pub fx: &'a [f32],
+    pub kfx: Option<&'a [f32]>,
+}
+
+/// A solve's answer and its last products, which are those of x itself (every method
+/// returns right after the residual check of its answer): `fx` = F x and `kfx` = K F x, to
+/// keep beside x as the next solve's [`Primed`].
+#[derive(Debug, Clone)]
+pub struct Solved {
+    pub x: Vec<f32>,
+    pub stats: SolveStats,
+    pub fx: Vec<f32>,
+    pub kfx: Vec<f32>,
+}
+
 /// Solves (I − K F) x = b for `ch` channels per patch (`ch` a multiple of 3). `warm`
 /// starts from a previous solution of the same length (another length, or a non-finite
 /// value, is ignored and reported as a cold start). A system whose b is 0 gets x = 0.
@@ -199,6 +239,24 @@ pub fn solve_system(
     params: &SolveParams,
     warm: Option<&[f32]>,
 ) -> Result<(Vec<f32>, SolveStats), SolveError> {
+    solve_primed(f, k, b, ch, params, warm, None).map(|s| (s.x, s.stats))
+}
+
+/// [`solve_system`] from a warm start whose products a previous solve already computed
+/// ([`Solved::fx`], [`Solved::kfx`]): the first residual check then takes K F x₀ as given,
+/// or applies K alone to F x₀, and counts no product. The answer is the one
+/// [`solve_system`] gives from the same start (the products are deterministic). `primed`
+/// is ignored with a cold start, or when its lengths or values are not those of a
+/// finite `ch`-channel vector.
+pub fn solve_primed(
+    f: &Transport<'_>,
+    k: &dyn Scatter,
+    b: &[f32],
+    ch: usize,
+    params: &SolveParams,
+    warm: Option<&[f32]>,
+    primed: Option<Primed<'_>>,
+) -> Result<Solved, SolveError> {
     let t0 = Instant::now();
     if ch == 0 || !ch.is_multiple_of(3) {
         return Err(SolveError::Channels(ch));
@@ -223,12 +281,23 @@ pub fn solve_system(
         Some(w) => w.to_vec(),
         None => b.to_vec(),
     };
+    let usable = |v: &[f32]| v.len() == b.len() && v.iter().all(|v| v.is_finite());
+    let mut primed = warm
+        .and(primed)
+        .filter(|p| usable(p.fx) && p.kfx.is_none_or(usable))
+        .map(|p| (p.fx.to_vec(), p.kfx.map(<[f32]>::to_vec)));
     let b2 = dots(b, b, ch);
-    // Channels with b = 0 have the answer 0.
+    // Channels with b = 0 have the answer 0 (and F 0 = K F 0 = 0).
     for (c, &bc) in b2.iter().enumerate() {
         if bc == 0.0 {
-            for v in x.chunks_exact_mut(ch) {
-                v[c] = 0.0;
+            let (fx, kfx) = match &mut primed {
+                Some((fx, kfx)) => (Some(fx), kfx.as_mut()),
+                None => (None, None),
+            };
+            for v in [Some(&mut x), fx, kfx].into_iter().flatten() {
+                for v in v.chunks_exact_mut(ch) {
+                    v[c] = 0.0;
+                }
             }
         }
     }
@@ -237,8 +306,10 @@ pub fn solve_system(
         k,
         ch,
         fx: vec![0.0; n * ch],
+        kfx: vec![0.0; n * ch],
         pulled: Pulled::default(),
         products: 0,
+        primed,
     };
     let mut method = params.method;
     let (iterations, residual) = match params.method {
@@ -303,7 +374,12 @@ pub fn solve_system(
         warm: warm.is_some(),
         seconds: t0.elapsed().as_secs_f64(),
     };
-    Ok((x, stats))
+    Ok(Solved {
+        x,
+        stats,
+        fx: sys.fx,
+        kfx: sys.kfx,
+    })
 }
 
 /// Jacobi or Gauss-Seidel; returns (iterations, largest relative residual of the answer,
@@ -317,15 +393,14 @@ fn jacobi(
 ) -> (u32, f64, f64) {
     let ch = sys.ch;
     let tol = params.tolerance as f64;
-    let mut kfx = vec![0.0f32; b.len()];
     let mut r = vec![0.0f32; b.len()];
     let mut iterations = 0;
     let mut first = None;
     loop {
         // r = b + K F x − x: the residual of x, and also the Jacobi step.
-        sys.kf(x, &mut kfx);
+        sys.kf(x);
         r.par_iter_mut()
-            .zip(b.par_iter().zip(kfx.par_iter().zip(x.par_iter())))
+            .zip(b.par_iter().zip(sys.kfx.par_iter().zip(x.par_iter())))
             .for_each(|(r, (b, (k, x)))| *r = b + k - x);
         let residual = channel_residuals(&dots(&r, &r, ch), b2)
             .into_iter()
@@ -366,7 +441,7 @@ fn jacobi(
             }
             _ => {
                 x.par_iter_mut()
-                    .zip(b.par_iter().zip(kfx.par_iter()))
+                    .zip(b.par_iter().zip(sys.kfx.par_iter()))
                     .for_each(|(x, (b, k))| *x = b + k);
             }
         }

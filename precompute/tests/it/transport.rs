@@ -234,6 +234,80 @@ fn warm_start_from_a_nearby_solution_needs_fewer_iterations() {
 }
 
 #[test]
+fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
+    use translux_engine::solver::{Primed, solve_primed, solve_system};
+    let (_dir, b, e) = translucent_cornell(800);
+    let f = Transport::of(&b);
+    let s = SparseScatter(b.subsurface());
+    // Another K: the same S a little less translucent (what a slider step does to S).
+    let v = b.subsurface();
+    let s2_csr = Csr {
+        n_rows: v.n_rows(),
+        n_cols: v.n_cols(),
+        row_ptr: v.row_ptr().to_vec(),
+        col: v.col().to_vec(),
+        val: v.val().iter().map(|x| x.map(|c| 0.93 * c)).collect(),
+    };
+    let s2 = SparseScatter(s2_csr.view().unwrap());
+    let mut se = vec![[0.0f32; 3]; e.len()];
+    radiosity::Scatter::apply(&s, &e, &mut se);
+    let rhs: &[f32] = bytemuck::cast_slice(&se);
+    // The light moved a little.
+    let rhs2: Vec<f32> = rhs
+        .chunks(3)
+        .flat_map(|x| [x[0] * 1.05, x[1] * 1.04, x[2] * 0.0])
+        .collect();
+    for method in [Method::Jacobi, Method::BiCgStab, Method::Auto] {
+        let p = params(method, 1e-3);
+        let first = solve_primed(&f, &s, rhs, 3, &p, None, None).unwrap();
+        // Its products are its answer's: F x and K F x.
+        let mut fx = vec![0.0f32; rhs.len()];
+        f.apply_multi(&first.x, &mut fx, 3, &mut Default::default());
+        assert_eq!(fx, first.fx, "{method:?}");
+        for (k, same_k) in [(&s, true), (&s2, false)] {
+            let plain = solve_system(&f, k, &rhs2, 3, &p, Some(&first.x)).unwrap();
+            let primed = Primed {
+                fx: &first.fx,
+                kfx: same_k.then_some(first.kfx.as_slice()),
+            };
+            let quick = solve_primed(&f, k, &rhs2, 3, &p, Some(&first.x), Some(primed)).unwrap();
+            eprintln!(
+                "{method:?}, same K {same_k}: {} products from a plain warm start, {} primed",
+                plain.1.products, quick.stats.products
+            );
+            assert_eq!(quick.x, plain.0, "{method:?} same K {same_k}");
+            assert_eq!(quick.stats.iterations, plain.1.iterations);
+            assert_eq!(quick.stats.residual, plain.1.residual);
+            assert_eq!(quick.stats.products + 1, plain.1.products);
+            // Primed products of another length, or not finite, are ignored.
+            let bad = vec![f32::NAN; rhs.len()];
+            for fx in [&first.fx[3..], bad.as_slice()] {
+                let p2 = Primed { fx, kfx: None };
+                let q = solve_primed(&f, k, &rhs2, 3, &p, Some(&first.x), Some(p2)).unwrap();
+                assert_eq!(q.stats.products, plain.1.products);
+                assert_eq!(q.x, plain.0);
+            }
+        }
+        // Asked again with the same K and b, a primed start is its own answer at no product.
+        let again = solve_primed(
+            &f,
+            &s,
+            rhs,
+            3,
+            &p,
+            Some(&first.x),
+            Some(Primed {
+                fx: &first.fx,
+                kfx: Some(&first.kfx),
+            }),
+        )
+        .unwrap();
+        assert_eq!(again.stats.products, 0, "{method:?}");
+        assert_eq!(again.x, first.x);
+    }
+}
+
+#[test]
 fn batched_systems_equal_separate_solves() {
     let (_dir, b, e) = translucent_cornell(800);
     let f = Transport::of(&b);

@@ -466,10 +466,14 @@ async fn material_overrides_rebuild_s_and_match_the_offline_solve() {
     // base relight's): the offline reference below does the same.
     assert!(!base.stats.warm && first.stats.warm, "{:?}", first.stats);
     assert_ne!(first.radiance, base.radiance);
-    // The same overrides again come from the cache, with the same answer.
+    // The same overrides again come from the cache, with the same answer: its warm start
+    // is the first's answer, whose residual check the first's own last product already
+    // made (F x and S F x, kept beside it), so it takes no product at all.
     let again = s.relight_json(&body).await;
     assert_eq!(again.stats.materials_ms, 0.0, "{:?}", again.stats);
     assert_eq!(again.radiance, first.radiance);
+    assert_eq!(again.stats.products, 0, "{:?}", again.stats);
+    assert!(first.stats.products > 0, "{:?}", first.stats);
     // The offline answer: rebuild S through the library, solve, average to vertices.
     let k = bundle
         .manifest()
