@@ -90,9 +90,18 @@ impl Scatter for SparseScatter<'_> {
             });
     }
     fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
-        if ch == 3 {
-            self.apply(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y));
-            return;
+        // Fixed widths unroll and vectorise, as spmv_multi's: batches of up to 8 RGB
+        // systems (and a warm start's extrapolation, 2).
+        match ch {
+            3 => return self.apply(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y)),
+            6 => return scatter_fixed::<6>(&self.0, h, y),
+            9 => return scatter_fixed::<9>(&self.0, h, y),
+            12 => return scatter_fixed::<12>(&self.0, h, y),
+            15 => return scatter_fixed::<15>(&self.0, h, y),
+            18 => return scatter_fixed::<18>(&self.0, h, y),
+            21 => return scatter_fixed::<21>(&self.0, h, y),
+            24 => return scatter_fixed::<24>(&self.0, h, y),
+            _ => {}
         }
         y.par_chunks_mut(ch)
             .with_min_len(64)
@@ -144,6 +153,26 @@ pub fn spmv_multi(f: &CsrView<'_>, x: &[f32], y: &mut [f32], ch: usize) {
                 }
             }),
     }
+}
+
+/// y = S h for `CH` channels per patch (channel c uses S's colour c % 3).
+fn scatter_fixed<const CH: usize>(s: &CsrView<'_, Rgb>, h: &[f32], y: &mut [f32]) {
+    let (hs, ys): (&[[f32; CH]], &mut [[f32; CH]]) =
+        (h.as_chunks::<CH>().0, y.as_chunks_mut::<CH>().0);
+    ys.par_iter_mut()
+        .with_min_len(64)
+        .enumerate()
+        .for_each(|(j, yj)| {
+            let (cols, vals) = s.row(j);
+            let mut acc = [0.0f32; CH];
+            for (&i, v) in cols.iter().zip(vals) {
+                let hi = &hs[i as usize];
+                for c in 0..CH {
+                    acc[c] += v[c % 3] * hi[c];
+                }
+            }
+            *yj = acc;
+        });
 }
 
 fn spmv_fixed<const CH: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {

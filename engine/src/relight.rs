@@ -11,7 +11,7 @@ use std::time::Instant;
 use crate::inverse;
 use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
 use crate::scene::Warm;
-use crate::solver::{Primed, SolveError, solve_primed};
+use crate::solver::{Before, Primed, SolveError, solve_primed};
 use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
@@ -800,18 +800,31 @@ fn transport(
             .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
             .collect()
     };
-    let kept = scene.warm.get_or_latest(&key, &suffix);
-    let warm: Option<Vec<f32>> = kept.as_ref().and_then(|(w, _)| spread(&w.x));
+    let kept = scene.warm.history(&key, &suffix);
+    let warm: Option<Vec<f32>> = kept.as_ref().and_then(|h| spread(&h.last.x));
     // F x₀ holds under any materials (F is the bundle's); K F x₀ only under the same ones.
     let fx = kept
         .as_ref()
-        .and_then(|(w, _)| w.fx.as_ref())
+        .and_then(|h| h.last.fx.as_ref())
         .and_then(spread);
     let kfx = kept
         .as_ref()
-        .filter(|(_, same)| *same)
-        .and_then(|(w, _)| w.kfx.as_ref())
+        .filter(|h| h.same)
+        .and_then(|h| h.last.kfx.as_ref())
         .and_then(spread);
+    // The answer before it, to extrapolate along the last step.
+    type Spread = (Vec<f32>, Vec<f32>, Option<Vec<f32>>, u32);
+    let before: Option<Spread> =
+        kept.as_ref()
+            .and_then(|h| h.before.as_ref())
+            .and_then(|(w, same)| {
+                Some((
+                    spread(&w.x)?,
+                    spread(w.fx.as_ref()?)?,
+                    w.kfx.as_ref().filter(|_| *same).and_then(spread),
+                    w.age,
+                ))
+            });
     // The full transport (K = S) on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
     let on_gpu = (components == Components::Full)
         .then(|| {
@@ -831,6 +844,15 @@ fn transport(
             let primed = fx.as_deref().map(|fx| Primed {
                 fx,
                 kfx: kfx.as_deref(),
+                before: before.as_ref().map(|(x, fx, kfx, _)| Before {
+                    x,
+                    fx,
+                    kfx: kfx.as_deref(),
+                }),
+                age: kept
+                    .as_ref()
+                    .map_or(0, |h| h.last.age)
+                    .max(before.as_ref().map_or(0, |b| b.3)),
             });
             let s =
                 solve_primed(&f, kop, &rhs, ch, params, warm.as_deref(), primed).map_err(|e| {
@@ -839,16 +861,16 @@ fn transport(
                         e => EngineError::internal(e.to_string()),
                     }
                 })?;
-            (s.x, s.stats, Some((s.fx, s.kfx)))
+            (s.x, s.stats, Some((s.fx, s.kfx, s.age)))
         }
     };
     // Keep the last system's answer for the next relight with these materials (never one
     // that overflowed: it would poison the next solve), with its products when the CPU
     // solved it.
     if x.iter().all(|v| v.is_finite()) {
-        let (fx, kfx) = match &products {
-            Some((fx, kfx)) => (Some(last(fx)), Some(last(kfx))),
-            None => (None, None),
+        let (fx, kfx, age) = match &products {
+            Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),
+            None => (None, None, 0),
         };
         scene.warm.put(
             key,
@@ -856,6 +878,8 @@ fn transport(
                 x: last(&x),
                 fx,
                 kfx,
+                age,
+                prev: None,
             },
         );
     }

@@ -370,6 +370,20 @@ pub struct Warm {
     pub x: Vec<f32>,
     pub fx: Option<Vec<f32>>,
     pub kfx: Option<Vec<f32>>,
+    /// [`crate::solver::Solved::age`] of `fx` and `kfx`.
+    pub age: u32,
+    /// The answer this one replaced under the same key (same materials and components),
+    /// without its own: with x it gives the last step of a light that keeps moving.
+    pub prev: Option<Arc<Warm>>,
+}
+
+/// What a relight starts from ([`WarmCache::history`]): the kept answer, whether its K is
+/// the relight's (the same key), and an answer kept before it with the same flag.
+#[derive(Debug, Clone)]
+pub struct Kept {
+    pub last: Arc<Warm>,
+    pub same: bool,
+    pub before: Option<(Arc<Warm>, bool)>,
 }
 
 const WARM_ENTRIES: usize = 8;
@@ -395,8 +409,33 @@ impl WarmCache {
         })
     }
 
-    pub(crate) fn put(&self, key: String, value: Warm) {
+    /// [`WarmCache::get_or_latest`] with the answer kept before it: under the same key,
+    /// the one it replaced; else the latest other one whose key ends with `suffix`.
+    pub(crate) fn history(&self, key: &str, suffix: &str) -> Option<Kept> {
+        let (last, same) = self.get_or_latest(key, suffix)?;
+        let before = if same {
+            last.prev.clone().map(|p| (p, true))
+        } else {
+            let cache = self.0.lock().ok()?;
+            cache
+                .iter()
+                .rev()
+                .filter(|(k, _)| k.ends_with(suffix))
+                .nth(1)
+                .map(|(_, v)| (v.clone(), false))
+        };
+        Some(Kept { last, same, before })
+    }
+
+    /// Keeps `value` under `key`; the answer it replaces becomes its `prev`.
+    pub(crate) fn put(&self, key: String, mut value: Warm) {
         if let Ok(mut cache) = self.0.lock() {
+            if let Some((_, old)) = cache.iter().find(|(k, _)| *k == key) {
+                value.prev = Some(Arc::new(Warm {
+                    prev: None,
+                    ..(**old).clone()
+                }));
+            }
             cache.retain(|(k, _)| *k != key);
             if cache.len() >= WARM_ENTRIES {
                 cache.remove(0);

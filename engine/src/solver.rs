@@ -215,6 +215,27 @@ fn channel_residuals(r2: &[f64], b2: &[f64]) -> Vec<f64> {
 pub struct Primed<'a> {
     pub fx: &'a [f32],
     pub kfx: Option<&'a [f32]>,
+    /// The answer kept before x₀ with its products ([`Before`]): the solve then starts
+    /// from x₀ + α (x₀ − x₋₁), α per channel the least-squares minimiser of the start's
+    /// residual — a slider moved at a steady pace is extrapolated along its last step.
+    pub before: Option<Before<'a>>,
+    /// Solves since `fx` and `kfx` (and `before`'s) last came out of a pass over F
+    /// ([`Solved::age`]); past [`MAX_PRIMED_AGE`] they are not used.
+    pub age: u32,
+}
+
+/// Kept products derived from kept products (a start extrapolated, or accepted as it is)
+/// carry their rounding on: after this many solves without a pass over F, a solve computes
+/// its first check afresh.
+pub const MAX_PRIMED_AGE: u32 = 4;
+
+/// x₋₁, an answer kept before the start x₀ of a [`Primed`] solve, with F x₋₁ and, when
+/// its K is this solve's (and so is x₀'s), K F x₋₁.
+#[derive(Debug, Clone, Copy)]
+pub struct Before<'a> {
+    pub x: &'a [f32],
+    pub fx: &'a [f32],
+    pub kfx: Option<&'a [f32]>,
 }
 
 /// A solve's answer and its last products, which are those of x itself (every method
@@ -226,6 +247,9 @@ pub struct Solved {
     pub stats: SolveStats,
     pub fx: Vec<f32>,
     pub kfx: Vec<f32>,
+    /// 0 when `fx` and `kfx` came out of a pass over F, else 1 + the age of the [`Primed`]
+    /// products they were taken or derived from.
+    pub age: u32,
 }
 
 /// Solves (I − K F) x = b for `ch` channels per patch (`ch` a multiple of 3). `warm`
@@ -244,10 +268,13 @@ pub fn solve_system(
 
 /// [`solve_system`] from a warm start whose products a previous solve already computed
 /// ([`Solved::fx`], [`Solved::kfx`]): the first residual check then takes K F x₀ as given,
-/// or applies K alone to F x₀, and counts no product. The answer is the one
-/// [`solve_system`] gives from the same start (the products are deterministic). `primed`
-/// is ignored with a cold start, or when its lengths or values are not those of a
-/// finite `ch`-channel vector.
+/// or applies K alone to F x₀, and counts no product. Without [`Primed::before`] the
+/// answer is the one [`solve_system`] gives from the same start (the products are
+/// deterministic); with it the start moves along the last step first (one pass over K on
+/// two vectors at most, none when K F x₋₁ is given), and the answer is another iterate
+/// that meets the same tolerance. `primed` is ignored with a cold start, when older than
+/// [`MAX_PRIMED_AGE`], or when its lengths or values are not those of a finite
+/// `ch`-channel vector.
 pub fn solve_primed(
     f: &Transport<'_>,
     k: &dyn Scatter,
@@ -282,8 +309,11 @@ pub fn solve_primed(
         None => b.to_vec(),
     };
     let usable = |v: &[f32]| v.len() == b.len() && v.iter().all(|v| v.is_finite());
+    let primed_before = primed.and_then(|p| p.before);
+    let age = primed.map_or(0, |p| p.age);
     let mut primed = warm
         .and(primed)
+        .filter(|p| p.age < MAX_PRIMED_AGE)
         .filter(|p| usable(p.fx) && p.kfx.is_none_or(usable))
         .map(|p| (p.fx.to_vec(), p.kfx.map(<[f32]>::to_vec)));
     let b2 = dots(b, b, ch);
@@ -300,6 +330,74 @@ pub fn solve_primed(
                 }
             }
         }
+    }
+    // Along the last step between two kept answers, d = x₀ − x₋₁: the start x₀ + α d with
+    // F and K F of it from the kept products (F d = F x₀ − F x₋₁: F is linear) and one
+    // pass over K for what K has not seen, so its residual check is still free.
+    let before = warm
+        .and(primed.as_ref())
+        .and(primed_before)
+        .filter(|p| usable(p.x) && usable(p.fx) && p.kfx.is_none_or(usable));
+    if let (Some((fx0, kfx0)), Some(p)) = (&mut primed, before) {
+        let d: Vec<f32> = x.par_iter().zip(p.x).map(|(a, b)| a - b).collect();
+        let fd: Vec<f32> = fx0.par_iter().zip(p.fx).map(|(a, b)| a - b).collect();
+        let (k0, kd) = match (kfx0.take(), p.kfx) {
+            (Some(k0), Some(k1)) => {
+                let kd = k0.par_iter().zip(k1).map(|(a, b)| a - b).collect();
+                (k0, kd)
+            }
+            (Some(k0), None) => {
+                let mut kd = vec![0.0f32; n * ch];
+                k.apply_multi(&fd, &mut kd, ch);
+                (k0, kd)
+            }
+            (None, _) => {
+                // K on [F x₀ | F d] per patch: one pass over K for both.
+                let both: Vec<f32> = fx0
+                    .chunks_exact(ch)
+                    .zip(fd.chunks_exact(ch))
+                    .flat_map(|(a, b)| a.iter().chain(b).copied())
+                    .collect();
+                let mut out = vec![0.0f32; 2 * n * ch];
+                k.apply_multi(&both, &mut out, 2 * ch);
+                let (mut k0, mut kd) = (Vec::with_capacity(n * ch), Vec::with_capacity(n * ch));
+                for v in out.chunks_exact(2 * ch) {
+                    k0.extend_from_slice(&v[..ch]);
+                    kd.extend_from_slice(&v[ch..]);
+                }
+                (k0, kd)
+            }
+        };
+        // r(α) = r₀ + α v with r₀ = b + K F x₀ − x₀ and v = K F d − d.
+        let r0: Vec<f32> = (b.par_iter().zip(&k0).zip(&x))
+            .map(|((b, k), x)| b + k - x)
+            .collect();
+        let v: Vec<f32> = kd.par_iter().zip(&d).map(|(k, d)| k - d).collect();
+        let (rv, vv) = (dots(&r0, &v, ch), dots(&v, &v, ch));
+        let alpha: Vec<f32> = (0..ch)
+            .map(|c| {
+                let a = -rv[c] / vv[c];
+                if b2[c] > 0.0 && vv[c] > 0.0 && a.is_finite() {
+                    a as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let along = |v: &mut [f32], by: &[f32]| {
+            v.par_chunks_mut(ch)
+                .zip(by.par_chunks(ch))
+                .for_each(|(v, by)| {
+                    for c in 0..ch {
+                        v[c] += alpha[c] * by[c];
+                    }
+                });
+        };
+        let mut k0 = k0;
+        along(&mut x, &d);
+        along(fx0, &fd);
+        along(&mut k0, &kd);
+        *kfx0 = Some(k0);
     }
     let mut sys = System {
         f,
@@ -377,6 +475,7 @@ pub fn solve_primed(
     Ok(Solved {
         x,
         stats,
+        age: if sys.products > 0 { 0 } else { age + 1 },
         fx: sys.fx,
         kfx: sys.kfx,
     })

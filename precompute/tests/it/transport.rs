@@ -269,6 +269,8 @@ fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
             let primed = Primed {
                 fx: &first.fx,
                 kfx: same_k.then_some(first.kfx.as_slice()),
+                before: None,
+                age: 0,
             };
             let quick = solve_primed(&f, k, &rhs2, 3, &p, Some(&first.x), Some(primed)).unwrap();
             eprintln!(
@@ -282,7 +284,12 @@ fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
             // Primed products of another length, or not finite, are ignored.
             let bad = vec![f32::NAN; rhs.len()];
             for fx in [&first.fx[3..], bad.as_slice()] {
-                let p2 = Primed { fx, kfx: None };
+                let p2 = Primed {
+                    fx,
+                    kfx: None,
+                    before: None,
+                    age: 0,
+                };
                 let q = solve_primed(&f, k, &rhs2, 3, &p, Some(&first.x), Some(p2)).unwrap();
                 assert_eq!(q.stats.products, plain.1.products);
                 assert_eq!(q.x, plain.0);
@@ -299,12 +306,175 @@ fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
             Some(Primed {
                 fx: &first.fx,
                 kfx: Some(&first.kfx),
+                before: None,
+                age: 0,
             }),
         )
         .unwrap();
         assert_eq!(again.stats.products, 0, "{method:?}");
         assert_eq!(again.x, first.x);
     }
+}
+
+#[test]
+fn a_steady_change_is_extrapolated_along_its_last_step() {
+    use translux_engine::solver::{Before, MAX_PRIMED_AGE, Primed, solve_primed};
+    let (_dir, b, e) = translucent_cornell(800);
+    let f = Transport::of(&b);
+    let v = b.subsurface();
+    // S a little less translucent at each step, as a slider moved at a steady pace.
+    let scaled = |t: f32| Csr {
+        n_rows: v.n_rows(),
+        n_cols: v.n_cols(),
+        row_ptr: v.row_ptr().to_vec(),
+        col: v.col().to_vec(),
+        val: v.val().iter().map(|x| x.map(|c| t * c)).collect(),
+    };
+    let steps: Vec<Csr<Rgb>> = [1.0, 0.95, 0.9].into_iter().map(scaled).collect();
+    let ks: Vec<SparseScatter> = steps
+        .iter()
+        .map(|c| SparseScatter(c.view().unwrap()))
+        .collect();
+    let rhs_of = |k: &SparseScatter| -> Vec<f32> {
+        let mut se = vec![[0.0f32; 3]; e.len()];
+        radiosity::Scatter::apply(k, &e, &mut se);
+        bytemuck::cast_slice(&se).to_vec()
+    };
+    let p = params(Method::Jacobi, 0.005);
+    let tight = params(Method::Jacobi, 1e-6);
+    let x0 = solve_primed(&f, &ks[0], &rhs_of(&ks[0]), 3, &p, None, None).unwrap();
+    fn primed(w: &translux_engine::solver::Solved) -> Primed<'_> {
+        Primed {
+            fx: &w.fx,
+            kfx: None,
+            before: None,
+            age: 0,
+        }
+    }
+    let x1 = solve_primed(
+        &f,
+        &ks[1],
+        &rhs_of(&ks[1]),
+        3,
+        &p,
+        Some(&x0.x),
+        Some(primed(&x0)),
+    )
+    .unwrap();
+    let rhs2 = rhs_of(&ks[2]);
+    let plain = solve_primed(&f, &ks[2], &rhs2, 3, &p, Some(&x1.x), Some(primed(&x1))).unwrap();
+    let along = solve_primed(
+        &f,
+        &ks[2],
+        &rhs2,
+        3,
+        &p,
+        Some(&x1.x),
+        Some(Primed {
+            before: Some(Before {
+                x: &x0.x,
+                fx: &x0.fx,
+                kfx: None,
+            }),
+            ..primed(&x1)
+        }),
+    )
+    .unwrap();
+    let exact = solve_primed(&f, &ks[2], &rhs2, 3, &tight, None, None).unwrap();
+    let err = |x: &[f32]| rel_diff(bytemuck::cast_slice(x), bytemuck::cast_slice(&exact.x));
+    eprintln!(
+        "third step: {} products from the last answer ({:.2e} from exact), {} extrapolated \
+         ({:.2e})",
+        plain.stats.products,
+        err(&plain.x),
+        along.stats.products,
+        err(&along.x)
+    );
+    assert!(plain.stats.converged && along.stats.converged);
+    assert!(along.stats.products < plain.stats.products);
+    assert!(err(&along.x) < 0.01);
+
+    // A light brightening at a steady pace under one S: the kept K F x of both answers make
+    // the extrapolation free of any pass.
+    let k = &ks[0];
+    let base = rhs_of(k);
+    let at = |t: f32| -> Vec<f32> { base.iter().map(|v| v * t).collect() };
+    let a = solve_primed(&f, k, &at(1.0), 3, &p, None, None).unwrap();
+    fn full(w: &translux_engine::solver::Solved) -> Primed<'_> {
+        Primed {
+            fx: &w.fx,
+            kfx: Some(&w.kfx),
+            before: None,
+            age: 0,
+        }
+    }
+    let b1 = solve_primed(&f, k, &at(1.1), 3, &p, Some(&a.x), Some(full(&a))).unwrap();
+    let plain = solve_primed(&f, k, &at(1.2), 3, &p, Some(&b1.x), Some(full(&b1))).unwrap();
+    let along = solve_primed(
+        &f,
+        k,
+        &at(1.2),
+        3,
+        &p,
+        Some(&b1.x),
+        Some(Primed {
+            before: Some(Before {
+                x: &a.x,
+                fx: &a.fx,
+                kfx: Some(&a.kfx),
+            }),
+            ..full(&b1)
+        }),
+    )
+    .unwrap();
+    eprintln!(
+        "brighter light: {} products from the last answer, {} extrapolated",
+        plain.stats.products, along.stats.products
+    );
+    assert!(along.stats.converged);
+    assert!(along.stats.products < plain.stats.products);
+
+    // A long steady drag: products derived from derived products age, and after
+    // MAX_PRIMED_AGE solves without a pass over F the next one checks afresh.
+    let (mut prev, mut last) = (b1, along);
+    let (mut zero_run, mut fresh) = (0, 0);
+    for step in 3..16 {
+        let rhs = at(1.0 + 0.1 * step as f32);
+        let next = solve_primed(
+            &f,
+            k,
+            &rhs,
+            3,
+            &p,
+            Some(&last.x),
+            Some(Primed {
+                before: Some(Before {
+                    x: &prev.x,
+                    fx: &prev.fx,
+                    kfx: Some(&prev.kfx),
+                }),
+                age: last.age.max(prev.age),
+                ..full(&last)
+            }),
+        )
+        .unwrap();
+        assert!(next.stats.converged, "step {step}: {:?}", next.stats);
+        let exact = solve_primed(&f, k, &rhs, 3, &tight, None, None).unwrap();
+        let err = rel_diff(
+            bytemuck::cast_slice(&next.x),
+            bytemuck::cast_slice(&exact.x),
+        );
+        assert!(err < 0.01, "step {step}: {err}");
+        zero_run = if next.stats.products == 0 {
+            zero_run + 1
+        } else {
+            0
+        };
+        fresh += (next.age == 0) as u32;
+        assert!(zero_run <= MAX_PRIMED_AGE, "step {step}");
+        (prev, last) = (last, next);
+    }
+    assert!(fresh >= 2, "{fresh} fresh checks in 13 steps");
 }
 
 #[test]
