@@ -233,6 +233,18 @@ fn warm_start_from_a_nearby_solution_needs_fewer_iterations() {
     }
 }
 
+/// The bundle's S with every entry times `t`.
+fn scaled_s(b: &Bundle, t: f32) -> Csr<Rgb> {
+    let v = b.subsurface();
+    Csr {
+        n_rows: v.n_rows(),
+        n_cols: v.n_cols(),
+        row_ptr: v.row_ptr().to_vec(),
+        col: v.col().to_vec(),
+        val: v.val().iter().map(|x| x.map(|c| t * c)).collect(),
+    }
+}
+
 #[test]
 fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
     use translux_engine::solver::{Primed, solve_primed, solve_system};
@@ -240,14 +252,7 @@ fn a_primed_warm_start_answers_as_the_plain_one_with_a_product_less() {
     let f = Transport::of(&b);
     let s = SparseScatter(b.subsurface());
     // Another K: the same S a little less translucent (what a slider step does to S).
-    let v = b.subsurface();
-    let s2_csr = Csr {
-        n_rows: v.n_rows(),
-        n_cols: v.n_cols(),
-        row_ptr: v.row_ptr().to_vec(),
-        col: v.col().to_vec(),
-        val: v.val().iter().map(|x| x.map(|c| 0.93 * c)).collect(),
-    };
+    let s2_csr = scaled_s(&b, 0.93);
     let s2 = SparseScatter(s2_csr.view().unwrap());
     let mut se = vec![[0.0f32; 3]; e.len()];
     radiosity::Scatter::apply(&s, &e, &mut se);
@@ -321,16 +326,11 @@ fn a_steady_change_is_extrapolated_along_its_last_step() {
     use translux_engine::solver::{Before, MAX_PRIMED_AGE, Primed, solve_primed};
     let (_dir, b, e) = translucent_cornell(800);
     let f = Transport::of(&b);
-    let v = b.subsurface();
     // S a little less translucent at each step, as a slider moved at a steady pace.
-    let scaled = |t: f32| Csr {
-        n_rows: v.n_rows(),
-        n_cols: v.n_cols(),
-        row_ptr: v.row_ptr().to_vec(),
-        col: v.col().to_vec(),
-        val: v.val().iter().map(|x| x.map(|c| t * c)).collect(),
-    };
-    let steps: Vec<Csr<Rgb>> = [1.0, 0.95, 0.9].into_iter().map(scaled).collect();
+    let steps: Vec<Csr<Rgb>> = [1.0, 0.95, 0.9]
+        .into_iter()
+        .map(|t| scaled_s(&b, t))
+        .collect();
     let ks: Vec<SparseScatter> = steps
         .iter()
         .map(|c| SparseScatter(c.view().unwrap()))
