@@ -11,7 +11,7 @@ use std::time::Instant;
 use crate::inverse;
 use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
 use crate::scene::Warm;
-use crate::solver::{Before, Primed, SolveError, solve_primed};
+use crate::solver::{Before, MAX_PRIMED_AGE, Primed, SolveError, solve_primed};
 use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
@@ -755,32 +755,6 @@ fn transport(
         ));
     }
     // The iterative path: (I − K F) x = rhs.
-    let (kop, mut rhs): (&dyn Scatter, Vec<f32>) = match components {
-        Components::Full => {
-            s.apply_multi(&e, &mut se, ch);
-            add(&mut se, &be);
-            add_y(&mut se);
-            (s, se)
-        }
-        Components::InterreflectionOnly | Components::HeuristicB => {
-            p.apply_multi(&e, &mut se, ch);
-            add(&mut se, &be);
-            (&p, se)
-        }
-        Components::HeuristicA => {
-            s.apply_multi(&e, &mut se, ch);
-            add(&mut se, &be);
-            add_y(&mut se);
-            (&p, se)
-        }
-        Components::Direct | Components::SubsurfaceOnly => unreachable!("handled above"),
-    };
-    if components == Components::HeuristicB {
-        // Y = (I − P F)⁻¹ P F (Bₑ + P E) solves (I − P F) Y = P F (Bₑ + P E).
-        let mut fx = vec![0.0f32; n * ch];
-        f.apply_multi(&rhs, &mut fx, ch, &mut Pulled::default());
-        p.apply_multi(&fx, &mut rhs, ch);
-    }
     let suffix = format!("|{}", components.as_str());
     let key = format!("{}{suffix}", first.materials_key);
     // A kept solution is one RGB system; the batch's k systems all start from it.
@@ -807,14 +781,14 @@ fn transport(
         .as_ref()
         .and_then(|h| h.last.fx.as_ref())
         .and_then(spread);
-    let kfx = kept
+    let mut kfx = kept
         .as_ref()
         .filter(|h| h.same)
         .and_then(|h| h.last.kfx.as_ref())
         .and_then(spread);
     // The answer before it, to extrapolate along the last step.
     type Spread = (Vec<f32>, Vec<f32>, Option<Vec<f32>>, u32);
-    let before: Option<Spread> =
+    let mut before: Option<Spread> =
         kept.as_ref()
             .and_then(|h| h.before.as_ref())
             .and_then(|(w, same)| {
@@ -825,6 +799,64 @@ fn transport(
                     w.age,
                 ))
             });
+    let (kop, mut rhs): (&dyn Scatter, Vec<f32>) = match components {
+        Components::Full => {
+            // A translucency change on the CPU extrapolated along its last step needs S E
+            // (for b), S F x₀ and S F x₋₁ under the new S: one pass over S for all three
+            // (S is read once, not twice), up to the fixed widths' 8 RGB systems.
+            let age = kept.as_ref().map_or(0, |h| h.last.age);
+            let fuse = scene.backend().name() == "cpu"
+                && kfx.is_none()
+                && 3 * ch <= 24
+                && age.max(before.as_ref().map_or(0, |b| b.3)) < MAX_PRIMED_AGE;
+            match (&fx, &mut before) {
+                (Some(fx0), Some((_, fx1, kfx1 @ None, _))) if fuse => {
+                    let h: Vec<f32> = (0..n)
+                        .flat_map(|j| {
+                            let at = j * ch..(j + 1) * ch;
+                            e[at.clone()]
+                                .iter()
+                                .chain(&fx0[at.clone()])
+                                .chain(&fx1[at])
+                                .copied()
+                        })
+                        .collect();
+                    let mut out = vec![0.0f32; 3 * n * ch];
+                    s.apply_multi(&h, &mut out, 3 * ch);
+                    let (mut k0, mut k1) = (Vec::with_capacity(n * ch), Vec::with_capacity(n * ch));
+                    for (j, v) in out.chunks_exact(3 * ch).enumerate() {
+                        se[j * ch..(j + 1) * ch].copy_from_slice(&v[..ch]);
+                        k0.extend_from_slice(&v[ch..2 * ch]);
+                        k1.extend_from_slice(&v[2 * ch..]);
+                    }
+                    kfx = Some(k0);
+                    *kfx1 = Some(k1);
+                }
+                _ => s.apply_multi(&e, &mut se, ch),
+            }
+            add(&mut se, &be);
+            add_y(&mut se);
+            (s, se)
+        }
+        Components::InterreflectionOnly | Components::HeuristicB => {
+            p.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            (&p, se)
+        }
+        Components::HeuristicA => {
+            s.apply_multi(&e, &mut se, ch);
+            add(&mut se, &be);
+            add_y(&mut se);
+            (&p, se)
+        }
+        Components::Direct | Components::SubsurfaceOnly => unreachable!("handled above"),
+    };
+    if components == Components::HeuristicB {
+        // Y = (I − P F)⁻¹ P F (Bₑ + P E) solves (I − P F) Y = P F (Bₑ + P E).
+        let mut fx = vec![0.0f32; n * ch];
+        f.apply_multi(&rhs, &mut fx, ch, &mut Pulled::default());
+        p.apply_multi(&fx, &mut rhs, ch);
+    }
     // The full transport (K = S) on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
     let on_gpu = (components == Components::Full)
         .then(|| {

@@ -563,3 +563,48 @@ fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
     eprintln!("S(μ₀) alone: worst {w:.3}");
     assert!(w > 0.05, "the harmonic and U change the answer: {w}");
 }
+
+/// ‖a − b‖₂ / ‖b‖₂ over every vertex and channel.
+fn rel_l2(a: &[Rgb], b: &[Rgb]) -> f64 {
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for (x, y) in a.iter().zip(b) {
+        for c in 0..3 {
+            num += ((x[c] - y[c]) as f64).powi(2);
+            den += (y[c] as f64).powi(2);
+        }
+    }
+    (num / den).sqrt()
+}
+
+#[test]
+fn a_translucency_slider_dragged_steadily_starts_along_its_last_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = build("builtin:cornell_paper", dir.path(), "c", 1500, false);
+    let scene = Scene::open("c", &path).unwrap();
+    // The references come from a scene of their own, so they leave no warm start here.
+    let reference = Scene::open("r", &path).unwrap();
+    let body = |s: f32| {
+        format!(
+            r#"{{"solver": "iterative", "materials": {{"tall_block": {{"type": "translucent",
+                "profile": {{"type": "dipole", "preset": "marble", "scale": {s}}}}}}}}}"#
+        )
+    };
+    let mut products = Vec::new();
+    for step in 0..8 {
+        let json = body(1.0 + 0.15 * step as f32);
+        let got = relight::run(&scene, &plan(&scene, &json)).unwrap();
+        let want = tight(&reference, &json);
+        let err = rel_l2(&got.radiance, &want.radiance);
+        eprintln!("step {step}: {:?}, {err:.2e} from a tight solve", got.stats);
+        assert!(got.stats.converged, "step {step}: {:?}", got.stats);
+        assert!(err < 0.01, "step {step}: {err}");
+        products.push(got.stats.products);
+    }
+    // From the third step on the start moves along the last one: fewer products than
+    // the second step, which started from the first's answer alone.
+    let later: u32 = products[2..].iter().sum();
+    assert!(
+        later < products[1] * (products.len() as u32 - 2),
+        "products per step {products:?}"
+    );
+}
