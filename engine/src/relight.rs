@@ -799,16 +799,20 @@ fn transport(
                     w.age,
                 ))
             });
+    // How many solves ago the kept products last came out of a pass over F.
+    let age = kept
+        .as_ref()
+        .map_or(0, |h| h.last.age)
+        .max(before.as_ref().map_or(0, |b| b.3));
     let (kop, mut rhs): (&dyn Scatter, Vec<f32>) = match components {
         Components::Full => {
             // A translucency change on the CPU extrapolated along its last step needs S E
             // (for b), S F x₀ and S F x₋₁ under the new S: one pass over S for all three
             // (S is read once, not twice), up to the fixed widths' 8 RGB systems.
-            let age = kept.as_ref().map_or(0, |h| h.last.age);
             let fuse = scene.backend().name() == "cpu"
                 && kfx.is_none()
                 && 3 * ch <= 24
-                && age.max(before.as_ref().map_or(0, |b| b.3)) < MAX_PRIMED_AGE;
+                && age < MAX_PRIMED_AGE;
             match (&fx, &mut before) {
                 (Some(fx0), Some((_, fx1, kfx1 @ None, _))) if fuse => {
                     let h: Vec<f32> = (0..n)
@@ -881,10 +885,7 @@ fn transport(
                     fx,
                     kfx: kfx.as_deref(),
                 }),
-                age: kept
-                    .as_ref()
-                    .map_or(0, |h| h.last.age)
-                    .max(before.as_ref().map_or(0, |b| b.3)),
+                age,
             });
             let s =
                 solve_primed(&f, kop, &rhs, ch, params, warm.as_deref(), primed).map_err(|e| {
