@@ -40,6 +40,29 @@ pub trait Scatter: Sync {
     fn diagonal(&self) -> Option<&[Rgb]>;
 }
 
+/// S applied to each of `vs` (`ch` values per patch each) in one pass over S: the vectors
+/// are laid side by side per patch and multiplied as one of `vs.len() · ch` channels, so S
+/// is read once for all of them.
+pub fn scatter_each(k: &dyn Scatter, vs: &[&[f32]], ch: usize) -> Vec<Vec<f32>> {
+    let m = vs.len();
+    let n = vs.first().map_or(0, |v| v.len() / ch);
+    let mut h = Vec::with_capacity(n * m * ch);
+    for j in 0..n {
+        for v in vs {
+            h.extend_from_slice(&v[j * ch..(j + 1) * ch]);
+        }
+    }
+    let mut y = vec![0.0f32; n * m * ch];
+    k.apply_multi(&h, &mut y, m * ch);
+    let mut out: Vec<Vec<f32>> = (0..m).map(|_| Vec::with_capacity(n * ch)).collect();
+    for row in y.chunks_exact(m * ch) {
+        for (o, part) in out.iter_mut().zip(row.chunks_exact(ch)) {
+            o.extend_from_slice(part);
+        }
+    }
+    out
+}
+
 /// S = diag(ρ): opaque Lambertian patches.
 #[derive(Debug, Clone, Copy)]
 pub struct Albedo<'a>(pub &'a [Rgb]);

@@ -5,6 +5,7 @@
 //! with direct light at the vertices of opaque surfaces)
 //! and belongs on a blocking thread.
 
+use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -757,45 +758,52 @@ fn transport(
     // The iterative path: (I − K F) x = rhs.
     let suffix = format!("|{}", components.as_str());
     let key = format!("{}{suffix}", first.materials_key);
-    // A kept solution is one RGB system; the batch's k systems all start from it.
-    let spread = |w: &Vec<f32>| -> Option<Vec<f32>> {
-        (w.len() == 3 * n).then(|| {
-            (0..n)
-                .flat_map(|j| {
-                    std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
-                        .flatten()
-                        .copied()
-                })
-                .collect()
+    // A kept solution is one RGB system; the batch's k systems all start from it (a
+    // single relight borrows it as it is).
+    fn spread(w: &[f32], n: usize, k: usize) -> Option<Cow<'_, [f32]>> {
+        (w.len() == 3 * n).then(|| match k {
+            1 => Cow::Borrowed(w),
+            _ => Cow::Owned(
+                (0..n)
+                    .flat_map(|j| {
+                        std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
+                            .flatten()
+                            .copied()
+                    })
+                    .collect(),
+            ),
         })
-    };
+    }
     let last = |v: &[f32]| -> Vec<f32> {
         (0..n)
             .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
             .collect()
     };
     let kept = scene.warm.history(&key, &suffix);
-    let warm: Option<Vec<f32>> = kept.as_ref().and_then(|h| spread(&h.last.x));
+    let warm = kept.as_ref().and_then(|h| spread(&h.last.x, n, k));
     // F x₀ holds under any materials (F is the bundle's); K F x₀ only under the same ones.
     let fx = kept
         .as_ref()
         .and_then(|h| h.last.fx.as_ref())
-        .and_then(spread);
+        .and_then(|w| spread(w, n, k));
     let mut kfx = kept
         .as_ref()
         .filter(|h| h.same)
         .and_then(|h| h.last.kfx.as_ref())
-        .and_then(spread);
+        .and_then(|w| spread(w, n, k));
     // The answer before it, to extrapolate along the last step.
-    type Spread = (Vec<f32>, Vec<f32>, Option<Vec<f32>>, u32);
+    type Spread<'a> = (Cow<'a, [f32]>, Cow<'a, [f32]>, Option<Cow<'a, [f32]>>, u32);
     let mut before: Option<Spread> =
         kept.as_ref()
             .and_then(|h| h.before.as_ref())
             .and_then(|(w, same)| {
                 Some((
-                    spread(&w.x)?,
-                    spread(w.fx.as_ref()?)?,
-                    w.kfx.as_ref().filter(|_| *same).and_then(spread),
+                    spread(&w.x, n, k)?,
+                    spread(w.fx.as_ref()?, n, k)?,
+                    w.kfx
+                        .as_ref()
+                        .filter(|_| *same)
+                        .and_then(|v| spread(v, n, k)),
                     w.age,
                 ))
             });
@@ -815,26 +823,13 @@ fn transport(
                 && age < MAX_PRIMED_AGE;
             match (&fx, &mut before) {
                 (Some(fx0), Some((_, fx1, kfx1 @ None, _))) if fuse => {
-                    let h: Vec<f32> = (0..n)
-                        .flat_map(|j| {
-                            let at = j * ch..(j + 1) * ch;
-                            e[at.clone()]
-                                .iter()
-                                .chain(&fx0[at.clone()])
-                                .chain(&fx1[at])
-                                .copied()
-                        })
-                        .collect();
-                    let mut out = vec![0.0f32; 3 * n * ch];
-                    s.apply_multi(&h, &mut out, 3 * ch);
-                    let (mut k0, mut k1) = (Vec::with_capacity(n * ch), Vec::with_capacity(n * ch));
-                    for (j, v) in out.chunks_exact(3 * ch).enumerate() {
-                        se[j * ch..(j + 1) * ch].copy_from_slice(&v[..ch]);
-                        k0.extend_from_slice(&v[ch..2 * ch]);
-                        k1.extend_from_slice(&v[2 * ch..]);
-                    }
-                    kfx = Some(k0);
-                    *kfx1 = Some(k1);
+                    let [se1, k0, k1]: [Vec<f32>; 3] =
+                        crate::linalg::scatter_each(s, &[&e, fx0, fx1], ch)
+                            .try_into()
+                            .expect("one product per vector");
+                    se = se1;
+                    kfx = Some(Cow::Owned(k0));
+                    *kfx1 = Some(Cow::Owned(k1));
                 }
                 _ => s.apply_multi(&e, &mut se, ch),
             }
@@ -900,6 +895,8 @@ fn transport(
     // Keep the last system's answer for the next relight with these materials (never one
     // that overflowed: it would poison the next solve), with its products when the CPU
     // solved it.
+    // The kept answers are let go first, so the one replaced below moves instead of copying.
+    drop(kept);
     if x.iter().all(|v| v.is_finite()) {
         let (fx, kfx, age) = match &products {
             Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),

@@ -389,54 +389,40 @@ pub struct Kept {
 const WARM_ENTRIES: usize = 8;
 
 impl WarmCache {
-    pub(crate) fn get(&self, key: &str) -> Option<Arc<Warm>> {
-        let cache = self.0.lock().ok()?;
-        cache.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
-    }
-
-    /// The solution stored under `key` (`true`: its K is this one's), else the most recent
-    /// one whose key ends with `suffix` (`false`: the same components under other
-    /// materials: a translucency change starts from the previous scale's answer, which the
-    /// solver iterates to its tolerance like any other start).
-    pub(crate) fn get_or_latest(&self, key: &str, suffix: &str) -> Option<(Arc<Warm>, bool)> {
-        self.get(key).map(|w| (w, true)).or_else(|| {
-            let cache = self.0.lock().ok()?;
-            cache
-                .iter()
-                .rev()
-                .find(|(k, _)| k.ends_with(suffix))
-                .map(|(_, v)| (v.clone(), false))
-        })
-    }
-
-    /// [`WarmCache::get_or_latest`] with the answer kept before it: under the same key,
-    /// the one it replaced; else the latest other one whose key ends with `suffix`.
+    /// What a relight under `key` starts from: the solution stored under `key` (same: its
+    /// K is this one's) with the one it replaced; else the most recent one whose key ends
+    /// with `suffix` (the same components under other materials: a translucency change
+    /// starts from the previous scale's answer, which the solver iterates to its tolerance
+    /// like any other start) with the one kept before it.
     pub(crate) fn history(&self, key: &str, suffix: &str) -> Option<Kept> {
-        let (last, same) = self.get_or_latest(key, suffix)?;
-        let before = if same {
-            last.prev.clone().map(|p| (p, true))
-        } else {
-            let cache = self.0.lock().ok()?;
-            cache
-                .iter()
-                .rev()
-                .filter(|(k, _)| k.ends_with(suffix))
-                .nth(1)
-                .map(|(_, v)| (v.clone(), false))
-        };
-        Some(Kept { last, same, before })
+        let cache = self.0.lock().ok()?;
+        if let Some((_, last)) = cache.iter().find(|(k, _)| k == key) {
+            return Some(Kept {
+                last: last.clone(),
+                same: true,
+                before: last.prev.clone().map(|p| (p, true)),
+            });
+        }
+        let mut latest = cache.iter().rev().filter(|(k, _)| k.ends_with(suffix));
+        let last = latest.next()?.1.clone();
+        let before = latest.next().map(|(_, v)| (v.clone(), false));
+        Some(Kept {
+            last,
+            same: false,
+            before,
+        })
     }
 
     /// Keeps `value` under `key`; the answer it replaces becomes its `prev`.
     pub(crate) fn put(&self, key: String, mut value: Warm) {
         if let Ok(mut cache) = self.0.lock() {
-            if let Some((_, old)) = cache.iter().find(|(k, _)| *k == key) {
-                value.prev = Some(Arc::new(Warm {
-                    prev: None,
-                    ..(**old).clone()
-                }));
+            if let Some(at) = cache.iter().position(|(k, _)| *k == key) {
+                // Moved, not copied, unless a relight still holds it; one level deep.
+                let (_, old) = cache.remove(at);
+                let mut old = Arc::try_unwrap(old).unwrap_or_else(|a| (*a).clone());
+                old.prev = None;
+                value.prev = Some(Arc::new(old));
             }
-            cache.retain(|(k, _)| *k != key);
             if cache.len() >= WARM_ENTRIES {
                 cache.remove(0);
             }

@@ -352,19 +352,10 @@ pub fn solve_primed(
                 (k0, kd)
             }
             (None, _) => {
-                // K on [F x₀ | F d] per patch: one pass over K for both.
-                let both: Vec<f32> = fx0
-                    .chunks_exact(ch)
-                    .zip(fd.chunks_exact(ch))
-                    .flat_map(|(a, b)| a.iter().chain(b).copied())
-                    .collect();
-                let mut out = vec![0.0f32; 2 * n * ch];
-                k.apply_multi(&both, &mut out, 2 * ch);
-                let (mut k0, mut kd) = (Vec::with_capacity(n * ch), Vec::with_capacity(n * ch));
-                for v in out.chunks_exact(2 * ch) {
-                    k0.extend_from_slice(&v[..ch]);
-                    kd.extend_from_slice(&v[ch..]);
-                }
+                // K on F x₀ and F d in one pass over K.
+                let [k0, kd]: [Vec<f32>; 2] = crate::linalg::scatter_each(k, &[fx0, &fd], ch)
+                    .try_into()
+                    .expect("one product per vector");
                 (k0, kd)
             }
         };
