@@ -241,7 +241,7 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, EngineErr
 
 /// What one plan needs before the transport: its E, materials and the path it takes.
 struct Prepared {
-    irradiance: Vec<Rgb>,
+    irradiance: Arc<Vec<Rgb>>,
     materials: Option<Arc<OverrideMaterials>>,
     materials_key: String,
     materials_ms: f64,
@@ -259,53 +259,84 @@ type Collimated = (Arc<TiltOf>, Vec<[Rgb; 4]>);
 
 /// E at the vertices whose direct term is taken at the vertex, and what it replaces.
 struct VertexDirect {
+    lit: Arc<VertexLit>,
+    /// With [`DirectAt::Pixel`]: which of `which` leave their direct term out of the answer.
+    per_pixel: Option<Vec<bool>>,
+}
+
+/// The part of [`VertexDirect`] that depends on the lights and on which objects count as
+/// opaque alone, kept by [`crate::scene::DirectCache`].
+#[derive(Debug)]
+pub(crate) struct VertexLit {
     which: Vec<usize>,
     /// E (lights other than environments) at the vertices `which`.
     at_vertex: Vec<Rgb>,
     /// E of those lights at the patches, where it differs from the plan's E (environment
     /// lights are in that one and stay per patch).
     at_patch: Option<Vec<Rgb>>,
-    /// With [`DirectAt::Pixel`]: which of `which` leave their direct term out of the answer.
-    per_pixel: Option<Vec<bool>>,
 }
 
 /// The direct light of `plan`'s point, spot and directional lights at the vertices of
 /// opaque surfaces (under the plan's materials and components); `None` without such
 /// vertices. Without such lights E(v) is 0 and the vertices still take their indirect
 /// light through [`crate::vertexlight::VertexMeans`], so that an environment's answer
-/// is the same alone as beside a lamp.
+/// is the same alone as beside a lamp. `lights_key` is the plan's lights as JSON: what
+/// the scene's [`crate::scene::DirectCache`] keeps the traced part under.
 fn vertex_direct(
     scene: &Scene,
     geo: PatchGeometry<'_>,
     plan: &RelightPlan,
+    lights_key: &str,
 ) -> Result<Option<VertexDirect>, EngineError> {
     let b = &scene.bundle;
-    let lights: Vec<Light> = plan
-        .lights
-        .iter()
-        .filter(|l| !matches!(l, Light::Environment { .. }))
-        .cloned()
-        .collect();
     let materials = plan.materials(scene);
     let samples = scene.vertex_samples();
     let opaque = crate::vertexlight::opaque_objects(&materials, plan.components);
-    let which = samples.opaque_vertices(b, &opaque);
-    if which.is_empty() {
-        return Ok(None);
-    }
-    let (point, normal) = samples.geometry(&which);
-    let unit_mm = b.manifest().unit_mm;
-    let direct = |geo: PatchGeometry<'_>| {
-        if lights.is_empty() {
-            return Ok(vec![[0.0; 3]; geo.centroid.len()]);
+    // The vertices traced depend on the lights and on which objects are opaque alone.
+    let key: String = opaque
+        .iter()
+        .map(|&o| if o { '1' } else { '0' })
+        .chain(std::iter::once('|'))
+        .chain(lights_key.chars())
+        .collect();
+    let lit = scene.direct.vertices(&key, || {
+        let which = samples.opaque_vertices(b, &opaque);
+        if which.is_empty() {
+            return Ok(None);
         }
-        crate::radiosity::direct_irradiance(geo, &scene.occluder, &lights, unit_mm)
-            .map_err(|e| EngineError::unsupported(e.to_string()))
-    };
-    let at_vertex = direct(PatchGeometry {
-        centroid: &point,
-        normal: &normal,
+        let lights: Vec<Light> = plan
+            .lights
+            .iter()
+            .filter(|l| !matches!(l, Light::Environment { .. }))
+            .cloned()
+            .collect();
+        let (point, normal) = samples.geometry(&which);
+        let unit_mm = b.manifest().unit_mm;
+        let direct = |geo: PatchGeometry<'_>| {
+            if lights.is_empty() {
+                return Ok(vec![[0.0; 3]; geo.centroid.len()]);
+            }
+            crate::radiosity::direct_irradiance(geo, &scene.occluder, &lights, unit_mm)
+                .map_err(|e| EngineError::unsupported(e.to_string()))
+        };
+        let at_vertex = direct(PatchGeometry {
+            centroid: &point,
+            normal: &normal,
+        })?;
+        let at_patch = if lights.len() == plan.lights.len() {
+            None
+        } else {
+            Some(direct(geo)?)
+        };
+        Ok(Some(VertexLit {
+            which,
+            at_vertex,
+            at_patch,
+        }))
     })?;
+    let Some(lit) = lit else {
+        return Ok(None);
+    };
     // Per pixel: the vertices of diffuse objects answer the rest alone (E(v) taken as 0);
     // the others that count as opaque (translucent ones in `direct`) keep their E(v).
     let per_pixel = match plan.direct_at {
@@ -318,20 +349,10 @@ fn vertex_direct(
                 .collect();
             let skip: std::collections::HashSet<usize> =
                 samples.opaque_vertices(b, &diffuse).into_iter().collect();
-            Some(which.iter().map(|v| skip.contains(v)).collect())
+            Some(lit.which.iter().map(|v| skip.contains(v)).collect())
         }
     };
-    let at_patch = if lights.len() == plan.lights.len() {
-        None
-    } else {
-        Some(direct(geo)?)
-    };
-    Ok(Some(VertexDirect {
-        which,
-        at_vertex,
-        at_patch,
-        per_pixel,
-    }))
+    Ok(Some(VertexDirect { lit, per_pixel }))
 }
 
 /// Δ and E_t of `plan`'s lamps on its simulated objects ([`crate::collimated`]), when its
@@ -411,16 +432,20 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
     let mut prepared: Vec<Option<Prepared>> = Vec::with_capacity(plans.len());
     for (idx, plan) in plans.iter().enumerate() {
         let t0 = Instant::now();
-        let irradiance =
-            match crate::environment::direct_irradiance(&scene.env(), geo, &plan.lights) {
-                Ok(e) => e,
-                Err(e) => {
-                    out[idx] = Some(Err(e));
-                    prepared.push(None);
-                    continue;
-                }
-            };
-        let vertex = match vertex_direct(scene, geo, plan) {
+        // A request that keeps the last one's lights (a translucency slider) takes their
+        // direct light from the scene's cache instead of tracing it again.
+        let lights_key = serde_json::to_string(&plan.lights).unwrap_or_default();
+        let irradiance = match scene.direct.patches(&lights_key, || {
+            crate::environment::direct_irradiance(&scene.env(), geo, &plan.lights)
+        }) {
+            Ok(e) => e,
+            Err(e) => {
+                out[idx] = Some(Err(e));
+                prepared.push(None);
+                continue;
+            }
+        };
+        let vertex = match vertex_direct(scene, geo, plan, &lights_key) {
             Ok(v) => v,
             Err(e) => {
                 out[idx] = Some(Err(e));
@@ -549,23 +574,24 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                         };
                         let terms = crate::vertexlight::PatchTerms {
                             radiosity: &rad,
-                            irradiance: v.at_patch.as_deref().unwrap_or(&p.irradiance),
+                            irradiance: v.lit.at_patch.as_deref().unwrap_or(&p.irradiance),
                             albedo,
                         };
                         let means =
                             crate::vertexlight::VertexMeans::new(b, scene.vertex_samples(), terms);
-                        means.set(&v.which, &v.at_vertex, &mut radiance);
+                        means.set(&v.lit.which, &v.lit.at_vertex, &mut radiance);
                         if let Some(skip) = &v.per_pixel {
                             // The exposure of the whole answer, then the answer without the
                             // direct term the picture adds per pixel.
                             auto_exposure = Some(crate::render::auto_exposure(&radiance));
                             let e: Vec<Rgb> = v
+                                .lit
                                 .at_vertex
                                 .iter()
                                 .zip(skip)
                                 .map(|(e, &s)| if s { [0.0; 3] } else { *e })
                                 .collect();
-                            means.set(&v.which, &e, &mut radiance);
+                            means.set(&v.lit.which, &e, &mut radiance);
                         }
                     }
                     if plans[i].direct_at == DirectAt::Pixel && auto_exposure.is_none() {
@@ -793,20 +819,23 @@ fn transport(
         .and_then(|w| spread(w, n, k));
     // The answer before it, to extrapolate along the last step.
     type Spread<'a> = (Cow<'a, [f32]>, Cow<'a, [f32]>, Option<Cow<'a, [f32]>>, u32);
-    let mut before: Option<Spread> =
-        kept.as_ref()
-            .and_then(|h| h.before.as_ref())
-            .and_then(|(w, same)| {
-                Some((
-                    spread(&w.x, n, k)?,
-                    spread(w.fx.as_ref()?, n, k)?,
-                    w.kfx
-                        .as_ref()
-                        .filter(|_| *same)
-                        .and_then(|v| spread(v, n, k)),
-                    w.age,
-                ))
-            });
+    let mut before: Option<Spread> = kept
+        .as_ref()
+        .and_then(|h| h.before.as_ref())
+        // Products that old end the chain (the start stays at x₀), so they never hold
+        // back x₀'s own: right after a fresh check the next solve still takes them.
+        .filter(|(w, _)| w.age < MAX_PRIMED_AGE)
+        .and_then(|(w, same)| {
+            Some((
+                spread(&w.x, n, k)?,
+                spread(w.fx.as_ref()?, n, k)?,
+                w.kfx
+                    .as_ref()
+                    .filter(|_| *same)
+                    .and_then(|v| spread(v, n, k)),
+                w.age,
+            ))
+        });
     // How many solves ago the kept products last came out of a pass over F.
     let age = kept
         .as_ref()

@@ -20,7 +20,9 @@ use crate::backend::{Backend, Cpu, SBuild, SceneRef};
 use crate::collimated::TiltOf;
 use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
+use crate::radiosity::Rgb;
 use crate::raycast::Occluder;
+use crate::relight::VertexLit;
 use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
 use crate::sterms::{STerms, Scratch};
 use crate::vertexlight::VertexSamples;
@@ -73,6 +75,8 @@ pub struct Scene {
     pub(crate) vertex_samples: OnceLock<VertexSamples>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
     pub(crate) warm: WarmCache,
+    /// The last lights' direct light (see [`DirectCache`]).
+    pub(crate) direct: DirectCache,
     pub(crate) resources: Resources,
 }
 
@@ -300,6 +304,7 @@ impl Scene {
             s_scratch: Mutex::new(Scratch::default()),
             vertex_samples: OnceLock::new(),
             warm: Default::default(),
+            direct: Default::default(),
             resources: resources.clone(),
         }
     }
@@ -354,6 +359,56 @@ impl Scene {
             })
             .unwrap_or(0)
     }
+}
+
+/// The direct light of the last lights asked, at the patches (E) and at the viewer's
+/// vertices ([`crate::relight`]), keyed by the lights as JSON (and, at the vertices, by
+/// which objects count as opaque). A translucency slider sends the same lights with every
+/// step; the scene's geometry never changes, so their direct light is traced once. One
+/// entry each: a light that moves replaces it.
+#[derive(Debug, Default)]
+pub struct DirectCache {
+    patches: Mutex<Option<(String, Arc<Vec<Rgb>>)>>,
+    vertices: Mutex<Option<(String, Option<Arc<VertexLit>>)>>,
+}
+
+impl DirectCache {
+    /// E at the patches under the lights `key`, traced by `trace` unless kept.
+    pub(crate) fn patches<E>(
+        &self,
+        key: &str,
+        trace: impl FnOnce() -> Result<Vec<Rgb>, E>,
+    ) -> Result<Arc<Vec<Rgb>>, E> {
+        kept_or(&self.patches, key, || trace().map(Arc::new))
+    }
+
+    /// The direct light at the vertices under `key`, traced by `trace` unless kept (`None`:
+    /// no vertex takes it).
+    pub(crate) fn vertices<E>(
+        &self,
+        key: &str,
+        trace: impl FnOnce() -> Result<Option<VertexLit>, E>,
+    ) -> Result<Option<Arc<VertexLit>>, E> {
+        kept_or(&self.vertices, key, || trace().map(|v| v.map(Arc::new)))
+    }
+}
+
+/// The value kept in `slot` under `key`, else `make`'s, kept there when it succeeds. The
+/// lock is not held while `make` runs (concurrent relights of other lights go on).
+fn kept_or<T: Clone, E>(
+    slot: &Mutex<Option<(String, T)>>,
+    key: &str,
+    make: impl FnOnce() -> Result<T, E>,
+) -> Result<T, E> {
+    let lock = || slot.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some((k, v)) = lock().as_ref()
+        && k == key
+    {
+        return Ok(v.clone());
+    }
+    let v = make()?;
+    *lock() = Some((key.to_string(), v.clone()));
+    Ok(v)
 }
 
 /// The last solutions per scene, so a relight that differs a little from the previous one

@@ -34,7 +34,7 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
-use crate::sterms::{ObjectTerms, Placement, STerms, Scratch};
+use crate::sterms::{ObjectTerms, Placement, STerms, Scratch, Written};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 use rayon::prelude::*;
@@ -459,17 +459,22 @@ fn write_terms(
         nodes: g.nodes.as_ref(),
     };
     let mut out = None;
-    let s = s.rewrite(r.clone(), |rows| {
-        out = Some(t.write(
+    let s = s.rewrite_vouched(r.clone(), |rows| {
+        let w = t.write(
             &g.area[r.clone()],
             &same,
             other.as_ref().unwrap_or(&same),
             at,
             rows,
             scratch,
-        ))
+        );
+        let finite = w.finite;
+        out = Some(w);
+        finite
     })?;
-    let (e, links) = out.unwrap_or_default();
+    let Written {
+        report: e, links, ..
+    } = out.unwrap_or_default();
     let report = AssemblyReport {
         name: o.name.to_string(),
         radius: same

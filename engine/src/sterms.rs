@@ -586,6 +586,21 @@ struct BlockSums {
     node: Vec<[f32; 3]>,
     kept: u64,
     linked: u64,
+    /// Every value the block wrote is finite.
+    finite: bool,
+}
+
+/// What [`ObjectTerms::write`] did.
+#[derive(Debug, Clone, Default)]
+pub struct Written {
+    /// The columns' energy as the bound left it, the entries kept (links within reach
+    /// included).
+    pub report: EnergyReport,
+    /// The links within reach.
+    pub links: u64,
+    /// Every value written is finite (checked as it was written, so the matrix's own
+    /// check need not read them again: [`translux_proto::csr::ValidCsr::rewrite_vouched`]).
+    pub finite: bool,
 }
 
 /// One row of S as [`ObjectTerms::write`] fills it: its columns and its values.
@@ -772,7 +787,9 @@ impl ObjectTerms {
             n: area.len(),
             nodes: None,
         };
-        let (report, _) = self.write(area, same, other, at, out, &mut Scratch::default());
+        let report = self
+            .write(area, same, other, at, out, &mut Scratch::default())
+            .report;
         let rows = cols
             .into_iter()
             .zip(vals)
@@ -872,7 +889,7 @@ impl ObjectTerms {
         at: Placement<'_>,
         rows: Vec<Row<'_>>,
         scratch: &mut Scratch,
-    ) -> (EnergyReport, u64) {
+    ) -> Written {
         let n = self.row_ptr.len() - 1;
         assert_eq!(rows.len(), n, "one row per patch of the object");
         // The rows in the cluster tree's order: neighbouring receivers read and add to the
@@ -913,7 +930,7 @@ impl ObjectTerms {
                 sums.column.resize(n, [0.0; 3]);
                 sums.node.clear();
                 sums.node.resize(node_count, [0.0; 3]);
-                (sums.kept, sums.linked) = (0, 0);
+                (sums.kept, sums.linked, sums.finite) = (0, 0, true);
                 for (j, (cols, out)) in chunk.iter_mut() {
                     let j = *j;
                     let entries = self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize;
@@ -935,6 +952,7 @@ impl ObjectTerms {
                         for (t, x) in sums.column[i].iter_mut().zip(v) {
                             *t += area[j] * x;
                         }
+                        sums.finite &= v.iter().all(|x| x.is_finite());
                         *o = v;
                     }
                     let Some(nodes) = at.nodes else {
@@ -959,13 +977,14 @@ impl ObjectTerms {
                             node[ch] += area[j] * r[ch];
                         }
                         *o = r.map(|v| v * a);
+                        sums.finite &= o.iter().all(|x| x.is_finite());
                     }
                 }
             });
         // The blocks' sums, in order.
         let mut column = vec![[0.0f32; 3]; n];
         let mut node = vec![[0.0f32; 3]; node_count];
-        let (mut kept, mut linked) = (0u64, 0u64);
+        let (mut kept, mut linked, mut finite) = (0u64, 0u64, true);
         for s in &scratch.blocks[..blocks] {
             for (t, p) in column.iter_mut().zip(&s.column) {
                 for c in 0..3 {
@@ -978,6 +997,7 @@ impl ObjectTerms {
                 }
             }
             kept += s.kept;
+            finite &= s.finite;
             linked += s.linked;
         }
         let mut report = EnergyReport {
@@ -1052,22 +1072,31 @@ impl ObjectTerms {
             report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
             report.nnz += linked;
         }
-        // The direct entries of the columns over the bound, scaled.
-        if factor.iter().any(|f| *f != [1.0; 3]) {
+        // The direct entries of the columns over the bound, scaled. A factor is in [0, 1]
+        // (a finite value stays finite).
+        debug_assert!(factor.iter().flatten().all(|f| (0.0..=1.0).contains(f)));
+        let scaled: Vec<bool> = factor.iter().map(|f| *f != [1.0; 3]).collect();
+        if scaled.contains(&true) {
+            // A byte per column tells the scaled ones (a few hundred of the bunny's
+            // 69,451): the pass over every row's columns reads a table that stays in cache.
             rows.par_iter_mut().for_each(|(_, (cols, out))| {
                 for (o, &c) in out.iter_mut().zip(cols.iter()) {
                     let i = (c as usize).wrapping_sub(at.start);
                     if i >= n {
                         break; // the links, after the row's direct entries
                     }
-                    let f = factor[i];
-                    if f != [1.0; 3] {
+                    if scaled[i] {
+                        let f = factor[i];
                         *o = std::array::from_fn(|ch| o[ch] * f[ch]);
                     }
                 }
             });
         }
-        (report, linked)
+        Written {
+            report,
+            links: linked,
+            finite,
+        }
     }
 
     /// Stored entries (the self terms included).

@@ -360,9 +360,25 @@ impl<T: CsrValue> ValidCsr<T> {
     /// values written are then checked finite; on a non-finite one the matrix is dropped and
     /// the error names the row and the column.
     pub fn rewrite(
-        mut self,
+        self,
         rows: std::ops::Range<usize>,
         write: impl FnOnce(Vec<(&[u32], &mut [T])>),
+    ) -> Result<Self, CsrError> {
+        self.rewrite_vouched(rows, |r| {
+            write(r);
+            false
+        })
+    }
+
+    /// [`ValidCsr::rewrite`] for a writer that checks each value as it stores it: `write`
+    /// answers whether every value it stored was finite, and then the rows are not read
+    /// again (the values it left alone were finite already: the matrix was valid). On
+    /// `false` they are checked as `rewrite` checks them. Rewriting the bunny's S (525 MB of
+    /// values) spent a tenth of its time in that second read.
+    pub fn rewrite_vouched(
+        mut self,
+        rows: std::ops::Range<usize>,
+        write: impl FnOnce(Vec<(&[u32], &mut [T])>) -> bool,
     ) -> Result<Self, CsrError> {
         let c = &mut self.csr;
         assert!(rows.end <= c.n_rows, "rows {rows:?} of {} rows", c.n_rows);
@@ -379,9 +395,9 @@ impl<T: CsrValue> ValidCsr<T> {
             split.push((k, v));
             (vals, cols) = (rest, more);
         }
-        write(split);
+        let vouched = write(split);
         let written = c.row_ptr[rows.start] as usize..c.row_ptr[rows.end] as usize;
-        if T::all_finite(&c.val[written]) {
+        if vouched || T::all_finite(&c.val[written]) {
             return Ok(self);
         }
         for r in rows {
@@ -498,6 +514,25 @@ mod tests {
             .rewrite(0..1, |mut rows| rows[0].1[1] = f32::NAN)
             .unwrap_err();
         assert_eq!(err, CsrError::NonFinite { row: 0, col: 2 });
+        // A writer that vouches for its values is not checked again; one that does not is.
+        let mut b = CsrBuilder::<f32>::new(2);
+        b.push_row(&[(0, 1.0)]).unwrap();
+        b.push_row(&[(1, 2.0)]).unwrap();
+        let m = b
+            .finish_valid()
+            .rewrite_vouched(0..2, |mut rows| {
+                rows[1].1[0] = 5.0;
+                true
+            })
+            .unwrap();
+        assert_eq!(m.view().val(), &[1.0, 5.0]);
+        let err = m
+            .rewrite_vouched(1..2, |mut rows| {
+                rows[0].1[0] = f32::INFINITY;
+                false
+            })
+            .unwrap_err();
+        assert_eq!(err, CsrError::NonFinite { row: 1, col: 1 });
         let bad = Csr {
             n_rows: 1,
             n_cols: 1,

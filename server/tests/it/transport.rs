@@ -608,3 +608,42 @@ fn a_translucency_slider_dragged_steadily_starts_along_its_last_step() {
         "products per step {products:?}"
     );
 }
+
+/// The scene keeps the last lights' direct light (at the patches and at the vertices) for
+/// the next request with the same lights: every answer of a sequence that repeats, changes
+/// and returns to lights and materials equals the one a fresh scene gives, bit for bit.
+#[test]
+fn direct_light_kept_for_the_same_lights_answers_as_traced_afresh() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = build("builtin:cornell_paper", dir.path(), "c", 1500, false);
+    let scene = Scene::open("c", &path).unwrap();
+    let a = r#"[{"type":"point","position":[0.1,0.3,0.1],"intensity":[1,0.5,0.2]}]"#;
+    let b = r#"[{"type":"point","position":[-0.1,0.4,0.0],"intensity":[0.3,0.5,1]}]"#;
+    // The tall block turned diffuse: its vertices then take their direct light at the
+    // vertex (the traced vertices depend on the materials too).
+    let diffuse =
+        r#", "materials": {"tall_block": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}}"#;
+    let body = |lights: &str, materials: &str, components: &str| {
+        format!(r#"{{"components": "{components}", "lights": {lights}{materials}}}"#)
+    };
+    let steps = [
+        body(a, "", "direct"),
+        body(a, "", "direct"),
+        body(a, diffuse, "direct"),
+        body(b, diffuse, "direct"),
+        body(b, "", "direct"),
+        body(a, "", "direct"),
+        body(a, "", "subsurface_only"),
+        body(a, diffuse, "full"),
+    ];
+    for (k, json) in steps.iter().enumerate() {
+        let got = relight::run(&scene, &plan(&scene, json)).unwrap();
+        let fresh = Scene::open("f", &path).unwrap();
+        let want = relight::run(&fresh, &plan(&fresh, json)).unwrap();
+        assert!(
+            got.radiance == want.radiance,
+            "step {k} ({json}): {:.2e} from the fresh scene's answer",
+            rel_l2(&got.radiance, &want.radiance)
+        );
+    }
+}
