@@ -23,6 +23,7 @@ use crate::error::EngineError;
 use crate::scene::Scene;
 use crate::smatrix::OverrideMaterials;
 use crate::specular::Gloss;
+use crate::vertexlight::VertexLit;
 use translux_proto::api::DirectAt;
 
 /// Most lights one request may carry (each costs a shadow ray per patch).
@@ -262,18 +263,6 @@ struct VertexDirect {
     lit: Arc<VertexLit>,
     /// With [`DirectAt::Pixel`]: which of `which` leave their direct term out of the answer.
     per_pixel: Option<Vec<bool>>,
-}
-
-/// The part of [`VertexDirect`] that depends on the lights and on which objects count as
-/// opaque alone, kept by [`crate::scene::DirectCache`].
-#[derive(Debug)]
-pub(crate) struct VertexLit {
-    which: Vec<usize>,
-    /// E (lights other than environments) at the vertices `which`.
-    at_vertex: Vec<Rgb>,
-    /// E of those lights at the patches, where it differs from the plan's E (environment
-    /// lights are in that one and stay per patch).
-    at_patch: Option<Vec<Rgb>>,
 }
 
 /// The direct light of `plan`'s point, spot and directional lights at the vertices of

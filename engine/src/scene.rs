@@ -22,10 +22,9 @@ use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::radiosity::Rgb;
 use crate::raycast::Occluder;
-use crate::relight::VertexLit;
 use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
 use crate::sterms::{STerms, Scratch};
-use crate::vertexlight::VertexSamples;
+use crate::vertexlight::{VertexLit, VertexSamples};
 
 /// What the scenes of one process share: the backend they relight on and the cache of
 /// environment maps. Cheap to clone. The default is the CPU with a cache of its own.

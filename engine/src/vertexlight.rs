@@ -38,6 +38,19 @@ use translux_proto::scene::Material;
 
 use crate::linalg::Rgb;
 use crate::raycast::Occluder;
+
+/// The direct light of a relight's lamps at the vertices that take it at the vertex (the
+/// part of `relight`'s vertex terms that depends on the lights and on which objects count
+/// as opaque alone), kept by [`crate::scene::DirectCache`].
+#[derive(Debug)]
+pub(crate) struct VertexLit {
+    pub(crate) which: Vec<usize>,
+    /// E (lights other than environments) at the vertices `which`.
+    pub(crate) at_vertex: Vec<Rgb>,
+    /// E of those lights at the patches, where it differs from the plan's E (environment
+    /// lights are in that one and stay per patch).
+    pub(crate) at_patch: Option<Vec<Rgb>>,
+}
 use rayon::prelude::*;
 
 /// Where direct light is evaluated for each viewer vertex.
