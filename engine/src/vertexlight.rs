@@ -38,6 +38,7 @@ use translux_proto::scene::Material;
 
 use crate::linalg::Rgb;
 use crate::raycast::Occluder;
+use rayon::prelude::*;
 
 /// The direct light of a relight's lamps at the vertices that take it at the vertex (the
 /// part of `relight`'s vertex terms that depends on the lights and on which objects count
@@ -51,7 +52,6 @@ pub(crate) struct VertexLit {
     /// lights are in that one and stay per patch).
     pub(crate) at_patch: Option<Vec<Rgb>>,
 }
-use rayon::prelude::*;
 
 /// Where direct light is evaluated for each viewer vertex.
 #[derive(Debug)]
