@@ -649,6 +649,26 @@ fn errors_per_group(
         .collect()
 }
 
+/// Whether each viewer vertex lies inside a flat region of its mesh: its triangles' angles
+/// add up to a full turn, so they go all the way round it (a vertex on a face's border,
+/// where the exitance jumps between two faces, is left out).
+fn interior_vertices(b: &Bundle) -> Vec<bool> {
+    let pos = b.vertex_positions();
+    let mut angle = vec![0.0f32; pos.len()];
+    for t in b.triangle_vertices() {
+        for k in 0..3 {
+            let p = glam::Vec3::from(pos[t[k] as usize]);
+            let a = glam::Vec3::from(pos[t[(k + 1) % 3] as usize]) - p;
+            let c = glam::Vec3::from(pos[t[(k + 2) % 3] as usize]) - p;
+            angle[t[k] as usize] += a.angle_between(c);
+        }
+    }
+    angle
+        .iter()
+        .map(|a| (a - std::f32::consts::TAU).abs() < 1e-3)
+        .collect()
+}
+
 /// The probes among `probes` (patch indices) that lie on `object`, grouped by the face their
 /// normal points along (±x, ±y, ±z), each group labelled by `label(axis, sign)`.
 fn face_groups(
@@ -798,6 +818,73 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         table_row("block, simulated", nb, &ebs),
     ];
     let per_face = errors_per_group(&groups, &got, &got_sim, &reference, "block ", &mut rows);
+    // The faces lit only through the block and round it, again at the viewer's vertices:
+    // what a relight answers and what issue #18 measures (a vertex averages the patches
+    // round it, as the viewer shows them), with 8,192 paths per vertex. Vertices inside
+    // the face only ([`interior_vertices`]), on the block (inside its bounding box).
+    let (vp, vn) = vertex_queries(b);
+    let interior = interior_vertices(b);
+    let pos = b.vertex_positions();
+    let corners = b.patch_corners();
+    let (lo, hi) = in_block.iter().flat_map(|&k| corners[k].iter()).fold(
+        ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+        |(lo, hi), p| {
+            (
+                std::array::from_fn(|a| lo[a].min(p[a])),
+                std::array::from_fn(|a| hi[a].max(p[a])),
+            )
+        },
+    );
+    let on_block = |p: &[f32; 3]| {
+        (0..3).all(|a| {
+            let eps = 1e-4 * (hi[a] - lo[a]);
+            (lo[a] - eps..=hi[a] + eps).contains(&p[a])
+        })
+    };
+    let mut vertex_faces: Vec<(String, Vec<usize>)> = Vec::new();
+    for v in (0..pos.len()).filter(|&v| interior[v] && on_block(&pos[v])) {
+        let n = vn[v];
+        let axis = (0..3)
+            .max_by(|&a, &c| n[a].abs().total_cmp(&n[c].abs()))
+            .unwrap();
+        let name = label(axis, n[axis].signum());
+        if name.contains("unlit") && !name.starts_with("-y") {
+            match vertex_faces.iter_mut().find(|g| g.0 == name) {
+                Some(g) => g.1.push(v),
+                None => vertex_faces.push((name, vec![v])),
+            }
+        }
+    }
+    vertex_faces.sort_by(|a, c| a.0.cmp(&c.0));
+    let relit = |scene: &Scene, at: &[usize]| -> Vec<Rgb> {
+        let body = json!({ "lights": lights }).to_string();
+        let plan = relight::plan(scene, translux_proto::parse_json(&body).unwrap()).unwrap();
+        let radiance = relight::run(scene, &plan).unwrap().radiance;
+        at.iter().map(|&v| radiance[v]).collect()
+    };
+    let mut at_vertices = Vec::new();
+    let mut vertex_seconds = 0.0;
+    for (k, (name, at)) in vertex_faces.iter().enumerate() {
+        let mut again = input.clone();
+        again["queries"] = json!({
+            "points": at.iter().map(|&v| vp[v]).collect::<Vec<_>>(),
+            "normals": at.iter().map(|&v| vn[v]).collect::<Vec<_>>(),
+        });
+        again["spp"] = json!(8192);
+        again["seed"] = json!(4 + k);
+        let Some(deep) = mitsuba::run(&again) else {
+            return;
+        };
+        vertex_seconds += deep.seconds;
+        let (ed, es) = (
+            errors(&relit(&scene, at), &deep, 0.05),
+            errors(&relit(&sim_scene, at), &deep, 0.05),
+        );
+        let name = format!("block {name} at vertices (8192 paths)");
+        rows.push(table_row(&format!("{name}, dipole"), at.len(), &ed));
+        rows.push(table_row(&format!("{name}, simulated"), at.len(), &es));
+        at_vertices.push((name, ed, es));
+    }
     rows.push(table_row(
         &format!("the other {} objects, dipole block", objects.len() - 1),
         probes.len() - nb,
@@ -809,12 +896,13 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         &ews,
     ));
     println!(
-        "Cornell box, tall block a scattering medium (η = 1), {} patches; Mitsuba {:.1} s; \
-         walks: {} ({} events) in {:.1} s, noise {:.2}% median\n\
+        "Cornell box, tall block a scattering medium (η = 1), {} patches; Mitsuba {:.1} s \
+         (+ {:.1} s at vertices); walks: {} ({} events) in {:.1} s, noise {:.2}% median\n\
          | patches | points | median err | p90 err | Σ ours / Σ Mitsuba | Mitsuba noise (median) |\n\
          |---|---|---|---|---|---|\n{}",
         m.patch_count,
         reference.seconds,
+        vertex_seconds,
         info.walks,
         info.events,
         sim.seconds,
@@ -852,6 +940,27 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     // through the block and round it, is at 5.8%: the lamp's light enters slanted, and
     // S(μ₀) knows its angle but not which way it slants (docs/validation.md), so its bar
     // is 7%.
+    // At the vertices (issue #18's measure) the same: −x within 5%, −z 6.5% off, a bias
+    // (4–6% too dark in total) the vertices do not average away; its bar is 8%.
+    for (name, _, e) in &at_vertices {
+        assert!(
+            e.reference_noise < 0.03,
+            "{name}: Mitsuba too noisy: {:.3}",
+            e.reference_noise
+        );
+        let bar = if name.starts_with("block -z") {
+            0.08
+        } else {
+            0.05
+        };
+        assert!(
+            e.counted >= 10 && e.median < bar,
+            "simulated block, {name}: median {:.2}% over {} vertices (bar {:.0}%)",
+            100.0 * e.median,
+            e.counted,
+            100.0 * bar
+        );
+    }
     for (name, _, e) in &per_face {
         if e.counted >= 10 && !name.starts_with("-y") {
             let bar = if name.starts_with("-z") { 0.07 } else { 0.05 };
@@ -943,24 +1052,10 @@ fn lone_object_against_volpath(
     // the vertex's own value depend on the side, is left out), every other one.
     let mut seconds = reference.seconds;
     let (vp, vn) = vertex_queries(&s.bundle);
-    let mut angle = vec![0.0f32; vp.len()];
-    if !c.deep.is_empty() {
-        let pos = s.bundle.vertex_positions();
-        for t in s.bundle.triangle_vertices() {
-            for k in 0..3 {
-                let p = glam::Vec3::from(pos[t[k] as usize]);
-                let a = glam::Vec3::from(pos[t[(k + 1) % 3] as usize]) - p;
-                let b = glam::Vec3::from(pos[t[(k + 2) % 3] as usize]) - p;
-                angle[t[k] as usize] += a.angle_between(b);
-            }
-        }
-    }
+    let interior = interior_vertices(&s.bundle);
     for &(g, spp) in c.deep {
         let at: Vec<usize> = (0..vp.len())
-            .filter(|&v| {
-                (angle[v] - std::f32::consts::TAU).abs() < 1e-3
-                    && group(vp[v].map(|x| x / to_m), vn[v]) == g
-            })
+            .filter(|&v| interior[v] && group(vp[v].map(|x| x / to_m), vn[v]) == g)
             .step_by(2)
             .collect();
         let mut again = input.clone();
