@@ -490,9 +490,9 @@ fn polar_terms(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
     }
 }
 
-/// Point terms: radii `rho`, each of weight `c`, in coarse geometric bins, each replaced by
-/// its Gauss rule (the first bin reaches down to 0, where samples may touch).
-fn point_terms(rho: &[f32], c: f32, out: &mut Vec<Term>) {
+/// The coarse bins' edges of point samples at radii `rho`: geometric from the smallest
+/// radius above 0 to the largest, the first bin reaching down to 0 (where samples may touch).
+fn point_edges(rho: &[f32]) -> Vec<f64> {
     let last = rho.iter().cloned().fold(0.0f32, f32::max) as f64;
     let first = rho
         .iter()
@@ -502,6 +502,13 @@ fn point_terms(rho: &[f32], c: f32, out: &mut Vec<Term>) {
         .min(last);
     let mut e = coarse_edges(first, last);
     e[0] = 0.0;
+    e
+}
+
+/// Point terms: radii `rho`, each of weight `c`, in coarse geometric bins, each replaced by
+/// its Gauss rule (the first bin reaches down to 0, where samples may touch).
+fn point_terms(rho: &[f32], c: f32, out: &mut Vec<Term>) {
+    let e = point_edges(rho);
     let bins = e.len() - 1;
     // The samples bin by bin, each bin's in their given order (a stable counting sort), so
     // that each bin's moments are summed in registers: added straight into the bins'
@@ -1370,24 +1377,13 @@ mod tests {
         );
     }
 
-    /// A bin's three-node rule integrates ρᵏ, k ≤ 5, exactly over the measure it replaces
-    /// (a discrete one and the polar ring measure c ρ dρ), with nodes inside the bin and
-    /// positive weights; a two-point support gets its two points back.
     /// Point terms summed bin by bin (the samples sorted into their bins first) are the
     /// terms of one pass adding each sample to its bin as it comes, bit for bit: each bin
     /// sums the same samples in the same order.
     #[test]
     fn point_terms_sorted_into_bins_equal_one_pass_over_the_samples() {
         let one_pass = |rho: &[f32], c: f32| {
-            let last = rho.iter().cloned().fold(0.0f32, f32::max) as f64;
-            let first = rho
-                .iter()
-                .map(|&r| r as f64)
-                .filter(|&r| r > 1e-6 * last)
-                .fold(f64::INFINITY, f64::min)
-                .min(last);
-            let mut e = coarse_edges(first, last);
-            e[0] = 0.0;
+            let e = point_edges(rho);
             let mut bins = vec![Moments::default(); e.len() - 1];
             for &r in rho {
                 let r = r as f64;
@@ -1427,6 +1423,9 @@ mod tests {
         }
     }
 
+    /// A bin's three-node rule integrates ρᵏ, k ≤ 5, exactly over the measure it replaces
+    /// (a discrete one and the polar ring measure c ρ dρ), with nodes inside the bin and
+    /// positive weights; a two-point support gets its two points back.
     #[test]
     fn a_bins_gauss_rule_is_exact_to_degree_five() {
         let (a, h) = (2.0f64, 2.0f64);
