@@ -1,12 +1,20 @@
-//! Times the reduction of a bundle's S to radial terms: what a scene's first translucency
-//! change on the CPU spends before it writes S (`engine::smatrix::terms_of_bundle`).
+//! Times the two parts of a translucency change on the CPU that S's radial terms serve:
+//! the reduction of a bundle's S to radial terms, what a scene's first translucency change
+//! spends before it writes S (`engine::smatrix::terms_of_bundle`); and, with `--rewrite`, a
+//! translucency slider's steps: S's rows of every dipole object rewritten in place from its
+//! terms (`engine::smatrix::rewrite_with_terms`), what every later change spends before
+//! its solve.
 //!
-//! In: a bundle folder, and how many times to reduce it (default 3). Out: one line per
-//! reduction (wall time, entries, terms, MiB held). Run it under `/usr/bin/time` for the CPU
-//! time, which this 2-core VM's neighbours disturb less than the wall time.
+//! In: a bundle folder, how many times (default 3 reductions, or 12 slider steps), and
+//! `--rewrite`. Out: one line per reduction (wall time, entries, terms, MiB held); with
+//! `--rewrite`, one reduction, then one line per step (the scale, wall time, each object's
+//! part of it, the entries written) and the median and fastest step. The steps are the drag
+//! `table1` times (0.9, 1, 1.137, 1.274, …), every dipole object scaled alike. Run it under
+//! `/usr/bin/time` for the CPU time, which this 2-core VM's neighbours disturb less than the
+//! wall time.
 //!
 //! ```sh
-//! cargo run --release -p translux-engine --example s_terms -- BUNDLE_DIR [TIMES]
+//! cargo run --release -p translux-engine --example s_terms -- BUNDLE_DIR [TIMES] [--rewrite]
 //! ```
 
 use std::path::PathBuf;
@@ -14,21 +22,35 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use translux_engine::smatrix::{self, SParams};
+use translux_engine::sterms::{STerms, Scratch};
 use translux_proto::bundle::Bundle;
+use translux_proto::scene::{Material, Profile};
+
+const USAGE: &str = "usage: s_terms BUNDLE_DIR [TIMES] [--rewrite]";
 
 fn main() -> ExitCode {
-    let mut args = std::env::args().skip(1);
-    let Some(dir) = args.next().map(PathBuf::from) else {
-        eprintln!("usage: s_terms BUNDLE_DIR [TIMES]");
-        return ExitCode::from(2);
-    };
-    let times = match args.next().map(|t| t.parse::<u32>()) {
-        None => 3,
-        Some(Ok(t)) if (1..=100).contains(&t) => t,
-        Some(_) => {
-            eprintln!("TIMES must be a whole number from 1 to 100");
+    let (mut dir, mut times, mut rewrite) = (None, None, false);
+    for a in std::env::args().skip(1) {
+        if a == "--rewrite" {
+            rewrite = true;
+        } else if dir.is_none() {
+            dir = Some(PathBuf::from(a));
+        } else if times.is_none() {
+            match a.parse::<u32>() {
+                Ok(t) if (1..=100).contains(&t) => times = Some(t),
+                _ => {
+                    eprintln!("TIMES must be a whole number from 1 to 100, got {a:?}");
+                    return ExitCode::from(2);
+                }
+            }
+        } else {
+            eprintln!("{USAGE}");
             return ExitCode::from(2);
         }
+    }
+    let Some(dir) = dir else {
+        eprintln!("{USAGE}");
+        return ExitCode::from(2);
     };
     let bundle = match Bundle::open(&dir) {
         Ok(b) => b,
@@ -38,8 +60,10 @@ fn main() -> ExitCode {
         }
     };
     let params = SParams::default();
+    let times = times.unwrap_or(if rewrite { 12 } else { 3 });
     println!("| reduction | seconds | entries | terms | MiB |\n|---|---|---|---|---|");
-    for k in 1..=times {
+    let mut terms = None;
+    for k in 1..=if rewrite { 1 } else { times } {
         let start = Instant::now();
         let t = smatrix::terms_of_bundle(&bundle, &params.quadrature);
         println!(
@@ -49,6 +73,95 @@ fn main() -> ExitCode {
             t.terms(),
             t.bytes() as f64 / (1u64 << 20) as f64
         );
+        terms = Some(t);
     }
+    match terms {
+        Some(t) if rewrite => slider(&bundle, &params, &t, times),
+        _ => ExitCode::SUCCESS,
+    }
+}
+
+/// Every dipole object's material with its mean free path × `s`.
+fn overrides(bundle: &Bundle, s: f32) -> Vec<(usize, Material)> {
+    let objects = &bundle.manifest().objects;
+    objects
+        .iter()
+        .enumerate()
+        .filter_map(|(k, o)| {
+            let mut m = o.material.clone();
+            let Material::Translucent {
+                profile: Profile::Dipole { scale, .. },
+                ..
+            } = &mut m
+            else {
+                return None;
+            };
+            *scale = Some(scale.unwrap_or(1.0) * s);
+            Some((k, m))
+        })
+        .collect()
+}
+
+/// Times `steps` translucency changes written in place, after an untimed first one.
+fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> ExitCode {
+    let first = overrides(bundle, 0.9);
+    if first.is_empty() {
+        eprintln!("the bundle has no dipole object to change");
+        return ExitCode::FAILURE;
+    }
+    let mut s = match smatrix::rebuild_with_terms_and_tilt(bundle, &first, params, terms) {
+        Ok((s, ..)) => s,
+        Err(e) => {
+            eprintln!("cannot build S: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let mut scratch = Scratch::default();
+    let (mut before, mut times) = (first, Vec::new());
+    println!("\n| step | scale | ms | ms per object | entries |\n|---|---|---|---|---|");
+    for k in 0..steps {
+        let scale = 1.0 + 0.137 * k as f32;
+        let after = overrides(bundle, scale);
+        let Some(changed) = smatrix::changed_profiles(&before, &after, terms) else {
+            eprintln!("step {k} is not a translucency change");
+            return ExitCode::FAILURE;
+        };
+        let start = Instant::now();
+        let reports;
+        (s, reports) = match smatrix::rewrite_with_terms(
+            bundle,
+            s,
+            &after,
+            &changed,
+            params,
+            terms,
+            &mut scratch,
+        ) {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("step {k}: {e}");
+                return ExitCode::FAILURE;
+            }
+        };
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let entries: u64 = reports.iter().map(|r| r.entries).sum();
+        let objects: Vec<String> = reports
+            .iter()
+            .map(|r| format!("{} {:.1}", r.name, r.seconds * 1e3))
+            .collect();
+        println!(
+            "| {} | {scale:.3} | {ms:.1} | {} | {entries} |",
+            k + 1,
+            objects.join(", ")
+        );
+        times.push(ms);
+        before = after;
+    }
+    times.sort_by(f64::total_cmp);
+    println!(
+        "median {:.1} ms, fastest {:.1} ms over {steps} steps",
+        times[times.len() / 2],
+        times[0]
+    );
     ExitCode::SUCCESS
 }
