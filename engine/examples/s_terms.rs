@@ -8,7 +8,8 @@
 //! In: a bundle folder, how many times (default 3 reductions, or 12 slider steps), and
 //! `--rewrite`. Out: one line per reduction (wall time, entries, terms, MiB held); with
 //! `--rewrite`, one reduction, then one line per step (the scale, wall time, each object's
-//! part of it, the entries written) and the median and fastest step. The steps are the drag
+//! part of it, the entries written), the median and fastest step, and a hash of S's values
+//! after the last step (equal for two builds that write the same S bit for bit). The steps are the drag
 //! `table1` times (0.9, 1, 1.137, 1.274, …), every dipole object scaled alike. Run it under
 //! `/usr/bin/time` for the CPU time, which this 2-core VM's neighbours disturb less than the
 //! wall time.
@@ -158,8 +159,18 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         before = after;
     }
     times.sort_by(f64::total_cmp);
+    // FNV-1a over the bits of S's values after the last step: equal between two builds
+    // when they write the same S bit for bit.
+    let hash = s
+        .view()
+        .val()
+        .iter()
+        .flatten()
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
+            (h ^ v.to_bits() as u64).wrapping_mul(0x0100_0000_01b3)
+        });
     println!(
-        "median {:.1} ms, fastest {:.1} ms over {steps} steps",
+        "median {:.1} ms, fastest {:.1} ms over {steps} steps; S after the last: {hash:016x}",
         times[times.len() / 2],
         times[0]
     );

@@ -39,6 +39,7 @@ use std::ops::Range;
 use glam::Vec3;
 use rayon::prelude::*;
 use translux_proto::csr::CsrView;
+use wide::f32x4;
 
 use crate::sheet;
 use crate::subsurface::{
@@ -107,7 +108,9 @@ pub enum Of {
 
 /// A table that terms are summed under: its end (√ of its radius) computed once, and R's
 /// cells laid out for the common term (R at a node inside the table), each cell's start
-/// and rise side by side in one 32-byte row, so that term is one multiply and one row read.
+/// and rise side by side in one 32-byte row of two 4-lane vectors, so that term is one
+/// multiply, one row read and two 4-lane operations (`wide`: the same sums as per
+/// channel, lane by lane, on stable Rust).
 #[derive(Debug, Clone)]
 pub struct TermTable<'a> {
     tab: &'a Tabulated,
@@ -115,8 +118,9 @@ pub struct TermTable<'a> {
     /// Cells per unit of √r, and their count.
     scale: f32,
     cells_f: f32,
-    /// R at each cell's start, then its rise over the cell (per channel), then padding.
-    cells: Vec<[f32; 8]>,
+    /// R at each cell's start, then its rise over the cell (lanes 0–2 the channels, lane
+    /// 3 zero).
+    cells: Vec<[f32x4; 2]>,
 }
 
 impl<'a> TermTable<'a> {
@@ -124,14 +128,11 @@ impl<'a> TermTable<'a> {
         let (_, r, _) = tab.grid();
         let n = r.len() - 1;
         let end = tab.root_max();
+        let lanes = |v: [f32; 3]| f32x4::from([v[0], v[1], v[2], 0.0]);
         let cells = (0..n)
             .map(|k| {
-                let mut c = [0.0f32; 8];
-                for ch in 0..3 {
-                    c[ch] = r[k][ch];
-                    c[3 + ch] = r[k + 1][ch] - r[k][ch];
-                }
-                c
+                let rise = std::array::from_fn(|ch| r[k + 1][ch] - r[k][ch]);
+                [lanes(r[k]), lanes(rise)]
             })
             .collect();
         TermTable {
@@ -153,36 +154,39 @@ impl<'a> TermTable<'a> {
     pub fn r_root(&self, root: f32) -> [f32; 3] {
         let x = root.max(0.0) * self.scale;
         if x < self.cells_f {
-            let k = x as usize;
-            let f = x - k as f32;
-            let c = &self.cells[k];
-            std::array::from_fn(|ch| c[ch] + f * c[3 + ch])
+            let v = self.cell(x).to_array();
+            [v[0], v[1], v[2]]
         } else {
             [0.0; 3]
         }
     }
 
+    /// R at `x` = √r × `scale`, 0 ≤ x < `cells_f`, in lanes 0–2. The cell goes through
+    /// i32, not usize: a float's conversion to and from a 64-bit unsigned integer takes
+    /// several times the instructions on x86-64 (a tenth of a rewrite's), and the cells
+    /// (4,096) are far inside i32's range.
+    #[inline]
+    fn cell(&self, x: f32) -> f32x4 {
+        let k = x as i32;
+        let f = x - k as f32;
+        let [start, rise] = self.cells[k as usize];
+        start + f32x4::splat(f) * rise
+    }
+
     /// Σ of packed terms ((√r, weight), √r negated for W) whose R cells all lie inside the
     /// table: [`TermTable::eval`]'s value for each, R read from one row of `cells`.
     #[inline]
-    fn sum_packed(&self, terms: &[[f32; 2]]) -> [f32; 3] {
-        let mut s = [0.0f32; 3];
+    fn sum_packed(&self, terms: &[[f32; 2]]) -> f32x4 {
+        let mut s = f32x4::ZERO;
         for &[root, weight] in terms {
             if root.is_sign_negative() {
                 let v = self.tab.w_root(-root);
-                for ch in 0..3 {
-                    s[ch] += v[ch] * weight;
-                }
+                s += f32x4::from([v[0], v[1], v[2], 0.0]) * f32x4::splat(weight);
                 continue;
             }
             let x = root * self.scale;
             if x < self.cells_f {
-                let k = x as usize;
-                let f = x - k as f32;
-                let c = &self.cells[k];
-                for ch in 0..3 {
-                    s[ch] += (c[ch] + f * c[3 + ch]) * weight;
-                }
+                s += self.cell(x) * f32x4::splat(weight);
             }
         }
         s
@@ -638,6 +642,19 @@ pub struct Written {
     pub finite: bool,
 }
 
+/// Rows written into a local pattern: each row's columns, its values, and what the write
+/// did ([`ObjectTerms::write_local`]).
+type LocalWrite = (Vec<Vec<u32>>, Vec<Vec<[f32; 3]>>, Written);
+
+/// One stored entry's fields ([`ObjectTerms::value`]).
+struct EntryRef {
+    src: usize,
+    dist: f32,
+    hi_max: f32,
+    opposite: bool,
+    terms: Range<usize>,
+}
+
 /// One row of S as [`ObjectTerms::write`] fills it: its columns and its values.
 type Row<'a> = (&'a [u32], &'a mut [[f32; 3]]);
 
@@ -765,38 +782,42 @@ impl ObjectTerms {
         }
     }
 
-    /// Entry e's sum under `tab`, before the energy bound (0 where not kept).
+    /// An entry's sum under `tab` in lanes 0–2 (lane 3 is 0), before the energy bound (0
+    /// where not kept), and whether it is kept (the self term, or some channel above 0).
+    /// The entry is given by its fields (`e`'s `src`, `dist`, `hi_max`, `opposite` and its
+    /// terms' range), which a row's pass reads side by side.
     #[inline]
-    fn value(&self, e: usize, j: usize, same: &TermTable<'_>, other: &TermTable<'_>) -> [f32; 3] {
-        let tab = if self.opposite[e] { other } else { same };
-        let self_term = self.src[e] as usize == j;
-        if !self_term && self.dist[e] >= tab.r_max() {
-            return [0.0; 3];
+    fn value(
+        &self,
+        e: EntryRef,
+        j: usize,
+        same: &TermTable<'_>,
+        other: &TermTable<'_>,
+    ) -> (f32x4, bool) {
+        let tab = if e.opposite { other } else { same };
+        let self_term = e.src == j;
+        if !self_term && e.dist >= tab.r_max() {
+            return (f32x4::ZERO, false);
         }
-        let range = self.term_ptr[e] as usize..self.term_ptr[e + 1] as usize;
-        let s = if self.hi_max[e] <= tab.end {
+        let range = e.terms;
+        let s = if e.hi_max <= tab.end {
             tab.sum_packed(&self.packed[range])
         } else {
             // A table ends inside some of its cells: those terms count the part below the
             // end ([`TermTable::eval`]), the others are summed as usual.
-            let mut s = [0.0f32; 3];
+            let mut s = f32x4::ZERO;
             for t in range {
-                let v = if self.bounds[t][1] <= tab.end {
+                s += if self.bounds[t][1] <= tab.end {
                     tab.sum_packed(std::slice::from_ref(&self.packed[t]))
                 } else {
-                    tab.eval(&self.term(t))
+                    let v = tab.eval(&self.term(t));
+                    f32x4::from([v[0], v[1], v[2], 0.0])
                 };
-                for c in 0..3 {
-                    s[c] += v[c];
-                }
             }
             s
         };
-        if self_term || s.iter().any(|&v| v > 0.0) {
-            s
-        } else {
-            [0.0; 3]
-        }
+        let kept = self_term | (s.simd_gt(f32x4::ZERO).to_bitmask() != 0);
+        (if kept { s } else { f32x4::ZERO }, kept)
     }
 
     /// S of the object (local indices) under the profiles tabulated by `same` (a
@@ -805,6 +826,29 @@ impl ObjectTerms {
     /// quadrature's assembly. [`ObjectTerms::write`] into a local pattern, entries written 0
     /// left out.
     pub fn assemble(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> ObjectS {
+        let (cols, vals, written) = self.write_local(area, same, other);
+        let report = written.report;
+        let rows = cols
+            .into_iter()
+            .zip(vals)
+            .enumerate()
+            .map(|(j, (c, v))| {
+                c.into_iter()
+                    .zip(v)
+                    .filter(|&(i, s)| i as usize == j || s.iter().any(|&x| x > 0.0))
+                    .collect()
+            })
+            .collect();
+        ObjectS {
+            rows,
+            links: Vec::new(),
+            report,
+        }
+    }
+
+    /// [`ObjectTerms::write`] into a fresh local pattern without links: each row's columns
+    /// and values, and what the write did.
+    fn write_local(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> LocalWrite {
         let pattern = self.pattern(0, false);
         let cols: Vec<Vec<u32>> = pattern
             .iter()
@@ -822,25 +866,8 @@ impl ObjectTerms {
             n: area.len(),
             nodes: None,
         };
-        let report = self
-            .write(area, same, other, at, out, &mut Scratch::default())
-            .report;
-        let rows = cols
-            .into_iter()
-            .zip(vals)
-            .enumerate()
-            .map(|(j, (c, v))| {
-                c.into_iter()
-                    .zip(v)
-                    .filter(|&(i, s)| i as usize == j || s.iter().any(|&x| x > 0.0))
-                    .collect()
-            })
-            .collect();
-        ObjectS {
-            rows,
-            links: Vec::new(),
-            report,
-        }
+        let written = self.write(area, same, other, at, out, &mut Scratch::default());
+        (cols, vals, written)
     }
 
     /// Adds the links of rows `r` (this object's patches) to whole cluster nodes, from the
@@ -965,7 +992,10 @@ impl ObjectTerms {
                 sums.column.resize(n, [0.0; 3]);
                 sums.node.clear();
                 sums.node.resize(node_count, [0.0; 3]);
-                (sums.kept, sums.linked, sums.finite) = (0, 0, true);
+                (sums.kept, sums.linked) = (0, 0);
+                // Σ 0·x over every value written: 0 while all are finite, NaN after any
+                // that is not (cheaper than testing each).
+                let mut probe = f32x4::ZERO;
                 for (j, (cols, out)) in chunk.iter_mut() {
                     let j = *j;
                     let entries = self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize;
@@ -979,16 +1009,35 @@ impl ObjectTerms {
                         "row {j} is not laid out as ObjectTerms::pattern made it"
                     );
                     let (direct, tail) = out.split_at_mut(entries.len());
-                    for (o, e) in direct.iter_mut().zip(entries) {
-                        let v = self.value(e, j, &same, &other);
-                        let i = self.src[e] as usize;
-                        debug_assert_eq!(cols[e - self.row_ptr[j] as usize] as usize, at.start + i);
-                        sums.kept += (i == j || v.iter().any(|&x| x > 0.0)) as u64;
+                    let aj = area[j];
+                    // The row's entries' fields side by side: one bounds check a row, not
+                    // five an entry.
+                    let fields = self.src[entries.clone()]
+                        .iter()
+                        .zip(&self.dist[entries.clone()])
+                        .zip(&self.hi_max[entries.clone()])
+                        .zip(&self.opposite[entries.clone()])
+                        .zip(self.term_ptr[entries.start..=entries.end].windows(2));
+                    for (k, (o, ((((&i, &dist), &hi_max), &opposite), t))) in
+                        direct.iter_mut().zip(fields).enumerate()
+                    {
+                        let i = i as usize;
+                        let e = EntryRef {
+                            src: i,
+                            dist,
+                            hi_max,
+                            opposite,
+                            terms: t[0] as usize..t[1] as usize,
+                        };
+                        let (v, kept) = self.value(e, j, &same, &other);
+                        debug_assert_eq!(cols[k] as usize, at.start + i);
+                        sums.kept += kept as u64;
+                        probe += v * f32x4::ZERO;
+                        let v = v.to_array();
                         for (t, x) in sums.column[i].iter_mut().zip(v) {
-                            *t += area[j] * x;
+                            *t += aj * x;
                         }
-                        sums.finite &= v.iter().all(|x| x.is_finite());
-                        *o = v;
+                        *o = [v[0], v[1], v[2]];
                     }
                     let Some(nodes) = at.nodes else {
                         tail.fill([0.0; 3]);
@@ -996,25 +1045,27 @@ impl ObjectTerms {
                     };
                     // Links: node k's A_k R(r), read through the table of the entry's kind.
                     let node_cols = &cols[direct.len()..];
-                    for ((o, &c), l) in tail.iter_mut().zip(node_cols).zip(links) {
-                        let tab = if self.links.opposite[l] {
-                            &other
-                        } else {
-                            &same
-                        };
-                        let root = self.links.root[l];
+                    let fields = self.links.root[links.clone()]
+                        .iter()
+                        .zip(&self.links.opposite[links]);
+                    for ((o, &c), (&root, &opposite)) in tail.iter_mut().zip(node_cols).zip(fields)
+                    {
+                        let tab = if opposite { &other } else { &same };
                         sums.linked += (root < tab.end) as u64;
                         let r = tab.r_root(root);
                         let k = c as usize - at.n;
                         let a = nodes.area[k];
                         let node = &mut sums.node[k - self.links.nodes.start];
                         for ch in 0..3 {
-                            node[ch] += area[j] * r[ch];
+                            node[ch] += aj * r[ch];
                         }
-                        *o = r.map(|v| v * a);
-                        sums.finite &= o.iter().all(|x| x.is_finite());
+                        let v = f32x4::from([r[0], r[1], r[2], 0.0]) * f32x4::splat(a);
+                        probe += v * f32x4::ZERO;
+                        let v = v.to_array();
+                        *o = [v[0], v[1], v[2]];
                     }
                 }
+                sums.finite = probe.to_array().iter().all(|&x| x == 0.0);
             });
         // The blocks' sums, in order.
         let mut column = vec![[0.0f32; 3]; n];
@@ -1498,21 +1549,18 @@ mod tests {
     /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
     /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
     /// columns are and are not scaled, with pairs past the table's reach left out.
-    #[test]
-    fn rows_written_in_row_order_equal_the_transposed_columns() {
+    /// A sheet of `cells` × `cells` unit cells (two triangles each) placed by `point`, its
+    /// pairs within `reach` stored, reduced to terms.
+    fn sheet_terms(
+        cells: usize,
+        point: impl Fn(f32, f32) -> Vec3,
+        reach: f32,
+    ) -> (crate::smatrix::PatchGeometry, ObjectTerms) {
         use crate::smatrix::{PatchGeometry, object_patches};
         use translux_proto::csr::CsrBuilder;
-        // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.
-        let point = |x: f32, y: f32| {
-            if x <= 3.0 {
-                Vec3::new(x, y, 0.0)
-            } else {
-                Vec3::new(3.0, y, x - 3.0)
-            }
-        };
         let mut corners = Vec::new();
-        for a in 0..6 {
-            for b in 0..6 {
+        for a in 0..cells {
+            for b in 0..cells {
                 let (x, y) = (a as f32, b as f32);
                 corners.push([point(x, y), point(x + 1.0, y), point(x + 1.0, y + 1.0)]);
                 corners.push([point(x, y), point(x + 1.0, y + 1.0), point(x, y + 1.0)]);
@@ -1525,7 +1573,7 @@ mod tests {
             let row: Vec<(u32, f32)> = (0..n)
                 .filter(|&j| j != i)
                 .map(|j| (j as u32, g.centroid[i].distance(g.centroid[j])))
-                .filter(|&(_, r)| r < 5.0)
+                .filter(|&(_, r)| r < reach)
                 .collect();
             d.push_row(&row).unwrap();
         }
@@ -1533,6 +1581,40 @@ mod tests {
         let p = object_patches(&g, 0..n);
         let params = SubsurfaceParams::default();
         let t = ObjectTerms::build(p, d.view().unwrap(), false, &|_| false, &params);
+        (g, t)
+    }
+
+    #[test]
+    fn a_write_reports_whether_every_value_it_wrote_is_finite() {
+        // A flat 40 × 40 mm sheet of 10 mm cells, every pair within 30 mm stored.
+        let (g, t) = sheet_terms(4, |x, y| Vec3::new(10.0 * x, 10.0 * y, 0.0), 30.0);
+        let write = |tab: &Tabulated| {
+            let (_, vals, w) = t.write_local(&g.area, tab, tab);
+            let all_finite = vals.iter().flatten().flatten().all(|x| x.is_finite());
+            (w.finite, all_finite)
+        };
+        assert_eq!(write(&table(1.0, 30.0)), (true, true), "marble");
+        // A profile near f32's largest value: weighed by 10 mm cells' areas, it overflows.
+        let huge = Profile::Table {
+            radius_mm: vec![0.0, 30.0],
+            values: vec![[3.0e38; 3], [3.0e38; 3]],
+        };
+        let tab = Tabulated::new(&ProfileEval::new(&huge, 1.0).unwrap(), 30.0, 4096);
+        assert_eq!(write(&tab), (false, false), "a profile that overflows");
+    }
+
+    #[test]
+    fn rows_written_in_row_order_equal_the_transposed_columns() {
+        // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.
+        let point = |x: f32, y: f32| {
+            if x <= 3.0 {
+                Vec3::new(x, y, 0.0)
+            } else {
+                Vec3::new(3.0, y, x - 3.0)
+            }
+        };
+        let (g, t) = sheet_terms(6, point, 5.0);
+        let n = g.area.len();
         // The bound weighs columns by area: every third patch counted 6 times as large
         // drives its neighbours' columns past 1.
         let area: Vec<f32> = (0..n)
