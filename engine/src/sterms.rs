@@ -1545,10 +1545,6 @@ mod tests {
         );
     }
 
-    /// The rows a rebuild writes in row order equal, to f32 rounding, the transpose of
-    /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
-    /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
-    /// columns are and are not scaled, with pairs past the table's reach left out.
     /// A sheet of `cells` × `cells` unit cells (two triangles each) placed by `point`, its
     /// pairs within `reach` stored, reduced to terms.
     fn sheet_terms(
@@ -1584,6 +1580,8 @@ mod tests {
         (g, t)
     }
 
+    /// A write's `finite` says whether every value it wrote is finite: true under marble,
+    /// false under a profile whose values overflow once weighed by the cells' areas.
     #[test]
     fn a_write_reports_whether_every_value_it_wrote_is_finite() {
         // A flat 40 × 40 mm sheet of 10 mm cells, every pair within 30 mm stored.
@@ -1603,6 +1601,10 @@ mod tests {
         assert_eq!(write(&tab), (false, false), "a profile that overflows");
     }
 
+    /// The rows a rebuild writes in row order equal, to f32 rounding, the transpose of
+    /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
+    /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
+    /// columns are and are not scaled, with pairs past the table's reach left out.
     #[test]
     fn rows_written_in_row_order_equal_the_transposed_columns() {
         // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.
