@@ -75,8 +75,8 @@ struct Cli {
     #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
     s_trace: TraceArg,
     /// Hierarchical S traced on demand only: trace every path on the full voxel grid. By
-    /// default the runs from linked nodes and distant direct patches find their targets 16
-    /// voxels away or more on a grid of twice the voxel edge (about an eighth of the work;
+    /// default the runs (from each patch, distant patch and linked node) find their targets
+    /// 16 voxels away or more on a grid of twice the voxel edge (about an eighth of the work;
     /// those distances then differ slightly from `--s-trace all`'s); with this flag the
     /// bundle equals `--s-trace all`'s bit for bit.
     #[arg(long)]

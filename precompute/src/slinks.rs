@@ -39,9 +39,9 @@
 //! are settled. A large or very translucent object (the bowls' bunny in skim milk: every
 //! patch within reach of every other) then never lists its O(n²) pairs. The two ways give
 //! the same distances bit for bit, except that by default ([`SLinkParams::coarse_links`])
-//! the node runs and the distant candidates' runs find their targets 16 voxels away or
-//! more on a grid of twice the voxel edge, an eighth of the voxels to settle
-//! ([`Oracle::solve_far`]).
+//! every run finds its targets 16 voxels away or more on a grid of twice the voxel edge,
+//! an eighth of the voxels to settle ([`Oracle::solve_far`]); the fine grid's run then
+//! stops at the farthest of the nearer ones.
 //!
 //! Thin sheets are cut the same way along their geodesics, a node being linked only when its
 //! normal cone is at most 45° wide (so it holds one side) and the link taking its
@@ -85,13 +85,14 @@ pub struct SLinkParams {
     pub accuracy: f32,
     /// How a homogeneous translucent object's optical distances are traced.
     pub trace: Trace,
-    /// Traced on demand only: the runs from linked nodes' representatives and from distant
-    /// direct candidates find their targets at least [`crate::voxel::FAR_RUN_VOXELS`]
-    /// coarse voxels away (16 voxels) on a grid of twice the voxel edge
-    /// ([`Oracle::solve_far`]), settling about an eighth of the voxels; those distances then
-    /// differ slightly from [`Trace::All`]'s (on the scanned bunny in skim milk, S stays as
-    /// close to the pairwise S: `precompute/tests/it/slinks.rs`). Default true; `false`
-    /// keeps the bundle equal to `Trace::All`'s bit for bit (`--s-exact-links`).
+    /// Traced on demand only: every run (from a receiver to its direct candidates, from a
+    /// distant candidate, from a linked node's representative) finds its targets at least
+    /// [`crate::voxel::FAR_RUN_VOXELS`] coarse voxels away (16 voxels) on a grid of twice
+    /// the voxel edge ([`Oracle::solve_far`]), settling about an eighth of the voxels;
+    /// those distances then differ slightly from [`Trace::All`]'s (on the scanned bunny in
+    /// skim milk, the U, the cube and a thin bowl, S stays as close to the pairwise S:
+    /// `precompute/tests/it/slinks.rs`). Default true; `false` keeps the bundle equal to
+    /// `Trace::All`'s bit for bit (`--s-exact-links`).
     pub coarse_links: bool,
 }
 
@@ -320,11 +321,12 @@ impl<'a> Cutter<'a> {
         }
     }
 
-    /// The distances of runs whose targets are mostly far (linked nodes, distant
-    /// candidates): those 16 voxels away or more on the coarse grid with
-    /// [`SLinkParams::coarse_links`], every one on the full grid otherwise; and how many
-    /// jobs had a coarse run.
-    fn far_runs(&self, oracle: &Oracle, jobs: &[(u32, Vec<u32>)]) -> (Vec<Vec<f32>>, usize) {
+    /// The distances of runs (source, targets): the targets 16 voxels away or more on the
+    /// coarse grid with [`SLinkParams::coarse_links`], every one on the full grid
+    /// otherwise; and how many jobs had a coarse run. A receiver's run to its direct
+    /// candidates goes about 25 voxels on the bowls' bunny; its fine part then stops at 16
+    /// and the rest costs an eighth: `docs/benchmarks.md`.
+    fn runs(&self, oracle: &Oracle, jobs: &[(u32, Vec<u32>)]) -> (Vec<Vec<f32>>, usize) {
         if self.coarse_links {
             oracle.solve_far(jobs)
         } else {
@@ -656,14 +658,14 @@ fn cut_on_demand(
             direct_d[jl as usize][k] = d;
         }
     };
-    for ((jl, mine), ds) in jobs.iter().zip(oracle.solve(&jobs)) {
+    for ((jl, mine), ds) in jobs.iter().zip(cutter.runs(oracle, &jobs).0) {
         for (&i, d) in mine.iter().zip(ds) {
             put(*jl, i, d);
         }
     }
     drop(jobs);
     let far_jobs: Vec<(u32, Vec<u32>)> = distant.into_iter().collect();
-    for ((i, receivers), ds) in far_jobs.iter().zip(cutter.far_runs(oracle, &far_jobs).0) {
+    for ((i, receivers), ds) in far_jobs.iter().zip(cutter.runs(oracle, &far_jobs).0) {
         for (&jl, d) in receivers.iter().zip(ds) {
             put(jl, *i, d);
         }
@@ -679,7 +681,7 @@ fn cut_on_demand(
         .into_iter()
         .map(|(q, receivers)| (q, (rep[q as usize] - base, receivers)))
         .unzip();
-    let (link_d, coarse) = cutter.far_runs(oracle, &jobs);
+    let (link_d, coarse) = cutter.runs(oracle, &jobs);
     runs.0 += jobs.len() as u64;
     runs.1 += coarse as u64;
     // Back to receivers: (node, distance) per receiver.

@@ -8,8 +8,10 @@
 //!
 //! Every distance equals the one [`optical_distances`] stores for the same pair, bit for
 //! bit: the same entry voxels, the same graph-length bound, the same detour correction;
-//! Dijkstra stops once its targets are settled, and settled lengths are final. (Except the
-//! far targets of [`Oracle::solve_far`], found on a coarser grid.)
+//! Dijkstra stops once its targets are settled, and settled lengths are final. A target
+//! that a straight interior path reaches gets its free-space length without a search
+//! ([`straight_length`]): the length a search would settle it at. (Except the far targets
+//! of [`Oracle::solve_far`], found on a coarser grid.)
 
 use std::sync::OnceLock;
 
@@ -210,9 +212,11 @@ impl Oracle {
     /// grid, which stops at the farthest of them. The far distances are no longer those
     /// [`optical_distances`] stores: the coarse interior covers the fine one, so a path may
     /// cut a corner up to about a coarse voxel shorter (`voxel::tests`: within a coarse
-    /// voxel and 4% of the path, the median unchanged). For the links of a hierarchical S,
-    /// whose nodes are evaluated at one representative point anyway. Returns the rows and
-    /// how many jobs had a run on the coarse grid.
+    /// voxel and 4% of the path, the median unchanged). For a hierarchical S, whose far
+    /// pairs' profile is smooth over such a change (links, evaluated at one representative
+    /// point anyway, and direct pairs 16 voxels apart: `precompute/tests/it/slinks.rs`
+    /// holds S so made to the pairwise bounds). Returns the rows and how many jobs had a run
+    /// on the coarse grid.
     pub fn solve_far(&self, jobs: &[(u32, Vec<u32>)]) -> (Vec<Row>, usize) {
         let Some(tp) = &self.traced else {
             return (self.solve_straight(jobs), 0);
@@ -314,10 +318,26 @@ impl Oracle {
                     want.dedup();
                     let own = tp.own_offset[jobs[run[0] as usize].0 as usize];
                     let gmax = graph_bound(r, own, t.max_offset, t.grid.size);
-                    dijkstra_to(src_voxel, &t.offsets, gmax, &want, s);
+                    // Targets seen along a straight interior path have their free-space
+                    // length; a run searches only for the rest, and stops at the farthest
+                    // of those.
                     let mut glen = vec![NONE; want.len()];
-                    for &(w, g) in &s.reached {
-                        glen[w as usize] = g;
+                    let mut searched = Vec::new();
+                    for (w, &v) in want.iter().enumerate() {
+                        match straight_length(&t.grid, &t.inside, src_voxel, v) {
+                            // Beyond the bound, a run would not settle it either.
+                            Some(g) if g <= u64::from(gmax) => glen[w] = g as u32,
+                            Some(_) => {}
+                            None => searched.push(w as u32),
+                        }
+                    }
+                    if !searched.is_empty() {
+                        let targets: Vec<u32> =
+                            searched.iter().map(|&w| want[w as usize]).collect();
+                        dijkstra_to(src_voxel, &t.offsets, gmax, &targets, s);
+                        for &(k, g) in &s.reached {
+                            glen[searched[k as usize] as usize] = g;
+                        }
                     }
                     run.iter()
                         .map(|&k| {

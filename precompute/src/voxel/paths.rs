@@ -33,6 +33,48 @@ pub(super) fn chamfer(d: [i64; 3]) -> u64 {
     (a - b) * u64::from(W[0]) + (b - c) * u64::from(W[1]) + c * u64::from(W[2])
 }
 
+/// The graph length (×UNIT) from voxel `a` to voxel `b` when the interior holds a shortest
+/// free-space path between them, `None` when the one tried leaves it. The one tried keeps
+/// nearest the straight segment, built by nesting two Bresenham steppers: along the axes
+/// sorted by |Δ| (p ≥ q ≥ r), each of its p steps moves along the first axis, q of them
+/// also along the second and r of those also along the third: r corner, q − r edge and
+/// p − q face steps, [`chamfer`]'s length exactly. No interior path is shorter than the
+/// shortest path through all space, so a search would settle `b` at that length, bit for
+/// bit. O(p) lookups, where a run of [`dijkstra_to`] settles the whole ball around `a`.
+pub(super) fn straight_length(grid: &Grid, inside: &[bool], a: u32, b: u32) -> Option<u64> {
+    let (ca, cb) = (grid.coords(a as usize), grid.coords(b as usize));
+    let d = [cb[0] - ca[0], cb[1] - ca[1], cb[2] - ca[2]];
+    let stride = [
+        1i64,
+        grid.dims[0] as i64,
+        (grid.dims[0] * grid.dims[1]) as i64,
+    ];
+    let mut axes = [0usize, 1, 2].map(|k| (d[k].abs(), d[k].signum() * stride[k]));
+    axes.sort_unstable_by_key(|x| std::cmp::Reverse(x.0));
+    let [(np, sp), (nq, sq), (nr, sr)] = axes;
+    // Started half way, so the path runs symmetrically about the segment.
+    let (mut eq, mut er) = (np / 2, nq / 2);
+    let mut v = i64::from(a);
+    for _ in 0..np {
+        v += sp;
+        eq += nq;
+        if eq >= np {
+            eq -= np;
+            v += sq;
+            er += nr;
+            if er >= nq {
+                er -= nq;
+                v += sr;
+            }
+        }
+        if !inside[v as usize] {
+            return None;
+        }
+    }
+    debug_assert_eq!(v, i64::from(b));
+    Some(chamfer(d))
+}
+
 /// Per-thread Dijkstra state. Between runs `dist` is NONE on interior voxels and 0 on the
 /// rest, so "exterior" and "already as short" are one test (`ng >= dist`); a run resets what
 /// it touched.

@@ -292,6 +292,70 @@ fn chamfer_bound_and_straight_graph_paths() {
     );
 }
 
+/// [`straight_length`] gives a search's length wherever it gives one: in a solid block to
+/// every voxel (a monotone path stays in the box), and in a block cut by a wall with a
+/// window, where the voxels behind the wall need detours, to those it sees.
+#[test]
+fn straight_lengths_are_the_searched_lengths() {
+    let grid = Grid {
+        origin: DVec3::ZERO,
+        size: 1.0,
+        dims: [14, 12, 12],
+    };
+    let block = |v: usize| grid.coords(v).iter().all(|&c| (1..11).contains(&c));
+    // The wall x = 6, open only where 3 ≤ y, z ≤ 5.
+    let wall = |v: usize| {
+        let [x, y, z] = grid.coords(v);
+        x == 6 && !((3..=5).contains(&y) && (3..=5).contains(&z))
+    };
+    let offsets = neighbour_offsets(&grid);
+    for walled in [false, true] {
+        let inside: Vec<bool> = (0..grid.len())
+            .map(|v| block(v) && !(walled && wall(v)))
+            .collect();
+        let group_of: Vec<u32> = (0..grid.len() as u32)
+            .map(|v| if inside[v as usize] { v } else { NONE })
+            .collect();
+        let mut s = Scratch::new(&inside);
+        let (mut straight, mut searched, mut detours) = (0usize, 0usize, 0usize);
+        for src in [
+            grid.index(1, 1, 1),
+            grid.index(2, 9, 4),
+            grid.index(5, 2, 8),
+        ] {
+            dijkstra(
+                src as u32,
+                &offsets,
+                &group_of,
+                NONE - 4 * W[2],
+                None,
+                &mut s,
+            );
+            let a = grid.coords(src);
+            for &(v, g) in &s.reached {
+                let b = grid.coords(v as usize);
+                let ch = chamfer([b[0] - a[0], b[1] - a[1], b[2] - a[2]]);
+                match straight_length(&grid, &inside, src as u32, v) {
+                    Some(len) => {
+                        assert_eq!(len, ch);
+                        assert_eq!(u64::from(g), len, "{a:?} → {b:?}");
+                        straight += 1;
+                    }
+                    None => {
+                        assert!(walled, "{a:?} → {b:?}: no straight path in a solid block");
+                        assert!(u64::from(g) >= ch);
+                        searched += 1;
+                        detours += usize::from(u64::from(g) > ch);
+                    }
+                }
+            }
+        }
+        eprintln!("walled {walled}: {straight} straight, {searched} searched ({detours} detours)");
+        assert!(straight > 1000);
+        assert_eq!(detours > 0, walled);
+    }
+}
+
 /// A checkerboard of 2 media split by the plane x = 0 only (cells of 1 around a box
 /// of 0.3 × 0.1 × 0.1): medium 1 for x < 0, medium 0 for x ≥ 0.
 fn split_at_x0() -> crate::hetero::Checker {

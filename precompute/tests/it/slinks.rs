@@ -459,6 +459,13 @@ fn hierarchical_s_matches_pairwise_on_a_u_shaped_object() {
     marble_object(r#""u.obj","transform":{"translate":[-30,0,-10]}"#, 11);
 }
 
+/// A bowl whose wall is 3.5 voxels thick (1.8 on the grid of twice the edge that paths of
+/// 16 voxels or more are traced on): the coarse interior must not bridge the cavity.
+#[test]
+fn hierarchical_s_matches_pairwise_on_a_thin_bowl() {
+    marble_object(r#"{"shape":"bowl","radius":45,"thickness":4}"#, 13);
+}
+
 /// An exponential-sum profile made `scale` times as wide with the same total:
 /// a e^(−b r) → (a/s²) e^(−(b/s) r).
 fn wider(p: &Profile, scale: f32) -> Profile {
