@@ -9,10 +9,10 @@
 //! `--rewrite`. Out: one line per reduction (wall time, entries, terms, MiB held); with
 //! `--rewrite`, one reduction, then one line per step (the scale, wall time, each object's
 //! part of it, the entries written), the median and fastest step, and a hash of S's values
-//! after the last step (equal for two builds that write the same S bit for bit). The steps are the drag
-//! `table1` times (0.9, 1, 1.137, 1.274, …), every dipole object scaled alike. Run it under
-//! `/usr/bin/time` for the CPU time, which this 2-core VM's neighbours disturb less than the
-//! wall time.
+//! after the last step (equal for two builds that write the same S bit for bit). The steps
+//! are the drag `table1` times (0.9, 1, 1.137, 1.274, …), every dipole object scaled alike.
+//! Run it under `/usr/bin/time` for the CPU time, which this 2-core VM's neighbours disturb
+//! less than the wall time.
 //!
 //! ```sh
 //! cargo run --release -p translux-engine --example s_terms -- BUNDLE_DIR [TIMES] [--rewrite]

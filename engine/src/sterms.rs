@@ -106,6 +106,19 @@ pub enum Of {
     W,
 }
 
+/// An RGB value in lanes 0–2 of a 4-lane vector, lane 3 zero.
+#[inline]
+fn lanes(v: [f32; 3]) -> f32x4 {
+    f32x4::from([v[0], v[1], v[2], 0.0])
+}
+
+/// Lanes 0–2 of a 4-lane vector as an RGB value.
+#[inline]
+fn rgb(v: f32x4) -> [f32; 3] {
+    let a = v.to_array();
+    [a[0], a[1], a[2]]
+}
+
 /// A table that terms are summed under: its end (√ of its radius) computed once, and R's
 /// cells laid out for the common term (R at a node inside the table), each cell's start
 /// and rise side by side in one 32-byte row of two 4-lane vectors, so that term is one
@@ -128,7 +141,6 @@ impl<'a> TermTable<'a> {
         let (_, r, _) = tab.grid();
         let n = r.len() - 1;
         let end = tab.root_max();
-        let lanes = |v: [f32; 3]| f32x4::from([v[0], v[1], v[2], 0.0]);
         let cells = (0..n)
             .map(|k| {
                 let rise = std::array::from_fn(|ch| r[k + 1][ch] - r[k][ch]);
@@ -154,8 +166,7 @@ impl<'a> TermTable<'a> {
     pub fn r_root(&self, root: f32) -> [f32; 3] {
         let x = root.max(0.0) * self.scale;
         if x < self.cells_f {
-            let v = self.cell(x).to_array();
-            [v[0], v[1], v[2]]
+            rgb(self.cell(x))
         } else {
             [0.0; 3]
         }
@@ -181,7 +192,7 @@ impl<'a> TermTable<'a> {
         for &[root, weight] in terms {
             if root.is_sign_negative() {
                 let v = self.tab.w_root(-root);
-                s += f32x4::from([v[0], v[1], v[2], 0.0]) * f32x4::splat(weight);
+                s += lanes(v) * f32x4::splat(weight);
                 continue;
             }
             let x = root * self.scale;
@@ -810,8 +821,7 @@ impl ObjectTerms {
                 s += if self.bounds[t][1] <= tab.end {
                     tab.sum_packed(std::slice::from_ref(&self.packed[t]))
                 } else {
-                    let v = tab.eval(&self.term(t));
-                    f32x4::from([v[0], v[1], v[2], 0.0])
+                    lanes(tab.eval(&self.term(t)))
                 };
             }
             s
@@ -1033,11 +1043,11 @@ impl ObjectTerms {
                         debug_assert_eq!(cols[k] as usize, at.start + i);
                         sums.kept += kept as u64;
                         probe += v * f32x4::ZERO;
-                        let v = v.to_array();
+                        let v = rgb(v);
                         for (t, x) in sums.column[i].iter_mut().zip(v) {
                             *t += aj * x;
                         }
-                        *o = [v[0], v[1], v[2]];
+                        *o = v;
                     }
                     let Some(nodes) = at.nodes else {
                         tail.fill([0.0; 3]);
@@ -1059,10 +1069,9 @@ impl ObjectTerms {
                         for ch in 0..3 {
                             node[ch] += aj * r[ch];
                         }
-                        let v = f32x4::from([r[0], r[1], r[2], 0.0]) * f32x4::splat(a);
+                        let v = lanes(r) * f32x4::splat(a);
                         probe += v * f32x4::ZERO;
-                        let v = v.to_array();
-                        *o = [v[0], v[1], v[2]];
+                        *o = rgb(v);
                     }
                 }
                 sums.finite = probe.to_array().iter().all(|&x| x == 0.0);
