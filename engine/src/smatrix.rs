@@ -151,6 +151,7 @@ pub fn assemble_scene(
     material_len: &[MediaLen],
     patch_material: &[u32],
     dist_kind: &[u32],
+    dist_spread: &[f32],
     stored_radius: &[f32],
     unit_mm: f64,
     params: &SParams,
@@ -231,7 +232,8 @@ pub fn assemble_scene(
                             &tr
                         }
                     };
-                    let links = node_links(distances, dist_kind, r.clone(), nodes, &tab);
+                    let links =
+                        node_links(distances, dist_kind, dist_spread, r.clone(), nodes, &tab);
                     subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
                     report.max_column_energy = s.report.max_column;
                     report.scaled_columns = s.report.scaled_columns as u64;
@@ -365,7 +367,10 @@ pub fn assemble_scene(
                 );
                 let mut s = s;
                 if let Some(nodes) = &g.nodes {
-                    let links = node_links(distances, dist_kind, r.clone(), nodes, &|_| &tab);
+                    let links =
+                        node_links(distances, dist_kind, dist_spread, r.clone(), nodes, &|_| {
+                            &tab
+                        });
                     subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
                 }
                 let links = s.links.iter().map(|l| l.len() as u64).sum();
@@ -492,10 +497,13 @@ fn write_terms(
 
 /// Receiver j's links to whole nodes for the rows `r` of a hierarchical S: S_{j,N+k} =
 /// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while √r is within
-/// the table's end. Empty rows when the distances hold no links.
+/// the table's end; a link with a spread σ > 0 (`dist_spread`, aligned with the entries;
+/// empty: none) is read at two distances, A_k (P(r − σ) + P(r + σ)) / 2
+/// ([`two_point_roots`]). Empty rows when the distances hold no links.
 fn node_links<'t>(
     distances: CsrView<'_, f32>,
     dist_kind: &[u32],
+    dist_spread: &[f32],
     r: Range<usize>,
     nodes: &Nodes,
     tab: &(dyn Fn(u32) -> &'t Tabulated + Sync),
@@ -518,14 +526,31 @@ fn node_links<'t>(
                     // rebuild (`sterms`) does: a distance within an ulp of the end is then
                     // in or out of both alike.
                     let root = d.max(0.0).sqrt();
+                    let spread = dist_spread.get(first + e).copied().unwrap_or(0.0);
                     (root < t.root_max()).then(|| {
                         let a = nodes.area[c as usize - n];
-                        (c, t.r_root(root).map(|v| v * a))
+                        let r = match two_point_roots(d, spread) {
+                            Some([lo, hi]) => {
+                                let (l, h) = (t.r_root(lo), t.r_root(hi));
+                                std::array::from_fn(|ch| (l[ch] + h[ch]) * 0.5)
+                            }
+                            None => t.r_root(root),
+                        };
+                        (c, r.map(|v| v * a))
                     })
                 })
                 .collect()
         })
         .collect()
+}
+
+/// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
+/// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
+/// assembly ([`node_links`]) and the radial terms' rewrite (`sterms`), so both read the
+/// same cells: a link's value is the mean of the profile at the two.
+#[inline]
+pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
+    (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
 }
 
 /// Writes an object's S rows (local indices, the object starting at patch `start`) into
@@ -707,7 +732,13 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
             );
             // A hierarchical S also links rows to whole nodes (see `assemble_scene`).
             Some(match g.nodes {
-                Some(_) => t.with_links(bundle.distances(), kinds, range, reach),
+                Some(_) => t.with_links(
+                    bundle.distances(),
+                    kinds,
+                    bundle.distance_spreads(),
+                    range,
+                    reach,
+                ),
                 None => t,
             })
         })
@@ -1043,6 +1074,7 @@ fn assemble_overrides(
         material_len,
         bundle.u32s(arrays::PATCH_MATERIAL),
         bundle.distance_kinds(),
+        bundle.distance_spreads(),
         &stored,
         m.unit_mm,
         params,

@@ -606,6 +606,10 @@ struct Links {
     root: Vec<f32>,
     /// A sheet's link read through the transmittance (the stored entry's kind).
     opposite: Vec<bool>,
+    /// With links read at two distances (the bundle's spreads): each link's roots
+    /// √(r − σ) and √(r + σ) ([`crate::smatrix::two_point_roots`]; [√r, √r] for σ = 0);
+    /// empty when every link is read at `root` alone.
+    two: Vec<[f32; 2]>,
     /// The nodes (k, column N + k) that `col` reaches: a rebuild sums their energies in
     /// arrays this long.
     nodes: Range<usize>,
@@ -882,14 +886,17 @@ impl ObjectTerms {
 
     /// Adds the links of rows `r` (this object's patches) to whole cluster nodes, from the
     /// scene's stored distances `d` (columns ≥ N are nodes) out to `reach`; `kinds` tells a
-    /// sheet's other-side entries.
+    /// sheet's other-side entries, `spreads` (aligned likewise; empty: none) the spread of
+    /// links read at two distances.
     pub fn with_links(
         mut self,
         d: CsrView<'_, f32>,
         kinds: &[u32],
+        spreads: &[f32],
         r: Range<usize>,
         reach: f32,
     ) -> Self {
+        let two_point = !spreads.is_empty();
         let n = d.n_rows();
         let mut l = Links {
             ptr: vec![0],
@@ -901,7 +908,14 @@ impl ObjectTerms {
             for (e, (&c, &dist)) in cols.iter().zip(ds).enumerate() {
                 if c as usize >= n && dist < reach {
                     l.col.push(c);
-                    l.root.push(dist.max(0.0).sqrt());
+                    let root = dist.max(0.0).sqrt();
+                    l.root.push(root);
+                    if two_point {
+                        let sigma = spreads.get(first + e).copied().unwrap_or(0.0);
+                        l.two.push(
+                            crate::smatrix::two_point_roots(dist, sigma).unwrap_or([root, root]),
+                        );
+                    }
                     l.opposite
                         .push(self.sheet && kinds.get(first + e) == Some(&sheet::KIND_OPPOSITE));
                 }
@@ -1055,14 +1069,24 @@ impl ObjectTerms {
                     };
                     // Links: node k's A_k R(r), read through the table of the entry's kind.
                     let node_cols = &cols[direct.len()..];
+                    let two = self.links.two.get(links.clone()).unwrap_or(&[]);
                     let fields = self.links.root[links.clone()]
                         .iter()
                         .zip(&self.links.opposite[links]);
-                    for ((o, &c), (&root, &opposite)) in tail.iter_mut().zip(node_cols).zip(fields)
+                    for (l, ((o, &c), (&root, &opposite))) in
+                        tail.iter_mut().zip(node_cols).zip(fields).enumerate()
                     {
                         let tab = if opposite { &other } else { &same };
                         sums.linked += (root < tab.end) as u64;
-                        let r = tab.r_root(root);
+                        // A link read at two distances: the mean of the profile at both (as
+                        // `smatrix::node_links` reads it), 0 past the table's end.
+                        let r = match two.get(l) {
+                            Some(&[lo, hi]) if root < tab.end => {
+                                let (a, b) = (tab.r_root(lo), tab.r_root(hi));
+                                std::array::from_fn(|ch| (a[ch] + b[ch]) * 0.5)
+                            }
+                            _ => tab.r_root(root),
+                        };
                         let k = c as usize - at.n;
                         let a = nodes.area[k];
                         let node = &mut sums.node[k - self.links.nodes.start];
@@ -1215,6 +1239,7 @@ impl ObjectTerms {
             + self.packed.len() * 8
             + self.bounds.len() * 8
             + (self.links.ptr.len() + self.links.col.len() + self.links.root.len()) * 4
+            + self.links.two.len() * 8
             + self.links.opposite.len()) as u64
     }
 }

@@ -81,6 +81,14 @@ struct Cli {
     /// bundle equals `--s-trace all`'s bit for bit.
     #[arg(long)]
     s_exact_links: bool,
+    /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3)
+    /// instead of the quadrature's near field (3 sizes), each link then read at two
+    /// distances (the node's straight-line spread about its representative's optical
+    /// distance). Fewer direct pairs: a translucency change writes fewer entries and the
+    /// subsurface stage takes less time; the bundle can only be rebuilt on the CPU. Off by
+    /// default.
+    #[arg(long)]
+    s_link_near: Option<f32>,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -288,6 +296,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 TraceArg::All => Trace::All,
             },
             coarse_links: !cli.s_exact_links,
+            near: cli.s_link_near,
         }),
     };
     let params = PrecomputeParams {

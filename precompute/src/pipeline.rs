@@ -864,7 +864,7 @@ pub fn precompute(
             .sum::<u64>();
     let mut cut_object_seconds = vec![0.0f64; materials.len()];
     let mut node_runs = (0u64, 0u64);
-    let (dist, dist_len, dist_kind, links) = match (&params.subsurface_links, &tree) {
+    let (dist, dist_len, dist_kind, dist_spread, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
                 t, &geometry, &materials, &stored, &dist, &dist_len, &dist_kind, &oracles, sp, sl,
@@ -874,10 +874,15 @@ pub fn precompute(
             }
             cut_object_seconds = c.seconds;
             node_runs = c.node_runs;
-            (c.dist, c.material_len, c.kind, c.links)
+            (c.dist, c.material_len, c.kind, c.spread, c.links)
         }
-        _ => (dist, dist_len, dist_kind, 0),
+        _ => (dist, dist_len, dist_kind, Vec::new(), 0),
     };
+    // Links read at two distances (`--s-link-near`), recorded with their spreads.
+    let link_near = params
+        .subsurface_links
+        .and_then(|sl| sl.near)
+        .filter(|_| !dist_spread.is_empty());
     let cut_seconds = t_links.elapsed().as_secs_f64();
     // The paths an on-demand object traced belong to its stage-1 time.
     for ((m, _), secs) in materials
@@ -924,6 +929,7 @@ pub fn precompute(
         &dist_len,
         &media.patch_material,
         &dist_kind,
+        &dist_spread,
         &stored,
         unit_mm,
         sp,
@@ -942,6 +948,7 @@ pub fn precompute(
         distance_nnz: dist.col.len() as u64,
         links,
         pairwise_distances: if links > 0 { pairwise_distances } else { 0 },
+        link_near,
         walks: walks.col.len() as u64,
         objects: {
             let mut o =
@@ -1171,6 +1178,13 @@ pub fn precompute(
             data: ArrayData::U32(media.patch_material.clone()),
         },
     ];
+    if link_near.is_some() {
+        arrays_out.push(NamedArray {
+            name: arrays::DIST_SPREAD,
+            shape: vec![dist_spread.len() as u64],
+            data: ArrayData::F32(dist_spread),
+        });
+    }
     if !walks.is_empty() {
         let w = walks.col.len() as u64;
         arrays_out.push(NamedArray {

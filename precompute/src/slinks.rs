@@ -94,7 +94,16 @@ pub struct SLinkParams {
     /// `precompute/tests/it/slinks.rs`). Default true; `false` keeps the bundle equal to
     /// `Trace::All`'s bit for bit (`--s-exact-links`).
     pub coarse_links: bool,
+    /// The near field of links, in receiver sizes (`--s-link-near`): None (the default)
+    /// keeps the quadrature's near-pair rule (3 sizes) and reads each link at its
+    /// representative's distance; Some(k), k in [`LINK_NEAR_RANGE`], links nodes from k
+    /// sizes on and reads each link at two distances ([`link_spread`]), so fewer direct
+    /// pairs are stored and a translucency change writes fewer entries.
+    pub near: Option<f32>,
 }
+
+/// The near fields of links `--s-link-near` accepts, in receiver sizes.
+pub const LINK_NEAR_RANGE: RangeInclusive<f32> = 1.0..=3.0;
 
 impl Default for SLinkParams {
     fn default() -> Self {
@@ -102,6 +111,7 @@ impl Default for SLinkParams {
             accuracy: 0.5,
             trace: Trace::Auto,
             coarse_links: true,
+            near: None,
         }
     }
 }
@@ -205,8 +215,45 @@ impl SLinkParams {
                 self.accuracy
             ));
         }
+        if let Some(k) = self.near
+            && !(k.is_finite() && LINK_NEAR_RANGE.contains(&k))
+        {
+            return Err(format!(
+                "--s-link-near must be in [{}, {}] (how many receiver sizes away a subsurface \
+                 link may start), got {k}",
+                LINK_NEAR_RANGE.start(),
+                LINK_NEAR_RANGE.end(),
+            ));
+        }
         Ok(())
     }
+}
+
+/// A link's distance and spread when it is read at two distances (`SLinkParams::near`):
+/// receiver j (centroid x) gathers from node q (its patches, `members`, of centroids p and
+/// areas a), whose representative (centroid c) lies at optical distance `d`. The node's
+/// patches lie at straight distances |x − p| of area-weighted mean m and spread σ; the link
+/// is read at r ± σ with r = d + m − |x − c| (the representative's optical distance moved
+/// by the straight mean's offset from it), i.e. A_q (R(r − σ) + R(r + σ)) / 2: one point
+/// misses the profile's curvature across the node (R is convex, so the mean of R over a
+/// node lies above R at its middle), which is why links read at one point must stay 3
+/// receiver sizes away. Measured against the pairwise S in `docs/hierarchy.md`.
+pub fn link_spread(g: &PatchGeometry, x: Vec3, members: &[u32], rep: u32, d: f32) -> (f32, f32) {
+    let (mut a, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
+    for &p in members {
+        let w = f64::from(g.area[p as usize]);
+        let l = f64::from(x.distance(g.centroid[p as usize]));
+        a += w;
+        s1 += w * l;
+        s2 += w * l * l;
+    }
+    if a <= 0.0 || a.is_nan() {
+        return (d, 0.0);
+    }
+    let m = s1 / a;
+    let sigma = (s2 / a - m * m).max(0.0).sqrt();
+    let r = f64::from(d) + m - f64::from(x.distance(g.centroid[rep as usize]));
+    (r.max(0.0) as f32, sigma as f32)
 }
 
 /// What [`collapse`] made: the distances, their per-medium lengths and kinds (aligned with
@@ -218,6 +265,9 @@ pub struct Collapsed {
     pub kind: Vec<u32>,
     pub nodes: Nodes,
     pub links: u64,
+    /// With [`SLinkParams::near`]: each stored distance's spread (aligned with the entries;
+    /// 0 for direct pairs, [`link_spread`] for links). Empty otherwise.
+    pub spread: Vec<f32>,
     /// Seconds each object's cut took (0 for objects not cut), tracing included.
     pub seconds: Vec<f64>,
     /// Linked nodes whose distances were traced on demand (one run each from the
@@ -316,7 +366,7 @@ impl<'a> Cutter<'a> {
             pos,
             g,
             theta: params.accuracy,
-            near_factor: sp.quadrature.near_factor,
+            near_factor: params.near.unwrap_or(sp.quadrature.near_factor),
             coarse_links: params.coarse_links,
         }
     }
@@ -437,7 +487,7 @@ pub fn collapse(
     // Rows as they will be stored: (column, distance, per-medium lengths, kind). The cut
     // objects' rows start empty (their entries are all within the object): copying them
     // first cost 32 bytes per stored pair, 5 GiB on the bowls.
-    type Row = Vec<(u32, f32, MediaLen, u32)>;
+    type Row = Vec<(u32, f32, MediaLen, u32, f32)>;
     let mut rows: Vec<Row> = (0..n)
         .into_par_iter()
         .map(|i| {
@@ -452,6 +502,7 @@ pub fn collapse(
                         dist.val[e],
                         material_len.get(e).copied().unwrap_or([0.0; MEDIA]),
                         kind.get(e).copied().unwrap_or(KIND_SAME),
+                        0.0,
                     )
                 })
                 .collect()
@@ -481,34 +532,58 @@ pub fn collapse(
         for (jl, (direct, _)) in cuts.iter().enumerate() {
             let j = (r.start + jl) as u32;
             for &(i, d, kd) in direct {
-                rows[i as usize].push((j, d, [0.0; MEDIA], kd));
+                rows[i as usize].push((j, d, [0.0; MEDIA], kd, 0.0));
             }
         }
+        // Links read at two distances: each one's distance moved and its spread.
+        let spreads: Vec<Vec<(f32, f32)>> = match params.near {
+            Some(_) => cuts
+                .par_iter()
+                .enumerate()
+                .map(|(jl, (_, links))| {
+                    let x = g.centroid[r.start + jl];
+                    links
+                        .iter()
+                        .map(|&(q, d, _)| {
+                            let [a, b] = ranges[q as usize];
+                            let members = &tree.perm[a as usize..b as usize];
+                            link_spread(g, x, members, rep[q as usize], d)
+                        })
+                        .collect()
+                })
+                .collect(),
+            None => Vec::new(),
+        };
         for (jl, (_, links)) in cuts.into_iter().enumerate() {
             links_total += links.len() as u64;
-            rows[r.start + jl].extend(
-                links
-                    .into_iter()
-                    .map(|(q, d, kd)| (n as u32 + q, d, [0.0; MEDIA], kd)),
-            );
+            let moved = spreads.get(jl);
+            rows[r.start + jl].extend(links.into_iter().enumerate().map(|(e, (q, d, kd))| {
+                let (d, sigma) = moved.map_or((d, 0.0), |m| m[e]);
+                (n as u32 + q, d, [0.0; MEDIA], kd, sigma)
+            }));
         }
         seconds[k] = t.elapsed().as_secs_f64();
     }
     let linked = links_total > 0;
     let mut material_len = Vec::new();
     let mut kinds = Vec::new();
+    let mut spread = Vec::new();
     let plain: Vec<Vec<(u32, f32)>> = rows
         .into_iter()
         .map(|row| {
             row.into_iter()
-                .map(|(c, d, l, kd)| {
+                .map(|(c, d, l, kd, sigma)| {
                     material_len.push(l);
                     kinds.push(kd);
+                    spread.push(sigma);
                     (c, d)
                 })
                 .collect()
         })
         .collect();
+    if params.near.is_none() || !linked {
+        spread = Vec::new();
+    }
     let dist = Csr::from_rows(if linked { n + m } else { n }, plain).map_err(SError::Matrix)?;
     Ok(Collapsed {
         dist,
@@ -516,6 +591,7 @@ pub fn collapse(
         kind: kinds,
         nodes,
         links: links_total,
+        spread,
         seconds,
         node_runs,
     })

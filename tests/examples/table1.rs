@@ -223,6 +223,11 @@ fn args() -> anyhow::Result<Args> {
                         other => bail!("--s-trace auto|on-demand|all, not {other:?}"),
                     };
             }
+            "--s-link-near" => {
+                a.s_auto = false;
+                let k: f32 = it.next().context("--s-link-near K")?.parse()?;
+                a.s_links.get_or_insert_with(SLinkParams::default).near = Some(k);
+            }
             "--s-exact-links" => {
                 a.s_auto = false;
                 a.s_links
@@ -232,7 +237,8 @@ fn args() -> anyhow::Result<Args> {
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
                  --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface auto|pairwise|hierarchical, \
-                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --keep DIR)"
+                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --s-link-near K, \
+                 --keep DIR)"
             ),
         }
     }

@@ -157,6 +157,14 @@ fn hierarchical_subsurface_from_the_command_line() {
             &["--subsurface", "hierarchical", "--inverse"][..],
             "--inverse needs a pairwise S",
         ),
+        (
+            &["--subsurface", "hierarchical", "--s-link-near", "0.5"][..],
+            "--s-link-near must be in [1, 3]",
+        ),
+        (
+            &["--s-link-near", "inf"][..],
+            "--s-link-near must be in [1, 3]",
+        ),
         (&["--subsurface", "octree"][..], "invalid value 'octree'"),
     ] {
         let o = run(bad);

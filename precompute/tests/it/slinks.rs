@@ -96,9 +96,22 @@ fn scene(dir: &std::path::Path, object: &str) -> std::path::PathBuf {
 /// coarser than the default (0.25 M voxels, ~0.7 mm, instead of 2 M), which keeps its
 /// Dijkstra runs, most of this file's time, short.
 fn build(path: &std::path::Path, out: &std::path::Path, links: bool) -> Bundle {
+    build_with(path, out, links.then(SLinkParams::default))
+}
+
+/// Links from 1.5 receiver sizes on, each read at two distances (`--s-link-near 1.5`).
+fn two_point() -> Option<SLinkParams> {
+    Some(SLinkParams {
+        near: Some(1.5),
+        ..SLinkParams::default()
+    })
+}
+
+/// [`build`] with a hierarchical S of `links` (pairwise for `None`).
+fn build_with(path: &std::path::Path, out: &std::path::Path, links: Option<SLinkParams>) -> Bundle {
     let loaded = load_scene(path.to_str().unwrap()).unwrap();
     let params = PrecomputeParams {
-        subsurface_links: links.then(SLinkParams::default),
+        subsurface_links: links,
         voxels: VoxelParams {
             max_voxels: 250_000,
             ..Default::default()
@@ -427,7 +440,8 @@ fn compare(c: &Case<'_>, seed: u64) {
     }
 }
 
-/// The cube or the U in marble on a floor (scene file in millimetres), both ways.
+/// The cube or the U in marble on a floor (scene file in millimetres), both ways, and
+/// again with links from 1.5 receiver sizes read at two distances.
 fn marble_object(object: &str, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
     let path = scene(dir.path(), object);
@@ -444,6 +458,58 @@ fn marble_object(object: &str, seed: u64) {
         },
         seed,
     );
+    let near_dir = dir.path().join("near");
+    let near = build_with(&path, &near_dir, two_point());
+    fewer_direct_pairs(&hier, &near);
+    compare(
+        &Case {
+            pair: &pair,
+            hier: &near,
+            objects: vec![1],
+            material: &|_, scale| marble(scale),
+            relight_dir: Some(&near_dir),
+        },
+        seed,
+    );
+}
+
+/// A bundle of links read at two distances from nearer in (`near`) stores fewer direct
+/// pairs than the default one (`hier`), records its near field and a spread for every
+/// stored distance, some of them above 0 (links) and none on a direct pair.
+fn fewer_direct_pairs(hier: &Bundle, near: &Bundle) {
+    let direct = |b: &Bundle| {
+        let s = &b.manifest().subsurface;
+        s.distance_nnz - s.links
+    };
+    let (d3, d15) = (direct(hier), direct(near));
+    eprintln!(
+        "direct pairs {d3} → {d15}, links {} → {}",
+        hier.manifest().subsurface.links,
+        near.manifest().subsurface.links
+    );
+    assert!(
+        (d15 as f64) < 0.9 * d3 as f64,
+        "links from 1.5 sizes keep {d15} direct pairs against {d3}"
+    );
+    assert_eq!(near.manifest().subsurface.link_near, Some(1.5));
+    assert_eq!(hier.manifest().subsurface.link_near, None);
+    assert!(hier.distance_spreads().is_empty());
+    let (d, spread) = (near.distances(), near.distance_spreads());
+    assert_eq!(spread.len(), d.nnz());
+    let n = d.n_rows();
+    let mut spread_links = 0;
+    for j in 0..n {
+        let first = d.row_ptr()[j] as usize;
+        for (e, &c) in d.row(j).0.iter().enumerate() {
+            let s = spread[first + e];
+            if (c as usize) < n {
+                assert_eq!(s, 0.0, "a direct pair has a spread");
+            } else {
+                spread_links += (s > 0.0) as usize;
+            }
+        }
+    }
+    assert!(spread_links > 0, "no link has a spread");
 }
 
 #[test]
@@ -546,6 +612,19 @@ fn hierarchical_s_matches_pairwise_on_a_thin_sheet() {
         &Case {
             pair: &pair,
             hier: &hier,
+            objects: vec![1],
+            material: &|_, scale| petal(scale),
+            relight_dir: None,
+        },
+        13,
+    );
+    // Links from 1.5 sheet-patch sizes on, read at two distances along the geodesics.
+    let near = build_with(&path, &dir.path().join("near"), two_point());
+    fewer_direct_pairs(&hier, &near);
+    compare(
+        &Case {
+            pair: &pair,
+            hier: &near,
             objects: vec![1],
             material: &|_, scale| petal(scale),
             relight_dir: None,
@@ -696,8 +775,18 @@ fn coarse_link_runs_keep_the_bunny_within_the_pairwise_bounds() {
         },
         specular: None,
     };
+    // Links from 1.5 receiver sizes on, read at two distances (over the coarse grid too).
+    let near = build_links(
+        &path,
+        &dir.path().join("near"),
+        Some(SLinkParams {
+            near: Some(1.5),
+            ..on_demand(true).unwrap()
+        }),
+    );
+    fewer_direct_pairs(&hier, &near);
     // The exact links for reference (printed), then the coarse ones held to the bounds.
-    for h in [&exact, &hier] {
+    for h in [&exact, &hier, &near] {
         compare(
             &Case {
                 pair: &pair,

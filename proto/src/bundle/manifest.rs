@@ -51,6 +51,10 @@ pub mod arrays {
     pub const DIST_VAL: &str = "dist_val";
     pub const DIST_KIND: &str = "dist_kind";
     pub const DIST_MATERIAL_LEN: &str = "dist_material_len";
+    /// Per stored distance, f32 `[nnz_d]` (only with [`super::SubsurfaceInfo::link_near`]):
+    /// a link's spread σ ≥ 0 about its distance r, the link then read at r − σ and r + σ;
+    /// 0 for direct pairs.
+    pub const DIST_SPREAD: &str = "dist_spread";
     pub const PATCH_MATERIAL: &str = "patch_material";
     /// R = T − S, f16 `[N, N, 3]` (only with `Manifest::transfer`).
     pub const TRANSFER: &str = "transfer";
@@ -209,6 +213,16 @@ pub struct SubsurfaceInfo {
     /// precompute (pairs of patches within the reach, counted on sample rows).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub pairwise_distances: u64,
+    /// With links made closer in than the quadrature's near field (`translux-precompute
+    /// --s-link-near K`): K, the near field of links in receiver sizes. Each link is then read
+    /// at two distances, A_k (R(r − σ) + R(r + σ)) / 2, r being the representative's optical
+    /// distance moved by the node's mean straight-line offset from it and σ (the
+    /// [`arrays::DIST_SPREAD`] array, listed whenever this is) the spread of the node's
+    /// straight-line distances from the receiver. A build that does not know this field
+    /// refuses the bundle (the manifest denies unknown fields). None: links are read at
+    /// their representative's distance alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub link_near: Option<f32>,
     /// Records of the random walks of simulated objects (the `sim_*` arrays); 0: none.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub walks: u64,

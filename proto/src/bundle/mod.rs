@@ -33,6 +33,8 @@
 //! ├── dist_material_len.f32  [nnz_d, 4] of a heterogeneous object's path: the length r_k it
 //! │                                     travels in medium k (Σ_k r_k = dist_val); all 0
 //! │                                     for a homogeneous object
+//! ├── dist_spread.f32        [nnz_d]    only with `subsurface.link_near`: a link's spread σ,
+//! │                                     the link read at r ± σ (0 for direct pairs)
 //! ├── patch_material.u32     [N]        medium of a heterogeneous object's patch (under its
 //! │                                     centroid; S_ii's profile), 0 for every other patch
 //! │  only with `--inverse` (manifest `transfer` present):

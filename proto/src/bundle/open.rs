@@ -645,6 +645,19 @@ impl Bundle {
             }
         }
 
+        // Links read at two distances: their spreads, one per stored distance.
+        if manifest.subsurface.link_near.is_some() {
+            check_listed(
+                &manifest,
+                &[(
+                    arrays::DIST_SPREAD,
+                    DType::F32,
+                    vec![manifest.subsurface.distance_nnz],
+                )],
+                "subsurface.distance_nnz",
+            )?;
+        }
+
         // The cluster tree: both arrays, with these shapes, when the manifest says so.
         let n_nodes = match &manifest.hierarchy {
             Some(h) => {
@@ -908,6 +921,18 @@ impl Bundle {
             return Err(invalid(
                 array_file_name(arrays::DIST_KIND, DType::U32),
                 format!("distance {k} has kind {v}, expected 0 (same side) or 1 (other side)"),
+            ));
+        }
+        // Links' spreads: finite and ≥ 0.
+        if let Some((k, v)) = self
+            .f32s(arrays::DIST_SPREAD)
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && **v >= 0.0))
+        {
+            return Err(invalid(
+                array_file_name(arrays::DIST_SPREAD, DType::F32),
+                format!("distance {k} has spread {v}, expected a finite value >= 0"),
             ));
         }
         // Per-medium path lengths: finite and ≥ 0; media indices within the limit.
@@ -1228,6 +1253,13 @@ impl Bundle {
             self.u32s(arrays::DIST_COL),
             self.f32s(arrays::DIST_VAL),
         )
+    }
+
+    /// `[nnz_d]` each stored distance's spread, parallel to `distances().val()` (links read
+    /// at two distances, [`crate::bundle::SubsurfaceInfo::link_near`]; verified at open to
+    /// be finite and ≥ 0); empty when the bundle reads every link at one distance.
+    pub fn distance_spreads(&self) -> &[f32] {
+        self.f32s(arrays::DIST_SPREAD)
     }
 
     /// `[nnz_d]` the kind of each stored distance, parallel to `distances().val()`: 0 for a

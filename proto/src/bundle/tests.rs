@@ -457,6 +457,52 @@ fn distance_kinds_are_0_or_1() {
     );
 }
 
+#[test]
+fn link_spreads_are_listed_with_their_near_field_and_checked() {
+    // Two distances, the second read at two distances with spread 0.5.
+    let with = |spread: Option<&[f32]>| {
+        let (mut m, mut a) = two_patches();
+        m.subsurface.distance_nnz = 2;
+        m.subsurface.link_near = Some(1.5);
+        replace(&mut a, u64s(arrays::DIST_ROW_PTR, &[3], &[0, 1, 2]));
+        replace(&mut a, u32s(arrays::DIST_COL, &[2], &[1, 0]));
+        replace(&mut a, f32s(arrays::DIST_VAL, &[2], &[1.0, 1.0]));
+        replace(&mut a, u32s(arrays::DIST_KIND, &[2], &[0, 0]));
+        replace(&mut a, f32s(arrays::DIST_MATERIAL_LEN, &[2, 4], &[0.0; 8]));
+        if let Some(s) = spread {
+            a.push(f32s(arrays::DIST_SPREAD, &[s.len() as u64], s));
+        }
+        (m, a)
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let (m, a) = with(Some(&[0.0, 0.5]));
+    write(tmp.path(), m, &a);
+    let b = Bundle::open(tmp.path()).unwrap();
+    assert_eq!(b.distance_spreads(), &[0.0, 0.5]);
+    assert_eq!(b.manifest().subsurface.link_near, Some(1.5));
+
+    let (m, a) = with(None);
+    let e = open_err(m, &a);
+    assert!(
+        e.starts_with("dist_spread.f32 is missing from manifest.json"),
+        "{e}"
+    );
+    let (m, a) = with(Some(&[0.0, -1.0]));
+    let e = open_err(m, &a);
+    assert!(
+        e.starts_with("dist_spread.f32: distance 1 has spread -1"),
+        "{e}"
+    );
+    let (m, a) = with(Some(&[0.0, f32::NAN]));
+    assert!(open_err(m, &a).starts_with("dist_spread.f32: distance 1 has spread NaN"));
+    let (m, a) = with(Some(&[0.0]));
+    let e = open_err(m, &a);
+    assert!(
+        e.starts_with("dist_spread.f32: manifest lists f32 [1], expected f32 [2]"),
+        "{e}"
+    );
+}
+
 /// Small arrays are private copies: truncating one in place (what an operator must not
 /// do, but might) changes nothing the server reads and cannot raise SIGBUS.
 #[test]

@@ -118,6 +118,12 @@ impl SMaterials {
                 "a hierarchical S without its cluster tree is rebuilt on the CPU".into(),
             ));
         }
+        if let Some(k) = m.subsurface.link_near {
+            return Ok(Plan::Cpu(format!(
+                "a hierarchical S whose links are read at two distances (--s-link-near {k}) \
+                 is rebuilt on the CPU"
+            )));
+        }
         if params.quadrature.samples.pow(2) > MAX_SAMPLES {
             return Ok(Plan::Cpu(format!(
                 "{} sample points per patch; the device kernel holds at most {MAX_SAMPLES}",
