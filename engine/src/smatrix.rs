@@ -499,7 +499,7 @@ fn write_terms(
 /// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while √r is within
 /// the table's end; a link with a spread σ > 0 (`dist_spread`, aligned with the entries;
 /// empty: none) is read at two distances, A_k (P(r − σ) + P(r + σ)) / 2
-/// ([`two_point_roots`]). Empty rows when the distances hold no links.
+/// ([`crate::sterms::two_point_roots`]). Empty rows when the distances hold no links.
 fn node_links<'t>(
     distances: CsrView<'_, f32>,
     dist_kind: &[u32],
@@ -529,7 +529,7 @@ fn node_links<'t>(
                     let spread = dist_spread.get(first + e).copied().unwrap_or(0.0);
                     (root < t.root_max()).then(|| {
                         let a = nodes.area[c as usize - n];
-                        let r = match two_point_roots(d, spread) {
+                        let r = match crate::sterms::two_point_roots(d, spread) {
                             Some([lo, hi]) => {
                                 let (l, h) = (t.r_root(lo), t.r_root(hi));
                                 std::array::from_fn(|ch| (l[ch] + h[ch]) * 0.5)
@@ -542,15 +542,6 @@ fn node_links<'t>(
                 .collect()
         })
         .collect()
-}
-
-/// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
-/// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
-/// assembly ([`node_links`]) and the radial terms' rewrite (`sterms`), so both read the
-/// same cells: a link's value is the mean of the profile at the two.
-#[inline]
-pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
-    (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
 }
 
 /// Writes an object's S rows (local indices, the object starting at patch `start`) into

@@ -230,6 +230,15 @@ impl Term {
     }
 }
 
+/// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
+/// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
+/// assembly (`smatrix::node_links`) and the radial terms' rewrite ([`ObjectTerms::write`]), so both read the
+/// same cells: a link's value is the mean of the profile at the two.
+#[inline]
+pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
+    (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
+}
+
 /// Appends to `out` the terms of `plan` for a pair at optical distance `r`, patch i's
 /// sample points being `xs` (as [`Quadrature::eval`] would evaluate it).
 pub fn reduce(
@@ -607,7 +616,7 @@ struct Links {
     /// A sheet's link read through the transmittance (the stored entry's kind).
     opposite: Vec<bool>,
     /// With links read at two distances (the bundle's spreads): each link's roots
-    /// √(r − σ) and √(r + σ) ([`crate::smatrix::two_point_roots`]; [√r, √r] for σ = 0);
+    /// √(r − σ) and √(r + σ) ([`two_point_roots`]; [√r, √r] for σ = 0);
     /// empty when every link is read at `root` alone.
     two: Vec<[f32; 2]>,
     /// The nodes (k, column N + k) that `col` reaches: a rebuild sums their energies in
@@ -912,9 +921,8 @@ impl ObjectTerms {
                     l.root.push(root);
                     if two_point {
                         let sigma = spreads.get(first + e).copied().unwrap_or(0.0);
-                        l.two.push(
-                            crate::smatrix::two_point_roots(dist, sigma).unwrap_or([root, root]),
-                        );
+                        l.two
+                            .push(two_point_roots(dist, sigma).unwrap_or([root, root]));
                     }
                     l.opposite
                         .push(self.sheet && kinds.get(first + e) == Some(&sheet::KIND_OPPOSITE));
