@@ -567,6 +567,9 @@ pub fn collapse(
     let linked = links_total > 0;
     let mut material_len = Vec::new();
     let mut kinds = Vec::new();
+    // Spreads are kept only for links read at two distances: the default path allocates
+    // nothing for them (a vector as long as the distances: 250 MB on the whole bunny).
+    let two_point = params.near.is_some();
     let mut spread = Vec::new();
     let plain: Vec<Vec<(u32, f32)>> = rows
         .into_iter()
@@ -575,13 +578,15 @@ pub fn collapse(
                 .map(|(c, d, l, kd, sigma)| {
                     material_len.push(l);
                     kinds.push(kd);
-                    spread.push(sigma);
+                    if two_point {
+                        spread.push(sigma);
+                    }
                     (c, d)
                 })
                 .collect()
         })
         .collect();
-    if params.near.is_none() || !linked {
+    if !linked {
         spread = Vec::new();
     }
     let dist = Csr::from_rows(if linked { n + m } else { n }, plain).map_err(SError::Matrix)?;
