@@ -225,6 +225,12 @@ pub fn s_entries(
             if i != j && r >= tab.r_max() {
                 return [0.0; 3];
             }
+            if let Some(s) = t.spread(e) {
+                // A link read at two distances, summed as the kernel sums it.
+                let (lo, hi) = (tab.r((r - s).max(0.0)), tab.r(r + s));
+                let area_i = t.patches[4 * i as usize][3];
+                return std::array::from_fn(|c| (lo[c] + hi[c]) * 0.5 * area_i);
+            }
             let corners: [glam::Vec3; 3] = std::array::from_fn(|k| {
                 glam::Vec3::from_slice(&t.patches[4 * i as usize + k][..3])
             });

@@ -22,8 +22,9 @@
 //!
 //! A hierarchical S (links from receivers to whole nodes of the cluster tree,
 //! `translux_precompute::slinks`) is rebuilt the same way: its links are entries of the
-//! node columns N + k, evaluated as far pairs with the node's area (S_{j,N+k} = A_k R(r)),
-//! and two more kernels hold every column to the energy bound with them, as the CPU's
+//! node columns N + k, evaluated as far pairs with the node's area (S_{j,N+k} = A_k R(r);
+//! a link read at two distances, `--s-link-near`, carries its spread σ in an aux row and
+//! reads A_k (R(r − σ) + R(r + σ)) / 2), and two more kernels hold every column to the energy bound with them, as the CPU's
 //! `subsurface::add_links` does: `s_node_energy` sums what each node re-emits
 //! (e_k = Σ_j A_j S_{j,N+k} / A_k), and `s_link_bound` adds to each patch column the e_k of
 //! the linked nodes that hold the patch, scaling the column's direct entries where the sum
@@ -53,6 +54,11 @@ pub const MODE_DIAG: u32 = 0;
 pub const MODE_FAR: u32 = 1;
 pub const MODE_POLAR: u32 = 2;
 pub const MODE_POINTS: u32 = 3;
+/// Meta bit 3: a far entry read at two distances r ∓ σ (a link of `--s-link-near`), σ in
+/// its aux row's x.
+pub const TWO_POINT: u32 = 1 << 3;
+/// Meta bits 4–31: the entry's first aux row (2²⁸ rows, 4 GiB of them, at most).
+pub const AUX_SHIFT: u32 = 4;
 
 /// The most sample points per patch the kernel holds (`MAX_SAMPLES`): m ≤ 8.
 pub const MAX_SAMPLES: u32 = 64;
@@ -117,12 +123,6 @@ impl SMaterials {
             return Ok(Plan::Cpu(
                 "a hierarchical S without its cluster tree is rebuilt on the CPU".into(),
             ));
-        }
-        if let Some(k) = m.subsurface.link_near {
-            return Ok(Plan::Cpu(format!(
-                "a hierarchical S whose links are read at two distances (--s-link-near {k}) \
-                 is rebuilt on the CPU"
-            )));
         }
         if params.quadrature.samples.pow(2) > MAX_SAMPLES {
             return Ok(Plan::Cpu(format!(
@@ -205,10 +205,12 @@ pub struct STemplate {
     /// Receiver rows j (the SpMV's CSR); `col` holds the source i.
     pub row_ptr: Vec<u64>,
     pub col: Vec<u32>,
-    /// Per entry (row order): (i, j, r as bits, mode | opposite << 2 | aux << 3).
+    /// Per entry (row order): (i, j, r as bits, mode | opposite << 2 | two << 3 | aux << 4),
+    /// `two` ([`TWO_POINT`]) set on a link read at two distances.
     pub entries: Vec<[u32; 4]>,
     /// Polar plans: 4 rows (corner 0 and the factor, corner 1, corner 2, the plane's
-    /// normal); point plans: 1 row (the excess path).
+    /// normal); point plans: 1 row (the excess path); links read at two distances: 1 row
+    /// (their spread σ).
     pub aux: Vec<[f32; 4]>,
     /// Columns (sources i, then nodes N + k): `perm[col_ptr[i]..col_ptr[i + 1]]` are the
     /// positions of column i's entries in row order, in the CPU assembly's order (self term
@@ -229,7 +231,8 @@ pub struct STemplate {
     pub order: Vec<u32>,
 }
 
-/// One entry of a column while the template is built: (j, r, mode | opposite << 2, aux).
+/// One entry of a column while the template is built: (j, r, mode | opposite << 2 | two << 3,
+/// aux rows).
 type ColumnEntry = (u32, f32, u32, Vec<[f32; 4]>);
 
 impl STemplate {
@@ -282,6 +285,9 @@ impl STemplate {
         let mut columns: Vec<Vec<ColumnEntry>> = vec![Vec::new(); n + nodes];
         let distances = bundle.distances();
         let kinds = bundle.distance_kinds();
+        // Per stored distance the spread of a link read at two distances (empty without
+        // `--s-link-near`; 0 on direct pairs).
+        let spreads = bundle.distance_spreads();
         for (k, o) in man.objects.iter().enumerate() {
             let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
             object_of[range.clone()].fill(k as u32);
@@ -350,12 +356,16 @@ impl STemplate {
                         }
                         let opposite = classes[k] == Class::Sheet
                             && kinds.get(first + e).copied().unwrap_or(0) == KIND_OPPOSITE;
-                        columns[c].push((
-                            j as u32,
-                            r,
-                            MODE_FAR | (opposite as u32) << 2,
-                            Vec::new(),
-                        ));
+                        let mode = MODE_FAR | (opposite as u32) << 2;
+                        // A link with a spread is read at r ∓ σ, as `smatrix::node_links`
+                        // reads it; σ travels in an aux row.
+                        let entry = match spreads.get(first + e).copied().unwrap_or(0.0) {
+                            s if s > 0.0 => {
+                                (j as u32, r, mode | TWO_POINT, vec![[s, 0.0, 0.0, 0.0]])
+                            }
+                            _ => (j as u32, r, mode, Vec::new()),
+                        };
+                        columns[c].push(entry);
                         linked[k] = true;
                     }
                 }
@@ -384,7 +394,7 @@ impl STemplate {
             for (j, r, mode, a) in column {
                 let pos = next[j as usize] as usize;
                 next[j as usize] += 1;
-                let meta = mode | ((aux.len() as u32) << 3);
+                let meta = mode | ((aux.len() as u32) << AUX_SHIFT);
                 aux.extend(a);
                 col[pos] = i as u32;
                 entries[pos] = [i as u32, j, r.to_bits(), meta];
@@ -463,7 +473,7 @@ impl STemplate {
     /// precompute's own [`Quadrature::eval`]); `None` for a diagonal ρ entry.
     pub fn plan(&self, e: usize) -> Option<Quadrature> {
         let [i, j, _, meta] = self.entries[e];
-        let a = (meta >> 3) as usize;
+        let a = (meta >> AUX_SHIFT) as usize;
         let corners = |p: u32| -> [glam::Vec3; 3] {
             std::array::from_fn(|k| glam::Vec3::from_slice(&self.patches[4 * p as usize + k][..3]))
         };
@@ -483,6 +493,13 @@ impl STemplate {
             }),
             _ => None,
         }
+    }
+
+    /// The spread σ of entry `e` when it is a link read at two distances, r ∓ σ.
+    pub fn spread(&self, e: usize) -> Option<f32> {
+        let meta = self.entries[e][3];
+        (meta & 3 == MODE_FAR && meta & TWO_POINT != 0)
+            .then(|| self.aux[(meta >> AUX_SHIFT) as usize][0])
     }
 
     /// The object patch `i` belongs to.
@@ -659,7 +676,8 @@ impl DeviceS {
 
 impl GpuSTemplate {
     /// Uploads `t`; refuses one whose entries do not fit one storage binding (the kernels
-    /// see the whole matrix at once) or the budget.
+    /// see the whole matrix at once) or the budget. (A binding holds under 4 GiB, so aux
+    /// rows past what an entry's meta word can index, 2²⁸, are refused here too.)
     pub fn upload(ctx: &GpuContext, what: &str, t: STemplate) -> Result<GpuSTemplate, GpuError> {
         let largest = (16 * t.nnz() as u64)
             .max(16 * t.aux.len() as u64)

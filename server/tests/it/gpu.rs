@@ -579,17 +579,24 @@ mod relight_on_both_backends {
 }
 
 /// A translucency change on a hierarchical S relit on both backends: the device rebuilds S
-/// with its links (and says so), and the answer agrees with the CPU backend's.
+/// with its links (and says so), and the answer agrees with the CPU backend's; so too with
+/// links read at two distances (`--s-link-near 1.5`).
 #[test]
 fn a_translucency_change_on_a_hierarchical_s_is_rebuilt_on_the_device() {
+    let Some(_) = ctx() else { return };
+    for near in [None, Some(1.5)] {
+        relit_on_both_backends(near);
+    }
+}
+
+fn relit_on_both_backends(near: Option<f32>) {
     use translux_engine::relight;
     use translux_engine::scene::Scene;
     use translux_proto::api::RelightRequest;
     use translux_server::backend::Backend;
-    let Some(_) = ctx() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("cornell");
-    hierarchical_cornell(&dir, 1500);
+    hierarchical_cornell(&dir, 1500, near);
     let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
         "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":6}}}}"#;
     let run = |backend: &Backend| {
@@ -623,7 +630,12 @@ fn a_translucency_change_on_a_hierarchical_s_is_rebuilt_on_the_device() {
     );
     // The CPU sums S from radial terms (within 0.3% of the quadrature per column), the
     // device evaluates the quadrature plans; the links are the same lookups on both.
-    assert_close("GPU vs CPU relight, hierarchical S", &got, &want, 5e-3);
+    assert_close(
+        &format!("GPU vs CPU relight, hierarchical S, near {near:?}"),
+        &got,
+        &want,
+        5e-3,
+    );
     assert_eq!(gpu_backend.gpu_health().scenes[0].on, "gpu");
 }
 
@@ -966,9 +978,9 @@ mod s_rebuild {
         dev.release(ctx);
     }
 
-    fn hierarchical_bundle(patches: u64) -> (tempfile::TempDir, Bundle) {
+    fn hierarchical_bundle(patches: u64, near: Option<f32>) -> (tempfile::TempDir, Bundle) {
         let tmp = tempfile::tempdir().unwrap();
-        let b = super::hierarchical_cornell(&tmp.path().join("cornell"), patches);
+        let b = super::hierarchical_cornell(&tmp.path().join("cornell"), patches, near);
         (tmp, b)
     }
 
@@ -980,7 +992,7 @@ mod s_rebuild {
     #[test]
     fn a_hierarchical_s_rebuilds_on_the_device_like_the_cpu() {
         let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = hierarchical_bundle(1500);
+        let (_tmp, b) = hierarchical_bundle(1500, None);
         assert!(b.manifest().subsurface.links > 0, "the bundle has links");
         let sp = SParams::default();
         let (m, stored) = device_materials(&b, &[]);
@@ -1003,6 +1015,40 @@ mod s_rebuild {
             eprintln!("hierarchical cornell {overrides:?}: {nnz} entries, worst {e:.2e}");
         }
         bound_on_random_values(ctx, &b, 0x5eed_0009);
+    }
+
+    /// Links read at two distances (`--s-link-near`): the template carries each link's
+    /// spread, and the device reads the link at r ∓ σ as the CPU's assembly does, so its S
+    /// equals the twins and `rebuild_from_bundle` as built and at translucencies drawn
+    /// within the template's headroom (a device reading such links at r alone is off by
+    /// far more than the tolerance, the spread being a node's size).
+    #[test]
+    fn links_read_at_two_distances_rebuild_on_the_device_like_the_cpu() {
+        let Some(ctx) = ctx() else { return };
+        let (_tmp, b) = hierarchical_bundle(1500, Some(1.5));
+        assert_eq!(b.manifest().subsurface.link_near, Some(1.5));
+        let sp = SParams::default();
+        let (m, stored) = device_materials(&b, &[]);
+        let t = STemplate::build(
+            &b,
+            &smatrix::bundle_geometry(&b),
+            &m,
+            &stored,
+            &sp.quadrature,
+        );
+        let two = (0..t.nnz()).filter(|&e| t.spread(e).is_some()).count();
+        assert!(two > 0, "no link of the template is read at two distances");
+        let mut rng = Rng(0x5eed_000a);
+        let mut cases = vec![Vec::new()];
+        for _ in 0..2 {
+            cases.push(vec![scaled(&b, "tall_block", rng.f(0.4, 1.45))]);
+        }
+        for overrides in &cases {
+            let (nnz, e) = check(ctx, &b, overrides);
+            eprintln!(
+                "two-point links, cornell {overrides:?}: {nnz} entries ({two} two-point), worst {e:.2e}"
+            );
+        }
     }
 }
 
@@ -1083,8 +1129,13 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
 }
 
 /// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
-/// the near field), precomputed into `out` with a hierarchical S at `patches`.
-fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::bundle::Bundle {
+/// the near field), precomputed into `out` with a hierarchical S at `patches`, its links'
+/// near field `near` receiver sizes (`--s-link-near`; None: the default).
+fn hierarchical_cornell(
+    out: &std::path::Path,
+    patches: u64,
+    near: Option<f32>,
+) -> translux_proto::bundle::Bundle {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::slinks::SLinkParams;
     use translux_proto::scene::{Material, Profile};
@@ -1108,7 +1159,10 @@ fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::
     loaded.file.objects[k].material = m;
     let params = PrecomputeParams {
         patches: Some(patches),
-        subsurface_links: Some(SLinkParams::default()),
+        subsurface_links: Some(SLinkParams {
+            near,
+            ..SLinkParams::default()
+        }),
         environment: translux_engine::envvis::EnvVisParams {
             bins: None,
             ..Default::default()
@@ -1125,7 +1179,7 @@ fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::
 fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
     use translux_engine::transport::{Transport, subsurface_operator};
     let dir = tempfile::tempdir().unwrap();
-    let b = hierarchical_cornell(&dir.path().join("cornell"), 3000);
+    let b = hierarchical_cornell(&dir.path().join("cornell"), 3000, None);
     let f = Transport::of(&b);
     let s = b.subsurface();
     let n = f.n();

@@ -2,9 +2,10 @@
 // entry: the translucency change's rebuild of S from the stored distances.
 //
 // An entry is (source i, receiver j, optical distance r, meta), meta = mode | opposite << 2
-// | aux << 3. By mode (the plans of `translux_precompute::subsurface::Quadrature`):
+// | two << 3 | aux << 4. By mode (the plans of `translux_precompute::subsurface::Quadrature`):
 //   0 diag:   S_jj = ρ of the patch's (opaque) object;
-//   1 far:    S_ji = A_i R(r);
+//   1 far:    S_ji = A_i R(r); with `two` (a link of `--s-link-near`, spread σ = aux[a].x)
+//             S_ji = A_i (R(max(r − σ, 0)) + R(r + σ)) / 2, as `smatrix::node_links`;
 //   2 polar:  S_ji = factor · mean over x ∈ samples(i) of ∫_tri R(|x − y|) dA_y, by K
 //             directions, exact along each through W(ρ) = ∫₀^ρ R 2πr dr; tri, its plane's
 //             normal and the factor are aux[a..a+4];
@@ -183,7 +184,8 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let r = bitcast<f32>(e.z);
     let mode = e.w & 3u;
     let opposite = (e.w >> 2u) & 1u;
-    let a = e.w >> 3u;
+    let two = (e.w >> 3u) & 1u;
+    let a = e.w >> 4u;
     let obj = u32(patches[4u * src + 3u].w);
     let o = objects[2u * obj];
     var out = vec3<f32>(0.0);
@@ -197,7 +199,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         }
         if (src == dst || r < r_max(slot)) {
             let area_i = patches[4u * src].w;
-            if (mode == 1u) {
+            if (mode == 1u && two == 1u) {
+                let s = aux[a].x;
+                out = (lookup(slot, max(r - s, 0.0), 0u) + lookup(slot, r + s, 0u)) * 0.5 * area_i;
+            } else if (mode == 1u) {
                 out = lookup(slot, r, 0u) * area_i;
             } else {
                 let nx = samples_into(corner(src, 0u), corner(src, 1u), corner(src, 2u), &xs);
