@@ -529,13 +529,8 @@ fn node_links<'t>(
                     let spread = dist_spread.get(first + e).copied().unwrap_or(0.0);
                     (root < t.root_max()).then(|| {
                         let a = nodes.area[c as usize - n];
-                        let r = match crate::sterms::two_point_roots(d, spread) {
-                            Some([lo, hi]) => {
-                                let (l, h) = (t.r_root(lo), t.r_root(hi));
-                                std::array::from_fn(|ch| (l[ch] + h[ch]) * 0.5)
-                            }
-                            None => t.r_root(root),
-                        };
+                        let two = crate::sterms::two_point_roots(d, spread);
+                        let r = crate::sterms::link_reading(two, root, |x| t.r_root(x));
                         (c, r.map(|v| v * a))
                     })
                 })

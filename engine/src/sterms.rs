@@ -239,6 +239,21 @@ pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
     (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
 }
 
+/// A link's profile value, R read through `r_at` (R at a root √r): at its two roots'
+/// mean when it has them ([`two_point_roots`]), at `root` alone otherwise. The one place
+/// the assembly (`smatrix::node_links`, a [`Tabulated`]) and the rewrite
+/// ([`ObjectTerms::write`], a [`TermTable`]) form it, so the two agree bit for bit.
+#[inline]
+pub fn link_reading(two: Option<[f32; 2]>, root: f32, r_at: impl Fn(f32) -> [f32; 3]) -> [f32; 3] {
+    match two {
+        Some([lo, hi]) => {
+            let (a, b) = (r_at(lo), r_at(hi));
+            std::array::from_fn(|ch| (a[ch] + b[ch]) * 0.5)
+        }
+        None => r_at(root),
+    }
+}
+
 /// Appends to `out` the terms of `plan` for a pair at optical distance `r`, patch i's
 /// sample points being `xs` (as [`Quadrature::eval`] would evaluate it).
 pub fn reduce(
@@ -1088,13 +1103,8 @@ impl ObjectTerms {
                         sums.linked += (root < tab.end) as u64;
                         // A link read at two distances: the mean of the profile at both (as
                         // `smatrix::node_links` reads it), 0 past the table's end.
-                        let r = match two.get(l) {
-                            Some(&[lo, hi]) if root < tab.end => {
-                                let (a, b) = (tab.r_root(lo), tab.r_root(hi));
-                                std::array::from_fn(|ch| (a[ch] + b[ch]) * 0.5)
-                            }
-                            _ => tab.r_root(root),
-                        };
+                        let two = two.get(l).copied().filter(|_| root < tab.end);
+                        let r = link_reading(two, root, |x| tab.r_root(x));
                         let k = c as usize - at.n;
                         let a = nodes.area[k];
                         let node = &mut sums.node[k - self.links.nodes.start];
