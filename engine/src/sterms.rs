@@ -232,8 +232,8 @@ impl Term {
 
 /// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
 /// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
-/// assembly (`smatrix::node_links`) and the radial terms' rewrite ([`ObjectTerms::write`]), so both read the
-/// same cells: a link's value is the mean of the profile at the two.
+/// assembly (`smatrix::node_links`) and the radial terms' rewrite ([`ObjectTerms::write`]),
+/// so both read the same cells: a link's value is the mean of the profile at the two.
 #[inline]
 pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
     (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])

@@ -24,11 +24,11 @@
 //! `translux_precompute::slinks`) is rebuilt the same way: its links are entries of the
 //! node columns N + k, evaluated as far pairs with the node's area (S_{j,N+k} = A_k R(r);
 //! a link read at two distances, `--s-link-near`, carries its spread σ in an aux row and
-//! reads A_k (R(r − σ) + R(r + σ)) / 2), and two more kernels hold every column to the energy bound with them, as the CPU's
-//! `subsurface::add_links` does: `s_node_energy` sums what each node re-emits
-//! (e_k = Σ_j A_j S_{j,N+k} / A_k), and `s_link_bound` adds to each patch column the e_k of
-//! the linked nodes that hold the patch, scaling the column's direct entries where the sum
-//! passes 1.
+//! reads A_k (R(r − σ) + R(r + σ)) / 2), and two more kernels hold every column to the
+//! energy bound with them, as the CPU's `subsurface::add_links` does: `s_node_energy` sums
+//! what each node re-emits (e_k = Σ_j A_j S_{j,N+k} / A_k), and `s_link_bound` adds to each
+//! patch column the e_k of the linked nodes that hold the patch, scaling the column's
+//! direct entries where the sum passes 1.
 //!
 //! Heterogeneous objects (eq. 9 over per-medium lengths) are rebuilt on the CPU: [`Plan`]
 //! says so, and the relight reports where S was built (`stats.materials_on`).
@@ -676,9 +676,16 @@ impl DeviceS {
 
 impl GpuSTemplate {
     /// Uploads `t`; refuses one whose entries do not fit one storage binding (the kernels
-    /// see the whole matrix at once) or the budget. (A binding holds under 4 GiB, so aux
-    /// rows past what an entry's meta word can index, 2²⁸, are refused here too.)
+    /// see the whole matrix at once) or the budget, or whose aux rows are more than an
+    /// entry's meta word can index (2²⁸).
     pub fn upload(ctx: &GpuContext, what: &str, t: STemplate) -> Result<GpuSTemplate, GpuError> {
+        if t.aux.len() as u64 > u64::from(u32::MAX >> AUX_SHIFT) {
+            return Err(GpuError::Invalid(format!(
+                "{what}: {} aux rows, more than an entry can index ({})",
+                t.aux.len(),
+                u32::MAX >> AUX_SHIFT
+            )));
+        }
         let largest = (16 * t.nnz() as u64)
             .max(16 * t.aux.len() as u64)
             .max(16 * t.patches.len() as u64)

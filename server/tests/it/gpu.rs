@@ -994,26 +994,9 @@ mod s_rebuild {
         let Some(ctx) = ctx() else { return };
         let (_tmp, b) = hierarchical_bundle(1500, None);
         assert!(b.manifest().subsurface.links > 0, "the bundle has links");
-        let sp = SParams::default();
-        let (m, stored) = device_materials(&b, &[]);
-        let t = STemplate::build(
-            &b,
-            &smatrix::bundle_geometry(&b),
-            &m,
-            &stored,
-            &sp.quadrature,
-        );
+        let t = hierarchical_cases(ctx, &b, 0x5eed_0008, "hierarchical cornell");
         assert!(t.has_links(), "the template holds the links");
         assert_eq!(t.n_cols(), t.n + b.tree().unwrap().range.len());
-        let mut rng = Rng(0x5eed_0008);
-        let mut cases = vec![Vec::new()];
-        for _ in 0..2 {
-            cases.push(vec![scaled(&b, "tall_block", rng.f(0.4, 1.45))]);
-        }
-        for overrides in &cases {
-            let (nnz, e) = check(ctx, &b, overrides);
-            eprintln!("hierarchical cornell {overrides:?}: {nnz} entries, worst {e:.2e}");
-        }
         bound_on_random_values(ctx, &b, 0x5eed_0009);
     }
 
@@ -1027,28 +1010,28 @@ mod s_rebuild {
         let Some(ctx) = ctx() else { return };
         let (_tmp, b) = hierarchical_bundle(1500, Some(1.5));
         assert_eq!(b.manifest().subsurface.link_near, Some(1.5));
-        let sp = SParams::default();
-        let (m, stored) = device_materials(&b, &[]);
-        let t = STemplate::build(
-            &b,
-            &smatrix::bundle_geometry(&b),
-            &m,
-            &stored,
-            &sp.quadrature,
-        );
+        let t = hierarchical_cases(ctx, &b, 0x5eed_000a, "two-point links, cornell");
         let two = (0..t.nnz()).filter(|&e| t.spread(e).is_some()).count();
         assert!(two > 0, "no link of the template is read at two distances");
-        let mut rng = Rng(0x5eed_000a);
+        eprintln!("two-point links: {two} of {} entries", t.nnz());
+    }
+
+    /// [`check`] on a hierarchical Cornell `b` as built and with its block's translucency
+    /// drawn twice within the template's headroom; returns the template as built.
+    fn hierarchical_cases(ctx: &GpuContext, b: &Bundle, seed: u64, what: &str) -> STemplate {
+        let sp = SParams::default();
+        let (m, stored) = device_materials(b, &[]);
+        let t = STemplate::build(b, &smatrix::bundle_geometry(b), &m, &stored, &sp.quadrature);
+        let mut rng = Rng(seed);
         let mut cases = vec![Vec::new()];
         for _ in 0..2 {
-            cases.push(vec![scaled(&b, "tall_block", rng.f(0.4, 1.45))]);
+            cases.push(vec![scaled(b, "tall_block", rng.f(0.4, 1.45))]);
         }
         for overrides in &cases {
-            let (nnz, e) = check(ctx, &b, overrides);
-            eprintln!(
-                "two-point links, cornell {overrides:?}: {nnz} entries ({two} two-point), worst {e:.2e}"
-            );
+            let (nnz, e) = check(ctx, b, overrides);
+            eprintln!("{what} {overrides:?}: {nnz} entries, worst {e:.2e}");
         }
+        t
     }
 }
 
