@@ -38,6 +38,16 @@ pub enum SBuild {
     Cpu(Option<String>),
 }
 
+/// What [`Backend::prepare_s`] made ready for a scene's translucency changes.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SPrep {
+    /// Changes rebuild S on the device: its S template is there, holding `bytes` of
+    /// device memory.
+    Device { bytes: u64 },
+    /// Changes rebuild S on the CPU; why, when the backend is not the CPU.
+    Cpu(Option<String>),
+}
+
 /// A compute backend for the relight's products. Every method may decline.
 pub trait Backend: Send + Sync + std::fmt::Debug {
     /// `cpu` or `gpu`, for stats and logs.
@@ -46,6 +56,13 @@ pub trait Backend: Send + Sync + std::fmt::Debug {
     /// Makes `scene` ready (uploads it) now rather than on its first relight; whether it is
     /// served by this backend.
     fn prepare(&self, scene: SceneRef<'_>) -> bool;
+
+    /// Makes now what the first [`Backend::rebuild_s`] of `scene` would otherwise make (a
+    /// device's S template for the bundle's own materials), and says where translucency
+    /// changes will rebuild S. The default (the CPU backend's): [`SPrep::Cpu`], nothing made.
+    fn prepare_s(&self, _scene: SceneRef<'_>) -> Result<SPrep, SError> {
+        Ok(SPrep::Cpu(None))
+    }
 
     /// Rebuilds S for `overrides` (keyed by `key`, the overrides as JSON).
     fn rebuild_s(

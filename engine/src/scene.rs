@@ -6,17 +6,20 @@
 //! In: a bundle folder (or an opened [`Bundle`]) and the [`Resources`] to relight with.
 //! Out: a [`Scene`] that [`crate::relight`] and [`crate::picture`] take; with material
 //! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ (S rebuilt on the backend, or on
-//! the CPU by [`smatrix::rebuild_from_bundle`]).
+//! the CPU by [`smatrix::rebuild_from_bundle`]). What the first translucency change would
+//! make (S's radial terms, a device's S template) can be made ahead of it:
+//! [`Scene::prepare_translucency`].
 
 use std::path::Path;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use glam::Vec3;
+use translux_proto::api::{PrepState, TranslucencyPrep};
 use translux_proto::bundle::{Bundle, BundleError, arrays};
 use translux_proto::csr::ValidCsr;
 use translux_proto::scene::Material;
 
-use crate::backend::{Backend, Cpu, SBuild, SceneRef};
+use crate::backend::{Backend, Cpu, SBuild, SPrep, SceneRef};
 use crate::collimated::TiltOf;
 use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
@@ -65,6 +68,8 @@ pub struct Scene {
     /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
     /// by every later one ([`crate::sterms`]).
     pub(crate) s_terms: OnceLock<STerms>,
+    /// Whether what the first translucency change needs is made ([`Scene::prepare_translucency`]).
+    prep: Mutex<TranslucencyPrep>,
     /// The buffers a translucency change writes S through, kept for the next one.
     pub(crate) s_scratch: Mutex<Scratch>,
     /// Δ = S⁽ⁿ⁾ − S of the simulated objects for the last materials key
@@ -149,27 +154,27 @@ impl Scene {
             .rebuild_s(self.view(), key, overrides)
             .map_err(invalid)?
         {
-            SBuild::Device(s) => (
-                ValidCsr::new(s).map_err(|e| invalid(smatrix::SError::Matrix(e)))?,
-                "gpu",
-            ),
+            SBuild::Device(s) => {
+                self.settle_prep(|p| {
+                    if p.state != PrepState::Ready {
+                        *p = TranslucencyPrep {
+                            state: PrepState::Ready,
+                            on: Some("gpu".into()),
+                            ..Default::default()
+                        };
+                    }
+                });
+                (
+                    ValidCsr::new(s).map_err(|e| invalid(smatrix::SError::Matrix(e)))?,
+                    "gpu",
+                )
+            }
             SBuild::Cpu(why) => {
                 if let Some(why) = why {
                     tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
                 }
                 let params = SParams::default();
-                let terms = self.s_terms.get_or_init(|| {
-                    let t = smatrix::terms_of_bundle(&self.bundle, &params.quadrature);
-                    tracing::info!(
-                        scene = %self.id,
-                        entries = t.entries(),
-                        terms = t.terms(),
-                        mib = t.bytes() as f64 / (1u64 << 20) as f64,
-                        seconds = t.seconds,
-                        "S reduced to radial terms for translucency changes"
-                    );
-                    t
-                });
+                let terms = self.terms();
                 let (s, _, tilts) =
                     smatrix::rebuild_with_terms_and_tilt(&self.bundle, overrides, &params, terms)
                         .map_err(invalid)?;
@@ -186,6 +191,98 @@ impl Scene {
             }
         };
         Ok(built)
+    }
+
+    /// S's entries reduced to radial terms: made by the first call (the first translucency
+    /// change on the CPU, or [`Scene::prepare_translucency`]), which a concurrent caller
+    /// waits for, and kept.
+    fn terms(&self) -> &STerms {
+        let params = SParams::default();
+        let terms = self.s_terms.get_or_init(|| {
+            let t = smatrix::terms_of_bundle(&self.bundle, &params.quadrature);
+            tracing::info!(
+                scene = %self.id,
+                entries = t.entries(),
+                terms = t.terms(),
+                mib = t.bytes() as f64 / (1u64 << 20) as f64,
+                seconds = t.seconds,
+                "S reduced to radial terms for translucency changes"
+            );
+            t
+        });
+        self.settle_prep(|p| {
+            if p.state != PrepState::Ready {
+                *p = TranslucencyPrep {
+                    state: PrepState::Ready,
+                    on: Some("cpu".into()),
+                    seconds: Some(terms.seconds),
+                    bytes: Some(terms.bytes()),
+                    message: p.message.take(),
+                };
+            }
+        });
+        terms
+    }
+
+    fn settle_prep(&self, f: impl FnOnce(&mut TranslucencyPrep)) {
+        f(&mut self.prep.lock().unwrap_or_else(|p| p.into_inner()));
+    }
+
+    /// Where the scene stands in preparing for translucency changes.
+    pub fn translucency(&self) -> TranslucencyPrep {
+        self.prep.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Makes now what the first translucency change would otherwise make and wait for:
+    /// the device's S template when the backend rebuilds S ([`Backend::prepare_s`]), else
+    /// S's radial terms ([`crate::sterms`]). Blocking, and as long as that first change's
+    /// wait (seconds to minutes on the paper's sizes); runs on the calling rayon pool, so
+    /// a caller can leave relights cores of their own. Does nothing unless the state is
+    /// [`PrepState::Pending`] (a scene without translucent objects, or one already made or
+    /// being made); returns the state it left.
+    pub fn prepare_translucency(&self) -> TranslucencyPrep {
+        {
+            let mut p = self.prep.lock().unwrap_or_else(|p| p.into_inner());
+            if p.state != PrepState::Pending {
+                return p.clone();
+            }
+            p.state = PrepState::Preparing;
+        }
+        let t = std::time::Instant::now();
+        match self.resources.backend.prepare_s(self.view()) {
+            Ok(SPrep::Device { bytes }) => self.settle_prep(|p| {
+                *p = TranslucencyPrep {
+                    state: PrepState::Ready,
+                    on: Some("gpu".into()),
+                    seconds: Some(t.elapsed().as_secs_f64()),
+                    bytes: None,
+                    message: Some(format!("S template on the device, {bytes} bytes")),
+                }
+            }),
+            Ok(SPrep::Cpu(why)) => {
+                if let Some(why) = &why {
+                    tracing::info!(scene = %self.id, "translucency changes rebuild S on the CPU: {why}");
+                }
+                self.settle_prep(|p| p.message = why);
+                self.terms();
+            }
+            Err(e) => self.prepare_failed(&format!("the bundle's materials: {e}")),
+        }
+        self.translucency()
+    }
+
+    /// Records that preparing failed (`why` is shown to clients); the first translucency
+    /// change then makes what it needs itself, as without preparing.
+    pub fn prepare_failed(&self, why: &str) {
+        self.settle_prep(|p| {
+            if p.state != PrepState::Ready {
+                *p = TranslucencyPrep {
+                    state: PrepState::Failed,
+                    message: Some(why.to_string()),
+                    ..Default::default()
+                };
+            }
+        });
     }
 
     /// A translucency change since the last S built on the CPU (only translucent objects' or
@@ -275,6 +372,11 @@ impl Scene {
 
     /// [`Scene::from_bundle`], relit with `resources`.
     pub fn from_bundle_with(id: impl Into<String>, bundle: Bundle, resources: &Resources) -> Scene {
+        // What a translucency change rebuilds: S of translucent objects and thin sheets.
+        let translucent = smatrix::bundle_materials(&bundle, &[]).is_ok_and(|(m, _)| {
+            m.iter()
+                .any(|m| matches!(m, Material::Translucent { .. } | Material::ThinSheet { .. }))
+        });
         let tris: Vec<[Vec3; 3]> = bundle
             .occluder_triangles()
             .iter()
@@ -300,6 +402,14 @@ impl Scene {
             material_cache: Mutex::new(None),
             tilt_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
+            prep: Mutex::new(TranslucencyPrep {
+                state: if translucent {
+                    PrepState::Pending
+                } else {
+                    PrepState::None
+                },
+                ..Default::default()
+            }),
             s_scratch: Mutex::new(Scratch::default()),
             vertex_samples: OnceLock::new(),
             warm: Default::default(),

@@ -530,6 +530,44 @@ pub struct Absorption {
     pub sigma_a_min: [f32; 3],
 }
 
+/// Where a scene stands in making what its first translucency change needs: S's entries
+/// reduced to radial terms on the CPU, or the S template on the GPU backend
+/// (`GET /api/v1/scenes/{id}`'s `translucency`). Without it made, the first change makes
+/// it and waits (seconds to minutes on large objects); the server makes it in the
+/// background instead (`docs/api.md#translucency-preparation`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+pub struct TranslucencyPrep {
+    pub state: PrepState,
+    /// Where translucency changes rebuild S (`cpu` or `gpu`), once known.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub on: Option<String>,
+    /// Seconds the preparation took.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f64>,
+    /// Host bytes it holds (the CPU's radial terms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bytes: Option<u64>,
+    /// Why it failed, or why the GPU backend leaves S to the CPU.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+}
+
+/// [`TranslucencyPrep`]'s state.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PrepState {
+    /// No translucent object or thin sheet: nothing to prepare (a heterogeneous object's S
+    /// is rebuilt without it).
+    None,
+    /// Not started: made by the first translucency change, or in the background soon.
+    #[default]
+    Pending,
+    /// Being made now (a translucency change asked meanwhile waits for it).
+    Preparing,
+    Ready,
+    Failed,
+}
+
 /// `GET /api/v1/scenes/{id}`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct SceneDetail {
@@ -564,6 +602,9 @@ pub struct SceneDetail {
     /// The frame described.
     #[serde(default)]
     pub frame: u32,
+    /// Whether the first translucency change will find what it needs made.
+    #[serde(default)]
+    pub translucency: TranslucencyPrep,
 }
 
 /// One object's triangle range in `GET /api/v1/scenes/{id}/mesh`.

@@ -43,8 +43,49 @@ use crate::gpu::{
     SystemParams,
 };
 pub use translux_engine::backend::SBuild;
-use translux_engine::backend::SceneRef;
+use translux_engine::backend::{SPrep, SceneRef};
 use translux_engine::smatrix::OverrideMaterials;
+
+/// Scene `g`'s S template, built and uploaded for materials `m` unless the one it holds
+/// covers them; the reason (logged) when it does not fit on the device.
+fn template_for<'g>(
+    ctx: &GpuContext,
+    g: &'g GpuScene,
+    scene: SceneRef<'_>,
+    m: &SMaterials,
+    stored: &[f32],
+    sp: &SParams,
+) -> Result<std::sync::MutexGuard<'g, Option<GpuSTemplate>>, String> {
+    let mut slot = g.s_template.lock().unwrap_or_else(|p| p.into_inner());
+    if slot.as_ref().is_some_and(|t| t.template.covers(m)) {
+        return Ok(slot);
+    }
+    if let Some(old) = slot.take() {
+        old.release(ctx);
+    }
+    let t0 = std::time::Instant::now();
+    let b = scene.bundle;
+    let geo = smatrix::bundle_geometry(b);
+    let t = STemplate::build(b, &geo, m, stored, &sp.quadrature);
+    match GpuSTemplate::upload(ctx, &format!("{} S template", scene.id), t) {
+        Ok(t) => {
+            tracing::info!(
+                scene = %scene.id,
+                "S template on the GPU: {} entries, {} MiB, in {:.0} ms",
+                t.template.nnz(),
+                t.bytes() >> 20,
+                t0.elapsed().as_secs_f64() * 1e3
+            );
+            *slot = Some(t);
+            Ok(slot)
+        }
+        Err(e) => {
+            let what = "its S template does not fit on the GPU";
+            tracing::warn!(scene = %scene.id, "S is rebuilt on the CPU: {what}: {e}");
+            Err(format!("{what}: {e}"))
+        }
+    }
+}
 
 /// `--backend`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -484,6 +525,30 @@ impl translux_engine::backend::Backend for Backend {
         self.scene(scene).is_some()
     }
 
+    /// Builds and uploads the S template for the bundle's own materials now, as the first
+    /// [`Backend::rebuild_s`] would (a template covers every translucency of the materials'
+    /// classes, `STemplate::covers`), so that first change does not wait for it.
+    fn prepare_s(&self, scene: SceneRef<'_>) -> Result<SPrep, SError> {
+        let Some(ctx) = self.inner.gpu.as_ref() else {
+            return Ok(SPrep::Cpu(None));
+        };
+        let Some(g) = self.scene(scene) else {
+            return Ok(SPrep::Cpu(Some("the scene is served from the CPU".into())));
+        };
+        let sp = SParams::default();
+        let (materials, stored) = smatrix::bundle_materials(scene.bundle, &[])?;
+        let m = match SMaterials::plan(scene.bundle, &materials, &stored, &sp)? {
+            Plan::Device(m) => m,
+            Plan::Cpu(why) => return Ok(SPrep::Cpu(Some(why))),
+        };
+        match template_for(ctx, &g, scene, &m, &stored, &sp) {
+            Ok(slot) => Ok(SPrep::Device {
+                bytes: slot.as_ref().map_or(0, |t| t.bytes()),
+            }),
+            Err(why) => Ok(SPrep::Cpu(Some(why))),
+        }
+    }
+
     /// Rebuilds S for `overrides` on the device ([`crate::gpu::subsurface`]) and makes it
     /// the scene's override system under `key`; answers S's values for the CPU's products.
     /// [`SBuild::Cpu`] (with the reason, on the GPU backend) when the CPU must build it: the
@@ -513,29 +578,11 @@ impl translux_engine::backend::Backend for Backend {
             tracing::warn!(scene = %scene.id, "S is rebuilt on the CPU: {what}: {e}");
             Ok(SBuild::Cpu(Some(format!("{what}: {e}"))))
         };
-        let mut slot = g.s_template.lock().unwrap_or_else(|p| p.into_inner());
-        if !slot.as_ref().is_some_and(|t| t.template.covers(&m)) {
-            if let Some(old) = slot.take() {
-                old.release(ctx);
-            }
-            let t0 = std::time::Instant::now();
-            let geo = smatrix::bundle_geometry(b);
-            let t = STemplate::build(b, &geo, &m, &stored, &sp.quadrature);
-            match GpuSTemplate::upload(ctx, &format!("{} S template", scene.id), t) {
-                Ok(t) => {
-                    tracing::info!(
-                        scene = %scene.id,
-                        "S template on the GPU: {} entries, {} MiB, in {:.0} ms",
-                        t.template.nnz(),
-                        t.bytes() >> 20,
-                        t0.elapsed().as_secs_f64() * 1e3
-                    );
-                    *slot = Some(t);
-                }
-                Err(e) => return cpu("its S template does not fit on the GPU", &e),
-            }
-        }
-        let template = slot.as_ref().expect("set above");
+        let slot = match template_for(ctx, &g, scene, &m, &stored, &sp) {
+            Ok(slot) => slot,
+            Err(why) => return Ok(SBuild::Cpu(Some(why))),
+        };
+        let template = slot.as_ref().expect("made by template_for");
         let t_assemble = std::time::Instant::now();
         let built = match template.assemble(ctx, &format!("{} S", scene.id), &m, &sp.quadrature) {
             Ok(d) => d,

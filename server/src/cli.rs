@@ -21,7 +21,7 @@ use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
 use translux_proto::bundle::Bundle;
 
-use crate::config::{FileConfig, ServerParams};
+use crate::config::{FileConfig, PrepareWhen, ServerParams};
 pub use crate::offline::{Command, ExportArgs, RelightArgs, RenderArgs};
 use crate::state::{AppState, discover};
 
@@ -101,6 +101,17 @@ pub struct Args {
     /// adapter, a software one too; none is a start-up error) or cpu.
     #[arg(long, value_enum, env = "TRANSLUX_BACKEND", default_value_t = crate::backend::BackendChoice::Auto)]
     pub backend: crate::backend::BackendChoice,
+    /// Make what a scene's first translucency change needs (S's radial terms, or the GPU's S
+    /// template: seconds to minutes on large translucent objects) on a background thread
+    /// with half the cores: when the scene is loaded, on its first request, or never
+    /// [default: load; request with --memory-budget].
+    #[arg(
+        long,
+        value_enum,
+        value_name = "WHEN",
+        env = "TRANSLUX_PREPARE_TRANSLUCENCY"
+    )]
+    pub prepare_translucency: Option<crate::config::PrepareWhen>,
     /// Access control, uploads and jobs, the memory budget ([`crate::team`]).
     #[command(flatten)]
     pub team: crate::team::TeamArgs,
@@ -153,6 +164,13 @@ impl Args {
                 .deadline_ms
                 .or(file.deadline_ms)
                 .map_or(defaults.deadline, Duration::from_millis),
+            prepare: self
+                .prepare_translucency
+                .unwrap_or(if self.team.memory_budget.is_some() {
+                    PrepareWhen::Request
+                } else {
+                    PrepareWhen::Load
+                }),
             ..defaults
         };
         params.validate()?;
@@ -463,7 +481,19 @@ mod tests {
             let s = a.settings().unwrap();
             assert_eq!(s.addr, "127.0.0.1:8080");
             assert_eq!(s.bundles, PathBuf::from(DEMO_DIR));
-            assert_eq!(s.params, ServerParams::default());
+            // The binary prepares translucency changes when a scene loads; under a memory
+            // budget on its first request; as told.
+            let load = ServerParams {
+                prepare: PrepareWhen::Load,
+                ..ServerParams::default()
+            };
+            assert_eq!(s.params, load);
+            let budget = ["translux-server", "--demo", "--memory-budget", "1GiB"];
+            let b = Args::try_parse_from(budget).unwrap().settings().unwrap();
+            assert_eq!(b.params.prepare, PrepareWhen::Request);
+            let off = [&budget[..], &["--prepare-translucency", "off"]].concat();
+            let o = Args::try_parse_from(off).unwrap().settings().unwrap();
+            assert_eq!(o.params.prepare, PrepareWhen::Off);
         }
         let a = Args::try_parse_from([
             "translux-server",

@@ -48,6 +48,25 @@ pub struct ServerParams {
     pub ping_interval: Duration,
     /// The compute backend named in `/healthz` (`cpu`).
     pub backend: String,
+    /// When a scene's first translucency change is made ready ahead of it (default
+    /// [`PrepareWhen::Off`] for an embedding library; the binary's `--prepare-translucency`
+    /// defaults to `load`, or `request` under a memory budget).
+    pub prepare: PrepareWhen,
+}
+
+/// When what a scene's first translucency change needs (S's radial terms on the CPU, the S
+/// template on the GPU) is made on a background thread with half the cores
+/// ([`translux_engine::scene::Scene::prepare_translucency`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum PrepareWhen {
+    /// As soon as the scene is loaded.
+    Load,
+    /// On the scene's first request (any `/api/v1/scenes/{id}…`), so scenes no one opens
+    /// hold no more memory.
+    Request,
+    /// Never: the first translucency change makes it and waits.
+    #[default]
+    Off,
 }
 
 impl Default for ServerParams {
@@ -59,6 +78,7 @@ impl Default for ServerParams {
             deadline: Duration::from_millis(DEFAULT_DEADLINE_MS),
             ping_interval: Duration::from_secs(DEFAULT_PING_S),
             backend: "cpu".to_string(),
+            prepare: PrepareWhen::Off,
         }
     }
 }

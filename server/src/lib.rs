@@ -13,7 +13,7 @@
 //! | --- | --- |
 //! | routes and bodies | [`routes`] (REST; the full list is `openapi.json` and `docs/api.md`), [`ws`] (the stream, `docs/stream.md`) |
 //! | a relight | [`relight`] (plan, then run or run a batch), [`environment`] (environment lights) |
-//! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction) |
+//! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction), [`prepare`] (translucency changes made ready in the background) |
 //! | team use | [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads, precompute jobs) |
 //! | backends | [`backend`] (CPU or GPU, chosen at start-up), [`gpu`] (wgpu kernels, one WGSL file each) |
 //!
@@ -48,6 +48,7 @@ pub mod jobs;
 pub mod metrics;
 pub mod offline;
 pub mod pool;
+pub mod prepare;
 pub mod routes;
 pub mod state;
 pub mod team;

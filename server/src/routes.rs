@@ -328,6 +328,7 @@ async fn scene_detail(
         frames: whole.frame_count(),
         fps: whole.sequence.as_ref().map(|s| s.fps),
         frame: frame.unwrap_or(0),
+        translucency: scene.translucency(),
     })
 }
 

@@ -13,10 +13,12 @@ use translux_proto::animation::{JOURNAL_FILE, SEQUENCE_FILE, SequenceManifest};
 use translux_proto::bundle::{Bundle, BundleError, MANIFEST_FILE, OpenOptions};
 
 use crate::backend::Backend;
+use crate::config::PrepareWhen;
 use crate::config::ServerParams;
 use crate::error::AppError;
 use crate::metrics::Metrics;
 use crate::pool::Pool;
+use crate::prepare::{PreparedHook, Preparer};
 use translux_engine::scene::Resources;
 
 /// One served bundle: the engine's relight state ([`translux_engine::scene::Scene`], which
@@ -235,6 +237,17 @@ pub struct AppState {
     inner: Arc<Inner>,
 }
 
+/// An [`AppState`] held without keeping it alive (for hooks the state itself holds).
+#[derive(Debug, Clone)]
+pub struct WeakAppState(std::sync::Weak<Inner>);
+
+impl WeakAppState {
+    /// The state, while any [`AppState`] handle is left.
+    pub fn upgrade(&self) -> Option<AppState> {
+        self.0.upgrade().map(|inner| AppState { inner })
+    }
+}
+
 #[derive(Debug)]
 struct Inner {
     scenes: RwLock<BTreeMap<String, SceneState>>,
@@ -248,6 +261,8 @@ struct Inner {
     backend: Backend,
     /// The same backend as the engine sees it, and the scenes' shared caches.
     resources: Resources,
+    /// Scenes' translucency preparation ([`crate::prepare`]).
+    preparer: Preparer,
 }
 
 impl Drop for Inner {
@@ -294,6 +309,7 @@ impl AppState {
                 next_stream: AtomicU64::new(1),
                 resources: Resources::on(Arc::new(backend.clone())),
                 backend,
+                preparer: Preparer::default(),
             }),
         }
     }
@@ -495,12 +511,40 @@ impl AppState {
                 // On the GPU backend, F and S go to the device now, not on the first relight.
                 scene.backend().prepare(scene.view());
                 self.insert_ready(scene);
+                if self.params().prepare == PrepareWhen::Load {
+                    self.prepare_translucency(id);
+                }
             }
             Err(e) => {
                 tracing::warn!("skipping bundle {id:?} in {}: {e}", dir.display());
                 self.set_failed(id, e.to_string());
             }
         }
+    }
+
+    /// Queues scene `id`'s translucency preparation ([`crate::prepare`]; frame 0 of an
+    /// animated scene) unless it is not ready, has nothing pending or is queued already.
+    pub fn prepare_translucency(&self, id: &str) {
+        if let Some(scene) = self.scene(id) {
+            self.inner.preparer.queue(&scene.engine());
+        }
+    }
+
+    /// [`AppState::prepare_translucency`] when scenes are prepared on their first request.
+    pub fn prepare_on_request(&self, id: &str) {
+        if self.params().prepare == PrepareWhen::Request {
+            self.prepare_translucency(id);
+        }
+    }
+
+    /// A handle that does not keep the state alive.
+    pub fn downgrade(&self) -> WeakAppState {
+        WeakAppState(Arc::downgrade(&self.inner))
+    }
+
+    /// Sets what runs after a scene is prepared (the memory budget's charge; once).
+    pub fn on_prepared(&self, hook: PreparedHook) {
+        self.inner.preparer.set_hook(hook);
     }
 
     /// Marks every `(id, folder)` as loading, then opens them one after another on a

@@ -136,6 +136,21 @@ impl Team {
         cfg.queue = args.job_queue.unwrap_or(cfg.queue);
         cfg.per_owner = cfg.per_owner.min(cfg.queue);
         let budget = Arc::new(MemoryBudget::new(args.memory_budget));
+        {
+            // A prepared scene holds its radial terms: charged, and others evicted beyond
+            // the budget, as after a first translucency change.
+            // Held weakly: the state holds the hook.
+            let (weak, budget) = (state.downgrade(), budget.clone());
+            state.on_prepared(Arc::new(move |id: &str| {
+                let Some(state) = weak.upgrade() else {
+                    return;
+                };
+                if let Some(scene) = state.scene(id) {
+                    budget.charge(id, "host", host_bytes(&scene));
+                    evict(&state, &budget, id);
+                }
+            }));
+        }
         let hook_state = state.clone();
         let hook_budget = budget.clone();
         let (jobs, notes) = Jobs::start(
@@ -366,11 +381,13 @@ async fn residency(State(team): State<Team>, req: Request, next: Next) -> Respon
     // Unknown ids (404 from the route) are never accounted: the budget's table holds only
     // scenes that exist.
     if team.budget.limit().is_none() || team.state.scene_state(&id).is_none() {
+        team.state.prepare_on_request(&id);
         return next.run(req).await;
     }
     if let Err(e) = team.make_resident(&id).await {
         return e.into_response();
     }
+    team.state.prepare_on_request(&id);
     team.budget.pin(&id);
     let _pin = Pin {
         team: team.clone(),

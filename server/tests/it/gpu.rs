@@ -639,6 +639,63 @@ fn relit_on_both_backends(near: Option<f32>) {
     assert_eq!(gpu_backend.gpu_health().scenes[0].on, "gpu");
 }
 
+/// On the GPU backend, preparing a scene for translucency changes builds its S template on
+/// the device (its bytes grow past the uploaded F and S), says so, and the first change
+/// then answers as on a scene that was not prepared.
+#[test]
+fn preparing_on_the_gpu_builds_the_s_template_ahead_of_the_first_change() {
+    use translux_engine::relight;
+    use translux_engine::scene::Scene;
+    use translux_proto::api::{PrepState, RelightRequest};
+    use translux_server::backend::Backend;
+    let Some(_) = ctx() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("cornell");
+    hierarchical_cornell(&dir, 1500, None);
+    let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
+        "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":0.5}}}}"#;
+    let backend = || {
+        Backend::on_gpu(
+            GpuContext::new(&GpuOptions {
+                allow_software: true,
+                ..Default::default()
+            })
+            .unwrap(),
+        )
+    };
+    let run = |scene: &Scene| {
+        let req: RelightRequest = serde_json::from_str(body).unwrap();
+        let out = relight::run(scene, &relight::plan(scene, req).unwrap()).unwrap();
+        assert_eq!(out.stats.materials_on.as_deref(), Some("gpu"));
+        out.radiance
+    };
+    let (b, lazy_b) = (backend(), backend());
+    let scene = Scene::open_with("cornell", &dir, &b.resources()).unwrap();
+    let lazy = Scene::open_with("cornell", &dir, &lazy_b.resources()).unwrap();
+    use translux_engine::backend::Backend as _;
+    assert!(b.prepare(scene.view()), "served on the device");
+    let uploaded = b.gpu_health().bytes;
+    let p = scene.prepare_translucency();
+    assert_eq!(
+        (p.state, p.on.as_deref()),
+        (PrepState::Ready, Some("gpu")),
+        "{p:?}"
+    );
+    assert!(
+        b.gpu_health().bytes > uploaded,
+        "the template is on the device: {} then {} bytes",
+        uploaded,
+        b.gpu_health().bytes
+    );
+    assert_eq!(
+        scene.material_cache_bytes(),
+        0,
+        "no radial terms on the host"
+    );
+    assert_eq!(run(&scene), run(&lazy));
+    assert_eq!(lazy.translucency().on.as_deref(), Some("gpu"));
+}
+
 mod server_start {
     use std::io::{BufRead, BufReader, Read, Write};
     use std::process::{Command, Stdio};

@@ -1,6 +1,7 @@
 //! translux-server's integration tests, one binary with a module per subject: `cli` (the
 //! binary's offline commands and flags), `deploy` (the container set-up), `gpu` (every
-//! kernel against its CPU twin, on lavapipe here), `shutdown` (SIGTERM with queued
+//! kernel against its CPU twin, on lavapipe here), `prepare` (translucency preparation in
+//! the binary), `shutdown` (SIGTERM with queued
 //! relights), `transport` (the relight through the server's code, no sockets) and `ws` (the WebSocket
 //! loop driven through channels); `support` holds the shared fixtures.
 //!
@@ -10,6 +11,7 @@
 mod cli;
 mod deploy;
 mod gpu;
+mod prepare;
 mod shutdown;
 mod support;
 mod transport;

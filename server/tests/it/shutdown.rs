@@ -16,22 +16,22 @@ const BIN: &str = env!("CARGO_BIN_EXE_translux-server");
 const PREFIX: &str = "server-shutdown-";
 
 /// A folder holding a 400-patch Cornell box as `cornell`, fresh for this test binary.
-fn bundles() -> PathBuf {
+pub(crate) fn bundles() -> PathBuf {
     let root = crate::support::kept_folder(PREFIX);
     crate::support::cornell_into(&root, 400);
     root
 }
 
 /// The server process and its log lines.
-struct Server {
+pub(crate) struct Server {
     child: Child,
     lines: mpsc::Receiver<String>,
-    log: Vec<String>,
-    base: String,
+    pub(crate) log: Vec<String>,
+    pub(crate) base: String,
 }
 
 impl Server {
-    fn start(root: &Path, extra: &[&str]) -> Server {
+    pub(crate) fn start(root: &Path, extra: &[&str]) -> Server {
         let mut child = Command::new(BIN)
             .arg("--bundles")
             .arg(root)
@@ -70,8 +70,15 @@ impl Server {
         s
     }
 
+    /// Moves the log lines written so far into `log`.
+    pub(crate) fn drain(&mut self) {
+        while let Ok(line) = self.lines.try_recv() {
+            self.log.push(line);
+        }
+    }
+
     /// Waits for a log line containing `needle` (60 s at most).
-    fn wait_for(&mut self, needle: &str) -> String {
+    pub(crate) fn wait_for(&mut self, needle: &str) -> String {
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
             let left = deadline.saturating_duration_since(Instant::now());

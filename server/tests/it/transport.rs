@@ -647,3 +647,45 @@ fn direct_light_kept_for_the_same_lights_answers_as_traced_afresh() {
         );
     }
 }
+
+/// A scene prepared for translucency changes ahead of them (S's radial terms made in the
+/// background) answers its first change as one that makes them on that change, bit for
+/// bit; either way the scene then says it is ready, and preparing again does nothing.
+#[test]
+fn a_scene_prepared_ahead_answers_its_first_translucency_change_as_one_that_was_not() {
+    use translux_proto::api::PrepState;
+    let dir = tempfile::tempdir().unwrap();
+    let path = build("builtin:cornell_paper", dir.path(), "c", 1500, false);
+    let prepared = Scene::open("p", &path).unwrap();
+    let lazy = Scene::open("l", &path).unwrap();
+    assert_eq!(prepared.translucency().state, PrepState::Pending);
+    assert_eq!(prepared.material_cache_bytes(), 0);
+    let p = prepared.prepare_translucency();
+    assert_eq!(p.state, PrepState::Ready, "{p:?}");
+    assert_eq!(p.on.as_deref(), Some("cpu"));
+    let bytes = p.bytes.expect("the terms' bytes");
+    assert!(
+        bytes > 0 && bytes == prepared.material_cache_bytes(),
+        "{p:?}"
+    );
+    assert!(p.seconds.is_some_and(|s| s >= 0.0), "{p:?}");
+    assert_eq!(
+        prepared.prepare_translucency(),
+        p,
+        "a second preparation changes nothing"
+    );
+
+    let json = r#"{"materials": {"tall_block": {"type": "translucent",
+        "profile": {"type": "dipole", "preset": "marble", "scale": 2.5}}}}"#;
+    assert_eq!(lazy.translucency().state, PrepState::Pending);
+    let a = relight::run(&prepared, &plan(&prepared, json)).unwrap();
+    let b = relight::run(&lazy, &plan(&lazy, json)).unwrap();
+    assert_eq!(a.radiance, b.radiance);
+    let l = lazy.translucency();
+    assert_eq!(
+        (l.state, l.on.as_deref()),
+        (PrepState::Ready, Some("cpu")),
+        "{l:?}"
+    );
+    assert_eq!(l.bytes, Some(bytes));
+}
