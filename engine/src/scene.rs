@@ -155,14 +155,9 @@ impl Scene {
             .map_err(invalid)?
         {
             SBuild::Device(s) => {
-                self.settle_prep(|p| {
-                    if p.state != PrepState::Ready {
-                        *p = TranslucencyPrep {
-                            state: PrepState::Ready,
-                            on: Some("gpu".into()),
-                            ..Default::default()
-                        };
-                    }
+                self.settle_ready(TranslucencyPrep {
+                    on: Some("gpu".into()),
+                    ..Default::default()
                 });
                 (
                     ValidCsr::new(s).map_err(|e| invalid(smatrix::SError::Matrix(e)))?,
@@ -210,22 +205,32 @@ impl Scene {
             );
             t
         });
-        self.settle_prep(|p| {
-            if p.state != PrepState::Ready {
-                *p = TranslucencyPrep {
-                    state: PrepState::Ready,
-                    on: Some("cpu".into()),
-                    seconds: Some(terms.seconds),
-                    bytes: Some(terms.bytes()),
-                    message: p.message.take(),
-                };
-            }
+        self.settle_ready(TranslucencyPrep {
+            on: Some("cpu".into()),
+            seconds: Some(terms.seconds),
+            bytes: Some(terms.bytes()),
+            ..Default::default()
         });
         terms
     }
 
     fn settle_prep(&self, f: impl FnOnce(&mut TranslucencyPrep)) {
         f(&mut self.prep.lock().unwrap_or_else(|p| p.into_inner()));
+    }
+
+    /// Marks the preparation ready as `ready` says (its state set here; a message already
+    /// recorded kept where `ready` has none), unless it already is.
+    fn settle_ready(&self, ready: TranslucencyPrep) {
+        self.settle_prep(|p| {
+            if p.state != PrepState::Ready {
+                let message = ready.message.or(p.message.take());
+                *p = TranslucencyPrep {
+                    state: PrepState::Ready,
+                    message,
+                    ..ready
+                };
+            }
+        });
     }
 
     /// Where the scene stands in preparing for translucency changes.
@@ -250,14 +255,11 @@ impl Scene {
         }
         let t = std::time::Instant::now();
         match self.resources.backend.prepare_s(self.view()) {
-            Ok(SPrep::Device { bytes }) => self.settle_prep(|p| {
-                *p = TranslucencyPrep {
-                    state: PrepState::Ready,
-                    on: Some("gpu".into()),
-                    seconds: Some(t.elapsed().as_secs_f64()),
-                    bytes: None,
-                    message: Some(format!("S template on the device, {bytes} bytes")),
-                }
+            Ok(SPrep::Device { bytes }) => self.settle_ready(TranslucencyPrep {
+                on: Some("gpu".into()),
+                seconds: Some(t.elapsed().as_secs_f64()),
+                message: Some(format!("S template on the device, {bytes} bytes")),
+                ..Default::default()
             }),
             Ok(SPrep::Cpu(why)) => {
                 if let Some(why) = &why {
@@ -372,10 +374,13 @@ impl Scene {
 
     /// [`Scene::from_bundle`], relit with `resources`.
     pub fn from_bundle_with(id: impl Into<String>, bundle: Bundle, resources: &Resources) -> Scene {
-        // What a translucency change rebuilds: S of translucent objects and thin sheets.
-        let translucent = smatrix::bundle_materials(&bundle, &[]).is_ok_and(|(m, _)| {
-            m.iter()
-                .any(|m| matches!(m, Material::Translucent { .. } | Material::ThinSheet { .. }))
+        // What a translucency change rebuilds from radial terms or a device template: S of
+        // translucent objects and thin sheets (as smatrix::terms_of_bundle picks them).
+        let translucent = bundle.manifest().objects.iter().any(|o| {
+            matches!(
+                o.material,
+                Material::Translucent { .. } | Material::ThinSheet { .. }
+            )
         });
         let tris: Vec<[Vec3; 3]> = bundle
             .occluder_triangles()
