@@ -92,6 +92,10 @@ const app = {
   hashProblems: [],
   linkNotes: [], // sentences about the opened link, shown with the hash problems
   autoExposure: true,
+  // The scene's translucency preparation (docs/api.md, "Translucency preparation"), watched
+  // by `watchTranslucency`: a fresh object per scene, so a poll answered late is dropped.
+  prep: { scene: null, info: null },
+  prepNote: null, // the note under the material sliders, while the scene has translucent objects
 };
 window.translux = { app, metrics };
 
@@ -188,6 +192,7 @@ function onFrame(radiance, info) {
   app.frameDirect = app.sentDirect.get(info.seq) === true;
   app.newFrame = true;
   app.needDraw = true;
+  translucencyAnswered(info.seq);
   if (app.errors.request && info.seq >= (app.errorSeq ?? 0)) setBanner("request", null);
   if (app.errors.app) setBanner("app", null);
   metrics.frames.push({ seq: info.seq, t: performance.now(), ms: info.stats ? info.stats.ms : null, transport: info.transport, frame: f ?? 0 });
@@ -201,6 +206,7 @@ function onFrame(radiance, info) {
 function onRequestError(seq, code, message) {
   app.errorSeq = seq ?? app.seq;
   setBanner("request", `${message} (${code})`);
+  translucencyAnswered(seq ?? app.seq);
   // The inputs of a refused state will never be shown: they have no latency.
   if (seq != null) metrics.inputs = metrics.inputs.filter((i) => i.seq > seq);
   app.needDraw = true;
@@ -242,6 +248,7 @@ async function getJson(url) {
 function askForToken(status, message) {
   if (app.link) app.link.close();
   app.link = null;
+  unwatchTranslucency();
   onInFlight(false);
   const chip = $("conn");
   chip.className = "chip offline";
@@ -363,6 +370,7 @@ function defaultLights() {
 async function loadScene(id, fromHash) {
   if (app.link) app.link.close();
   app.link = null;
+  unwatchTranslucency();
   app.radiance = null;
   app.shownSeq = 0;
   app.seq = 0;
@@ -403,6 +411,7 @@ async function loadScene(id, fromHash) {
   app.autoExposure = hash.exposure === undefined;
   app.selected = 0;
   $("scene").value = id;
+  watchTranslucency(id, detail.translucency);
   buildPanels();
   buildTimeline();
   app.link = new Link(id, { onFrame, onRequestError, onConnection, onInFlight, onDenied: askForToken, onNotice: (m) => {
@@ -418,6 +427,8 @@ async function loadScene(id, fromHash) {
   app.hashProblems = [];
   app.linkNotes = [];
   changed();
+  // A link's translucency override is a first change as much as the slider's.
+  if (Object.keys(s.materials).some(isTranslucent)) translucencyChangeSent();
 }
 
 function bbox(p) {
@@ -674,6 +685,133 @@ function applyMaterial(name, t) {
   else delete app.state.materials[name];
   updateSurfaces();
   changed(t);
+  if (isTranslucent(name)) translucencyChangeSent();
+}
+
+// ---- translucency preparation -----------------------------------------------------------
+//
+// What a scene's first translucency change needs (S's radial terms, or the GPU's S template)
+// the server makes in the background; until it is made, that change takes seconds to
+// minutes. The scene detail's `translucency.state` says where it stands: `none`, `pending`,
+// `preparing`, `ready` or `failed`. The viewer asks for the detail again while the state
+// can still change by itself (pending, preparing), and once after a change the server
+// answered before it was ready (that change made it), and shows the state in a note under
+// the material sliders.
+
+const PREP_POLL_MS = 1500; // while preparing, and the first wait while pending
+const PREP_POLL_MAX_MS = 10000; // pending waits grow to this (`--prepare-translucency off` stays pending)
+const PREP_READY_MS = 4000; // how long "ready" shows after the viewer saw it become so
+
+/** Whether `name` is a translucent object (its changes need the preparation). */
+function isTranslucent(name) {
+  const o = app.detail && app.detail.objects.find((x) => x.name === name);
+  return !!o && o.material.type === "translucent";
+}
+
+/** Starts watching scene `id`'s preparation from its detail's `translucency`. */
+function watchTranslucency(id, info) {
+  unwatchTranslucency();
+  app.prep = { scene: id, info: info ?? null, timer: null, delay: PREP_POLL_MS, changeSeq: 0, readyShown: false };
+  schedulePrepPoll();
+}
+
+/** Stops the polling (another scene, a sign-in); a poll still under way is dropped. */
+function unwatchTranslucency() {
+  const p = app.prep;
+  clearTimeout(p.timer);
+  clearTimeout(p.readyTimer);
+  app.prep = { scene: null, info: null };
+  showPrep();
+}
+
+const prepState = () => (app.prep.info ? app.prep.info.state : "none");
+
+/** The next poll, after `delay` ms (the current wait by default) while the state can change. */
+function schedulePrepPoll(delay) {
+  const p = app.prep;
+  clearTimeout(p.timer);
+  p.timer = null;
+  const s = prepState();
+  if (p.scene && (delay !== undefined || s === "pending" || s === "preparing")) {
+    p.timer = setTimeout(() => pollPrep(p), delay ?? p.delay);
+  }
+}
+
+async function pollPrep(p) {
+  p.timer = null;
+  let detail;
+  try {
+    detail = await getJson(`/api/v1/scenes/${encodeURIComponent(p.scene)}`);
+  } catch (e) {
+    if (app.prep !== p) return;
+    // A refused token is the stream's to report, a scene gone the next load's; anything
+    // else (the server away) is tried again, later.
+    if (e.status >= 400 && e.status < 500) return;
+    p.delay = Math.min(p.delay * 2, PREP_POLL_MAX_MS);
+    schedulePrepPoll();
+    return;
+  }
+  if (app.prep !== p) return; // another scene since
+  const before = prepState();
+  p.info = detail.translucency ?? null;
+  const s = prepState();
+  p.delay = s === "pending" ? Math.min(p.delay * 1.5, PREP_POLL_MAX_MS) : PREP_POLL_MS;
+  if (s === "ready" && before !== "ready") {
+    p.readyShown = true;
+    clearTimeout(p.readyTimer);
+    p.readyTimer = setTimeout(() => {
+      p.readyShown = false;
+      if (app.prep === p) showPrep();
+    }, PREP_READY_MS);
+  }
+  showPrep();
+  schedulePrepPoll();
+}
+
+/** A translucency change was sent (`app.seq`): until answered, it may be making the preparation. */
+function translucencyChangeSent() {
+  const s = prepState();
+  if (s === "none" || s === "ready") return;
+  app.prep.changeSeq = app.seq;
+  showPrep();
+}
+
+/** Request `seq` was answered (or refused): a translucency change sent before it is done. */
+function translucencyAnswered(seq) {
+  const p = app.prep;
+  if (!p.changeSeq || seq < p.changeSeq) return;
+  p.changeSeq = 0;
+  showPrep();
+  schedulePrepPoll(0); // it made what it needed: the state has likely moved
+}
+
+function showPrep() {
+  const note = app.prepNote;
+  if (!note) return;
+  const p = app.prep;
+  const s = prepState();
+  let text = "", kind = "";
+  if (p.changeSeq && s !== "ready" && s !== "none") {
+    text = "First translucency change: preparing S, this can take a while…";
+    kind = "busy";
+  } else if (s === "preparing") {
+    text = "Preparing translucency… (the first change will be fast in a moment)";
+    kind = "busy";
+  } else if (s === "pending") {
+    text = "Translucency not prepared yet: the first change will prepare it, which can take a while.";
+  } else if (s === "failed") {
+    text = `Translucency preparation failed: ${p.info.message || "no reason given"}. ` +
+      "The first change will do the work itself (slower).";
+    kind = "err";
+  } else if (s === "ready" && p.readyShown) {
+    const secs = p.info.seconds;
+    text = `Translucency ready${typeof secs === "number" ? ` (prepared in ${secs.toFixed(1)} s)` : ""}.`;
+    kind = "ok";
+  }
+  note.className = "note prep" + (kind ? " " + kind : "");
+  note.dataset.state = s;
+  note.hidden = !text;
+  note.replaceChildren(...(kind === "busy" ? [el("span", { class: "spin" })] : []), text);
 }
 
 // The dipole presets' eta: 1.3 but marble's 1.5, and 1.3 for a dipole given by its
@@ -807,7 +945,11 @@ function buildMaterials() {
     rows.push(el("div", { class: "obj", "data-object": o.name }, parts));
   }
   if (!rows.length) rows.push(el("p", { class: "note" }, "This scene has no translucent objects."));
-  box.replaceChildren(...rows);
+  app.prepNote = app.detail.objects.some((o) => o.material.type === "translucent")
+    ? el("p", { class: "note prep", id: "translucency-note", role: "status", hidden: true })
+    : null;
+  box.replaceChildren(...rows, ...(app.prepNote ? [app.prepNote] : []));
+  showPrep();
 }
 
 /**

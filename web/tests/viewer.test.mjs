@@ -706,6 +706,117 @@ async function checkPhone(browser) {
   return out;
 }
 
+/**
+ * 16. The note on translucency preparation: the scene detail's `translucency` is staged
+ * (`page.route`; the test's server leaves its scenes `pending`, `--prepare-translucency off`).
+ * `preparing`: the note says so and the viewer asks again; a translucency change sent then
+ * says it is doing the preparation until its answer; `ready`: "ready" for a moment, then no
+ * note and no more asking. A scene opened `failed` shows the server's message, one opened
+ * `ready` no note, and switching scene stops the asking.
+ */
+async function checkTranslucencyNote(browser) {
+  const context = await newContext(browser, { viewport: { width: 1280, height: 760 } });
+  watchErrors(context);
+  let staged = { state: "preparing" };
+  let asked = 0;
+  await context.route((u) => u.pathname === "/api/v1/scenes/cornell", async (route) => {
+    asked++;
+    const res = await route.fetch();
+    const body = await res.json();
+    body.translucency = staged;
+    await route.fulfill({ response: res, json: body });
+  });
+  let page = null;
+  /** A fresh page on `cornell` (no material override from an earlier page's link). */
+  const open = async () => {
+    if (page) await page.close();
+    page = await context.newPage();
+    await page.goto(url + "#scene=cornell");
+    await firstLit(page);
+  };
+  const out = {};
+  const note = () => page.evaluate(() => {
+    const n = document.getElementById("translucency-note");
+    return n ? { text: n.hidden ? "" : n.textContent, cls: n.className, state: n.dataset.state } : null;
+  });
+  const waitNote = (re, what) => page.waitForFunction((re) => {
+    const n = document.getElementById("translucency-note");
+    return n && !n.hidden && new RegExp(re).test(n.textContent);
+  }, re.source, { timeout: 20000 }).catch(async () => {
+    throw new Error(`check failed: ${what}: the note says ${JSON.stringify(await note())}`);
+  });
+  const noNote = (what) => page.waitForFunction(() => {
+    const n = document.getElementById("translucency-note");
+    return !n || n.hidden;
+  }, null, { timeout: 20000 }).catch(async () => {
+    throw new Error(`check failed: ${what}: the note says ${JSON.stringify(await note())}`);
+  });
+  /** Whether the viewer asks for the detail again within `ms`. */
+  const asksWithin = async (ms) => {
+    const n = asked;
+    await page.waitForTimeout(ms);
+    return asked > n;
+  };
+
+  // Preparing: the note, and the viewer keeps asking.
+  await open();
+  await waitNote(/^Preparing translucency…/, "staged preparing");
+  out.preparing = (await note()).text;
+  await shot(page, "16-translucency-preparing.png");
+  check(await asksWithin(4000), "while preparing, the viewer did not ask for the scene detail again");
+
+  // A change sent before it is ready: the note says the change does the work, until answered.
+  const block = await page.evaluate(() => window.translux.app.detail.objects.find((o) => o.material.type === "translucent").name);
+  await page.evaluate(() => {
+    const seen = window.translux.metrics.prepNotes = [];
+    const n = document.getElementById("translucency-note");
+    new MutationObserver(() => seen.push(n.hidden ? "" : n.textContent))
+      .observe(n, { childList: true, characterData: true, subtree: true, attributes: true });
+  });
+  await page.locator(`#mat-${block}-scale`).fill("1");
+  await idle(page);
+  const seen = await page.evaluate(() => window.translux.metrics.prepNotes);
+  out.during_change = seen.find((t) => /^First translucency change/.test(t)) ?? null;
+  check(/^First translucency change: preparing S, this can take a while/.test(out.during_change ?? ""),
+    `a translucency change sent while preparing did not say so: the note said ${JSON.stringify(seen)}`);
+  await waitNote(/^Preparing translucency…/, "after the change's answer, still preparing");
+
+  // Ready: said for a moment, then nothing, and no more asking.
+  staged = { state: "ready", on: "cpu", seconds: 14.2, bytes: 123456789 };
+  await waitNote(/^Translucency ready \(prepared in 14\.2 s\)/, "staged ready");
+  out.ready = (await note()).text;
+  await shot(page, "16-translucency-ready.png");
+  await noNote("ready, a few seconds later");
+  check(!(await asksWithin(3500)), "the viewer still asks for the scene detail once it is ready");
+
+  // Failed: the server's message, and the first change does the work.
+  staged = { state: "failed", message: "staged: the bundle's materials: no profile" };
+  await open();
+  await waitNote(/^Translucency preparation failed: staged: the bundle's materials: no profile\. The first change will do the work itself/,
+    "staged failed");
+  out.failed = (await note()).text;
+  check((await note()).cls.split(" ").includes("err"), `a failed preparation is not shown as an error: ${(await note()).cls}`);
+  await shot(page, "16-translucency-failed.png");
+  check(!(await asksWithin(3500)), "the viewer still asks for the scene detail once it failed");
+
+  // Ready when opened: no note.
+  staged = { state: "ready", on: "cpu", seconds: 3, bytes: 1000 };
+  await open();
+  await page.waitForTimeout(500);
+  check((await note()).text === "", `a scene opened ready shows ${JSON.stringify(await note())}`);
+
+  // Another scene: the asking about this one stops.
+  staged = { state: "preparing" };
+  await open();
+  await waitNote(/^Preparing translucency…/, "staged preparing again");
+  await page.selectOption("#scene", "simulated_cube");
+  await page.waitForFunction(() => window.translux.app.state.scene === "simulated_cube" && window.translux.app.radiance);
+  await page.waitForTimeout(300);
+  check(!(await asksWithin(3500)), "after switching scene the viewer still asks for the old scene's detail");
+  await context.close();
+  return out;
+}
+
 const median = (a) => (a.length ? [...a].sort((x, y) => x - y)[Math.floor(a.length / 2)] : null);
 const pct = (a, q) => (a.length ? [...a].sort((x, y) => x - y)[Math.min(a.length - 1, Math.floor(a.length * q))] : null);
 
@@ -724,14 +835,16 @@ const browser = await chromium.launch({
 });
 const result = { event: "result" };
 const pageErrors = [];
-// TRANSLUX_TEST_ONLY=specular,crisp,animation runs those steps alone (against any server
-// with builtin:cornell, and the 48-frame `gallop` sequence for `animation`).
+// TRANSLUX_TEST_ONLY=specular,crisp,animation,translucency runs those steps alone (against
+// any server with builtin:cornell, the 48-frame `gallop` sequence for `animation` and the
+// `simulated_cube` for `translucency`).
 if (process.env.TRANSLUX_TEST_ONLY) {
   try {
     const only = process.env.TRANSLUX_TEST_ONLY.split(",");
     if (only.includes("specular")) result.specular = await checkSpecular(browser);
     if (only.includes("crisp")) result.crisp_light = await checkCrispLight(browser);
     if (only.includes("animation")) result.animation = await checkAnimation(browser);
+    if (only.includes("translucency")) result.translucency_note = await checkTranslucencyNote(browser);
   } finally {
     await browser.close();
   }
@@ -1000,6 +1113,7 @@ try {
   result.absorption = await checkAbsorption(browser);
   result.crisp_light = await checkCrispLight(browser);
   result.animation = await checkAnimation(browser);
+  result.translucency_note = await checkTranslucencyNote(browser);
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {
