@@ -740,8 +740,13 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     let dipole = with_block(medium.dipole());
     let walked = with_block(medium.simulated(None));
     let dir = tempfile::tempdir().unwrap();
-    let scene = build(dipole, dir.path(), "volume_cornell", 3000);
-    let sim_scene = build(walked, dir.path(), "simulated_cornell", 3000);
+    // 12,000 patches, not fewer: at 3,000 the room itself was too coarse behind the block.
+    // The same box with the block made diffuse (a temporary variant of this test, 2026-11-30)
+    // put the −z face's total at 0.951 of Mitsuba's at 3,000 patches and at 0.990 at 12,000:
+    // the light that reaches the gap between the block and the back wall, not S, was what
+    // kept −z 5.9% off there (docs/validation.md).
+    let scene = build(dipole, dir.path(), "volume_cornell", 12_000);
+    let sim_scene = build(walked, dir.path(), "simulated_cornell", 12_000);
     let b = &scene.bundle;
     assert_eq!(b.patch_corners(), sim_scene.bundle.patch_corners());
     let lights =
@@ -758,7 +763,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         .unwrap();
     let objects = m.objects.iter().map(|o| o.name.clone()).collect::<Vec<_>>();
     let object_of = b.patch_objects();
-    // ~300 block patches and ~150 others.
+    // 300 of the block's ~1,800 patches and ~150 others.
     let in_block: Vec<usize> = (0..centroids.len())
         .filter(|&k| object_of[k] as usize == block)
         .collect();
@@ -856,6 +861,10 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         }
     }
     vertex_faces.sort_by(|a, c| a.0.cmp(&c.0));
+    // About 48 vertices a face, spread over it (8,192 paths each).
+    for (_, at) in &mut vertex_faces {
+        *at = every(at, (at.len() / 48).max(1));
+    }
     let relit = |scene: &Scene, at: &[usize]| -> Vec<Rgb> {
         let body = json!({ "lights": lights }).to_string();
         let plan = relight::plan(scene, translux_proto::parse_json(&body).unwrap()).unwrap();
@@ -935,40 +944,31 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
     );
     // The bottom face (−y) stands on the floor: light that reaches it goes into the floor
     // in Mitsuba and back into the block, while S re-emits it at patches the floor buries
-    // (its probes are mostly left out as unreachable, 16 of 32 counted). Reported only.
-    // The issue's 5% holds on the three faces the lamp lights and on −x; −z, lit only
-    // through the block and round it, is at 5.8%: the lamp's light enters slanted, and
-    // S(μ₀) knows its angle but not which way it slants (docs/validation.md), so its bar
-    // is 7%.
-    // At the vertices (issue #18's measure) the same: −x within 5%, −z 6.5% off, a bias
-    // (4–6% too dark in total) the vertices do not average away; its bar is 8%.
+    // (its probes are mostly left out as unreachable). Reported only. Every other face,
+    // the two lit only through the block and round it (−x, −z) included, is held to the
+    // issue's 5% median and its total to 5%, at patch centroids and at the viewer's
+    // vertices (issue #18's measure).
     for (name, _, e) in &at_vertices {
         assert!(
             e.reference_noise < 0.03,
             "{name}: Mitsuba too noisy: {:.3}",
             e.reference_noise
         );
-        let bar = if name.starts_with("block -z") {
-            0.08
-        } else {
-            0.05
-        };
         assert!(
-            e.counted >= 10 && e.median < bar,
-            "simulated block, {name}: median {:.2}% over {} vertices (bar {:.0}%)",
+            e.counted >= 10 && e.median < 0.05 && (e.total_ratio - 1.0).abs() < 0.05,
+            "simulated block, {name}: median {:.2}% over {} vertices, Σ ratio {:.3}",
             100.0 * e.median,
             e.counted,
-            100.0 * bar
+            e.total_ratio
         );
     }
     for (name, _, e) in &per_face {
         if e.counted >= 10 && !name.starts_with("-y") {
-            let bar = if name.starts_with("-z") { 0.07 } else { 0.05 };
             assert!(
-                e.median < bar,
-                "simulated block, face {name}: median {:.2}% (bar {:.0}%)",
+                e.median < 0.05 && (e.total_ratio - 1.0).abs() < 0.05,
+                "simulated block, face {name}: median {:.2}%, Σ ratio {:.3}",
                 100.0 * e.median,
-                100.0 * bar
+                e.total_ratio
             );
         }
     }
