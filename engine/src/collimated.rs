@@ -18,9 +18,9 @@
 //!   E_t,i = Σ_lamps E_i (3 μ₀ − 2)
 //! ```
 //!
-//! and the transport adds y = Δ E_t where it adds S E. Light arriving from other surfaces
-//! (F B) and from environment maps stays diffuse, and so does every object that is not
-//! simulated: Δ is zero there.
+//! and the transport adds y = Δ E_t where it adds S E. Light from environment maps stays
+//! diffuse, and so does every object that is not simulated: Δ is zero there. Light from
+//! other surfaces (F B) gets the same treatment as a lamp's, per direction (below).
 //!
 //! **The direction of the slant.** S(μ₀) cannot tell which way a lamp slants: light entering
 //! at a slant toward +x leaves mostly toward +x (on a 16 mm cube lit 60° off the normal, the
@@ -55,9 +55,27 @@
 //! [Δ, G_u, G_v, U]_ji (they share S's sources), with [E_t, E_u, E_v, E_w]_i per source,
 //! E_u,i = Σ_lamps E_i u₀, E_w,i = Σ_lamps E_i (3μ₀ − 3).
 //!
-//! In: the bundle's walks, each object's material (built or overridden), the lamps. Out:
-//! [`Tilt`] (Δ, G_u, G_v and U over the simulated objects' patches) and
-//! [`tilted_irradiance`] ([E_t; E_u; E_v; E_w]).
+//! **Light from other surfaces has a direction too.** F B arrives from where the other
+//! surfaces are, not evenly from the whole hemisphere: at the top of a bowl's inner wall it
+//! all comes from below (the bowl's opening sends nothing), so it travels up toward the rim.
+//! The same expansion holds for any incident radiance L(ω), each direction a beam of its own:
+//! with the moments of F B at patch i
+//!
+//! ```text
+//!   E_t,i = Σ_j F_ij B_j (3μ_ij − 2),  E_u,i = Σ_j F_ij B_j u_ij,  E_v,i = Σ_j F_ij B_j v_ij
+//! ```
+//!
+//! (μ_ij, u_ij, v_ij: the direction from j's centroid, or from a cluster node's area-weighted
+//! centroid, to i's, on i's normal and tangent frame) the light other surfaces send in adds
+//! Δ E_t + G_u E_u + G_v E_v; U keeps its diffuse weight (light crossing a corner unscattered
+//! is exitance here, not a beam). For light arriving evenly E_t = E_u = E_v = 0, and nothing
+//! changes. [`interreflected_first_scatter`] gives that term for a solved B; a relight adds
+//! it as one correction, solved through the same transport (docs/transport.md).
+//!
+//! In: the bundle's walks, each object's material (built or overridden), the lamps, and F
+//! with the solved B for the light from other surfaces. Out: [`Tilt`] (Δ, G_u, G_v and U
+//! over the simulated objects' patches), [`tilted_irradiance`] ([E_t; E_u; E_v; E_w]) and
+//! [`interreflected_first_scatter`].
 
 use std::ops::Range;
 
@@ -73,6 +91,7 @@ use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
 use crate::simulated::{self, SimMedium};
 use crate::smatrix::SimTilts;
+use crate::transport::{Pulled, Transport};
 
 /// Δ = S⁽ⁿ⁾ − S of a scene's simulated objects under one set of materials, with G_u, G_v
 /// and U beside it when the walks carry them.
@@ -234,6 +253,113 @@ pub fn tilted_irradiance(
     Some(out)
 }
 
+/// The moments [E_t, E_u, E_v, 0] of the light other surfaces send into the simulated
+/// objects' patches, F x with each entry weighted by its direction (module docs), for `k`
+/// stacked RGB systems `x` (`[patch][plan][rgb]`); laid out as [`add_first_scatter`] reads
+/// them (`[patch][plan][E_t, E_u, E_v, E_w][rgb]`), zero outside the simulated objects. A
+/// link to a cluster node arrives from the node's area-weighted centroid.
+pub fn interreflected_moments(
+    tilt: &Tilt,
+    f: &Transport<'_>,
+    geo: PatchGeometry<'_>,
+    x: &[f32],
+    k: usize,
+) -> Vec<f32> {
+    let n = geo.centroid.len();
+    let ch = 3 * k;
+    assert_eq!(x.len(), n * ch, "x is [patch][plan][rgb]");
+    // Where each column of F's stored matrix (patches, then cluster nodes) sends from.
+    let flat: Vec<f32> = geo.centroid.iter().flat_map(|c| c.to_array()).collect();
+    let mut at = Pulled::default();
+    f.pull(&flat, 3, &mut at);
+    let mut pulled = Pulled::default();
+    f.pull(x, ch, &mut pulled);
+    let (from, xbar) = (&at.values, &pulled.values);
+    let mut simulated = vec![false; n];
+    for r in &tilt.ranges {
+        simulated[r.clone()].fill(true);
+    }
+    let harmonic = tilt.has_harmonic();
+    let matrix = f.matrix();
+    let mut out = vec![0.0f32; n * 4 * ch];
+    out.par_chunks_mut(4 * ch)
+        .with_min_len(16)
+        .enumerate()
+        .filter(|(i, _)| simulated[*i])
+        .for_each(|(i, e)| {
+            let (p, nrm) = (geo.centroid[i], geo.normal[i]);
+            let (fu, fv) = if harmonic {
+                tilt.frames[i]
+            } else {
+                (Vec3::ZERO, Vec3::ZERO)
+            };
+            let (cols, vals) = matrix.row(i);
+            for (&c, &fij) in cols.iter().zip(vals) {
+                let c = c as usize;
+                let src = Vec3::new(from[3 * c], from[3 * c + 1], from[3 * c + 2]);
+                // The direction the light travels, from the source to this patch.
+                let Some(d) = (p - src).try_normalize() else {
+                    continue;
+                };
+                let mu = (-d.dot(nrm)).clamp(0.0, 1.0);
+                let w = [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)];
+                let xc = &xbar[c * ch..(c + 1) * ch];
+                for (plan, ep) in e.chunks_exact_mut(12).enumerate() {
+                    let xp = &xc[3 * plan..3 * plan + 3];
+                    for (m, w) in w.iter().enumerate() {
+                        for rgb in 0..3 {
+                            ep[3 * m + rgb] += w * xp[rgb];
+                        }
+                    }
+                }
+            }
+        });
+    out
+}
+
+/// y = Δ E_t + G_u E_u + G_v E_v of the light other surfaces send into the simulated objects
+/// ([`interreflected_moments`]) for `k` stacked systems `x`: what a relight adds to S F B
+/// for the direction that light arrives from, `[patch][plan][rgb]`.
+pub fn add_interreflected_first_scatter(
+    tilt: &Tilt,
+    f: &Transport<'_>,
+    geo: PatchGeometry<'_>,
+    x: &[f32],
+    k: usize,
+    out: &mut [f32],
+) {
+    let e = interreflected_moments(tilt, f, geo, x, k);
+    add_first_scatter(tilt, &e, k, out);
+}
+
+/// [`add_interreflected_first_scatter`] for one solved B of `bundle` with its own materials
+/// (F the bundle's): `None` without a simulated object with collimated weights.
+pub fn interreflected_first_scatter(
+    bundle: &Bundle,
+    geo: PatchGeometry<'_>,
+    x: &[Rgb],
+) -> Option<Vec<Rgb>> {
+    let materials: Vec<&Material> = bundle
+        .manifest()
+        .objects
+        .iter()
+        .map(|o| &o.material)
+        .collect();
+    let TiltOf::Some(tilt) = tilt_of(bundle, &materials) else {
+        return None;
+    };
+    let mut y = vec![0.0f32; 3 * x.len()];
+    add_interreflected_first_scatter(
+        &tilt,
+        &Transport::of(bundle),
+        geo,
+        bytemuck::cast_slice(x),
+        1,
+        &mut y,
+    );
+    Some(bytemuck::cast_slice(&y).to_vec())
+}
+
 /// y_j += Σ_i Δ_ji E_t,i + G_u,ji E_u,i + G_v,ji E_v,i + U_ji E_w,i for `k` stacked plans:
 /// `e` is `[patch][plan][E_t, E_u, E_v, E_w][rgb]` (12 k values per patch), `out`
 /// `[patch][plan][rgb]`. Written by hand: four RGB matrices on one pattern, which no sparse
@@ -284,4 +410,155 @@ pub fn first_scatter(
     let mut y = vec![0.0f32; 3 * tilt.view().n_rows()];
     add_first_scatter(&tilt, e_t.as_flattened().as_flattened(), 1, &mut y);
     Some(bytemuck::cast_slice(&y).to_vec())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use translux_proto::bundle::TreeView;
+
+    /// A tilt over patch 0 alone (frame û = x, v̂ = y) whose only entry, (0, 0), holds
+    /// `v` = [Δ, G_u, G_v, U] in every channel; `n` patches in all.
+    fn tilt(n: usize, v: [f32; 4]) -> Tilt {
+        let mut rows: Vec<Vec<(u32, [Rgb; 4])>> = vec![Vec::new(); n];
+        rows[0].push((0, v.map(|x| [x; 3])));
+        let mut frames = vec![(Vec3::ZERO, Vec3::ZERO); n];
+        frames[0] = (Vec3::X, Vec3::Y);
+        Tilt {
+            delta: Csr::from_rows(n, &rows).unwrap(),
+            ranges: std::iter::once(0..1).collect(),
+            frames,
+        }
+    }
+
+    /// Patch 0 at the origin facing +z; one source patch per cell of a (θ, φ) grid over its
+    /// hemisphere, at unit distance, with F_0j its cosine-weighted solid angle over π (so
+    /// a radiosity of 1 everywhere gives E = 1). Returns F (dense) and the geometry.
+    fn hemisphere(rings: usize, sectors: usize) -> (Csr, Vec<Vec3>, Vec<Vec3>) {
+        let mut centroid = vec![Vec3::ZERO];
+        let mut normal = vec![Vec3::Z];
+        let mut row = Vec::new();
+        let (dt, dp) = (
+            std::f32::consts::FRAC_PI_2 / rings as f32,
+            std::f32::consts::TAU / sectors as f32,
+        );
+        for a in 0..rings {
+            let t = (a as f32 + 0.5) * dt;
+            for b in 0..sectors {
+                let p = (b as f32 + 0.5) * dp;
+                let w = Vec3::new(t.sin() * p.cos(), t.sin() * p.sin(), t.cos());
+                row.push((
+                    centroid.len() as u32,
+                    t.cos() * t.sin() * dt * dp / std::f32::consts::PI,
+                ));
+                centroid.push(w);
+                normal.push(-w);
+            }
+        }
+        let n = centroid.len();
+        let mut rows = vec![Vec::new(); n];
+        rows[0] = row;
+        (Csr::from_rows(n, &rows).unwrap(), centroid, normal)
+    }
+
+    fn moments(t: &Tilt, f: &Transport<'_>, c: &[Vec3], nrm: &[Vec3], x: &[Rgb]) -> [f32; 4] {
+        let geo = PatchGeometry {
+            centroid: c,
+            normal: nrm,
+        };
+        let e = interreflected_moments(t, f, geo, bytemuck::cast_slice(x), 1);
+        // Red of E_t, E_u, E_v, E_w at patch 0; every other patch is not simulated.
+        assert!(e[12..].iter().all(|&v| v == 0.0));
+        [e[0], e[3], e[6], e[9]]
+    }
+
+    #[test]
+    fn light_from_everywhere_has_no_slant_and_from_one_side_slants_away_from_it() {
+        let (f, c, nrm) = hemisphere(90, 180);
+        let n = c.len();
+        let t = tilt(n, [0.0, 1.0, 0.0, 0.0]);
+        let tr = Transport::dense(f.view().unwrap());
+        let mut x = vec![[1.0f32; 3]; n];
+        x[0] = [0.0; 3];
+        let mut e = vec![[0.0f32; 3]; n];
+        tr.apply_rgb(&x, &mut e);
+        assert!((e[0][0] - 1.0).abs() < 1e-3, "E = {}", e[0][0]);
+        // Even light: ∫ (3μ − 2) 2μ dμ = 0, and no tangential drift.
+        let m = moments(&t, &tr, &c, &nrm, &x);
+        assert!(m.iter().all(|v| v.abs() < 2e-3), "{m:?}");
+        // Light only from the −x half travels toward +x: E = ½, E_u = 2/(3π), E_t still 0.
+        for (x, w) in x.iter_mut().zip(&c).skip(1) {
+            *x = if w.x < 0.0 { [1.0; 3] } else { [0.0; 3] };
+        }
+        let m = moments(&t, &tr, &c, &nrm, &x);
+        let want = 2.0 / (3.0 * std::f32::consts::PI);
+        assert!(
+            (m[1] - want).abs() < 2e-3 * want,
+            "E_u {} want {want}",
+            m[1]
+        );
+        assert!(
+            m[0].abs() < 2e-3 && m[2].abs() < 2e-3 && m[3] == 0.0,
+            "{m:?}"
+        );
+        // Light from nearly straight above (μ > 0.99) weighs 3μ − 2, between 0.97 and 1, on Δ.
+        for (x, w) in x.iter_mut().zip(&c).skip(1) {
+            *x = if w.z > 0.99 { [1.0; 3] } else { [0.0; 3] };
+        }
+        let mut e = vec![[0.0f32; 3]; n];
+        tr.apply_rgb(&x, &mut e);
+        let m = moments(&t, &tr, &c, &nrm, &x);
+        let r = m[0] / e[0][0];
+        assert!((0.97..1.0).contains(&r), "{m:?} against E {}", e[0][0]);
+        // And through the tilt: y = G_u E_u (here G_u = 1 alone).
+        for (x, w) in x.iter_mut().zip(&c).skip(1) {
+            *x = if w.x < 0.0 { [1.0; 3] } else { [0.0; 3] };
+        }
+        let geo = PatchGeometry {
+            centroid: &c,
+            normal: &nrm,
+        };
+        let mut y = vec![0.0f32; 3 * n];
+        add_interreflected_first_scatter(&t, &tr, geo, bytemuck::cast_slice(&x), 1, &mut y);
+        assert!((y[0] - want).abs() < 2e-3 * want, "{}", y[0]);
+        assert!(y[3..].iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn a_link_to_a_cluster_arrives_from_its_area_weighted_centroid() {
+        // Patch 0 at the origin facing +z; patches 1 (area 1) and 2 (area 3) at height 1,
+        // x = −1 and x = +1, one node {1, 2} whose centroid is x = +0.5; F_0 links the node.
+        let c = vec![
+            Vec3::ZERO,
+            Vec3::new(-1.0, 0.0, 1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+        ];
+        let nrm = vec![Vec3::Z, -Vec3::Z, -Vec3::Z];
+        let area = vec![1.0f32, 1.0, 3.0];
+        let (perm, range) = (vec![0u32, 1, 2], vec![[1u32, 3]]);
+        let f = Csr {
+            n_rows: 3,
+            n_cols: 4,
+            row_ptr: vec![0, 1, 1, 1],
+            col: vec![3],
+            val: vec![0.2],
+        };
+        let tr = Transport::hierarchical(
+            f.view().unwrap(),
+            TreeView {
+                perm: &perm,
+                range: &range,
+            },
+            &area,
+        );
+        let t = tilt(3, [1.0, 0.0, 0.0, 0.0]);
+        let x = vec![[0.0f32; 3], [2.0; 3], [2.0; 3]];
+        let m = moments(&t, &tr, &c, &nrm, &x);
+        // From (0.5, 0, 1) to the origin: d = (−0.5, 0, −1)/|…|.
+        let d = Vec3::new(-0.5, 0.0, -1.0).normalize();
+        let e = 0.2 * 2.0;
+        assert!((m[1] - e * d.x).abs() < 1e-6, "{m:?}");
+        assert!((m[0] - e * (3.0 * -d.z - 2.0)).abs() < 1e-6, "{m:?}");
+        assert_eq!(m[2], 0.0);
+    }
 }

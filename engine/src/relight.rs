@@ -12,7 +12,7 @@ use std::time::Instant;
 use crate::inverse;
 use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
 use crate::scene::Warm;
-use crate::solver::{Before, MAX_PRIMED_AGE, Primed, SolveError, solve_primed};
+use crate::solver::{Before, MAX_PRIMED_AGE, Primed, SolveError, SolveStats, solve_primed};
 use crate::transport::{Pulled, Transport};
 use translux_proto::api::{Components, RelightRequest, RelightStats, Solver};
 use translux_proto::light::Light;
@@ -253,6 +253,10 @@ struct Prepared {
     vertex: Option<VertexDirect>,
     /// Lamps' collimated entry into simulated objects ([`crate::collimated`]).
     collimated: Option<Collimated>,
+    /// With the full transport and simulated objects: their Δ, G_u and G_v, for the
+    /// direction the light from other surfaces arrives from
+    /// ([`crate::collimated::interreflected_moments`]).
+    slant: Option<Arc<TiltOf>>,
 }
 
 /// The tilt of a plan's materials and [E_t, E_u, E_v, E_w] of its lamps ([`crate::collimated`]).
@@ -407,7 +411,10 @@ pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
 ///
 /// Wherever S E appears, the lamps' light into simulated objects adds
 /// Δ E_t + G_u E_u + G_v E_v + U E_w: it enters collimated at its own angle and direction,
-/// not diffusely ([`crate::collimated`]).
+/// not diffusely ([`crate::collimated`]). With `full`, the light other surfaces send into
+/// them adds Δ E_t + G_u E_u + G_v E_v of F B, by the direction it arrives from
+/// ([`crate::collimated::interreflected_moments`]): one correction solved after B.
+/// Environment maps enter diffusely.
 pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutput, EngineError>> {
     let b = &scene.bundle;
     let geo = PatchGeometry {
@@ -485,6 +492,12 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
         };
         let materials_key = serde_json::to_string(&plan.overrides).unwrap_or_default();
         let (collimated, tilt_note) = collimated_entry(scene, geo, plan, &materials_key);
+        let slant = (plan.components == Components::Full)
+            .then(|| match &collimated {
+                Some((t, _)) => t.clone(),
+                None => scene.tilt_for(&materials_key, &plan.materials(scene)),
+            })
+            .filter(|t| matches!(t.as_ref(), TiltOf::Some(_)));
         let note = match (note, tilt_note) {
             (Some(a), Some(b)) => Some(format!("{a}; {b}")),
             (a, b) => a.or(b),
@@ -493,6 +506,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
             irradiance,
             materials_key,
             collimated,
+            slant,
             materials,
             materials_ms,
             direct_ms,
@@ -719,6 +733,117 @@ fn transport(
             add(a, y);
         }
     };
+    // y = Δ E_t + G_u E_u + G_v E_v of F x entering the simulated objects from where it
+    // comes (the full transport only: elsewhere F B reaches them through P or not at all).
+    let slant = match first.slant.as_deref() {
+        Some(TiltOf::Some(t)) if components == Components::Full => Some(t),
+        _ => None,
+    };
+    let geo = PatchGeometry {
+        centroid: &scene.centroids,
+        normal: &scene.normals,
+    };
+    let suffix = format!("|{}", components.as_str());
+    let key = format!("{}{suffix}", first.materials_key);
+    // Where the correction for the light from other surfaces is kept (below).
+    let (ckey, csuffix) = (format!("{key}|slant"), format!("{suffix}|slant"));
+    // B += c, c = (I − S F)⁻¹ y for y of B: solved to the answer's own tolerance relative to
+    // B (c is a few per cent of it), from the last correction kept (under these materials
+    // with its products, like the answer's: a request made again costs no product).
+    let correct = |x: &mut [f32]| -> Result<Option<SolveStats>, EngineError> {
+        let Some(t) = slant else {
+            return Ok(None);
+        };
+        let mut y = vec![0.0f32; n * ch];
+        crate::collimated::add_interreflected_first_scatter(t, &f, geo, x, k, &mut y);
+        let norms = |v: &[f32]| -> Vec<f64> {
+            (0..ch)
+                .map(|c| {
+                    v.iter()
+                        .skip(c)
+                        .step_by(ch)
+                        .map(|a| f64::from(*a).powi(2))
+                        .sum::<f64>()
+                        .sqrt()
+                })
+                .collect()
+        };
+        let scale = norms(x)
+            .iter()
+            .zip(norms(&y))
+            .filter(|(_, y)| *y > 0.0)
+            .map(|(x, y)| x / y)
+            .fold(f64::INFINITY, f64::min);
+        if !scale.is_finite() {
+            return Ok(None);
+        }
+        let cparams = SolveParams {
+            tolerance: (f64::from(params.tolerance) * scale).clamp(f64::from(params.tolerance), 0.5)
+                as f32,
+            ..*params
+        };
+        let kept = scene.warm.history(&ckey, &csuffix);
+        let warm = kept.as_ref().and_then(|h| spread(&h.last.x, n, k));
+        // F c₀ holds under any materials, S F c₀ only under the same ones (as the answer's).
+        let fx = kept
+            .as_ref()
+            .and_then(|h| h.last.fx.as_ref())
+            .and_then(|w| spread(w, n, k));
+        let kfx = kept
+            .as_ref()
+            .filter(|h| h.same)
+            .and_then(|h| h.last.kfx.as_ref())
+            .and_then(|w| spread(w, n, k));
+        let age = kept.as_ref().map_or(0, |h| h.last.age);
+        let on_gpu = scene.backend().solve_rhs(
+            scene.view(),
+            first.materials.as_ref(),
+            &y,
+            k,
+            &cparams,
+            warm.as_deref(),
+        );
+        let (c, more, products) = match on_gpu {
+            Some((c, more)) => (c, more, None),
+            None => {
+                let primed = fx.as_deref().map(|fx| Primed {
+                    fx,
+                    kfx: kfx.as_deref(),
+                    before: None,
+                    age,
+                });
+                let s = solve_primed(&f, s, &y, ch, &cparams, warm.as_deref(), primed)
+                    .map_err(|e| EngineError::internal(e.to_string()))?;
+                (s.x, s.stats, Some((s.fx, s.kfx, s.age)))
+            }
+        };
+        drop(kept);
+        if c.iter().all(|v| v.is_finite()) {
+            let last = |v: &[f32]| -> Vec<f32> {
+                (0..n)
+                    .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
+                    .collect()
+            };
+            let (fx, kfx, age) = match &products {
+                Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),
+                None => (None, None, 0),
+            };
+            scene.warm.put(
+                ckey.clone(),
+                Warm {
+                    x: last(&c),
+                    fx,
+                    kfx,
+                    age,
+                    prev: None,
+                },
+            );
+        }
+        for (x, c) in x.iter_mut().zip(&c) {
+            *x += c;
+        }
+        Ok(Some(more))
+    };
     let mut se = vec![0.0f32; n * ch];
     match components {
         Components::Direct => {
@@ -758,21 +883,21 @@ fn transport(
         }
         add(&mut bvec, &rv);
         add(&mut bvec, &lit);
+        // The light from other surfaces, entering simulated objects from where it comes.
+        let more = correct(&mut bvec)?;
         return Ok((
             bvec,
             TransportStats {
                 solver: "inverse",
-                iterations: 0,
-                products: 1,
-                residual: 0.0,
-                converged: true,
+                iterations: more.map_or(0, |m| m.iterations),
+                products: 1 + more.map_or(0, |m| m.products),
+                residual: more.map_or(0.0, |m| m.residual),
+                converged: more.is_none_or(|m| m.converged),
                 warm: false,
             },
         ));
     }
     // The iterative path: (I − K F) x = rhs.
-    let suffix = format!("|{}", components.as_str());
-    let key = format!("{}{suffix}", first.materials_key);
     // A kept solution is one RGB system; the batch's k systems all start from it (a
     // single relight borrows it as it is).
     fn spread(w: &[f32], n: usize, k: usize) -> Option<Cow<'_, [f32]>> {
@@ -930,6 +1055,15 @@ fn transport(
                 prev: None,
             },
         );
+    }
+    // The light from other surfaces entering simulated objects from where it comes (kept
+    // above without it: the next solve's start and products are this system's).
+    let mut st = st;
+    if let Some(more) = correct(&mut x)? {
+        st.iterations += more.iterations;
+        st.products += more.products;
+        st.residual = st.residual.max(more.residual);
+        st.converged &= more.converged;
     }
     if components == Components::HeuristicB {
         // B = Bₑ + S E + Y.
