@@ -332,6 +332,21 @@ pub fn add_interreflected_first_scatter(
     add_first_scatter(tilt, &e, k, out);
 }
 
+/// The tilt of `bundle`'s simulated objects under their own materials; `None` without one
+/// with collimated weights.
+fn own_tilt(bundle: &Bundle) -> Option<Tilt> {
+    let materials: Vec<&Material> = bundle
+        .manifest()
+        .objects
+        .iter()
+        .map(|o| &o.material)
+        .collect();
+    match tilt_of(bundle, &materials) {
+        TiltOf::Some(tilt) => Some(tilt),
+        _ => None,
+    }
+}
+
 /// [`add_interreflected_first_scatter`] for one solved B of `bundle` with its own materials
 /// (F the bundle's): `None` without a simulated object with collimated weights.
 pub fn interreflected_first_scatter(
@@ -339,15 +354,7 @@ pub fn interreflected_first_scatter(
     geo: PatchGeometry<'_>,
     x: &[Rgb],
 ) -> Option<Vec<Rgb>> {
-    let materials: Vec<&Material> = bundle
-        .manifest()
-        .objects
-        .iter()
-        .map(|o| &o.material)
-        .collect();
-    let TiltOf::Some(tilt) = tilt_of(bundle, &materials) else {
-        return None;
-    };
+    let tilt = own_tilt(bundle)?;
     let mut y = vec![0.0f32; 3 * x.len()];
     add_interreflected_first_scatter(
         &tilt,
@@ -397,15 +404,7 @@ pub fn first_scatter(
     occ: &Occluder,
     lights: &[Light],
 ) -> Option<Vec<Rgb>> {
-    let materials: Vec<&Material> = bundle
-        .manifest()
-        .objects
-        .iter()
-        .map(|o| &o.material)
-        .collect();
-    let TiltOf::Some(tilt) = tilt_of(bundle, &materials) else {
-        return None;
-    };
+    let tilt = own_tilt(bundle)?;
     let e_t = tilted_irradiance(geo, occ, lights, bundle.manifest().unit_mm, &tilt)?;
     let mut y = vec![0.0f32; 3 * tilt.view().n_rows()];
     add_first_scatter(&tilt, e_t.as_flattened().as_flattened(), 1, &mut y);
