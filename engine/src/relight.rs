@@ -842,7 +842,11 @@ fn transport(
         for (x, c) in x.iter_mut().zip(&c) {
             *x += c;
         }
-        Ok(Some(more))
+        // Its residual on the answer's scale (relative to B, not to y).
+        Ok(Some(SolveStats {
+            residual: (f64::from(more.residual) / scale) as f32,
+            ..more
+        }))
     };
     let mut se = vec![0.0f32; n * ch];
     match components {
