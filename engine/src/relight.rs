@@ -783,62 +783,35 @@ fn transport(
             ..*params
         };
         let kept = scene.warm.history(&ckey, &csuffix);
-        let warm = kept.as_ref().and_then(|h| spread(&h.last.x, n, k));
-        // F c₀ holds under any materials, S F c₀ only under the same ones (as the answer's).
-        let fx = kept
+        let start = kept
             .as_ref()
-            .and_then(|h| h.last.fx.as_ref())
-            .and_then(|w| spread(w, n, k));
-        let kfx = kept
-            .as_ref()
-            .filter(|h| h.same)
-            .and_then(|h| h.last.kfx.as_ref())
-            .and_then(|w| spread(w, n, k));
-        let age = kept.as_ref().map_or(0, |h| h.last.age);
+            .map(|h| KeptStart::of(h, n, k))
+            .unwrap_or_default();
         let on_gpu = scene.backend().solve_rhs(
             scene.view(),
             first.materials.as_ref(),
             &y,
             k,
             &cparams,
-            warm.as_deref(),
+            start.x.as_deref(),
         );
         let (c, more, products) = match on_gpu {
             Some((c, more)) => (c, more, None),
             None => {
-                let primed = fx.as_deref().map(|fx| Primed {
+                let primed = start.fx.as_deref().map(|fx| Primed {
                     fx,
-                    kfx: kfx.as_deref(),
+                    kfx: start.kfx.as_deref(),
                     before: None,
-                    age,
+                    age: start.age,
                 });
-                let s = solve_primed(&f, s, &y, ch, &cparams, warm.as_deref(), primed)
+                let s = solve_primed(&f, s, &y, ch, &cparams, start.x.as_deref(), primed)
                     .map_err(|e| EngineError::internal(e.to_string()))?;
                 (s.x, s.stats, Some((s.fx, s.kfx, s.age)))
             }
         };
+        drop(start);
         drop(kept);
-        if c.iter().all(|v| v.is_finite()) {
-            let last = |v: &[f32]| -> Vec<f32> {
-                (0..n)
-                    .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
-                    .collect()
-            };
-            let (fx, kfx, age) = match &products {
-                Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),
-                None => (None, None, 0),
-            };
-            scene.warm.put(
-                ckey.clone(),
-                Warm {
-                    x: last(&c),
-                    fx,
-                    kfx,
-                    age,
-                    prev: None,
-                },
-            );
-        }
+        keep(scene, ckey.clone(), &c, products, n, ch);
         for (x, c) in x.iter_mut().zip(&c) {
             *x += c;
         }
@@ -901,40 +874,18 @@ fn transport(
             },
         ));
     }
-    // The iterative path: (I − K F) x = rhs.
-    // A kept solution is one RGB system; the batch's k systems all start from it (a
-    // single relight borrows it as it is).
-    fn spread(w: &[f32], n: usize, k: usize) -> Option<Cow<'_, [f32]>> {
-        (w.len() == 3 * n).then(|| match k {
-            1 => Cow::Borrowed(w),
-            _ => Cow::Owned(
-                (0..n)
-                    .flat_map(|j| {
-                        std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
-                            .flatten()
-                            .copied()
-                    })
-                    .collect(),
-            ),
-        })
-    }
-    let last = |v: &[f32]| -> Vec<f32> {
-        (0..n)
-            .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
-            .collect()
-    };
+    // The iterative path: (I − K F) x = rhs, from the answer kept under these materials
+    // (or the last under others).
     let kept = scene.warm.history(&key, &suffix);
-    let warm = kept.as_ref().and_then(|h| spread(&h.last.x, n, k));
-    // F x₀ holds under any materials (F is the bundle's); K F x₀ only under the same ones.
-    let fx = kept
+    let KeptStart {
+        x: warm,
+        fx,
+        mut kfx,
+        age,
+    } = kept
         .as_ref()
-        .and_then(|h| h.last.fx.as_ref())
-        .and_then(|w| spread(w, n, k));
-    let mut kfx = kept
-        .as_ref()
-        .filter(|h| h.same)
-        .and_then(|h| h.last.kfx.as_ref())
-        .and_then(|w| spread(w, n, k));
+        .map(|h| KeptStart::of(h, n, k))
+        .unwrap_or_default();
     // The answer before it, to extrapolate along the last step.
     type Spread<'a> = (Cow<'a, [f32]>, Cow<'a, [f32]>, Option<Cow<'a, [f32]>>, u32);
     let mut before: Option<Spread> = kept
@@ -955,10 +906,7 @@ fn transport(
             ))
         });
     // How many solves ago the kept products last came out of a pass over F.
-    let age = kept
-        .as_ref()
-        .map_or(0, |h| h.last.age)
-        .max(before.as_ref().map_or(0, |b| b.3));
+    let age = age.max(before.as_ref().map_or(0, |b| b.3));
     let (kop, mut rhs): (&dyn Scatter, Vec<f32>) = match components {
         Components::Full => {
             // A translucency change on the CPU extrapolated along its last step needs S E
@@ -1044,22 +992,7 @@ fn transport(
     // solved it.
     // The kept answers are let go first, so the one replaced below moves instead of copying.
     drop(kept);
-    if x.iter().all(|v| v.is_finite()) {
-        let (fx, kfx, age) = match &products {
-            Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),
-            None => (None, None, 0),
-        };
-        scene.warm.put(
-            key,
-            Warm {
-                x: last(&x),
-                fx,
-                kfx,
-                age,
-                prev: None,
-            },
-        );
-    }
+    keep(scene, key, &x, products, n, ch);
     // The light from other surfaces entering simulated objects from where it comes (kept
     // above without it: the next solve's start and products are this system's).
     let mut st = st;
@@ -1088,4 +1021,81 @@ fn transport(
             warm: st.warm,
         },
     ))
+}
+
+/// A kept answer spread over a batch of k RGB systems: a single relight borrows it as it
+/// is, a batch's systems all start from it.
+fn spread(w: &[f32], n: usize, k: usize) -> Option<Cow<'_, [f32]>> {
+    (w.len() == 3 * n).then(|| match k {
+        1 => Cow::Borrowed(w),
+        _ => Cow::Owned(
+            (0..n)
+                .flat_map(|j| {
+                    std::iter::repeat_n(&w[3 * j..3 * j + 3], k)
+                        .flatten()
+                        .copied()
+                })
+                .collect(),
+        ),
+    })
+}
+
+/// Where a solve starts from the answer kept for its key: x₀, F x₀ (F is the bundle's: it
+/// holds under any materials) and K F x₀ (only under the same ones), each spread over the
+/// batch, and how many solves ago those products came out of a pass over F.
+#[derive(Default)]
+struct KeptStart<'a> {
+    x: Option<Cow<'a, [f32]>>,
+    fx: Option<Cow<'a, [f32]>>,
+    kfx: Option<Cow<'a, [f32]>>,
+    age: u32,
+}
+
+impl<'a> KeptStart<'a> {
+    fn of(kept: &'a crate::scene::Kept, n: usize, k: usize) -> Self {
+        KeptStart {
+            x: spread(&kept.last.x, n, k),
+            fx: kept.last.fx.as_ref().and_then(|w| spread(w, n, k)),
+            kfx: (kept.same)
+                .then_some(kept.last.kfx.as_ref())
+                .flatten()
+                .and_then(|w| spread(w, n, k)),
+            age: kept.last.age,
+        }
+    }
+}
+
+/// Keeps the batch's last system of `x` under `key` for the next solve, with its products
+/// F x and K F x when the CPU solved it (`products`); never an answer that is not finite
+/// (it would poison the next solve).
+fn keep(
+    scene: &Scene,
+    key: String,
+    x: &[f32],
+    products: Option<(Vec<f32>, Vec<f32>, u32)>,
+    n: usize,
+    ch: usize,
+) {
+    if !x.iter().all(|v| v.is_finite()) {
+        return;
+    }
+    let last = |v: &[f32]| -> Vec<f32> {
+        (0..n)
+            .flat_map(|j| v[j * ch + ch - 3..j * ch + ch].iter().copied())
+            .collect()
+    };
+    let (fx, kfx, age) = match &products {
+        Some((fx, kfx, age)) => (Some(last(fx)), Some(last(kfx)), *age),
+        None => (None, None, 0),
+    };
+    scene.warm.put(
+        key,
+        Warm {
+            x: last(x),
+            fx,
+            kfx,
+            age,
+            prev: None,
+        },
+    );
 }
