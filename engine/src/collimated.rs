@@ -18,8 +18,8 @@
 //!   E_t,i = Σ_lamps E_i (3 μ₀ − 2)
 //! ```
 //!
-//! and the transport adds y = Δ E_t where it adds S E. Light from environment maps stays
-//! diffuse, and so does every object that is not simulated: Δ is zero there. Light from
+//! and the transport adds y = Δ E_t where it adds S E. Every object that is not simulated
+//! keeps diffuse entry: Δ is zero there. Light from
 //! other surfaces (F B) gets the same treatment as a lamp's, per direction (below).
 //!
 //! **The direction of the slant.** S(μ₀) cannot tell which way a lamp slants: light entering
@@ -71,6 +71,8 @@
 //! is exitance here, not a beam). For light arriving evenly E_t = E_u = E_v = 0, and nothing
 //! changes. [`interreflected_first_scatter`] gives that term for a solved B; a relight adds
 //! it as one correction, solved through the same transport (docs/transport.md).
+//! An environment map's light is such an L(ω) too, known before the solve: its direction
+//! bins' moments ([`add_environment_moments`]) join the lamps'.
 //!
 //! In: the bundle's walks, each object's material (built or overridden), the lamps, and F
 //! with the solved B for the light from other surfaces. Out: [`Tilt`] (Δ, G_u, G_v and U
@@ -209,7 +211,8 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
 /// patches of the simulated objects (zero elsewhere): E_t = Σ_lamps E (3 μ₀ − 2), E_u = Σ_lamps E u₀,
 /// E_v = Σ_lamps E v₀ (u₀, v₀: the beam's travel direction along the patch's tangent
 /// frame) and E_w = Σ_lamps E (3 μ₀ − 3), with the same shadow rays and fall-off as the direct irradiance
-/// ([`PointLights::each`]); environment lights are skipped (their light enters diffusely).
+/// ([`PointLights::each`]); environment lights are skipped (their moments:
+/// [`add_environment_moments`]).
 /// `None` when no lamp is given.
 pub fn tilted_irradiance(
     geo: PatchGeometry<'_>,
@@ -251,6 +254,85 @@ pub fn tilted_irradiance(
             });
     }
     Some(out)
+}
+
+/// Adds to `out` (laid out as [`tilted_irradiance`]'s) the moments [E_t, E_u, E_v, E_w] of
+/// an environment's light at the simulated objects' patches: each direction bin k is a beam
+/// of irradiance V_ik L̄_k (the bundle's visibility `vis` times the bin's mean radiance
+/// `radiance`, as [`crate::envvis::environment_irradiance`] sums them) arriving from the
+/// bin's centre direction ω_k, so travelling along −ω_k: E_t = Σ_k V_ik L̄_k (3 μ_k − 2),
+/// E_u = −Σ_k V_ik L̄_k ω_k·û_i, E_v likewise (μ_k = ω_k·n_i); an even environment gives
+/// E_t = E_u = E_v = 0 up to the bins' size.
+///
+/// E_w (the unscattered crossing left out, as for a lamp's beam) counts only the part of the
+/// light above its even part, the least radiance among the bins patch i sees (per channel):
+/// E_w = Σ_k V_ik (L̄_k − L_min,i)(3 μ_k − 3). Light arriving evenly is diffuse, as S
+/// assumes, and a viewer sees the map behind a corner through it (U kept); a sun on a dark
+/// map is a lamp, and its beam through a corner is seen from its direction alone.
+pub fn add_environment_moments(
+    geo: PatchGeometry<'_>,
+    vis: translux_proto::bundle::EnvVisibilityView<'_>,
+    radiance: &[Rgb],
+    tilt: &Tilt,
+    out: &mut [[Rgb; 4]],
+) {
+    use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
+    let bins = crate::envmap::Bins {
+        rows: vis.rows,
+        cols: vis.cols,
+    };
+    let k = bins.count();
+    if radiance.len() != k {
+        return;
+    }
+    let centre: Vec<Vec3> = (0..k).map(|b| bins.direction(b, 0.5, 0.5)).collect();
+    let harmonic = tilt.has_harmonic();
+    for r in &tilt.ranges {
+        out[r.clone()]
+            .par_iter_mut()
+            .enumerate()
+            .with_min_len(16)
+            .for_each_init(
+                || vec![0.0f32; k],
+                |row, (at, e)| {
+                    let i = r.start + at;
+                    let bits: &[half::f16] = vis.row(i).reinterpret_cast();
+                    bits.convert_to_f32_slice(row);
+                    let nrm = geo.normal[i];
+                    let (fu, fv) = if harmonic {
+                        tilt.frames[i]
+                    } else {
+                        (Vec3::ZERO, Vec3::ZERO)
+                    };
+                    // The even part: the least radiance among the bins seen.
+                    let mut floor = [f32::INFINITY; 3];
+                    for (&v, l) in row.iter().zip(radiance) {
+                        if v > 0.0 {
+                            for ch in 0..3 {
+                                floor[ch] = floor[ch].min(l[ch]);
+                            }
+                        }
+                    }
+                    for ((&v, l), w) in row.iter().zip(radiance).zip(&centre) {
+                        if v <= 0.0 {
+                            continue;
+                        }
+                        let mu = w.dot(nrm).clamp(0.0, 1.0);
+                        let m = [3.0 * mu - 2.0, -w.dot(fu), -w.dot(fv)];
+                        for (e, m) in e.iter_mut().zip(m) {
+                            for ch in 0..3 {
+                                e[ch] += v * l[ch] * m;
+                            }
+                        }
+                        if harmonic {
+                            for ch in 0..3 {
+                                e[3][ch] += v * (l[ch] - floor[ch]) * (3.0 * mu - 3.0);
+                            }
+                        }
+                    }
+                },
+            );
+    }
 }
 
 /// The moments [E_t, E_u, E_v, 0] of the light other surfaces send into the simulated
@@ -469,6 +551,107 @@ mod tests {
         // Red of E_t, E_u, E_v, E_w at patch 0; every other patch is not simulated.
         assert!(e[12..].iter().all(|&v| v == 0.0));
         [e[0], e[3], e[6], e[9]]
+    }
+
+    /// Patch 0 at the origin facing +z: its visibility per bin of a 16 × 32 partition,
+    /// V_k = ∫_bin max(ω·z, 0) dω (unoccluded, 8 × 8 directions uniform in solid angle per
+    /// bin), as the bundle stores it (half floats).
+    fn open_sky() -> (crate::envmap::Bins, Vec<u16>) {
+        let bins = crate::envmap::Bins { rows: 16, cols: 32 };
+        let bits = (0..bins.count())
+            .map(|k| {
+                let mut sum = 0.0f32;
+                for a in 0..8 {
+                    for b in 0..8 {
+                        let w = bins.direction(k, (a as f32 + 0.5) / 8.0, (b as f32 + 0.5) / 8.0);
+                        sum += w.z.max(0.0);
+                    }
+                }
+                half::f16::from_f32(sum / 64.0 * bins.solid_angle()).to_bits()
+            })
+            .collect();
+        (bins, bits)
+    }
+
+    fn env_moments(bins: crate::envmap::Bins, bits: &[u16], radiance: &[Rgb]) -> [f32; 4] {
+        let t = tilt(1, [0.0, 1.0, 0.0, 0.0]);
+        let vis = translux_proto::bundle::EnvVisibilityView {
+            rows: bins.rows,
+            cols: bins.cols,
+            bits,
+        };
+        let geo = PatchGeometry {
+            centroid: &[Vec3::ZERO],
+            normal: &[Vec3::Z],
+        };
+        let mut out = vec![[[0.0f32; 3]; 4]; 1];
+        add_environment_moments(geo, vis, radiance, &t, &mut out);
+        out[0].map(|m| m[0])
+    }
+
+    #[test]
+    fn an_environments_bins_are_beams_from_their_directions() {
+        let (bins, bits) = open_sky();
+        let v: Vec<f32> = bits
+            .iter()
+            .map(|&b| half::f16::from_bits(b).to_f32())
+            .collect();
+        let e: f32 = v.iter().sum();
+        assert!((e - std::f32::consts::PI).abs() < 0.01, "Σ V = {e}");
+        // An even sky: no slant (up to the bins' size: each bin's light taken from its
+        // centre), and diffuse light keeps the unscattered crossing (E_w = 0).
+        let m = env_moments(bins, &bits, &vec![[2.0; 3]; bins.count()]);
+        assert!(
+            m.iter().all(|x| x.abs() < 0.02 * e),
+            "{m:?} against E = {}",
+            2.0 * e
+        );
+        assert_eq!(m[3], 0.0);
+        // Sky only over the −x half: its light travels toward +x, E_u = ∫ cos θ (−ω_x) dω
+        // = 2/3 (and E_t = 0: the half is as even in μ as the whole).
+        let half_sky: Vec<Rgb> = (0..bins.count())
+            .map(|k| [f32::from(bins.direction(k, 0.5, 0.5).x < 0.0); 3])
+            .collect();
+        // Nothing of it is even (the other half is dark): E_w = Σ V L (3μ − 3) = −E = −π/2.
+        let m = env_moments(bins, &bits, &half_sky);
+        assert!((m[1] - 2.0 / 3.0).abs() < 0.01, "E_u = {}", m[1]);
+        assert!(m[0].abs() < 0.01 && m[2].abs() < 0.01, "{m:?}");
+        assert!(
+            (m[3] + std::f32::consts::FRAC_PI_2).abs() < 0.02,
+            "E_w = {}",
+            m[3]
+        );
+        // One bright bin on a dark map against a directional lamp shining from its centre
+        // with the same irradiance: the same moments (the lamps' signs, frame and beam).
+        let k = bins.bin_of(Vec3::new(-0.6, 0.35, 0.72).normalize());
+        let w = bins.direction(k, 0.5, 0.5);
+        let mut sun = vec![[0.0f32; 3]; bins.count()];
+        sun[k] = [1.0 / v[k]; 3];
+        let m = env_moments(bins, &bits, &sun);
+        let t = tilt(1, [0.0, 1.0, 0.0, 0.0]);
+        let below = [[
+            Vec3::new(0.0, 0.0, -5.0),
+            Vec3::new(0.1, 0.0, -5.0),
+            Vec3::new(0.0, 0.1, -5.0),
+        ]];
+        let lamp = Light::Directional {
+            direction: (-w).to_array(),
+            irradiance: [1.0 / w.z; 3],
+        };
+        let geo = PatchGeometry {
+            centroid: &[Vec3::ZERO],
+            normal: &[Vec3::Z],
+        };
+        let l = tilted_irradiance(geo, &Occluder::new(&below), &[lamp], 1.0, &t).unwrap();
+        let want = l[0].map(|m| m[0]);
+        for (m, want) in m.iter().zip(want) {
+            assert!((m - want).abs() < 1e-3, "{m} against the lamp's {want}");
+        }
+        assert!(
+            want[1] > 0.5,
+            "the lamp's light travels toward +x: E_u = {}",
+            want[1]
+        );
     }
 
     #[test]

@@ -262,11 +262,32 @@ pub fn direct_irradiance(
             scene.id
         )));
     };
+    let total = bin_radiance_total(scene, lights)?.unwrap_or_default();
+    add_from_bits(vis, &total, &mut e);
+    finite(e)
+}
+
+/// Σ over `lights`' environments of scale · L̄_k, the mean radiance of each direction bin
+/// of the bundle's visibility (W·m⁻²·sr⁻¹; maps loaded and binned through the scene's
+/// cache); `None` without an environment light or without visibility in the bundle.
+pub fn bin_radiance_total(
+    scene: &EnvScene<'_>,
+    lights: &[Light],
+) -> Result<Option<Vec<Rgb>>, EngineError> {
+    let Some(vis) = scene.bundle.environment_visibility() else {
+        return Ok(None);
+    };
+    if !lights
+        .iter()
+        .any(|l| matches!(l, Light::Environment { .. }))
+    {
+        return Ok(None);
+    }
     let bins = Bins {
         rows: vis.rows,
         cols: vis.cols,
     };
-    // Σ over lights of scale · L̄ per bin, so the N × K product runs once.
+    // Summed over the lights, so the N × K product runs once.
     let mut total = vec![[0.0f32; 3]; bins.count()];
     for (i, l) in lights.iter().enumerate() {
         let Light::Environment {
@@ -289,8 +310,7 @@ pub fn direct_irradiance(
             }
         }
     }
-    add_from_bits(vis, &total, &mut e);
-    finite(e)
+    Ok(Some(total))
 }
 
 /// E must be finite: lights within the validated bounds can still overflow f32 next to a

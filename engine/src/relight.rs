@@ -348,9 +348,10 @@ fn vertex_direct(
     Ok(Some(VertexDirect { lit, per_pixel }))
 }
 
-/// Δ and E_t of `plan`'s lamps on its simulated objects ([`crate::collimated`]), when its
-/// components scatter light by S and it has lamps and simulated objects; else a note when
-/// the bundle's walks cannot serve collimated entry.
+/// Δ and the moments [E_t, E_u, E_v, E_w] of `plan`'s lamps and environment maps on its
+/// simulated objects ([`crate::collimated`]), when its components scatter light by S and it
+/// has such lights and simulated objects; else a note when the bundle's walks cannot serve
+/// collimated entry.
 fn collimated_entry(
     scene: &Scene,
     geo: PatchGeometry<'_>,
@@ -360,10 +361,7 @@ fn collimated_entry(
     if matches!(
         plan.components,
         Components::Direct | Components::InterreflectionOnly
-    ) || !plan
-        .lights
-        .iter()
-        .any(|l| !matches!(l, Light::Environment { .. }))
+    ) || plan.lights.is_empty()
     {
         return (None, None);
     }
@@ -373,13 +371,23 @@ fn collimated_entry(
         TiltOf::Unsupported(why) => return (None, Some(why.clone())),
         TiltOf::Some(t) => t,
     };
-    let e_t = crate::collimated::tilted_irradiance(
+    let mut e_t = crate::collimated::tilted_irradiance(
         geo,
         &scene.occluder,
         &plan.lights,
         scene.bundle.manifest().unit_mm,
         t,
     );
+    // The environment's bins, each a beam from its direction. A map that cannot be read
+    // fails the relight in its irradiance (`crate::environment::direct_irradiance`), with
+    // the message naming it; here it adds nothing.
+    if let (Some(vis), Ok(Some(radiance))) = (
+        scene.bundle.environment_visibility(),
+        crate::environment::bin_radiance_total(&scene.env(), &plan.lights),
+    ) {
+        let e = e_t.get_or_insert_with(|| vec![[[0.0f32; 3]; 4]; geo.centroid.len()]);
+        crate::collimated::add_environment_moments(geo, vis, &radiance, t, e);
+    }
     (e_t.map(|e| (tilt, e)), None)
 }
 

@@ -424,3 +424,95 @@ fn a_floors_light_enters_a_simulated_cube_from_below_on_every_solver_path() {
         );
     }
 }
+
+/// A sun in an environment map is a lamp: it enters a simulated object collimated and
+/// slanted, and its beam crossing a corner unscattered is left out, like a directional
+/// light shining from it. A lone cube under a map that is dark but for one direction bin
+/// and under a directional lamp along that bin's centre: every face's share of the light
+/// leaving the cube the same within 1%.
+#[test]
+fn a_sun_in_an_environment_map_enters_a_simulated_cube_like_a_directional_lamp() {
+    use translux_engine::envmap::Bins;
+    use translux_engine::relight;
+    use translux_engine::scene::Scene;
+    let dir = tempfile::tempdir().unwrap();
+    let scene = format!(
+        r#"{{"unit_mm": 1, "objects": [
+            {{"name": "cube", "mesh": {{"shape": "box", "size": [20, 20, 20]}},
+              "material": {MEDIUM}}}],
+           "lights": []}}"#
+    );
+    let path = write(dir.path(), "scene.json", &scene);
+    let loaded = load_scene_file(&path).unwrap();
+    let out = dir.path().join("bundle");
+    let params = PrecomputeParams {
+        patches: Some(600),
+        ..Default::default()
+    };
+    precompute(&loaded, &out, &params).unwrap();
+    let b = Bundle::open(&out).unwrap();
+    let vis = b.environment_visibility().expect("visibility");
+    let bins = Bins {
+        rows: vis.rows,
+        cols: vis.cols,
+    };
+    // The sun: the bin holding a direction 60° from +y, toward −x and a little −z.
+    let toward = glam::Vec3::new(-0.85, 0.5, -0.17).normalize();
+    let k = bins.bin_of(toward);
+    let sun = bins.direction(k, 0.5, 0.5);
+    // An equirectangular map, radiance 1 on the texels whose centre lies in bin k.
+    let (w, h) = (512usize, 256usize);
+    let px: Vec<image::Rgb<f32>> = (0..w * h)
+        .map(|i| {
+            let (u, v) = (
+                ((i % w) as f32 + 0.5) / w as f32,
+                ((i / w) as f32 + 0.5) / h as f32,
+            );
+            let d = translux_engine::envmap::uv_to_direction(u, v);
+            image::Rgb([if bins.bin_of(d) == k { 1.0 } else { 0.0 }; 3])
+        })
+        .collect();
+    let file = std::fs::File::create(dir.path().join("sun.hdr")).unwrap();
+    image::codecs::hdr::HdrEncoder::new(std::io::BufWriter::new(file))
+        .encode(&px, w, h)
+        .unwrap();
+
+    let scene = Scene::open("cube", &out).unwrap();
+    let relit = |lights: serde_json::Value| {
+        let body = serde_json::json!({ "lights": lights, "solver": "iterative" }).to_string();
+        let plan = relight::plan(&scene, translux_proto::parse_json(&body).unwrap()).unwrap();
+        relight::run(&scene, &plan).unwrap().radiance
+    };
+    let map = relit(serde_json::json!([{"type": "environment", "map": "sun.hdr"}]));
+    let lamp = relit(serde_json::json!([{"type": "directional",
+        "direction": (-sun).to_array(), "irradiance": [1.0, 1.0, 1.0]}]));
+    // Each face's share of the cube's vertices' total (red), map against lamp.
+    let pos = b.vertex_positions();
+    let share = |r: &[[f32; 3]], axis: usize, sign: f32| {
+        let total: f64 = r.iter().map(|v| f64::from(v[0])).sum();
+        let face: f64 = r
+            .iter()
+            .zip(pos)
+            .filter(|(_, p)| (p[axis] * sign - 10.0).abs() < 1e-3)
+            .map(|(v, _)| f64::from(v[0]))
+            .sum();
+        face / total
+    };
+    let mut worst = 0.0f64;
+    for (name, axis, sign) in [
+        ("+x", 0, 1.0),
+        ("-x", 0, -1.0),
+        ("+y", 1, 1.0),
+        ("-y", 1, -1.0),
+        ("+z", 2, 1.0),
+        ("-z", 2, -1.0),
+    ] {
+        let (m, l) = (share(&map, axis, sign), share(&lamp, axis, sign));
+        eprintln!(
+            "{name}: map {m:.4}, lamp {l:.4}, {:+.1}%",
+            100.0 * (m / l - 1.0)
+        );
+        worst = worst.max((m / l - 1.0).abs());
+    }
+    assert!(worst < 0.01, "a face's share differs by {worst}");
+}
