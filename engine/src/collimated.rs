@@ -84,7 +84,7 @@ use std::ops::Range;
 use glam::Vec3;
 use rayon::prelude::*;
 use translux_proto::bundle::Bundle;
-use translux_proto::csr::{Csr, CsrView};
+use translux_proto::csr::{CheckedCsr, Csr, CsrView};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
@@ -100,8 +100,9 @@ use crate::transport::{Pulled, Transport};
 #[derive(Debug)]
 pub struct Tilt {
     /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U]_ji
-    /// (the last three 0 for walks without lamp weights), of either sign.
-    pub delta: Csr<[Rgb; 4]>,
+    /// (the last three 0 for walks without lamp weights), of either sign. Checked once when
+    /// made: a relight reads it twice (the lamps' and the other surfaces' light).
+    pub delta: CheckedCsr<[Rgb; 4]>,
     /// The simulated objects' patch ranges (where E_t is needed).
     pub ranges: Vec<Range<usize>>,
     /// Each patch's tangent frame (û, v̂) where `delta` has G_u, G_v and U (zero outside the
@@ -128,9 +129,7 @@ impl Tilt {
     }
 
     fn view(&self) -> CsrView<'_, [Rgb; 4]> {
-        self.delta
-            .view()
-            .expect("Tilt::of builds a valid CSR matrix")
+        self.delta.view()
     }
 }
 
@@ -197,7 +196,7 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
     } else {
         Vec::new()
     };
-    match Csr::from_rows(n, &rows) {
+    match Csr::from_rows(n, &rows).and_then(Csr::into_checked) {
         Ok(delta) => TiltOf::Some(Tilt {
             delta,
             ranges: simulated.into_iter().map(|(_, r, _)| r).collect(),
@@ -506,7 +505,7 @@ mod tests {
         let mut frames = vec![(Vec3::ZERO, Vec3::ZERO); n];
         frames[0] = (Vec3::X, Vec3::Y);
         Tilt {
-            delta: Csr::from_rows(n, &rows).unwrap(),
+            delta: Csr::from_rows(n, &rows).unwrap().into_checked().unwrap(),
             ranges: std::iter::once(0..1).collect(),
             frames,
         }

@@ -111,12 +111,12 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
         panic!("the walks carry collimated weights");
     };
     assert_eq!(fused.ranges, alone.ranges);
-    assert_eq!(fused.delta.col, alone.delta.col);
-    assert_eq!(fused.delta.val, alone.delta.val);
+    assert_eq!(fused.delta.csr().col, alone.delta.csr().col);
+    assert_eq!(fused.delta.csr().val, alone.delta.csr().val);
     // Δ, and the lamps' G_u, G_v and U beside it (format version 8).
     for part in 0..4 {
         assert!(
-            fused.delta.val.iter().any(|v| v[part][0] != 0.0),
+            fused.delta.csr().val.iter().any(|v| v[part][0] != 0.0),
             "part {part} of the tilt is all 0"
         );
     }
@@ -125,7 +125,11 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
     let TiltOf::Some(at_built) = at_built else {
         panic!("the walks carry collimated weights");
     };
-    assert_ne!(at_built.delta.val, fused.delta.val, "Δ follows σa");
+    assert_ne!(
+        at_built.delta.csr().val,
+        fused.delta.csr().val,
+        "Δ follows σa"
+    );
 
     // What the walks cannot serve is refused, naming the object and what changed.
     let err =
