@@ -132,6 +132,7 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         (s, reports) = match smatrix::rewrite_with_terms(
             bundle,
             s,
+            &mut None,
             &after,
             &changed,
             params,

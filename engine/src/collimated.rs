@@ -84,7 +84,7 @@ use std::ops::Range;
 use glam::Vec3;
 use rayon::prelude::*;
 use translux_proto::bundle::Bundle;
-use translux_proto::csr::{CheckedCsr, Csr, CsrView};
+use translux_proto::csr::{Csr, CsrView, ValidCsr};
 use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
@@ -97,12 +97,12 @@ use crate::transport::{Pulled, Transport};
 
 /// Δ = S⁽ⁿ⁾ − S of a scene's simulated objects under one set of materials, with G_u, G_v
 /// and U beside it when the walks carry them.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct Tilt {
     /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U]_ji
     /// (the last three 0 for walks without lamp weights), of either sign. Checked once when
     /// made: a relight reads it twice (the lamps' and the other surfaces' light).
-    pub delta: CheckedCsr<[Rgb; 4]>,
+    pub delta: ValidCsr<[Rgb; 4]>,
     /// The simulated objects' patch ranges (where E_t is needed).
     pub ranges: Vec<Range<usize>>,
     /// Each patch's tangent frame (û, v̂) where `delta` has G_u, G_v and U (zero outside the
@@ -196,7 +196,7 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
     } else {
         Vec::new()
     };
-    match Csr::from_rows(n, &rows).and_then(Csr::into_checked) {
+    match Csr::from_rows(n, &rows).and_then(ValidCsr::new) {
         Ok(delta) => TiltOf::Some(Tilt {
             delta,
             ranges: simulated.into_iter().map(|(_, r, _)| r).collect(),
@@ -275,15 +275,16 @@ pub fn add_environment_moments(
     tilt: &Tilt,
     out: &mut [[Rgb; 4]],
 ) {
-    use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
     let bins = crate::envmap::Bins {
         rows: vis.rows,
         cols: vis.cols,
     };
     let k = bins.count();
-    if radiance.len() != k {
-        return;
-    }
+    assert_eq!(
+        radiance.len(),
+        k,
+        "one radiance per bin of the bundle's visibility"
+    );
     let centre: Vec<Vec3> = (0..k).map(|b| bins.direction(b, 0.5, 0.5)).collect();
     let harmonic = tilt.has_harmonic();
     for r in &tilt.ranges {
@@ -295,8 +296,7 @@ pub fn add_environment_moments(
                 || vec![0.0f32; k],
                 |row, (at, e)| {
                     let i = r.start + at;
-                    let bits: &[half::f16] = vis.row(i).reinterpret_cast();
-                    bits.convert_to_f32_slice(row);
+                    crate::environment::visibility_row(vis, i, row);
                     let nrm = geo.normal[i];
                     let (fu, fv) = if harmonic {
                         tilt.frames[i]
@@ -334,40 +334,55 @@ pub fn add_environment_moments(
     }
 }
 
-/// The moments [E_t, E_u, E_v, 0] of the light other surfaces send into the simulated
-/// objects' patches, F x with each entry weighted by its direction (module docs), for `k`
-/// stacked RGB systems `x` (`[patch][plan][rgb]`); laid out as [`add_first_scatter`] reads
-/// them (`[patch][plan][E_t, E_u, E_v, E_w][rgb]`), zero outside the simulated objects. A
-/// link to a cluster node arrives from the node's area-weighted centroid.
-pub fn interreflected_moments(
-    tilt: &Tilt,
-    f: &Transport<'_>,
-    geo: PatchGeometry<'_>,
-    x: &[f32],
-    k: usize,
-) -> Vec<f32> {
-    let n = geo.centroid.len();
-    let ch = 3 * k;
-    assert_eq!(x.len(), n * ch, "x is [patch][plan][rgb]");
-    // Where each column of F's stored matrix (patches, then cluster nodes) sends from.
-    let flat: Vec<f32> = geo.centroid.iter().flat_map(|c| c.to_array()).collect();
-    let mut at = Pulled::default();
-    f.pull(&flat, 3, &mut at);
-    let mut pulled = Pulled::default();
-    f.pull(x, ch, &mut pulled);
-    let (from, xbar) = (&at.values, &pulled.values);
-    let mut simulated = vec![false; n];
-    for r in &tilt.ranges {
-        simulated[r.clone()].fill(true);
-    }
-    let harmonic = tilt.has_harmonic();
-    let matrix = f.matrix();
-    let mut out = vec![0.0f32; n * 4 * ch];
-    out.par_chunks_mut(4 * ch)
-        .with_min_len(16)
-        .enumerate()
-        .filter(|(i, _)| simulated[*i])
-        .for_each(|(i, e)| {
+/// The direction weights of the light other surfaces send into the simulated objects:
+/// for each stored entry F_ij of their rows, [F_ij (3μ − 2), F_ij d·û_i, F_ij d·v̂_i] (d the
+/// direction the light travels, from the source to patch i; μ = −d·n_i), laid out row after
+/// row. Fixed by the geometry, F and which patches are simulated, not by their absorption:
+/// made once ([`Slant::new`]) and read by [`interreflected_moments`] on every relight.
+#[derive(Debug, Clone)]
+pub struct Slant {
+    /// Where row i's weights start in `w` (N + 1 offsets; empty rows outside the simulated
+    /// objects).
+    start: Vec<usize>,
+    w: Vec<[f32; 3]>,
+}
+
+impl Slant {
+    /// The weights for `tilt`'s simulated patches under `f`. A link to a cluster node
+    /// arrives from the node's area-weighted centroid.
+    pub fn new(tilt: &Tilt, f: &Transport<'_>, geo: PatchGeometry<'_>) -> Slant {
+        let n = geo.centroid.len();
+        // Where each column of F's stored matrix (patches, then cluster nodes) sends from.
+        let flat: Vec<f32> = geo.centroid.iter().flat_map(|c| c.to_array()).collect();
+        let mut at = Pulled::default();
+        f.pull(&flat, 3, &mut at);
+        let from = &at.values;
+        let matrix = f.matrix();
+        let mut start = vec![0usize; n + 1];
+        let mut simulated = vec![false; n];
+        for r in &tilt.ranges {
+            simulated[r.clone()].fill(true);
+        }
+        for i in 0..n {
+            let len = if simulated[i] {
+                matrix.row(i).0.len()
+            } else {
+                0
+            };
+            start[i + 1] = start[i] + len;
+        }
+        let mut w = vec![[0.0f32; 3]; start[n]];
+        let harmonic = tilt.has_harmonic();
+        let mut rows: Vec<(usize, &mut [[f32; 3]])> = Vec::new();
+        let mut rest = w.as_mut_slice();
+        for i in 0..n {
+            let (row, more) = std::mem::take(&mut rest).split_at_mut(start[i + 1] - start[i]);
+            if simulated[i] {
+                rows.push((i, row));
+            }
+            rest = more;
+        }
+        rows.into_par_iter().for_each(|(i, wi)| {
             let (p, nrm) = (geo.centroid[i], geo.normal[i]);
             let (fu, fv) = if harmonic {
                 tilt.frames[i]
@@ -375,15 +390,43 @@ pub fn interreflected_moments(
                 (Vec3::ZERO, Vec3::ZERO)
             };
             let (cols, vals) = matrix.row(i);
-            for (&c, &fij) in cols.iter().zip(vals) {
+            for ((&c, &fij), w) in cols.iter().zip(vals).zip(wi) {
                 let c = c as usize;
                 let src = Vec3::new(from[3 * c], from[3 * c + 1], from[3 * c + 2]);
-                // The direction the light travels, from the source to this patch.
-                let Some(d) = (p - src).try_normalize() else {
-                    continue;
-                };
-                let mu = (-d.dot(nrm)).clamp(0.0, 1.0);
-                let w = [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)];
+                // A source at the patch itself carries no direction: weight 0.
+                if let Some(d) = (p - src).try_normalize() {
+                    let mu = (-d.dot(nrm)).clamp(0.0, 1.0);
+                    *w = [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)];
+                }
+            }
+        });
+        Slant { start, w }
+    }
+}
+
+/// The moments [E_t, E_u, E_v, 0] of the light other surfaces send into the simulated
+/// objects' patches, F x with each entry weighted by its direction (`slant`, made for
+/// `tilt` and `f`; module docs), for `k` stacked RGB systems `x` (`[patch][plan][rgb]`);
+/// laid out as [`add_first_scatter`] reads them (`[patch][plan][E_t, E_u, E_v, E_w][rgb]`),
+/// zero outside the simulated objects.
+pub fn interreflected_moments(slant: &Slant, f: &Transport<'_>, x: &[f32], k: usize) -> Vec<f32> {
+    let n = slant.start.len() - 1;
+    let ch = 3 * k;
+    assert_eq!(x.len(), n * ch, "x is [patch][plan][rgb]");
+    let mut pulled = Pulled::default();
+    f.pull(x, ch, &mut pulled);
+    let xbar = &pulled.values;
+    let matrix = f.matrix();
+    let mut out = vec![0.0f32; n * 4 * ch];
+    out.par_chunks_mut(4 * ch)
+        .with_min_len(16)
+        .enumerate()
+        .filter(|(i, _)| slant.start[i + 1] > slant.start[*i])
+        .for_each(|(i, e)| {
+            let cols = matrix.row(i).0;
+            let ws = &slant.w[slant.start[i]..slant.start[i + 1]];
+            for (&c, w) in cols.iter().zip(ws) {
+                let c = c as usize;
                 let xc = &xbar[c * ch..(c + 1) * ch];
                 for (plan, ep) in e.chunks_exact_mut(12).enumerate() {
                     let xp = &xc[3 * plan..3 * plan + 3];
@@ -403,13 +446,13 @@ pub fn interreflected_moments(
 /// for the direction that light arrives from, `[patch][plan][rgb]`.
 pub fn add_interreflected_first_scatter(
     tilt: &Tilt,
+    slant: &Slant,
     f: &Transport<'_>,
-    geo: PatchGeometry<'_>,
     x: &[f32],
     k: usize,
     out: &mut [f32],
 ) {
-    let e = interreflected_moments(tilt, f, geo, x, k);
+    let e = interreflected_moments(slant, f, x, k);
     add_first_scatter(tilt, &e, k, out);
 }
 
@@ -436,15 +479,10 @@ pub fn interreflected_first_scatter(
     x: &[Rgb],
 ) -> Option<Vec<Rgb>> {
     let tilt = own_tilt(bundle)?;
+    let f = Transport::of(bundle);
+    let slant = Slant::new(&tilt, &f, geo);
     let mut y = vec![0.0f32; 3 * x.len()];
-    add_interreflected_first_scatter(
-        &tilt,
-        &Transport::of(bundle),
-        geo,
-        bytemuck::cast_slice(x),
-        1,
-        &mut y,
-    );
+    add_interreflected_first_scatter(&tilt, &slant, &f, bytemuck::cast_slice(x), 1, &mut y);
     Some(bytemuck::cast_slice(&y).to_vec())
 }
 
@@ -505,7 +543,7 @@ mod tests {
         let mut frames = vec![(Vec3::ZERO, Vec3::ZERO); n];
         frames[0] = (Vec3::X, Vec3::Y);
         Tilt {
-            delta: Csr::from_rows(n, &rows).unwrap().into_checked().unwrap(),
+            delta: ValidCsr::new(Csr::from_rows(n, &rows).unwrap()).unwrap(),
             ranges: std::iter::once(0..1).collect(),
             frames,
         }
@@ -546,7 +584,7 @@ mod tests {
             centroid: c,
             normal: nrm,
         };
-        let e = interreflected_moments(t, f, geo, bytemuck::cast_slice(x), 1);
+        let e = interreflected_moments(&Slant::new(t, f, geo), f, bytemuck::cast_slice(x), 1);
         // Red of E_t, E_u, E_v, E_w at patch 0; every other patch is not simulated.
         assert!(e[12..].iter().all(|&v| v == 0.0));
         [e[0], e[3], e[6], e[9]]
@@ -700,7 +738,8 @@ mod tests {
             normal: &nrm,
         };
         let mut y = vec![0.0f32; 3 * n];
-        add_interreflected_first_scatter(&t, &tr, geo, bytemuck::cast_slice(&x), 1, &mut y);
+        let slant = Slant::new(&t, &tr, geo);
+        add_interreflected_first_scatter(&t, &slant, &tr, bytemuck::cast_slice(&x), 1, &mut y);
         assert!((y[0] - want).abs() < 2e-3 * want, "{}", y[0]);
         assert!(y[3..].iter().all(|&v| v == 0.0));
     }

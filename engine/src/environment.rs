@@ -328,14 +328,12 @@ fn finite(e: Vec<Rgb>) -> Result<Vec<Rgb>, EngineError> {
 
 /// e_i += Σ_k V_ik L_k with V as half-float bits (converted a row at a time).
 fn add_from_bits(vis: translux_proto::bundle::EnvVisibilityView<'_>, total: &[Rgb], e: &mut [Rgb]) {
-    use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
     use rayon::prelude::*;
     let k = vis.bins();
     e.par_iter_mut().enumerate().with_min_len(64).for_each_init(
         || vec![0.0f32; k],
         |row, (i, ei)| {
-            let bits: &[half::f16] = vis.row(i).reinterpret_cast();
-            bits.convert_to_f32_slice(row);
+            visibility_row(vis, i, row);
             let mut acc = [0.0f32; 3];
             for (&v, l) in row.iter().zip(total) {
                 acc[0] += v * l[0];
@@ -347,4 +345,16 @@ fn add_from_bits(vis: translux_proto::bundle::EnvVisibilityView<'_>, total: &[Rg
             }
         },
     );
+}
+
+/// Patch i's visibility per bin as f32 into `out` (one value per bin), converted from the
+/// bundle's half floats (vectorised by the `half` crate).
+pub(crate) fn visibility_row(
+    vis: translux_proto::bundle::EnvVisibilityView<'_>,
+    i: usize,
+    out: &mut [f32],
+) {
+    use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
+    let bits: &[half::f16] = vis.row(i).reinterpret_cast();
+    bits.convert_to_f32_slice(out);
 }

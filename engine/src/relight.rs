@@ -260,7 +260,7 @@ struct Prepared {
 }
 
 /// The tilt of a plan's materials and [E_t, E_u, E_v, E_w] of its lamps ([`crate::collimated`]).
-type Collimated = (Arc<TiltOf>, Vec<[Rgb; 4]>);
+type Collimated = (Arc<TiltOf>, Arc<crate::scene::Moments>);
 
 /// E at the vertices whose direct term is taken at the vertex, and what it replaces.
 struct VertexDirect {
@@ -351,44 +351,49 @@ fn vertex_direct(
 /// Δ and the moments [E_t, E_u, E_v, E_w] of `plan`'s lamps and environment maps on its
 /// simulated objects ([`crate::collimated`]), when its components scatter light by S and it
 /// has such lights and simulated objects; else a note when the bundle's walks cannot serve
-/// collimated entry.
+/// collimated entry. The moments depend on the lights (`lights_key`) and on which patches
+/// are simulated, not on their absorption: the scene keeps the last ones
+/// ([`crate::scene::DirectCache`]), so a translucency slider computes none.
 fn collimated_entry(
     scene: &Scene,
     geo: PatchGeometry<'_>,
     plan: &RelightPlan,
     materials_key: &str,
-) -> (Option<Collimated>, Option<String>) {
+    lights_key: &str,
+) -> Result<(Option<Collimated>, Option<String>), EngineError> {
     if matches!(
         plan.components,
         Components::Direct | Components::InterreflectionOnly
     ) || plan.lights.is_empty()
     {
-        return (None, None);
+        return Ok((None, None));
     }
     let tilt = scene.tilt_for(materials_key, &plan.materials(scene));
     let t = match tilt.as_ref() {
-        TiltOf::None => return (None, None),
-        TiltOf::Unsupported(why) => return (None, Some(why.clone())),
+        TiltOf::None => return Ok((None, None)),
+        TiltOf::Unsupported(why) => return Ok((None, Some(why.clone()))),
         TiltOf::Some(t) => t,
     };
-    let mut e_t = crate::collimated::tilted_irradiance(
-        geo,
-        &scene.occluder,
-        &plan.lights,
-        scene.bundle.manifest().unit_mm,
-        t,
-    );
-    // The environment's bins, each a beam from its direction. A map that cannot be read
-    // fails the relight in its irradiance (`crate::environment::direct_irradiance`), with
-    // the message naming it; here it adds nothing.
-    if let (Some(vis), Ok(Some(radiance))) = (
-        scene.bundle.environment_visibility(),
-        crate::environment::bin_radiance_total(&scene.env(), &plan.lights),
-    ) {
-        let e = e_t.get_or_insert_with(|| vec![[[0.0f32; 3]; 4]; geo.centroid.len()]);
-        crate::collimated::add_environment_moments(geo, vis, &radiance, t, e);
-    }
-    (e_t.map(|e| (tilt, e)), None)
+    let key = format!("{lights_key}|{:?}|{}", t.ranges, t.has_harmonic());
+    let moments = scene.direct.moments(&key, || {
+        let mut e = crate::collimated::tilted_irradiance(
+            geo,
+            &scene.occluder,
+            &plan.lights,
+            scene.bundle.manifest().unit_mm,
+            t,
+        );
+        // The environment's bins, each a beam from its direction.
+        if let (Some(vis), Some(radiance)) = (
+            scene.bundle.environment_visibility(),
+            crate::environment::bin_radiance_total(&scene.env(), &plan.lights)?,
+        ) {
+            let e = e.get_or_insert_with(|| vec![[[0.0f32; 3]; 4]; geo.centroid.len()]);
+            crate::collimated::add_environment_moments(geo, vis, &radiance, t, e);
+        }
+        Ok(e)
+    })?;
+    Ok((moments.map(|e| (tilt, e)), None))
 }
 
 /// The albedo a picture multiplies the per-pixel direct irradiance by for an object of
@@ -499,7 +504,18 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
             _ => None,
         };
         let materials_key = serde_json::to_string(&plan.overrides).unwrap_or_default();
-        let (collimated, tilt_note) = collimated_entry(scene, geo, plan, &materials_key);
+        let tc = Instant::now();
+        let (collimated, tilt_note) =
+            match collimated_entry(scene, geo, plan, &materials_key, &lights_key) {
+                Ok(c) => c,
+                Err(e) => {
+                    out[idx] = Some(Err(e));
+                    prepared.push(None);
+                    continue;
+                }
+            };
+        // The moments are direct light too.
+        let direct_ms = direct_ms + tc.elapsed().as_secs_f64() * 1e3;
         let slant = (plan.components == Components::Full)
             .then(|| match &collimated {
                 Some((t, _)) => t.clone(),
@@ -747,10 +763,6 @@ fn transport(
         Some(TiltOf::Some(t)) if components == Components::Full => Some(t),
         _ => None,
     };
-    let geo = PatchGeometry {
-        centroid: &scene.centroids,
-        normal: &scene.normals,
-    };
     let suffix = format!("|{}", components.as_str());
     let key = format!("{}{suffix}", first.materials_key);
     // Where the correction for the light from other surfaces is kept (below).
@@ -763,7 +775,8 @@ fn transport(
             return Ok(None);
         };
         let mut y = vec![0.0f32; n * ch];
-        crate::collimated::add_interreflected_first_scatter(t, &f, geo, x, k, &mut y);
+        let weights = scene.slant_for(t);
+        crate::collimated::add_interreflected_first_scatter(t, &weights, &f, x, k, &mut y);
         let norms = |v: &[f32]| -> Vec<f64> {
             (0..ch)
                 .map(|c| {
@@ -795,28 +808,20 @@ fn transport(
             .as_ref()
             .map(|h| KeptStart::of(h, n, k))
             .unwrap_or_default();
-        let on_gpu = scene.backend().solve_rhs(
-            scene.view(),
-            first.materials.as_ref(),
-            &y,
+        let primed = start.fx.as_deref().map(|fx| Primed {
+            fx,
+            kfx: start.kfx.as_deref(),
+            before: None,
+            age: start.age,
+        });
+        let on = Solve {
+            f: &f,
+            kop: s,
             k,
-            &cparams,
-            start.x.as_deref(),
-        );
-        let (c, more, products) = match on_gpu {
-            Some((c, more)) => (c, more, None),
-            None => {
-                let primed = start.fx.as_deref().map(|fx| Primed {
-                    fx,
-                    kfx: start.kfx.as_deref(),
-                    before: None,
-                    age: start.age,
-                });
-                let s = solve_primed(&f, s, &y, ch, &cparams, start.x.as_deref(), primed)
-                    .map_err(|e| EngineError::internal(e.to_string()))?;
-                (s.x, s.stats, Some((s.fx, s.kfx, s.age)))
-            }
+            params: &cparams,
+            device: true,
         };
+        let (c, more, products) = on.run(scene, first, &y, start.x.as_deref(), primed)?;
         drop(start);
         drop(kept);
         keep(scene, ckey.clone(), &c, products, n, ch);
@@ -959,42 +964,24 @@ fn transport(
         f.apply_multi(&rhs, &mut fx, ch, &mut Pulled::default());
         p.apply_multi(&fx, &mut rhs, ch);
     }
-    // The full transport (K = S) on the scene's backend ([`crate::backend`]) when it takes it, else on the CPU.
-    let on_gpu = (components == Components::Full)
-        .then(|| {
-            scene.backend().solve_rhs(
-                scene.view(),
-                first.materials.as_ref(),
-                &rhs,
-                k,
-                params,
-                warm.as_deref(),
-            )
-        })
-        .flatten();
-    let (mut x, st, products) = match on_gpu {
-        Some((x, st)) => (x, st, None),
-        None => {
-            let primed = fx.as_deref().map(|fx| Primed {
-                fx,
-                kfx: kfx.as_deref(),
-                before: before.as_ref().map(|(x, fx, kfx, _)| Before {
-                    x,
-                    fx,
-                    kfx: kfx.as_deref(),
-                }),
-                age,
-            });
-            let s =
-                solve_primed(&f, kop, &rhs, ch, params, warm.as_deref(), primed).map_err(|e| {
-                    match e {
-                        SolveError::Overflow => EngineError::invalid(format!("lights: {e}")),
-                        e => EngineError::internal(e.to_string()),
-                    }
-                })?;
-            (s.x, s.stats, Some((s.fx, s.kfx, s.age)))
-        }
+    let primed = fx.as_deref().map(|fx| Primed {
+        fx,
+        kfx: kfx.as_deref(),
+        before: before.as_ref().map(|(x, fx, kfx, _)| Before {
+            x,
+            fx,
+            kfx: kfx.as_deref(),
+        }),
+        age,
+    });
+    let on = Solve {
+        f: &f,
+        kop,
+        k,
+        params,
+        device: components == Components::Full,
     };
+    let (mut x, st, products) = on.run(scene, first, &rhs, warm.as_deref(), primed)?;
     // Keep the last system's answer for the next relight with these materials (never one
     // that overflowed: it would poison the next solve), with its products when the CPU
     // solved it.
@@ -1029,6 +1016,56 @@ fn transport(
             warm: st.warm,
         },
     ))
+}
+
+/// One solve of (I − K F) x = rhs for k stacked RGB systems.
+struct Solve<'a> {
+    f: &'a Transport<'a>,
+    kop: &'a dyn Scatter,
+    k: usize,
+    params: &'a SolveParams,
+    /// K is the materials' S (the full transport): the scene's backend may take it.
+    device: bool,
+}
+
+/// F x, K F x and their age from a CPU solve ([`keep`]).
+type Products = (Vec<f32>, Vec<f32>, u32);
+
+impl Solve<'_> {
+    /// On the scene's backend ([`crate::backend`]) when it takes the system, else on the
+    /// CPU from `warm` and the kept products `primed`: x, the solve's stats and, from the
+    /// CPU, the products to keep.
+    fn run(
+        &self,
+        scene: &Scene,
+        first: &Prepared,
+        rhs: &[f32],
+        warm: Option<&[f32]>,
+        primed: Option<Primed<'_>>,
+    ) -> Result<(Vec<f32>, SolveStats, Option<Products>), EngineError> {
+        let on_device = self
+            .device
+            .then(|| {
+                scene.backend().solve_rhs(
+                    scene.view(),
+                    first.materials.as_ref(),
+                    rhs,
+                    self.k,
+                    self.params,
+                    warm,
+                )
+            })
+            .flatten();
+        if let Some((x, st)) = on_device {
+            return Ok((x, st, None));
+        }
+        let s = solve_primed(self.f, self.kop, rhs, 3 * self.k, self.params, warm, primed)
+            .map_err(|e| match e {
+                SolveError::Overflow => EngineError::invalid(format!("lights: {e}")),
+                e => EngineError::internal(e.to_string()),
+            })?;
+        Ok((s.x, s.stats, Some((s.fx, s.kfx, s.age))))
+    }
 }
 
 /// A kept answer spread over a batch of k RGB systems: a single relight borrows it as it
@@ -1076,14 +1113,7 @@ impl<'a> KeptStart<'a> {
 /// Keeps the batch's last system of `x` under `key` for the next solve, with its products
 /// F x and K F x when the CPU solved it (`products`); never an answer that is not finite
 /// (it would poison the next solve).
-fn keep(
-    scene: &Scene,
-    key: String,
-    x: &[f32],
-    products: Option<(Vec<f32>, Vec<f32>, u32)>,
-    n: usize,
-    ch: usize,
-) {
+fn keep(scene: &Scene, key: String, x: &[f32], products: Option<Products>, n: usize, ch: usize) {
     if !x.iter().all(|v| v.is_finite()) {
         return;
     }

@@ -20,7 +20,7 @@ use translux_proto::csr::ValidCsr;
 use translux_proto::scene::Material;
 
 use crate::backend::{Backend, Cpu, SBuild, SPrep, SceneRef};
-use crate::collimated::TiltOf;
+use crate::collimated::{Slant, Tilt, TiltOf};
 use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::radiosity::Rgb;
@@ -75,6 +75,9 @@ pub struct Scene {
     /// Δ = S⁽ⁿ⁾ − S of the simulated objects for the last materials key
     /// ([`crate::collimated`]).
     pub(crate) tilt_cache: Mutex<Option<(String, Arc<TiltOf>)>>,
+    /// The direction weights of the light entering the simulated objects, for the last
+    /// set of simulated patches ([`Scene::slant_for`]).
+    slant_cache: Mutex<Option<(String, Arc<Slant>)>>,
     /// Where direct light is evaluated at the viewer's vertices (made on first use).
     pub(crate) vertex_samples: OnceLock<VertexSamples>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
@@ -288,16 +291,18 @@ impl Scene {
     }
 
     /// A translucency change since the last S built on the CPU (only translucent objects' or
-    /// thin sheets' profiles differ, [`smatrix::changed_profiles`]): the last S with those
-    /// objects' values rewritten in place, taken from the cache (copied only while a relight
-    /// still holds it). `None` when S must be built afresh.
+    /// thin sheets' profiles, or simulated objects' absorption, differ,
+    /// [`smatrix::changed_profiles`]): the last S with those objects' values rewritten in
+    /// place, taken from the cache (copied only while a relight still holds it), and the
+    /// simulated objects' lamp tilt with them (kept under `key` for [`Scene::tilt_for`]).
+    /// `None` when S must be built afresh.
     fn rewrite_last(
         &self,
         key: &str,
         overrides: &[(usize, Material)],
     ) -> Option<Result<ValidCsr<[f32; 3]>, smatrix::SError>> {
         let terms = self.s_terms.get()?;
-        let (last, changed) = {
+        let (last, changed, tilt) = {
             let mut cache = self.material_cache.lock().ok()?;
             let (_, m) = cache.as_ref()?;
             if m.built_on != "cpu" {
@@ -305,14 +310,29 @@ impl Scene {
             }
             let changed = smatrix::changed_profiles(&m.overrides, overrides, terms)?;
             let (last_key, m) = cache.take()?;
-            // The simulated objects are as they were: so is their Δ.
-            if let Ok(mut tilt) = self.tilt_cache.lock()
-                && let Some((k, _)) = tilt.as_mut()
-                && *k == last_key
-            {
-                *k = key.to_string();
-            }
-            (m, changed)
+            let simulated = overrides
+                .iter()
+                .any(|(k, m)| changed.contains(k) && matches!(m, Material::Simulated { .. }));
+            let mut slot = self.tilt_cache.lock().unwrap_or_else(|p| p.into_inner());
+            let tilt = match slot.as_mut() {
+                // The simulated objects are as they were: so is their Δ.
+                Some((k, _)) if *k == last_key && !simulated => {
+                    *k = key.to_string();
+                    None
+                }
+                // Their absorption changed: their Δ is rewritten beside S.
+                Some((k, _)) if *k == last_key => slot.take().and_then(|(_, t)| {
+                    match Arc::try_unwrap(t).unwrap_or_else(|shared| match shared.as_ref() {
+                        TiltOf::Some(t) => TiltOf::Some(t.clone()),
+                        _ => TiltOf::None,
+                    }) {
+                        TiltOf::Some(t) => Some(t),
+                        _ => None,
+                    }
+                }),
+                _ => None,
+            };
+            (m, changed, tilt)
         };
         let s = match Arc::try_unwrap(last) {
             Ok(m) => m.s,
@@ -320,18 +340,42 @@ impl Scene {
         };
         let params = SParams::default();
         let mut scratch = self.s_scratch.lock().unwrap_or_else(|p| p.into_inner());
-        Some(
-            smatrix::rewrite_with_terms(
-                &self.bundle,
-                s,
-                overrides,
-                &changed,
-                &params,
-                terms,
-                &mut scratch,
-            )
-            .map(|(s, _)| s),
-        )
+        let (mut delta, rest) = match tilt {
+            Some(Tilt {
+                delta,
+                ranges,
+                frames,
+            }) => (Some(delta), Some((ranges, frames))),
+            None => (None, None),
+        };
+        let written = smatrix::rewrite_with_terms(
+            &self.bundle,
+            s,
+            &mut delta,
+            overrides,
+            &changed,
+            &params,
+            terms,
+            &mut scratch,
+        );
+        if let (Ok(_), Some((ranges, frames)), Some(delta)) = (&written, rest, delta) {
+            let t = Tilt {
+                delta,
+                ranges,
+                frames,
+            };
+            if let Ok(mut cache) = self.tilt_cache.lock() {
+                *cache = Some((key.to_string(), Arc::new(TiltOf::Some(t))));
+            }
+        }
+        match written {
+            Ok((s, _)) => Some(Ok(s)),
+            Err(e @ smatrix::SError::Pattern { .. }) => {
+                tracing::warn!(scene = %self.id, "S built again: {e}");
+                None
+            }
+            Err(e) => Some(Err(e)),
+        }
     }
 
     /// Δ = S⁽ⁿ⁾ − S of the simulated objects under `materials` (one per manifest object),
@@ -348,6 +392,26 @@ impl Scene {
             *cache = Some((key.to_string(), t.clone()));
         }
         t
+    }
+
+    /// The direction weights of the light other surfaces send into `tilt`'s simulated
+    /// patches ([`Slant`]): made on the first relight that needs them and kept while the
+    /// same patches are simulated (an absorption change keeps them).
+    pub fn slant_for(&self, tilt: &Tilt) -> Arc<Slant> {
+        let key = format!("{:?}|{}", tilt.ranges, tilt.has_harmonic());
+        let made: Result<_, std::convert::Infallible> = kept_or(&self.slant_cache, &key, || {
+            let geo = crate::radiosity::PatchGeometry {
+                centroid: &self.centroids,
+                normal: &self.normals,
+            };
+            Ok(Arc::new(Slant::new(
+                tilt,
+                &crate::transport::Transport::of(&self.bundle),
+                geo,
+            )))
+        });
+        let Ok(s) = made;
+        s
     }
 
     /// Opens (verifies and maps) the bundle in `dir` and builds its BVH, relit on the CPU
@@ -406,6 +470,7 @@ impl Scene {
             normals,
             material_cache: Mutex::new(None),
             tilt_cache: Mutex::new(None),
+            slant_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
             prep: Mutex::new(TranslucencyPrep {
                 state: if translucent {
@@ -484,7 +549,12 @@ impl Scene {
 pub struct DirectCache {
     patches: Mutex<Option<(String, Arc<Vec<Rgb>>)>>,
     vertices: Mutex<Option<(String, Option<Arc<VertexLit>>)>>,
+    moments: Mutex<Option<(String, Option<Arc<Moments>>)>>,
 }
+
+/// [E_t, E_u, E_v, E_w] per patch: the lights' moments at the simulated objects' patches
+/// ([`crate::collimated`]).
+pub type Moments = Vec<[Rgb; 4]>;
 
 impl DirectCache {
     /// E at the patches under the lights `key`, traced by `trace` unless kept.
@@ -504,6 +574,17 @@ impl DirectCache {
         trace: impl FnOnce() -> Result<Option<VertexLit>, E>,
     ) -> Result<Option<Arc<VertexLit>>, E> {
         kept_or(&self.vertices, key, || trace().map(|v| v.map(Arc::new)))
+    }
+
+    /// The lights' moments at the simulated objects under `key` (the lights and which
+    /// patches are simulated: not their absorption), made by `make` unless kept (`None`: no
+    /// light enters them by its direction).
+    pub(crate) fn moments<E>(
+        &self,
+        key: &str,
+        make: impl FnOnce() -> Result<Option<Moments>, E>,
+    ) -> Result<Option<Arc<Moments>>, E> {
+        kept_or(&self.moments, key, || make().map(|v| v.map(Arc::new)))
     }
 }
 

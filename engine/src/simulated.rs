@@ -322,11 +322,63 @@ fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
         .collect()
 }
 
+/// Row j of `walks` summed per source at attenuation `att` ([`attenuation`]): `emit(i, S_ji,
+/// t_ji)` once per source i, in the records' order (a source's records are consecutive), with
+/// t_ji = [Δ_ji, G_u,ji, G_v,ji, U_ji] when `tilt` and the walks carry collimated weights
+/// (all 0 otherwise): Δ = S⁽ⁿ⁾ − S from w⁽ⁿ⁾ − w, and where the walks carry lamp weights
+/// G_u, G_v and U beside it, which [`crate::collimated`] applies to E_t, E_u, E_v and E_w.
+fn merge_row(
+    walks: &WalksView<'_>,
+    j: usize,
+    att: &[[f32; 3]],
+    tilt: bool,
+    mut emit: impl FnMut(u32, [f32; 3], [[f32; 3]; 4]),
+) {
+    let (cols, bins, ws) = walks.row(j);
+    let wn = if tilt { walks.row_normal(j) } else { None };
+    let wt = if tilt { walks.row_lamp(j) } else { None };
+    let mut cur: Option<(u32, [f32; 3], [[f32; 3]; 4])> = None;
+    for (k, ((&i, &b), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
+        let a = att[(b & !UNSCATTERED) as usize];
+        let v = [w[0] * a[0], w[1] * a[1], w[2] * a[2]];
+        let mut t = [[0.0f32; 3]; 4];
+        if let Some(wn) = wn {
+            let n = wn[k];
+            t[0] = std::array::from_fn(|c| (n[c] - w[c]) * a[c]);
+            if b & UNSCATTERED != 0 {
+                t[3] = v;
+            } else if let Some(wt) = wt {
+                let [gu, gv] = unpack_tilt(&wt[k], w);
+                t[1] = std::array::from_fn(|c| gu[c] * a[c]);
+                t[2] = std::array::from_fn(|c| gv[c] * a[c]);
+            }
+        }
+        match &mut cur {
+            Some((c, acc, tacc)) if *c == i => {
+                for ch in 0..3 {
+                    acc[ch] += v[ch];
+                }
+                for (acc, t) in tacc.iter_mut().zip(t) {
+                    for ch in 0..3 {
+                        acc[ch] += t[ch];
+                    }
+                }
+            }
+            _ => {
+                if let Some((c, acc, tacc)) = cur.replace((i, v, t)) {
+                    emit(c, acc, tacc);
+                }
+            }
+        }
+    }
+    if let Some((c, acc, tacc)) = cur {
+        emit(c, acc, tacc);
+    }
+}
+
 /// Rows `rows` (global) of `walks` summed per source at absorption `sigma_a` in one pass
-/// over the records: S_ji from the diffuse weights w, and with `tilt` also the tilt rows
-/// (the walks must carry collimated weights then): Δ_ji = S⁽ⁿ⁾_ji − S_ji from w⁽ⁿ⁾ − w, and
-/// where the walks carry lamp weights G_u,ji, G_v,ji and U_ji beside it (0 otherwise), which
-/// [`crate::collimated`] applies to E_t, E_u, E_v and E_w. The tilt rows have S's sources.
+/// over the records ([`merge_row`]): S_ji, and with `tilt` also the tilt rows (the walks must
+/// carry collimated weights then). The tilt rows have S's sources.
 fn sum_rows(
     walks: &WalksView<'_>,
     rows: std::ops::Range<usize>,
@@ -334,57 +386,18 @@ fn sum_rows(
     tilt: bool,
 ) -> (Rows, Option<TiltRows>) {
     let att = attenuation(sigma_a);
+    let tilt = tilt && walks.normal.is_some();
     let both: Vec<_> = rows
         .into_par_iter()
         .map(|j| {
-            let (cols, bins, ws) = walks.row(j);
-            let wn = if tilt { walks.row_normal(j) } else { None };
-            let wt = if tilt { walks.row_lamp(j) } else { None };
             let mut row: Vec<(u32, [f32; 3])> = Vec::new();
             let mut delta: Vec<(u32, [[f32; 3]; 4])> = Vec::new();
-            for (k, ((&i, &b), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
-                let a = att[(b & !UNSCATTERED) as usize];
-                let v = [w[0] * a[0], w[1] * a[1], w[2] * a[2]];
-                let d = wn.map(|wn| {
-                    let n = wn[k];
-                    [
-                        (n[0] - w[0]) * a[0],
-                        (n[1] - w[1]) * a[1],
-                        (n[2] - w[2]) * a[2],
-                    ]
-                });
-                let d = d.map(|d| {
-                    let mut t = [d, [0.0; 3], [0.0; 3], [0.0; 3]];
-                    if b & UNSCATTERED != 0 {
-                        t[3] = v;
-                    } else if let Some(wt) = wt {
-                        let [gu, gv] = unpack_tilt(&wt[k], w);
-                        t[1] = [gu[0] * a[0], gu[1] * a[1], gu[2] * a[2]];
-                        t[2] = [gv[0] * a[0], gv[1] * a[1], gv[2] * a[2]];
-                    }
-                    t
-                });
-                match row.last_mut() {
-                    Some((c, acc)) if *c == i => {
-                        for ch in 0..3 {
-                            acc[ch] += v[ch];
-                        }
-                        if let (Some(d), Some((_, dacc))) = (d, delta.last_mut()) {
-                            for (acc, d) in dacc.iter_mut().zip(d) {
-                                for ch in 0..3 {
-                                    acc[ch] += d[ch];
-                                }
-                            }
-                        }
-                    }
-                    _ => {
-                        row.push((i, v));
-                        if let Some(d) = d {
-                            delta.push((i, d));
-                        }
-                    }
+            merge_row(walks, j, &att, tilt, |i, v, t| {
+                row.push((i, v));
+                if tilt {
+                    delta.push((i, t));
                 }
-            }
+            });
             (row, delta)
         })
         .collect();
@@ -392,15 +405,83 @@ fn sum_rows(
     (s, tilt.then_some(delta))
 }
 
-/// The largest column energy Σ_j A_j S_ji / A_i of `rows` (local rows of global
-/// sources, starting at global row `first`), areas global.
-fn max_column_energy(rows: &Rows, first: usize, area: &[f32]) -> f32 {
+/// One row of a matrix to rewrite in place: its columns and its values.
+pub type RowMut<'a, T> = (&'a [u32], &'a mut [T]);
+
+/// An absorption change written in place: rows `rows` (global) of `walks` at `sigma_a` into
+/// `s_rows`, and into `tilt_rows` when given (the walks must carry collimated weights then),
+/// each row as [`ValidCsr::rewrite_vouched`](translux_proto::csr::ValidCsr::rewrite_vouched)
+/// hands it over. The rows must have the patterns a build from the same walks made (S's and
+/// the tilt's rows list each row's sources, [`sum_rows`]): where one does not, nothing is
+/// promised of the values and the answer is `Err` with that row, so that the caller builds
+/// again. `Ok` says whether every value written is finite.
+///
+/// No row is built and nothing is allocated per row: on the 24,392-patch Cornell box a
+/// rebuild spent about as long making and checking new matrices as summing the records.
+pub fn write_rows(
+    walks: &WalksView<'_>,
+    rows: std::ops::Range<usize>,
+    sigma_a: [f32; 3],
+    s_rows: Vec<RowMut<'_, [f32; 3]>>,
+    tilt_rows: Option<Vec<RowMut<'_, [[f32; 3]; 4]>>>,
+) -> Result<bool, usize> {
+    assert_eq!(s_rows.len(), rows.len(), "one S row per walks row");
+    let att = attenuation(sigma_a);
+    let tilt = tilt_rows.is_some();
+    if tilt && walks.normal.is_none() {
+        return Err(rows.start);
+    }
+    let mut tilt_rows: Vec<Option<RowMut<'_, [[f32; 3]; 4]>>> = match tilt_rows {
+        Some(t) => {
+            assert_eq!(t.len(), rows.len(), "one tilt row per walks row");
+            t.into_iter().map(Some).collect()
+        }
+        None => std::iter::repeat_with(|| None).take(rows.len()).collect(),
+    };
+    s_rows
+        .into_par_iter()
+        .zip(tilt_rows.par_iter_mut())
+        .enumerate()
+        .map(|(k, ((cols, vals), t))| {
+            let j = rows.start + k;
+            if t.as_ref().is_some_and(|(tc, _)| *tc != cols) {
+                return Err(j);
+            }
+            let (mut at, mut same, mut finite) = (0usize, true, true);
+            merge_row(walks, j, &att, tilt, |i, v, d| {
+                if !same || cols.get(at) != Some(&i) {
+                    same = false;
+                    return;
+                }
+                finite &= v.iter().all(|x| x.is_finite());
+                vals[at] = v;
+                if let Some((_, tv)) = t {
+                    finite &= d.iter().flatten().all(|x| x.is_finite());
+                    tv[at] = d;
+                }
+                at += 1;
+            });
+            if same && at == cols.len() {
+                Ok(finite)
+            } else {
+                Err(j)
+            }
+        })
+        .try_reduce(|| true, |a, b| Ok(a && b))
+}
+
+/// The largest column energy Σ_j A_j S_ji / A_i of `rows`, each a global row j with its
+/// entries (global i, S_ji); areas global.
+pub fn max_column_energy<'a, R>(rows: impl IntoIterator<Item = (usize, R)>, area: &[f32]) -> f32
+where
+    R: IntoIterator<Item = (u32, &'a [f32; 3])>,
+{
     let mut energy = vec![[0.0f64; 3]; area.len()];
-    for (k, row) in rows.iter().enumerate() {
-        let aj = area[first + k] as f64;
+    for (j, row) in rows {
+        let aj = area[j] as f64;
         for (i, v) in row {
             for c in 0..3 {
-                energy[*i as usize][c] += aj * v[c] as f64;
+                energy[i as usize][c] += aj * v[c] as f64;
             }
         }
     }
@@ -410,6 +491,16 @@ fn max_column_energy(rows: &Rows, first: usize, area: &[f32]) -> f32 {
         .filter(|(_, a)| **a > 0.0)
         .map(|(e, a)| e.iter().fold(0.0f64, |m, v| m.max(*v)) / *a as f64)
         .fold(0.0f64, f64::max) as f32
+}
+
+/// [`max_column_energy`] of local rows of global sources, starting at global row `first`.
+fn max_column_energy_of(rows: &Rows, first: usize, area: &[f32]) -> f32 {
+    max_column_energy(
+        rows.iter()
+            .enumerate()
+            .map(|(k, row)| (first + k, row.iter().map(|(i, v)| (*i, v)))),
+        area,
+    )
 }
 
 /// The re-weighted S of one simulated object: rows `rows` (global) of `walks`, as local
@@ -422,7 +513,7 @@ pub fn reweight(
     sigma_a: [f32; 3],
 ) -> (Rows, f32) {
     let (out, _) = sum_rows(walks, rows.clone(), sigma_a, false);
-    let max = max_column_energy(&out, rows.start, area);
+    let max = max_column_energy_of(&out, rows.start, area);
     (out, max)
 }
 
@@ -436,7 +527,7 @@ pub fn reweight_with_tilt(
     sigma_a: [f32; 3],
 ) -> (Rows, Option<TiltRows>, f32) {
     let (out, delta) = sum_rows(walks, rows.clone(), sigma_a, walks.normal.is_some());
-    let max = max_column_energy(&out, rows.start, area);
+    let max = max_column_energy_of(&out, rows.start, area);
     (out, delta, max)
 }
 

@@ -52,6 +52,10 @@ pub enum SError {
     /// Assembly made an invalid matrix (a non-finite value from a profile, say).
     #[error("S is not a valid matrix: {0}")]
     Matrix(#[from] CsrError),
+    /// A rewrite in place met rows whose pattern is not the one its values are summed into
+    /// (an S not built from this bundle's walks): S must be built again.
+    #[error("object '{object}': row {row} of the last S does not list its walks' sources")]
+    Pattern { object: String, row: usize },
 }
 
 /// The per-patch geometry S needs (one scene's worth, global indices).
@@ -968,6 +972,9 @@ pub fn changed_profiles(
             (Material::ThinSheet { .. }, Material::ThinSheet { .. }) => {
                 terms.get(*k, true).is_some()
             }
+            // Re-weighted from the stored walks (an absorption change): the walks fix the
+            // pattern.
+            (Material::Simulated { .. }, Material::Simulated { .. }) => true,
             _ => false,
         };
         if !sums {
@@ -981,12 +988,19 @@ pub fn changed_profiles(
 /// A translucency change written into the last S: `s` was built by
 /// [`rebuild_with_terms_and_tilt`] (or this) for overrides that differ from `overrides` only
 /// in the objects `changed` ([`changed_profiles`]); their values are summed from `terms`
-/// into `s` in place (its pattern holds every stored entry, so no row is built and nothing
-/// is copied), every other value stays; `scratch` holds the buffers between changes.
-/// Reports cover the objects written.
+/// (a simulated object's from its walks, and its rows of the lamps' tilt `tilt` with them
+/// when given, [`crate::collimated::Tilt::delta`]) into `s` in place (its pattern holds
+/// every stored entry, so no row is built and nothing is copied), every other value stays;
+/// `scratch` holds the buffers between changes. Reports cover the objects written. On an
+/// error `tilt` is left `None`; [`SError::Pattern`] says to build S again.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the two matrices, the change, and what their values are summed from"
+)]
 pub fn rewrite_with_terms(
     bundle: &Bundle,
     mut s: ValidCsr<[f32; 3]>,
+    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
     overrides: &[(usize, Material)],
     changed: &[usize],
     params: &SParams,
@@ -1004,6 +1018,12 @@ pub fn rewrite_with_terms(
             material: &materials[k],
             patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
         };
+        if matches!(materials[k], Material::Simulated { .. }) {
+            let report;
+            (s, report) = write_walks(bundle, s, tilt, &g, &object)?;
+            reports.push(report);
+            continue;
+        }
         let sheet = matches!(materials[k], Material::ThinSheet { .. });
         let t = terms.get(k, sheet).ok_or_else(|| SError::Media {
             object: o.name.clone(),
@@ -1015,6 +1035,78 @@ pub fn rewrite_with_terms(
         reports.push(report);
     }
     Ok((s, reports))
+}
+
+/// Writes simulated object `o`'s S at its material's absorption, re-weighted from the
+/// bundle's walks, into its rows of `s` in place, and its rows of the lamps' tilt `tilt`
+/// (taken and given back) in the same pass over the records ([`simulated::write_rows`]).
+fn write_walks(
+    bundle: &Bundle,
+    s: ValidCsr<[f32; 3]>,
+    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
+    g: &PatchGeometry,
+    o: &ObjectMaterial<'_>,
+) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {
+    let start = Instant::now();
+    let media = |why: &str| SError::Media {
+        object: o.name.to_string(),
+        why: why.into(),
+    };
+    let walks = bundle
+        .walks()
+        .ok_or_else(|| media("no walks were stored for it (precompute it with this material)"))?;
+    let medium =
+        SimMedium::of(o.material).ok_or_else(|| media("its simulated medium is incomplete"))?;
+    let rows = o.patches.clone();
+    let mut t = tilt.take();
+    let mut written: Result<bool, usize> = Ok(true);
+    let mut t_out = None;
+    let s = s.rewrite_vouched(rows.clone(), |s_rows| {
+        match t.take() {
+            Some(tm) => {
+                t_out = Some(tm.rewrite_vouched(rows.clone(), |t_rows| {
+                    written = simulated::write_rows(
+                        &walks,
+                        rows.clone(),
+                        medium.sigma_a,
+                        s_rows,
+                        Some(t_rows),
+                    );
+                    written == Ok(true)
+                }));
+            }
+            None => {
+                written = simulated::write_rows(&walks, rows.clone(), medium.sigma_a, s_rows, None)
+            }
+        }
+        written == Ok(true)
+    })?;
+    if let Err(row) = written {
+        return Err(SError::Pattern {
+            object: o.name.to_string(),
+            row,
+        });
+    }
+    *tilt = t_out.transpose()?;
+    let view = s.view();
+    let max_column_energy = simulated::max_column_energy(
+        rows.clone().map(|j| {
+            let (c, v) = view.row(j);
+            (j, c.iter().copied().zip(v))
+        }),
+        &g.area,
+    );
+    let report = AssemblyReport {
+        name: o.name.to_string(),
+        radius: 0.0,
+        capped_from: None,
+        max_column_energy,
+        scaled_columns: 0,
+        entries: (view.row_ptr()[rows.end] - view.row_ptr()[rows.start]),
+        links: 0,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok((s, report))
 }
 
 /// Stage 2 on a bundle with `overrides` applied to its materials.

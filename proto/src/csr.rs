@@ -225,32 +225,7 @@ pub struct Csr<T: CsrValue = f32> {
     pub val: Vec<T>,
 }
 
-/// A [`Csr`] checked once ([`Csr::into_checked`]) and immutable afterwards, so that its
-/// [`CheckedCsr::view`] costs nothing: for a matrix an engine builds once and reads on every
-/// relight (a simulated object's lamp tilt is millions of values).
-#[derive(Debug, Clone, PartialEq)]
-pub struct CheckedCsr<T: CsrValue = f32>(Csr<T>);
-
-impl<T: CsrValue> CheckedCsr<T> {
-    /// Borrows it as a view, without another pass over the matrix.
-    pub fn view(&self) -> CsrView<'_, T> {
-        let c = &self.0;
-        CsrView::from_checked_parts(c.n_rows, c.n_cols, &c.row_ptr, &c.col, &c.val)
-    }
-
-    /// The matrix, read-only.
-    pub fn csr(&self) -> &Csr<T> {
-        &self.0
-    }
-}
-
 impl<T: CsrValue> Csr<T> {
-    /// Checks it once (as [`Csr::view`] does) and keeps it immutable: see [`CheckedCsr`].
-    pub fn into_checked(self) -> Result<CheckedCsr<T>, CsrError> {
-        self.view()?;
-        Ok(CheckedCsr(self))
-    }
-
     /// Borrows it as a checked view (one pass over the matrix).
     pub fn view(&self) -> Result<CsrView<'_, T>, CsrError> {
         CsrView::new_checked(
@@ -452,7 +427,7 @@ mod tests {
     #[test]
     fn a_matrix_is_checked_once_and_then_viewed_as_it_is() {
         let good = Csr::<f32>::from_rows(2, [vec![(0, 1.0), (1, 2.0)], vec![(1, 3.0)]]).unwrap();
-        let checked = good.clone().into_checked().unwrap();
+        let checked = ValidCsr::new(good.clone()).unwrap();
         assert_eq!(checked.csr(), &good);
         assert_eq!(checked.view().row(0), (&[0u32, 1][..], &[1.0f32, 2.0][..]));
         assert_eq!(checked.view().get(1, 1), 3.0);
@@ -460,7 +435,7 @@ mod tests {
         let mut bad = good;
         bad.col.swap(0, 1);
         assert!(matches!(
-            bad.into_checked(),
+            ValidCsr::new(bad),
             Err(CsrError::ColumnsUnsorted { row: 0, .. })
         ));
     }

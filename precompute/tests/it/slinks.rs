@@ -319,6 +319,7 @@ fn compare(c: &Case<'_>, seed: u64) {
         let (in_place, _) = smatrix::rewrite_with_terms(
             hier,
             last,
+            &mut None,
             &over,
             &changed,
             &params,
