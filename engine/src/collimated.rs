@@ -131,6 +131,13 @@ impl Tilt {
     fn view(&self) -> CsrView<'_, [Rgb; 4]> {
         self.delta.view()
     }
+
+    /// Names which patches are simulated and whether the harmonic is modelled: what the
+    /// lights' moments and F's direction weights into them depend on (not the absorption),
+    /// the key they are kept under between relights.
+    pub fn patches_key(&self) -> String {
+        format!("{:?}|{}", self.ranges, self.has_harmonic())
+    }
 }
 
 /// Δ for `bundle` with each object's material as in `materials` (one per manifest object).
@@ -358,48 +365,43 @@ impl Slant {
         f.pull(&flat, 3, &mut at);
         let from = &at.values;
         let matrix = f.matrix();
-        let mut start = vec![0usize; n + 1];
         let mut simulated = vec![false; n];
         for r in &tilt.ranges {
             simulated[r.clone()].fill(true);
         }
-        for i in 0..n {
-            let len = if simulated[i] {
-                matrix.row(i).0.len()
-            } else {
-                0
-            };
-            start[i + 1] = start[i] + len;
-        }
-        let mut w = vec![[0.0f32; 3]; start[n]];
         let harmonic = tilt.has_harmonic();
-        let mut rows: Vec<(usize, &mut [[f32; 3]])> = Vec::new();
-        let mut rest = w.as_mut_slice();
-        for i in 0..n {
-            let (row, more) = std::mem::take(&mut rest).split_at_mut(start[i + 1] - start[i]);
-            if simulated[i] {
-                rows.push((i, row));
-            }
-            rest = more;
-        }
-        rows.into_par_iter().for_each(|(i, wi)| {
-            let (p, nrm) = (geo.centroid[i], geo.normal[i]);
-            let (fu, fv) = if harmonic {
-                tilt.frames[i]
-            } else {
-                (Vec3::ZERO, Vec3::ZERO)
-            };
-            let (cols, vals) = matrix.row(i);
-            for ((&c, &fij), w) in cols.iter().zip(vals).zip(wi) {
-                let c = c as usize;
-                let src = Vec3::new(from[3 * c], from[3 * c + 1], from[3 * c + 2]);
-                // A source at the patch itself carries no direction: weight 0.
-                if let Some(d) = (p - src).try_normalize() {
-                    let mu = (-d.dot(nrm)).clamp(0.0, 1.0);
-                    *w = [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)];
+        let rows: Vec<Vec<[f32; 3]>> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                if !simulated[i] {
+                    return Vec::new();
                 }
-            }
-        });
+                let (p, nrm) = (geo.centroid[i], geo.normal[i]);
+                let (fu, fv) = if harmonic {
+                    tilt.frames[i]
+                } else {
+                    (Vec3::ZERO, Vec3::ZERO)
+                };
+                let (cols, vals) = matrix.row(i);
+                cols.iter()
+                    .zip(vals)
+                    .map(|(&c, &fij)| {
+                        let c = c as usize;
+                        let src = Vec3::new(from[3 * c], from[3 * c + 1], from[3 * c + 2]);
+                        // A source at the patch itself carries no direction: weight 0.
+                        (p - src).try_normalize().map_or([0.0; 3], |d| {
+                            let mu = (-d.dot(nrm)).clamp(0.0, 1.0);
+                            [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)]
+                        })
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut start = vec![0usize; n + 1];
+        for (i, r) in rows.iter().enumerate() {
+            start[i + 1] = start[i] + r.len();
+        }
+        let w = rows.concat();
         Slant { start, w }
     }
 }

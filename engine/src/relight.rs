@@ -374,7 +374,7 @@ fn collimated_entry(
         TiltOf::Unsupported(why) => return Ok((None, Some(why.clone()))),
         TiltOf::Some(t) => t,
     };
-    let key = format!("{lights_key}|{:?}|{}", t.ranges, t.has_harmonic());
+    let key = format!("{lights_key}|{}", t.patches_key());
     let moments = scene.direct.moments(&key, || {
         let mut e = crate::collimated::tilted_irradiance(
             geo,

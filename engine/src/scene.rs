@@ -398,7 +398,7 @@ impl Scene {
     /// patches ([`Slant`]): made on the first relight that needs them and kept while the
     /// same patches are simulated (an absorption change keeps them).
     pub fn slant_for(&self, tilt: &Tilt) -> Arc<Slant> {
-        let key = format!("{:?}|{}", tilt.ranges, tilt.has_harmonic());
+        let key = tilt.patches_key();
         let made: Result<_, std::convert::Infallible> = kept_or(&self.slant_cache, &key, || {
             let geo = crate::radiosity::PatchGeometry {
                 centroid: &self.centroids,
