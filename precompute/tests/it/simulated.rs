@@ -600,6 +600,33 @@ fn a_sun_in_an_environment_map_enters_a_simulated_cube_like_a_directional_lamp()
     assert!(worst < 0.01, "a face's share differs by {worst}");
 }
 
+/// `scene`'s materials for `over`, asserted equal to a build afresh (S, and the simulated
+/// objects' tilt kept for them) and written in place from the second `step` on.
+fn changed_like_fresh(
+    scene: &translux_engine::scene::Scene,
+    b: &Bundle,
+    over: &[(usize, Material)],
+    terms: &translux_engine::sterms::STerms,
+    step: usize,
+) -> std::sync::Arc<smatrix::OverrideMaterials> {
+    let params = SParams::default();
+    let (m, rebuilt) = scene.materials_for(over).unwrap().unwrap();
+    assert!(rebuilt);
+    assert_eq!(m.in_place, step > 0, "step {step}");
+    let (fresh, _, tilts) = smatrix::rebuild_with_terms_and_tilt(b, over, &params, terms).unwrap();
+    assert_eq!(m.s.csr(), fresh.csr(), "step {step}");
+    let materials = smatrix::materials_with(b, over);
+    let TiltOf::Some(want) = collimated::tilt_of_with(b, &materials, tilts) else {
+        panic!("the walks carry collimated weights");
+    };
+    let key = serde_json::to_string(over).unwrap();
+    match scene.tilt_for(&key, &materials).as_ref() {
+        TiltOf::Some(kept) => assert_eq!(kept.delta.csr(), want.delta.csr(), "step {step}"),
+        _ => panic!("step {step}: the scene keeps the tilt"),
+    }
+    m
+}
+
 /// Two simulated cubes on a diffuse floor, in metres: an absorption change to one, then to
 /// both, is written into the scene's last S and tilt in place, and each equals a build
 /// afresh for those materials (the cube left alone keeps its values).
@@ -646,21 +673,7 @@ fn absorption_changes_to_one_simulated_object_of_two_are_written_in_place() {
     ];
     let mut last: Option<Vec<[f32; 3]>> = None;
     for (step, over) in steps.iter().enumerate() {
-        let (m, rebuilt) = scene.materials_for(over).unwrap().unwrap();
-        assert!(rebuilt);
-        assert_eq!(m.in_place, step > 0, "step {step}");
-        let (fresh, _, tilts) =
-            smatrix::rebuild_with_terms_and_tilt(&b, over, &params, &terms).unwrap();
-        assert_eq!(m.s.csr(), fresh.csr(), "step {step}");
-        let materials = smatrix::materials_with(&b, over);
-        let TiltOf::Some(want) = collimated::tilt_of_with(&b, &materials, tilts) else {
-            panic!("the walks carry collimated weights");
-        };
-        let key = serde_json::to_string(&over[..]).unwrap();
-        match scene.tilt_for(&key, &materials).as_ref() {
-            TiltOf::Some(kept) => assert_eq!(kept.delta.csr(), want.delta.csr(), "step {step}"),
-            _ => panic!("step {step}: the scene keeps the tilt"),
-        }
+        let m = changed_like_fresh(&scene, &b, over, &terms, step);
         // The cube left alone at step 1 (b) keeps its rows; the changed one (a) does not.
         let o = &b.manifest().objects;
         let rows = |k: usize| {
@@ -811,21 +824,7 @@ fn a_room_of_obj_walls_in_millimetres_takes_an_absorption_change_in_place() {
     .enumerate()
     {
         let over = sim(sigma_a);
-        let (m, rebuilt) = scene.materials_for(&over).unwrap().unwrap();
-        assert!(rebuilt);
-        assert_eq!(m.in_place, step > 0, "step {step}");
-        let (fresh, _, tilts) =
-            smatrix::rebuild_with_terms_and_tilt(&b, &over, &params, &terms).unwrap();
-        assert_eq!(m.s.csr(), fresh.csr(), "step {step}");
-        let materials = smatrix::materials_with(&b, &over);
-        let TiltOf::Some(want) = collimated::tilt_of_with(&b, &materials, tilts) else {
-            panic!("the walks carry collimated weights");
-        };
-        let key = serde_json::to_string(&over[..]).unwrap();
-        match scene.tilt_for(&key, &materials).as_ref() {
-            TiltOf::Some(kept) => assert_eq!(kept.delta.csr(), want.delta.csr(), "step {step}"),
-            _ => panic!("step {step}: the scene keeps the tilt"),
-        }
+        changed_like_fresh(&scene, &b, &over, &terms, step);
         // A relight under these materials: finite, and the cube glows.
         let req: translux_proto::api::RelightRequest = serde_json::from_value(serde_json::json!({
             "solver": "iterative",
