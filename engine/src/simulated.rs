@@ -1327,24 +1327,44 @@ mod tests {
         );
     }
 
-    /// Per face of `m`, the power leaving it (scattered light only, at absorption
-    /// `sigma_a`) for unit irradiance on each patch of `sources` by a beam travelling along
-    /// `d0`, from `per` walks per patch entering along `d0` themselves: what the tilt model
-    /// approximates, walked directly.
-    fn beam_exits(m: &Mesh, sigma_s: f32, sigma_a: f32, sources: &[usize], d0: Vec3) -> [f64; 6] {
-        const PER: u32 = 40_000;
+    /// `m`'s triangles moved and scaled into the walks' frame ([`WALK_FRAME`]), and the mm
+    /// per unit of that frame.
+    fn walk_frame(m: &Mesh) -> (Vec<[Vec3; 3]>, f32) {
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         for v in m.tris.iter().flatten() {
             lo = lo.min(*v);
             hi = hi.max(*v);
         }
         let (centre, size) = (0.5 * (lo + hi), (hi - lo).length());
-        let corners: Vec<[Vec3; 3]> = m
+        let corners = m
             .tris
             .iter()
             .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
             .collect();
-        let unit_mm = size / WALK_FRAME;
+        (corners, size / WALK_FRAME)
+    }
+
+    /// An index-matched, isotropic walker at `sigma_s` per unit of the walks' frame.
+    fn test_walker<'a>(p: SimPatches<'a>, occ: &'a Occluder, sigma_s: f32) -> Walker<'a> {
+        Walker {
+            p,
+            occ,
+            sigma_s,
+            g: 0.0,
+            eta: 1.0,
+            eps: 1e-5 * occ.diagonal(),
+            max_len: f32::INFINITY,
+            events: 0,
+        }
+    }
+
+    /// Per face of `m`, the power leaving it (scattered light only, at absorption
+    /// `sigma_a`) for unit irradiance on each patch of `sources` by a beam travelling along
+    /// `d0`, from `per` walks per patch entering along `d0` themselves: what the tilt model
+    /// approximates, walked directly.
+    fn beam_exits(m: &Mesh, sigma_s: f32, sigma_a: f32, sources: &[usize], d0: Vec3) -> [f64; 6] {
+        const PER: u32 = 40_000;
+        let (corners, unit_mm) = walk_frame(m);
         let occ = Occluder::new(&corners);
         let p = SimPatches {
             corners: &corners,
@@ -1354,16 +1374,7 @@ mod tests {
         let per_source: Vec<[f64; 6]> = sources
             .par_iter()
             .map(|&i| {
-                let mut w = Walker {
-                    p,
-                    occ: &occ,
-                    sigma_s: sigma_s * unit_mm,
-                    g: 0.0,
-                    eta: 1.0,
-                    eps: 1e-5 * occ.diagonal(),
-                    max_len: f32::INFINITY,
-                    events: 0,
-                };
+                let mut w = test_walker(p, &occ, sigma_s * unit_mm);
                 let mut rng = ChaCha8Rng::seed_from_u64(99);
                 rng.set_stream(i as u64);
                 let mut out = [0.0f64; 6];
@@ -1472,8 +1483,10 @@ mod tests {
                 continue;
             }
             // At 60°: S(μ₀) is off by over 30% there, the model within a few per cent, and
-            // the bottom too. (The sides along the slant, ±y, come out 15–18% low: S(μ₀)'s
-            // straight line in μ₀ under-predicts them at a grazing 60°; docs/validation.md.)
+            // the bottom too. (The sides along the slant, ±y, come out 15–18% low: the beam
+            // runs parallel to them, where their exits have a kink in the beam's azimuth
+            // that no short angular expansion follows; docs/validation.md and
+            // `measure_a_sixty_degree_beam_by_harmonics`.)
             assert!(e_slant > 0.3, "{e_slant}");
             for f in [0, 1, 4] {
                 let err = (harmonic[f] / truth[f] - 1.0).abs();
@@ -1485,6 +1498,165 @@ mod tests {
                     truth[f]
                 );
             }
+        }
+    }
+
+    /// Face totals of diffuse walks from `sources` (scattered exits only, as [`beam_exits`]),
+    /// each weighted by 6 cos 2(φ − φ₀) sin²θ sin²θ₀: the least-squares second azimuthal
+    /// harmonic of S for a beam along `d0`, were it sin²θ in the polar angle (6 = 1 / E[(sin²θ
+    /// cos 2φ)²] over cosine-weighted directions).
+    fn diffuse_second_harmonic(
+        m: &Mesh,
+        sigma_s: f32,
+        sigma_a: f32,
+        sources: &[usize],
+        d0: Vec3,
+    ) -> [f64; 6] {
+        const PER: u32 = 100_000;
+        let (corners, unit_mm) = walk_frame(m);
+        let occ = Occluder::new(&corners);
+        let p = SimPatches {
+            corners: &corners,
+            normal: &m.normal,
+            area: &m.area,
+        };
+        let per_source: Vec<[f64; 6]> = sources
+            .par_iter()
+            .map(|&i| {
+                let mut w = test_walker(p, &occ, sigma_s * unit_mm);
+                let mut rng = ChaCha8Rng::seed_from_u64(7);
+                rng.set_stream(i as u64);
+                let n = m.normal[i];
+                let t0 = d0 + n * (-d0.dot(n));
+                let mut out = [0.0f64; 6];
+                for _ in 0..PER {
+                    if let (
+                        End::Out {
+                            j,
+                            len,
+                            scattered: true,
+                        },
+                        weight,
+                        t,
+                    ) = w.walk(i, Entry::Diffuse, &mut rng)
+                    {
+                        let att = (-(sigma_a as f64) * (len * unit_mm) as f64).exp();
+                        // |t|²|t₀|² cos 2(φ − φ₀), frame-free.
+                        let c2 = 2.0 * (t.dot(t0) as f64).powi(2)
+                            - (t.length_squared() * t0.length_squared()) as f64;
+                        out[m.face[j as usize]] += 6.0 * c2 * weight as f64 * att;
+                    }
+                }
+                out.map(|v| v * m.area[i] as f64 / PER as f64)
+            })
+            .collect();
+        let mut out = [0.0f64; 6];
+        for s in per_source {
+            for f in 0..6 {
+                out[f] += s[f];
+            }
+        }
+        out
+    }
+
+    /// A measurement for docs/validation.md (*Still off: the sides along the slant*), not a
+    /// check: `cargo test --release -p translux-engine --lib -- --ignored
+    /// measure_a_sixty_degree_beam --nocapture`. The 16 mm cube of
+    /// [`the_first_harmonic_follows_a_slanted_beam`], its top lit by a beam 60° off the normal
+    /// travelling toward −x, walked directly (the truth), against: today's model; beams at
+    /// the same 60° walked at 12 azimuths, as a walk set at μ₀ = ½ would store them, summed
+    /// as their azimuthal Fourier series to orders 0, 1, 2 and 5 at the beam's azimuth; and
+    /// today's model plus a second harmonic estimated from the diffuse walks. Then the side
+    /// +y's exits as the beam turns about the normal by a few degrees either way.
+    #[test]
+    #[ignore = "a measurement; run it by name"]
+    fn measure_a_sixty_degree_beam_by_harmonics() {
+        let m = mesh([16.0, 16.0, 16.0], 4);
+        let n = m.tris.len();
+        let (sigma_s, sigma_a) = (0.8, 0.01);
+        let w = walks(
+            &m,
+            &SimMedium {
+                noise: 0.0,
+                max_walks: 16_384,
+                ..medium(sigma_s, sigma_a, 1.0)
+            },
+        );
+        let v = view(&w).with_lamp(&w.weight_lamp).expect("lamp weights");
+        let (s, _) = reweight(&v, 0..n, &m.area, [sigma_a; 3]);
+        let tilt = reweight_tilt(&v, 0..n, [sigma_a; 3]).expect("collimated weights");
+        let top: Vec<usize> = (0..n).filter(|&i| m.face[i] == 5).collect();
+        let (sin_t, cos_t) = (0.75f32.sqrt(), 0.5f32);
+        let along = |phi: f32| Vec3::new(-sin_t * phi.cos(), -sin_t * phi.sin(), -cos_t);
+        let d0 = along(0.0);
+        let truth = beam_exits(&m, sigma_s, sigma_a, &top, d0);
+        // Today's model, as `the_first_harmonic_follows_a_slanted_beam` sums it.
+        let mut model = [0.0f64; 6];
+        for j in 0..n {
+            let f = m.face[j];
+            let aj = m.area[j] as f64;
+            for &(c, val) in &s[j] {
+                if m.face[c as usize] == 5 {
+                    model[f] += aj * val[1] as f64;
+                }
+            }
+            for &(c, val) in &tilt[j] {
+                let i = c as usize;
+                if m.face[i] != 5 {
+                    continue;
+                }
+                let mu0 = -d0.dot(m.normal[i]);
+                let (fu, fv) = tangent_frame(&m.tris[i], m.normal[i]);
+                let k = [3.0 * mu0 - 2.0, d0.dot(fu), d0.dot(fv), 3.0 * mu0 - 3.0];
+                for (k, v) in k.iter().zip(val) {
+                    model[f] += aj * *k as f64 * v[1] as f64;
+                }
+            }
+        }
+        // The azimuthal series at μ₀ = ½ from 12 walked azimuths (φ = 0 is the beam's).
+        const AZ: usize = 12;
+        let mut series = [[0.0f64; 6]; 6];
+        for k in 0..AZ {
+            let phi = (k as f32 + 0.5) / AZ as f32 * std::f32::consts::TAU;
+            let e = beam_exits(&m, sigma_s, sigma_a, &top, along(phi));
+            for f in 0..6 {
+                for (order, acc) in series.iter_mut().enumerate() {
+                    // Each order's part at φ = 0: a₀, then a_k cos(k·0) = 2/AZ Σ e cos kφ.
+                    let c = if order == 0 {
+                        1.0
+                    } else {
+                        2.0 * (order as f64 * phi as f64).cos()
+                    };
+                    acc[f] += c * e[f] / AZ as f64;
+                }
+            }
+        }
+        let second = diffuse_second_harmonic(&m, sigma_s, sigma_a, &top, d0);
+        let names = ["-x", "+x", "-y", "+y", "-z", "+z"];
+        eprintln!(
+            "face | walked | model | μ₀=½ order 0 | ≤ 1 | ≤ 2 | ≤ 5 | model + diffuse 2nd harmonic"
+        );
+        for f in 0..6 {
+            let r = |x: f64| x / truth[f];
+            let upto = |k: usize| series[..=k].iter().map(|o| o[f]).sum::<f64>();
+            eprintln!(
+                "{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3}",
+                names[f],
+                truth[f],
+                r(model[f]),
+                r(upto(0)),
+                r(upto(1)),
+                r(upto(2)),
+                r(upto(5)),
+                r(model[f] + second[f]),
+            );
+        }
+        for deg in [-10.0f32, -5.0, -2.0, 0.0, 2.0, 5.0, 10.0] {
+            let e = beam_exits(&m, sigma_s, sigma_a, &top, along(deg.to_radians()));
+            eprintln!(
+                "beam turned {deg:+}° (toward −y when positive): +y {:.3}",
+                e[3]
+            );
         }
     }
 

@@ -709,18 +709,9 @@ fn a_room_of_obj_walls_in_millimetres_takes_an_absorption_change_in_place() {
         }
         s += "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n";
         // The face's normal from its first corner's edges.
-        let (a, b, c) = (corners[0], corners[1], corners[2]);
-        let (e, f) = (
-            [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
-            [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
-        );
-        let n = [
-            e[1] * f[2] - e[2] * f[1],
-            e[2] * f[0] - e[0] * f[2],
-            e[0] * f[1] - e[1] * f[0],
-        ];
-        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-        s += &format!("vn {} {} {}\ns off\n", n[0] / len, n[1] / len, n[2] / len);
+        let [a, b, c] = [0, 1, 2].map(|k| glam::Vec3::from(corners[k]));
+        let n = (b - a).cross(c - a).normalize();
+        s += &format!("vn {} {} {}\ns off\n", n.x, n.y, n.z);
         s += if negative {
             "f -4/-4/-1 -3/-3/-1 -2/-2/-1 -1/-1/-1\n"
         } else {
