@@ -464,7 +464,7 @@ pub fn add_interreflected_first_scatter(
 
 /// The tilt of `bundle`'s simulated objects under their own materials; `None` without one
 /// with collimated weights.
-fn own_tilt(bundle: &Bundle) -> Option<Tilt> {
+pub(crate) fn own_tilt(bundle: &Bundle) -> Option<Tilt> {
     let materials: Vec<&Material> = bundle
         .manifest()
         .objects

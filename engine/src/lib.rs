@@ -48,6 +48,7 @@ pub mod error;
 pub mod export;
 pub mod hetero;
 pub mod inverse;
+pub mod lampwalk;
 pub mod linalg;
 pub mod picture;
 pub mod profile;

@@ -194,6 +194,11 @@ impl<'a> PointLights<'a> {
         self.sources.is_empty()
     }
 
+    /// How many lights.
+    pub fn len(&self) -> usize {
+        self.sources.len()
+    }
+
     /// The shadow-ray origin for a surface point: `p` moved off the surface along `n`.
     pub fn origin(&self, p: Vec3, n: Vec3) -> Vec3 {
         p + n * self.offset

@@ -48,6 +48,9 @@ pub struct RelightPlan {
     /// Relative residual the iterative solver stops at ([`solve_params`]'s 0.5% from
     /// [`plan`]; tests tighten it). Plans batch together only with equal tolerances.
     pub tolerance: f32,
+    /// Walks per lamp along the lamps' own beams into simulated objects
+    /// ([`crate::lampwalk`]); `None`: the stored walks' model alone.
+    pub lamp_walks: Option<u32>,
 }
 
 impl RelightPlan {
@@ -189,6 +192,14 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
             )));
         }
     }
+    if let Some(w) = req.lamp_walks
+        && !(1..=crate::lampwalk::MAX_LAMP_WALKS).contains(&w)
+    {
+        return Err(EngineError::invalid(format!(
+            "lamp_walks: {w} walks per lamp; give 1 to {}",
+            crate::lampwalk::MAX_LAMP_WALKS
+        )));
+    }
     Ok(RelightPlan {
         lights,
         components: req.components,
@@ -197,6 +208,7 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
         gloss,
         direct_at: req.direct_at,
         tolerance: solve_params().tolerance,
+        lamp_walks: req.lamp_walks,
     })
 }
 
@@ -257,6 +269,9 @@ struct Prepared {
     /// direction the light from other surfaces arrives from
     /// ([`crate::collimated::interreflected_moments`]).
     slant: Option<Arc<TiltOf>>,
+    /// The lamps' own beams walked into the simulated objects, when the plan asks, with the
+    /// plan's materials (their σa re-weights the walks).
+    lamp_walks: Option<(Arc<crate::lampwalk::LampWalks>, Vec<Material>)>,
 }
 
 /// The tilt of a plan's materials and [E_t, E_u, E_v, E_w] of its lamps ([`crate::collimated`]).
@@ -514,7 +529,29 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                     continue;
                 }
             };
-        // The moments are direct light too.
+        let lamp_walks = match (&collimated, plan.lamp_walks) {
+            (Some((t, _)), Some(per)) => match t.as_ref() {
+                TiltOf::Some(t) => {
+                    let key = format!("{lights_key}|{}|{per}", t.patches_key());
+                    let materials = plan.materials(scene);
+                    let Ok(walked) = scene.direct.lamp_walks(&key, || {
+                        Ok::<_, std::convert::Infallible>(crate::lampwalk::LampWalks::walk(
+                            b,
+                            geo,
+                            &scene.occluder,
+                            &plan.lights,
+                            &materials,
+                            t,
+                            per,
+                        ))
+                    });
+                    walked.map(|w| (w, materials.into_iter().cloned().collect()))
+                }
+                _ => None,
+            },
+            _ => None,
+        };
+        // The moments are direct light too (and the lamps' walks).
         let direct_ms = direct_ms + tc.elapsed().as_secs_f64() * 1e3;
         let slant = (plan.components == Components::Full)
             .then(|| match &collimated {
@@ -522,15 +559,27 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                 None => scene.tilt_for(&materials_key, &plan.materials(scene)),
             })
             .filter(|t| matches!(t.as_ref(), TiltOf::Some(_)));
-        let note = match (note, tilt_note) {
-            (Some(a), Some(b)) => Some(format!("{a}; {b}")),
-            (a, b) => a.or(b),
-        };
+        let walks_note = plan.lamp_walks.map(|_| match &lamp_walks {
+            Some((w, _)) => format!(
+                "lamp_walks: the first scattering of the lamps walked along their beams, {} \
+                 walks from {} lit patches ({:.1} s, kept for these lights)",
+                w.walks, w.sources, w.seconds
+            ),
+            None => "lamp_walks: nothing walked (no lamp lights a simulated object with \
+                     these components)"
+                .to_string(),
+        });
+        let note = [note, tilt_note, walks_note]
+            .into_iter()
+            .flatten()
+            .collect::<Vec<_>>();
+        let note = (!note.is_empty()).then(|| note.join("; "));
         prepared.push(Some(Prepared {
             irradiance,
             materials_key,
             collimated,
             slant,
+            lamp_walks,
             materials,
             materials_ms,
             direct_ms,
@@ -750,6 +799,20 @@ fn transport(
         }
         let mut y = vec![0.0f32; n * ch];
         crate::collimated::add_first_scatter(t, &e_t, k, &mut y);
+        // Where a plan walked its lamps' own beams: the walked first scattering in place of
+        // the model's ([`crate::lampwalk`]).
+        for (slot, q) in preps.iter().enumerate() {
+            if let Some((w, materials)) = &q.lamp_walks {
+                let mut c = vec![0.0f32; 3 * n];
+                let materials: Vec<&Material> = materials.iter().collect();
+                w.add_correction(&materials, s, t, &mut c);
+                for j in 0..n {
+                    for ch3 in 0..3 {
+                        y[j * ch + 3 * slot + ch3] += c[3 * j + ch3];
+                    }
+                }
+            }
+        }
         y
     });
     let add_y = |a: &mut [f32]| {

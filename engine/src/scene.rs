@@ -550,6 +550,7 @@ pub struct DirectCache {
     patches: Mutex<Option<(String, Arc<Vec<Rgb>>)>>,
     vertices: Mutex<Option<(String, Option<Arc<VertexLit>>)>>,
     moments: Mutex<Option<(String, Option<Arc<Moments>>)>>,
+    lamp_walks: Mutex<Option<(String, Option<Arc<crate::lampwalk::LampWalks>>)>>,
 }
 
 /// [E_t, E_u, E_v, E_w] per patch: the lights' moments at the simulated objects' patches
@@ -585,6 +586,17 @@ impl DirectCache {
         make: impl FnOnce() -> Result<Option<Moments>, E>,
     ) -> Result<Option<Arc<Moments>>, E> {
         kept_or(&self.moments, key, || make().map(|v| v.map(Arc::new)))
+    }
+
+    /// The lamps' own beams walked into the simulated objects under `key` (the lights,
+    /// which patches are simulated and the walks per beam: not their absorption), made by
+    /// `make` unless kept (`None`: no lamp lights a simulated object).
+    pub(crate) fn lamp_walks<E>(
+        &self,
+        key: &str,
+        make: impl FnOnce() -> Result<Option<crate::lampwalk::LampWalks>, E>,
+    ) -> Result<Option<Arc<crate::lampwalk::LampWalks>>, E> {
+        kept_or(&self.lamp_walks, key, || make().map(|v| v.map(Arc::new)))
     }
 }
 

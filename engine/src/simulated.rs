@@ -313,7 +313,7 @@ pub type Rows = Vec<Vec<(u32, [f32; 3])>>;
 pub type TiltRows = Vec<Vec<(u32, [[f32; 3]; 4])>>;
 
 /// e^(−σa L_b) for every bin and channel, σa in mm⁻¹.
-fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
+pub(crate) fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
     (0..BINS)
         .map(|b| {
             let l = bin_length_mm(b);
@@ -560,9 +560,8 @@ enum Entry {
     Diffuse,
     /// Collimated along the inward normal.
     Normal,
-    /// Collimated, travelling along the given unit direction outside (tests compare the
-    /// tilt model against it).
-    #[cfg(test)]
+    /// Collimated, travelling along the given unit direction outside (a lamp's own beam,
+    /// [`crate::lampwalk`]).
     Along(Vec3),
 }
 
@@ -641,7 +640,6 @@ impl Walker<'_> {
                 let _: f32 = rng.random();
                 -n
             }
-            #[cfg(test)]
             Entry::Along(d) => d,
         };
         let cos_o = (-d_out.dot(n)).clamp(0.0, 1.0);
@@ -703,6 +701,87 @@ impl Walker<'_> {
         };
         self.events += events as u64;
         (end, w, tangent)
+    }
+}
+
+/// One object's patches in the frame its walks run in (centred, [`WALK_FRAME`] across; see
+/// [`simulate`]) with their occluder.
+pub(crate) struct WalkFrame {
+    corners: Vec<[Vec3; 3]>,
+    occ: Occluder,
+    /// Millimetres per unit of the frame.
+    unit_mm: f64,
+}
+
+impl WalkFrame {
+    /// The frame of an object's patch `corners` in scene units of `unit_mm` millimetres.
+    pub(crate) fn new(corners: &[[Vec3; 3]], unit_mm: f64) -> WalkFrame {
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for t in corners {
+            for v in t {
+                lo = lo.min(*v);
+                hi = hi.max(*v);
+            }
+        }
+        let centre = 0.5 * (lo + hi);
+        let size = (hi - lo).length().max(f32::MIN_POSITIVE);
+        let corners: Vec<[Vec3; 3]> = corners
+            .iter()
+            .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
+            .collect();
+        let occ = Occluder::new(&corners);
+        WalkFrame {
+            corners,
+            occ,
+            unit_mm: unit_mm * (size / WALK_FRAME) as f64,
+        }
+    }
+
+    /// `count` walks into local patch i collimated along the unit travel direction `d`
+    /// (outside; a uniform scale keeps directions), in a medium of `sigma_s` (mm⁻¹), HG
+    /// `g`, boundary `eta`, cut where e^(−`floor` L) is negligible (`floor` in mm⁻¹, 0: never).
+    /// `exit(j, length in mm, entry weight)` for each walk that scattered and left through
+    /// local patch j (a beam crossing unscattered is the lamp seen through, not exitance).
+    pub(crate) fn walk_beams(
+        &self,
+        (normal, area): (&[Vec3], &[f32]),
+        (sigma_s, g, eta, floor): (f32, f32, f32, f32),
+        (i, d, count): (usize, Vec3, u32),
+        rng: &mut ChaCha8Rng,
+        mut exit: impl FnMut(u32, f64, f32),
+    ) {
+        let mut w = Walker {
+            p: SimPatches {
+                corners: &self.corners,
+                normal,
+                area,
+            },
+            occ: &self.occ,
+            sigma_s: sigma_s * self.unit_mm as f32,
+            g,
+            eta,
+            eps: 1e-5 * self.occ.diagonal(),
+            max_len: if floor > 0.0 {
+                CUT_OPTICAL_DEPTH / (floor * self.unit_mm as f32)
+            } else {
+                f32::INFINITY
+            },
+            events: 0,
+        };
+        for _ in 0..count {
+            if let (
+                End::Out {
+                    j,
+                    len,
+                    scattered: true,
+                },
+                weight,
+                _,
+            ) = w.walk(i, Entry::Along(d), rng)
+            {
+                exit(j, len as f64 * self.unit_mm, weight);
+            }
+        }
     }
 }
 
@@ -1471,6 +1550,50 @@ mod tests {
         let tilt = reweight_tilt(&v, 0..n, [sigma_a; 3]).expect("collimated weights");
         let top: Vec<usize> = (0..n).filter(|&i| m.face[i] == 5).collect();
         (m, s, tilt, top)
+    }
+
+    #[test]
+    fn a_lamps_own_beams_leave_where_the_beam_walked_directly_does() {
+        // The slanted cube's top lit 60° off its normal, toward −x: the lamp's own beams
+        // ([`crate::lampwalk`], walked without absorption and re-weighted to σa) against
+        // the beam walked directly at σa by the test's own loop ([`beam_exits`]), face by
+        // face. The faces differ: ahead of the beam (−x) gets 1.6× what is behind it (+x),
+        // and the top's patches are a sixteenth of the other faces' (the areas A_i / A_j
+        // must be right).
+        let m = mesh([16.0, 16.0, 16.0], 4);
+        let (sigma_s, sigma_a) = SLANTED_CUBE_MEDIUM;
+        let top: Vec<usize> = (0..m.tris.len()).filter(|&i| m.face[i] == 5).collect();
+        let d0 = Vec3::new(-0.866, 0.0, -0.5).normalize();
+        // 19,999.5 walks expected per patch: each walks 19,999 or 20,000, at random.
+        let beams: Vec<(usize, Vec3, [f32; 3], f64)> = top
+            .iter()
+            .map(|&i| (i, d0, [1.0, 1.0, 1.0], 19_999.5))
+            .collect();
+        let built = medium(sigma_s, sigma_a / 4.0, 1.0);
+        let (walked, made) =
+            crate::lampwalk::walk_object(&m.tris, &m.normal, &m.area, &built, 1.0, &beams, 0);
+        let k = top.len() as u64;
+        assert!((19_999 * k..=20_000 * k).contains(&made), "{made} walks");
+        assert!(
+            made != 19_999 * k && made != 20_000 * k,
+            "not rounded at random"
+        );
+        let x = walked.exitance([sigma_a; 3]);
+        let mut faces = [0.0f64; 6];
+        for (j, v) in x.iter().enumerate() {
+            faces[m.face[j]] += m.area[j] as f64 * v[1] as f64;
+        }
+        let direct = beam_exits(&m, sigma_s, sigma_a, &top, d0);
+        for f in 0..6 {
+            let r = faces[f] / direct[f];
+            assert!(
+                (r - 1.0).abs() < 0.03,
+                "face {f}: lamp walks {:.4} against the beam walked directly {:.4}",
+                faces[f],
+                direct[f]
+            );
+        }
+        assert!(faces[0] > 1.4 * faces[1], "{faces:?}");
     }
 
     #[test]

@@ -109,6 +109,14 @@ pub struct RelightRequest {
     /// a 400 that names it; a still scene has frame 0 only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame: Option<u32>,
+    /// Walk the lamps' own beams into the simulated objects, this many walks per lamp
+    /// (1..=10,000,000, shared out over the lit patches by the power they receive), instead
+    /// of modelling their first scattering from the stored walks (docs/transport.md, *A
+    /// lamp's own beams*). Seconds to minutes for a new set of lights, kept for the next
+    /// relights with the same lights (an absorption change re-weights them). Absent: the
+    /// model alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_walks: Option<u32>,
 }
 
 /// Where the direct light of diffuse objects is evaluated (docs/transport.md).
@@ -353,6 +361,9 @@ pub struct RenderRequest {
     /// As in [`RelightRequest::frame`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame: Option<u32>,
+    /// As in [`RelightRequest::lamp_walks`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_walks: Option<u32>,
 }
 
 fn default_width() -> u32 {
@@ -382,6 +393,7 @@ impl Default for RenderRequest {
             specular: true,
             direct_at: DirectAt::Pixel,
             frame: None,
+            lamp_walks: None,
         }
     }
 }
@@ -396,6 +408,7 @@ impl RenderRequest {
             solver: self.solver,
             direct_at: self.direct_at,
             frame: self.frame,
+            lamp_walks: self.lamp_walks,
         }
     }
 
@@ -408,6 +421,7 @@ impl RenderRequest {
             solver: relight.solver,
             direct_at: relight.direct_at,
             frame: relight.frame,
+            lamp_walks: relight.lamp_walks,
             ..Default::default()
         }
     }

@@ -163,7 +163,7 @@ pub fn vertex_queries(b: &Bundle) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
 /// Errors of `got` against `want` per vertex: |Σ_c got − Σ_c want| / Σ_c want (the error
 /// of the vertex's total radiance) over vertices whose reference is above `floor` × the
 /// mean (shadowed corners of no radiance say nothing about relative error).
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct Errors {
     pub median: f64,
     pub p90: f64,

@@ -564,6 +564,68 @@ fn a_slanted_lamp_enters_with_its_direction_on_every_path() {
     assert!(w > 0.05, "the harmonic and U change the answer: {w}");
 }
 
+#[test]
+fn a_lamps_own_beams_replace_the_model_on_every_path() {
+    // The lone cube lit at a slant, its lamp walked along its own beam (`"lamp_walks"`):
+    // B = S E + y with y = X − S E′ (the walked exitance in place of the model's first
+    // scattering; F = 0, E′ = E for a directional light) on every path, the same walks as
+    // the engine's `lampwalk::first_scatter` makes (seeded); the model's answer differs.
+    // Walk counts out of range are refused, naming the field.
+    let dir = tempfile::tempdir().unwrap();
+    let (scene, e) = lone_simulated_cube(
+        dir.path(),
+        r#"[{"type":"directional","direction":[-0.866,0,-0.5],"irradiance":[1,1,1]}]"#,
+    );
+    let b = &scene.bundle;
+    let lit = translux_engine::radiosity::BundleLighting::new(b);
+    let lights = b.manifest().lights.clone();
+    let per = 200_000;
+    let walked =
+        translux_engine::lampwalk::first_scatter(b, lit.geometry(), &lit.occluder, &lights, per)
+            .expect("the lamp lights the cube");
+    let model =
+        translux_engine::collimated::first_scatter(b, lit.geometry(), &lit.occluder, &lights)
+            .unwrap();
+    use translux_engine::radiosity::Scatter;
+    let mut se = vec![[0.0f32; 3]; e.len()];
+    translux_engine::radiosity::SparseScatter(b.subsurface()).apply(&e, &mut se);
+    let plus = |y: &[Rgb]| -> Vec<Rgb> {
+        let sum: Vec<Rgb> = se
+            .iter()
+            .zip(y)
+            .map(|(a, y)| std::array::from_fn(|c| a[c] + y[c]))
+            .collect();
+        at_vertices(b, &sum)
+    };
+    let (expect, modelled) = (plus(&walked), plus(&model));
+    let body = format!(r#"{{"lamp_walks": {per}}}"#);
+    let sub = format!(r#"{{"lamp_walks": {per}, "components": "subsurface_only"}}"#);
+    let via_t = relight::run(&scene, &plan(&scene, &body)).unwrap();
+    assert_eq!(via_t.stats.solver, "inverse");
+    let note = via_t.stats.note.clone().unwrap_or_default();
+    assert!(note.contains("lamp_walks"), "{note}");
+    for (path, got) in [
+        (
+            "subsurface_only",
+            relight::run(&scene, &plan(&scene, &sub)).unwrap().radiance,
+        ),
+        ("T", via_t.radiance),
+        ("iterative", tight(&scene, &body).radiance),
+    ] {
+        let w = worst_rel(&got, &expect, 1e-3);
+        eprintln!("{path}: worst {w:.2e} against S E + X − S E′");
+        assert!(w < 1e-4, "{path} differs from the walked answer by {w}");
+    }
+    let w = worst_rel(&modelled, &expect, 1e-3);
+    eprintln!("the model against the walks: worst {w:.3}");
+    assert!(w > 0.02, "the walks change the answer: {w}");
+    for bad in ["0", "10000001"] {
+        let req = request(&format!(r#"{{"lamp_walks": {bad}}}"#));
+        let err = relight::plan(&scene, req).unwrap_err();
+        assert!(err.message.contains("lamp_walks"), "{}", err.message);
+    }
+}
+
 /// ‖a − b‖₂ / ‖b‖₂ over every vertex and channel.
 fn rel_l2(a: &[Rgb], b: &[Rgb]) -> f64 {
     let (mut num, mut den) = (0.0f64, 0.0f64);

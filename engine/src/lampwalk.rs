@@ -1,0 +1,382 @@
+//! A relight's lamps walked into its simulated objects along their own beams
+//! (`"lamp_walks"` in a relight request): the first scattering of their light as the medium
+//! sends it, where [`crate::collimated`] models it from walks that entered diffusely and
+//! along the normal (S(μ₀), its first harmonic in the tilt, and U). That model leaves the
+//! faces a beam runs along 7–10% dark (a 16 mm cube lit 60° off its top's normal,
+//! docs/validation.md): their exitance has a kink in the beam's azimuth that no short
+//! angular expansion follows. Walks along each lamp's own direction have no such limit.
+//! They cost seconds, not milliseconds, so a relight asks for them when its lamps stop
+//! moving; they are made once per set of lights and kept, and like S's records they are
+//! binned by path length, so that an absorption change re-weights them instead of walking
+//! again.
+//!
+//! In: the bundle's patches and occluder, each simulated object's medium (its built
+//! material: σs, g, η, the absorption floor; the relight's: σa), the relight's lights and
+//! the walks per lamp. The walks of all lamps are shared out over the lit patches by the
+//! power each receives (A_i E′_i), so each walk carries the same power and the time does
+//! not grow with the patch count; a patch's share is rounded at random (unbiased). Out: [`LampWalks`], whose [`LampWalks::correction`] is
+//! what a relight adds to the lamps' first scattering y ([`crate::collimated`]) so that
+//! S E + y at the simulated patches is the walked exitance:
+//!
+//! ```text
+//!   c = X − (S E′ + Δ E′_t + G_u E′_u + G_v E′_v + U E′_w)
+//! ```
+//!
+//! with X the walked exitance, E′ the lamps' irradiance at the lit patches' centroids (what
+//! was walked) and E′_t … E′_w its moments ([`crate::collimated::tilted_irradiance`]). Where
+//! the relight's own E differs from E′ (E is a patch's mean), S carries the difference as
+//! before. As in the stored walks, a beam that crosses the object without scattering is
+//! the lamp seen through it, not exitance, and is left out.
+//!
+//! Why by hand: the walks are [`crate::simulated`]'s own walker (no crate walks a medium
+//! inside a mesh and keeps path lengths).
+
+use std::ops::Range;
+use std::time::Instant;
+
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use translux_proto::bundle::Bundle;
+use translux_proto::light::Light;
+use translux_proto::scene::Material;
+
+use crate::collimated::{Tilt, add_first_scatter, tilted_irradiance};
+use crate::linalg::{Rgb, Scatter};
+use crate::radiosity::{PatchGeometry, PointLights};
+use crate::raycast::Occluder;
+use crate::simulated::{self, SimMedium};
+
+/// The most walks a relight may ask per lamp (about a minute on 2 cores for the built-in
+/// media; each group of channels with its own σs walks as many again).
+pub const MAX_LAMP_WALKS: u32 = 10_000_000;
+
+/// The walked exitance of one set of lights in every simulated object.
+#[derive(Debug)]
+pub struct LampWalks {
+    objects: Vec<ObjectWalks>,
+    /// E′: the lamps' irradiance at the simulated patches' centroids (zero elsewhere).
+    e: Vec<Rgb>,
+    /// Its moments [E′_t, E′_u, E′_v, E′_w] ([`tilted_irradiance`]).
+    moments: Vec<[Rgb; 4]>,
+    /// Walks made, and lit patches they started from.
+    pub walks: u64,
+    pub sources: u64,
+    /// Wall time, s.
+    pub seconds: f64,
+}
+
+/// What a relight adds to S E for `lights` on `bundle` with its own materials, their first
+/// scattering walked along their beams (`per` walks per lamp): y = X − S E′,
+/// per patch (as [`crate::collimated::first_scatter`] gives the model's). `None` where
+/// that has nothing to add.
+pub fn first_scatter(
+    bundle: &Bundle,
+    geo: PatchGeometry<'_>,
+    occ: &Occluder,
+    lights: &[Light],
+    per: u32,
+) -> Option<Vec<Rgb>> {
+    let tilt = crate::collimated::own_tilt(bundle)?;
+    let mut y = crate::collimated::first_scatter(bundle, geo, occ, lights)?;
+    let materials: Vec<&Material> = bundle
+        .manifest()
+        .objects
+        .iter()
+        .map(|o| &o.material)
+        .collect();
+    let walked = LampWalks::walk(bundle, geo, occ, lights, &materials, &tilt, per)?;
+    let s = crate::transport::subsurface_operator(bundle, bundle.subsurface());
+    walked.add_correction(
+        &materials,
+        s.as_ref(),
+        &tilt,
+        bytemuck::cast_slice_mut(&mut y),
+    );
+    Some(y)
+}
+
+/// One object's walked exitance per receiver and path-length bin, before absorption.
+#[derive(Debug)]
+pub(crate) struct ObjectWalks {
+    /// Index into the manifest's objects (the relight's σa is read from its material).
+    object: usize,
+    range: Range<usize>,
+    /// Receiver j's (local) records are `row_ptr[j]..row_ptr[j + 1]`, bins ascending.
+    row_ptr: Vec<u32>,
+    bin: Vec<u32>,
+    /// Exitance (power over A_j) per channel.
+    w: Vec<Rgb>,
+}
+
+impl LampWalks {
+    /// Walks `per` beams per lamp of `lights` into the simulated objects, shared out over
+    /// the lit patches by power (`materials`: the relight's, one per manifest object).
+    /// `None` when no lamp lights a simulated object. The streams are seeded by the
+    /// material's `seed` and the beam, so the walks do not depend on the thread count.
+    pub fn walk(
+        bundle: &Bundle,
+        geo: PatchGeometry<'_>,
+        occ: &Occluder,
+        lights: &[Light],
+        materials: &[&Material],
+        tilt: &Tilt,
+        per: u32,
+    ) -> Option<LampWalks> {
+        let start = Instant::now();
+        let manifest = bundle.manifest();
+        let unit_mm = manifest.unit_mm;
+        let lamps = PointLights::new(lights, occ, unit_mm);
+        if lamps.is_empty() || per == 0 {
+            return None;
+        }
+        let moments = tilted_irradiance(geo, occ, lights, unit_mm, tilt)?;
+        let n = geo.centroid.len();
+        let corners_all = crate::smatrix::bundle_geometry(bundle).corners;
+        let area_all = bundle.patch_areas();
+        let mut e = vec![[0.0f32; 3]; n];
+        // Every lit patch's beams: (object, local i, travel direction, irradiance, power).
+        type Beam = (usize, usize, Vec3, Rgb, f64);
+        let mut beams: Vec<Beam> = Vec::new();
+        let mut media: Vec<(usize, Range<usize>, SimMedium)> = Vec::new();
+        for (k, (o, m)) in manifest.objects.iter().zip(materials).enumerate() {
+            let (Some(built), Some(_)) = (SimMedium::of(&o.material), SimMedium::of(m)) else {
+                continue;
+            };
+            let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            for i in range.clone() {
+                lamps.each(geo.centroid[i], geo.normal[i], |l, c| {
+                    if c.iter().any(|v| *v > 0.0) && l.dot(geo.normal[i]) > 0.0 {
+                        let power = area_all[i] as f64 * c.iter().map(|v| *v as f64).sum::<f64>();
+                        beams.push((media.len(), i - range.start, -l, c, power));
+                        for ch in 0..3 {
+                            e[i][ch] += c[ch];
+                        }
+                    }
+                });
+            }
+            media.push((k, range, built));
+        }
+        let total: f64 = beams.iter().map(|b| b.4).sum();
+        if beams.is_empty() || total <= 0.0 || !total.is_finite() {
+            return None;
+        }
+        let budget = per as f64 * lamps.len() as f64;
+        let (mut objects, mut walks) = (Vec::new(), 0u64);
+        for (m, (k, range, built)) in media.iter().enumerate() {
+            let mine: Vec<(usize, Vec3, Rgb, f64)> = beams
+                .iter()
+                .filter(|b| b.0 == m)
+                .map(|&(_, i, d, c, p)| (i, d, c, budget * p / total))
+                .collect();
+            if mine.is_empty() {
+                continue;
+            }
+            let (obj, made) = walk_object(
+                &corners_all[range.clone()],
+                &geo.normal[range.clone()],
+                &area_all[range.clone()],
+                built,
+                unit_mm,
+                &mine,
+                range.start as u64,
+            );
+            walks += made;
+            objects.push(ObjectWalks {
+                object: *k,
+                range: range.clone(),
+                ..obj
+            });
+        }
+        if objects.is_empty() {
+            return None;
+        }
+        Some(LampWalks {
+            objects,
+            e,
+            moments,
+            walks,
+            sources: beams.len() as u64,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Adds c = X − (S E′ + the tilt's product with E′'s moments) to `y` (`[patch][rgb]`,
+    /// all patches) under `materials` (the relight's; σa re-weights the walks), `s` and
+    /// `tilt` the relight's S and tilt.
+    pub fn add_correction(
+        &self,
+        materials: &[&Material],
+        s: &dyn Scatter,
+        tilt: &Tilt,
+        y: &mut [f32],
+    ) {
+        let n = self.e.len();
+        let mut model = vec![[0.0f32; 3]; n];
+        s.apply(&self.e, &mut model);
+        let flat = bytemuck::cast_slice_mut::<Rgb, f32>(&mut model);
+        add_first_scatter(tilt, self.moments.as_flattened().as_flattened(), 1, flat);
+        for o in &self.objects {
+            let Some(medium) = materials.get(o.object).and_then(|m| SimMedium::of(m)) else {
+                continue;
+            };
+            for (x, j) in o.exitance(medium.sigma_a).into_iter().zip(o.range.clone()) {
+                for c in 0..3 {
+                    y[3 * j + c] += x[c] - model[j][c];
+                }
+            }
+        }
+    }
+
+    /// The walked exitance X (before any inter-reflection) under `materials`, all patches
+    /// (zero outside the simulated objects).
+    pub fn exitance(&self, materials: &[&Material]) -> Vec<Rgb> {
+        let mut x = vec![[0.0f32; 3]; self.e.len()];
+        for o in &self.objects {
+            let Some(medium) = materials.get(o.object).and_then(|m| SimMedium::of(m)) else {
+                continue;
+            };
+            x[o.range.clone()].copy_from_slice(&o.exitance(medium.sigma_a));
+        }
+        x
+    }
+}
+
+impl ObjectWalks {
+    /// The walked exitance at absorption `sigma_a` (mm⁻¹), per local receiver.
+    pub(crate) fn exitance(&self, sigma_a: [f32; 3]) -> Vec<Rgb> {
+        let att = simulated::attenuation(sigma_a);
+        (0..self.row_ptr.len() - 1)
+            .map(|k| {
+                let mut x = [0.0f32; 3];
+                for r in self.row_ptr[k] as usize..self.row_ptr[k + 1] as usize {
+                    let a = att[self.bin[r] as usize];
+                    for c in 0..3 {
+                        x[c] += self.w[r][c] * a[c];
+                    }
+                }
+                x
+            })
+            .collect()
+    }
+}
+
+/// A walk's exit: receiver (local), path-length bin, exitance per channel.
+type Record = (u32, u32, Rgb);
+
+/// Walks made between merges of the records ([`walk_object`]).
+const CHUNK_WALKS: f64 = 2_000_000.0;
+
+/// `recs` sorted by receiver and bin, each pair's records summed into one (in the order
+/// they came: the sort is stable, so the sums do not depend on the thread count).
+fn merged(mut recs: Vec<Record>) -> Vec<Record> {
+    recs.sort_by_key(|r| (r.0, r.1));
+    let mut out: Vec<Record> = Vec::with_capacity(recs.len());
+    for (j, b, v) in recs {
+        match out.last_mut() {
+            Some(last) if last.0 == j && last.1 == b => {
+                for (acc, x) in last.2.iter_mut().zip(v) {
+                    *acc += x;
+                }
+            }
+            _ => out.push((j, b, v)),
+        }
+    }
+    out
+}
+
+/// The walks of one object (its patches, local): `beams` as (local source, travel
+/// direction, irradiance, walks expected), each group of channels sharing σs walking a
+/// beam's expected count rounded at random (so each walk carries A_i E / expected, and
+/// the sum is unbiased). Returns the object's records (range and object left for the
+/// caller) and the walks made.
+pub(crate) fn walk_object(
+    corners: &[[Vec3; 3]],
+    normal: &[Vec3],
+    area: &[f32],
+    medium: &SimMedium,
+    unit_mm: f64,
+    beams: &[(usize, Vec3, Rgb, f64)],
+    first_patch: u64,
+) -> (ObjectWalks, u64) {
+    let n = corners.len();
+    let frame = simulated::WalkFrame::new(corners, unit_mm);
+    let groups = medium.groups();
+    let floor = medium.floor();
+    // (receiver, bin, exitance per channel) per beam, and the walks made.
+    // Chunks of about CHUNK_WALKS walks, each merged into `all` as it is done, so what is
+    // held at once is the distinct (receiver, bin) records, not one per walk.
+    let mut chunks: Vec<Range<usize>> = Vec::new();
+    let (mut from, mut acc) = (0usize, 0.0f64);
+    for (b, beam) in beams.iter().enumerate() {
+        acc += beam.3 * groups.len() as f64;
+        if acc >= CHUNK_WALKS {
+            chunks.push(from..b + 1);
+            (from, acc) = (b + 1, 0.0);
+        }
+    }
+    if from < beams.len() {
+        chunks.push(from..beams.len());
+    }
+    let (mut all, mut walks): (Vec<Record>, u64) = (Vec::new(), 0);
+    for chunk in chunks {
+        let recs: Vec<(Vec<Record>, u64)> = beams[chunk.clone()]
+            .par_iter()
+            .enumerate()
+            .map(|(k, &(i, d, c, expected))| {
+                let b = chunk.start + k;
+                let (mut out, mut made) = (Vec::new(), 0u64);
+                for (gi, group) in groups.iter().enumerate() {
+                    let fl = group
+                        .iter()
+                        .map(|&ch| floor[ch])
+                        .fold(f32::INFINITY, f32::min);
+                    let mut rng = ChaCha8Rng::seed_from_u64(medium.seed ^ 0x6c61_6d70);
+                    rng.set_stream(((first_patch + b as u64) << 2) | gi as u64);
+                    let count = (expected + rng.random::<f64>()).floor() as u32;
+                    made += count as u64;
+                    let scale = (area[i] as f64 / expected) as f32;
+                    frame.walk_beams(
+                        (normal, area),
+                        (medium.sigma_s[group[0]], medium.g, medium.eta, fl),
+                        (i, d, count),
+                        &mut rng,
+                        |j, mm, weight| {
+                            let aj = area[j as usize].max(f32::MIN_POSITIVE);
+                            let mut v = [0.0f32; 3];
+                            for &ch in group {
+                                v[ch] = weight * scale * c[ch] / aj;
+                            }
+                            out.push((j, simulated::bin_of(mm), v));
+                        },
+                    );
+                }
+                (merged(out), made)
+            })
+            .collect();
+        walks += recs.iter().map(|r| r.1).sum::<u64>();
+        all.extend(recs.into_iter().flat_map(|r| r.0));
+        all = merged(all);
+    }
+    let mut row_ptr = vec![0u32; n + 1];
+    let (mut bin, mut w): (Vec<u32>, Vec<Rgb>) = (Vec::new(), Vec::new());
+    for (j, b, v) in all {
+        row_ptr[j as usize + 1] += 1;
+        bin.push(b);
+        w.push(v);
+    }
+    for k in 0..n {
+        row_ptr[k + 1] += row_ptr[k];
+    }
+    (
+        ObjectWalks {
+            object: 0,
+            range: 0..0,
+            row_ptr,
+            bin,
+            w,
+        },
+        walks,
+    )
+}
