@@ -80,12 +80,7 @@ pub fn first_scatter(
 ) -> Option<Vec<Rgb>> {
     let tilt = crate::collimated::own_tilt(bundle)?;
     let mut y = crate::collimated::first_scatter(bundle, geo, occ, lights)?;
-    let materials: Vec<&Material> = bundle
-        .manifest()
-        .objects
-        .iter()
-        .map(|o| &o.material)
-        .collect();
+    let materials = crate::smatrix::materials_with(bundle, &[]);
     let walked = LampWalks::walk(bundle, geo, occ, lights, &materials, &tilt, per)?;
     let s = crate::transport::subsurface_operator(bundle, bundle.subsurface());
     walked.add_correction(

@@ -704,8 +704,10 @@ impl Walker<'_> {
     }
 }
 
-/// One object's patches in the frame its walks run in (centred, [`WALK_FRAME`] across; see
-/// [`simulate`]) with their occluder.
+/// One object's patches in the frame its walks run in, centred and [`WALK_FRAME`] across,
+/// with their occluder: obvhs's traversal loses rays near faces of small objects in
+/// absolute coordinates (measured: 5% of the walks of a 16 mm cube modelled in metres, 0.1%
+/// scaled to 1 across, left through its faces; none at 1000 across).
 pub(crate) struct WalkFrame {
     corners: Vec<[Vec3; 3]>,
     occ: Occluder,
@@ -798,30 +800,12 @@ pub fn simulate(
 ) -> Result<Walks, SimError> {
     let start = Instant::now();
     let n = p.corners.len();
-    // Walk in a frame where the object is centred and WALK_FRAME across: obvhs's traversal
-    // loses rays near faces of small objects in absolute coordinates (measured: 5% of the
-    // walks of a 16 mm cube modelled in metres, 0.1% scaled to 1 across, left through its
-    // faces; none at 1000 across).
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for t in p.corners {
-        for v in t {
-            lo = lo.min(*v);
-            hi = hi.max(*v);
-        }
-    }
-    let centre = 0.5 * (lo + hi);
-    let size = (hi - lo).length().max(f32::MIN_POSITIVE);
-    let corners: Vec<[Vec3; 3]> = p
-        .corners
-        .iter()
-        .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
-        .collect();
+    let frame = WalkFrame::new(p.corners, unit_mm);
     let p = SimPatches {
-        corners: &corners,
+        corners: &frame.corners,
         ..p
     };
-    let unit_mm = unit_mm * (size / WALK_FRAME) as f64;
-    let occ = Occluder::new(p.corners);
+    let (unit_mm, occ) = (frame.unit_mm, &frame.occ);
     let eps = 1e-5 * occ.diagonal();
     let groups = medium.groups();
     let floor = medium.floor();
@@ -835,7 +819,7 @@ pub fn simulate(
         .map_init(
             || Walker {
                 p,
-                occ: &occ,
+                occ,
                 sigma_s: 1.0,
                 g: medium.g,
                 eta: medium.eta,
