@@ -5,18 +5,19 @@
 //! faces a beam runs along 7–10% dark (a 16 mm cube lit 60° off its top's normal,
 //! docs/validation.md): their exitance has a kink in the beam's azimuth that no short
 //! angular expansion follows. Walks along each lamp's own direction have no such limit.
-//! They cost seconds, not milliseconds, so a relight asks for them when its lamps stop
-//! moving; they are made once per set of lights and kept, and like S's records they are
-//! binned by path length, so that an absorption change re-weights them instead of walking
-//! again.
+//! They cost seconds to minutes, not milliseconds, so a script asks for them once its
+//! lamps are placed; they are made once per set of lights and kept, and like S's records
+//! they are binned by path length, so that an absorption change re-weights them instead of
+//! walking again.
 //!
 //! In: the bundle's patches and occluder, each simulated object's medium (its built
 //! material: σs, g, η, the absorption floor; the relight's: σa), the relight's lights and
 //! the walks per lamp. The walks of all lamps are shared out over the lit patches by the
 //! power each receives (A_i E′_i), so each walk carries the same power and the time does
-//! not grow with the patch count; a patch's share is rounded at random (unbiased). Out: [`LampWalks`], whose [`LampWalks::correction`] is
-//! what a relight adds to the lamps' first scattering y ([`crate::collimated`]) so that
-//! S E + y at the simulated patches is the walked exitance:
+//! not grow with the patch count; a patch's share is rounded at random (unbiased). Out:
+//! [`LampWalks`], whose [`LampWalks::add_correction`] is what a relight adds to the lamps'
+//! first scattering y ([`crate::collimated`]) so that S E + y at the simulated patches is
+//! the walked exitance:
 //!
 //! ```text
 //!   c = X − (S E′ + Δ E′_t + G_u E′_u + G_v E′_v + U E′_w)
@@ -48,8 +49,9 @@ use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
 use crate::simulated::{self, SimMedium};
 
-/// The most walks a relight may ask per lamp (about a minute on 2 cores for the built-in
-/// media; each group of channels with its own σs walks as many again).
+/// The most walks a relight may ask per lamp (each group of channels with its own σs walks
+/// as many again). What a walk costs depends on the medium and the object's size: 1.6
+/// µs·core on a 16 mm cube, 150 in the Cornell box's marble block (docs/benchmarks.md).
 pub const MAX_LAMP_WALKS: u32 = 10_000_000;
 
 /// The walked exitance of one set of lights in every simulated object.
@@ -79,16 +81,17 @@ pub fn first_scatter(
     per: u32,
 ) -> Option<Vec<Rgb>> {
     let tilt = crate::collimated::own_tilt(bundle)?;
-    let mut y = crate::collimated::first_scatter(bundle, geo, occ, lights)?;
     let materials = crate::smatrix::materials_with(bundle, &[]);
     let walked = LampWalks::walk(bundle, geo, occ, lights, &materials, &tilt, per)?;
     let s = crate::transport::subsurface_operator(bundle, bundle.subsurface());
-    walked.add_correction(
-        &materials,
-        s.as_ref(),
-        &tilt,
-        bytemuck::cast_slice_mut(&mut y),
-    );
+    let mut se = vec![[0.0f32; 3]; walked.e.len()];
+    s.apply(&walked.e, &mut se);
+    let mut y = walked.exitance(&materials);
+    for (y, se) in y.iter_mut().zip(&se) {
+        for c in 0..3 {
+            y[c] -= se[c];
+        }
+    }
     Some(y)
 }
 
@@ -131,58 +134,54 @@ impl LampWalks {
         let corners_all = crate::smatrix::bundle_geometry(bundle).corners;
         let area_all = bundle.patch_areas();
         let mut e = vec![[0.0f32; 3]; n];
-        // Every lit patch's beams: (object, local i, travel direction, irradiance, power).
-        type Beam = (usize, usize, Vec3, Rgb, f64);
-        let mut beams: Vec<Beam> = Vec::new();
-        let mut media: Vec<(usize, Range<usize>, SimMedium)> = Vec::new();
+        // Per simulated object: its index, patches, built medium and lit patches' beams
+        // (local i, travel direction, irradiance, power A_i Σ E).
+        type Beam = (usize, Vec3, Rgb, f64);
+        let mut media: Vec<(usize, Range<usize>, SimMedium, Vec<Beam>)> = Vec::new();
         for (k, (o, m)) in manifest.objects.iter().zip(materials).enumerate() {
             let (Some(built), Some(_)) = (SimMedium::of(&o.material), SimMedium::of(m)) else {
                 continue;
             };
             let range = o.first_patch as usize..(o.first_patch + o.patch_count) as usize;
+            let mut beams = Vec::new();
             for i in range.clone() {
                 lamps.each(geo.centroid[i], geo.normal[i], |l, c| {
                     if c.iter().any(|v| *v > 0.0) && l.dot(geo.normal[i]) > 0.0 {
                         let power = area_all[i] as f64 * c.iter().map(|v| *v as f64).sum::<f64>();
-                        beams.push((media.len(), i - range.start, -l, c, power));
+                        beams.push((i - range.start, -l, c, power));
                         for ch in 0..3 {
                             e[i][ch] += c[ch];
                         }
                     }
                 });
             }
-            media.push((k, range, built));
+            if !beams.is_empty() {
+                media.push((k, range, built, beams));
+            }
         }
-        let total: f64 = beams.iter().map(|b| b.4).sum();
-        if beams.is_empty() || total <= 0.0 || !total.is_finite() {
+        let total: f64 = media.iter().flat_map(|m| &m.3).map(|b| b.3).sum();
+        if total <= 0.0 || !total.is_finite() {
             return None;
         }
         let budget = per as f64 * lamps.len() as f64;
-        let (mut objects, mut walks) = (Vec::new(), 0u64);
-        for (m, (k, range, built)) in media.iter().enumerate() {
-            let mine: Vec<(usize, Vec3, Rgb, f64)> = beams
-                .iter()
-                .filter(|b| b.0 == m)
-                .map(|&(_, i, d, c, p)| (i, d, c, budget * p / total))
-                .collect();
-            if mine.is_empty() {
-                continue;
+        let (mut objects, mut walks, mut sources) = (Vec::new(), 0u64, 0u64);
+        for (k, range, built, mut beams) in media {
+            // Each beam's power becomes the walks it is expected to get.
+            for b in &mut beams {
+                b.3 *= budget / total;
             }
+            sources += beams.len() as u64;
             let (obj, made) = walk_object(
+                (k, range.clone()),
                 &corners_all[range.clone()],
                 &geo.normal[range.clone()],
-                &area_all[range.clone()],
-                built,
+                &area_all[range],
+                &built,
                 unit_mm,
-                &mine,
-                range.start as u64,
+                &beams,
             );
             walks += made;
-            objects.push(ObjectWalks {
-                object: *k,
-                range: range.clone(),
-                ..obj
-            });
+            objects.push(obj);
         }
         if objects.is_empty() {
             return None;
@@ -192,7 +191,7 @@ impl LampWalks {
             e,
             moments,
             walks,
-            sources: beams.len() as u64,
+            sources,
             seconds: start.elapsed().as_secs_f64(),
         })
     }
@@ -281,20 +280,22 @@ fn merged(mut recs: Vec<Record>) -> Vec<Record> {
     out
 }
 
-/// The walks of one object (its patches, local): `beams` as (local source, travel
-/// direction, irradiance, walks expected), each group of channels sharing σs walking a
-/// beam's expected count rounded at random (so each walk carries A_i E / expected, and
-/// the sum is unbiased). Returns the object's records (range and object left for the
-/// caller) and the walks made.
+/// The walks of manifest object `object`, its patches `range` (`corners`, `normal` and
+/// `area` are theirs, local): `beams` as (local source, travel direction, irradiance, walks
+/// expected), each group of channels sharing σs walking a beam's expected count rounded at
+/// random (so each walk carries A_i E / expected, and the sum is unbiased). Returns the
+/// object's records and the walks made. Each beam's stream is seeded by the material's
+/// seed, the object's first patch and the beam's index.
 pub(crate) fn walk_object(
+    (object, range): (usize, Range<usize>),
     corners: &[[Vec3; 3]],
     normal: &[Vec3],
     area: &[f32],
     medium: &SimMedium,
     unit_mm: f64,
     beams: &[(usize, Vec3, Rgb, f64)],
-    first_patch: u64,
 ) -> (ObjectWalks, u64) {
+    let first_patch = range.start as u64;
     let n = corners.len();
     let frame = simulated::WalkFrame::new(corners, unit_mm);
     let groups = medium.groups();
@@ -366,8 +367,8 @@ pub(crate) fn walk_object(
     }
     (
         ObjectWalks {
-            object: 0,
-            range: 0..0,
+            object,
+            range,
             row_ptr,
             bin,
             w,

@@ -534,8 +534,8 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                 TiltOf::Some(t) => {
                     let key = format!("{lights_key}|{}|{per}", t.patches_key());
                     let materials = plan.materials(scene);
-                    let Ok(walked) = scene.direct.lamp_walks(&key, || {
-                        Ok::<_, std::convert::Infallible>(crate::lampwalk::LampWalks::walk(
+                    let walked = scene.direct.lamp_walks(&key, || {
+                        crate::lampwalk::LampWalks::walk(
                             b,
                             geo,
                             &scene.occluder,
@@ -543,7 +543,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                             &materials,
                             t,
                             per,
-                        ))
+                        )
                     });
                     walked.map(|w| (w, materials.into_iter().cloned().collect()))
                 }

@@ -589,14 +589,17 @@ impl DirectCache {
     }
 
     /// The lamps' own beams walked into the simulated objects under `key` (the lights,
-    /// which patches are simulated and the walks per beam: not their absorption), made by
+    /// which patches are simulated and the walks per lamp: not their absorption), made by
     /// `make` unless kept (`None`: no lamp lights a simulated object).
-    pub(crate) fn lamp_walks<E>(
+    pub(crate) fn lamp_walks(
         &self,
         key: &str,
-        make: impl FnOnce() -> Result<Option<crate::lampwalk::LampWalks>, E>,
-    ) -> Result<Option<Arc<crate::lampwalk::LampWalks>>, E> {
-        kept_or(&self.lamp_walks, key, || make().map(|v| v.map(Arc::new)))
+        make: impl FnOnce() -> Option<crate::lampwalk::LampWalks>,
+    ) -> Option<Arc<crate::lampwalk::LampWalks>> {
+        let Ok(walks) = kept_or::<_, std::convert::Infallible>(&self.lamp_walks, key, || {
+            Ok(make().map(Arc::new))
+        });
+        walks
     }
 }
 

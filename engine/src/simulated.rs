@@ -1554,8 +1554,15 @@ mod tests {
             .map(|&i| (i, d0, [1.0, 1.0, 1.0], 19_999.5))
             .collect();
         let built = medium(sigma_s, sigma_a / 4.0, 1.0);
-        let (walked, made) =
-            crate::lampwalk::walk_object(&m.tris, &m.normal, &m.area, &built, 1.0, &beams, 0);
+        let (walked, made) = crate::lampwalk::walk_object(
+            (0, 0..m.tris.len()),
+            &m.tris,
+            &m.normal,
+            &m.area,
+            &built,
+            1.0,
+            &beams,
+        );
         let k = top.len() as u64;
         assert!((19_999 * k..=20_000 * k).contains(&made), "{made} walks");
         assert!(
