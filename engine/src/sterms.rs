@@ -120,38 +120,49 @@ fn rgb(v: f32x4) -> [f32; 3] {
 }
 
 /// A table that terms are summed under: its end (√ of its radius) computed once, and R's
-/// cells laid out for the common term (R at a node inside the table), each cell's start
-/// and rise side by side in one 32-byte row of two 4-lane vectors, so that term is one
-/// multiply, one row read and two 4-lane operations (`wide`: the same sums as per
-/// channel, lane by lane, on stable Rust).
+/// and W's cells laid out for the terms' sum, each cell's start and rise side by side in
+/// one 32-byte row of two 4-lane vectors, so a term is one multiply, one row read and two
+/// 4-lane operations (`wide`: the same sums as per channel, lane by lane, on stable Rust).
+///
+/// R's N cells come first, then one cell of 0 (R past the table), then W's N cells and
+/// one of W's total (W past the table). A term's position on the grid is clamped at N, so
+/// a term past the table reads the cell after its function's last, and a W term reads
+/// W's half: the sum has no branch per term, which a term of R past the table or a W term
+/// took (the slider's rewrite is a few tens of millions of terms; docs/benchmarks.md).
 #[derive(Debug, Clone)]
 pub struct TermTable<'a> {
     tab: &'a Tabulated,
     end: f32,
-    /// Cells per unit of √r, and their count.
+    /// Cells per unit of √r, and their count N (R's; W's are as many).
     scale: f32,
     cells_f: f32,
+    /// Where W's cells start: N + 1.
+    w_base: usize,
     /// R at each cell's start, then its rise over the cell (lanes 0–2 the channels, lane
-    /// 3 zero).
+    /// 3 zero); then 0, W's cells and W's total, as the type's doc says.
     cells: Vec<[f32x4; 2]>,
 }
 
 impl<'a> TermTable<'a> {
     pub fn new(tab: &'a Tabulated) -> TermTable<'a> {
-        let (_, r, _) = tab.grid();
+        let (_, r, w) = tab.grid();
         let n = r.len() - 1;
         let end = tab.root_max();
-        let cells = (0..n)
-            .map(|k| {
-                let rise = std::array::from_fn(|ch| r[k + 1][ch] - r[k][ch]);
-                [lanes(r[k]), lanes(rise)]
-            })
-            .collect();
+        let row = |v: &[[f32; 3]], k: usize| {
+            let rise = std::array::from_fn(|ch| v[k + 1][ch] - v[k][ch]);
+            [lanes(v[k]), lanes(rise)]
+        };
+        let mut cells = Vec::with_capacity(2 * n + 2);
+        cells.extend((0..n).map(|k| row(r, k)));
+        cells.push([f32x4::ZERO; 2]);
+        cells.extend((0..n).map(|k| row(w, k)));
+        cells.push([lanes(w[n]), f32x4::ZERO]);
         TermTable {
             tab,
             end,
             scale: tab.root_scale(),
             cells_f: n as f32,
+            w_base: n + 1,
             cells,
         }
     }
@@ -164,41 +175,51 @@ impl<'a> TermTable<'a> {
     /// R at √r = `root`, 0 past the table (as [`Tabulated::r_root`]).
     #[inline]
     pub fn r_root(&self, root: f32) -> [f32; 3] {
-        let x = root.max(0.0) * self.scale;
-        if x < self.cells_f {
-            rgb(self.cell(x))
-        } else {
-            [0.0; 3]
+        rgb(self.r_lanes(root))
+    }
+
+    /// [`TermTable::r_root`] in lanes 0–2.
+    #[inline]
+    fn r_lanes(&self, root: f32) -> f32x4 {
+        self.cell(root.max(0.0) * self.scale, 0)
+    }
+
+    /// [`link_reading`] through this table, in lanes 0–2: the same operations lane by
+    /// lane, so the rewrite's links equal the assembly's bit for bit.
+    #[inline]
+    fn link_lanes(&self, two: Option<[f32; 2]>, root: f32) -> f32x4 {
+        match two {
+            Some([lo, hi]) => (self.r_lanes(lo) + self.r_lanes(hi)) * f32x4::splat(0.5),
+            None => self.r_lanes(root),
         }
     }
 
-    /// R at `x` = √r × `scale`, 0 ≤ x < `cells_f`, in lanes 0–2. The cell goes through
-    /// i32, not usize: a float's conversion to and from a 64-bit unsigned integer takes
-    /// several times the instructions on x86-64 (a tenth of a rewrite's), and the cells
-    /// (4,096) are far inside i32's range.
+    /// The function whose cells start at `base` (0 for R, `w_base` for W) at `x` = √r ×
+    /// `scale`, x ≥ 0, in lanes 0–2: past the table, the cell after its last (R: 0, W:
+    /// its total). The same operations, lane by lane, as [`Tabulated::r_root`] and
+    /// [`Tabulated::w_root`] per channel.
     #[inline]
-    fn cell(&self, x: f32) -> f32x4 {
-        let k = x as i32;
+    fn cell(&self, x: f32, base: usize) -> f32x4 {
+        // Clamped at N (a NaN too) by one `minss`; `f32::min`'s NaN rule takes five.
+        let x = if x < self.cells_f { x } else { self.cells_f };
+        // 0 ≤ x ≤ N (4,096 cells), inside i32's range: truncated by one instruction
+        // (`fast_trunc_int`), where `as` adds five a term for a saturation never needed
+        // (and through usize a dozen more on x86-64 without AVX-512).
+        let k = f32x4::splat(x).fast_trunc_int().to_array()[0];
         let f = x - k as f32;
-        let [start, rise] = self.cells[k as usize];
+        let [start, rise] = self.cells[base + k as usize];
         start + f32x4::splat(f) * rise
     }
 
-    /// Σ of packed terms ((√r, weight), √r negated for W) whose R cells all lie inside the
-    /// table: [`TermTable::eval`]'s value for each, R read from one row of `cells`.
+    /// Σ of packed terms ((√r, weight), √r negated for W): [`TermTable::eval`]'s value
+    /// for each whose R cell lies inside the table or past its end.
     #[inline]
     fn sum_packed(&self, terms: &[[f32; 2]]) -> f32x4 {
         let mut s = f32x4::ZERO;
         for &[root, weight] in terms {
-            if root.is_sign_negative() {
-                let v = self.tab.w_root(-root);
-                s += lanes(v) * f32x4::splat(weight);
-                continue;
-            }
-            let x = root * self.scale;
-            if x < self.cells_f {
-                s += self.cell(x) * f32x4::splat(weight);
-            }
+            // W's cells for a negated root, without a branch.
+            let base = (root.to_bits() >> 31) as usize * self.w_base;
+            s += self.cell(root.abs() * self.scale, base) * f32x4::splat(weight);
         }
         s
     }
@@ -651,17 +672,18 @@ impl Scratch {
     pub fn bytes(&self) -> u64 {
         self.blocks
             .iter()
-            .map(|b| ((b.column.capacity() + b.node.capacity()) * 12) as u64)
+            .map(|b| ((b.column.capacity() + b.node.capacity()) * 16) as u64)
             .sum()
     }
 }
 
 /// What one block of rows adds up while it is written: Σ_j A_j S_ji per column i, e_k's
-/// Σ_j A_j R(r_jk) per node k, the entries kept and the links within reach.
+/// Σ_j A_j R(r_jk) per node k (RGB in lanes 0–2: one 4-lane add each, the same sums as
+/// per channel), the entries kept and the links within reach.
 #[derive(Debug, Default, Clone)]
 struct BlockSums {
-    column: Vec<[f32; 3]>,
-    node: Vec<[f32; 3]>,
+    column: Vec<f32x4>,
+    node: Vec<f32x4>,
     kept: u64,
     linked: u64,
     /// Every value the block wrote is finite.
@@ -1036,9 +1058,9 @@ impl ObjectTerms {
             .zip(scratch.blocks.par_iter_mut())
             .for_each(|(chunk, sums)| {
                 sums.column.clear();
-                sums.column.resize(n, [0.0; 3]);
+                sums.column.resize(n, f32x4::ZERO);
                 sums.node.clear();
-                sums.node.resize(node_count, [0.0; 3]);
+                sums.node.resize(node_count, f32x4::ZERO);
                 (sums.kept, sums.linked) = (0, 0);
                 // Σ 0·x over every value written: 0 while all are finite, NaN after any
                 // that is not (cheaper than testing each).
@@ -1080,11 +1102,8 @@ impl ObjectTerms {
                         debug_assert_eq!(cols[k] as usize, at.start + i);
                         sums.kept += kept as u64;
                         probe += v * f32x4::ZERO;
-                        let v = rgb(v);
-                        for (t, x) in sums.column[i].iter_mut().zip(v) {
-                            *t += aj * x;
-                        }
-                        *o = v;
+                        sums.column[i] += f32x4::splat(aj) * v;
+                        *o = rgb(v);
                     }
                     let Some(nodes) = at.nodes else {
                         tail.fill([0.0; 3]);
@@ -1100,18 +1119,16 @@ impl ObjectTerms {
                         tail.iter_mut().zip(node_cols).zip(fields).enumerate()
                     {
                         let tab = if opposite { &other } else { &same };
-                        sums.linked += (root < tab.end) as u64;
+                        let within = root < tab.end;
+                        sums.linked += within as u64;
                         // A link read at two distances: the mean of the profile at both (as
                         // `smatrix::node_links` reads it), 0 past the table's end.
-                        let two = two.get(l).copied().filter(|_| root < tab.end);
-                        let r = link_reading(two, root, |x| tab.r_root(x));
+                        let two = two.get(l).copied().filter(|_| within);
+                        let r = tab.link_lanes(two, root);
                         let k = c as usize - at.n;
                         let a = nodes.area[k];
-                        let node = &mut sums.node[k - self.links.nodes.start];
-                        for ch in 0..3 {
-                            node[ch] += aj * r[ch];
-                        }
-                        let v = lanes(r) * f32x4::splat(a);
+                        sums.node[k - self.links.nodes.start] += f32x4::splat(aj) * r;
+                        let v = r * f32x4::splat(a);
                         probe += v * f32x4::ZERO;
                         *o = rgb(v);
                     }
@@ -1119,24 +1136,22 @@ impl ObjectTerms {
                 sums.finite = probe.to_array().iter().all(|&x| x == 0.0);
             });
         // The blocks' sums, in order.
-        let mut column = vec![[0.0f32; 3]; n];
-        let mut node = vec![[0.0f32; 3]; node_count];
+        let mut column = vec![f32x4::ZERO; n];
+        let mut node = vec![f32x4::ZERO; node_count];
         let (mut kept, mut linked, mut finite) = (0u64, 0u64, true);
         for s in &scratch.blocks[..blocks] {
             for (t, p) in column.iter_mut().zip(&s.column) {
-                for c in 0..3 {
-                    t[c] += p[c];
-                }
+                *t += *p;
             }
             for (t, p) in node.iter_mut().zip(&s.node) {
-                for c in 0..3 {
-                    t[c] += p[c];
-                }
+                *t += *p;
             }
             kept += s.kept;
             finite &= s.finite;
             linked += s.linked;
         }
+        let column: Vec<[f32; 3]> = column.into_iter().map(rgb).collect();
+        let node: Vec<[f32; 3]> = node.into_iter().map(rgb).collect();
         let mut report = EnergyReport {
             nnz: kept,
             ..Default::default()
@@ -1324,6 +1339,44 @@ mod tests {
             scale: Some(scale),
         };
         Tabulated::new(&ProfileEval::new(&p, 1.0).unwrap(), r_max, 4096)
+    }
+
+    /// The rewrite's table (R's cells, a 0 cell, W's cells, W's total; no branch per term)
+    /// reads what the profile's own table reads, bit for bit: R and W inside the table, on
+    /// a cell's edge, at its last cell, and past its end (R 0, W its total), with weights
+    /// of either sign.
+    #[test]
+    fn the_rewrites_table_reads_r_and_w_as_the_profiles_table_does() {
+        let tab = table(1.0, 3.0);
+        let tt = TermTable::new(&tab);
+        let end = tab.root_max();
+        let step = end / 4096.0;
+        let roots = [
+            0.0,
+            0.3 * step,
+            step,
+            17.5 * step,
+            0.5 * end,
+            end - 0.5 * step,
+            end * (1.0 - 1e-6),
+            end,
+            1.5 * end,
+            1e30,
+        ];
+        for root in roots {
+            for weight in [0.75f32, -2.5] {
+                let w_of = |v: [f32; 3]| v.map(|x| x * weight);
+                let r = rgb(tt.sum_packed(&[[root, weight]]));
+                assert_eq!(r, w_of(tab.r_root(root)), "R at root {root}");
+                assert_eq!(tt.r_root(root), tab.r_root(root), "r_root at {root}");
+                let w = rgb(tt.sum_packed(&[[-root, weight]]));
+                // (−0 is a W term too: W(0).)
+                assert_eq!(w, w_of(tab.w_root(root)), "W at root {root}");
+            }
+        }
+        assert_eq!(rgb(tt.sum_packed(&[[-1e30, 1.0]])), tab.w_root(1e30));
+        assert!(tab.w_root(1e30).iter().all(|&v| v > 0.0));
+        assert_eq!(tt.r_root(1.5 * end), [0.0; 3]);
     }
 
     fn rel(a: [f32; 3], b: [f32; 3]) -> f32 {
