@@ -39,7 +39,7 @@ use std::ops::Range;
 use glam::Vec3;
 use rayon::prelude::*;
 use translux_proto::csr::CsrView;
-use wide::f32x4;
+use wide::{f32x4, f64x4};
 
 use crate::sheet;
 use crate::subsurface::{
@@ -332,8 +332,9 @@ fn coarse_edges(first: f64, last: f64) -> Vec<f64> {
     e
 }
 
-/// The moments ∫ tᵏ dμ, k = 0..5, of a positive measure μ on one coarse bin, in the bin's
-/// own coordinate t = (ρ − a) / h (so that they stay well conditioned).
+/// The moments ∫ tᵏ dμ, k = 0..5, of a positive measure μ on one coarse bin, in a
+/// coordinate t = (ρ − a) / h of its own (so that they stay well conditioned): the bin's
+/// for polar rings, the span of its samples for point samples.
 #[derive(Debug, Clone, Copy)]
 struct Moments {
     m: [f64; 6],
@@ -547,14 +548,34 @@ fn polar_terms(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
 /// The coarse bins' edges of point samples at radii `rho`: geometric from the smallest
 /// radius above 0 to the largest, the first bin reaching down to 0 (where samples may touch).
 fn point_edges(rho: &[f32]) -> Vec<f64> {
-    let last = rho.iter().cloned().fold(0.0f32, f32::max) as f64;
-    let first = rho
-        .iter()
-        .map(|&r| r as f64)
-        .filter(|&r| r > 1e-6 * last)
-        .fold(f64::INFINITY, f64::min)
-        .min(last);
-    let mut e = coarse_edges(first, last);
+    // Extremes by comparison: a NaN fails every one and is skipped, as `f32::max` and
+    // `f64::min` skip it, without the NaN test they make per sample. One pass finds the
+    // largest radius and the smallest above 0; a second is needed only when that one lies
+    // below the floor (10⁻⁶ of the largest), which the largest fixes.
+    let (mut last, mut least) = (0.0f32, f32::INFINITY);
+    for &r in rho {
+        if r > last {
+            last = r;
+        }
+        if r > 0.0 && r < least {
+            least = r;
+        }
+    }
+    let last = last as f64;
+    let floor = 1e-6 * last;
+    let first = if least as f64 > floor {
+        least as f64
+    } else {
+        let mut first = f64::INFINITY;
+        for &r in rho {
+            let r = r as f64;
+            if r > floor && r < first {
+                first = r;
+            }
+        }
+        first
+    };
+    let mut e = coarse_edges(first.min(last), last);
     e[0] = 0.0;
     e
 }
@@ -567,38 +588,84 @@ fn point_terms(rho: &[f32], c: f32, out: &mut Vec<Term>) {
     // The samples bin by bin, each bin's in their given order (a stable counting sort), so
     // that each bin's moments are summed in registers: added straight into the bins'
     // arrays as the samples come, every add waited on the last one's store (the reduction
-    // of a large object's near entries spent a third of its time there).
+    // of a large object's near entries spent a third of its time there). Each sample's
+    // bin is found once (the inner edges below it, counted without a branch).
     let inner = &e[1..bins];
-    let bin_of = |r: f32| inner.iter().filter(|&&edge| edge < r as f64).count();
+    let bin: Vec<u8> = rho
+        .iter()
+        .map(|&r| {
+            let r = r as f64;
+            inner.iter().map(|&edge| (edge < r) as u8).sum()
+        })
+        .collect();
     let mut start = [0usize; GAUSS_BINS + 2];
-    for &r in rho {
-        start[bin_of(r) + 1] += 1;
+    for &b in &bin {
+        start[b as usize + 1] += 1;
     }
     for b in 0..bins {
         start[b + 1] += start[b];
     }
     let mut next = start;
     let mut sorted = vec![0.0f32; rho.len()];
-    for &r in rho {
-        let b = bin_of(r);
-        sorted[next[b]] = r;
-        next[b] += 1;
+    for (&r, &b) in rho.iter().zip(&bin) {
+        sorted[next[b as usize]] = r;
+        next[b as usize] += 1;
     }
     for b in 0..bins {
-        let (a, h) = (e[b], (e[b + 1] - e[b]).max(f64::MIN_POSITIVE));
-        let mut m = Moments::default();
-        let (mut lo, mut hi) = m.support;
-        for &r in &sorted[start[b]..start[b + 1]] {
-            let t = (r as f64 - a) / h;
-            (lo, hi) = (lo.min(t), hi.max(t));
-            let mut p = c as f64;
-            for v in &mut m.m {
+        let samples = &sorted[start[b]..start[b + 1]];
+        // The bin's extreme radii (by comparison: a NaN fails both and is skipped; it
+        // makes the moments NaN, and the bin then gives no term, as any NaN did before).
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for &r in samples {
+            if r < lo {
+                lo = r;
+            }
+            if r > hi {
+                hi = r;
+            }
+        }
+        if lo > hi {
+            continue; // no sample in the bin
+        }
+        // The moments in the coordinate of the samples' own span, t = (ρ − lo) / (hi − lo)
+        // ∈ [0, 1]: near pairs' radii often fill a sliver of their bin (the first bin
+        // reaches down to 0), and in the bin's coordinate their fifth central moment was
+        // lost to cancellation, so rounding decided between a two- and three-node rule.
+        let a = lo as f64;
+        let h = (hi as f64 - a).max(f64::MIN_POSITIVE);
+        let mut m = Moments {
+            support: (0.0, (hi as f64 - a) / h),
+            ..Default::default()
+        };
+        // Four samples at a time (`wide`'s f64x4; the last group padded with samples of
+        // weight 0), the lanes summed at the end.
+        let (a4, h4) = (f64x4::splat(a), f64x4::splat(h));
+        let mut acc = [f64x4::ZERO; 6];
+        let mut add = |r: [f64; 4], w: [f64; 4]| {
+            let t = (f64x4::from(r) - a4) / h4;
+            let mut p = f64x4::from(w);
+            for v in &mut acc {
                 *v += p;
                 p *= t;
             }
+        };
+        let c = c as f64;
+        let mut groups = samples.chunks_exact(4);
+        for g in &mut groups {
+            add(std::array::from_fn(|k| g[k] as f64), [c; 4]);
         }
-        m.support = (lo, hi);
-        gauss_terms(&m, e[b], e[b + 1] - e[b], out);
+        let rest = groups.remainder();
+        if !rest.is_empty() {
+            let (mut r, mut w) = ([a; 4], [0.0; 4]);
+            for (k, &x) in rest.iter().enumerate() {
+                (r[k], w[k]) = (x as f64, c);
+            }
+            add(r, w);
+        }
+        for (v, s) in m.m.iter_mut().zip(acc) {
+            *v = s.reduce_add();
+        }
+        gauss_terms(&m, a, h, out);
     }
 }
 
@@ -1527,28 +1594,16 @@ mod tests {
         );
     }
 
-    /// Point terms summed bin by bin (the samples sorted into their bins first) are the
-    /// terms of one pass adding each sample to its bin as it comes, bit for bit: each bin
-    /// sums the same samples in the same order.
+    /// Point terms integrate the samples: every power of ρ up to the fifth summed over the
+    /// terms is its sum over the samples (each bin's rule is exact to that degree, and the
+    /// bins split the samples), every node lies within its bin's samples and weighs more
+    /// than 0, and a bin gives at most three. A sample lost or counted twice, a bin's
+    /// moments in the wrong coordinate, or a node placed outside fails it.
     #[test]
-    fn point_terms_sorted_into_bins_equal_one_pass_over_the_samples() {
-        let one_pass = |rho: &[f32], c: f32| {
-            let e = point_edges(rho);
-            let mut bins = vec![Moments::default(); e.len() - 1];
-            for &r in rho {
-                let r = r as f64;
-                let b = e[1..].partition_point(|&edge| edge < r).min(bins.len() - 1);
-                let h = (e[b + 1] - e[b]).max(f64::MIN_POSITIVE);
-                bins[b].point((r - e[b]) / h, c as f64);
-            }
-            let mut out = Vec::new();
-            for (b, m) in bins.iter().enumerate() {
-                gauss_terms(m, e[b], e[b + 1] - e[b], &mut out);
-            }
-            out
-        };
+    fn point_terms_integrate_the_samples_to_degree_five() {
         // Samples as a near pair makes them (distances between two triangles' points), one
-        // on a bin edge, a wide spread (many bins) and a narrow one (one bin), ties and 0.
+        // on a bin edge, a wide spread (many bins), a narrow one (a sliver of the first
+        // bin, which reaches down to 0), ties and 0, a count no multiple of 4.
         let mut seed = 7u64;
         let mut next = || {
             seed = seed
@@ -1564,12 +1619,52 @@ mod tests {
                 .map(|k| [0.0, 1.0, 1.5, 2.25, 3.375][k % 5])
                 .collect(),
             vec![2.0; 16],
+            (0..19).map(|_| 0.5 + next()).collect(),
         ];
+        let c = 0.37f32;
         for (k, rho) in cases.iter().enumerate() {
-            let (mut got, want) = (Vec::new(), one_pass(rho, 0.37));
-            point_terms(rho, 0.37, &mut got);
-            assert!(!got.is_empty(), "case {k}: no terms");
-            assert_eq!(got, want, "case {k}");
+            let mut got = Vec::new();
+            point_terms(rho, c, &mut got);
+            let e = point_edges(rho);
+            assert!(
+                !got.is_empty() && got.len() <= 3 * (e.len() - 1),
+                "case {k}: {} terms for {} bins",
+                got.len(),
+                e.len() - 1
+            );
+            // Each bin's samples' span.
+            let inner = &e[1..e.len() - 1];
+            let mut spans = vec![(f64::INFINITY, f64::NEG_INFINITY); e.len() - 1];
+            for &x in rho {
+                let x = x as f64;
+                let s = &mut spans[inner.partition_point(|&edge| edge < x)];
+                *s = (s.0.min(x), s.1.max(x));
+            }
+            for t in &got {
+                // A node's radius is rounded to f32: on a bin's edge it may read as the next.
+                let r = t.root as f64 * t.root as f64;
+                let slack = 1e-6 * r.max(1e-30);
+                assert!(
+                    spans
+                        .iter()
+                        .any(|&(lo, hi)| r >= lo - slack && r <= hi + slack)
+                        && t.weight > 0.0,
+                    "case {k}: node at ρ = {r} (weight {}) outside every bin's samples {spans:?}",
+                    t.weight
+                );
+                assert!(matches!(t.of(), Of::R { .. }), "case {k}: a W term");
+            }
+            for p in 0..=5 {
+                let want: f64 = rho.iter().map(|&r| c as f64 * (r as f64).powi(p)).sum();
+                let sum: f64 = got
+                    .iter()
+                    .map(|t| t.weight as f64 * (t.root as f64).powi(2 * p))
+                    .sum();
+                assert!(
+                    (sum - want).abs() <= 1e-5 * want,
+                    "case {k}: Σ ρ^{p} = {sum} over the terms, {want} over the samples"
+                );
+            }
         }
     }
 
