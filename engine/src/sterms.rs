@@ -1389,6 +1389,14 @@ mod tests {
     use crate::profile::ProfileEval;
     use translux_proto::scene::Profile;
 
+    /// Σ weight · ρᵏ over terms (ρ = root²): what a rule integrates ρᵏ to.
+    fn power_sum(terms: &[Term], k: i32) -> f64 {
+        terms
+            .iter()
+            .map(|t| t.weight as f64 * (t.root as f64).powi(2 * k))
+            .sum()
+    }
+
     /// The marble preset's dipole (Jensen et al. 2001), its mean free path scaled by
     /// `scale` (the translucency slider), in a millimetre scene.
     fn table(scale: f32, r_max: f32) -> Tabulated {
@@ -1656,10 +1664,7 @@ mod tests {
             }
             for p in 0..=5 {
                 let want: f64 = rho.iter().map(|&r| c as f64 * (r as f64).powi(p)).sum();
-                let sum: f64 = got
-                    .iter()
-                    .map(|t| t.weight as f64 * (t.root as f64).powi(2 * p))
-                    .sum();
+                let sum = power_sum(&got, p);
                 assert!(
                     (sum - want).abs() <= 1e-5 * want,
                     "case {k}: Σ ρ^{p} = {sum} over the terms, {want} over the samples"
@@ -1690,10 +1695,7 @@ mod tests {
         assert_eq!(out.len(), 3);
         for k in 0..=5 {
             let want: f64 = pts.iter().map(|&(r, w)| w * r.powi(k)).sum();
-            let got: f64 = out
-                .iter()
-                .map(|t| t.weight as f64 * (t.root as f64).powi(2 * k))
-                .sum();
+            let got = power_sum(&out, k);
             assert!((got - want).abs() <= 1e-5 * want, "ρ^{k}: {got} vs {want}");
         }
         for t in &out {
@@ -1707,10 +1709,7 @@ mod tests {
         gauss_terms(&m, a, h, &mut out);
         for k in 0..=5 {
             let want = 3.0 * (3.5f64.powi(k + 2) - 2.5f64.powi(k + 2)) / (k + 2) as f64;
-            let got: f64 = out
-                .iter()
-                .map(|t| t.weight as f64 * (t.root as f64).powi(2 * k))
-                .sum();
+            let got = power_sum(&out, k);
             assert!(
                 (got - want).abs() <= 1e-5 * want,
                 "ring ρ^{k}: {got} vs {want}"
