@@ -6,10 +6,10 @@
 //! (bundles made with `translux-precompute ... --inverse` also time T).
 
 use std::time::Instant;
-use translux_engine::transport::Transport;
+use translux_engine::transport::{Transport, subsurface_operator};
 
 use translux_engine::inverse;
-use translux_engine::radiosity::{self, Method, Rgb, Scatter, SolveParams, SparseScatter};
+use translux_engine::radiosity::{self, Method, Rgb, SolveParams};
 use translux_engine::solver::solve_system;
 use translux_proto::bundle::Bundle;
 
@@ -39,7 +39,9 @@ fn main() {
         // A nearby light for the warm start: every E 3% brighter.
         let e2: Vec<Rgb> = e.iter().map(|x| x.map(|v| v * 1.03)).collect();
         let f = Transport::of(&b);
-        let s = SparseScatter(b.subsurface());
+        // A hierarchical S (the default) has node columns: its operator pulls their means.
+        let s_op = subsurface_operator(&b, b.subsurface());
+        let s = s_op.as_ref();
         let be = b.patch_emission();
         // (Gauss-Seidel needs a diagonal S; these scenes are translucent.)
         for method in [Method::Jacobi, Method::BiCgStab, Method::Auto] {
@@ -47,13 +49,13 @@ fn main() {
                 method,
                 ..Default::default()
             };
-            let (x, st) = radiosity::solve(&f, &s, be, &e, &p, None).unwrap();
+            let (x, st) = radiosity::solve(&f, s, be, &e, &p, None).unwrap();
             let cold = best_ms(3, || {
-                radiosity::solve(&f, &s, be, &e, &p, None).unwrap();
+                radiosity::solve(&f, s, be, &e, &p, None).unwrap();
             });
-            let (_, wst) = radiosity::solve(&f, &s, be, &e2, &p, Some(&x)).unwrap();
+            let (_, wst) = radiosity::solve(&f, s, be, &e2, &p, Some(&x)).unwrap();
             let warm = best_ms(3, || {
-                radiosity::solve(&f, &s, be, &e2, &p, Some(&x)).unwrap();
+                radiosity::solve(&f, s, be, &e2, &p, Some(&x)).unwrap();
             });
             println!(
                 "| {path} | {n} | {} | {} | {} | {cold:.1} | {} | {warm:.1} |",
@@ -72,10 +74,10 @@ fn main() {
             .collect();
         let p = SolveParams::default();
         let batch = best_ms(3, || {
-            solve_system(&f, &s, &stacked, 3 * k, &p, None).unwrap();
+            solve_system(&f, s, &stacked, 3 * k, &p, None).unwrap();
         });
         let one = best_ms(3, || {
-            solve_system(&f, &s, bytemuck::cast_slice(&rhs1), 3, &p, None).unwrap();
+            solve_system(&f, s, bytemuck::cast_slice(&rhs1), 3, &p, None).unwrap();
         });
         let mut t_ms = None;
         let mut t4_ms = None;
