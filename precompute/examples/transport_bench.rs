@@ -6,6 +6,8 @@
 //! (bundles made with `translux-precompute ... --inverse` also time T).
 
 use std::time::Instant;
+
+use anyhow::Context;
 use translux_engine::transport::{Transport, subsurface_operator};
 
 use translux_engine::inverse;
@@ -23,19 +25,24 @@ fn best_ms(reps: usize, mut f: impl FnMut()) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
-fn main() {
+fn main() -> anyhow::Result<()> {
+    let paths: Vec<String> = std::env::args().skip(1).collect();
+    if paths.is_empty() {
+        anyhow::bail!("usage: transport_bench BUNDLE... (folders written by translux-precompute)");
+    }
     println!(
         "| bundle | patches | method | iterations | products | ms (cold) | warm iterations | ms (warm) |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     let mut t_rows = Vec::new();
-    for path in std::env::args().skip(1) {
-        let b = Bundle::open(std::path::Path::new(&path)).expect("a bundle");
+    for path in paths {
+        let b = Bundle::open(std::path::Path::new(&path))
+            .with_context(|| format!("opening the bundle {path:?}"))?;
         let n = b.patch_areas().len();
         let lights = b.manifest().lights.clone();
         let e = radiosity::BundleLighting::new(&b)
             .irradiance(&lights)
-            .unwrap();
+            .with_context(|| format!("the default lights of {path:?}"))?;
         // A nearby light for the warm start: every E 3% brighter.
         let e2: Vec<Rgb> = e.iter().map(|x| x.map(|v| v * 1.03)).collect();
         let f = Transport::of(&b);
@@ -49,11 +56,13 @@ fn main() {
                 method,
                 ..Default::default()
             };
-            let (x, st) = radiosity::solve(&f, s, be, &e, &p, None).unwrap();
+            let (x, st) = radiosity::solve(&f, s, be, &e, &p, None)
+                .with_context(|| format!("{} on {path:?}", method.as_str()))?;
             let cold = best_ms(3, || {
                 radiosity::solve(&f, s, be, &e, &p, None).unwrap();
             });
-            let (_, wst) = radiosity::solve(&f, s, be, &e2, &p, Some(&x)).unwrap();
+            let (_, wst) = radiosity::solve(&f, s, be, &e2, &p, Some(&x))
+                .with_context(|| format!("{} warm on {path:?}", method.as_str()))?;
             let warm = best_ms(3, || {
                 radiosity::solve(&f, s, be, &e2, &p, Some(&x)).unwrap();
             });
@@ -122,4 +131,5 @@ fn main() {
             show(t4)
         );
     }
+    Ok(())
 }

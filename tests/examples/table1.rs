@@ -51,6 +51,7 @@ use translux_precompute::pipeline::{
 };
 use translux_precompute::scene::resolve_scene;
 use translux_precompute::slinks::{SLinkParams, Trace};
+use translux_proto::api::RelightStats;
 use translux_proto::bundle::MANIFEST_FILE;
 use translux_proto::light::Light;
 use translux_proto::scene::{
@@ -503,6 +504,18 @@ fn time_ms(reps: usize, mut f: impl FnMut(usize)) -> f64 {
     t[t.len() / 2]
 }
 
+/// Sorted iteration counts as "0 ×2, 1 ×7, 2 ×3".
+fn iteration_counts(sorted: &[u32]) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    let mut rest = sorted;
+    while let Some(&first) = rest.first() {
+        let n = rest.iter().take_while(|&&i| i == first).count();
+        parts.push(format!("{first} ×{n}"));
+        rest = &rest[n..];
+    }
+    parts.join(", ")
+}
+
 /// The scene's default lights, the point-like ones moved by a few centimetres for rep `r`
 /// (a user dragging a light).
 fn moved_lights(lights: &[Light], r: usize) -> Vec<Light> {
@@ -826,7 +839,10 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         )
         .expect("translucency change");
         let first_ms = first.elapsed().as_secs_f64() * 1e3;
-        let mut last = None;
+        // Every timed step's stats (not the warm-up's): the note gives the parts' medians
+        // and how many iterations the steps took, not one step's, which varies by tens of
+        // milliseconds with its iterations.
+        let mut steps = Vec::new();
         row.change_ms = Some(time_ms(a.reps, |r| {
             let step = if r == usize::MAX { 0.0 } else { r as f32 + 1.0 };
             let s = 1.0 + 0.137 * step;
@@ -836,14 +852,28 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
                 None,
             )
             .expect("translucency change");
-            last = Some(o.stats);
+            if r != usize::MAX {
+                steps.push(o.stats);
+            }
         }));
-        if let Some(st) = last {
-            row.change_iterations = Some(st.iterations);
+        if !steps.is_empty() {
+            let median = |f: &dyn Fn(&RelightStats) -> f64| {
+                let mut v: Vec<f64> = steps.iter().map(f).collect();
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            };
+            let mut iterations: Vec<u32> = steps.iter().map(|s| s.iterations).collect();
+            iterations.sort_unstable();
+            row.change_iterations = Some(iterations[iterations.len() / 2]);
             row.change_note = format!(
-                "S rebuild {:.0} ms + solve {:.0} ms + direct light {:.0} ms (the first change, \
-                 which reduces S to radial terms: {first_ms:.0} ms)",
-                st.materials_ms, st.solve_ms, st.direct_ms
+                "medians of {} steps: S rebuild {:.0} ms + solve {:.0} ms + direct light {:.0} \
+                 ms; iterations per step {} (the first change, which reduces S to radial \
+                 terms: {first_ms:.0} ms)",
+                steps.len(),
+                median(&|s| s.materials_ms),
+                median(&|s| s.solve_ms),
+                median(&|s| s.direct_ms),
+                iteration_counts(&iterations),
             );
         }
     }
