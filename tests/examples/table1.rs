@@ -500,20 +500,22 @@ fn time_ms(reps: usize, mut f: impl FnMut(usize)) -> f64 {
             s.elapsed().as_secs_f64() * 1e3
         })
         .collect();
-    t.sort_by(f64::total_cmp);
-    t[t.len() / 2]
+    median(&mut t)
+}
+
+/// The median (the upper one of an even count) of a non-empty list.
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Sorted iteration counts as "0 ×2, 1 ×7, 2 ×3".
 fn iteration_counts(sorted: &[u32]) -> String {
-    let mut parts: Vec<String> = Vec::new();
-    let mut rest = sorted;
-    while let Some(&first) = rest.first() {
-        let n = rest.iter().take_while(|&&i| i == first).count();
-        parts.push(format!("{first} ×{n}"));
-        rest = &rest[n..];
-    }
-    parts.join(", ")
+    sorted
+        .chunk_by(|a, b| a == b)
+        .map(|run| format!("{} ×{}", run[0], run.len()))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The scene's default lights, the point-like ones moved by a few centimetres for rep `r`
@@ -857,11 +859,8 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
             }
         }));
         if !steps.is_empty() {
-            let median = |f: &dyn Fn(&RelightStats) -> f64| {
-                let mut v: Vec<f64> = steps.iter().map(f).collect();
-                v.sort_by(f64::total_cmp);
-                v[v.len() / 2]
-            };
+            let part =
+                |f: fn(&RelightStats) -> f64| median(&mut steps.iter().map(f).collect::<Vec<_>>());
             let mut iterations: Vec<u32> = steps.iter().map(|s| s.iterations).collect();
             iterations.sort_unstable();
             row.change_iterations = Some(iterations[iterations.len() / 2]);
@@ -870,9 +869,9 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
                  ms; iterations per step {} (the first change, which reduces S to radial \
                  terms: {first_ms:.0} ms)",
                 steps.len(),
-                median(&|s| s.materials_ms),
-                median(&|s| s.solve_ms),
-                median(&|s| s.direct_ms),
+                part(|s| s.materials_ms),
+                part(|s| s.solve_ms),
+                part(|s| s.direct_ms),
                 iteration_counts(&iterations),
             );
         }
