@@ -281,6 +281,13 @@ impl<'a> Transport<'a> {
 /// A hierarchical S̃ = C_S·P as the solvers apply it: C_S is `N × (N + M)` (RGB entries;
 /// columns past N gather a cluster node's area-weighted mean whole), P the same pull as a
 /// hierarchical F's over the bundle's cluster tree. Built by [`subsurface_operator`].
+///
+/// C_S may also hold M node rows after its N patch rows (`(N + M) × (N + M)`): row N + m
+/// is what node m's patches gather alike (node-to-node links, docs/hierarchy.md,
+/// *Receiver-side clustering*), so S̃ = Q·C_S·P with Q the push, the transpose of the
+/// pull's membership: patch j receives its own row plus the rows of every node holding
+/// it. Node m covers a contiguous range of the tree's order, so one difference array over
+/// that order pushes every node row at once, O(N + M) per product as the pull is.
 #[derive(Debug, Clone, Copy)]
 pub struct LinkedScatter<'a> {
     s: CsrView<'a, Rgb>,
@@ -288,18 +295,49 @@ pub struct LinkedScatter<'a> {
 }
 
 impl<'a> LinkedScatter<'a> {
-    /// S̃ with the tree its node columns refer to (`area`: `[N]`).
+    /// S̃ with the tree its node columns (and node rows, if any) refer to (`area`: `[N]`).
     pub fn new(s: CsrView<'a, Rgb>, tree: TreeView<'a>, area: &'a [f32]) -> Self {
-        assert_eq!(s.n_rows(), tree.perm.len(), "the tree orders every patch");
-        assert_eq!(area.len(), s.n_rows(), "an area per patch");
-        assert_eq!(
-            s.n_cols(),
-            s.n_rows() + tree.range.len(),
-            "S's columns: patches, then nodes"
+        let (n, m) = (tree.perm.len(), tree.range.len());
+        assert_eq!(area.len(), n, "an area per patch");
+        assert_eq!(s.n_cols(), n + m, "S's columns: patches, then nodes");
+        assert!(
+            s.n_rows() == n || s.n_rows() == n + m,
+            "S's rows: the patches, or the patches then the nodes"
         );
         Self {
             s,
             tree: Tree { view: tree, area },
+        }
+    }
+
+    /// Whether S has node rows (pushed down to the patches).
+    pub fn has_node_rows(&self) -> bool {
+        self.s.n_rows() > self.tree.view.perm.len()
+    }
+
+    /// Adds node rows' values `node_y` (`M × ch`) to every patch of each node (`y`: `N ×
+    /// ch`): a difference array over the tree's order, summed in f64 so that a patch deep
+    /// in the order does not carry the rounding of every node closed before it.
+    fn push(&self, node_y: &[f32], y: &mut [f32], ch: usize) {
+        let perm = self.tree.view.perm;
+        let mut diff = vec![0.0f64; (perm.len() + 1) * ch];
+        for (v, r) in node_y.chunks_exact(ch).zip(self.tree.view.range) {
+            if v.iter().all(|&x| x == 0.0) {
+                continue;
+            }
+            let (a, b) = (r[0] as usize * ch, r[1] as usize * ch);
+            for c in 0..ch {
+                diff[a + c] += v[c] as f64;
+                diff[b + c] -= v[c] as f64;
+            }
+        }
+        let mut run = vec![0.0f64; ch];
+        for (q, &p) in perm.iter().enumerate() {
+            let yp = &mut y[p as usize * ch..(p as usize + 1) * ch];
+            for c in 0..ch {
+                run[c] += diff[q * ch + c];
+                yp[c] += run[c] as f32;
+            }
         }
     }
 }
@@ -311,18 +349,113 @@ impl Scatter for LinkedScatter<'_> {
     fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
         let mut pulled = Pulled::default();
         self.tree.pull(h, ch, &mut pulled);
+        // The patch rows (a product fills as many rows as `y` holds).
         SparseScatter(self.s).apply_multi(&pulled.values, y, ch);
+        if self.has_node_rows() {
+            let n = self.tree.view.perm.len();
+            let mut node_y = vec![0.0f32; self.tree.view.range.len() * ch];
+            let x = &pulled.values;
+            node_y
+                .par_chunks_mut(ch)
+                .with_min_len(64)
+                .enumerate()
+                .for_each(|(k, yk)| {
+                    let (cols, vals) = self.s.row(n + k);
+                    for (&i, v) in cols.iter().zip(vals) {
+                        let xi = &x[i as usize * ch..(i as usize + 1) * ch];
+                        for c in 0..ch {
+                            yk[c] += v[c % 3] * xi[c];
+                        }
+                    }
+                });
+            self.push(&node_y, y, ch);
+        }
     }
     fn diagonal(&self) -> Option<&[Rgb]> {
         None
     }
 }
 
+/// A hierarchical S with node rows ([`LinkedScatter`]) written out as `N × (N + M)`: each
+/// patch's row gets the rows of the nodes holding it, entries of one column summed,
+/// columns ascending. What a consumer that multiplies patch rows alone needs (the GPU
+/// backend's product of an S built on the CPU); an S without node rows comes back as it is.
+pub fn push_node_rows(s: CsrView<'_, Rgb>, tree: TreeView<'_>) -> Csr<Rgb> {
+    let n = tree.perm.len();
+    let copy = |rows: usize| {
+        let (row_ptr, col, val) = (s.row_ptr(), s.col(), s.val());
+        let end = row_ptr[rows] as usize;
+        Csr {
+            n_rows: rows,
+            n_cols: s.n_cols(),
+            row_ptr: row_ptr[..=rows].to_vec(),
+            col: col[..end].to_vec(),
+            val: val[..end].to_vec(),
+        }
+    };
+    if s.n_rows() <= n {
+        return copy(s.n_rows());
+    }
+    // The nodes whose rows hold something, by patch: a patch at tree position q is held by
+    // every node whose range contains q.
+    let mut holders: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for (k, r) in tree.range.iter().enumerate() {
+        if s.row(n + k).0.is_empty() {
+            continue;
+        }
+        for &p in &tree.perm[r[0] as usize..r[1] as usize] {
+            holders[p as usize].push(k as u32);
+        }
+    }
+    let rows: Vec<Vec<(u32, Rgb)>> = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            let (cols, vals) = s.row(j);
+            let mut row: Vec<(u32, Rgb)> = cols.iter().copied().zip(vals.iter().copied()).collect();
+            for &k in &holders[j] {
+                let (c, v) = s.row(n + k as usize);
+                row.extend(c.iter().copied().zip(v.iter().copied()));
+            }
+            row.sort_by_key(|e| e.0);
+            let mut merged: Vec<(u32, Rgb)> = Vec::with_capacity(row.len());
+            for (c, v) in row {
+                match merged.last_mut() {
+                    Some((lc, lv)) if *lc == c => {
+                        for ch in 0..3 {
+                            lv[ch] += v[ch];
+                        }
+                    }
+                    _ => merged.push((c, v)),
+                }
+            }
+            merged
+        })
+        .collect();
+    let mut out = Csr {
+        n_rows: n,
+        n_cols: s.n_cols(),
+        row_ptr: Vec::with_capacity(n + 1),
+        col: Vec::new(),
+        val: Vec::new(),
+    };
+    out.row_ptr.push(0);
+    for row in rows {
+        for (c, v) in row {
+            out.col.push(c);
+            out.val.push(v);
+        }
+        out.row_ptr.push(out.col.len() as u64);
+    }
+    out
+}
+
 /// The scattering operator of a bundle's S (its own, or one rebuilt for overrides, `s`):
 /// a sparse S, or [`LinkedScatter`] when S has node columns (a hierarchical S).
 pub fn subsurface_operator<'a>(b: &'a Bundle, s: CsrView<'a, Rgb>) -> Box<dyn Scatter + 'a> {
     match b.tree() {
-        Some(t) if s.n_cols() > s.n_rows() => Box::new(LinkedScatter::new(s, t, b.patch_areas())),
+        Some(t) if s.n_cols() > b.patch_areas().len() => {
+            Box::new(LinkedScatter::new(s, t, b.patch_areas()))
+        }
         _ => Box::new(SparseScatter(s)),
     }
 }
@@ -418,5 +551,151 @@ mod tests {
         {
             assert!((a - b).abs() < 1e-6);
         }
+    }
+
+    /// S with node rows over the fixture's tree (node 0 = patches {2, 0}, node 1 = all).
+    fn s_with_node_rows() -> Csr<Rgb> {
+        let rows: Vec<Vec<(u32, Rgb)>> = vec![
+            vec![(0, [0.1, 0.2, 0.3]), (4, [0.5, 0.4, 0.3])],
+            vec![(1, [0.2, 0.1, 0.0])],
+            vec![],
+            vec![(5, [0.1, 0.2, 0.1])],
+            // Node 0's row: a patch column and a node column.
+            vec![(1, [0.3, 0.1, 0.2]), (5, [0.25, 0.5, 0.125])],
+            // Node 1's row.
+            vec![(4, [0.05, 0.1, 0.2])],
+        ];
+        let mut c = Csr {
+            n_rows: 6,
+            n_cols: 6,
+            row_ptr: vec![0],
+            col: Vec::new(),
+            val: Vec::new(),
+        };
+        for r in rows {
+            for (i, v) in r {
+                c.col.push(i);
+                c.val.push(v);
+            }
+            c.row_ptr.push(c.col.len() as u64);
+        }
+        c
+    }
+
+    #[test]
+    fn node_rows_are_pushed_to_every_patch_of_their_node() {
+        let (perm, range, area, _) = fixture();
+        let tree = TreeView {
+            perm: &perm,
+            range: &range,
+        };
+        let s = s_with_node_rows();
+        let op = LinkedScatter::new(s.view().unwrap(), tree, &area);
+        assert!(op.has_node_rows());
+        let x: Vec<Rgb> = vec![
+            [1.0, 0.0, 2.0],
+            [2.0, 1.0, 0.0],
+            [3.0, 0.0, 1.0],
+            [4.0, 2.0, 0.0],
+        ];
+        let mut y = vec![[0.0f32; 3]; 4];
+        op.apply(&x, &mut y);
+        // By hand: x̄ = [x; mean of node 0; mean of node 1], each patch's row, then the rows
+        // of the nodes holding it (node 0: patches 0 and 2; node 1: all four).
+        let mean = |ps: &[usize]| -> [f64; 3] {
+            let a: f64 = ps.iter().map(|&p| area[p] as f64).sum();
+            std::array::from_fn(|c| ps.iter().map(|&p| (area[p] * x[p][c]) as f64).sum::<f64>() / a)
+        };
+        let mut xbar: Vec<[f64; 3]> = x.iter().map(|v| v.map(|a| a as f64)).collect();
+        xbar.push(mean(&[2, 0]));
+        xbar.push(mean(&[0, 1, 2, 3]));
+        let row = |r: usize| -> [f64; 3] {
+            let (cols, vals) = s.view().unwrap().row(r);
+            std::array::from_fn(|c| {
+                cols.iter()
+                    .zip(vals)
+                    .map(|(&i, v)| v[c] as f64 * xbar[i as usize][c])
+                    .sum()
+            })
+        };
+        let held = [vec![4, 5], vec![5], vec![4, 5], vec![5]];
+        for j in 0..4 {
+            let mut want = row(j);
+            for &m in &held[j] {
+                let v = row(m);
+                for c in 0..3 {
+                    want[c] += v[c];
+                }
+            }
+            for c in 0..3 {
+                assert!(
+                    (y[j][c] as f64 - want[c]).abs() < 1e-6,
+                    "patch {j} channel {c}: {} vs {}",
+                    y[j][c],
+                    want[c]
+                );
+            }
+        }
+        // Node 0's row reached patches 0 and 2 and not 1 or 3: patch 1's own row and node
+        // 1's alone make its value.
+        assert!(y[1][0] > 0.0);
+        // Two systems side by side (6 channels) give each system's product.
+        let h: Vec<f32> = x
+            .iter()
+            .zip(x.iter().rev())
+            .flat_map(|(a, b)| a.iter().chain(b.iter()).copied())
+            .collect();
+        let mut y6 = vec![0.0f32; 4 * 6];
+        op.apply_multi(&h, &mut y6, 6);
+        let rev: Vec<Rgb> = x.iter().rev().copied().collect();
+        let mut y2 = vec![[0.0f32; 3]; 4];
+        op.apply(&rev, &mut y2);
+        for j in 0..4 {
+            for c in 0..3 {
+                assert!((y6[j * 6 + c] - y[j][c]).abs() < 1e-6);
+                assert!((y6[j * 6 + 3 + c] - y2[j][c]).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn node_rows_written_out_per_patch_give_the_same_products() {
+        let (perm, range, area, _) = fixture();
+        let tree = TreeView {
+            perm: &perm,
+            range: &range,
+        };
+        let s = s_with_node_rows();
+        let pushed = push_node_rows(s.view().unwrap(), tree);
+        assert_eq!((pushed.n_rows, pushed.n_cols), (4, 6));
+        // Patch 0: its row, node 0's and node 1's, column 4 summed from its own and node 1's.
+        let p = pushed.view().unwrap();
+        let (cols, vals) = p.row(0);
+        assert_eq!(cols, &[0, 1, 4, 5]);
+        assert!((vals[2][0] - 0.55).abs() < 1e-6);
+        // Patch 2's own row is empty: node 0's and node 1's rows alone.
+        assert_eq!(p.row(2).0, &[1, 4, 5]);
+        let x: Vec<Rgb> = vec![
+            [0.5, 1.0, 2.0],
+            [2.0, 0.0, 1.0],
+            [1.0, 3.0, 0.0],
+            [0.0, 2.0, 4.0],
+        ];
+        let (mut a, mut b) = (vec![[0.0f32; 3]; 4], vec![[0.0f32; 3]; 4]);
+        LinkedScatter::new(s.view().unwrap(), tree, &area).apply(&x, &mut a);
+        let flat = LinkedScatter::new(p, tree, &area);
+        assert!(!flat.has_node_rows());
+        flat.apply(&x, &mut b);
+        for j in 0..4 {
+            for c in 0..3 {
+                assert!((a[j][c] - b[j][c]).abs() < 1e-6, "{a:?} vs {b:?}");
+            }
+        }
+        // Without node rows, S comes back as it is.
+        let again = push_node_rows(p, tree);
+        assert_eq!(
+            (again.row_ptr, again.col),
+            (pushed.row_ptr.clone(), pushed.col.clone())
+        );
     }
 }

@@ -45,6 +45,7 @@ use crate::gpu::{
 pub use translux_engine::backend::SBuild;
 use translux_engine::backend::{SPrep, SceneRef};
 use translux_engine::smatrix::OverrideMaterials;
+use translux_engine::transport::push_node_rows;
 
 /// Scene `g`'s S template, built and uploaded for materials `m` unless the one it holds
 /// covers them; the reason (logged) when it does not fit on the device.
@@ -462,7 +463,20 @@ impl Backend {
             if let Some((_, old)) = slot.take() {
                 old.release(ctx);
             }
-            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &m.s_view())?;
+            // An S built on the CPU with node rows (node-to-node links) is uploaded with
+            // them pushed into its patch rows: the device's product reads patch rows alone.
+            let view = m.s_view();
+            let pushed = match scene.bundle.tree() {
+                Some(t) if view.n_rows() > t.perm.len() => Some(push_node_rows(view, t)),
+                _ => None,
+            };
+            let view = match &pushed {
+                Some(p) => p.view().map_err(|e| {
+                    GpuError::Invalid(format!("{}: S with its node rows pushed: {e}", scene.id))
+                })?,
+                None => view,
+            };
+            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &view)?;
             let sys = GpuSystem::with_f(
                 ctx,
                 scene.id,
