@@ -19,7 +19,7 @@
 
 use rayon::prelude::*;
 use translux_proto::bundle::{Bundle, TreeView};
-use translux_proto::csr::{Csr, CsrView};
+use translux_proto::csr::{Csr, CsrError, CsrView};
 
 use crate::linalg::{Rgb, Scatter, SparseScatter};
 
@@ -380,26 +380,13 @@ impl Scatter for LinkedScatter<'_> {
 /// patch's row gets the rows of the nodes holding it, entries of one column summed,
 /// columns ascending. What a consumer that multiplies patch rows alone needs (the GPU
 /// backend's product of an S built on the CPU); an S without node rows comes back as it is.
-pub fn push_node_rows(s: CsrView<'_, Rgb>, tree: TreeView<'_>) -> Csr<Rgb> {
+/// Fails only where a summed value is not finite.
+pub fn push_node_rows(s: CsrView<'_, Rgb>, tree: TreeView<'_>) -> Result<Csr<Rgb>, CsrError> {
     let n = tree.perm.len();
-    let copy = |rows: usize| {
-        let (row_ptr, col, val) = (s.row_ptr(), s.col(), s.val());
-        let end = row_ptr[rows] as usize;
-        Csr {
-            n_rows: rows,
-            n_cols: s.n_cols(),
-            row_ptr: row_ptr[..=rows].to_vec(),
-            col: col[..end].to_vec(),
-            val: val[..end].to_vec(),
-        }
-    };
-    if s.n_rows() <= n {
-        return copy(s.n_rows());
-    }
     // The nodes whose rows hold something, by patch: a patch at tree position q is held by
     // every node whose range contains q.
     let mut holders: Vec<Vec<u32>> = vec![Vec::new(); n];
-    for (k, r) in tree.range.iter().enumerate() {
+    for (k, r) in tree.range.iter().enumerate().filter(|_| s.n_rows() > n) {
         if s.row(n + k).0.is_empty() {
             continue;
         }
@@ -431,22 +418,7 @@ pub fn push_node_rows(s: CsrView<'_, Rgb>, tree: TreeView<'_>) -> Csr<Rgb> {
             merged
         })
         .collect();
-    let mut out = Csr {
-        n_rows: n,
-        n_cols: s.n_cols(),
-        row_ptr: Vec::with_capacity(n + 1),
-        col: Vec::new(),
-        val: Vec::new(),
-    };
-    out.row_ptr.push(0);
-    for row in rows {
-        for (c, v) in row {
-            out.col.push(c);
-            out.val.push(v);
-        }
-        out.row_ptr.push(out.col.len() as u64);
-    }
-    out
+    Csr::from_rows(s.n_cols(), &rows)
 }
 
 /// The scattering operator of a bundle's S (its own, or one rebuilt for overrides, `s`):
@@ -565,21 +537,7 @@ mod tests {
             // Node 1's row.
             vec![(4, [0.05, 0.1, 0.2])],
         ];
-        let mut c = Csr {
-            n_rows: 6,
-            n_cols: 6,
-            row_ptr: vec![0],
-            col: Vec::new(),
-            val: Vec::new(),
-        };
-        for r in rows {
-            for (i, v) in r {
-                c.col.push(i);
-                c.val.push(v);
-            }
-            c.row_ptr.push(c.col.len() as u64);
-        }
-        c
+        Csr::from_rows(6, &rows).unwrap()
     }
 
     #[test]
@@ -666,7 +624,7 @@ mod tests {
             range: &range,
         };
         let s = s_with_node_rows();
-        let pushed = push_node_rows(s.view().unwrap(), tree);
+        let pushed = push_node_rows(s.view().unwrap(), tree).unwrap();
         assert_eq!((pushed.n_rows, pushed.n_cols), (4, 6));
         // Patch 0: its row, node 0's and node 1's, column 4 summed from its own and node 1's.
         let p = pushed.view().unwrap();
@@ -692,7 +650,7 @@ mod tests {
             }
         }
         // Without node rows, S comes back as it is.
-        let again = push_node_rows(p, tree);
+        let again = push_node_rows(p, tree).unwrap();
         assert_eq!(
             (again.row_ptr, again.col),
             (pushed.row_ptr.clone(), pushed.col.clone())

@@ -466,14 +466,17 @@ impl Backend {
             // An S built on the CPU with node rows (node-to-node links) is uploaded with
             // them pushed into its patch rows: the device's product reads patch rows alone.
             let view = m.s_view();
+            let invalid = |e: translux_proto::csr::CsrError| {
+                GpuError::Invalid(format!("{}: S with its node rows pushed: {e}", scene.id))
+            };
             let pushed = match scene.bundle.tree() {
-                Some(t) if view.n_rows() > t.perm.len() => Some(push_node_rows(view, t)),
+                Some(t) if view.n_rows() > t.perm.len() => {
+                    Some(push_node_rows(view, t).map_err(invalid)?)
+                }
                 _ => None,
             };
             let view = match &pushed {
-                Some(p) => p.view().map_err(|e| {
-                    GpuError::Invalid(format!("{}: S with its node rows pushed: {e}", scene.id))
-                })?,
+                Some(p) => p.view().map_err(invalid)?,
                 None => view,
             };
             let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &view)?;
