@@ -34,7 +34,7 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
-use crate::sterms::{ObjectTerms, Placement, STerms, Scratch, Written};
+use crate::sterms::{NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 use rayon::prelude::*;
@@ -168,6 +168,8 @@ pub fn assemble_scene(
     let terms = fast.map(|f| f.terms);
     // Objects summed from their terms: laid out now, their values written into the matrix.
     let mut pending: Vec<(usize, &ObjectTerms, f32)> = Vec::new();
+    // Node rows (node-to-node links of objects summed from terms), by node; empty if none.
+    let mut node_rows: Vec<Vec<(u32, [f32; 3])>> = Vec::new();
     for (k, o) in objects.iter().enumerate() {
         let r = o.patches.clone();
         if let Some(f) = fast.filter(|f| f.kept.get(k) == Some(&true)) {
@@ -191,6 +193,12 @@ pub fn assemble_scene(
                 .enumerate()
             {
                 rows[r.start + j] = row;
+            }
+            if let Some(nodes) = g.nodes.as_ref().filter(|_| !t.receiver_nodes().is_empty()) {
+                node_rows.resize_with(nodes.range.len(), Vec::new);
+                for (m, row) in t.node_rows() {
+                    node_rows[m] = row;
+                }
             }
             pending.push((k, t, stored_radius.get(k).copied().unwrap_or(0.0)));
             continue;
@@ -395,6 +403,8 @@ pub fn assemble_scene(
             }
         }
     }
+    // Node rows after the patch rows ((N + M) × (N + M), transport::LinkedScatter).
+    rows.extend(node_rows);
     // Node columns when any row links to a node (a hierarchical S).
     let linked = rows
         .iter()
@@ -406,7 +416,7 @@ pub fn assemble_scene(
     // Room for every entry first: growing the arrays row by row cost a rebuild more than
     // the rows' own sum on a 24k-patch scene.
     let mut b = CsrBuilder::new(cols);
-    b.reserve(n, rows.iter().map(Vec::len).sum());
+    b.reserve(rows.len(), rows.iter().map(Vec::len).sum());
     for row in &rows {
         b.push_row(row)?;
     }
@@ -467,8 +477,19 @@ fn write_terms(
         n: g.corners.len(),
         nodes: g.nodes.as_ref(),
     };
+    // The object's patch rows, then its node rows (runs of consecutive nodes).
+    let mut ranges = vec![r.clone()];
+    if at.nodes.is_some() {
+        for &m in t.receiver_nodes() {
+            let row = at.n + m as usize;
+            match ranges.last_mut() {
+                Some(last) if last.end == row && last.start >= at.n => last.end += 1,
+                _ => ranges.push(row..row + 1),
+            }
+        }
+    }
     let mut out = None;
-    let s = s.rewrite_vouched(r.clone(), |rows| {
+    let s = s.rewrite_ranges_vouched(&ranges, |rows| {
         let w = t.write(
             &g.area[r.clone()],
             &same,
@@ -698,6 +719,11 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
     let g = bundle_geometry(bundle);
     let (materials, reach) = bundle_materials(bundle, &[]).expect("the bundle's own materials");
     let kinds = bundle.distance_kinds();
+    let shapes = g
+        .nodes
+        .as_ref()
+        .filter(|_| params.receiver_theta > 0.0)
+        .map(|nodes| NodeShapes::new(nodes, &g.corners, &g.area));
     let objects = bundle
         .manifest()
         .objects
@@ -721,14 +747,23 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
                 params,
             );
             // A hierarchical S also links rows to whole nodes (see `assemble_scene`).
-            Some(match g.nodes {
-                Some(_) => t.with_links(
-                    bundle.distances(),
-                    kinds,
-                    bundle.distance_spreads(),
-                    range,
-                    reach,
-                ),
+            Some(match &g.nodes {
+                Some(nodes) => {
+                    let start = range.start;
+                    let t = t.with_links(
+                        bundle.distances(),
+                        kinds,
+                        bundle.distance_spreads(),
+                        range,
+                        reach,
+                    );
+                    match &shapes {
+                        Some(shapes) => {
+                            t.with_node_pairs(params.receiver_theta, nodes, shapes, start)
+                        }
+                        None => t,
+                    }
+                }
                 None => t,
             })
         })

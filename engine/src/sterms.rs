@@ -699,7 +699,95 @@ pub struct ObjectTerms {
     /// A hierarchical S's links from each receiver to whole cluster nodes
     /// ([`ObjectTerms::with_links`]; empty without a tree).
     links: Links,
+    /// Node-to-node links ([`ObjectTerms::with_node_pairs`]): S's node row N + m for each
+    /// receiver node m of `recv` (its links are `pairs`' row at m's index in `recv`).
+    pairs: Links,
+    /// The receiver nodes with a node row, ascending.
+    recv: Vec<u32>,
 }
+
+/// Each cluster node's area-weighted centre and bounding radius, the patches' areas in the
+/// tree's order, and the nodes starting at each position of that order: what the
+/// receiver-side cut ([`ObjectTerms::with_node_pairs`]) reads.
+#[derive(Debug, Default)]
+pub struct NodeShapes {
+    centre: Vec<Vec3>,
+    radius: Vec<f32>,
+    /// A_p of the patch at each position of the tree's order.
+    area_at: Vec<f32>,
+    /// Nodes of two or more patches starting at position q: `start_node[start_ptr[q]..
+    /// start_ptr[q + 1]]`, widest first.
+    start_ptr: Vec<u32>,
+    start_node: Vec<u32>,
+}
+
+impl NodeShapes {
+    /// The shapes of `nodes` over the patches' `corners` and `area` (scene indices).
+    pub fn new(nodes: &Nodes, corners: &[[Vec3; 3]], area: &[f32]) -> NodeShapes {
+        let m = nodes.range.len();
+        let shapes: Vec<(Vec3, f32)> = (0..m)
+            .into_par_iter()
+            .map(|k| {
+                let [a, b] = nodes.range[k];
+                let members = &nodes.perm[a as usize..b as usize];
+                let mid = |p: u32| {
+                    let t = &corners[p as usize];
+                    (t[0] + t[1] + t[2]) / 3.0
+                };
+                let (mut c, mut w) = (Vec3::ZERO, 0.0f32);
+                for &p in members {
+                    c += mid(p) * area[p as usize];
+                    w += area[p as usize];
+                }
+                let c = if w > 0.0 {
+                    c / w
+                } else {
+                    members.first().map_or(Vec3::ZERO, |&p| mid(p))
+                };
+                let r = members
+                    .iter()
+                    .flat_map(|&p| corners[p as usize])
+                    .map(|v| v.distance(c))
+                    .fold(0.0f32, f32::max);
+                (c, r)
+            })
+            .collect();
+        let mut starting: Vec<(u32, u32, u32)> = (0..m)
+            .filter(|&k| nodes.range[k][1] > nodes.range[k][0] + 1)
+            .map(|k| (nodes.range[k][0], u32::MAX - nodes.range[k][1], k as u32))
+            .collect();
+        starting.sort_unstable();
+        let mut start_ptr = vec![0u32; nodes.perm.len() + 1];
+        for &(a, ..) in &starting {
+            start_ptr[a as usize + 1] += 1;
+        }
+        for q in 0..nodes.perm.len() {
+            start_ptr[q + 1] += start_ptr[q];
+        }
+        NodeShapes {
+            centre: shapes.iter().map(|s| s.0).collect(),
+            radius: shapes.iter().map(|s| s.1).collect(),
+            area_at: nodes.perm.iter().map(|&p| area[p as usize]).collect(),
+            start_ptr,
+            start_node: starting.into_iter().map(|s| s.2).collect(),
+        }
+    }
+
+    /// The nodes of two or more patches starting at position `q`, widest first.
+    fn starting(&self, q: usize) -> &[u32] {
+        match self.start_ptr.get(q..q + 2) {
+            Some(&[a, b]) => &self.start_node[a as usize..b as usize],
+            _ => &[],
+        }
+    }
+}
+
+/// A node row's columns, each with a zero value ([`ObjectTerms::node_rows`]).
+pub type NodeRow = Vec<(u32, [f32; 3])>;
+
+/// A node-to-node link as the cut forms it: (receiver node m, one of the links it covers,
+/// the covered distances' mean and spread).
+type NodePair = (u32, u32, f32, f32);
 
 /// One object's links to cluster nodes, by local receiver: row j's are
 /// `ptr[j]..ptr[j + 1]`, in column order.
@@ -719,6 +807,14 @@ struct Links {
     /// The nodes (k, column N + k) that `col` reaches: a rebuild sums their energies in
     /// arrays this long.
     nodes: Range<usize>,
+}
+
+impl Links {
+    fn bytes(&self) -> usize {
+        (self.ptr.len() + self.col.len() + self.root.len()) * 4
+            + self.two.len() * 8
+            + self.opposite.len()
+    }
 }
 
 /// Per-block sums of a rebuild, kept between translucency changes: fresh ones cost page
@@ -889,6 +985,8 @@ impl ObjectTerms {
             packed,
             bounds,
             links: Links::default(),
+            pairs: Links::default(),
+            recv: Vec::new(),
         }
     }
 
@@ -1036,6 +1134,205 @@ impl ObjectTerms {
         self
     }
 
+    /// Thins the links ([`ObjectTerms::with_links`]) by clustering their receivers too, as
+    /// classical hierarchical radiosity links node to node: for each source node k, the
+    /// receivers that link it are covered, in the tree's order, by the widest nodes m whose
+    /// patches all link k (on the same side of a sheet) and that are small from k (bounding
+    /// radius ρ_m ≤ `theta` |c_m − c_k|, the source side's rule with its own θ). Each such m
+    /// gets one node-to-node link (S's node row N + m, pushed to every patch of m by the
+    /// product). Every patch of m links k, so the distances its links stored are all known:
+    /// the node link is read at two distances ([`two_point_roots`]) that keep their
+    /// area-weighted mean and spread (each link's own two-point spread counted in), so
+    /// it reads the mean of R over m exactly where R is quadratic in the distance. One
+    /// distance per node (a representative patch's) was tried first: on the 60 mm marble
+    /// cube at 4× its coefficients it put vertices 5% (median) off the pairwise S.
+    /// Receivers left uncovered keep their own links. `theta` ≤ 0 leaves the links as they
+    /// are. Accuracy: docs/hierarchy.md, *Receiver-side clustering*.
+    pub fn with_node_pairs(
+        mut self,
+        theta: f32,
+        nodes: &Nodes,
+        shapes: &NodeShapes,
+        start: usize,
+    ) -> Self {
+        if theta.is_nan() || theta <= 0.0 || self.links.col.is_empty() {
+            return self;
+        }
+        let big_n = nodes.perm.len() as u32;
+        let n = self.row_ptr.len() - 1;
+        let l = &self.links;
+        let mut pos = vec![0u32; n];
+        for (q, &p) in nodes.perm.iter().enumerate() {
+            let j = (p as usize).wrapping_sub(start);
+            if j < n {
+                pos[j] = q as u32;
+            }
+        }
+        // Every link as (source node, its receiver's position in the tree's order, link).
+        let mut by: Vec<(u32, u32, u32)> = Vec::with_capacity(l.col.len());
+        for (j, &q) in pos.iter().enumerate() {
+            for e in l.ptr[j]..l.ptr[j + 1] {
+                by.push((l.col[e as usize] - big_n, q, e));
+            }
+        }
+        by.par_sort_unstable();
+        // Per source node, its receivers' runs covered (independent of the other sources).
+        let groups: Vec<&[(u32, u32, u32)]> = by.chunk_by(|a, b| a.0 == b.0).collect();
+        let cut: Vec<(Vec<NodePair>, Vec<u32>)> = groups
+            .par_iter()
+            .map(|g| {
+                let ck = shapes.centre[g[0].0 as usize];
+                let (mut taken, mut covered) = (Vec::new(), Vec::new());
+                let mut i = 0;
+                while i < g.len() {
+                    let q = g[i].1 as usize;
+                    let mut run = i + 1;
+                    while run < g.len() && g[run].1 == g[run - 1].1 + 1 {
+                        run += 1;
+                    }
+                    let end = g[run - 1].1 as usize + 1;
+                    let pick = shapes.starting(q).iter().find_map(|&m| {
+                        let m = m as usize;
+                        let [a, b] = nodes.range[m];
+                        if b as usize > end
+                            || shapes.radius[m] > theta * shapes.centre[m].distance(ck)
+                        {
+                            return None;
+                        }
+                        let size = (b - a) as usize;
+                        let first = g[i].2;
+                        let side = l.opposite[first as usize];
+                        let covered = &g[i..i + size];
+                        if covered.iter().any(|t| l.opposite[t.2 as usize] != side) {
+                            return None;
+                        }
+                        // The covered links' distances ρ = root² (a two-point link's as
+                        // its pair ρ ± s): area-weighted mean and spread, in f64.
+                        let (mut w, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
+                        for (t, &area) in covered.iter().zip(&shapes.area_at[q..q + size]) {
+                            let e = t.2 as usize;
+                            let rho = (l.root[e] as f64).powi(2);
+                            let own = l.two.get(e).map_or(0.0, |[lo, hi]| {
+                                (*hi as f64).powi(2) - (*lo as f64).powi(2)
+                            }) / 2.0;
+                            let a = area as f64;
+                            w += a;
+                            s1 += a * rho;
+                            s2 += a * (rho * rho + own * own);
+                        }
+                        let mean = if w > 0.0 { s1 / w } else { 0.0 };
+                        let spread = if w > 0.0 {
+                            (s2 / w - mean * mean).max(0.0).sqrt()
+                        } else {
+                            0.0
+                        };
+                        Some((m as u32, size, first, mean as f32, spread as f32))
+                    });
+                    match pick {
+                        Some((m, size, first, mean, spread)) => {
+                            taken.push((m, first, mean, spread));
+                            covered.extend(g[i..i + size].iter().map(|t| t.2));
+                            i += size;
+                        }
+                        None => i += 1,
+                    }
+                }
+                (taken, covered)
+            })
+            .collect();
+        drop(groups);
+        drop(by);
+        let mut removed = vec![false; l.col.len()];
+        let mut pairs: Vec<NodePair> = Vec::new();
+        for (taken, covered) in cut {
+            pairs.extend(taken);
+            for e in covered {
+                removed[e as usize] = true;
+            }
+        }
+        // The node rows, by receiver node, columns ascending.
+        pairs.par_sort_unstable_by_key(|&(m, e, ..)| (m, l.col[e as usize]));
+        let take = |out: &mut Links, e: usize| {
+            out.col.push(l.col[e]);
+            out.root.push(l.root[e]);
+            out.opposite.push(l.opposite[e]);
+            if !l.two.is_empty() {
+                out.two.push(l.two[e]);
+            }
+        };
+        let mut p = Links {
+            ptr: vec![0],
+            nodes: l.nodes.clone(),
+            ..Default::default()
+        };
+        let mut recv: Vec<u32> = Vec::new();
+        for &(m, e, mean, spread) in &pairs {
+            if recv.last().is_some_and(|&last| last != m) {
+                p.ptr.push(p.col.len() as u32);
+            }
+            if recv.last() != Some(&m) {
+                recv.push(m);
+            }
+            // The column and side of any covered link; the distances of them all.
+            let root = mean.max(0.0).sqrt();
+            p.col.push(l.col[e as usize]);
+            p.opposite.push(l.opposite[e as usize]);
+            p.root.push(root);
+            p.two
+                .push(two_point_roots(mean, spread).unwrap_or([root, root]));
+        }
+        if !recv.is_empty() {
+            p.ptr.push(p.col.len() as u32);
+        }
+        // The patch links left.
+        let mut kept = Links {
+            ptr: vec![0],
+            nodes: l.nodes.clone(),
+            ..Default::default()
+        };
+        for w in l.ptr.windows(2) {
+            let (a, b) = (w[0] as usize, w[1] as usize);
+            for (e, _) in removed[a..b].iter().enumerate().filter(|(_, gone)| !**gone) {
+                take(&mut kept, a + e);
+            }
+            kept.ptr.push(kept.col.len() as u32);
+        }
+        (self.links, self.pairs, self.recv) = (kept, p, recv);
+        self
+    }
+
+    /// The receiver nodes with a node row ([`ObjectTerms::with_node_pairs`]), ascending.
+    pub fn receiver_nodes(&self) -> &[u32] {
+        &self.recv
+    }
+
+    /// Node-to-node links.
+    pub fn node_pairs(&self) -> usize {
+        self.pairs.col.len()
+    }
+
+    /// Links from a patch to a node.
+    pub fn patch_links(&self) -> usize {
+        self.links.col.len()
+    }
+
+    /// The object's node rows with every link at zero: (receiver node m, S's row N + m),
+    /// in the order of [`ObjectTerms::receiver_nodes`].
+    pub fn node_rows(&self) -> Vec<(usize, NodeRow)> {
+        self.recv
+            .iter()
+            .enumerate()
+            .map(|(x, &m)| {
+                let (a, b) = (self.pairs.ptr[x] as usize, self.pairs.ptr[x + 1] as usize);
+                let row = self.pairs.col[a..b]
+                    .iter()
+                    .map(|&c| (c, [0.0; 3]))
+                    .collect();
+                (m as usize, row)
+            })
+            .collect()
+    }
+
     /// The object's rows of S with every stored entry and link at zero (global columns):
     /// the pattern that [`ObjectTerms::write`] fills. Row j lists its sources (the object's
     /// patches, ascending), then (with `links`) its links.
@@ -1066,7 +1363,10 @@ impl ObjectTerms {
     /// [`ObjectTerms::pattern`] made them: entries past the table's reach are written 0,
     /// links are node k's A_k P(r) while r is within reach, and the energy bound is enforced
     /// on every column with the links counted ([`subsurface::add_links`]). `area` is the
-    /// object's patch areas; without `at.nodes` the rows hold no links. Every value is
+    /// object's patch areas; without `at.nodes` the rows hold no links. With `at.nodes` and
+    /// node-to-node links ([`ObjectTerms::with_node_pairs`]), `rows` continues with the
+    /// object's node rows in the order of [`ObjectTerms::receiver_nodes`]: node m's links are
+    /// A_k P(r) like a patch's, and count A_m P(r) into e_k. Every value is
     /// written, so the rows may hold any earlier values: a translucency change writes the
     /// last S's values in place.
     ///
@@ -1083,7 +1383,18 @@ impl ObjectTerms {
         scratch: &mut Scratch,
     ) -> Written {
         let n = self.row_ptr.len() - 1;
-        assert_eq!(rows.len(), n, "one row per patch of the object");
+        let node_rows = if at.nodes.is_some() {
+            self.recv.len()
+        } else {
+            0
+        };
+        assert_eq!(
+            rows.len(),
+            n + node_rows,
+            "one row per patch of the object, then its node rows"
+        );
+        let mut rows = rows;
+        let tail_rows = rows.split_off(n);
         // The rows in the cluster tree's order: neighbouring receivers read and add to the
         // same few columns and nodes, so a block's sums stay in cache (in patch order the
         // scattered adds cost as much as the sums themselves on the bowls' bunny).
@@ -1105,6 +1416,13 @@ impl ObjectTerms {
                         .enumerate()
                         .filter_map(|(j, row)| row.map(|row| (j, row))),
                 );
+                // The node rows after them (each in the tree's order too).
+                ordered.extend(
+                    tail_rows
+                        .into_iter()
+                        .enumerate()
+                        .map(|(x, row)| (n + x, row)),
+                );
                 ordered
             }
             None => rows.into_iter().enumerate().collect(),
@@ -1112,8 +1430,10 @@ impl ObjectTerms {
         let (same, other) = (TermTable::new(same), TermTable::new(other));
         // The nodes this object's links reach, a contiguous span of them.
         let node_count = at.nodes.map_or(0, |_| self.links.nodes.len());
-        let per = n.div_ceil(rayon::current_num_threads() * 4).max(1);
-        let blocks = n.div_ceil(per);
+        // Blocks over every row, node rows included (a block per chunk: `zip` would leave
+        // the rows past the last block unwritten).
+        let per = rows.len().div_ceil(rayon::current_num_threads() * 4).max(1);
+        let blocks = rows.len().div_ceil(per);
         scratch.blocks.resize_with(blocks, BlockSums::default);
         rows.par_chunks_mut(per)
             .zip(scratch.blocks.par_iter_mut())
@@ -1128,8 +1448,19 @@ impl ObjectTerms {
                 let mut probe = f32x4::ZERO;
                 for (j, (cols, out)) in chunk.iter_mut() {
                     let j = *j;
-                    let entries = self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize;
-                    let links = match self.links.ptr.get(j..j + 2).filter(|_| at.nodes.is_some()) {
+                    // A node row (j ≥ n): node m's links alone, weighed by m's area.
+                    let (set, entries, aj) = match at.nodes {
+                        Some(nodes) if j >= n => {
+                            (&self.pairs, 0..0, { nodes.area[self.recv[j - n] as usize] })
+                        }
+                        _ => (
+                            &self.links,
+                            self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize,
+                            area[j],
+                        ),
+                    };
+                    let l = if j >= n { j - n } else { j };
+                    let links = match set.ptr.get(l..l + 2).filter(|_| at.nodes.is_some()) {
                         Some(l) => l[0] as usize..l[1] as usize,
                         None => 0..0,
                     };
@@ -1139,7 +1470,6 @@ impl ObjectTerms {
                         "row {j} is not laid out as ObjectTerms::pattern made it"
                     );
                     let (direct, tail) = out.split_at_mut(entries.len());
-                    let aj = area[j];
                     // The row's entries' fields side by side: one bounds check a row, not
                     // five an entry.
                     let fields = self.src[entries.clone()]
@@ -1172,10 +1502,8 @@ impl ObjectTerms {
                     };
                     // Links: node k's A_k R(r), read through the table of the entry's kind.
                     let node_cols = &cols[direct.len()..];
-                    let two = self.links.two.get(links.clone()).unwrap_or(&[]);
-                    let fields = self.links.root[links.clone()]
-                        .iter()
-                        .zip(&self.links.opposite[links]);
+                    let two = set.two.get(links.clone()).unwrap_or(&[]);
+                    let fields = set.root[links.clone()].iter().zip(&set.opposite[links]);
                     for (l, ((o, &c), (&root, &opposite))) in
                         tail.iter_mut().zip(node_cols).zip(fields).enumerate()
                     {
@@ -1332,9 +1660,9 @@ impl ObjectTerms {
             + self.term_ptr.len() * 4
             + self.packed.len() * 8
             + self.bounds.len() * 8
-            + (self.links.ptr.len() + self.links.col.len() + self.links.root.len()) * 4
-            + self.links.two.len() * 8
-            + self.links.opposite.len()) as u64
+            + self.links.bytes()
+            + self.pairs.bytes()
+            + self.recv.len() * 4) as u64
     }
 }
 

@@ -41,6 +41,11 @@ pub struct SubsurfaceParams {
     pub samples: u32,
     /// K: directions of the polar integration. Default 48.
     pub directions: u32,
+    /// θ_r of the receiver-side cut that a translucency change summed from radial terms
+    /// makes of a hierarchical S's links (`sterms::ObjectTerms::with_node_pairs`): a receiver
+    /// node m of bounding radius ρ_m ≤ θ_r |c_m − c_k| whose patches all link node k gets
+    /// one node-to-node link instead. 0 keeps every receiver's own links.
+    pub receiver_theta: f32,
 }
 
 impl Default for SubsurfaceParams {
@@ -49,6 +54,7 @@ impl Default for SubsurfaceParams {
             near_factor: 3.0,
             samples: 4,
             directions: 48,
+            receiver_theta: 0.2,
         }
     }
 }

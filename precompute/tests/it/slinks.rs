@@ -182,7 +182,8 @@ fn vertices(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>, lights: &[Light]) -> 
     )
 }
 
-/// Σ_j A_j S_ji / A_i per column i and channel, each link spread over its node's patches.
+/// Σ_j A_j S_ji / A_i per column i and channel, each link spread over its node's patches;
+/// a node row m (node-to-node links) counts with its node's area A_m.
 fn column_energy(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>) -> Vec<[f64; 3]> {
     let area = b.patch_areas();
     let n = area.len();
@@ -190,20 +191,20 @@ fn column_energy(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>) -> Vec<[f64; 3]>
     let node_area = node_areas(tree, area);
     let mut out = vec![[0.0f64; 3]; n];
     let v = s.view().unwrap();
-    for j in 0..n {
+    for j in 0..v.n_rows() {
+        let aj = if j < n { area[j] } else { node_area[j - n] };
         let (cols, vals) = v.row(j);
         for (&c, s) in cols.iter().zip(vals) {
             let c = c as usize;
             if c < n {
                 for k in 0..3 {
-                    out[c][k] += area[j] as f64 * s[k] as f64 / area[c] as f64;
+                    out[c][k] += aj as f64 * s[k] as f64 / area[c] as f64;
                 }
             } else {
                 let r = tree.range[c - n];
                 for &p in &tree.perm[r[0] as usize..r[1] as usize] {
                     for k in 0..3 {
-                        out[p as usize][k] +=
-                            area[j] as f64 * s[k] as f64 / node_area[c - n] as f64;
+                        out[p as usize][k] += aj as f64 * s[k] as f64 / node_area[c - n] as f64;
                     }
                 }
             }
@@ -292,8 +293,32 @@ fn compare(c: &Case<'_>, seed: u64) {
     let (centre, size) = ((lo + hi) * 0.5, (hi - lo).length());
     let params = SParams::default();
     let mut rng = Lcg(seed);
-    // The radial terms do not depend on the translucency: reduced once for both scales.
-    let terms = smatrix::terms_of_bundle(hier, &params.quadrature);
+    // The radial terms do not depend on the translucency: reduced once for both scales,
+    // with every receiver's own links (compared with the quadrature entry by entry) and
+    // with node-to-node links as a translucency change makes them (the default θ_r).
+    let mut own = params;
+    own.quadrature.receiver_theta = 0.0;
+    let terms = smatrix::terms_of_bundle(hier, &own.quadrature);
+    let node_terms = smatrix::terms_of_bundle(hier, &params.quadrature);
+    assert!(params.quadrature.receiver_theta > 0.0);
+    let count = |terms: &translux_engine::sterms::STerms| {
+        c.objects.iter().fold((0, 0), |(p, l), &k| {
+            let thin = hier.manifest().objects[k].material.kind() == "thin_sheet";
+            let t = terms.get(k, thin);
+            t.map_or((p, l), |t| (p + t.node_pairs(), l + t.patch_links()))
+        })
+    };
+    let ((none, links), (pairs, left)) = (count(&terms), count(&node_terms));
+    eprintln!(
+        "{}: node-to-node links {pairs}, patch links left {left} (of {links})",
+        mh.name
+    );
+    assert_eq!(none, 0, "θ_r = 0 linked a receiver node");
+    assert!(pairs > 0, "no receiver node was linked as a whole");
+    assert!(
+        pairs + left < links,
+        "node-to-node links did not thin the links: {pairs} + {left} against {links}"
+    );
     // ×0.25 read 0.000% here (its profile is spent before the links begin): not repeated.
     for scale in [1.0f32, 4.0] {
         let over: Vec<(usize, Material)> = c
@@ -304,7 +329,13 @@ fn compare(c: &Case<'_>, seed: u64) {
         let (s_pair, _) = smatrix::rebuild_from_bundle(pair, &over, &params).unwrap();
         let (s_hier, _) = smatrix::rebuild_from_bundle(hier, &over, &params).unwrap();
         // The translucency change's path (terms for the pairs, one lookup per link) agrees.
-        let (s_fast, _) = smatrix::rebuild_with_terms(hier, &over, &params, &terms).unwrap();
+        let (s_fast, _) = smatrix::rebuild_with_terms(hier, &over, &own, &terms).unwrap();
+        // With node-to-node links: S grows node rows, written in place as afresh.
+        let (s_nodes, _) = smatrix::rebuild_with_terms(hier, &over, &params, &node_terms).unwrap();
+        assert!(
+            s_nodes.n_rows > hier.patch_areas().len(),
+            "S has no node rows"
+        );
         // A translucency change from the other scale writes its values into that S in place
         // (engine::scene's path): the same matrix, bit for bit.
         let other: Vec<(usize, Material)> = c
@@ -312,25 +343,27 @@ fn compare(c: &Case<'_>, seed: u64) {
             .iter()
             .map(|&k| (k, (c.material)(k, 5.0 - scale)))
             .collect();
-        let (last, _, _) =
-            smatrix::rebuild_with_terms_and_tilt(hier, &other, &params, &terms).unwrap();
-        let changed = smatrix::changed_profiles(&other, &over, &terms).unwrap();
-        assert_eq!(changed, c.objects);
-        let (in_place, _) = smatrix::rewrite_with_terms(
-            hier,
-            last,
-            &mut None,
-            &over,
-            &changed,
-            &params,
-            &terms,
-            &mut Default::default(),
-        )
-        .unwrap();
-        assert!(
-            in_place.csr() == &s_fast,
-            "×{scale}: in place differs from afresh"
-        );
+        for (terms, s, p) in [(&terms, &s_fast, &own), (&node_terms, &s_nodes, &params)] {
+            let (last, _, _) =
+                smatrix::rebuild_with_terms_and_tilt(hier, &other, p, terms).unwrap();
+            let changed = smatrix::changed_profiles(&other, &over, terms).unwrap();
+            assert_eq!(changed, c.objects);
+            let (in_place, _) = smatrix::rewrite_with_terms(
+                hier,
+                last,
+                &mut None,
+                &over,
+                &changed,
+                p,
+                terms,
+                &mut Default::default(),
+            )
+            .unwrap();
+            assert!(
+                in_place.csr() == s,
+                "×{scale}: in place differs from afresh"
+            );
+        }
         // The terms' S keeps every stored entry (0 past the profile's reach); the
         // quadrature's leaves those out.
         let (s_fast, hier_nz) = (nonzero(&s_fast), nonzero(&s_hier));
@@ -360,6 +393,15 @@ fn compare(c: &Case<'_>, seed: u64) {
             .cloned()
             .fold(0.0f64, f64::max);
         assert!(worst <= 1.0 + 1e-4, "×{scale}: a column re-emits {worst}");
+        let worst = column_energy(hier, &s_nodes)
+            .iter()
+            .flatten()
+            .cloned()
+            .fold(0.0f64, f64::max);
+        assert!(
+            worst <= 1.0 + 1e-4,
+            "×{scale}: with node-to-node links a column re-emits {worst}"
+        );
         for round in 0..2 {
             let lights: Vec<Light> = (0..3)
                 .map(|_| {
@@ -380,28 +422,32 @@ fn compare(c: &Case<'_>, seed: u64) {
                 .iter()
                 .map(|&k| vp[k].iter().sum::<f32>())
                 .fold(0.0f32, f32::max);
-            let mut errors: Vec<f64> = verts
-                .iter()
-                .filter(|&&k| vp[k].iter().sum::<f32>() > 1e-3 * peak)
-                .map(|&k| {
-                    let (p, h) = (vp[k].iter().sum::<f32>(), vh[k].iter().sum::<f32>());
-                    ((h - p) / p).abs() as f64
-                })
-                .collect();
-            assert!(errors.len() * 2 > verts.len(), "too few lit vertices");
-            let median = percentile(&mut errors, 0.5);
-            let p90 = percentile(&mut errors, 0.9);
-            eprintln!(
-                "{} ×{scale} lights {round}: {} vertices, median {:.3}%, p90 {:.3}%",
-                mh.name,
-                errors.len(),
-                100.0 * median,
-                100.0 * p90
-            );
-            assert!(
-                median <= 0.01 && p90 <= 0.03,
-                "×{scale}: median {median:.4}, p90 {p90:.4}"
-            );
+            // With the quadrature's S, then with a translucency change's node-to-node links.
+            let vn = vertices(hier, &s_nodes, &lights);
+            for (how, vh) in [("links", &vh), ("node-to-node links", &vn)] {
+                let mut errors: Vec<f64> = verts
+                    .iter()
+                    .filter(|&&k| vp[k].iter().sum::<f32>() > 1e-3 * peak)
+                    .map(|&k| {
+                        let (p, h) = (vp[k].iter().sum::<f32>(), vh[k].iter().sum::<f32>());
+                        ((h - p) / p).abs() as f64
+                    })
+                    .collect();
+                assert!(errors.len() * 2 > verts.len(), "too few lit vertices");
+                let median = percentile(&mut errors, 0.5);
+                let p90 = percentile(&mut errors, 0.9);
+                eprintln!(
+                    "{} ×{scale} lights {round}, {how}: {} vertices, median {:.3}%, p90 {:.3}%",
+                    mh.name,
+                    errors.len(),
+                    100.0 * median,
+                    100.0 * p90
+                );
+                assert!(
+                    median <= 0.01 && p90 <= 0.03,
+                    "×{scale}, {how}: median {median:.4}, p90 {p90:.4}"
+                );
+            }
             if let (0, 4.0, Some(dir)) = (round, scale, c.relight_dir) {
                 // What a relight request with the override gets (the engine's scene: S from
                 // the terms and the links, the solve with the pull) is that answer.
@@ -424,7 +470,8 @@ fn compare(c: &Case<'_>, seed: u64) {
                 let mut plan = relight::plan(&scene, req).unwrap();
                 plan.tolerance = 1e-6;
                 let got = relight::run(&scene, &plan).unwrap().radiance;
-                let want = vertices(hier, &s_fast, &lights);
+                // (The scene's translucency changes make node-to-node links, θ_r by default.)
+                let want = vertices(hier, &s_nodes, &lights);
                 // On the objects' vertices: the floor's show direct light at the vertex
                 // (engine::vertexlight), which `vertices` leaves out.
                 let (mut d2, mut w2) = (0.0f64, 0.0f64);
