@@ -5,17 +5,21 @@
 //! terms (`engine::smatrix::rewrite_with_terms`), what every later change spends before
 //! its solve.
 //!
-//! In: a bundle folder, how many times (default 3 reductions, or 12 slider steps), and
-//! `--rewrite`. Out: one line per reduction (wall time, entries, terms, MiB held); with
-//! `--rewrite`, one reduction, then one line per step (the scale, wall time, each object's
-//! part of it, the entries written), the median and fastest step, and a hash of S's values
-//! after the last step (equal for two builds that write the same S bit for bit). The steps
+//! In: a bundle folder, how many times (default 3 reductions, or 12 slider steps),
+//! `--rewrite`, and `--receiver-theta X` (the receiver-side cut's θ_r,
+//! `SubsurfaceParams::receiver_theta`; 0 keeps every receiver's own links). Out: one line
+//! per reduction (wall time, entries, terms, links from patches, node-to-node links, MiB
+//! held); with `--rewrite`, one reduction, then one line per step (the scale, wall time,
+//! each object's part of it, the entries written), the median and fastest step, a hash of
+//! S's values after the last step (equal for two builds that write the same S bit for bit),
+//! S's stored entries, and the median of 12 products of S̃ with a batch of 3 RGB
+//! right-hand sides (the solver's products per iteration). The steps
 //! are the drag `table1` times (0.9, 1, 1.137, 1.274, …), every dipole object scaled alike.
 //! Run it under `/usr/bin/time` for the CPU time, which this 2-core VM's neighbours disturb
 //! less than the wall time.
 //!
 //! ```sh
-//! cargo run --release -p translux-engine --example s_terms -- BUNDLE_DIR [TIMES] [--rewrite]
+//! cargo run --release -p translux-engine --example s_terms -- BUNDLE_DIR [TIMES] [--rewrite] [--receiver-theta X]
 //! ```
 
 use std::path::PathBuf;
@@ -24,16 +28,27 @@ use std::time::Instant;
 
 use translux_engine::smatrix::{self, SParams};
 use translux_engine::sterms::{STerms, Scratch};
+use translux_engine::transport;
 use translux_proto::bundle::Bundle;
 use translux_proto::scene::{Material, Profile};
 
-const USAGE: &str = "usage: s_terms BUNDLE_DIR [TIMES] [--rewrite]";
+const USAGE: &str = "usage: s_terms BUNDLE_DIR [TIMES] [--rewrite] [--receiver-theta X]";
 
 fn main() -> ExitCode {
     let (mut dir, mut times, mut rewrite) = (None, None, false);
-    for a in std::env::args().skip(1) {
+    let mut params = SParams::default();
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
         if a == "--rewrite" {
             rewrite = true;
+        } else if a == "--receiver-theta" {
+            match args.next().map(|t| t.parse::<f32>()) {
+                Some(Ok(t)) if (0.0..=1.0).contains(&t) => params.quadrature.receiver_theta = t,
+                other => {
+                    eprintln!("--receiver-theta takes a number from 0 to 1, got {other:?}");
+                    return ExitCode::from(2);
+                }
+            }
         } else if dir.is_none() {
             dir = Some(PathBuf::from(a));
         } else if times.is_none() {
@@ -60,15 +75,18 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let params = SParams::default();
     let times = times.unwrap_or(if rewrite { 12 } else { 3 });
-    println!("| reduction | seconds | entries | terms | MiB |\n|---|---|---|---|---|");
+    println!(
+        "| reduction | seconds | entries | terms | links | node-to-node links | MiB |\n\
+         |---|---|---|---|---|---|---|"
+    );
     let mut terms = None;
     for k in 1..=if rewrite { 1 } else { times } {
         let start = Instant::now();
         let t = smatrix::terms_of_bundle(&bundle, &params.quadrature);
+        let (links, pairs) = t.links();
         println!(
-            "| {k} | {:.2} | {} | {} | {:.0} |",
+            "| {k} | {:.2} | {} | {} | {links} | {pairs} | {:.0} |",
             start.elapsed().as_secs_f64(),
             t.entries(),
             t.terms(),
@@ -174,6 +192,26 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         "median {:.1} ms, fastest {:.1} ms over {steps} steps; S after the last: {hash:016x}",
         times[times.len() / 2],
         times[0]
+    );
+    // S̃'s products as the solver makes them (3 RGB right-hand sides at once).
+    let view = s.view();
+    let op = transport::subsurface_operator(bundle, view);
+    let n = bundle.patch_areas().len();
+    let h: Vec<f32> = (0..n * 9).map(|i| (i % 7) as f32 * 0.1).collect();
+    let mut y = vec![0.0f32; n * 9];
+    let mut products: Vec<f64> = (0..12)
+        .map(|_| {
+            let start = Instant::now();
+            op.apply_multi(&h, &mut y, 9);
+            start.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    products.sort_by(f64::total_cmp);
+    println!(
+        "S: {} rows, {} stored entries; a product with 3 RGB right-hand sides: median {:.1} ms",
+        view.n_rows(),
+        view.nnz(),
+        products[products.len() / 2]
     );
     ExitCode::SUCCESS
 }

@@ -1709,6 +1709,13 @@ impl STerms {
     pub fn bytes(&self) -> u64 {
         self.objects.iter().flatten().map(ObjectTerms::bytes).sum()
     }
+
+    /// Links from a patch to a node, and node-to-node links, over all objects.
+    pub fn links(&self) -> (usize, usize) {
+        self.objects.iter().flatten().fold((0, 0), |(l, p), o| {
+            (l + o.patch_links(), p + o.node_pairs())
+        })
+    }
 }
 
 #[cfg(test)]
