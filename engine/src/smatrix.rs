@@ -53,8 +53,9 @@ pub enum SError {
     #[error("S is not a valid matrix: {0}")]
     Matrix(#[from] CsrError),
     /// A rewrite in place met rows whose pattern is not the one its values are summed into
-    /// (an S not built from this bundle's walks): S must be built again.
-    #[error("object '{object}': row {row} of the last S does not list its walks' sources")]
+    /// (an S not built from this bundle's walks, or without the node rows of these radial
+    /// terms): S must be built again.
+    #[error("object '{object}': row {row} of the last S is not laid out as its rewrite needs")]
     Pattern { object: String, row: usize },
 }
 
@@ -487,6 +488,14 @@ fn write_terms(
                 _ => ranges.push(row..row + 1),
             }
         }
+    }
+    // An S without this object's node rows was not built from these terms: built again
+    // (the rows' own layout is checked as `ObjectTerms::write` reads them).
+    if let Some(last) = ranges.last().filter(|l| l.end > s.view().n_rows()) {
+        return Err(SError::Pattern {
+            object: o.name.to_string(),
+            row: last.end - 1,
+        });
     }
     let mut out = None;
     let s = s.rewrite_ranges_vouched(&ranges, |rows| {

@@ -338,11 +338,10 @@ fn compare(c: &Case<'_>, seed: u64) {
         );
         // A translucency change from the other scale writes its values into that S in place
         // (engine::scene's path): the same matrix, bit for bit.
-        let other: Vec<(usize, Material)> = c
-            .objects
-            .iter()
-            .map(|&k| (k, (c.material)(k, 5.0 - scale)))
-            .collect();
+        let other_of = |s: f32| -> Vec<(usize, Material)> {
+            c.objects.iter().map(|&k| (k, (c.material)(k, s))).collect()
+        };
+        let other = other_of(5.0 - scale);
         for (terms, s, p) in [(&terms, &s_fast, &own), (&node_terms, &s_nodes, &params)] {
             let (last, _, _) =
                 smatrix::rebuild_with_terms_and_tilt(hier, &other, p, terms).unwrap();
@@ -364,6 +363,22 @@ fn compare(c: &Case<'_>, seed: u64) {
                 "×{scale}: in place differs from afresh"
             );
         }
+        // An S without node rows is not rewritten with node-to-node terms: built again.
+        let (plain, _, _) =
+            smatrix::rebuild_with_terms_and_tilt(hier, &other_of(5.0 - scale), &own, &terms)
+                .unwrap();
+        let err = smatrix::rewrite_with_terms(
+            hier,
+            plain,
+            &mut None,
+            &over,
+            &c.objects,
+            &params,
+            &node_terms,
+            &mut Default::default(),
+        )
+        .unwrap_err();
+        assert!(matches!(err, smatrix::SError::Pattern { .. }), "{err}");
         // The terms' S keeps every stored entry (0 past the profile's reach); the
         // quadrature's leaves those out.
         let (s_fast, hier_nz) = (nonzero(&s_fast), nonzero(&s_hier));
