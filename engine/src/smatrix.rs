@@ -34,7 +34,7 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
-use crate::sterms::{NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written};
+use crate::sterms::{NodeRow, NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 use rayon::prelude::*;
@@ -170,7 +170,7 @@ pub fn assemble_scene(
     // Objects summed from their terms: laid out now, their values written into the matrix.
     let mut pending: Vec<(usize, &ObjectTerms, f32)> = Vec::new();
     // Node rows (node-to-node links of objects summed from terms), by node; empty if none.
-    let mut node_rows: Vec<Vec<(u32, [f32; 3])>> = Vec::new();
+    let mut node_rows: Vec<NodeRow> = Vec::new();
     for (k, o) in objects.iter().enumerate() {
         let r = o.patches.clone();
         if let Some(f) = fast.filter(|f| f.kept.get(k) == Some(&true)) {

@@ -338,10 +338,11 @@ fn compare(c: &Case<'_>, seed: u64) {
         );
         // A translucency change from the other scale writes its values into that S in place
         // (engine::scene's path): the same matrix, bit for bit.
-        let other_of = |s: f32| -> Vec<(usize, Material)> {
-            c.objects.iter().map(|&k| (k, (c.material)(k, s))).collect()
-        };
-        let other = other_of(5.0 - scale);
+        let other: Vec<(usize, Material)> = c
+            .objects
+            .iter()
+            .map(|&k| (k, (c.material)(k, 5.0 - scale)))
+            .collect();
         for (terms, s, p) in [(&terms, &s_fast, &own), (&node_terms, &s_nodes, &params)] {
             let (last, _, _) =
                 smatrix::rebuild_with_terms_and_tilt(hier, &other, p, terms).unwrap();
@@ -365,8 +366,7 @@ fn compare(c: &Case<'_>, seed: u64) {
         }
         // An S without node rows is not rewritten with node-to-node terms: built again.
         let (plain, _, _) =
-            smatrix::rebuild_with_terms_and_tilt(hier, &other_of(5.0 - scale), &own, &terms)
-                .unwrap();
+            smatrix::rebuild_with_terms_and_tilt(hier, &other, &own, &terms).unwrap();
         let err = smatrix::rewrite_with_terms(
             hier,
             plain,
