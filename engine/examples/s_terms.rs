@@ -94,6 +94,18 @@ fn main() -> ExitCode {
         );
         terms = Some(t);
     }
+    if let Some(t) = &terms {
+        println!("\n| terms per entry | entries | terms |\n|---|---|---|");
+        for (b, (e, n)) in t.term_histogram().into_iter().enumerate() {
+            let lo = 1usize << b;
+            let span = if b == 5 {
+                format!("{lo}+")
+            } else {
+                format!("{lo}–{}", 2 * lo - 1)
+            };
+            println!("| {span} | {e} | {n} |");
+        }
+    }
     match terms {
         Some(t) if rewrite => slider(&bundle, &params, &t, times),
         _ => ExitCode::SUCCESS,
