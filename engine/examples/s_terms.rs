@@ -9,8 +9,9 @@
 //! `--rewrite`, and `--receiver-theta X` (the receiver-side cut's θ_r,
 //! `SubsurfaceParams::receiver_theta`; 0 keeps every receiver's own links). Out: one line
 //! per reduction (wall time, entries, terms, links from patches, node-to-node links, MiB
-//! held), then the entries and their terms by how many terms an entry has; with `--rewrite`, one reduction, then one line per step (the scale, wall time,
-//! each object's part of it, the entries written), the median and fastest step, a hash of
+//! held), then the entries and their terms by how many terms an entry has; with
+//! `--rewrite`, one reduction, then one line per step (the scale, wall time, each object's
+//! part of it, the entries written), the median and fastest step, a hash of
 //! S's values after the last step (equal for two builds that write the same S bit for bit),
 //! S's stored entries, and the median of 12 products of S̃ with a batch of 3 RGB
 //! right-hand sides (the solver's products per iteration). The steps

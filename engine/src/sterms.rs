@@ -691,10 +691,11 @@ pub struct ObjectTerms {
     hi_max: Vec<f32>,
     /// Entry e's terms are `term_ptr[e]..term_ptr[e + 1]`.
     term_ptr: Vec<u32>,
-    /// The entries of source i (local) are `by_src[by_src_ptr[i]..by_src_ptr[i + 1]]`
-    /// (each its row j and its index into `src`): the energy bound scales the few columns over it through
-    /// them, where a pass over every row's columns took 6–14 ms of the bowls' bunny's
-    /// ~120 ms rewrite at 30k patches for ~100 scaled columns of 14,000.
+    /// The entries of source i (local) are `by_src[by_src_ptr[i]..by_src_ptr[i + 1]]`,
+    /// each as its row j and its index into `src` (the row stored: finding it by a binary
+    /// search of `row_ptr` took 3× as long). The energy bound scales the few columns over
+    /// it through them, where a pass over every row's columns took 6–14 ms of the bowls'
+    /// bunny's ~120 ms rewrite at 30k patches for ~40–600 scaled columns of 14,000.
     by_src_ptr: Vec<u32>,
     by_src: Vec<[u32; 2]>,
     /// Each term as (√r, weight), √r negated for a W term: the 8 bytes a rebuild reads per
