@@ -123,6 +123,13 @@ async function firstLit(page) {
   await idle(page);
 }
 
+/** Waits for scene `id`'s first frame after a switch: as generous as `firstLit` (CI: the
+ * switch in step 16 passed 30 s while Mitsuba ran beside it). */
+async function sceneLit(page, id) {
+  await page.waitForFunction((id) => window.translux.app.state.scene === id && window.translux.app.radiance,
+    id, { timeout: 90000 });
+}
+
 /** Page rects (CSS pixels) of the visible elements matching `selector`. */
 async function rects(page, selector) {
   return page.$$eval(selector, (els) => els.map((e) => {
@@ -259,7 +266,7 @@ async function checkSignIn(browser) {
   check(options.length === 2 && options[0].text !== options[1].text && options.every((o) => o.text.includes(o.id)),
     `scenes with one name are not told apart in the picker: ${JSON.stringify(options)}`);
   await page.selectOption("#scene", options[1].id);
-  await page.waitForFunction((id) => window.translux.app.state.scene === id && window.translux.app.radiance, options[1].id);
+  await sceneLit(page, options[1].id);
   await idle(page);
   await page.waitForTimeout(400); // the hash is written 250 ms after the last change
   check(/scene=cornell-copy/.test(page.url()) && !page.url().includes(teamToken), `the view's link: ${page.url()}`);
@@ -810,7 +817,7 @@ async function checkTranslucencyNote(browser) {
   await open();
   await waitNote(/^Preparing translucency…/, "staged preparing again");
   await page.selectOption("#scene", "simulated_cube");
-  await page.waitForFunction(() => window.translux.app.state.scene === "simulated_cube" && window.translux.app.radiance);
+  await sceneLit(page, "simulated_cube");
   await page.waitForTimeout(300);
   check(!(await asksWithin(3500)), "after switching scene the viewer still asks for the old scene's detail");
   await context.close();
