@@ -77,16 +77,24 @@ fn u_obj() -> String {
 
 /// The scene file: `object` (a mesh entry) in marble on a floor, in millimetres.
 fn scene(dir: &std::path::Path, object: &str) -> std::path::PathBuf {
+    scene_in(dir, object, 1.0)
+}
+
+/// [`scene`] in scene units of `unit_mm` millimetres: the same floor (140 mm) and lamp
+/// (150 mm up) in those units; `object` is given in them too.
+fn scene_in(dir: &std::path::Path, object: &str, unit_mm: f64) -> std::path::PathBuf {
     std::fs::write(dir.join("u.obj"), u_obj()).unwrap();
     let text = format!(
-        r#"{{"unit_mm": 1,
+        r#"{{"unit_mm": {unit_mm},
            "objects":[
-            {{"name":"floor","mesh":{{"shape":"quad","size":[140,140]}},
+            {{"name":"floor","mesh":{{"shape":"quad","size":[{f},{f}]}},
               "material":{{"type":"diffuse","albedo":[0.5,0.5,0.5]}}}},
             {{"name":"marble","mesh":{object},
               "material":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble"}}}}}}],
-           "lights":[{{"type":"point","position":[0,150,0],"intensity":[1,1,1]}}],
-           "patches":{{"target":2600}}}}"#
+           "lights":[{{"type":"point","position":[0,{h},0],"intensity":[1,1,1]}}],
+           "patches":{{"target":2600}}}}"#,
+        f = 140.0 / unit_mm,
+        h = 150.0 / unit_mm,
     );
     let path = dir.join("scene.json");
     std::fs::write(&path, text).unwrap();
@@ -183,6 +191,22 @@ fn vertices(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>, lights: &[Light]) -> 
     )
 }
 
+/// The vertices of `objects`' triangles, sorted, each once.
+fn object_vertices(b: &Bundle, objects: &[usize]) -> Vec<usize> {
+    let mut verts: Vec<usize> = objects
+        .iter()
+        .flat_map(|&k| {
+            let o = &b.manifest().objects[k];
+            b.triangle_vertices()[o.first_patch as usize..(o.first_patch + o.patch_count) as usize]
+                .iter()
+                .flat_map(|t| t.map(|v| v as usize))
+        })
+        .collect();
+    verts.sort_unstable();
+    verts.dedup();
+    verts
+}
+
 /// Σ_j A_j S_ji / A_i per column i and channel, each link spread over its node's patches;
 /// a node row m (node-to-node links) counts with its node's area A_m.
 fn column_energy(b: &Bundle, s: &translux_proto::csr::Csr<Rgb>) -> Vec<[f64; 3]> {
@@ -270,20 +294,7 @@ fn compare(c: &Case<'_>, seed: u64) {
         "hierarchical S keeps {eh} entries against pairwise {ep}"
     );
     // The objects' vertices, and lights on a circle around the scene's patches.
-    let mut verts: Vec<usize> = c
-        .objects
-        .iter()
-        .flat_map(|&k| {
-            let o = &mp.objects[k];
-            pair.triangle_vertices()
-                [o.first_patch as usize..(o.first_patch + o.patch_count) as usize]
-                .iter()
-                .flat_map(|t| t.map(|v| v as usize))
-                .collect::<Vec<_>>()
-        })
-        .collect();
-    verts.sort_unstable();
-    verts.dedup();
+    let verts = object_vertices(pair, &c.objects);
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     for t in pair.patch_corners() {
         for p in t {
@@ -593,6 +604,15 @@ fn hierarchical_s_matches_pairwise_on_a_u_shaped_object() {
 /// [`u_obj`] winds it), in its own folder under `dir`.
 fn u_variant(dir: &std::path::Path, metres: bool, inward: bool) -> std::path::PathBuf {
     let k = if metres { 1e-3 } else { 1.0 };
+    let sub = dir.join(format!("u-{}-{inward}", if metres { "m" } else { "mm" }));
+    std::fs::create_dir_all(&sub).unwrap();
+    let object = format!(
+        r#""u.obj","transform":{{"translate":[{},0,{}]}}"#,
+        -30.0 * k,
+        -10.0 * k
+    );
+    let path = scene_in(&sub, &object, 1.0 / k);
+    // The OBJ scene_in wrote, scaled and rewound.
     let obj: String = u_obj()
         .lines()
         .map(|l| {
@@ -610,26 +630,7 @@ fn u_variant(dir: &std::path::Path, metres: bool, inward: bool) -> std::path::Pa
             }
         })
         .collect();
-    let sub = dir.join(format!("u-{}-{inward}", if metres { "m" } else { "mm" }));
-    std::fs::create_dir_all(&sub).unwrap();
     std::fs::write(sub.join("u.obj"), obj).unwrap();
-    let text = format!(
-        r#"{{"unit_mm": {},
-           "objects":[
-            {{"name":"floor","mesh":{{"shape":"quad","size":[{f},{f}]}},
-              "material":{{"type":"diffuse","albedo":[0.5,0.5,0.5]}}}},
-            {{"name":"marble","mesh":"u.obj","transform":{{"translate":[{x},0,{z}]}},
-             "material":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble"}}}}}}],
-           "lights":[{{"type":"point","position":[0,{h},0],"intensity":[1,1,1]}}],
-           "patches":{{"target":2600}}}}"#,
-        1.0 / k,
-        f = 140.0 * k,
-        x = -30.0 * k,
-        z = -10.0 * k,
-        h = 150.0 * k,
-    );
-    let path = sub.join("scene.json");
-    std::fs::write(&path, text).unwrap();
     path
 }
 
@@ -650,12 +651,7 @@ fn the_u_in_metres_or_wound_inside_out_lights_as_the_millimetre_u() {
         &dir.path().join("a"),
         true,
     );
-    let o = &a.manifest().objects[1];
-    let verts: std::collections::BTreeSet<usize> = a.triangle_vertices()
-        [o.first_patch as usize..(o.first_patch + o.patch_count) as usize]
-        .iter()
-        .flat_map(|t| t.map(|v| v as usize))
-        .collect();
+    let verts = object_vertices(&a, &[1]);
     let params = SParams::default();
     let lights = |k: f32| {
         vec![
