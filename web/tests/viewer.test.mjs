@@ -758,17 +758,11 @@ async function checkTranslucencyNote(browser) {
   }, null, { timeout: 60000 }).catch(async () => {
     throw new Error(`check failed: ${what}: the note says ${JSON.stringify(await note())}`);
   });
-  /** Whether the viewer asks for the detail again within `ms`, as soon as it does (it polls
-   * every 1.5 s, but under CI load a poll may wait seconds on the server). */
-  const asksAgain = async (ms) => {
-    const n = asked;
-    for (const t0 = Date.now(); asked === n && Date.now() - t0 < ms;) await page.waitForTimeout(100);
-    return asked > n;
-  };
-  /** Whether the viewer asks for the detail again within `ms`. */
+  /** Whether the viewer asks for the detail again within `ms`; true as soon as it does (it
+   * polls every 1.5 s, but under CI load a poll may wait seconds on the server). */
   const asksWithin = async (ms) => {
     const n = asked;
-    await page.waitForTimeout(ms);
+    for (const t0 = Date.now(); asked === n && Date.now() - t0 < ms;) await page.waitForTimeout(100);
     return asked > n;
   };
 
@@ -777,7 +771,7 @@ async function checkTranslucencyNote(browser) {
   await waitNote(/^Preparing translucency…/, "staged preparing");
   out.preparing = (await note()).text;
   await shot(page, "16-translucency-preparing.png");
-  check(await asksAgain(15000), "while preparing, the viewer did not ask for the scene detail again");
+  check(await asksWithin(15000), "while preparing, the viewer did not ask for the scene detail again");
 
   // A change sent before it is ready: the note says the change does the work, until answered.
   const block = await page.evaluate(() => window.translux.app.detail.objects.find((o) => o.material.type === "translucent").name);
