@@ -1603,10 +1603,82 @@ impl ObjectTerms {
                     far[i] = run.map(|v| v as f32);
                 }
             }
+            // As subsurface::add_links: each column's factor as a pairwise S would scale
+            // it, every link to node k scaled by k's patches' area-weighted mean factor
+            // (a node covers a contiguous range of the tree's order: prefix sums), then the
+            // direct entries by that factor, or further where the node's mean left more.
+            let direct: Vec<[f32; 3]> = (0..n)
+                .map(|i| std::array::from_fn(|c| total[i][c] * factor[i][c]))
+                .collect();
+            let pair_factor: Vec<[f32; 3]> = (0..n)
+                .map(|i| std::array::from_fn(|c| 1.0 / (direct[i][c] + far[i][c]).max(1.0)))
+                .collect();
+            let mut mean_factor = vec![[1.0f32; 3]; node_count];
+            if pair_factor.iter().any(|f| *f != [1.0; 3]) {
+                // Σ A_p f_p and Σ A_p over the tree's order, this object's patches only.
+                let mut prefix = Vec::with_capacity(nodes.perm.len() + 1);
+                let mut run = [0.0f64; 4];
+                prefix.push(run);
+                for &p in &nodes.perm {
+                    let i = (p as usize).wrapping_sub(at.start);
+                    if i < n {
+                        for c in 0..3 {
+                            run[c] += area[i] as f64 * pair_factor[i][c] as f64;
+                        }
+                        run[3] += area[i] as f64;
+                    }
+                    prefix.push(run);
+                }
+                for (k, (m, e)) in mean_factor.iter_mut().zip(&node).enumerate() {
+                    if e.iter().all(|&v| v == 0.0) {
+                        continue;
+                    }
+                    let [a, b] = nodes.range[self.links.nodes.start + k];
+                    let (hi, lo) = (prefix[b as usize], prefix[a as usize]);
+                    let den = hi[3] - lo[3];
+                    if den > 0.0 {
+                        *m = std::array::from_fn(|c| ((hi[c] - lo[c]) / den) as f32);
+                    }
+                }
+            }
+            let mut far_kept = far.clone();
+            if mean_factor.iter().any(|m| *m != [1.0; 3]) {
+                let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
+                for (k, (e, m)) in node.iter().zip(&mean_factor).enumerate() {
+                    if e.iter().all(|&v| v == 0.0) {
+                        continue;
+                    }
+                    let [a, b] = nodes.range[self.links.nodes.start + k];
+                    for c in 0..3 {
+                        diff[a as usize][c] += (e[c] * m[c]) as f64;
+                        diff[b as usize][c] -= (e[c] * m[c]) as f64;
+                    }
+                }
+                let mut run = [0.0f64; 3];
+                for (q, &p) in nodes.perm.iter().enumerate() {
+                    for c in 0..3 {
+                        run[c] += diff[q][c];
+                    }
+                    let i = (p as usize).wrapping_sub(at.start);
+                    if i < n {
+                        far_kept[i] = run.map(|v| v as f32);
+                    }
+                }
+                // The links, in every row (a node row holds links alone).
+                let (first, mf) = (at.n + self.links.nodes.start, &mean_factor);
+                rows.par_iter_mut().for_each(|(_, (cols, out))| {
+                    for (o, &c) in out.iter_mut().zip(cols.iter()).rev() {
+                        let Some(m) = (c as usize).checked_sub(first).and_then(|k| mf.get(k))
+                        else {
+                            break; // the direct entries, before the row's links
+                        };
+                        *o = std::array::from_fn(|ch| o[ch] * m[ch]);
+                    }
+                });
+            }
             let mut mean = 0.0f64;
             for i in 0..n {
-                let direct: [f32; 3] = std::array::from_fn(|c| total[i][c] * factor[i][c]);
-                mean += (direct[1] + far[i][1]) as f64;
+                mean += (direct[i][1] + far[i][1]) as f64;
                 if far[i] == [0.0; 3] {
                     continue;
                 }
@@ -1614,10 +1686,11 @@ impl ObjectTerms {
                 // counts again.
                 let mut any = false;
                 for c in 0..3 {
-                    let sum = direct[c] + far[i][c];
+                    let sum = direct[i][c] + far[i][c];
                     report.max_column = report.max_column.max(sum);
-                    if sum > 1.0 && direct[c] > 0.0 {
-                        factor[i][c] *= (1.0 - far[i][c]).max(0.0) / direct[c];
+                    if pair_factor[i][c] < 1.0 && direct[i][c] > 0.0 {
+                        factor[i][c] *=
+                            pair_factor[i][c].min((1.0 - far_kept[i][c]).max(0.0) / direct[i][c]);
                         any = true;
                     }
                 }

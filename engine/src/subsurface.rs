@@ -605,8 +605,13 @@ impl Nodes {
 /// the energy bound on every column with them: patch i's column re-emits
 /// Σ_j A_j S_ji / A_i directly plus, through every node k that holds it,
 /// e_k = Σ_j A_j S_{j,N+k} / A_k (the link spreads node k's mean over its patches by area).
-/// A column over 1 has its direct entries scaled so the sum is 1 (links are shared by a
-/// node's patches, so they are left whole; they are far pairs and carry little).
+/// A pairwise S scales a column over 1 whole, by f_i = 1 / total. A link is shared by its
+/// node's patches, so it is scaled by their area-weighted mean factor m_k, and the column's
+/// direct entries by f_i, or further (to (1 − Σ_k e_k m_k) / direct) where the nodes' means
+/// left more than f_i of the links: every column ends within the bound, and where a node's
+/// patches are alike its column keeps the pairwise column's shape. (Until 2026-12-03 the
+/// links stayed whole and the direct entries took all of the scaling: the more energy a
+/// column's links carried, the more its shape departed from the pairwise column's.)
 pub fn add_links(
     s: &mut ObjectS,
     start: usize,
@@ -650,6 +655,56 @@ pub fn add_links(
             }
         }
     }
+    // The links shared by a node's patches: each column's factor as a pairwise S would
+    // scale it (1 / total past 1), the node's links scaled by its patches' area-weighted
+    // mean factor, and what each node then re-emits.
+    let factor: Vec<[f32; 3]> = (0..local)
+        .map(|i| std::array::from_fn(|c| 1.0 / (direct[i][c] + far[i][c]).max(1.0)))
+        .collect();
+    let mean_factor: Vec<[f32; 3]> = (0..nodes.range.len())
+        .map(|k| {
+            let (mut num, mut den) = ([0.0f64; 3], 0.0f64);
+            if e[k] != [0.0; 3] {
+                for &p in nodes.members(k) {
+                    let i = p as usize - start;
+                    den += area[i] as f64;
+                    for c in 0..3 {
+                        num[c] += area[i] as f64 * factor[i][c] as f64;
+                    }
+                }
+            }
+            std::array::from_fn(|c| {
+                if den > 0.0 {
+                    (num[c] / den) as f32
+                } else {
+                    1.0
+                }
+            })
+        })
+        .collect();
+    let mut links = links;
+    if mean_factor.iter().any(|m| *m != [1.0; 3]) {
+        for row in &mut links {
+            for (col, v) in row.iter_mut() {
+                let m = mean_factor[*col as usize - n];
+                for c in 0..3 {
+                    v[c] *= m[c];
+                }
+            }
+        }
+    }
+    let mut far_kept = vec![[0.0f32; 3]; local];
+    for (k, ek) in e.iter().enumerate() {
+        if ek.iter().all(|&v| v == 0.0) {
+            continue;
+        }
+        for &p in nodes.members(k) {
+            let i = p as usize - start;
+            for c in 0..3 {
+                far_kept[i][c] += ek[c] * mean_factor[k][c];
+            }
+        }
+    }
     let mut scale = vec![[1.0f32; 3]; local];
     let mut scaled = 0usize;
     let mut mean = 0.0f64;
@@ -661,12 +716,14 @@ pub fn add_links(
         }
         let mut any = false;
         for c in 0..3 {
-            let total = direct[i][c] + far[i][c];
-            s.report.max_column = s.report.max_column.max(total);
-            if total > 1.0 && direct[i][c] > 0.0 {
-                scale[i][c] = (1.0 - far[i][c]).max(0.0) / direct[i][c];
+            s.report.max_column = s.report.max_column.max(direct[i][c] + far[i][c]);
+            // Scaled as the pairwise column, or further where its nodes' mean left more.
+            let mut g = 1.0f32;
+            if factor[i][c] < 1.0 && direct[i][c] > 0.0 {
+                g = factor[i][c].min((1.0 - far_kept[i][c]).max(0.0) / direct[i][c]);
                 any = true;
             }
+            scale[i][c] = g;
         }
         scaled += any as usize;
     }

@@ -280,11 +280,14 @@ pub fn s_column_bound(
     reports
 }
 
-/// Twin of `s_node_energy.wgsl` and `s_link_bound.wgsl` (a hierarchical S, after
-/// [`s_column_bound`]): e_k per linked node over its column N + k, then per patch column of
-/// an object with links, far = Σ e_k over the nodes holding it; where direct + far passes 1
-/// (and direct > 0) the direct entries are scaled by max(1 − far, 0) / direct. Columns no
-/// linked node reaches are left alone. Adds to `reports` as the kernel does.
+/// Twin of `s_node_energy.wgsl`, `s_link_bound.wgsl` (both passes) and
+/// `s_link_scale.wgsl` (a hierarchical S, after [`s_column_bound`]): e_k per linked node
+/// over its column N + k; per patch column of an object with links, far = Σ e_k over the
+/// nodes holding it and the factor f = 1 / max(direct + far, 1); per node, its links and
+/// e_k scaled by its patches' area-weighted mean factor; then where f < 1 (and direct > 0)
+/// the direct entries scaled by min(f, max(1 − far, 0) / direct), far the scaled e_k's
+/// sum. Columns no linked node reaches are left alone. Adds to `reports` as the kernels
+/// do.
 pub fn s_link_bound(
     t: &super::subsurface::STemplate,
     val: &mut [Rgb],
@@ -294,7 +297,7 @@ pub fn s_link_bound(
         return;
     }
     let area = |p: usize| t.patches[4 * p][3];
-    let energy: Vec<Rgb> = (0..t.nodes)
+    let mut energy: Vec<Rgb> = (0..t.nodes)
         .map(|k| {
             let c = t.n + k;
             let mut e = [0.0f32; 3];
@@ -307,43 +310,95 @@ pub fn s_link_bound(
             e
         })
         .collect();
-    for i in 0..t.n {
-        if t.patches[4 * i + 2][3] == 0.0 {
-            continue;
-        }
+    let far_of = |i: usize, energy: &[Rgb]| {
         let mut far = [0.0f32; 3];
         for &k in &t.far[t.far[i] as usize..t.far[i + 1] as usize] {
             for ch in 0..3 {
                 far[ch] += energy[k as usize][ch];
             }
         }
-        if far == [0.0; 3] {
-            continue;
-        }
-        let range = t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize;
+        far
+    };
+    let direct_of = |i: usize, val: &[Rgb]| {
         let mut direct = [0.0f32; 3];
-        for &p in &t.perm[range.clone()] {
+        for &p in &t.perm[t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize] {
             let j = t.entries[p as usize][1] as usize;
             for ch in 0..3 {
                 direct[ch] += area(j) * val[p as usize][ch] / area(i);
             }
         }
+        direct
+    };
+    let linked = |i: usize| t.patches[4 * i + 2][3] != 0.0;
+    // First pass: each column's factor.
+    let mut factor = vec![[1.0f32; 3]; t.n];
+    for i in 0..t.n {
+        if !linked(i) {
+            continue;
+        }
+        let far = far_of(i, &energy);
+        if far == [0.0; 3] {
+            continue;
+        }
+        let direct = direct_of(i, val);
         let total: Rgb = std::array::from_fn(|ch| direct[ch] + far[ch]);
         let rep = &mut reports[t.object(i)];
         rep.max_column = rep
             .max_column
             .max(total.iter().cloned().fold(0.0f32, f32::max));
+        factor[i] = total.map(|v| 1.0 / v.max(1.0));
+    }
+    // Each node's links and e_k by its patches' mean factor.
+    let base = t.far[t.n] as usize;
+    for (k, e) in energy.iter_mut().enumerate() {
+        let members = &t.far[t.far[base + k] as usize..t.far[base + k + 1] as usize];
+        let (mut num, mut den) = ([0.0f32; 3], 0.0f32);
+        for &i in members {
+            let a = area(i as usize);
+            for ch in 0..3 {
+                num[ch] += a * factor[i as usize][ch];
+            }
+            den += a;
+        }
+        if den <= 0.0 {
+            continue;
+        }
+        let m = num.map(|v| v / den);
+        if m == [1.0; 3] {
+            continue;
+        }
+        let c = t.n + k;
+        for &p in &t.perm[t.col_ptr[c] as usize..t.col_ptr[c + 1] as usize] {
+            for ch in 0..3 {
+                val[p as usize][ch] *= m[ch];
+            }
+        }
+        for ch in 0..3 {
+            e[ch] *= m[ch];
+        }
+    }
+    // The last pass: the direct entries.
+    for i in 0..t.n {
+        if !linked(i) {
+            continue;
+        }
+        let far = far_of(i, &energy);
+        if far == [0.0; 3] {
+            continue;
+        }
+        let direct = direct_of(i, val);
         let mut scale = [1.0f32; 3];
         let mut any = false;
         for ch in 0..3 {
-            if total[ch] > 1.0 && direct[ch] > 0.0 {
-                scale[ch] = (1.0 - far[ch]).max(0.0) / direct[ch];
+            let f = factor[i][ch];
+            if f < 1.0 && direct[ch] > 0.0 {
+                scale[ch] = f.min((1.0 - far[ch]).max(0.0) / direct[ch]);
                 any = true;
             }
         }
         if any {
-            rep.scaled_columns += 1;
-            for &p in &t.perm[range.clone()] {
+            reports[t.object(i)].scaled_columns += 1;
+            for &p in &t.perm[t.col_ptr[i] as usize..t.col_ptr[i + 1] as usize] {
                 for ch in 0..3 {
                     val[p as usize][ch] *= scale[ch];
                 }

@@ -14,6 +14,7 @@ pub const S_ENTRIES: &str = include_str!("kernels/s_entries.wgsl");
 pub const S_COLUMN_BOUND: &str = include_str!("kernels/s_column_bound.wgsl");
 pub const S_NODE_ENERGY: &str = include_str!("kernels/s_node_energy.wgsl");
 pub const S_LINK_BOUND: &str = include_str!("kernels/s_link_bound.wgsl");
+pub const S_LINK_SCALE: &str = include_str!("kernels/s_link_scale.wgsl");
 
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
@@ -137,7 +138,11 @@ pub struct Kernels {
     pub(crate) s_node_energy: Kernel,
     pub(crate) s_link_bound: Kernel,
     pub(crate) s_node_energy_pipeline: wgpu::ComputePipeline,
+    /// `s_link_bound`'s first pass (FINAL = false: each column's factor), and its last.
+    pub(crate) s_link_factor_pipeline: wgpu::ComputePipeline,
     pub(crate) s_link_bound_pipeline: wgpu::ComputePipeline,
+    pub(crate) s_link_scale: Kernel,
+    pub(crate) s_link_scale_pipeline: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -191,11 +196,22 @@ impl Kernels {
             device,
             "s_link_bound",
             S_LINK_BOUND,
-            &[Read, Read, Read, Read, ReadWrite, ReadWrite, Read, Read],
+            &[
+                Read, Read, Read, Read, ReadWrite, ReadWrite, Read, Read, ReadWrite,
+            ],
+        );
+        let s_link_scale = Kernel::new(
+            device,
+            "s_link_scale",
+            S_LINK_SCALE,
+            &[Read, Read, Read, ReadWrite, ReadWrite, Read, Read],
         );
         Kernels {
             s_node_energy_pipeline: s_node_energy.pipeline(device, &[]),
-            s_link_bound_pipeline: s_link_bound.pipeline(device, &[]),
+            s_link_factor_pipeline: s_link_bound.pipeline(device, &[("FINAL", 0.0)]),
+            s_link_bound_pipeline: s_link_bound.pipeline(device, &[("FINAL", 1.0)]),
+            s_link_scale_pipeline: s_link_scale.pipeline(device, &[]),
+            s_link_scale,
             s_node_energy,
             s_link_bound,
             s_entries_pipeline: s_entries.pipeline(device, &[]),

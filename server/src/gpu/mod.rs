@@ -14,7 +14,8 @@
 //! | `s_entries` | every entry of S from its stored quadrature plan and the profile tables | same name |
 //! | `s_column_bound` | Σ_j A_j S_ji ≤ A_i per column, offending columns scaled | same name |
 //! | `s_node_energy` | a hierarchical S: what each linked node re-emits, e_k | `s_link_bound` |
-//! | `s_link_bound` | a hierarchical S: the bound with the e_k of the nodes holding each patch | same name |
+//! | `s_link_bound` | a hierarchical S: the bound with the e_k of the nodes holding each patch (two passes: each column's factor, then its direct entries) | same name |
+//! | `s_link_scale` | a hierarchical S: each node's links and e_k by its patches' mean factor | `s_link_bound` |
 //!
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage

@@ -24,11 +24,13 @@
 //! `translux_precompute::slinks`) is rebuilt the same way: its links are entries of the
 //! node columns N + k, evaluated as far pairs with the node's area (S_{j,N+k} = A_k R(r);
 //! a link read at two distances, `--s-link-near`, carries its spread σ in an aux row and
-//! reads A_k (R(r − σ) + R(r + σ)) / 2), and two more kernels hold every column to the
+//! reads A_k (R(r − σ) + R(r + σ)) / 2), and more kernels hold every column to the
 //! energy bound with them, as the CPU's `subsurface::add_links` does: `s_node_energy` sums
-//! what each node re-emits (e_k = Σ_j A_j S_{j,N+k} / A_k), and `s_link_bound` adds to each
-//! patch column the e_k of the linked nodes that hold the patch, scaling the column's
-//! direct entries where the sum passes 1.
+//! what each node re-emits (e_k = Σ_j A_j S_{j,N+k} / A_k); `s_link_bound`'s first pass adds
+//! to each patch column the e_k of the linked nodes that hold the patch and takes the
+//! factor a pairwise S would scale the column by (1 / total past 1); `s_link_scale` scales
+//! each node's links (and e_k) by its patches' area-weighted mean factor; the last pass
+//! scales each column's direct entries by its factor, or further where the links left more.
 //!
 //! Heterogeneous objects (eq. 9 over per-medium lengths) are rebuilt on the CPU: [`Plan`]
 //! says so, and the relight reports where S was built (`stats.materials_on`).
@@ -223,7 +225,10 @@ pub struct STemplate {
     /// reads its node's area and object where a pair reads its source patch's.
     pub patches: Vec<[f32; 4]>,
     /// Per patch, the linked nodes that hold it (what `s_link_bound` adds to its column):
-    /// words `far[i]..far[i + 1]` of this same array, nodes ascending; empty without links.
+    /// words `far[i]..far[i + 1]` of this same array, nodes ascending; then, from word
+    /// `far[n]`, per node the patches it holds (what `s_link_scale` averages over): words
+    /// `far[far[n] + k]..far[far[n] + k + 1]`, empty for a node without links. Empty
+    /// without links.
     pub far: Vec<u32>,
     /// The order `s_entries` evaluates the entries in: polar plans, then point plans, then
     /// far pairs and links, then diagonals, so the threads of a warp share a plan's cost
@@ -415,6 +420,7 @@ impl STemplate {
         // Nodes: the tree splits objects apart at its top, so a linked node's patches are
         // one object's (its first patch's).
         let mut far_lists: Vec<Vec<u32>> = vec![Vec::new(); if nodes > 0 { n } else { 0 }];
+        let mut member_lists: Vec<&[u32]> = vec![&[]; nodes];
         if let Some(t) = tree {
             for k in 0..nodes {
                 let members = t.members(k);
@@ -427,6 +433,7 @@ impl STemplate {
                     for &p in members {
                         far_lists[p as usize].push(k as u32);
                     }
+                    member_lists[k] = members;
                 }
             }
         }
@@ -439,6 +446,14 @@ impl STemplate {
                 far.push(at);
             }
             far.extend(far_lists.into_iter().flatten());
+            // far[n] is where the patches' lists end: the nodes' offsets start there.
+            let mut at = far.len() as u32 + nodes as u32 + 1;
+            far.push(at);
+            for l in &member_lists {
+                at += l.len() as u32;
+                far.push(at);
+            }
+            far.extend(member_lists.into_iter().flatten());
         }
         let mut order: Vec<u32> = (0..nnz as u32).collect();
         let rank = |meta: u32| match meta & 3 {
@@ -519,6 +534,7 @@ impl STemplate {
             + alloc_size(4 * nnz)
             + alloc_size(4 * self.far.len().max(1) as u64)
             + alloc_size(12 * self.nodes.max(1) as u64)
+            + alloc_size(12 * self.n.max(1) as u64)
             + alloc_size(4 * nnz)
             + 16
     }
@@ -651,6 +667,8 @@ pub struct GpuSTemplate {
     order: wgpu::Buffer,
     /// e_k per node, written by `s_node_energy` (12 bytes a node).
     node_energy: wgpu::Buffer,
+    /// Each column's factor f between `s_link_bound`'s two passes (12 bytes a patch).
+    factor: wgpu::Buffer,
     /// The read-back buffer of the last rebuild and its size, kept for the next one (a
     /// slider's rebuilds all read the same number of values back).
     read: std::sync::Mutex<Option<(wgpu::Buffer, u64)>>,
@@ -717,13 +735,14 @@ impl GpuSTemplate {
                     storage_init(ctx, what, bytemuck::cast_slice(far)),
                     storage_zeroed(ctx, what, 12 * t.nodes.max(1) as u64),
                     storage_init(ctx, what, bytemuck::cast_slice(&t.order)),
+                    storage_zeroed(ctx, what, 12 * t.n.max(1) as u64),
                 ),
             ))
         });
         match made {
             Ok((
                 (entries, aux, col_ptr, perm, patches),
-                (row_ptr, col, far, node_energy, order),
+                (row_ptr, col, far, node_energy, order, factor),
             )) => Ok(GpuSTemplate {
                 template: t,
                 entries,
@@ -736,6 +755,7 @@ impl GpuSTemplate {
                 far,
                 order,
                 node_energy,
+                factor,
                 read: std::sync::Mutex::new(None),
                 bytes,
             }),
@@ -957,7 +977,9 @@ impl GpuSTemplate {
                 pass.set_bind_group(0, &bg, &[]);
                 pass.dispatch_workgroups(ng.0, ng.1, 1);
                 drop(pass);
-                let bg = k.s_link_bound.bind(
+                // Each column's factor, each node's links by its patches' mean factor,
+                // then the direct entries (the CPU's add_links, step for step).
+                let bound = k.s_link_bound.bind(
                     &ctx.device,
                     &cp,
                     &[
@@ -969,11 +991,35 @@ impl GpuSTemplate {
                         &report,
                         &self.node_energy,
                         &self.far,
+                        &self.factor,
                     ],
                 );
                 let mut pass = enc.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&k.s_link_bound_pipeline);
+                pass.set_pipeline(&k.s_link_factor_pipeline);
+                pass.set_bind_group(0, &bound, &[]);
+                pass.dispatch_workgroups(cg.0, cg.1, 1);
+                drop(pass);
+                let bg = k.s_link_scale.bind(
+                    &ctx.device,
+                    &np,
+                    &[
+                        &self.col_ptr,
+                        &self.perm,
+                        &self.patches,
+                        &val,
+                        &self.node_energy,
+                        &self.far,
+                        &self.factor,
+                    ],
+                );
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_link_scale_pipeline);
                 pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(ng.0, ng.1, 1);
+                drop(pass);
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&k.s_link_bound_pipeline);
+                pass.set_bind_group(0, &bound, &[]);
                 pass.dispatch_workgroups(cg.0, cg.1, 1);
             }
             // The kernels, waited for on their own (so the log can tell them from the
