@@ -81,14 +81,14 @@ struct Cli {
     /// bundle equals `--s-trace all`'s bit for bit.
     #[arg(long)]
     s_exact_links: bool,
-    /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3)
-    /// instead of the quadrature's near field (3 sizes), each link then read at two
-    /// distances (the node's straight-line spread about its representative's optical
-    /// distance). Fewer direct pairs: a translucency change writes fewer entries and the
-    /// subsurface stage takes less time; the bundle can only be rebuilt on the CPU. Off by
-    /// default.
-    #[arg(long)]
-    s_link_near: Option<f32>,
+    /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3,
+    /// default 1.5), each link read at two distances (the node's straight-line spread about
+    /// its representative's optical distance); `off` keeps the quadrature's near field (3
+    /// sizes) with each link read at one distance, as bundles before 2026-12-03. Nearer
+    /// links store fewer direct pairs: a translucency change writes fewer entries and the
+    /// subsurface stage takes less time.
+    #[arg(long, default_value = "1.5", value_parser = link_near)]
+    s_link_near: LinkNear,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -220,6 +220,21 @@ enum SubsurfaceArg {
     Hierarchical,
 }
 
+/// `--s-link-near`: receiver sizes, or None for `off`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct LinkNear(Option<f32>);
+
+/// `--s-link-near K|off`: the range is checked with the other settings of S
+/// (`SLinkParams::check`), so the message is the same from every front end.
+fn link_near(s: &str) -> Result<LinkNear, String> {
+    if s.eq_ignore_ascii_case("off") {
+        return Ok(LinkNear(None));
+    }
+    s.parse::<f32>()
+        .map(|k| LinkNear(Some(k)))
+        .map_err(|_| format!("a number of receiver sizes (1 to 3) or `off`, not {s:?}"))
+}
+
 /// `--transport`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum TransportArg {
@@ -296,7 +311,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 TraceArg::All => Trace::All,
             },
             coarse_links: !cli.s_exact_links,
-            near: cli.s_link_near,
+            near: cli.s_link_near.0,
         }),
     };
     let params = PrecomputeParams {

@@ -94,16 +94,23 @@ pub struct SLinkParams {
     /// `precompute/tests/it/slinks.rs`). Default true; `false` keeps the bundle equal to
     /// `Trace::All`'s bit for bit (`--s-exact-links`).
     pub coarse_links: bool,
-    /// The near field of links, in receiver sizes (`--s-link-near`): None (the default)
-    /// keeps the quadrature's near-pair rule (3 sizes) and reads each link at its
-    /// representative's distance; Some(k), k in [`LINK_NEAR_RANGE`], links nodes from k
-    /// sizes on and reads each link at two distances ([`link_spread`]), so fewer direct
-    /// pairs are stored and a translucency change writes fewer entries.
+    /// The near field of links, in receiver sizes (`--s-link-near`): Some(k), k in
+    /// [`LINK_NEAR_RANGE`], links nodes from k sizes on and reads each link at two
+    /// distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (since 2026-12-03),
+    /// stores half the direct pairs of the quadrature's near-pair rule, so a translucency
+    /// change writes fewer entries. None (`--s-link-near off`) keeps that rule (3 sizes)
+    /// and reads each link at its representative's distance, as bundles did before.
     pub near: Option<f32>,
 }
 
 /// The near fields of links `--s-link-near` accepts, in receiver sizes.
 pub const LINK_NEAR_RANGE: RangeInclusive<f32> = 1.0..=3.0;
+
+/// The default near field of links, in receiver sizes: with links read at two distances and
+/// scaled with their columns by the energy bound, as close to the pairwise S as the 3-size
+/// rule on the test objects (`precompute/tests/it/slinks.rs`), with half the direct pairs
+/// (docs/hierarchy.md).
+pub const DEFAULT_LINK_NEAR: f32 = 1.5;
 
 impl Default for SLinkParams {
     fn default() -> Self {
@@ -111,7 +118,7 @@ impl Default for SLinkParams {
             accuracy: 0.5,
             trace: Trace::Auto,
             coarse_links: true,
-            near: None,
+            near: Some(DEFAULT_LINK_NEAR),
         }
     }
 }

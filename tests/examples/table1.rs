@@ -226,8 +226,13 @@ fn args() -> anyhow::Result<Args> {
             }
             "--s-link-near" => {
                 a.s_auto = false;
-                let k: f32 = it.next().context("--s-link-near K")?.parse()?;
-                a.s_links.get_or_insert_with(SLinkParams::default).near = Some(k);
+                let k = it.next().context("--s-link-near K|off")?;
+                a.s_links.get_or_insert_with(SLinkParams::default).near =
+                    if k.eq_ignore_ascii_case("off") {
+                        None
+                    } else {
+                        Some(k.parse()?)
+                    };
             }
             "--s-exact-links" => {
                 a.s_auto = false;
@@ -238,7 +243,7 @@ fn args() -> anyhow::Result<Args> {
             other => bail!(
                 "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
                  --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface auto|pairwise|hierarchical, \
-                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --s-link-near K, \
+                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --s-link-near K|off, \
                  --keep DIR)"
             ),
         }

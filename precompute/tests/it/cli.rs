@@ -209,13 +209,18 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
         }"#,
     );
     let scene = dir.path().join("scene.json");
-    let links = |extra: &[&str]| {
-        let out = dir.path().join(format!("b{}", extra.len()));
+    let built = |extra: &[&str]| {
+        let out = dir
+            .path()
+            .join(format!("b{}", extra.join("_").replace('-', "")));
         let mut a = vec![scene.to_str().unwrap(), "--out", out.to_str().unwrap()];
         a.extend_from_slice(extra);
         let o = precompute(&a);
         assert!(o.status.success(), "{extra:?}: {}", text(&o));
-        let b = Bundle::open(&out).unwrap();
+        Bundle::open(&out).unwrap()
+    };
+    let links = |extra: &[&str]| {
+        let b = built(extra);
         (
             b.manifest().subsurface.links,
             b.manifest().transfer.is_some(),
@@ -228,6 +233,40 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
     assert_eq!(
         links(&["--transport", "dense", "--subsurface", "auto", "-q"]).0,
         0
+    );
+    // Links from 1.5 receiver sizes, read at two distances, unless `--s-link-near off`
+    // keeps the quadrature's near field of 3 sizes (more direct pairs, no spreads).
+    let direct = |b: &Bundle| b.manifest().subsurface.distance_nnz - b.manifest().subsurface.links;
+    let (near, off) = (built(&["-q"]), built(&["--s-link-near", "OFF", "-q"]));
+    assert_eq!(near.manifest().subsurface.link_near, Some(1.5));
+    assert_eq!(
+        near.distance_spreads().len() as u64,
+        near.manifest().subsurface.distance_nnz
+    );
+    assert_eq!(off.manifest().subsurface.link_near, None);
+    assert!(off.distance_spreads().is_empty());
+    assert!(
+        off.manifest().subsurface.links > 0,
+        "--s-link-near off made no links"
+    );
+    assert!(
+        direct(&near) < direct(&off),
+        "1.5 sizes keep {} direct pairs, 3 sizes {}",
+        direct(&near),
+        direct(&off)
+    );
+    let o = precompute(&[
+        scene.to_str().unwrap(),
+        "--out",
+        dir.path().join("never").to_str().unwrap(),
+        "--s-link-near",
+        "near",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("receiver sizes (1 to 3) or `off`"),
+        "{}",
+        text(&o)
     );
 }
 

@@ -104,16 +104,24 @@ fn scene_in(dir: &std::path::Path, object: &str, unit_mm: f64) -> std::path::Pat
 /// Both ways of a comparison get the same optical distances: on the U from a voxel grid
 /// coarser than the default (0.25 M voxels, ~0.7 mm, instead of 2 M), which keeps its
 /// Dijkstra runs, most of this file's time, short.
+/// With `links`, the hierarchical S of the quadrature's near-pair rule (3 receiver sizes,
+/// each link read at one distance: `--s-link-near off`, the default before 2026-12-03).
 fn build(path: &std::path::Path, out: &std::path::Path, links: bool) -> Bundle {
-    build_with(path, out, links.then(SLinkParams::default))
+    build_with(
+        path,
+        out,
+        links.then(|| SLinkParams {
+            near: None,
+            ..SLinkParams::default()
+        }),
+    )
 }
 
-/// Links from 1.5 receiver sizes on, each read at two distances (`--s-link-near 1.5`).
+/// Links from 1.5 receiver sizes on, each read at two distances: the default.
 fn two_point() -> Option<SLinkParams> {
-    Some(SLinkParams {
-        near: Some(1.5),
-        ..SLinkParams::default()
-    })
+    let p = SLinkParams::default();
+    assert_eq!(p.near, Some(1.5), "links from 1.5 sizes by default");
+    Some(p)
 }
 
 /// [`build`] with a hierarchical S of `links` (pairwise for `None`).
@@ -864,6 +872,7 @@ fn build_traced(path: &std::path::Path, out: &std::path::Path, on_demand: bool) 
                 Trace::All
             },
             coarse_links: false,
+            near: None,
             ..SLinkParams::default()
         }),
     )
@@ -954,6 +963,7 @@ fn coarse_link_runs_keep_the_bunny_within_the_pairwise_bounds() {
         Some(SLinkParams {
             trace: Trace::OnDemand,
             coarse_links,
+            near: None,
             ..SLinkParams::default()
         })
     };

@@ -1170,7 +1170,8 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
 
 /// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
 /// the near field), precomputed into `out` with a hierarchical S at `patches`, its links'
-/// near field `near` receiver sizes (`--s-link-near`; None: the default).
+/// near field `near` receiver sizes (`--s-link-near`; None: 3 sizes, each link read at one
+/// distance, `--s-link-near off`).
 fn hierarchical_cornell(
     out: &std::path::Path,
     patches: u64,
