@@ -1581,28 +1581,34 @@ impl ObjectTerms {
             // e_k = Σ_j A_j R(r_jk) (node k's column re-emits e_k over each of its patches
             // by area), spread over its members: a node covers a contiguous range of the
             // tree's order, so one difference array over that order adds every e_k.
-            let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
-            for (k, e) in node.iter().enumerate() {
-                if e.iter().all(|&v| v == 0.0) {
-                    continue;
+            // Σ over the nodes holding each patch of e_k × w_k: one difference array.
+            let spread = |w: &dyn Fn(usize) -> [f32; 3]| {
+                let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
+                for (k, e) in node.iter().enumerate() {
+                    if e.iter().all(|&v| v == 0.0) {
+                        continue;
+                    }
+                    let [a, b] = nodes.range[self.links.nodes.start + k];
+                    let wk = w(k);
+                    for c in 0..3 {
+                        diff[a as usize][c] += (e[c] * wk[c]) as f64;
+                        diff[b as usize][c] -= (e[c] * wk[c]) as f64;
+                    }
                 }
-                let [a, b] = nodes.range[self.links.nodes.start + k];
-                for c in 0..3 {
-                    diff[a as usize][c] += e[c] as f64;
-                    diff[b as usize][c] -= e[c] as f64;
+                let mut out = vec![[0.0f32; 3]; n];
+                let mut run = [0.0f64; 3];
+                for (q, &p) in nodes.perm.iter().enumerate() {
+                    for c in 0..3 {
+                        run[c] += diff[q][c];
+                    }
+                    let i = (p as usize).wrapping_sub(at.start);
+                    if i < n {
+                        out[i] = run.map(|v| v as f32);
+                    }
                 }
-            }
-            let mut far = vec![[0.0f32; 3]; n];
-            let mut run = [0.0f64; 3];
-            for (q, &p) in nodes.perm.iter().enumerate() {
-                for c in 0..3 {
-                    run[c] += diff[q][c];
-                }
-                let i = (p as usize).wrapping_sub(at.start);
-                if i < n {
-                    far[i] = run.map(|v| v as f32);
-                }
-            }
+                out
+            };
+            let far = spread(&|_| [1.0; 3]);
             // As subsurface::add_links: each column's factor as a pairwise S would scale
             // it, every link to node k scaled by k's patches' area-weighted mean factor
             // (a node covers a contiguous range of the tree's order: prefix sums), then the
@@ -1643,27 +1649,7 @@ impl ObjectTerms {
             }
             let mut far_kept = far.clone();
             if mean_factor.iter().any(|m| *m != [1.0; 3]) {
-                let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
-                for (k, (e, m)) in node.iter().zip(&mean_factor).enumerate() {
-                    if e.iter().all(|&v| v == 0.0) {
-                        continue;
-                    }
-                    let [a, b] = nodes.range[self.links.nodes.start + k];
-                    for c in 0..3 {
-                        diff[a as usize][c] += (e[c] * m[c]) as f64;
-                        diff[b as usize][c] -= (e[c] * m[c]) as f64;
-                    }
-                }
-                let mut run = [0.0f64; 3];
-                for (q, &p) in nodes.perm.iter().enumerate() {
-                    for c in 0..3 {
-                        run[c] += diff[q][c];
-                    }
-                    let i = (p as usize).wrapping_sub(at.start);
-                    if i < n {
-                        far_kept[i] = run.map(|v| v as f32);
-                    }
-                }
+                far_kept = spread(&|k| mean_factor[k]);
                 // The links, in every row (a node row holds links alone).
                 let (first, mf) = (at.n + self.links.nodes.start, &mean_factor);
                 rows.par_iter_mut().for_each(|(_, (cols, out))| {

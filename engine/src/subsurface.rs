@@ -634,18 +634,24 @@ pub fn add_links(
             }
         }
     }
-    let mut far = vec![[0.0f32; 3]; local];
-    for (k, ek) in e.iter().enumerate() {
-        if ek.iter().all(|&v| v == 0.0) {
-            continue;
-        }
-        for &p in nodes.members(k) {
-            let i = p as usize - start;
-            for c in 0..3 {
-                far[i][c] += ek[c];
+    // Σ over the nodes holding each patch of e_k × w_k.
+    let spread = |w: &dyn Fn(usize) -> [f32; 3]| {
+        let mut out = vec![[0.0f32; 3]; local];
+        for (k, ek) in e.iter().enumerate() {
+            if ek.iter().all(|&v| v == 0.0) {
+                continue;
+            }
+            let wk = w(k);
+            for &p in nodes.members(k) {
+                let i = p as usize - start;
+                for c in 0..3 {
+                    out[i][c] += ek[c] * wk[c];
+                }
             }
         }
-    }
+        out
+    };
+    let far = spread(&|_| [1.0; 3]);
     // Direct column sums (already bounded by 1 each).
     let mut direct = vec![[0.0f32; 3]; local];
     for (j, row) in s.rows.iter().enumerate() {
@@ -693,18 +699,7 @@ pub fn add_links(
             }
         }
     }
-    let mut far_kept = vec![[0.0f32; 3]; local];
-    for (k, ek) in e.iter().enumerate() {
-        if ek.iter().all(|&v| v == 0.0) {
-            continue;
-        }
-        for &p in nodes.members(k) {
-            let i = p as usize - start;
-            for c in 0..3 {
-                far_kept[i][c] += ek[c] * mean_factor[k][c];
-            }
-        }
-    }
+    let far_kept = spread(&|k| mean_factor[k]);
     let mut scale = vec![[1.0f32; 3]; local];
     let mut scaled = 0usize;
     let mut mean = 0.0f64;
