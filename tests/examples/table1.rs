@@ -60,6 +60,13 @@ use translux_proto::scene::{
 use translux_server::backend::{Backend, BackendChoice};
 use translux_tests::{mitsuba, scans};
 
+/// What `--help` prints, and an unknown flag's error after it.
+const USAGE: &str = "usage: table1 [--quick | --full] [--scenes cornell,bowls,flower,horses,cornell_simulated,gallop] \
+[--backend auto|cpu|gpu] [--no-mitsuba] [--reps N] [--out DIR] [--t-max N] \
+[--subsurface auto|pairwise|hierarchical] [--s-accuracy X] [--s-trace auto|on-demand|all] \
+[--s-exact-links] [--s-link-near K|off] [--keep DIR]
+(flags: docs/benchmarks.md, or this example's top comment)";
+
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
 #[derive(Debug, Clone, Serialize)]
 struct Paper {
@@ -240,12 +247,11 @@ fn args() -> anyhow::Result<Args> {
                     .get_or_insert_with(SLinkParams::default)
                     .coarse_links = false;
             }
-            other => bail!(
-                "unknown argument {other:?} (--quick, --full, --scenes a,b, --backend auto|cpu|gpu, \
-                 --no-mitsuba, --reps N, --out DIR, --t-max N, --subsurface auto|pairwise|hierarchical, \
-                 --s-accuracy X, --s-trace auto|on-demand|all, --s-exact-links, --s-link-near K|off, \
-                 --keep DIR)"
-            ),
+            "--help" | "-h" => {
+                println!("{USAGE}");
+                std::process::exit(0);
+            }
+            other => bail!("unknown argument {other:?}\n{USAGE}"),
         }
     }
     if a.quick && a.full {
