@@ -353,21 +353,9 @@ impl Scatter for LinkedScatter<'_> {
         SparseScatter(self.s).apply_multi(&pulled.values, y, ch);
         if self.has_node_rows() {
             let n = self.tree.view.perm.len();
-            let mut node_y = vec![0.0f32; self.tree.view.range.len() * ch];
-            let x = &pulled.values;
-            node_y
-                .par_chunks_mut(ch)
-                .with_min_len(64)
-                .enumerate()
-                .for_each(|(k, yk)| {
-                    let (cols, vals) = self.s.row(n + k);
-                    for (&i, v) in cols.iter().zip(vals) {
-                        let xi = &x[i as usize * ch..(i as usize + 1) * ch];
-                        for c in 0..ch {
-                            yk[c] += v[c % 3] * xi[c];
-                        }
-                    }
-                });
+            let m = self.tree.view.range.len();
+            let mut node_y = vec![0.0f32; m * ch];
+            crate::linalg::scatter_rows(&self.s, n..n + m, &pulled.values, ch, &mut node_y);
             self.push(&node_y, y, ch);
         }
     }
