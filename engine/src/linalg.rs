@@ -16,20 +16,7 @@ pub type Rgb = [f32; 3];
 
 /// y = F x for RGB vectors: one pass over F serves all three channels.
 pub fn spmv_rgb(f: &CsrView<'_>, x: &[Rgb], y: &mut [Rgb]) {
-    y.par_iter_mut()
-        .with_min_len(64)
-        .enumerate()
-        .for_each(|(i, yi)| {
-            let (cols, vals) = f.row(i);
-            let mut acc = [0.0f32; 3];
-            for (&j, &v) in cols.iter().zip(vals) {
-                let xj = &x[j as usize];
-                acc[0] += v * xj[0];
-                acc[1] += v * xj[1];
-                acc[2] += v * xj[2];
-            }
-            *yi = acc;
-        });
+    spmv_lanes::<1>(f, bytemuck::cast_slice(x), bytemuck::cast_slice_mut(y));
 }
 
 /// The scattering operator S: what exitance each patch sends out per unit irradiance.
@@ -114,18 +101,14 @@ impl Scatter for SparseScatter<'_> {
 pub fn spmv_multi(f: &CsrView<'_>, x: &[f32], y: &mut [f32], ch: usize) {
     // Fixed widths unroll and vectorise; batches of up to 8 RGB systems.
     match ch {
-        3 => {
-            let (x3, y3): (&[[f32; 3]], &mut [[f32; 3]]) =
-                (bytemuck::cast_slice(x), bytemuck::cast_slice_mut(y));
-            spmv_rgb(f, x3, y3);
-        }
-        6 => spmv_fixed::<6>(f, x, y),
-        9 => spmv_fixed::<9>(f, x, y),
-        12 => spmv_fixed::<12>(f, x, y),
-        15 => spmv_fixed::<15>(f, x, y),
-        18 => spmv_fixed::<18>(f, x, y),
-        21 => spmv_fixed::<21>(f, x, y),
-        24 => spmv_fixed::<24>(f, x, y),
+        3 => spmv_lanes::<1>(f, x, y),
+        6 => spmv_lanes::<2>(f, x, y),
+        9 => spmv_lanes::<3>(f, x, y),
+        12 => spmv_lanes::<4>(f, x, y),
+        15 => spmv_lanes::<5>(f, x, y),
+        18 => spmv_lanes::<6>(f, x, y),
+        21 => spmv_lanes::<7>(f, x, y),
+        24 => spmv_lanes::<8>(f, x, y),
         _ => y
             .par_chunks_mut(ch)
             .with_min_len(64)
@@ -185,12 +168,8 @@ fn scatter_lanes<const G: usize>(
     h: &[f32],
     y: &mut [f32],
 ) {
-    let ch = 3 * G;
-    let lanes: Vec<[f32x4; G]> = h
-        .par_chunks_exact(ch)
-        .map(|c| std::array::from_fn(|g| f32x4::from([c[3 * g], c[3 * g + 1], c[3 * g + 2], 0.0])))
-        .collect();
-    y.par_chunks_exact_mut(ch)
+    let lanes = rgb_lanes::<G>(h);
+    y.par_chunks_exact_mut(3 * G)
         .with_min_len(64)
         .enumerate()
         .for_each(|(k, yj)| {
@@ -209,23 +188,35 @@ fn scatter_lanes<const G: usize>(
         });
 }
 
-fn spmv_fixed<const CH: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {
-    let (xs, ys): (&[[f32; CH]], &mut [[f32; CH]]) =
-        (x.as_chunks::<CH>().0, y.as_chunks_mut::<CH>().0);
-    ys.par_iter_mut()
+/// y = F x for `G` RGB systems: x laid out once as G 4-lane vectors per column (as
+/// [`scatter_lanes`]), each of F's values multiplying all G; each channel's sum the scalar
+/// loop's, term by term (the same bits).
+fn spmv_lanes<const G: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {
+    let lanes = rgb_lanes::<G>(x);
+    y.par_chunks_exact_mut(3 * G)
         .with_min_len(64)
         .enumerate()
         .for_each(|(i, yi)| {
             let (cols, vals) = f.row(i);
-            let mut acc = [0.0f32; CH];
+            let mut acc = [f32x4::ZERO; G];
             for (&j, &v) in cols.iter().zip(vals) {
-                let xj = &xs[j as usize];
-                for c in 0..CH {
-                    acc[c] += v * xj[c];
+                let v = f32x4::splat(v);
+                let xj = &lanes[j as usize];
+                for g in 0..G {
+                    acc[g] += v * xj[g];
                 }
             }
-            *yi = acc;
+            for (out, a) in yi.chunks_exact_mut(3).zip(acc) {
+                out.copy_from_slice(&a.to_array()[..3]);
+            }
         });
+}
+
+/// `3 G` channels per column as G 4-lane vectors (RGB in lanes 0–2, lane 3 zero).
+fn rgb_lanes<const G: usize>(h: &[f32]) -> Vec<[f32x4; G]> {
+    h.par_chunks_exact(3 * G)
+        .map(|c| std::array::from_fn(|g| f32x4::from([c[3 * g], c[3 * g + 1], c[3 * g + 2], 0.0])))
+        .collect()
 }
 
 #[cfg(test)]
@@ -233,11 +224,11 @@ mod tests {
     use super::*;
     use translux_proto::csr::CsrBuilder;
 
-    /// S's product in lanes ([`scatter_rows`]) equals the scalar loop bit for bit, for 1 to
-    /// 9 RGB systems (9: the loop without lanes) and over rows that start past 0 (a hierarchical
-    /// S's node rows).
+    /// S's and F's products in lanes ([`scatter_rows`], [`spmv_multi`]) equal the scalar
+    /// loop bit for bit, for 1 to 9 RGB systems (9: the loop without lanes), S's also over
+    /// rows that start past 0 (a hierarchical S's node rows).
     #[test]
-    fn scatter_in_lanes_equals_the_scalar_loop_bit_for_bit() {
+    fn products_in_lanes_equal_the_scalar_loop_bit_for_bit() {
         // A small xorshift: values spread over decades, signs mixed.
         let mut state = 0x9e37_79b9_7f4a_7c15u64;
         let mut next = move || {
@@ -282,6 +273,29 @@ mod tests {
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&got), bits(&want), "{groups} systems from row {first}");
             }
+            // F's product likewise, on a scalar matrix of the same pattern (square: its
+            // columns are the rows of x).
+            let mut fb = CsrBuilder::<f32>::new(cols);
+            for j in 0..cols {
+                let (cs, vs) = s.row(j % rows);
+                let row: Vec<(u32, f32)> = cs.iter().zip(vs).map(|(&c, v)| (c, v[j % 3])).collect();
+                fb.push_row(&row).unwrap();
+            }
+            let f = fb.finish();
+            let f = f.view().unwrap();
+            let mut want = vec![0.0f32; cols * ch];
+            for (i, yi) in want.chunks_exact_mut(ch).enumerate() {
+                let (cs, vs) = f.row(i);
+                for (&j, &v) in cs.iter().zip(vs) {
+                    for c in 0..ch {
+                        yi[c] += v * h[j as usize * ch + c];
+                    }
+                }
+            }
+            let mut got = vec![f32::NAN; cols * ch];
+            spmv_multi(&f, &h, &mut got, ch);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got), bits(&want), "F with {groups} systems");
         }
     }
 }
