@@ -8,7 +8,7 @@
 use std::ops::Range;
 
 use rayon::prelude::*;
-use translux_proto::csr::CsrView;
+use translux_proto::csr::{CsrValue, CsrView};
 use wide::f32x4;
 
 /// RGB triple.
@@ -90,7 +90,8 @@ impl Scatter for SparseScatter<'_> {
         self.apply_multi(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y), 3);
     }
     fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
-        scatter_rows(&self.0, 0..y.len() / ch.max(1), h, ch, y);
+        let rows = 0..y.len() / ch.max(1);
+        scatter_rows(&self.0, h, ch, &mut [(rows, y)]);
     }
     fn diagonal(&self) -> Option<&[Rgb]> {
         None
@@ -126,87 +127,92 @@ pub fn spmv_multi(f: &CsrView<'_>, x: &[f32], y: &mut [f32], ch: usize) {
     }
 }
 
-/// y = S h over S's `rows` (y's row k is S's row `rows.start + k`) for `ch` channels per
-/// column (channel c uses S's colour c % 3): one pass over those rows for every channel.
-/// Up to 8 RGB systems (`ch` ≤ 24) go through [`scatter_lanes`].
-pub fn scatter_rows(s: &CsrView<'_, Rgb>, rows: Range<usize>, h: &[f32], ch: usize, y: &mut [f32]) {
+/// y = S h for `ch` channels per column (channel c uses S's colour c % 3), for each part
+/// (`rows`, y): y's row k is S's row `rows.start + k` (a hierarchical S's patch rows and
+/// node rows are two parts of one product). Up to 8 RGB systems (`ch` ≤ 24) go through
+/// [`product_lanes`], h laid out in lanes once for every part.
+pub fn scatter_rows(
+    s: &CsrView<'_, Rgb>,
+    h: &[f32],
+    ch: usize,
+    parts: &mut [(Range<usize>, &mut [f32])],
+) {
     match ch {
-        3 => scatter_lanes::<1>(s, rows, h, y),
-        6 => scatter_lanes::<2>(s, rows, h, y),
-        9 => scatter_lanes::<3>(s, rows, h, y),
-        12 => scatter_lanes::<4>(s, rows, h, y),
-        15 => scatter_lanes::<5>(s, rows, h, y),
-        18 => scatter_lanes::<6>(s, rows, h, y),
-        21 => scatter_lanes::<7>(s, rows, h, y),
-        24 => scatter_lanes::<8>(s, rows, h, y),
-        _ => y
-            .par_chunks_mut(ch.max(1))
-            .with_min_len(64)
-            .enumerate()
-            .for_each(|(k, yj)| {
-                yj.fill(0.0);
-                let (cols, vals) = s.row(rows.start + k);
-                for (&i, v) in cols.iter().zip(vals) {
-                    let hi = &h[i as usize * ch..(i as usize + 1) * ch];
-                    for c in 0..ch {
-                        yj[c] += v[c % 3] * hi[c];
-                    }
-                }
-            }),
+        3 => scatter_lanes::<1>(s, h, parts),
+        6 => scatter_lanes::<2>(s, h, parts),
+        9 => scatter_lanes::<3>(s, h, parts),
+        12 => scatter_lanes::<4>(s, h, parts),
+        15 => scatter_lanes::<5>(s, h, parts),
+        18 => scatter_lanes::<6>(s, h, parts),
+        21 => scatter_lanes::<7>(s, h, parts),
+        24 => scatter_lanes::<8>(s, h, parts),
+        _ => {
+            for (rows, y) in parts.iter_mut() {
+                y.par_chunks_mut(ch.max(1))
+                    .with_min_len(64)
+                    .enumerate()
+                    .for_each(|(k, yj)| {
+                        yj.fill(0.0);
+                        let (cols, vals) = s.row(rows.start + k);
+                        for (&i, v) in cols.iter().zip(vals) {
+                            let hi = &h[i as usize * ch..(i as usize + 1) * ch];
+                            for c in 0..ch {
+                                yj[c] += v[c % 3] * hi[c];
+                            }
+                        }
+                    });
+            }
+        }
     }
 }
 
-/// [`scatter_rows`] for `G` RGB systems: each column's h laid out once as G 4-lane vectors
-/// (RGB in lanes 0–2, lane 3 zero), so an entry is G multiplies and adds of 4 lanes with
-/// S's value (`wide`, stable Rust). Each channel's sum is the scalar loop's, term by term
-/// in the row's order (a multiply, then an add): the same bits. The scalar loop over 9
-/// channels (a translucency change's one pass for S E, S F x₀ and S F x₋₁) took 14–21 ms
-/// on the bowls at 30k, twice its 3 channels' 7.5 ms.
+/// [`scatter_rows`] for `G` RGB systems: S's RGB value in lanes 0–2.
 fn scatter_lanes<const G: usize>(
     s: &CsrView<'_, Rgb>,
-    rows: Range<usize>,
     h: &[f32],
-    y: &mut [f32],
+    parts: &mut [(Range<usize>, &mut [f32])],
 ) {
     let lanes = rgb_lanes::<G>(h);
-    y.par_chunks_exact_mut(3 * G)
-        .with_min_len(64)
-        .enumerate()
-        .for_each(|(k, yj)| {
-            let (cols, vals) = s.row(rows.start + k);
-            let mut acc = [f32x4::ZERO; G];
-            for (&i, v) in cols.iter().zip(vals) {
-                let v = f32x4::from([v[0], v[1], v[2], 0.0]);
-                let hi = &lanes[i as usize];
-                for g in 0..G {
-                    acc[g] += v * hi[g];
-                }
-            }
-            for (out, a) in yj.chunks_exact_mut(3).zip(acc) {
-                out.copy_from_slice(&a.to_array()[..3]);
-            }
+    for (rows, y) in parts.iter_mut() {
+        product_lanes(s, rows.start, &lanes, y, |v| {
+            f32x4::from([v[0], v[1], v[2], 0.0])
         });
+    }
 }
 
-/// y = F x for `G` RGB systems: x laid out once as G 4-lane vectors per column (as
-/// [`scatter_lanes`]), each of F's values multiplying all G; each channel's sum the scalar
-/// loop's, term by term (the same bits).
+/// y = F x for `G` RGB systems: each of F's values in every lane.
 fn spmv_lanes<const G: usize>(f: &CsrView<'_>, x: &[f32], y: &mut [f32]) {
-    let lanes = rgb_lanes::<G>(x);
+    product_lanes(f, 0, &rgb_lanes::<G>(x), y, |&v| f32x4::splat(v));
+}
+
+/// y = M x for `G` RGB systems over M's rows from `first` (y's row k is M's row `first +
+/// k`), x given as G 4-lane vectors per column ([`rgb_lanes`]) and each of M's values as 4
+/// lanes by `value`: an entry is G multiplies and adds of 4 lanes (`wide`, stable Rust).
+/// Each channel's sum is the scalar loop's, term by term in the row's order (a multiply,
+/// then an add): the same bits. The scalar loop over 9 channels (a translucency change's
+/// one pass for S E, S F x₀ and S F x₋₁) took 14–24 ms on the bowls at 30k, twice its 3
+/// channels' 7.5 ms; in lanes it takes 11–13 ms.
+fn product_lanes<const G: usize, T: CsrValue + Sync>(
+    m: &CsrView<'_, T>,
+    first: usize,
+    lanes: &[[f32x4; G]],
+    y: &mut [f32],
+    value: impl Fn(&T) -> f32x4 + Sync,
+) {
     y.par_chunks_exact_mut(3 * G)
         .with_min_len(64)
         .enumerate()
-        .for_each(|(i, yi)| {
-            let (cols, vals) = f.row(i);
+        .for_each(|(k, yk)| {
+            let (cols, vals) = m.row(first + k);
             let mut acc = [f32x4::ZERO; G];
-            for (&j, &v) in cols.iter().zip(vals) {
-                let v = f32x4::splat(v);
-                let xj = &lanes[j as usize];
+            for (&i, v) in cols.iter().zip(vals) {
+                let v = value(v);
+                let xi = &lanes[i as usize];
                 for g in 0..G {
-                    acc[g] += v * xj[g];
+                    acc[g] += v * xi[g];
                 }
             }
-            for (out, a) in yi.chunks_exact_mut(3).zip(acc) {
+            for (out, a) in yk.chunks_exact_mut(3).zip(acc) {
                 out.copy_from_slice(&a.to_array()[..3]);
             }
         });
@@ -269,9 +275,20 @@ mod tests {
                     }
                 }
                 let mut got = vec![f32::NAN; rows.len() * ch];
-                scatter_rows(&s, rows, &h, ch, &mut got);
+                scatter_rows(&s, &h, ch, &mut [(rows, &mut got)]);
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&got), bits(&want), "{groups} systems from row {first}");
+                // The same rows as two parts of one product.
+                let (mut a, mut b) = (vec![f32::NAN; 7 * ch], vec![f32::NAN; got.len() - 7 * ch]);
+                let split = first + 7;
+                scatter_rows(
+                    &s,
+                    &h,
+                    ch,
+                    &mut [(first..split, &mut a), (split..s.n_rows(), &mut b)],
+                );
+                a.extend_from_slice(&b);
+                assert_eq!(bits(&a), bits(&want), "{groups} systems in two parts");
             }
             // F's product likewise, on a scalar matrix of the same pattern (square: its
             // columns are the rows of x).

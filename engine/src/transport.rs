@@ -349,13 +349,23 @@ impl Scatter for LinkedScatter<'_> {
     fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
         let mut pulled = Pulled::default();
         self.tree.pull(h, ch, &mut pulled);
-        // The patch rows (a product fills as many rows as `y` holds).
-        SparseScatter(self.s).apply_multi(&pulled.values, y, ch);
-        if self.has_node_rows() {
-            let n = self.tree.view.perm.len();
-            let m = self.tree.view.range.len();
-            let mut node_y = vec![0.0f32; m * ch];
-            crate::linalg::scatter_rows(&self.s, n..n + m, &pulled.values, ch, &mut node_y);
+        // The patch rows (a product fills as many rows as `y` holds), and the node rows
+        // pushed to their patches after: one product, the pulled values laid out once.
+        let n = self.tree.view.perm.len();
+        let m = if self.has_node_rows() {
+            self.tree.view.range.len()
+        } else {
+            0
+        };
+        let mut node_y = vec![0.0f32; m * ch];
+        let patch_rows = 0..y.len() / ch.max(1);
+        crate::linalg::scatter_rows(
+            &self.s,
+            &pulled.values,
+            ch,
+            &mut [(patch_rows, &mut *y), (n..n + m, &mut node_y)],
+        );
+        if m > 0 {
             self.push(&node_y, y, ch);
         }
     }
