@@ -149,6 +149,9 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         }
     };
     let mut scratch = Scratch::default();
+    // The energy bound's column factors, left out of S's values as a scene's slider
+    // leaves them (`smatrix::rewrite_with_terms_deferred`).
+    let mut columns = smatrix::ColumnScale::default();
     let (mut before, mut times) = (first, Vec::new());
     println!("\n| step | scale | ms | ms per object | entries |\n|---|---|---|---|---|");
     for k in 0..steps {
@@ -160,9 +163,10 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         };
         let start = Instant::now();
         let reports;
-        (s, reports) = match smatrix::rewrite_with_terms(
+        (s, reports) = match smatrix::rewrite_with_terms_deferred(
             bundle,
             s,
+            &mut columns,
             &mut None,
             &after,
             &changed,
@@ -191,9 +195,16 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
         before = after;
     }
     times.sort_by(f64::total_cmp);
-    // FNV-1a over the bits of S's values after the last step: equal between two builds
-    // when they write the same S bit for bit.
-    let hash = s
+    // FNV-1a over the bits of S's values (scaled by the column factors) after the last
+    // step: equal between two builds when they write the same S bit for bit.
+    let scaled = match columns.apply(s.clone()) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("S's column factors: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let hash = scaled
         .view()
         .val()
         .iter()
@@ -208,7 +219,7 @@ fn slider(bundle: &Bundle, params: &SParams, terms: &STerms, steps: u32) -> Exit
     );
     // S̃'s products as the solver makes them (3 RGB right-hand sides at once).
     let view = s.view();
-    let op = transport::subsurface_operator(bundle, view);
+    let op = transport::subsurface_operator_scaled(bundle, view, columns.factors());
     let n = bundle.patch_areas().len();
     let h: Vec<f32> = (0..n * 9).map(|i| (i % 7) as f32 * 0.1).collect();
     let mut y = vec![0.0f32; n * 9];

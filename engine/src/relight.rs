@@ -740,11 +740,11 @@ fn transport(
         Some(m) => (m.albedo.as_slice(), m.emission.as_slice()),
         None => (b.patch_albedo(), b.patch_emission()),
     };
-    let s_view = match &first.materials {
-        Some(m) => m.s_view(),
-        None => b.subsurface(),
+    let (s_view, columns) = match &first.materials {
+        Some(m) => m.s_parts(),
+        None => (b.subsurface(), None),
     };
-    let s = crate::transport::subsurface_operator(b, s_view);
+    let s = crate::transport::subsurface_operator_scaled(b, s_view, columns);
     let s = s.as_ref();
     let p = Albedo(albedo);
     let f = Transport::of(b);

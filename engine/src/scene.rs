@@ -25,7 +25,9 @@ use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
 use crate::radiosity::Rgb;
 use crate::raycast::Occluder;
-use crate::smatrix::{self, OverrideMaterials, SParams, material_albedo_emission, patch_albedo};
+use crate::smatrix::{
+    self, ColumnScale, OverrideMaterials, SParams, material_albedo_emission, patch_albedo,
+};
 use crate::sterms::{STerms, Scratch};
 use crate::vertexlight::{VertexLit, VertexSamples};
 
@@ -105,11 +107,11 @@ impl Scene {
             return Ok(Some((m.clone(), false)));
         }
         let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
-        let (s, built_on, in_place) = match self.rewrite_last(&key, overrides) {
+        let ((values, columns), built_on, in_place) = match self.rewrite_last(&key, overrides) {
             Some(s) => (s.map_err(invalid)?, "cpu", true),
             None => {
                 let (s, on) = self.build_s(&key, overrides)?;
-                (s, on, false)
+                ((s, ColumnScale::default()), on, false)
             }
         };
         let mut albedo = self.bundle.patch_albedo().to_vec();
@@ -131,7 +133,8 @@ impl Scene {
         let m = Arc::new(OverrideMaterials {
             key: key.clone(),
             overrides: overrides.to_vec(),
-            s,
+            values,
+            columns,
             albedo,
             emission,
             built_on,
@@ -295,12 +298,13 @@ impl Scene {
     /// [`smatrix::changed_profiles`]): the last S with those objects' values rewritten in
     /// place, taken from the cache (copied only while a relight still holds it), and the
     /// simulated objects' lamp tilt with them (kept under `key` for [`Scene::tilt_for`]).
-    /// `None` when S must be built afresh.
+    /// S comes as its values and the energy bound's column factors
+    /// ([`smatrix::rewrite_with_terms_deferred`]). `None` when S must be built afresh.
     fn rewrite_last(
         &self,
         key: &str,
         overrides: &[(usize, Material)],
-    ) -> Option<Result<ValidCsr<[f32; 3]>, smatrix::SError>> {
+    ) -> Option<Result<smatrix::ScaledS, smatrix::SError>> {
         let terms = self.s_terms.get()?;
         let (last, changed, tilt) = {
             let mut cache = self.material_cache.lock().ok()?;
@@ -334,9 +338,9 @@ impl Scene {
             };
             (m, changed, tilt)
         };
-        let s = match Arc::try_unwrap(last) {
-            Ok(m) => m.s,
-            Err(shared) => shared.s.clone(),
+        let (s, mut columns) = match Arc::try_unwrap(last) {
+            Ok(m) => (m.values, m.columns),
+            Err(shared) => (shared.values.clone(), shared.columns.clone()),
         };
         let params = SParams::default();
         let mut scratch = self.s_scratch.lock().unwrap_or_else(|p| p.into_inner());
@@ -348,9 +352,10 @@ impl Scene {
             }) => (Some(delta), Some((ranges, frames))),
             None => (None, None),
         };
-        let written = smatrix::rewrite_with_terms(
+        let written = smatrix::rewrite_with_terms_deferred(
             &self.bundle,
             s,
+            &mut columns,
             &mut delta,
             overrides,
             &changed,
@@ -369,7 +374,7 @@ impl Scene {
             }
         }
         match written {
-            Ok((s, _)) => Some(Ok(s)),
+            Ok((s, _)) => Some(Ok((s, columns))),
             Err(e @ smatrix::SError::Pattern { .. }) => {
                 tracing::warn!(scene = %self.id, "S built again: {e}");
                 None
@@ -531,8 +536,9 @@ impl Scene {
             .ok()
             .and_then(|c| {
                 c.as_ref().map(|(_, m)| {
-                    let s = m.s.csr();
+                    let s = m.values.csr();
                     (s.row_ptr.len() * 8 + s.col.len() * 4 + s.val.len() * 12) as u64
+                        + m.columns.bytes()
                         + m.albedo.len() as u64 * 24
                 })
             })

@@ -34,7 +34,9 @@ use crate::linalg::Rgb;
 use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
-use crate::sterms::{NodeRow, NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written};
+use crate::sterms::{
+    ColumnFactors, NodeRow, NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written,
+};
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
 use rayon::prelude::*;
@@ -426,7 +428,17 @@ pub fn assemble_scene(
     let mut scratch = Scratch::default();
     for (k, t, reach) in pending {
         let report;
-        (s, report) = write_terms(s, g, &objects[k], t, reach, unit_mm, params, &mut scratch)?;
+        (s, report) = write_terms(
+            s,
+            g,
+            &objects[k],
+            t,
+            reach,
+            unit_mm,
+            params,
+            &mut scratch,
+            None,
+        )?;
         reports.push((k, report));
     }
     reports.sort_by_key(|r| r.0);
@@ -435,7 +447,8 @@ pub fn assemble_scene(
 
 /// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its
 /// rows of `s` (laid out by [`ObjectTerms::pattern`]), `reach` being how far its stored
-/// distances go.
+/// distances go. With `columns` (S's column factors, [`ColumnScale`]), the energy bound's
+/// factors of the object's columns go there instead of into the values.
 #[expect(
     clippy::too_many_arguments,
     reason = "the matrix, the object and its terms, and the settings its tables are made with"
@@ -449,6 +462,7 @@ fn write_terms(
     unit_mm: f64,
     params: &SParams,
     scratch: &mut Scratch,
+    columns: Option<&mut ColumnScale>,
 ) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {
     let start = Instant::now();
     let (same, other, capped_from) = match o.material {
@@ -477,6 +491,7 @@ fn write_terms(
         start: r.start,
         n: g.corners.len(),
         nodes: g.nodes.as_ref(),
+        defer_bound: columns.is_some(),
     };
     // The object's patch rows, then its node rows (runs of consecutive nodes).
     let mut ranges = vec![r.clone()];
@@ -512,8 +527,14 @@ fn write_terms(
         finite
     })?;
     let Written {
-        report: e, links, ..
+        report: e,
+        links,
+        columns: factors,
+        ..
     } = out.unwrap_or_default();
+    if let (Some(scale), Some(f)) = (columns, factors) {
+        scale.set(s.view().n_cols(), r.start, &f);
+    }
     let report = AssemblyReport {
         name: o.name.to_string(),
         radius: same
@@ -862,6 +883,68 @@ pub fn patch_albedo(m: &Material, medium: u32) -> [f32; 3] {
     }
 }
 
+/// The energy bound's factors of S's columns that its stored values do not carry (a
+/// translucency change written in place, [`rewrite_with_terms_deferred`]): S is the
+/// values times diag(factors), one factor per column (patches, then cluster nodes), each
+/// in [0, 1]. A product scales its vector by them instead of S being passed over again to
+/// scale its entries ([`crate::transport::subsurface_operator`]). Empty, or all 1: S is
+/// its values.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ColumnScale {
+    factors: Vec<Rgb>,
+    /// Some factor is not 1.
+    any: bool,
+}
+
+impl ColumnScale {
+    /// The factors, one per column of S, or None when every one is 1.
+    pub fn factors(&self) -> Option<&[Rgb]> {
+        self.any.then_some(self.factors.as_slice())
+    }
+
+    /// Bytes held (the factors, once a deferred write has set any, kept at S's width).
+    pub fn bytes(&self) -> u64 {
+        (self.factors.len() * std::mem::size_of::<Rgb>()) as u64
+    }
+
+    /// Object columns' factors from one deferred write: its patches' from S's column
+    /// `start` on, its nodes' where `f` says (S has `n_cols` columns).
+    fn set(&mut self, n_cols: usize, start: usize, f: &ColumnFactors) {
+        if self.factors.len() != n_cols {
+            self.factors = vec![[1.0; 3]; n_cols];
+        }
+        self.factors[start..start + f.patches.len()].copy_from_slice(&f.patches);
+        self.factors[f.node_column..f.node_column + f.nodes.len()].copy_from_slice(&f.nodes);
+        self.any = self.factors.iter().any(|f| *f != [1.0; 3]);
+    }
+
+    /// S's values scaled by the factors (the matrix itself, as every consumer that reads
+    /// S's entries rather than multiplying by it needs it): each value times its column's
+    /// factor, the same products a write that scales in place makes.
+    pub fn apply(&self, s: ValidCsr<[f32; 3]>) -> Result<ValidCsr<[f32; 3]>, CsrError> {
+        let Some(f) = self.factors() else {
+            return Ok(s);
+        };
+        assert_eq!(f.len(), s.view().n_cols(), "a factor per column of S");
+        let rows = 0..s.view().n_rows();
+        // A factor in [0, 1] keeps a finite value finite.
+        s.rewrite_vouched(rows, |rows| {
+            rows.into_par_iter().for_each(|(cols, vals)| {
+                for (v, &c) in vals.iter_mut().zip(cols) {
+                    let k = f[c as usize];
+                    if k != [1.0; 3] {
+                        *v = std::array::from_fn(|ch| v[ch] * k[ch]);
+                    }
+                }
+            });
+            true
+        })
+    }
+}
+
+/// S's values and the column factors S is those times ([`rewrite_with_terms_deferred`]).
+pub type ScaledS = (ValidCsr<[f32; 3]>, ColumnScale);
+
 /// S, ρ and Bₑ for a set of material overrides.
 #[derive(Debug)]
 pub struct OverrideMaterials {
@@ -869,7 +952,10 @@ pub struct OverrideMaterials {
     pub key: String,
     /// The overrides themselves (what a translucency change compares with).
     pub overrides: Vec<(usize, Material)>,
-    pub s: ValidCsr<[f32; 3]>,
+    /// S's values: S itself is these times `columns`' factors ([`OverrideMaterials::s`]).
+    pub values: ValidCsr<[f32; 3]>,
+    /// The energy bound's column factors the values do not carry yet.
+    pub columns: ColumnScale,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
     /// Where S was rebuilt: `gpu` or `cpu`.
@@ -880,9 +966,21 @@ pub struct OverrideMaterials {
 }
 
 impl OverrideMaterials {
-    /// S as a view (no pass over it: S is valid by construction).
-    pub fn s_view(&self) -> CsrView<'_, [f32; 3]> {
-        self.s.view()
+    /// S's values as a view (no pass over it: S is valid by construction), and the column
+    /// factors S is those times (None: S is the values).
+    pub fn s_parts(&self) -> (CsrView<'_, [f32; 3]>, Option<&[Rgb]>) {
+        (self.values.view(), self.columns.factors())
+    }
+
+    /// S itself: the values, or a copy scaled by the column factors when there are any
+    /// (for those that read S's entries: a device upload, a check).
+    pub fn s(&self) -> Result<std::borrow::Cow<'_, ValidCsr<[f32; 3]>>, CsrError> {
+        match self.columns.factors() {
+            None => Ok(std::borrow::Cow::Borrowed(&self.values)),
+            Some(_) => Ok(std::borrow::Cow::Owned(
+                self.columns.apply(self.values.clone())?,
+            )),
+        }
     }
 }
 
@@ -1043,7 +1141,41 @@ pub fn changed_profiles(
 )]
 pub fn rewrite_with_terms(
     bundle: &Bundle,
+    s: ValidCsr<[f32; 3]>,
+    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
+    overrides: &[(usize, Material)],
+    changed: &[usize],
+    params: &SParams,
+    terms: &STerms,
+    scratch: &mut Scratch,
+) -> Result<(ValidCsr<[f32; 3]>, Vec<AssemblyReport>), SError> {
+    let mut columns = ColumnScale::default();
+    let (s, reports) = rewrite_with_terms_deferred(
+        bundle,
+        s,
+        &mut columns,
+        tilt,
+        overrides,
+        changed,
+        params,
+        terms,
+        scratch,
+    )?;
+    Ok((columns.apply(s)?, reports))
+}
+
+/// [`rewrite_with_terms`] with the energy bound's column factors left out of the values:
+/// `s` is S's values and `columns` its column factors ([`ColumnScale`]) as the last change
+/// left them, and both come back for the new overrides (the objects not changed keep
+/// theirs). What a translucency slider's step runs ([`crate::scene`]).
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the two matrices, the change, and what their values are summed from"
+)]
+pub fn rewrite_with_terms_deferred(
+    bundle: &Bundle,
     mut s: ValidCsr<[f32; 3]>,
+    columns: &mut ColumnScale,
     tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
     overrides: &[(usize, Material)],
     changed: &[usize],
@@ -1075,7 +1207,17 @@ pub fn rewrite_with_terms(
         })?;
         let reach = stored.get(k).copied().unwrap_or(0.0);
         let report;
-        (s, report) = write_terms(s, &g, &object, t, reach, m.unit_mm, params, scratch)?;
+        (s, report) = write_terms(
+            s,
+            &g,
+            &object,
+            t,
+            reach,
+            m.unit_mm,
+            params,
+            scratch,
+            Some(&mut *columns),
+        )?;
         reports.push(report);
     }
     Ok((s, reports))

@@ -865,6 +865,21 @@ pub struct Written {
     /// Every value written is finite (checked as it was written, so the matrix's own
     /// check need not read them again: [`translux_proto::csr::ValidCsr::rewrite_vouched`]).
     pub finite: bool,
+    /// With [`Placement::defer_bound`], the factors the values were not scaled by.
+    pub columns: Option<ColumnFactors>,
+}
+
+/// The energy bound's factors of one object's columns, left out of the values written
+/// ([`Placement::defer_bound`]): S's entry (j, c) is the value written times column c's
+/// factor. Each factor is in [0, 1].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ColumnFactors {
+    /// Per patch of the object (local index): its direct entries' factor.
+    pub patches: Vec<[f32; 3]>,
+    /// Per cluster node the object's links reach, from S's column `node_column` on: the
+    /// factor of every link to it (node rows' links too).
+    pub nodes: Vec<[f32; 3]>,
+    pub node_column: usize,
 }
 
 /// Rows written into a local pattern: each row's columns, its values, and what the write
@@ -892,6 +907,13 @@ pub struct Placement<'a> {
     pub n: usize,
     /// The cluster tree the links refer to.
     pub nodes: Option<&'a Nodes>,
+    /// The energy bound's column factors are returned ([`Written::columns`]) instead of
+    /// written into the values: S is then the values times them, column by column, and a
+    /// product scales its vector instead ([`crate::transport::subsurface_operator_scaled`]).
+    /// Writing them took two more passes over the rows (the links of nodes over the bound,
+    /// the entries of scaled columns): 7–15 ms of the bowls' bunny's 55–70 ms at 30,003
+    /// patches.
+    pub defer_bound: bool,
 }
 
 impl ObjectTerms {
@@ -1097,6 +1119,7 @@ impl ObjectTerms {
             start: 0,
             n: area.len(),
             nodes: None,
+            defer_bound: false,
         };
         let written = self.write(area, same, other, at, out, &mut Scratch::default());
         (cols, vals, written)
@@ -1577,6 +1600,8 @@ impl ObjectTerms {
             }
         }
         report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+        // Each linked node's factor (its links' in every row).
+        let mut node_factor = vec![[1.0f32; 3]; node_count];
         if let (Some(nodes), true) = (at.nodes, linked > 0) {
             // e_k = Σ_j A_j R(r_jk) (node k's column re-emits e_k over each of its patches
             // by area), spread over its members: a node covers a contiguous range of the
@@ -1648,8 +1673,7 @@ impl ObjectTerms {
                 }
             }
             let mut far_kept = far.clone();
-            if mean_factor.iter().any(|m| *m != [1.0; 3]) {
-                far_kept = spread(&|k| mean_factor[k]);
+            if mean_factor.iter().any(|m| *m != [1.0; 3]) && !at.defer_bound {
                 // The links, in every row (a node row holds links alone).
                 let (first, mf) = (at.n + self.links.nodes.start, &mean_factor);
                 rows.par_iter_mut().for_each(|(_, (cols, out))| {
@@ -1661,6 +1685,9 @@ impl ObjectTerms {
                         *o = std::array::from_fn(|ch| o[ch] * m[ch]);
                     }
                 });
+            }
+            if mean_factor.iter().any(|m| *m != [1.0; 3]) {
+                far_kept = spread(&|k| mean_factor[k]);
             }
             let mut mean = 0.0f64;
             for i in 0..n {
@@ -1684,10 +1711,23 @@ impl ObjectTerms {
             }
             report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
             report.nnz += linked;
+            node_factor = mean_factor;
         }
         // The direct entries of the columns over the bound, scaled. A factor is in [0, 1]
         // (a finite value stays finite).
         debug_assert!(factor.iter().flatten().all(|f| (0.0..=1.0).contains(f)));
+        if at.defer_bound {
+            return Written {
+                report,
+                links: linked,
+                finite,
+                columns: Some(ColumnFactors {
+                    patches: factor,
+                    nodes: node_factor,
+                    node_column: at.n + self.links.nodes.start,
+                }),
+            };
+        }
         let scaled: Vec<bool> = factor.iter().map(|f| *f != [1.0; 3]).collect();
         // The entries of the scaled columns: few (a few hundred columns of the bunny's
         // 69,451) are found through the entries by source, many (most columns of a bowl
@@ -1734,6 +1774,7 @@ impl ObjectTerms {
             report,
             links: linked,
             finite,
+            columns: None,
         }
     }
 

@@ -288,10 +288,15 @@ impl<'a> Transport<'a> {
 /// pull's membership: patch j receives its own row plus the rows of every node holding
 /// it. Node m covers a contiguous range of the tree's order, so one difference array over
 /// that order pushes every node row at once, O(N + M) per product as the pull is.
+///
+/// With column factors ([`LinkedScatter::with_columns`]), S̃ = C_S·D·P: the pulled vector
+/// is scaled column by column before the product (the energy bound's factors of an S
+/// written in place, `crate::smatrix::ColumnScale`).
 #[derive(Debug, Clone, Copy)]
 pub struct LinkedScatter<'a> {
     s: CsrView<'a, Rgb>,
     tree: Tree<'a>,
+    columns: Option<&'a [Rgb]>,
 }
 
 impl<'a> LinkedScatter<'a> {
@@ -307,6 +312,16 @@ impl<'a> LinkedScatter<'a> {
         Self {
             s,
             tree: Tree { view: tree, area },
+            columns: None,
+        }
+    }
+
+    /// S̃ whose columns (patches, then nodes: `[N + M]`) are further scaled by `columns`.
+    pub fn with_columns(self, columns: &'a [Rgb]) -> Self {
+        assert_eq!(columns.len(), self.s.n_cols(), "a factor per column of S");
+        Self {
+            columns: Some(columns),
+            ..self
         }
     }
 
@@ -349,6 +364,9 @@ impl Scatter for LinkedScatter<'_> {
     fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
         let mut pulled = Pulled::default();
         self.tree.pull(h, ch, &mut pulled);
+        if let Some(d) = self.columns {
+            scale_columns(&mut pulled.values, d, ch);
+        }
         // The patch rows (a product fills as many rows as `y` holds), and the node rows
         // pushed to their patches after: one product, the pulled values laid out once.
         let n = self.tree.view.perm.len();
@@ -422,11 +440,65 @@ pub fn push_node_rows(s: CsrView<'_, Rgb>, tree: TreeView<'_>) -> Result<Csr<Rgb
 /// The scattering operator of a bundle's S (its own, or one rebuilt for overrides, `s`):
 /// a sparse S, or [`LinkedScatter`] when S has node columns (a hierarchical S).
 pub fn subsurface_operator<'a>(b: &'a Bundle, s: CsrView<'a, Rgb>) -> Box<dyn Scatter + 'a> {
-    match b.tree() {
-        Some(t) if s.n_cols() > b.patch_areas().len() => {
-            Box::new(LinkedScatter::new(s, t, b.patch_areas()))
+    subsurface_operator_scaled(b, s, None)
+}
+
+/// [`subsurface_operator`] for S = `s` × diag(`columns`), one factor per column of `s`
+/// (`crate::smatrix::OverrideMaterials::s_parts`): each product scales its vector, S's
+/// values stay as they are.
+pub fn subsurface_operator_scaled<'a>(
+    b: &'a Bundle,
+    s: CsrView<'a, Rgb>,
+    columns: Option<&'a [Rgb]>,
+) -> Box<dyn Scatter + 'a> {
+    match (b.tree(), columns) {
+        (Some(t), d) if s.n_cols() > b.patch_areas().len() => {
+            let op = LinkedScatter::new(s, t, b.patch_areas());
+            Box::new(match d {
+                Some(d) => op.with_columns(d),
+                None => op,
+            })
         }
+        (_, Some(d)) => Box::new(ScaledScatter {
+            s: SparseScatter(s),
+            columns: d,
+        }),
         _ => Box::new(SparseScatter(s)),
+    }
+}
+
+/// Scales `x` (`[column][ch]`) column by column: channel c by factor component c % 3.
+fn scale_columns(x: &mut [f32], d: &[Rgb], ch: usize) {
+    x.par_chunks_mut(ch)
+        .with_min_len(1024)
+        .zip(d.par_iter())
+        .for_each(|(x, f)| {
+            if *f != [1.0; 3] {
+                for (c, v) in x.iter_mut().enumerate() {
+                    *v *= f[c % 3];
+                }
+            }
+        });
+}
+
+/// A sparse S whose columns are further scaled (S·D, D diagonal): D applied to the vector
+/// first.
+struct ScaledScatter<'a> {
+    s: SparseScatter<'a>,
+    columns: &'a [Rgb],
+}
+
+impl Scatter for ScaledScatter<'_> {
+    fn apply(&self, h: &[Rgb], y: &mut [Rgb]) {
+        self.apply_multi(bytemuck::cast_slice(h), bytemuck::cast_slice_mut(y), 3);
+    }
+    fn apply_multi(&self, h: &[f32], y: &mut [f32], ch: usize) {
+        let mut x = h.to_vec();
+        scale_columns(&mut x, self.columns, ch);
+        self.s.apply_multi(&x, y, ch);
+    }
+    fn diagonal(&self) -> Option<&[Rgb]> {
+        None
     }
 }
 

@@ -465,10 +465,13 @@ impl Backend {
             }
             // An S built on the CPU with node rows (node-to-node links) is uploaded with
             // them pushed into its patch rows: the device's product reads patch rows alone.
-            let view = m.s_view();
             let invalid = |e: translux_proto::csr::CsrError| {
                 GpuError::Invalid(format!("{}: S with its node rows pushed: {e}", scene.id))
             };
+            // S itself (its values scaled by the column factors of a change written in
+            // place: the device's product reads its entries).
+            let s = m.s().map_err(invalid)?;
+            let view = s.view();
             let pushed = match scene.bundle.tree() {
                 Some(t) if view.n_rows() > t.perm.len() => {
                     Some(push_node_rows(view, t).map_err(invalid)?)

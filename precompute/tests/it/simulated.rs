@@ -203,7 +203,7 @@ fn a_simulated_cube_stores_its_walks_and_changes_absorption_without_new_walks() 
         rebuilt && m.in_place,
         "the absorption change is written in place"
     );
-    assert_eq!(m.s.csr(), s_fresh.csr());
+    assert_eq!(m.s().unwrap().csr(), s_fresh.csr());
     let key = serde_json::to_string(&over[..]).unwrap();
     match scene.tilt_for(&key, &[&third]).as_ref() {
         TiltOf::Some(kept) => assert_eq!(kept.delta.csr(), fresh.delta.csr()),
@@ -614,7 +614,7 @@ fn changed_like_fresh(
     assert!(rebuilt);
     assert_eq!(m.in_place, step > 0, "step {step}");
     let (fresh, _, tilts) = smatrix::rebuild_with_terms_and_tilt(b, over, &params, terms).unwrap();
-    assert_eq!(m.s.csr(), fresh.csr(), "step {step}");
+    assert_eq!(m.s().unwrap().csr(), fresh.csr(), "step {step}");
     let materials = smatrix::materials_with(b, over);
     let TiltOf::Some(want) = collimated::tilt_of_with(b, &materials, tilts) else {
         panic!("the walks carry collimated weights");
@@ -674,22 +674,23 @@ fn absorption_changes_to_one_simulated_object_of_two_are_written_in_place() {
     let mut last: Option<Vec<[f32; 3]>> = None;
     for (step, over) in steps.iter().enumerate() {
         let m = changed_like_fresh(&scene, &b, over, &terms, step);
+        let s = m.s().unwrap();
         // The cube left alone at step 1 (b) keeps its rows; the changed one (a) does not.
         let o = &b.manifest().objects;
         let rows = |k: usize| {
             let r = o[k].first_patch as usize..(o[k].first_patch + o[k].patch_count) as usize;
-            let p = &m.s.csr().row_ptr;
-            m.s.csr().val[p[r.start] as usize..p[r.end] as usize].to_vec()
+            let p = &s.csr().row_ptr;
+            s.csr().val[p[r.start] as usize..p[r.end] as usize].to_vec()
         };
         if let (1, Some(before)) = (step, &last) {
             let (ra, rb) = (rows(1), rows(2));
-            let p = &m.s.csr().row_ptr;
+            let p = &s.csr().row_ptr;
             let start_a = p[o[1].first_patch as usize] as usize;
             let start_b = p[o[2].first_patch as usize] as usize;
             assert_ne!(ra[..], before[start_a..start_a + ra.len()]);
             assert_eq!(rb[..], before[start_b..start_b + rb.len()]);
         }
-        last = Some(m.s.csr().val.clone());
+        last = Some(s.csr().val.clone());
     }
 }
 
