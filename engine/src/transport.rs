@@ -686,6 +686,103 @@ mod tests {
         }
     }
 
+    /// `s` with each column scaled by its factor, entry by entry.
+    fn scaled(s: &Csr<Rgb>, d: &[Rgb]) -> Csr<Rgb> {
+        let view = s.view().unwrap();
+        let rows: Vec<Vec<(u32, Rgb)>> = (0..view.n_rows())
+            .map(|j| {
+                let (cols, vals) = view.row(j);
+                cols.iter()
+                    .zip(vals)
+                    .map(|(&c, v)| (c, std::array::from_fn(|ch| v[ch] * d[c as usize][ch])))
+                    .collect()
+            })
+            .collect();
+        Csr::from_rows(s.n_cols, &rows).unwrap()
+    }
+
+    #[test]
+    fn column_factors_scale_the_vector_as_they_would_scale_the_matrix() {
+        let (perm, range, area, _) = fixture();
+        let tree = TreeView {
+            perm: &perm,
+            range: &range,
+        };
+        let x: Vec<Rgb> = vec![
+            [1.0, 0.5, 2.0],
+            [2.0, 1.0, 0.25],
+            [3.0, 0.0, 1.0],
+            [4.0, 2.0, 0.5],
+        ];
+        // Patch 1 and node 1 (a node with a row and a column) scaled, in some channels.
+        let d: Vec<Rgb> = vec![
+            [1.0; 3],
+            [0.5, 1.0, 0.25],
+            [1.0; 3],
+            [1.0; 3],
+            [1.0; 3],
+            [0.75, 0.5, 1.0],
+        ];
+        let close = |a: &[Rgb], b: &[Rgb]| {
+            for (p, q) in a.iter().zip(b) {
+                for c in 0..3 {
+                    assert!((p[c] - q[c]).abs() < 1e-6, "{a:?} vs {b:?}");
+                }
+            }
+        };
+        // A hierarchical S with node rows: the factors on the pulled vector.
+        let s = s_with_node_rows();
+        let s_d = scaled(&s, &d);
+        let (mut a, mut b) = (vec![[0.0f32; 3]; 4], vec![[0.0f32; 3]; 4]);
+        LinkedScatter::new(s.view().unwrap(), tree, &area)
+            .with_columns(&d)
+            .apply(&x, &mut a);
+        LinkedScatter::new(s_d.view().unwrap(), tree, &area).apply(&x, &mut b);
+        close(&a, &b);
+        // Not S on x scaled by the patches' factors first: a node's mean is of x itself
+        // (a link takes its node's factor, not its patches').
+        let xd: Vec<Rgb> = x
+            .iter()
+            .zip(&d)
+            .map(|(v, f)| std::array::from_fn(|c| v[c] * f[c]))
+            .collect();
+        let mut naive = vec![[0.0f32; 3]; 4];
+        LinkedScatter::new(s.view().unwrap(), tree, &area).apply(&xd, &mut naive);
+        assert!(
+            naive
+                .iter()
+                .zip(&a)
+                .any(|(p, q)| (0..3).any(|c| (p[c] - q[c]).abs() > 1e-3)),
+            "the fixture does not tell the two apart"
+        );
+        // A pairwise S (patch columns alone), 6 channels.
+        let pair = Csr::from_rows(
+            4,
+            &[
+                vec![(0u32, [0.2f32, 0.1, 0.3]), (1, [0.4, 0.2, 0.1])],
+                vec![(1, [0.3, 0.3, 0.3]), (3, [0.1, 0.2, 0.4])],
+                vec![(2, [0.5, 0.1, 0.2])],
+                vec![(1, [0.2, 0.4, 0.1]), (3, [0.3, 0.2, 0.1])],
+            ],
+        )
+        .unwrap();
+        let dp = &d[..4];
+        let pair_d = scaled(&pair, dp);
+        let h: Vec<f32> = x
+            .iter()
+            .zip(x.iter().rev())
+            .flat_map(|(a, b)| a.iter().chain(b.iter()).copied())
+            .collect();
+        let (mut a6, mut b6) = (vec![0.0f32; 24], vec![0.0f32; 24]);
+        ScaledScatter {
+            s: SparseScatter(pair.view().unwrap()),
+            columns: dp,
+        }
+        .apply_multi(&h, &mut a6, 6);
+        SparseScatter(pair_d.view().unwrap()).apply_multi(&h, &mut b6, 6);
+        close(bytemuck::cast_slice(&a6), bytemuck::cast_slice(&b6));
+    }
+
     #[test]
     fn node_rows_written_out_per_patch_give_the_same_products() {
         let (perm, range, area, _) = fixture();
