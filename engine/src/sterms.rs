@@ -1672,8 +1672,13 @@ impl ObjectTerms {
                     }
                 }
             }
-            let mut far_kept = far.clone();
-            if mean_factor.iter().any(|m| *m != [1.0; 3]) && !at.defer_bound {
+            let nodes_scaled = mean_factor.iter().any(|m| *m != [1.0; 3]);
+            let far_kept = if nodes_scaled {
+                spread(&|k| mean_factor[k])
+            } else {
+                far.clone()
+            };
+            if nodes_scaled && !at.defer_bound {
                 // The links, in every row (a node row holds links alone).
                 let (first, mf) = (at.n + self.links.nodes.start, &mean_factor);
                 rows.par_iter_mut().for_each(|(_, (cols, out))| {
@@ -1685,9 +1690,6 @@ impl ObjectTerms {
                         *o = std::array::from_fn(|ch| o[ch] * m[ch]);
                     }
                 });
-            }
-            if mean_factor.iter().any(|m| *m != [1.0; 3]) {
-                far_kept = spread(&|k| mean_factor[k]);
             }
             let mut mean = 0.0f64;
             for i in 0..n {
