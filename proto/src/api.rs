@@ -450,9 +450,10 @@ pub struct RelightStats {
     /// overrides were applied just before and S came from the cache).
     #[serde(default)]
     pub materials_ms: f64,
-    /// Where S for the material overrides was rebuilt: `gpu` (the device kernels) or `cpu`
-    /// (the CPU backend, or what the device cannot do, e.g. heterogeneous objects; the
-    /// server's log says why). Absent without overrides.
+    /// Where S for the material overrides was rebuilt: `cpu` (both backends by default) or
+    /// `gpu` (the device kernels, on the GPU backend with `TRANSLUX_S_REBUILD=device`,
+    /// except what the device cannot do, e.g. heterogeneous objects; the server's log says
+    /// why). Absent without overrides.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub materials_on: Option<String>,
     pub lights: usize,

@@ -25,7 +25,9 @@
 //! device refusing memory, or more than the budget
 //! `TRANSLUX_GPU_MEMORY_MIB` — is served from the CPU, with a warning in the log and its
 //! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU. A translucency
-//! change rebuilds S on the device ([`Backend::rebuild_s`], [`crate::gpu::subsurface`]; its
+//! change's S is written in place on the CPU, and the solves with it run there, warm (the
+//! faster way on every scene measured, [`SRebuild`]); with [`S_REBUILD_ENV`]`=device` it is
+//! rebuilt on the device instead ([`Backend::rebuild_s`], [`crate::gpu::subsurface`]; its
 //! template counts in the scene's bytes), except for heterogeneous objects.
 
 use std::collections::HashMap;
@@ -104,6 +106,45 @@ pub enum BackendChoice {
 /// The environment variable that caps the GPU memory all scenes may use (MiB).
 pub const MEMORY_ENV: &str = "TRANSLUX_GPU_MEMORY_MIB";
 
+/// The environment variable that says where the GPU backend makes a translucency change's
+/// S ([`SRebuild`]): `cpu` (the default) or `device`.
+pub const S_REBUILD_ENV: &str = "TRANSLUX_S_REBUILD";
+
+/// Where the GPU backend makes S for a translucency change.
+///
+/// The device rebuild evaluates every entry from its template and reads S back (the CPU
+/// needs it for S E), and its solve starts cold; the CPU writes only the changed objects'
+/// entries in place from their radial terms and solves warm from the last answer's kept
+/// products. The CPU's way was the faster on every scene measured on an H200 with 16 cores
+/// (`docs/gpu.md`, 2026-12-04: bowls and bunny at 30,003 patches 5.1 → 22.7 fps, at
+/// 73,245 1.2 → 7.7 fps, the Cornell box at 6,024 95 → 404 fps), and with 2 of its cores
+/// too (bowls: 5.8 fps against the device's 5.1). Uploading the CPU's S for a device solve
+/// instead cost more than the solve (2.8 fps on the bowls), so the solves with it stay on
+/// the CPU.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SRebuild {
+    /// On the CPU, written in place, and the solves with it there too.
+    #[default]
+    Cpu,
+    /// On the device where it can (not heterogeneous objects; a template that fits), and
+    /// the solves with it there.
+    Device,
+}
+
+impl std::str::FromStr for SRebuild {
+    type Err = String;
+    fn from_str(v: &str) -> Result<SRebuild, String> {
+        match v.trim() {
+            "cpu" => Ok(SRebuild::Cpu),
+            "device" => Ok(SRebuild::Device),
+            other => Err(format!(
+                "{S_REBUILD_ENV} must be cpu or device, got {other:?}"
+            )),
+        }
+    }
+}
+
 /// Where a scene is served.
 #[derive(Debug)]
 enum Slot {
@@ -161,6 +202,7 @@ struct Inner {
     /// By [`scene_key`]: the scene id and where it is served.
     scenes: Mutex<HashMap<String, (String, Slot)>>,
     params: SystemParams,
+    s_rebuild: SRebuild,
 }
 
 /// `/healthz`'s view of the backend.
@@ -199,6 +241,7 @@ impl Backend {
                 reason: Some(reason.into()),
                 scenes: Mutex::new(HashMap::new()),
                 params: SystemParams::default(),
+                s_rebuild: SRebuild::Cpu,
             }),
         }
     }
@@ -209,16 +252,41 @@ impl Backend {
         translux_engine::scene::Resources::on(Arc::new(self.clone()))
     }
 
-    /// A GPU backend on `ctx`.
+    /// A GPU backend on `ctx` that makes a translucency change's S on the CPU
+    /// ([`SRebuild::Cpu`]).
     pub fn on_gpu(ctx: GpuContext) -> Backend {
+        Backend::on_gpu_rebuilding(ctx, SRebuild::Cpu)
+    }
+
+    /// A GPU backend on `ctx` that makes a translucency change's S where `s_rebuild` says.
+    pub fn on_gpu_rebuilding(ctx: GpuContext, s_rebuild: SRebuild) -> Backend {
         Backend {
             inner: Arc::new(Inner {
                 gpu: Some(ctx),
                 reason: None,
                 scenes: Mutex::new(HashMap::new()),
                 params: SystemParams::default(),
+                s_rebuild,
             }),
         }
+    }
+
+    /// Why the CPU makes S for `scene`'s translucency changes (and solves with it) by
+    /// [`SRebuild`], or `None` when the device rebuilds it.
+    fn s_on_cpu(&self) -> Option<String> {
+        match self.inner.s_rebuild {
+            SRebuild::Device => None,
+            SRebuild::Cpu => Some(format!(
+                "S is written in place on the CPU, faster than the device rebuilds it and reads \
+                 it back ({S_REBUILD_ENV}=device rebuilds it there)"
+            )),
+        }
+    }
+
+    /// Whether `over`'s S was made on the CPU by [`SRebuild`]: its solves stay there, warm
+    /// from the kept products, where the device would upload S anew every change.
+    fn solved_on_cpu(&self, over: Option<&Arc<OverrideMaterials>>) -> bool {
+        over.is_some_and(|m| m.built_on == "cpu") && self.s_on_cpu().is_some()
     }
 
     /// Starts the chosen backend (see the module docs). `auto` never fails; `gpu` fails when
@@ -242,14 +310,21 @@ impl Backend {
             max_binding_bytes: None,
             budget_bytes,
         };
+        let s_rebuild = match std::env::var(S_REBUILD_ENV) {
+            Ok(v) => v.parse::<SRebuild>().map_err(GpuError::Invalid)?,
+            Err(_) => SRebuild::Cpu,
+        };
         match choice {
             BackendChoice::Cpu => Ok(Backend::cpu("--backend cpu")),
             BackendChoice::Gpu => {
                 opts.allow_software = true;
-                Ok(Backend::on_gpu(GpuContext::new(&opts)?))
+                Ok(Backend::on_gpu_rebuilding(
+                    GpuContext::new(&opts)?,
+                    s_rebuild,
+                ))
             }
             BackendChoice::Auto => match GpuContext::new(&opts) {
-                Ok(ctx) => Ok(Backend::on_gpu(ctx)),
+                Ok(ctx) => Ok(Backend::on_gpu_rebuilding(ctx, s_rebuild)),
                 Err(e) => Ok(Backend::cpu(format!("--backend auto: {e}"))),
             },
         }
@@ -275,7 +350,8 @@ impl Backend {
             (Some(ctx), _) => {
                 let a = ctx.adapter();
                 format!(
-                    "backend gpu: {} ({}, {}{}), one binding holds {} MiB",
+                    "backend gpu: {} ({}, {}{}), one binding holds {} MiB; translucency \
+                     changes make S on the {}",
                     a.name,
                     a.backend,
                     a.device_type,
@@ -284,7 +360,11 @@ impl Backend {
                     } else {
                         ""
                     },
-                    a.max_binding_bytes >> 20
+                    a.max_binding_bytes >> 20,
+                    match self.inner.s_rebuild {
+                        SRebuild::Cpu => "CPU",
+                        SRebuild::Device => "device",
+                    }
                 )
             }
             (None, Some(r)) => format!("backend cpu: {r}"),
@@ -430,6 +510,9 @@ impl Backend {
         params: &SolveParams,
     ) -> Option<(Vec<Rgb>, SolveStats)> {
         let ctx = self.inner.gpu.as_ref()?;
+        if self.solved_on_cpu(over) {
+            return None;
+        }
         let g = self.scene(scene)?;
         let run = |sys: &GpuSystem| {
             sys.solve(ctx, emission, irradiance, params, &self.inner.params, None)
@@ -555,6 +638,9 @@ impl translux_engine::backend::Backend for Backend {
         let Some(g) = self.scene(scene) else {
             return Ok(SPrep::Cpu(Some("the scene is served from the CPU".into())));
         };
+        if let Some(why) = self.s_on_cpu() {
+            return Ok(SPrep::Cpu(Some(why)));
+        }
         let sp = SParams::default();
         let (materials, stored) = smatrix::bundle_materials(scene.bundle, &[])?;
         let m = match SMaterials::plan(scene.bundle, &materials, &stored, &sp)? {
@@ -587,6 +673,9 @@ impl translux_engine::backend::Backend for Backend {
         let Some(g) = self.scene(scene) else {
             return Ok(SBuild::Cpu(Some("the scene is served from the CPU".into())));
         };
+        if let Some(why) = self.s_on_cpu() {
+            return Ok(SBuild::Cpu(Some(why)));
+        }
         let b = &scene.bundle;
         let sp = SParams::default();
         let (materials, stored) = smatrix::bundle_materials(b, overrides)?;
@@ -693,6 +782,9 @@ impl translux_engine::backend::Backend for Backend {
         warm: Option<&[f32]>,
     ) -> Option<(Vec<f32>, SolveStats)> {
         let ctx = self.inner.gpu.as_ref()?;
+        if self.solved_on_cpu(over) {
+            return None;
+        }
         let g = self.scene(scene)?;
         let n = g.base.n();
         if k == 0 || rhs.len() != n * 3 * k {

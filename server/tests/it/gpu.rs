@@ -430,7 +430,7 @@ mod relight_on_both_backends {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
     use translux_proto::api::RelightRequest;
-    use translux_server::backend::Backend;
+    use translux_server::backend::{Backend, SRebuild};
     use translux_server::gpu::GpuOptions;
 
     /// The radiance, the solver, and where S for the overrides was built, relit on `backend`.
@@ -492,12 +492,14 @@ mod relight_on_both_backends {
         };
         // Both backends in one process, each scene on its own.
         let cpu_backend = Backend::cpu("the test's CPU half");
-        let gpu_backend = Backend::on_gpu(
+        // S rebuilt on the device (the default writes it on the CPU: tested below).
+        let gpu_backend = Backend::on_gpu_rebuilding(
             GpuContext::new(&GpuOptions {
                 allow_software: true,
                 ..Default::default()
             })
             .unwrap(),
+            SRebuild::Device,
         );
         let cpu_batch = run_batch(&dir, &cpu_backend);
         let cpu: Vec<(Vec<Rgb>, String, Option<String>)> = bodies
@@ -593,7 +595,7 @@ fn relit_on_both_backends(near: Option<f32>) {
     use translux_engine::relight;
     use translux_engine::scene::Scene;
     use translux_proto::api::RelightRequest;
-    use translux_server::backend::Backend;
+    use translux_server::backend::{Backend, SRebuild};
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("cornell");
     hierarchical_cornell(&dir, 1500, near);
@@ -613,12 +615,13 @@ fn relit_on_both_backends(near: Option<f32>) {
         (out.radiance, out.stats.materials_on)
     };
     let cpu_backend = Backend::cpu("the test's CPU half");
-    let gpu_backend = Backend::on_gpu(
+    let gpu_backend = Backend::on_gpu_rebuilding(
         GpuContext::new(&GpuOptions {
             allow_software: true,
             ..Default::default()
         })
         .unwrap(),
+        SRebuild::Device,
     );
     let (want, cpu_on) = run(&cpu_backend);
     let (got, gpu_on) = run(&gpu_backend);
@@ -639,15 +642,86 @@ fn relit_on_both_backends(near: Option<f32>) {
     assert_eq!(gpu_backend.gpu_health().scenes[0].on, "gpu");
 }
 
-/// On the GPU backend, preparing a scene for translucency changes builds its S template on
-/// the device (its bytes grow past the uploaded F and S), says so, and the first change
+/// On the GPU backend as it starts, a translucency slider's S is written in place on the CPU
+/// and solved there (the device rebuild was the slower on every scene measured): preparing
+/// makes the CPU's radial terms and says why, nothing more is uploaded, and a slider's
+/// steps answer as the CPU backend's do.
+#[test]
+fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
+    use translux_engine::backend::Backend as _;
+    use translux_engine::relight;
+    use translux_engine::scene::Scene;
+    use translux_proto::api::{PrepState, RelightRequest};
+    use translux_server::backend::{Backend, S_REBUILD_ENV, SRebuild};
+    let Some(_) = ctx() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("cornell");
+    hierarchical_cornell(&dir, 1500, None);
+    let body = |scale: f32| {
+        format!(
+            r#"{{"solver":"iterative","lights":[{{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}}],
+            "materials":{{"tall_block":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble","scale":{scale}}}}}}}}}"#
+        )
+    };
+    let gpu = Backend::on_gpu(
+        GpuContext::new(&GpuOptions {
+            allow_software: true,
+            ..Default::default()
+        })
+        .unwrap(),
+    );
+    assert!(
+        gpu.describe().contains("make S on the CPU"),
+        "{}",
+        gpu.describe()
+    );
+    let cpu = Backend::cpu("the test's CPU half");
+    let slide = |backend: &Backend, on_device: bool| {
+        let scene = Scene::open_with("cornell", &dir, &backend.resources()).unwrap();
+        assert_eq!(backend.prepare(scene.view()), on_device);
+        let uploaded = backend.gpu_health().bytes;
+        let p = scene.prepare_translucency();
+        assert_eq!((p.state, p.on.as_deref()), (PrepState::Ready, Some("cpu")));
+        if on_device {
+            let why = p.message.unwrap_or_default();
+            assert!(why.contains(&format!("{S_REBUILD_ENV}=device")), "{why}");
+        }
+        let steps: Vec<Vec<Rgb>> = [1.0f32, 1.25, 1.5, 0.75]
+            .iter()
+            .map(|&k| {
+                let req: RelightRequest = serde_json::from_str(&body(k)).unwrap();
+                let mut plan = relight::plan(&scene, req).unwrap();
+                plan.tolerance = 1e-6;
+                let out = relight::run(&scene, &plan).unwrap();
+                assert!(out.stats.converged, "{:?}", out.stats);
+                assert_eq!(out.stats.materials_on.as_deref(), Some("cpu"));
+                out.radiance
+            })
+            .collect();
+        // No S template, no uploaded override S: the device holds what it held.
+        assert_eq!(backend.gpu_health().bytes, uploaded);
+        steps
+    };
+    let (got, want) = (slide(&gpu, true), slide(&cpu, false));
+    for (k, (g, w)) in got.iter().zip(&want).enumerate() {
+        // The same S and the same warm solves on the CPU: equal to rounding.
+        assert_close(&format!("slider step {k}, GPU vs CPU backend"), g, w, 1e-6);
+    }
+    assert_eq!("device".parse::<SRebuild>(), Ok(SRebuild::Device));
+    assert_eq!(" cpu\n".parse::<SRebuild>(), Ok(SRebuild::Cpu));
+    let e = "gpu".parse::<SRebuild>().unwrap_err();
+    assert!(e.contains(S_REBUILD_ENV) && e.contains("\"gpu\""), "{e}");
+}
+
+/// With S rebuilt on the device (`TRANSLUX_S_REBUILD=device`), preparing a scene for
+/// translucency changes builds its S template on the device (its bytes grow past the uploaded F and S), says so, and the first change
 /// then answers as on a scene that was not prepared.
 #[test]
 fn preparing_on_the_gpu_builds_the_s_template_ahead_of_the_first_change() {
     use translux_engine::relight;
     use translux_engine::scene::Scene;
     use translux_proto::api::{PrepState, RelightRequest};
-    use translux_server::backend::Backend;
+    use translux_server::backend::{Backend, SRebuild};
     let Some(_) = ctx() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("cornell");
@@ -655,12 +729,13 @@ fn preparing_on_the_gpu_builds_the_s_template_ahead_of_the_first_change() {
     let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
         "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":0.5}}}}"#;
     let backend = || {
-        Backend::on_gpu(
+        Backend::on_gpu_rebuilding(
             GpuContext::new(&GpuOptions {
                 allow_software: true,
                 ..Default::default()
             })
             .unwrap(),
+            SRebuild::Device,
         )
     };
     let run = |scene: &Scene| {
