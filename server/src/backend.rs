@@ -116,13 +116,12 @@ pub const S_REBUILD_ENV: &str = "TRANSLUX_S_REBUILD";
 /// needs it for S E), and its solve starts cold; the CPU writes only the changed objects'
 /// entries in place from their radial terms and solves warm from the last answer's kept
 /// products. The CPU's way was the faster on every scene measured on an H200 with 16 cores
-/// (`docs/gpu.md`, 2026-12-04: bowls and bunny at 30,003 patches 5.1 → 22.7 fps, at
-/// 73,245 1.2 → 7.7 fps, the Cornell box at 6,024 95 → 404 fps), and with 2 of its cores
-/// too (bowls: 5.8 fps against the device's 5.1). Uploading the CPU's S for a device solve
-/// instead cost more than the solve (2.8 fps on the bowls), so the solves with it stay on
-/// the CPU.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
+/// (`docs/gpu.md`, 2026-12-04: bowls and bunny at 30,003 patches 5.1 → 20.8 fps, at
+/// 73,245 1.2 → 7.0 fps, the Cornell box at 6,024 84 → 291 fps), and with 2 of its cores
+/// too (bowls: 5.8 fps against the device's 5.1 with 16). Uploading the CPU's S for a
+/// device solve instead cost more than the solve (2.8 fps on the bowls), so the solves with
+/// it stay on the CPU.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum SRebuild {
     /// On the CPU, written in place, and the solves with it there too.
     #[default]
@@ -271,8 +270,8 @@ impl Backend {
         }
     }
 
-    /// Why the CPU makes S for `scene`'s translucency changes (and solves with it) by
-    /// [`SRebuild`], or `None` when the device rebuilds it.
+    /// Why the CPU makes S for translucency changes (and solves with it) by [`SRebuild`], or
+    /// `None` when the device rebuilds it.
     fn s_on_cpu(&self) -> Option<String> {
         match self.inner.s_rebuild {
             SRebuild::Device => None,
@@ -283,10 +282,10 @@ impl Backend {
         }
     }
 
-    /// Whether `over`'s S was made on the CPU by [`SRebuild`]: its solves stay there, warm
-    /// from the kept products, where the device would upload S anew every change.
+    /// Whether a solve with `over`'s S stays on the CPU ([`SRebuild::Cpu`] made it there):
+    /// warm from the kept products, where the device would upload S anew every change.
     fn solved_on_cpu(&self, over: Option<&Arc<OverrideMaterials>>) -> bool {
-        over.is_some_and(|m| m.built_on == "cpu") && self.s_on_cpu().is_some()
+        over.is_some() && self.inner.s_rebuild == SRebuild::Cpu
     }
 
     /// Starts the chosen backend (see the module docs). `auto` never fails; `gpu` fails when
