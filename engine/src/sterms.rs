@@ -112,6 +112,28 @@ fn lanes(v: [f32; 3]) -> f32x4 {
     f32x4::from([v[0], v[1], v[2], 0.0])
 }
 
+/// `items` cut into at most `runs` contiguous runs, none empty, each of about an equal
+/// share of the total `cost` (a run ends once the items so far reach its share; an item
+/// costlier than a share makes a run of its own). No items give no runs.
+fn even_runs<T>(items: &mut [T], runs: usize, cost: impl Fn(&T) -> u64) -> Vec<&mut [T]> {
+    let costs: Vec<u64> = items.iter().map(&cost).collect();
+    let total: u64 = costs.iter().sum();
+    let runs = runs.max(1) as u64;
+    let mut out = Vec::with_capacity(runs as usize);
+    let (mut rest, mut done, mut taken, mut so_far) = (items, 0usize, 0u64, 0u64);
+    for (x, c) in costs.iter().enumerate() {
+        so_far += c;
+        // Past this run's share of the total (the last run takes what is left).
+        if (so_far * runs >= total * (taken + 1) && taken + 1 < runs) || x + 1 == costs.len() {
+            let (run, tail) = std::mem::take(&mut rest).split_at_mut(x + 1 - done);
+            out.push(run);
+            (rest, done) = (tail, x + 1);
+            taken = (so_far * runs / total.max(1)).min(runs - 1).max(taken + 1);
+        }
+    }
+    out
+}
+
 /// Lanes 0–2 of a 4-lane vector as an RGB value.
 #[inline]
 fn rgb(v: f32x4) -> [f32; 3] {
@@ -1466,12 +1488,26 @@ impl ObjectTerms {
         let (same, other) = (TermTable::new(same), TermTable::new(other));
         // The nodes this object's links reach, a contiguous span of them.
         let node_count = at.nodes.map_or(0, |_| self.links.nodes.len());
-        // Blocks over every row, node rows included (a block per chunk: `zip` would leave
-        // the rows past the last block unwritten).
-        let per = rows.len().div_ceil(rayon::current_num_threads() * 4).max(1);
-        let blocks = rows.len().div_ceil(per);
+        // Blocks over every row, node rows included, of about equal work: a row's terms,
+        // entries and links (each link reads the table twice). Blocks of equal row counts
+        // differed 3.5× in entries on the bowls' bunny (its rows' reach varies with the
+        // shape, and node rows hold links alone), and one thread sat idle for a quarter of
+        // the loop while the other finished the heaviest block.
+        let cost = |(j, (cols, _)): &(usize, Row<'_>)| -> u64 {
+            let (entries, terms) = match self.row_ptr.get(*j..*j + 2) {
+                Some(&[a, b]) => (
+                    (b - a) as u64,
+                    (self.term_ptr[b as usize] - self.term_ptr[a as usize]) as u64,
+                ),
+                _ => (0, 0),
+            };
+            terms + entries + 2 * (cols.len() as u64 - entries)
+        };
+        let chunks = even_runs(&mut rows, rayon::current_num_threads() * 4, cost);
+        let blocks = chunks.len();
         scratch.blocks.resize_with(blocks, BlockSums::default);
-        rows.par_chunks_mut(per)
+        chunks
+            .into_par_iter()
             .zip(scratch.blocks.par_iter_mut())
             .for_each(|(chunk, sums)| {
                 sums.column.clear();
@@ -2300,6 +2336,65 @@ mod tests {
     /// columns are and are not scaled, with pairs past the table's reach left out; with
     /// many columns scaled (one pass over every row) and with a few (found through the
     /// entries by source).
+    #[test]
+    fn even_runs_cut_by_cost_cover_every_item_once() {
+        // Costs 1 ×12 then 12: four runs of a total 24 end at shares of 6.
+        let mut items: Vec<u64> = vec![1; 12];
+        items.push(12);
+        let runs = even_runs(&mut items, 4, |&c| c);
+        let lens: Vec<usize> = runs.iter().map(|r| r.len()).collect();
+        assert_eq!(
+            lens,
+            vec![6, 6, 1],
+            "the heavy item alone, its shares taken"
+        );
+        // Equal costs: equal runs; fewer items than runs: one each; none: none.
+        let mut even = vec![3u64; 16];
+        let lens: Vec<usize> = even_runs(&mut even, 8, |&c| c)
+            .iter()
+            .map(|r| r.len())
+            .collect();
+        assert_eq!(lens, vec![2; 8]);
+        let mut few = vec![5u64; 3];
+        assert_eq!(even_runs(&mut few, 8, |&c| c).len(), 3);
+        let mut zero = vec![0u64; 5];
+        let lens: Vec<usize> = even_runs(&mut zero, 2, |&c| c)
+            .iter()
+            .map(|r| r.len())
+            .collect();
+        assert_eq!(
+            lens.iter().sum::<usize>(),
+            5,
+            "zero costs: every item still in a run"
+        );
+        assert!(even_runs(&mut Vec::<u64>::new(), 4, |&c| c).is_empty());
+        // Random costs: every item in exactly one run, in order, no run empty, and no run
+        // past a share plus its last item.
+        let mut state = 7u64;
+        let mut rnd: Vec<u64> = (0..1000)
+            .map(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 33) % 100
+            })
+            .collect();
+        let total: u64 = rnd.iter().sum();
+        let copy = rnd.clone();
+        let runs = even_runs(&mut rnd, 8, |&c| c);
+        assert!(runs.len() <= 8 && runs.iter().all(|r| !r.is_empty()));
+        let flat: Vec<u64> = runs.iter().flat_map(|r| r.iter().copied()).collect();
+        assert_eq!(flat, copy);
+        for r in &runs[..runs.len() - 1] {
+            let sum: u64 = r.iter().sum();
+            assert!(
+                sum <= total / 8 + 100,
+                "a run of {sum} against a share of {}",
+                total / 8
+            );
+        }
+    }
+
     #[test]
     fn rows_written_in_row_order_equal_the_transposed_columns() {
         // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.
