@@ -19,7 +19,7 @@
 
 use rayon::prelude::*;
 use translux_proto::bundle::{Bundle, TreeView};
-use translux_proto::csr::{Csr, CsrError, CsrView};
+use translux_proto::csr::{Csr, CsrError, CsrView, NarrowCols};
 
 use crate::linalg::{Rgb, Scatter, SparseScatter};
 
@@ -28,6 +28,9 @@ use crate::linalg::{Rgb, Scatter, SparseScatter};
 pub struct Transport<'a> {
     f: CsrView<'a>,
     tree: Option<Tree<'a>>,
+    /// F's columns in 16 bits, which its products read where given (a bundle's F:
+    /// [`Transport::of`]).
+    narrow: Option<&'a NarrowCols>,
 }
 
 /// The cluster tree with the patch areas its means are weighted by.
@@ -87,7 +90,11 @@ impl<'a> Transport<'a> {
     /// A dense F (`N × N`).
     pub fn dense(f: CsrView<'a>) -> Self {
         assert_eq!(f.n_rows(), f.n_cols(), "a dense F is square");
-        Self { f, tree: None }
+        Self {
+            f,
+            tree: None,
+            narrow: None,
+        }
     }
 
     /// A hierarchical F̃ = C·P: `c` is `N × (N + M)` over the patches then the nodes of
@@ -105,14 +112,31 @@ impl<'a> Transport<'a> {
         Self {
             f: c,
             tree: Some(Tree { view: tree, area }),
+            narrow: None,
         }
     }
 
     /// The F a bundle holds, dense or hierarchical.
+    /// Its products read F's columns in 16 bits ([`Bundle::form_factor_cols`], made by the
+    /// bundle's first call).
     pub fn of(b: &'a Bundle) -> Self {
-        match b.tree() {
+        let t = match b.tree() {
             Some(t) => Self::hierarchical(b.form_factors(), t, b.patch_areas()),
             None => Self::dense(b.form_factors()),
+        };
+        t.with_narrow(b.form_factor_cols())
+    }
+
+    /// The same F, its products reading the columns from `narrow` (made from this F).
+    pub fn with_narrow(self, narrow: &'a NarrowCols) -> Self {
+        assert_eq!(
+            narrow.nnz(),
+            self.f.nnz(),
+            "narrow columns made from this F"
+        );
+        Self {
+            narrow: Some(narrow),
+            ..self
         }
     }
 
@@ -156,12 +180,16 @@ impl<'a> Transport<'a> {
     /// y = F x for `ch` channels per patch: one pass over the stored matrix serves every
     /// channel. `scratch` is reused between calls.
     pub fn apply_multi(&self, x: &[f32], y: &mut [f32], ch: usize, scratch: &mut Pulled) {
-        if self.tree.is_none() {
-            crate::linalg::spmv_multi(&self.f, x, y, ch);
-            return;
+        let x = if self.tree.is_none() {
+            x
+        } else {
+            self.pull(x, ch, scratch);
+            &scratch.values
+        };
+        match self.narrow {
+            Some(narrow) => crate::linalg::spmv_multi_narrow(&self.f, narrow, x, y, ch),
+            None => crate::linalg::spmv_multi(&self.f, x, y, ch),
         }
-        self.pull(x, ch, scratch);
-        crate::linalg::spmv_multi(&self.f, &scratch.values, y, ch);
     }
 
     /// y = F x for one RGB vector.
@@ -585,7 +613,12 @@ mod tests {
         let p = t.pull_matrix().unwrap();
         let pv = p.view().unwrap();
         let mut xbar = vec![[0.0f32; 3]; 6];
-        Transport { f: pv, tree: None }.apply_rgb_unchecked(&x, &mut xbar);
+        Transport {
+            f: pv,
+            tree: None,
+            narrow: None,
+        }
+        .apply_rgb_unchecked(&x, &mut xbar);
         t.pull(bytemuck::cast_slice(&x), 3, &mut pulled);
         for (a, b) in bytemuck::cast_slice::<_, f32>(&xbar)
             .iter()

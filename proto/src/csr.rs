@@ -83,6 +83,93 @@ impl CsrValue for [f32; 3] {
     }
 }
 
+/// A CSR matrix's column indices in 16 bits: each entry's column less its block's start
+/// (blocks of 65,536 columns), and where each row's entries of every block after the first
+/// begin. The columns of a row ascend, so its entries of one block are contiguous and a
+/// product that walks the blocks in order reads them in the row's own order.
+///
+/// Made in memory from a checked [`CsrView`] (the bundle keeps the full u32 columns): a
+/// product over F reads 6 bytes an entry instead of 8, and F's product is bound by the
+/// bytes it streams (docs/benchmarks.md).
+#[derive(Debug, Clone, PartialEq)]
+pub struct NarrowCols {
+    /// Blocks of 65,536 columns: at least 1.
+    blocks: usize,
+    /// Each entry's column less 65,536 × its block.
+    low: Vec<u16>,
+    /// Per row, `blocks − 1` offsets within the row: where blocks 1, 2, … begin.
+    starts: Vec<u32>,
+}
+
+impl NarrowCols {
+    /// Columns per block.
+    pub const BLOCK: usize = 1 << 16;
+
+    /// The narrow columns of `m`.
+    pub fn of<T: CsrValue>(m: &CsrView<'_, T>) -> NarrowCols {
+        let blocks = m.n_cols().div_ceil(Self::BLOCK).max(1);
+        let mut starts = Vec::with_capacity(m.n_rows() * (blocks - 1));
+        for i in 0..m.n_rows() {
+            let (cols, _) = m.row(i);
+            // Entries of a row ascend by column: block b begins at the first column ≥ b·65,536.
+            for b in 1..blocks {
+                let at = cols.partition_point(|&c| (c as usize) < b * Self::BLOCK);
+                starts.push(at as u32);
+            }
+        }
+        NarrowCols {
+            blocks,
+            low: m.col().iter().map(|&c| c as u16).collect(),
+            starts,
+        }
+    }
+
+    /// Blocks of 65,536 columns.
+    pub fn blocks(&self) -> usize {
+        self.blocks
+    }
+
+    /// Entries (as the matrix they were made from).
+    pub fn nnz(&self) -> usize {
+        self.low.len()
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.low.len() * 2 + self.starts.len() * 4
+    }
+
+    /// Row `i`'s entries, from `first` (its start in the matrix) to `end`, as runs of one
+    /// block each in column order: `f(base, range)` with the block's first column and the
+    /// run's entries (absolute indices, into [`NarrowCols::low`] and the matrix's values).
+    #[inline]
+    pub fn for_each_run(
+        &self,
+        i: usize,
+        first: usize,
+        end: usize,
+        mut f: impl FnMut(usize, std::ops::Range<usize>),
+    ) {
+        let starts = &self.starts[i * (self.blocks - 1)..(i + 1) * (self.blocks - 1)];
+        let mut at = first;
+        for (b, &s) in starts.iter().enumerate() {
+            let next = first + s as usize;
+            if next > at {
+                f(b * Self::BLOCK, at..next);
+            }
+            at = next;
+        }
+        if end > at {
+            f((self.blocks - 1) * Self::BLOCK, at..end);
+        }
+    }
+
+    /// Each entry's column less its block's start.
+    pub fn low(&self) -> &[u16] {
+        &self.low
+    }
+}
+
 /// A borrowed CSR matrix, checked once at construction and trusted afterwards.
 #[derive(Debug, Clone, Copy)]
 pub struct CsrView<'a, T: CsrValue = f32> {
@@ -463,6 +550,53 @@ impl<T: CsrValue> CsrBuilder<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Narrow columns give back every column, in the row's order, over blocks some rows
+    /// skip, with empty rows and a matrix of one block.
+    #[test]
+    fn narrow_columns_give_back_every_column_in_order() {
+        for n_cols in [5usize, 65_536, 65_537, 200_000] {
+            let mut state = 11u64;
+            let mut next = || {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 33) as usize
+            };
+            let (mut rp, mut col) = (vec![0u64], Vec::new());
+            for row in 0..40 {
+                let mut cols: Vec<u32> = if row % 7 == 3 {
+                    Vec::new()
+                } else {
+                    (0..next() % 30).map(|_| (next() % n_cols) as u32).collect()
+                };
+                if row == 5 {
+                    cols.push((n_cols - 1) as u32);
+                }
+                cols.sort();
+                cols.dedup();
+                col.extend(&cols);
+                rp.push(col.len() as u64);
+            }
+            let val = vec![1.0f32; col.len()];
+            let m = CsrView::new_checked(40, n_cols, &rp, &col, &val).unwrap();
+            let narrow = NarrowCols::of(&m);
+            assert_eq!(narrow.blocks(), n_cols.div_ceil(65_536));
+            assert_eq!(narrow.nnz(), col.len());
+            for i in 0..40 {
+                let (a, b) = (rp[i] as usize, rp[i + 1] as usize);
+                let mut got = Vec::new();
+                let mut at = a;
+                narrow.for_each_run(i, a, b, |base, run| {
+                    assert_eq!(run.start, at, "runs are contiguous");
+                    at = run.end;
+                    got.extend(run.map(|e| (base + narrow.low()[e] as usize) as u32));
+                });
+                assert_eq!(at, b, "runs reach the row's end");
+                assert_eq!(got, col[a..b], "row {i} of {n_cols} columns");
+            }
+        }
+    }
 
     #[test]
     fn checked_view_accepts_valid_and_names_each_violation() {

@@ -325,6 +325,8 @@ pub struct Bundle {
     n_patches: usize,
     /// Cluster nodes of a hierarchical F (0 for a dense one): F has N + M columns.
     n_nodes: usize,
+    /// F's columns in 16 bits ([`Bundle::form_factor_cols`]), made on first use.
+    ff_narrow: std::sync::OnceLock<crate::csr::NarrowCols>,
 }
 
 /// The counts of a manifest, as `usize`.
@@ -732,6 +734,7 @@ impl Bundle {
             arrays: mapped,
             n_patches,
             n_nodes,
+            ff_narrow: Default::default(),
         };
         bundle.check_contents()?;
         Ok(bundle)
@@ -1279,6 +1282,14 @@ impl Bundle {
             self.u32s(arrays::FF_COL),
             self.f32s(arrays::FF_VAL),
         )
+    }
+
+    /// F's columns in 16 bits for the CPU's products ([`crate::csr::NarrowCols`]): made by
+    /// the first call (one pass over F's columns, 2 bytes an entry held beside the mapped
+    /// ones), which a concurrent caller waits for.
+    pub fn form_factor_cols(&self) -> &crate::csr::NarrowCols {
+        self.ff_narrow
+            .get_or_init(|| crate::csr::NarrowCols::of(&self.form_factors()))
     }
 
     /// Bytes of the arrays that are memory-mapped (those over [`COPY_ON_OPEN_BYTES`]); the
