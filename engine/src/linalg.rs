@@ -281,6 +281,21 @@ mod tests {
     use super::*;
     use translux_proto::csr::CsrBuilder;
 
+    /// F h by the scalar loop, channel by channel, term by term in each row's order: the
+    /// reference the products in lanes must equal bit for bit.
+    fn f_by_loop(f: &CsrView<'_>, h: &[f32], ch: usize) -> Vec<f32> {
+        let mut y = vec![0.0f32; f.n_rows() * ch];
+        for (i, yi) in y.chunks_exact_mut(ch).enumerate() {
+            let (cs, vs) = f.row(i);
+            for (&j, &v) in cs.iter().zip(vs) {
+                for c in 0..ch {
+                    yi[c] += v * h[j as usize * ch + c];
+                }
+            }
+        }
+        y
+    }
+
     /// S's and F's products in lanes ([`scatter_rows`], [`spmv_multi`]) equal the scalar
     /// loop bit for bit, for 1 to 9 RGB systems (9: the loop without lanes), S's also over
     /// rows that start past 0 (a hierarchical S's node rows).
@@ -351,15 +366,7 @@ mod tests {
             }
             let f = fb.finish();
             let f = f.view().unwrap();
-            let mut want = vec![0.0f32; cols * ch];
-            for (i, yi) in want.chunks_exact_mut(ch).enumerate() {
-                let (cs, vs) = f.row(i);
-                for (&j, &v) in cs.iter().zip(vs) {
-                    for c in 0..ch {
-                        yi[c] += v * h[j as usize * ch + c];
-                    }
-                }
-            }
+            let want = f_by_loop(&f, &h, ch);
             let mut got = vec![f32::NAN; cols * ch];
             spmv_multi(&f, &h, &mut got, ch);
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
@@ -410,15 +417,7 @@ mod tests {
             let h: Vec<f32> = (0..cols * ch)
                 .map(|_| (10f64.powf(3.0 * next() - 1.5) * (next() - 0.5)) as f32)
                 .collect();
-            let mut want = vec![0.0f32; rows * ch];
-            for (i, yi) in want.chunks_exact_mut(ch).enumerate() {
-                let (cs, vs) = f.row(i);
-                for (&j, &v) in cs.iter().zip(vs) {
-                    for c in 0..ch {
-                        yi[c] += v * h[j as usize * ch + c];
-                    }
-                }
-            }
+            let want = f_by_loop(&f, &h, ch);
             let mut got = vec![f32::NAN; rows * ch];
             spmv_multi_narrow(&f, &narrow, &h, &mut got, ch);
             assert_eq!(bits(&got), bits(&want), "F with {groups} systems");

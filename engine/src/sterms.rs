@@ -2330,12 +2330,8 @@ mod tests {
         assert_eq!(write(&tab), (false, false), "a profile that overflows");
     }
 
-    /// The rows a rebuild writes in row order equal, to f32 rounding, the transpose of
-    /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
-    /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
-    /// columns are and are not scaled, with pairs past the table's reach left out; with
-    /// many columns scaled (one pass over every row) and with a few (found through the
-    /// entries by source).
+    /// A rewrite's blocks ([`even_runs`]): exact runs for small cases, and on random costs
+    /// every item in one run, in order, none empty, none past a share plus one item.
     #[test]
     fn even_runs_cut_by_cost_cover_every_item_once() {
         // Costs 1 ×12 then 12: four runs of a total 24 end at shares of 6.
@@ -2395,6 +2391,12 @@ mod tests {
         }
     }
 
+    /// The rows a rebuild writes in row order equal, to f32 rounding, the transpose of
+    /// the columns summed and bounded one by one (`subsurface::bound_and_transpose`), on a
+    /// folded sheet (two planes, so polar and point plans both occur) at translucencies where
+    /// columns are and are not scaled, with pairs past the table's reach left out; with
+    /// many columns scaled (one pass over every row) and with a few (found through the
+    /// entries by source).
     #[test]
     fn rows_written_in_row_order_equal_the_transposed_columns() {
         // A 6 × 6 mm sheet folded at x = 3 (a right angle), 1 mm cells, two triangles each.

@@ -19,7 +19,7 @@
 
 use rayon::prelude::*;
 use translux_proto::bundle::{Bundle, TreeView};
-use translux_proto::csr::{Csr, CsrError, CsrView, NarrowCols};
+use translux_proto::csr::{Csr, CsrError, CsrView};
 
 use crate::linalg::{Rgb, Scatter, SparseScatter};
 
@@ -28,9 +28,10 @@ use crate::linalg::{Rgb, Scatter, SparseScatter};
 pub struct Transport<'a> {
     f: CsrView<'a>,
     tree: Option<Tree<'a>>,
-    /// F's columns in 16 bits, which its products read where given (a bundle's F:
-    /// [`Transport::of`]).
-    narrow: Option<&'a NarrowCols>,
+    /// The bundle F came from ([`Transport::of`]): its products read F's columns in 16
+    /// bits ([`Bundle::form_factor_cols`], made by the first product, so a transport that
+    /// never multiplies on the CPU never makes them).
+    bundle: Option<&'a Bundle>,
 }
 
 /// The cluster tree with the patch areas its means are weighted by.
@@ -93,7 +94,7 @@ impl<'a> Transport<'a> {
         Self {
             f,
             tree: None,
-            narrow: None,
+            bundle: None,
         }
     }
 
@@ -112,31 +113,20 @@ impl<'a> Transport<'a> {
         Self {
             f: c,
             tree: Some(Tree { view: tree, area }),
-            narrow: None,
+            bundle: None,
         }
     }
 
-    /// The F a bundle holds, dense or hierarchical.
-    /// Its products read F's columns in 16 bits ([`Bundle::form_factor_cols`], made by the
-    /// bundle's first call).
+    /// The F a bundle holds, dense or hierarchical. Its products read F's columns in 16
+    /// bits ([`Bundle::form_factor_cols`]).
     pub fn of(b: &'a Bundle) -> Self {
         let t = match b.tree() {
             Some(t) => Self::hierarchical(b.form_factors(), t, b.patch_areas()),
             None => Self::dense(b.form_factors()),
         };
-        t.with_narrow(b.form_factor_cols())
-    }
-
-    /// The same F, its products reading the columns from `narrow` (made from this F).
-    pub fn with_narrow(self, narrow: &'a NarrowCols) -> Self {
-        assert_eq!(
-            narrow.nnz(),
-            self.f.nnz(),
-            "narrow columns made from this F"
-        );
         Self {
-            narrow: Some(narrow),
-            ..self
+            bundle: Some(b),
+            ..t
         }
     }
 
@@ -186,8 +176,8 @@ impl<'a> Transport<'a> {
             self.pull(x, ch, scratch);
             &scratch.values
         };
-        match self.narrow {
-            Some(narrow) => crate::linalg::spmv_multi_narrow(&self.f, narrow, x, y, ch),
+        match self.bundle {
+            Some(b) => crate::linalg::spmv_multi_narrow(&self.f, b.form_factor_cols(), x, y, ch),
             None => crate::linalg::spmv_multi(&self.f, x, y, ch),
         }
     }
@@ -616,7 +606,7 @@ mod tests {
         Transport {
             f: pv,
             tree: None,
-            narrow: None,
+            bundle: None,
         }
         .apply_rgb_unchecked(&x, &mut xbar);
         t.pull(bytemuck::cast_slice(&x), 3, &mut pulled);

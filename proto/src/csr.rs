@@ -134,11 +134,6 @@ impl NarrowCols {
         self.low.len()
     }
 
-    /// Bytes held.
-    pub fn bytes(&self) -> usize {
-        self.low.len() * 2 + self.starts.len() * 4
-    }
-
     /// Row `i`'s entries, from `first` (its start in the matrix) to `end`, as runs of one
     /// block each in column order: `f(base, range)` with the block's first column and the
     /// run's entries (absolute indices, into [`NarrowCols::low`] and the matrix's values).
