@@ -82,12 +82,13 @@ struct Cli {
     #[arg(long)]
     s_exact_links: bool,
     /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3,
-    /// default 1.5), each link read at two distances (the node's straight-line spread about
-    /// its representative's optical distance); `off` keeps the quadrature's near field (3
+    /// default 1; 1.5, the default until 2026-12-04, comes a little closer to the pairwise
+    /// S), each link read at two distances (the node's straight-line spread about its
+    /// representative's optical distance); `off` keeps the quadrature's near field (3
     /// sizes) with each link read at one distance, as bundles before 2026-12-03. Nearer
     /// links store fewer direct pairs: a translucency change writes fewer entries and the
     /// subsurface stage takes less time.
-    #[arg(long, default_value = "1.5", value_parser = link_near)]
+    #[arg(long, default_value = "1", value_parser = link_near)]
     s_link_near: LinkNear,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]

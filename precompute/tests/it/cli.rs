@@ -234,11 +234,11 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
         links(&["--transport", "dense", "--subsurface", "auto", "-q"]).0,
         0
     );
-    // Links from 1.5 receiver sizes, read at two distances, unless `--s-link-near off`
+    // Links from 1 receiver size, read at two distances, unless `--s-link-near off`
     // keeps the quadrature's near field of 3 sizes (more direct pairs, no spreads).
     let direct = |b: &Bundle| b.manifest().subsurface.distance_nnz - b.manifest().subsurface.links;
     let (near, off) = (built(&["-q"]), built(&["--s-link-near", "OFF", "-q"]));
-    assert_eq!(near.manifest().subsurface.link_near, Some(1.5));
+    assert_eq!(near.manifest().subsurface.link_near, Some(1.0));
     assert_eq!(
         near.distance_spreads().len() as u64,
         near.manifest().subsurface.distance_nnz
@@ -251,7 +251,7 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
     );
     assert!(
         direct(&near) < direct(&off),
-        "1.5 sizes keep {} direct pairs, 3 sizes {}",
+        "1 size keeps {} direct pairs, 3 sizes {}",
         direct(&near),
         direct(&off)
     );

@@ -16,7 +16,7 @@ use translux_engine::transport::{
 };
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
-use translux_precompute::slinks::{SLinkParams, Trace};
+use translux_precompute::slinks::{DEFAULT_LINK_NEAR, SLinkParams, Trace};
 use translux_precompute::voxel::VoxelParams;
 use translux_proto::api::RelightRequest;
 use translux_proto::bundle::Bundle;
@@ -119,10 +119,15 @@ fn build(path: &std::path::Path, out: &std::path::Path, links: bool) -> Bundle {
     )
 }
 
-/// Links from 1.5 receiver sizes on, each read at two distances: the default.
+/// Links from 1 receiver size on, each read at two distances: the default.
 fn two_point() -> Option<SLinkParams> {
     let p = SLinkParams::default();
-    assert_eq!(p.near, Some(1.5), "links from 1.5 sizes by default");
+    assert_eq!(
+        p.near,
+        Some(DEFAULT_LINK_NEAR),
+        "links from 1 size by default"
+    );
+    assert_eq!(DEFAULT_LINK_NEAR, 1.0);
     Some(p)
 }
 
@@ -583,7 +588,7 @@ fn compare(c: &Case<'_>, seed: u64) -> usize {
 }
 
 /// The cube or the U in marble on a floor (scene file in millimetres), both ways, and
-/// again with links from 1.5 receiver sizes read at two distances.
+/// again with links from the default near field (1 receiver size) read at two distances.
 fn marble_object(object: &str, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
     let path = scene(dir.path(), object);
@@ -623,17 +628,20 @@ fn fewer_direct_pairs(hier: &Bundle, near: &Bundle) {
         let s = &b.manifest().subsurface;
         s.distance_nnz - s.links
     };
-    let (d3, d15) = (direct(hier), direct(near));
+    let (d3, d_near) = (direct(hier), direct(near));
     eprintln!(
-        "direct pairs {d3} → {d15}, links {} → {}",
+        "direct pairs {d3} → {d_near}, links {} → {}",
         hier.manifest().subsurface.links,
         near.manifest().subsurface.links
     );
     assert!(
-        (d15 as f64) < 0.9 * d3 as f64,
-        "links from 1.5 sizes keep {d15} direct pairs against {d3}"
+        (d_near as f64) < 0.9 * d3 as f64,
+        "links from the default near field keep {d_near} direct pairs against {d3}"
     );
-    assert_eq!(near.manifest().subsurface.link_near, Some(1.5));
+    assert_eq!(
+        near.manifest().subsurface.link_near,
+        Some(DEFAULT_LINK_NEAR)
+    );
     assert_eq!(hier.manifest().subsurface.link_near, None);
     assert!(hier.distance_spreads().is_empty());
     let (d, spread) = (near.distances(), near.distance_spreads());
@@ -1062,12 +1070,12 @@ fn coarse_link_runs_keep_the_bunny_within_the_pairwise_bounds() {
         },
         specular: None,
     };
-    // Links from 1.5 receiver sizes on, read at two distances (over the coarse grid too).
+    // Links from the default near field on, read at two distances (over the coarse grid too).
     let near = build_links(
         &path,
         &dir.path().join("near"),
         Some(SLinkParams {
-            near: Some(1.5),
+            near: Some(DEFAULT_LINK_NEAR),
             ..on_demand(true).unwrap()
         }),
     );
