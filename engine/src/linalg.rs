@@ -281,6 +281,16 @@ mod tests {
     use super::*;
     use translux_proto::csr::CsrBuilder;
 
+    /// A small xorshift from `seed`: uniform numbers in [0, 1).
+    fn uniform(mut state: u64) -> impl FnMut() -> f64 {
+        move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
     /// F h by the scalar loop, channel by channel, term by term in each row's order: the
     /// reference the products in lanes must equal bit for bit.
     fn f_by_loop(f: &CsrView<'_>, h: &[f32], ch: usize) -> Vec<f32> {
@@ -301,14 +311,7 @@ mod tests {
     /// rows that start past 0 (a hierarchical S's node rows).
     #[test]
     fn products_in_lanes_equal_the_scalar_loop_bit_for_bit() {
-        // A small xorshift: values spread over decades, signs mixed.
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = uniform(0x9e37_79b9_7f4a_7c15u64);
         let (rows, cols) = (57, 83);
         let mut b = CsrBuilder::<Rgb>::new(cols);
         for _ in 0..rows {
@@ -379,13 +382,7 @@ mod tests {
     /// all three), for 1 to 9 RGB systems (9: the loop without lanes).
     #[test]
     fn products_over_narrow_columns_equal_the_scalar_loop_bit_for_bit() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = uniform(0x2545_f491_4f6c_dd1du64);
         let (rows, cols) = (40usize, 150_000usize);
         let mut fb = CsrBuilder::<f32>::new(cols);
         for r in 0..rows {

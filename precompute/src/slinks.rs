@@ -97,9 +97,11 @@ pub struct SLinkParams {
     /// The near field of links, in receiver sizes (`--s-link-near`): Some(k), k in
     /// [`LINK_NEAR_RANGE`], links nodes from k sizes on and reads each link at two
     /// distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (links since
-    /// 2026-12-03, from 1 size since 2026-12-04), stores about 40% of the direct pairs of
-    /// the quadrature's near-pair rule, so a translucency change writes fewer entries. None (`--s-link-near off`) keeps that rule (3 sizes)
-    /// and reads each link at its representative's distance, as bundles did before.
+    /// 2026-12-03, from 1 size since 2026-12-04), stores a fifth to two fifths of the
+    /// direct pairs of the quadrature's near-pair rule on the test objects, so a
+    /// translucency change writes fewer entries. None (`--s-link-near off`) keeps that rule
+    /// (3 sizes) and reads each link at its representative's distance, as bundles did
+    /// before.
     pub near: Option<f32>,
 }
 
