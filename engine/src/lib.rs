@@ -25,7 +25,9 @@
 //!   [`subsurface`] — the quadrature of S between patches; [`sheet`] and [`hetero`] — S of
 //!   thin sheets and of heterogeneous objects; [`smatrix`] — the scene's S from the stored
 //!   distances and the materials (stage 2: the precompute's, and every translucency change);
-//!   [`simulated`] — a simulated S: random walks inside the mesh, re-weighted for absorption.
+//!   [`simulated`] — a simulated S: random walks inside the mesh, re-weighted for absorption;
+//!   [`linkbound`] — the profile's error bound on a hierarchical S's links, over a slider's
+//!   range of translucency.
 //! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
 //!   relit mesh as binary glTF or PLY.
 //! - [`scene`] — a bundle opened for relighting, with its caches and the [`backend`] it
@@ -50,6 +52,7 @@ pub mod hetero;
 pub mod inverse;
 pub mod lampwalk;
 pub mod linalg;
+pub mod linkbound;
 pub mod picture;
 pub mod profile;
 pub mod radiosity;

@@ -271,7 +271,7 @@ pub fn assemble_scene(
                 // table out to the largest wanted radius, capped by the stored distances.
                 let (map, distinct) = hetero::merge_media(materials);
                 let mut evals = Vec::with_capacity(distinct.len());
-                let mut wanted = 0.0f32;
+                let (mut wanted, mut table) = (0.0f32, 0.0f32);
                 for &d in &distinct {
                     let eval = ProfileEval::new(&materials[d], unit_mm).map_err(|error| {
                         SError::Profile {
@@ -280,10 +280,11 @@ pub fn assemble_scene(
                         }
                     })?;
                     wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+                    table = table.max(eval.truncation_radius(params.table_energy));
                     evals.push(eval);
                 }
                 let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
+                let radius = table.min(reach.max(f32::MIN_POSITIVE));
                 let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
                 // Local CSR of this object's block, with its per-medium lengths.
                 let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
@@ -630,7 +631,9 @@ pub fn translucent_table(
         error,
     })?;
     let wanted = eval.truncation_radius(params.truncation_energy);
-    let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
+    let radius = eval
+        .truncation_radius(params.table_energy)
+        .min(reach.max(f32::MIN_POSITIVE));
     let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
     Ok((Tabulated::new(&eval, radius, 4096), capped_from))
 }
@@ -741,6 +744,41 @@ pub fn bundle_materials(
     Ok((materials, stored))
 }
 
+/// The link bounds a translucency change groups an object's receivers under: the
+/// bundle's own (`SubsurfaceInfo::link_variation`), one per profile of the object (a thin
+/// sheet has two), none for a bundle cut by geometry alone.
+fn receiver_bounds(
+    bundle: &Bundle,
+    material: &Material,
+    g: &PatchGeometry,
+    range: Range<usize>,
+    reach: f32,
+) -> Vec<crate::linkbound::LinkBound> {
+    let manifest = bundle.manifest();
+    let Some(variation) = manifest.subsurface.link_variation else {
+        return Vec::new();
+    };
+    let profiles = match material {
+        Material::Translucent { profile, .. } => vec![profile],
+        Material::ThinSheet {
+            reflectance,
+            transmittance,
+            ..
+        } => vec![reflectance, transmittance],
+        _ => return Vec::new(),
+    };
+    let smallest = g.size[range].iter().copied().fold(f32::INFINITY, f32::min);
+    let tolerance = crate::linkbound::LinkTolerance {
+        variation,
+        ..Default::default()
+    };
+    profiles
+        .into_iter()
+        .filter_map(|p| ProfileEval::new(p, manifest.unit_mm).ok())
+        .map(|p| crate::linkbound::LinkBound::new(&p, 0.25 * smallest, reach, tolerance))
+        .collect()
+}
+
 /// Reduces the S entries of every translucent object and thin sheet of `bundle`, out to the
 /// radius its distances were stored to, to radial terms ([`crate::sterms`]): what
 /// [`rebuild_with_terms`] sums.
@@ -784,12 +822,13 @@ pub fn terms_of_bundle(bundle: &Bundle, params: &SubsurfaceParams) -> STerms {
                         bundle.distances(),
                         kinds,
                         bundle.distance_spreads(),
-                        range,
+                        range.clone(),
                         reach,
                     );
                     match &shapes {
                         Some(shapes) => {
-                            t.with_node_pairs(params.receiver_theta, nodes, shapes, start)
+                            let bounds = receiver_bounds(bundle, material, &g, range, reach);
+                            t.with_node_pairs(params.receiver_theta, nodes, shapes, start, &bounds)
                         }
                         None => t,
                     }

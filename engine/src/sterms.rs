@@ -41,6 +41,7 @@ use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 use wide::{f32x4, f64x4};
 
+use crate::linkbound::LinkBound;
 use crate::sheet;
 use crate::subsurface::{
     self, EnergyReport, Nodes, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated,
@@ -1206,12 +1207,19 @@ impl ObjectTerms {
     /// cube at 4× its coefficients it put vertices 5% (median) off the pairwise S.
     /// Receivers left uncovered keep their own links. `theta` ≤ 0 leaves the links as they
     /// are. Accuracy: docs/hierarchy.md, *Receiver-side clustering*.
+    ///
+    /// With `bounds` (one per profile of the object: a bundle cut by the profile's error
+    /// bound), a receiver node is grouped only where the covered links' distances, each
+    /// with its own spread, span a range every bound accepts for the source node
+    /// ([`LinkBound::accepts_range`]): the grouped link then varies across its receivers by
+    /// no more than a link may across its source.
     pub fn with_node_pairs(
         mut self,
         theta: f32,
         nodes: &Nodes,
         shapes: &NodeShapes,
         start: usize,
+        bounds: &[LinkBound],
     ) -> Self {
         if theta.is_nan() || theta <= 0.0 || self.links.col.is_empty() {
             return self;
@@ -1267,6 +1275,7 @@ impl ObjectTerms {
                         // The covered links' distances ρ = root² (a two-point link's as
                         // its pair ρ ± s): area-weighted mean and spread, in f64.
                         let (mut w, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
+                        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
                         for (t, &area) in covered.iter().zip(&shapes.area_at[q..q + size]) {
                             let e = t.2 as usize;
                             let rho = (l.root[e] as f64).powi(2);
@@ -1277,6 +1286,15 @@ impl ObjectTerms {
                             w += a;
                             s1 += a * rho;
                             s2 += a * (rho * rho + own * own);
+                            lo = lo.min(rho - own);
+                            hi = hi.max(rho + own);
+                        }
+                        let source_area = nodes.area[g[0].0 as usize];
+                        if !bounds
+                            .iter()
+                            .all(|b| b.accepts_range(lo as f32, hi as f32, source_area))
+                        {
+                            return None;
                         }
                         let mean = if w > 0.0 { s1 / w } else { 0.0 };
                         let spread = if w > 0.0 {

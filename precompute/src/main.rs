@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use translux_engine::linkbound::LinkTolerance;
 use translux_precompute::formfactor::FormFactorParams;
 use translux_precompute::hierarchy::HierarchyParams;
 use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
@@ -90,6 +91,12 @@ struct Cli {
     /// subsurface stage takes less time.
     #[arg(long, default_value = "1", value_parser = link_near)]
     s_link_near: LinkNear,
+    /// Hierarchical S only: the largest relative variation of the profile across a linked
+    /// node, (R(d − ρ) − R(d + ρ)) / mean, at every translucency from ×1/8 to ×8 of the
+    /// scene's (0.01 to 2; smaller is more accurate and stores more). Nodes too small to
+    /// matter (10⁻⁵ of the total reflectance) are linked whatever it is.
+    #[arg(long, default_value_t = LinkTolerance::DEFAULT_VARIATION)]
+    s_link_variation: f32,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0)]
     threshold: f32,
@@ -313,6 +320,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             },
             coarse_links: !cli.s_exact_links,
             near: cli.s_link_near.0,
+            tolerance: LinkTolerance {
+                variation: cli.s_link_variation,
+                ..LinkTolerance::default()
+            },
         }),
     };
     let params = PrecomputeParams {

@@ -767,6 +767,8 @@ pub fn precompute(
     });
     // A hierarchical S traces the distances of homogeneous translucent objects on demand
     // (the cut first, then only the paths it uses) where that saves work.
+    // Each cut object's link bound ([`crate::slinks::link_bounds`]).
+    let mut link_bounds = Vec::new();
     let on_demand: Vec<bool> = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let reach = materials
@@ -778,7 +780,19 @@ pub fn precompute(
                 .map(|o| paths.iter().find(|p| p.0 == o.name).map_or(0, |p| p.1))
                 .collect();
             let reuse = params.distance_cache.is_some();
-            crate::slinks::trace_on_demand(t, &geometry, &materials, &reach, &pairs, sp, sl, reuse)
+            link_bounds =
+                crate::slinks::link_bounds(&geometry, &materials, &reach, unit_mm, sl.tolerance);
+            crate::slinks::trace_on_demand(
+                t,
+                &geometry,
+                &materials,
+                &reach,
+                &pairs,
+                sp,
+                sl,
+                &link_bounds,
+                reuse,
+            )
         }
         _ => vec![false; materials.len()],
     };
@@ -867,7 +881,17 @@ pub fn precompute(
     let (dist, dist_len, dist_kind, dist_spread, links) = match (&params.subsurface_links, &tree) {
         (Some(sl), Some((t, _, _))) => {
             let c = crate::slinks::collapse(
-                t, &geometry, &materials, &stored, &dist, &dist_len, &dist_kind, &oracles, sp, sl,
+                t,
+                &geometry,
+                &materials,
+                &stored,
+                &dist,
+                &dist_len,
+                &dist_kind,
+                &oracles,
+                sp,
+                sl,
+                &link_bounds,
             )?;
             if c.links > 0 {
                 geometry.nodes = Some(c.nodes);
@@ -949,6 +973,10 @@ pub fn precompute(
         links,
         pairwise_distances: if links > 0 { pairwise_distances } else { 0 },
         link_near,
+        link_variation: params
+            .subsurface_links
+            .filter(|_| links > 0)
+            .map(|sl| sl.tolerance.variation),
         walks: walks.col.len() as u64,
         objects: {
             let mut o =

@@ -5,21 +5,24 @@
 //!
 //! In: the cluster tree ([`ClusterTree`], whose top splits objects apart, so each object is
 //! one subtree), the patch geometry, the objects with the radius their distances were
-//! stored to, stage 1's pairwise distances and [`SLinkParams`]. Out: [`Collapsed`]: the
+//! stored to, stage 1's pairwise distances, [`SLinkParams`] and each object's link bounds
+//! ([`link_bounds`]). Out: [`Collapsed`]: the
 //! distances as the bundle stores them for a hierarchical S (`N × (N + M)`, see
 //! `translux_proto::bundle::SubsurfaceInfo::links`) and the tree's nodes as S's assembly reads
 //! them.
 //!
 //! The cut for receiver j (centroid x, longest edge s_j), from the object's subtree root
-//! down, is geometric only, so it holds for every profile the distances were stored for (a
-//! translucency change never re-cuts):
+//! down, is made before any optical distance is known, from geometry and the profile's
+//! bound over a slider's range (a translucency change never re-cuts):
 //! - a node holding j is opened;
 //! - a node whose bounding sphere (centre c, radius ρ) lies beyond the stored radius
 //!   (|x − c| − ρ greater than it: an optical path is never shorter than the straight line)
 //!   is dropped;
 //! - a node is linked whole when ρ ≤ θ |x − c| (θ = [`SLinkParams::accuracy`]), the node is
-//!   outside the receiver's near field (|x − c| − ρ ≥ `near_factor` × s_j, the quadrature's
-//!   near-pair rule), and its representative patch (the one nearest its area-weighted
+//!   outside the receiver's near field (|x − c| − ρ ≥ `near_factor` × s_j), the profile's
+//!   error bound accepts it at every translucency of a slider's range ([`LinkBound`], built
+//!   per object by [`link_bounds`]: R varies across [|x − c| − ρ, |x − c| + ρ] by at most τ
+//!   of its mean, or the node is too small to matter), and its representative patch (the one nearest its area-weighted
 //!   centroid) has a stored optical distance r from j: the link is S_{j,node} = A_node R(r)
 //!   applied to the node's area-weighted mean (a node's patches are then at most 2θ/(1 − θ)
 //!   of the distance apart from the receiver's point of view); a far node whose
@@ -53,6 +56,8 @@ use std::ops::{Range, RangeInclusive};
 use glam::Vec3;
 use rayon::prelude::*;
 use translux_engine::hetero::{MEDIA, MediaLen};
+use translux_engine::linkbound::{LinkBound, LinkTolerance};
+use translux_engine::profile::ProfileEval;
 use translux_engine::sheet::KIND_SAME;
 use translux_engine::smatrix::{ObjectMaterial, PatchGeometry, SError, SParams};
 use translux_engine::subsurface::Nodes;
@@ -103,6 +108,9 @@ pub struct SLinkParams {
     /// (3 sizes) and reads each link at its representative's distance, as bundles did
     /// before.
     pub near: Option<f32>,
+    /// The profile's side of each link's error bound (`--s-link-variation`): a node is
+    /// linked only where [`LinkBound::accepts`] it at every scale of a slider's range.
+    pub tolerance: LinkTolerance,
 }
 
 /// The near fields of links `--s-link-near` accepts, in receiver sizes.
@@ -122,6 +130,7 @@ impl Default for SLinkParams {
             trace: Trace::Auto,
             coarse_links: true,
             near: Some(DEFAULT_LINK_NEAR),
+            tolerance: LinkTolerance::default(),
         }
     }
 }
@@ -169,6 +178,7 @@ pub fn trace_on_demand(
     pairs: &[u64],
     sp: &SParams,
     params: &SLinkParams,
+    bounds: &[Vec<LinkBound>],
     reuse: bool,
 ) -> Vec<bool> {
     if params.trace == Trace::All {
@@ -196,7 +206,7 @@ pub fn trace_on_demand(
                 .map(|s| {
                     let j = r.start + s * r.len() / rows;
                     let (mut near, mut far) = (Vec::new(), Vec::new());
-                    cutter.cut(j, root, *reach, false, &mut near, &mut far);
+                    cutter.cut(j, root, *reach, false, &bounds[k], &mut near, &mut far);
                     let x = g.centroid[j];
                     let close = |p: u32| x.distance(g.centroid[p as usize]) <= *reach;
                     (near.into_iter().filter(|&i| close(i)).count()
@@ -235,8 +245,61 @@ impl SLinkParams {
                 LINK_NEAR_RANGE.end(),
             ));
         }
+        let v = self.tolerance.variation;
+        if !(v.is_finite() && VARIATION_RANGE.contains(&v)) {
+            return Err(format!(
+                "--s-link-variation must be in [{}, {}] (the largest relative variation of the \
+                 profile across a subsurface link's node), got {v}",
+                VARIATION_RANGE.start(),
+                VARIATION_RANGE.end(),
+            ));
+        }
         Ok(())
     }
+}
+
+/// The profile variations across a link `--s-link-variation` accepts (2 is no bound: the
+/// relative variation (a − b)/((a + b)/2) of two positive values is below 2).
+pub const VARIATION_RANGE: RangeInclusive<f32> = 0.01..=2.0;
+
+/// Per object: the profile's side of its links' error bound ([`LinkBound`]), for the
+/// homogeneous translucent objects a hierarchical S cuts (and thin sheets: both their
+/// profiles), out to `reach[k]` from a quarter of the object's smallest patch. `None` for
+/// other objects, or where a profile cannot be read (the stage that evaluates S reports it).
+pub fn link_bounds(
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    reach: &[Option<f32>],
+    unit_mm: f64,
+    tolerance: LinkTolerance,
+) -> Vec<Vec<LinkBound>> {
+    objects
+        .iter()
+        .enumerate()
+        .map(|(k, o)| {
+            let profiles: Vec<&translux_proto::scene::Profile> = match o.material {
+                Material::Translucent { profile, .. } => vec![profile],
+                Material::ThinSheet {
+                    reflectance,
+                    transmittance,
+                    ..
+                } => vec![reflectance, transmittance],
+                _ => return Vec::new(),
+            };
+            let Some(Some(reach)) = reach.get(k) else {
+                return Vec::new();
+            };
+            let smallest = g.size[o.patches.clone()]
+                .iter()
+                .copied()
+                .fold(f32::INFINITY, f32::min);
+            profiles
+                .into_iter()
+                .filter_map(|p| ProfileEval::new(p, unit_mm).ok())
+                .map(|p| LinkBound::new(&p, 0.25 * smallest, *reach, tolerance))
+                .collect()
+        })
+        .collect()
 }
 
 /// A link's distance and spread when it is read at two distances (`SLinkParams::near`):
@@ -359,6 +422,8 @@ struct Cutter<'a> {
     theta: f32,
     near_factor: f32,
     coarse_links: bool,
+    /// Each node's area (the bound's floor weighs a link by it).
+    node_area: Vec<f32>,
 }
 
 impl<'a> Cutter<'a> {
@@ -370,6 +435,13 @@ impl<'a> Cutter<'a> {
         sp: &SParams,
         params: &SLinkParams,
     ) -> Self {
+        let node_area = translux_engine::transport::node_areas(
+            TreeView {
+                perm: &tree.perm,
+                range: ranges,
+            },
+            &g.area,
+        );
         Cutter {
             tree,
             ranges,
@@ -378,6 +450,7 @@ impl<'a> Cutter<'a> {
             theta: params.accuracy,
             near_factor: params.near.unwrap_or(sp.quadrature.near_factor),
             coarse_links: params.coarse_links,
+            node_area,
         }
     }
 
@@ -395,13 +468,19 @@ impl<'a> Cutter<'a> {
     }
 
     /// Receiver j's cut below `root`: patches (other than j) into `direct`, far nodes into
-    /// `far`; nodes wholly beyond `reach` are dropped.
+    /// `far`; nodes wholly beyond `reach` are dropped. A node is linked only where every
+    /// profile of `bounds` accepts it ([`LinkBound::accepts`]).
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "one receiver's cut: the object's root, reach, kind and bounds"
+    )]
     fn cut(
         &self,
         j: usize,
         root: Child,
         reach: f32,
         sheet: bool,
+        bounds: &[LinkBound],
         direct: &mut Vec<u32>,
         far: &mut Vec<u32>,
     ) {
@@ -430,7 +509,8 @@ impl<'a> Cutter<'a> {
                     // of their mean), of its representative's kind.
                     let is_far = rho <= self.theta * de
                         && de - rho >= self.near_factor * self.g.size[j]
-                        && (!sheet || self.tree.cone(q) <= SHEET_CONE);
+                        && (!sheet || self.tree.cone(q) <= SHEET_CONE)
+                        && bounds.iter().all(|b| b.accepts(de, rho, self.node_area[q]));
                     if is_far {
                         far.push(q as u32);
                     } else {
@@ -466,6 +546,7 @@ pub fn collapse(
     on_demand: &[Option<Oracle>],
     sp: &SParams,
     params: &SLinkParams,
+    bounds: &[Vec<LinkBound>],
 ) -> Result<Collapsed, SError> {
     let n = g.corners.len();
     let ranges = tree.ranges();
@@ -532,10 +613,20 @@ pub fn collapse(
                 r.clone(),
                 root,
                 reach,
+                &bounds[k],
                 oracle,
                 &mut node_runs,
             ),
-            _ => cut_pairwise(&cutter, &rep, r.clone(), root, reach, sheet, dist, kind),
+            _ => cut_pairwise(
+                &cutter,
+                &rep,
+                r.clone(),
+                root,
+                (reach, sheet),
+                &bounds[k],
+                dist,
+                kind,
+            ),
         };
         // Direct pairs are stored by source (row i lists its receivers j); receivers come
         // in increasing order, so every row stays sorted.
@@ -625,8 +716,8 @@ fn cut_pairwise(
     rep: &[u32],
     r: Range<usize>,
     root: Child,
-    reach: f32,
-    sheet: bool,
+    (reach, sheet): (f32, bool),
+    bounds: &[LinkBound],
     dist: &Csr<f32>,
     kind: &[u32],
 ) -> Vec<Cut> {
@@ -651,7 +742,7 @@ fn cut_pairwise(
                     kj[i as usize] = kd;
                 }
                 let (mut near, mut far) = (Vec::new(), Vec::new());
-                cutter.cut(j, root, reach, sheet, &mut near, &mut far);
+                cutter.cut(j, root, reach, sheet, bounds, &mut near, &mut far);
                 let mut direct: Vec<(u32, f32, u32)> = near
                     .into_iter()
                     .filter_map(|i| {
@@ -686,12 +777,17 @@ fn cut_pairwise(
 /// distances it uses: one run per receiver to its direct patches, one per linked node from
 /// its representative to the receivers linking it. Distances are symmetric, so each
 /// equals the stored pairwise one ([`Oracle`]) and the cut equals [`cut_pairwise`]'s.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "one object's share of collapse's inputs"
+)]
 fn cut_on_demand(
     cutter: &Cutter<'_>,
     rep: &[u32],
     r: Range<usize>,
     root: Child,
     reach: f32,
+    bounds: &[LinkBound],
     oracle: &Oracle,
     runs: &mut (u64, u64),
 ) -> Vec<Cut> {
@@ -704,7 +800,7 @@ fn cut_on_demand(
         .into_par_iter()
         .map(|j| {
             let (mut near, mut far) = (Vec::new(), Vec::new());
-            cutter.cut(j, root, reach, false, &mut near, &mut far);
+            cutter.cut(j, root, reach, false, bounds, &mut near, &mut far);
             near.retain(|&i| within(i, j as u32));
             far.retain(|&q| within(rep[q as usize], j as u32));
             near.iter_mut().for_each(|i| *i -= base);

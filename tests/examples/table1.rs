@@ -64,7 +64,7 @@ use translux_tests::{mitsuba, scans};
 const USAGE: &str = "usage: table1 [--quick | --full] [--scenes cornell,bowls,flower,horses,cornell_simulated,gallop] \
 [--backend auto|cpu|gpu] [--no-mitsuba] [--reps N] [--out DIR] [--t-max N] \
 [--subsurface auto|pairwise|hierarchical] [--s-accuracy X] [--s-trace auto|on-demand|all] \
-[--s-exact-links] [--s-link-near K|off] [--keep DIR]
+[--s-exact-links] [--s-link-near K|off] [--s-link-variation TAU] [--keep DIR]
 (flags: docs/benchmarks.md, or this example's top comment)";
 
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
@@ -240,6 +240,14 @@ fn args() -> anyhow::Result<Args> {
                     } else {
                         Some(k.parse()?)
                     };
+            }
+            "--s-link-variation" => {
+                a.s_auto = false;
+                let v = it.next().context("--s-link-variation TAU")?;
+                a.s_links
+                    .get_or_insert_with(SLinkParams::default)
+                    .tolerance
+                    .variation = v.parse()?;
             }
             "--s-exact-links" => {
                 a.s_auto = false;

@@ -1,7 +1,8 @@
 //! translux-precompute's integration tests, one binary with a module per subject:
 //! `cli` (the real process, its files, exit codes and messages), `physics` (closed-form
 //! form factors and conservation), `transport` (the solvers and light components),
-//! `subsurface` (S through the pipeline), `slinks` (hierarchical S against pairwise),
+//! `subsurface` (S through the pipeline), `dipole` (the default S against direct
+//! integration of the dipole on a sphere, a slab and a cube), `slinks` (hierarchical S against pairwise),
 //! `heterogeneous` (eq. 9 objects), `simulated` (S from random walks) and `animation`
 //! (animated scenes: one bundle per frame).
 //!
@@ -10,6 +11,7 @@
 
 mod animation;
 mod cli;
+mod dipole;
 mod heterogeneous;
 mod physics;
 mod simulated;

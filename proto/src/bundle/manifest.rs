@@ -223,6 +223,13 @@ pub struct SubsurfaceInfo {
     /// their representative's distance alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub link_near: Option<f32>,
+    /// With links cut by the profile's error bound (`translux-precompute
+    /// --s-link-variation τ`): τ, the largest relative variation of the profile across a
+    /// linked node at every translucency from ×1/8 to ×8; a translucency change groups
+    /// receivers under the same bound. None: links cut by geometry alone (bundles made
+    /// before the bound), whose receivers are grouped by geometry alone too.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub link_variation: Option<f32>,
     /// Records of the random walks of simulated objects (the `sim_*` arrays); 0: none.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub walks: u64,
