@@ -211,9 +211,9 @@ mod tests {
         assert!(!b.accepts(8.0, 4.0, 1.0));
         // A node a twentieth of its distance, at ×8 too (the 1/r³ part: ±15%, then e^(−σr)).
         assert!(b.accepts(8.0, 0.4, 1.0));
-        // Negligible: far beyond where the sharpest scale's profile is spent, but also at ×8
-        // (where it is not) too wide: refused.
-        assert!(!b.accepts(150.0, 60.0, 1.0));
+        // Far beyond where the sharpest scale's profile is spent, but at ×8 (where it is not)
+        // too wide for a node of its size (a 60 mm node holds thousands of mm²): refused.
+        assert!(!b.accepts(150.0, 60.0, 5000.0));
         // A tiny node whose variation cannot matter passes whatever its width.
         assert!(b.accepts(150.0, 60.0, 1e-9));
         // A tighter tolerance refuses what the default accepts.
