@@ -156,9 +156,8 @@ pub fn tables(
     );
     let e = params.truncation_energy;
     let (want_r, want_t) = (er.truncation_radius(e), et.truncation_radius(e));
-    let tail = params.table_energy;
-    let radius_r = er.truncation_radius(tail).min(reach.max(f32::MIN_POSITIVE));
-    let radius_t = et.truncation_radius(tail).min(reach.max(f32::MIN_POSITIVE));
+    let radius_r = want_r.min(reach.max(f32::MIN_POSITIVE));
+    let radius_t = want_t.min(reach.max(f32::MIN_POSITIVE));
     let wanted = want_r.max(want_t);
     let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
     Ok((

@@ -271,7 +271,7 @@ pub fn assemble_scene(
                 // table out to the largest wanted radius, capped by the stored distances.
                 let (map, distinct) = hetero::merge_media(materials);
                 let mut evals = Vec::with_capacity(distinct.len());
-                let (mut wanted, mut table) = (0.0f32, 0.0f32);
+                let mut wanted = 0.0f32;
                 for &d in &distinct {
                     let eval = ProfileEval::new(&materials[d], unit_mm).map_err(|error| {
                         SError::Profile {
@@ -280,11 +280,10 @@ pub fn assemble_scene(
                         }
                     })?;
                     wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
-                    table = table.max(eval.truncation_radius(params.table_energy));
                     evals.push(eval);
                 }
                 let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let radius = table.min(reach.max(f32::MIN_POSITIVE));
+                let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
                 let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
                 // Local CSR of this object's block, with its per-medium lengths.
                 let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
@@ -631,9 +630,7 @@ pub fn translucent_table(
         error,
     })?;
     let wanted = eval.truncation_radius(params.truncation_energy);
-    let radius = eval
-        .truncation_radius(params.table_energy)
-        .min(reach.max(f32::MIN_POSITIVE));
+    let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
     let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
     Ok((Tabulated::new(&eval, radius, 4096), capped_from))
 }

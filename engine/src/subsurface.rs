@@ -11,15 +11,13 @@
 //!
 //! Quadrature, by how close the pair is:
 //! - far pairs (r_ij > `near_factor` × the larger patch's longest edge): S_ji = A_i R(r_ij);
-//! - the self term, near pairs in the same plane and near pairs nearly in one plane (normals
-//!   within 30°: a curved mesh's neighbours) joined by a straight path: polar integration
-//!   around m² sample points x of patch i, about x's foot on patch j's plane. With W(ρ) = ∫₀^ρ R(r) 2πr dr, the integral of R over a region seen
+//! - the self term and near pairs in the same plane: polar integration around m² sample
+//!   points x of patch i. With W(ρ) = ∫₀^ρ R(r) 2πr dr, the integral of R over a region seen
 //!   from x is Σₖ (W(ρ_out,k) − W(ρ_in,k)) / K over K directions, where [ρ_in, ρ_out] is where
 //!   the ray from x at angle k crosses the region — exact in r, so patches far larger than a
 //!   mean free path are handled;
-//! - other near pairs (across a box's edge; an optical path that bends): m² × m² point
-//!   samples with r(x, y) = |x − y| plus the excess of the optical path over the centroid
-//!   distance.
+//! - near pairs in different planes (across an edge of a box): m² × m² point samples with
+//!   r(x, y) = |x − y| plus the excess of the optical path over the centroid distance.
 //!
 //! Energy: Σ_j A_j S_ji ≤ A_i must hold for every column i (light re-emitted never exceeds
 //! light received). Quadrature can overshoot a little; such columns are scaled down to the
@@ -296,8 +294,8 @@ pub fn samples(c: &[Vec3; 3], m: u32) -> Vec<Vec3> {
     out
 }
 
-/// ∫ over triangle `t` of R(|x − y|) dA_y: polar integration about x's foot on t's plane
-/// with K directions, exact along each direction through W (x may lie off the plane).
+/// ∫ over triangle `t` of R(|x − y|) dA_y for x in t's plane: polar integration with K
+/// directions, exact along each direction through W.
 pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
     let mut sum = [0.0f32; 3];
     polar_intervals(x, t, n, k, |lo, hi| {
@@ -309,21 +307,10 @@ pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) 
     sum.map(|s| s / k as f32)
 }
 
-/// The K rays of [`polar_integral`]: for each direction from x's foot on t's plane that
-/// crosses `t`, `f(r_in, r_out)`, the distances from x to where the ray enters and leaves the
-/// triangle (the foot inside: r_in = x's height). The integral is Σ (W(r_out) − W(r_in)) / K
-/// over these calls, exact along each ray for x off the plane too: with h the height,
-/// ∫ R(√(ρ² + h²)) ρ dρ = W(√(ρ² + h²)) / 2π + const, so each ray's [ρ_in, ρ_out] becomes
-/// [√(ρ_in² + h²), √(ρ_out² + h²)].
+/// The K rays of [`polar_integral`]: for each direction from x in t's plane that crosses
+/// `t`, `f(ρ_in, ρ_out)`, where the ray enters and leaves the triangle (ρ_in = 0 when x is
+/// inside). The integral is Σ (W(ρ_out) − W(ρ_in)) / K over these calls.
 pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMut(f32, f32)) {
-    let h2 = n.dot(x - t[0]).powi(2);
-    let lift = |rho: f32| {
-        if h2 > 0.0 {
-            (rho * rho + h2).sqrt()
-        } else {
-            rho
-        }
-    };
     // An orthonormal frame (u, v) in the plane.
     let u = (t[1] - t[0]).normalize_or_zero();
     let v = n.cross(u);
@@ -362,14 +349,10 @@ pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMu
             }
         }
         if !empty && hi > lo {
-            f(lift(lo), lift(hi));
+            f(lo, hi);
         }
     }
 }
-
-/// cos 30°: near pairs whose normals are closer than this, joined by a straight path, are
-/// integrated by the polar rule about each sample's foot on the other patch's plane.
-const NEARLY_PLANAR: f32 = 0.866;
 
 fn coplanar(a: &[Vec3; 3], na: Vec3, b: &[Vec3; 3], nb: Vec3, eps: f32) -> bool {
     na.dot(nb) > 0.9999 && b.iter().all(|v| na.dot(*v - a[0]).abs() <= eps)
@@ -461,15 +444,9 @@ impl Quadrature {
         eps: f32,
     ) -> Quadrature {
         let near = r < params.near_factor * p.size[i].max(p.size[j]);
-        // Nearly one plane (normals within 30°, a curved mesh's neighbours) and a straight
-        // path: each sample's foot lies on or near patch j, where K rays cover it well. Across
-        // a box's edge the foot lies far off j, which then takes few rays: point samples.
-        let straight = r <= p.centroid[i].distance(p.centroid[j])
-            && p.normal[i].dot(p.normal[j]) >= NEARLY_PLANAR;
         if !near {
             Quadrature::Far { area_i: p.area[i] }
-        } else if straight || coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps)
-        {
+        } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
             Quadrature::Polar {
                 tri: p.corners[j],
                 normal: p.normal[j],
@@ -769,12 +746,6 @@ pub struct SParams {
     /// S keeps pairs out to the radius beyond which the profile carries less than this
     /// fraction of its energy. Default 1e-3.
     pub truncation_energy: f32,
-    /// A profile's table (what S's entries and links read) ends where the profile carries
-    /// less than this fraction of its energy, capped by the stored distances. Default 1e-6:
-    /// a dark side lit only through an object is made of the profile's tail, which ending
-    /// the table at `truncation_energy` took 2–5% from (a slab's far face at ×0.25, against
-    /// direct integration of the dipole: `precompute/tests/it/dipole.rs`).
-    pub table_energy: f32,
     /// Distances are stored out to this many times the built profile's truncation radius,
     /// so translucency can grow that much without new geometry work. Default 2.
     pub radius_margin: f32,
@@ -785,7 +756,6 @@ impl Default for SParams {
     fn default() -> Self {
         Self {
             truncation_energy: 1e-3,
-            table_energy: 1e-6,
             radius_margin: 2.0,
             quadrature: SubsurfaceParams::default(),
         }

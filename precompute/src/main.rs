@@ -94,7 +94,7 @@ struct Cli {
     /// Hierarchical S only: the largest relative variation of the profile across a linked
     /// node, (R(d − ρ) − R(d + ρ)) / mean, at every translucency from ×1/8 to ×8 of the
     /// scene's (0.01 to 2; smaller is more accurate and stores more). Nodes too small to
-    /// matter (10⁻⁵ of the total reflectance) are linked whatever it is.
+    /// matter (10⁻⁶ of the total reflectance) are linked whatever it is.
     #[arg(long, default_value_t = LinkTolerance::DEFAULT_VARIATION)]
     s_link_variation: f32,
     /// Dense F only: drop form factors below this value and report the power they carried.

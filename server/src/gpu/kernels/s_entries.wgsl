@@ -119,7 +119,7 @@ fn lookup(slot: u32, x: f32, which: u32) -> vec3<f32> {
     return v0 + t * (v1 - v0);
 }
 
-// ∫ over triangle (t0, t1, t2) of R(|x − y|) dA_y about x's foot on its plane (normal nrm).
+// ∫ over triangle (t0, t1, t2) of R(|x − y|) dA_y for x in its plane (normal nrm).
 fn polar(x: vec3<f32>, t0: vec3<f32>, t1: vec3<f32>, t2: vec3<f32>, nrm: vec3<f32>, slot: u32) -> vec3<f32> {
     let d01 = t1 - t0;
     let len = length(d01);
@@ -137,9 +137,6 @@ fn polar(x: vec3<f32>, t0: vec3<f32>, t1: vec3<f32>, t2: vec3<f32>, nrm: vec3<f3
     if (area2 >= 0.0) {
         sgn = 1.0;
     }
-    // x's height over the plane: each ray's distances lifted to √(ρ² + h²).
-    let hh = dot(x - t0, nrm);
-    let h2 = hh * hh;
     var sum = vec3<f32>(0.0);
     for (var k = 0u; k < p.directions; k++) {
         let d = dirs[k];
@@ -168,7 +165,7 @@ fn polar(x: vec3<f32>, t0: vec3<f32>, t1: vec3<f32>, t2: vec3<f32>, nrm: vec3<f3
         if (empty || hi <= lo) {
             continue;
         }
-        sum += lookup(slot, sqrt(hi * hi + h2), 1u) - lookup(slot, sqrt(lo * lo + h2), 1u);
+        sum += lookup(slot, hi, 1u) - lookup(slot, lo, 1u);
     }
     return sum / f32(p.directions);
 }
