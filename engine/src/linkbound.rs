@@ -30,7 +30,35 @@
 //! from a table of ln R on a logarithmic grid of distances, 32 points per doubling, for the
 //! seven scales ×1/8 … ×8: a node test costs 14 lookups, not 14 profile evaluations.
 
+use translux_proto::scene::Material;
+
 use crate::profile::ProfileEval;
+
+/// An object's link bounds, one per profile of `material` (a thin sheet has two; none for
+/// other materials or a profile that cannot be read), from a quarter of its smallest patch
+/// (`smallest_patch`, scene units) out to `reach`.
+pub fn bounds_of(
+    material: &Material,
+    unit_mm: f64,
+    smallest_patch: f32,
+    reach: f32,
+    tolerance: LinkTolerance,
+) -> Vec<LinkBound> {
+    let profiles = match material {
+        Material::Translucent { profile, .. } => vec![profile],
+        Material::ThinSheet {
+            reflectance,
+            transmittance,
+            ..
+        } => vec![reflectance, transmittance],
+        _ => return Vec::new(),
+    };
+    profiles
+        .into_iter()
+        .filter_map(|p| ProfileEval::new(p, unit_mm).ok())
+        .map(|p| LinkBound::new(&p, 0.25 * smallest_patch, reach, tolerance))
+        .collect()
+}
 
 /// The translucency scales a link must hold at: a slider's range, ×1/8 … ×8 of the
 /// precomputed profile, by doublings (the bound varies smoothly between them).

@@ -755,25 +755,12 @@ fn receiver_bounds(
     let Some(variation) = manifest.subsurface.link_variation else {
         return Vec::new();
     };
-    let profiles = match material {
-        Material::Translucent { profile, .. } => vec![profile],
-        Material::ThinSheet {
-            reflectance,
-            transmittance,
-            ..
-        } => vec![reflectance, transmittance],
-        _ => return Vec::new(),
-    };
     let smallest = g.size[range].iter().copied().fold(f32::INFINITY, f32::min);
     let tolerance = crate::linkbound::LinkTolerance {
         variation,
         ..Default::default()
     };
-    profiles
-        .into_iter()
-        .filter_map(|p| ProfileEval::new(p, manifest.unit_mm).ok())
-        .map(|p| crate::linkbound::LinkBound::new(&p, 0.25 * smallest, reach, tolerance))
-        .collect()
+    crate::linkbound::bounds_of(material, manifest.unit_mm, smallest, reach, tolerance)
 }
 
 /// Reduces the S entries of every translucent object and thin sheet of `bundle`, out to the

@@ -57,7 +57,6 @@ use glam::Vec3;
 use rayon::prelude::*;
 use translux_engine::hetero::{MEDIA, MediaLen};
 use translux_engine::linkbound::{LinkBound, LinkTolerance};
-use translux_engine::profile::ProfileEval;
 use translux_engine::sheet::KIND_SAME;
 use translux_engine::smatrix::{ObjectMaterial, PatchGeometry, SError, SParams};
 use translux_engine::subsurface::Nodes;
@@ -277,15 +276,6 @@ pub fn link_bounds(
         .iter()
         .enumerate()
         .map(|(k, o)| {
-            let profiles: Vec<&translux_proto::scene::Profile> = match o.material {
-                Material::Translucent { profile, .. } => vec![profile],
-                Material::ThinSheet {
-                    reflectance,
-                    transmittance,
-                    ..
-                } => vec![reflectance, transmittance],
-                _ => return Vec::new(),
-            };
             let Some(Some(reach)) = reach.get(k) else {
                 return Vec::new();
             };
@@ -293,11 +283,7 @@ pub fn link_bounds(
                 .iter()
                 .copied()
                 .fold(f32::INFINITY, f32::min);
-            profiles
-                .into_iter()
-                .filter_map(|p| ProfileEval::new(p, unit_mm).ok())
-                .map(|p| LinkBound::new(&p, 0.25 * smallest, *reach, tolerance))
-                .collect()
+            translux_engine::linkbound::bounds_of(o.material, unit_mm, smallest, *reach, tolerance)
         })
         .collect()
 }
