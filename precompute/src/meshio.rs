@@ -392,56 +392,14 @@ pub fn read_ply(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
 /// and bring an old `base64`, for three cases: the GLB's BIN chunk, a base64 `data:` URI,
 /// or a file relative to the glTF file (percent-decoded). A missing buffer file is named.
 pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
-    let gltf = open_gltf(path)?;
-    let json = gltf.as_json();
-    for (m, mesh) in json.meshes.iter().enumerate() {
-        for (p, prim) in mesh.primitives.iter().enumerate() {
-            for (semantic, index) in &prim.attributes {
-                if index.value() >= json.accessors.len() {
-                    return Err(malformed(format!(
-                        "meshes[{m}].primitives[{p}].attributes[\"{}\"] names accessor {}, \
-                         but the file has {} accessors",
-                        match semantic {
-                            gltf::json::validation::Checked::Valid(s) => s.to_string(),
-                            gltf::json::validation::Checked::Invalid => "?".to_owned(),
-                        },
-                        index.value(),
-                        json.accessors.len()
-                    )));
-                }
-            }
-        }
-    }
-    let gltf::Gltf { document, blob } = gltf;
-    let doc = gltf::Document::from_json(document.into_json()).map_err(|e| match e {
-        gltf::Error::Validation(list) => malformed(format!(
-            "invalid glTF: {}",
-            list.iter()
-                .map(|(path, err)| format!("{path}: {err}"))
-                .collect::<Vec<_>>()
-                .join("; ")
-        )),
-        e => malformed(e.to_string()),
-    })?;
+    let (doc, blob) = gltf_document(path)?;
     let base = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
     let buffers = load_buffers(&doc, base, blob)?;
 
-    // The nodes to draw: the default scene's, else every root (a node no node has as child).
-    let roots: Vec<gltf::Node> = match doc.default_scene() {
-        Some(scene) => scene.nodes().collect(),
-        None => {
-            let mut child = vec![false; doc.nodes().len()];
-            for node in doc.nodes() {
-                for c in node.children() {
-                    child[c.index()] = true;
-                }
-            }
-            doc.nodes().filter(|n| !child[n.index()]).collect()
-        }
-    };
+    let roots = gltf_roots(&doc);
     let mut seen = vec![false; doc.nodes().len()];
     let mut stack: Vec<(gltf::Node, Mat4)> = roots
         .into_iter()
@@ -477,6 +435,60 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
         }));
     }
     Ok(tris)
+}
+
+/// A glTF file's document, validated, and its GLB binary chunk if any (see [`read_gltf`]
+/// for what is checked before `gltf` validates).
+fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshError> {
+    let gltf = open_gltf(path)?;
+    let json = gltf.as_json();
+    for (m, mesh) in json.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            for (semantic, index) in &prim.attributes {
+                if index.value() >= json.accessors.len() {
+                    return Err(malformed(format!(
+                        "meshes[{m}].primitives[{p}].attributes[\"{}\"] names accessor {}, \
+                         but the file has {} accessors",
+                        match semantic {
+                            gltf::json::validation::Checked::Valid(s) => s.to_string(),
+                            gltf::json::validation::Checked::Invalid => "?".to_owned(),
+                        },
+                        index.value(),
+                        json.accessors.len()
+                    )));
+                }
+            }
+        }
+    }
+    let gltf::Gltf { document, blob } = gltf;
+    let doc = gltf::Document::from_json(document.into_json()).map_err(|e| match e {
+        gltf::Error::Validation(list) => malformed(format!(
+            "invalid glTF: {}",
+            list.iter()
+                .map(|(path, err)| format!("{path}: {err}"))
+                .collect::<Vec<_>>()
+                .join("; ")
+        )),
+        e => malformed(e.to_string()),
+    })?;
+    Ok((doc, blob))
+}
+
+/// The nodes a glTF file draws: its default scene's, else every root (a node no node has
+/// as child).
+fn gltf_roots(doc: &gltf::Document) -> Vec<gltf::Node<'_>> {
+    match doc.default_scene() {
+        Some(scene) => scene.nodes().collect(),
+        None => {
+            let mut child = vec![false; doc.nodes().len()];
+            for node in doc.nodes() {
+                for c in node.children() {
+                    child[c.index()] = true;
+                }
+            }
+            doc.nodes().filter(|n| !child[n.index()]).collect()
+        }
+    }
 }
 
 /// A glTF or GLB file parsed but not yet validated (see [`read_gltf`]).
@@ -823,4 +835,138 @@ fn read_primitive(
         }
     }));
     Ok(())
+}
+
+// ---------------------------------------------------------------------------------------
+// Triangle counts without geometry
+
+/// How many triangles reading `path` would give (polygons fan-triangulated, glTF meshes
+/// once per node that places them), read from the file without building any geometry: a
+/// scene's size is checked before it is loaded. Memory stays flat whatever the count: OBJ
+/// is read line by line, PLY keeps one corner count per face, glTF reads only its JSON.
+/// A file the readers would refuse may still be counted; loading it names the problem.
+pub fn triangle_count(path: &Path) -> Result<u64, MeshError> {
+    match MeshFormat::from_path(path).map_err(malformed)? {
+        MeshFormat::Obj => obj_triangle_count(path),
+        MeshFormat::Ply => ply_triangle_count(path),
+        MeshFormat::Gltf => gltf_triangle_count(path),
+    }
+}
+
+/// An OBJ file's `f` lines, each of k corners k − 2 triangles. Counted here because tobj
+/// builds the whole mesh to count it.
+fn obj_triangle_count(path: &Path) -> Result<u64, MeshError> {
+    use std::io::BufRead;
+    let mut reader = BufReader::new(open(path)?);
+    let (mut count, mut line) = (0u64, Vec::new());
+    loop {
+        line.clear();
+        if reader.read_until(b'\n', &mut line).map_err(MeshError::Io)? == 0 {
+            return Ok(count);
+        }
+        let mut words = line
+            .split(|b| b.is_ascii_whitespace())
+            .filter(|w| !w.is_empty());
+        if words.next() == Some(b"f".as_slice()) {
+            count += (words.count() as u64).saturating_sub(2);
+        }
+    }
+}
+
+/// A PLY face's corner count; everything else ignored.
+#[derive(Debug, Default)]
+struct PlyCorners(u32);
+
+impl PlyCorners {
+    fn set(&mut self, name: &str, len: usize) -> PropertyAccessResult {
+        if !PLY_FACE_LISTS.contains(&name) {
+            return PropertyAccessResult::Ignored;
+        }
+        self.0 = u32::try_from(len).unwrap_or(u32::MAX);
+        PropertyAccessResult::Set
+    }
+}
+
+impl PropertyAccess for PlyCorners {
+    fn new() -> Self {
+        Self::default()
+    }
+    fn set_list_char(&mut self, name: &str, v: Vec<i8>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+    fn set_list_uchar(&mut self, name: &str, v: Vec<u8>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+    fn set_list_short(&mut self, name: &str, v: Vec<i16>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+    fn set_list_ushort(&mut self, name: &str, v: Vec<u16>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+    fn set_list_int(&mut self, name: &str, v: Vec<i32>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+    fn set_list_uint(&mut self, name: &str, v: Vec<u32>) -> PropertyAccessResult {
+        self.set(name, v.len())
+    }
+}
+
+/// A PLY file's faces, each of k corners k − 2 triangles; the vertices are read past.
+fn ply_triangle_count(path: &Path) -> Result<u64, MeshError> {
+    let mut reader = Reader::new(BufReader::new(open(path)?));
+    let header = Parser::<PlySkip>::new()
+        .read_header(&mut reader)
+        .map_err(|e| ply_error(e, false))?;
+    let binary = header.encoding != ply_rs_bw::ply::Encoding::Ascii;
+    check_ply_header(header.elements.get("vertex"), header.elements.get("face"))
+        .map_err(malformed)?;
+    let mut count = 0u64;
+    for (name, def) in &header.elements {
+        if name == "face" {
+            let faces = Parser::<PlyCorners>::new()
+                .read_payload_for_element(&mut reader, def, &header)
+                .map_err(|e| ply_error(e, binary))?;
+            count += faces
+                .iter()
+                .map(|f| u64::from(f.0.saturating_sub(2)))
+                .sum::<u64>();
+            // Nothing after the faces changes the count.
+            break;
+        }
+        Parser::<PlySkip>::new()
+            .read_payload_for_element(&mut reader, def, &header)
+            .map_err(|e| ply_error(e, binary))?;
+    }
+    Ok(count)
+}
+
+/// A glTF file's triangles from its accessors' counts: per node placing a mesh, per
+/// TRIANGLES primitive a third of its indices (or vertices), per strip or fan two fewer.
+fn gltf_triangle_count(path: &Path) -> Result<u64, MeshError> {
+    let (doc, _) = gltf_document(path)?;
+    let mut seen = vec![false; doc.nodes().len()];
+    let mut stack = gltf_roots(&doc);
+    let mut count = 0u64;
+    while let Some(node) = stack.pop() {
+        if std::mem::replace(&mut seen[node.index()], true) {
+            return Err(malformed(format!(
+                "node {} is reached twice: the node hierarchy must be a tree (no cycles, one \
+                 parent per node)",
+                node.index()
+            )));
+        }
+        for prim in node.mesh().iter().flat_map(|m| m.primitives()) {
+            let corners = match prim.indices() {
+                Some(idx) => idx.count(),
+                None => prim.get(&Semantic::Positions).map_or(0, |p| p.count()),
+            } as u64;
+            count = count.saturating_add(match prim.mode() {
+                Mode::Triangles => corners / 3,
+                Mode::TriangleStrip | Mode::TriangleFan => corners.saturating_sub(2),
+                _ => 0,
+            });
+        }
+        stack.extend(node.children());
+    }
+    Ok(count)
 }

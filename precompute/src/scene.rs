@@ -1462,6 +1462,9 @@ mod tests {
             "embedded.GLTF",
         ] {
             let tris = load_mesh(d, mesh).unwrap_or_else(|e| panic!("{mesh}: {e}"));
+            // Counted without loading, every format gives what loading gives.
+            let counted = crate::meshio::triangle_count(&d.join(mesh)).expect("counts");
+            assert_eq!(counted, tris.len() as u64, "{mesh}");
             let (a, vol) = area_and_volume(&tris);
             assert!(
                 (a - area).abs() < 1e-9 && (vol - volume).abs() < 1e-9,
@@ -1531,6 +1534,7 @@ mod tests {
         let tris = crate::meshio::read_gltf(&p).expect("loads");
         // Only the default scene's nodes 0 (with child 1) and 2; node 3 is in no scene.
         assert_eq!(tris.len(), 2, "{tris:?}");
+        assert_eq!(crate::meshio::triangle_count(&p).expect("counts"), 2);
         let close = |a: Vec3, b: Vec3| a.distance(b) < 1e-5;
         // Node 1 under node 0: scale 2, 90° about Y, then + (10, 0, 0) from its parent:
         // (1, 0, 0) → (2, 0, 0) → (0, 0, −2) → (10, 0, −2).
@@ -1551,6 +1555,7 @@ mod tests {
         let p = write(dir.path(), "roots.gltf", &doc(""));
         let tris = crate::meshio::read_gltf(&p).expect("loads");
         assert_eq!(tris.len(), 6, "{tris:?}");
+        assert_eq!(crate::meshio::triangle_count(&p).expect("counts"), 6);
         let quads = &tris[2..];
         for t in quads {
             assert!((normal(t) - Vec3::Z).length() < 1e-6, "{t:?}");
@@ -1600,6 +1605,9 @@ mod tests {
         let from_ply = crate::meshio::read_ply(&p).expect("the PLY loads");
         let (from_obj, _) = load_obj_triangles(Path::new(BUNNY), false).expect("the OBJ loads");
         assert_eq!(from_ply.len(), 69_451);
+        for counted in [&p, Path::new(BUNNY)].map(crate::meshio::triangle_count) {
+            assert_eq!(counted.expect("counts"), 69_451);
+        }
         assert!(
             from_ply == from_obj,
             "the PLY's triangles differ from the OBJ's"

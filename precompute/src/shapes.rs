@@ -32,6 +32,33 @@ pub const DEFAULT_ROUND_SEGMENTS: u32 = 32;
 /// Default number of segments along a sheet.
 pub const DEFAULT_SHEET_SEGMENTS: u32 = 8;
 
+/// How many triangles [`shape_triangles`] makes for `shape`, without making them: a scene's
+/// size is checked before its geometry is built (a sphere of 4,096 segments is 16.8 million
+/// triangles). Saturates at `u64::MAX`.
+pub fn shape_triangle_count(shape: &Shape) -> u64 {
+    match *shape {
+        Shape::Quad { .. } => 2,
+        Shape::Box { .. } => 12,
+        Shape::Sphere { segments, .. } => {
+            // A fan at each pole and a band of quads between each pair of inner rings.
+            let n = u64::from(segments.unwrap_or(DEFAULT_ROUND_SEGMENTS).max(3));
+            let rings = (n / 2).max(2);
+            (2 * n).saturating_mul(rings - 1)
+        }
+        Shape::Bowl { segments, .. } => {
+            // 2q + 1 bands along the meridian: a fan at each pole, quads between.
+            let n = u64::from(segments.unwrap_or(DEFAULT_ROUND_SEGMENTS).max(3));
+            let q = (n / 4).max(2);
+            (4 * q).saturating_mul(n)
+        }
+        Shape::Sheet { segments, .. } => {
+            // Four faces of one quad per segment, and the two ends.
+            let n = u64::from(segments.unwrap_or(DEFAULT_SHEET_SEGMENTS).max(1));
+            8 * n + 4
+        }
+    }
+}
+
 /// The triangles of `shape` in object space (see the module docs for each shape's frame).
 pub fn shape_triangles(shape: &Shape) -> Vec<[Vec3; 3]> {
     let mut out = Vec::new();
@@ -260,6 +287,42 @@ pub fn signed_volume(tris: &[[Vec3; 3]]) -> f64 {
 mod tests {
     use super::*;
     use std::collections::HashMap;
+
+    #[test]
+    fn triangle_counts_match_the_shapes_made() {
+        let mut shapes = vec![
+            Shape::Quad { size: [1.0, 2.0] },
+            Shape::Box {
+                size: [1.0, 2.0, 3.0],
+                inward: true,
+            },
+        ];
+        for segments in [None, Some(3), Some(4), Some(7), Some(9), Some(64)] {
+            shapes.push(Shape::Sphere {
+                radius: 1.0,
+                segments,
+            });
+            shapes.push(Shape::Bowl {
+                radius: 1.0,
+                thickness: 0.1,
+                segments,
+            });
+            shapes.push(Shape::Sheet {
+                length: 1.0,
+                width: 0.5,
+                thickness: 0.01,
+                curl: 0.5,
+                segments,
+            });
+        }
+        for shape in &shapes {
+            assert_eq!(
+                shape_triangle_count(shape),
+                shape_triangles(shape).len() as u64,
+                "{shape:?}"
+            );
+        }
+    }
 
     fn rel(a: f64, b: f64) -> f64 {
         (a - b).abs() / b.abs()

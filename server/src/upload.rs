@@ -16,8 +16,11 @@
 //! extension, and appears once; every file is within the per-file limit and all of them
 //! within the total (413, counted while streaming to disk, so an oversized upload is cut off
 //! early); the scene file parses and validates; each of its `mesh` paths is the plain name of
-//! an uploaded file (so no path can reach outside the upload folder); the meshes load; the
-//! patch count is within the server's limit; the id is free (409 otherwise).
+//! an uploaded file (so no path can reach outside the upload folder); the triangles, counted
+//! from shape parameters and mesh files without building geometry, are within the patch
+//! limit (every triangle is at least one patch) and within [`SOURCE_TRIANGLES_PER_PATCH`]
+//! times it before `simplify_to`; the meshes load; the patch count is within the server's
+//! limit; the id is free (409 otherwise).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -28,10 +31,11 @@ use axum::http::header::LOCATION;
 use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
-use translux_precompute::meshio::referenced_files;
+use translux_precompute::meshio::{referenced_files, triangle_count};
 use translux_precompute::patch::{Density, plan};
 use translux_precompute::pipeline::{MAX_PATCHES, density_for};
 use translux_precompute::scene::load_scene_file;
+use translux_precompute::shapes::shape_triangle_count;
 use translux_proto::scene::{MeshRef, SceneFile};
 
 use crate::auth::Identity;
@@ -343,6 +347,8 @@ fn check_scene(
             }
         }
     }
+    let most = limits.patches.min(MAX_PATCHES);
+    check_triangle_counts(dir, &file, most)?;
     let loaded =
         load_scene_file(&path).map_err(|e| AppError::invalid(strip_dir(&e.to_string(), dir)))?;
     let density = density_for(got_patches, max_edge, file.patches);
@@ -357,12 +363,50 @@ fn check_scene(
         .map(|o| o.triangles.as_slice())
         .collect();
     let count = plan(&sources, density).1;
-    let most = limits.patches.min(MAX_PATCHES);
     if count > most {
         return Err(AppError::invalid(format!(
             "the scene would make {count} patches, more than this server precomputes for an \
              upload ({most}); ask for fewer with the patches field, or simplify the meshes \
              (every triangle is at least one patch; `simplify_to` in the scene file)"
+        )));
+    }
+    Ok(())
+}
+
+/// How many source triangles an upload may load per patch it may make: an object with
+/// `simplify_to` is loaded whole before it is simplified.
+pub const SOURCE_TRIANGLES_PER_PATCH: u64 = 20;
+
+/// Refuses a scene whose meshes and shapes hold too many triangles, counted from the shape
+/// parameters and the files' headers and faces without building any geometry (memory stays
+/// flat: a 1.5 KB scene of eight 4,096-segment spheres asks for 134 million triangles).
+/// Every triangle is at least one patch, so more triangles than `most` patches (after
+/// `simplify_to`) is refused, and so is loading more than [`SOURCE_TRIANGLES_PER_PATCH`]
+/// times `most`.
+fn check_triangle_counts(dir: &Path, file: &SceneFile, most: u64) -> Result<(), AppError> {
+    let (mut loaded, mut kept) = (0u64, 0u64);
+    for o in &file.objects {
+        let count = match &o.mesh {
+            MeshRef::Shape(shape) => shape_triangle_count(shape),
+            MeshRef::Path(p) => triangle_count(&dir.join(p))
+                .map_err(|e| AppError::invalid(format!("object '{}': mesh {p:?}: {e}", o.name)))?,
+        };
+        loaded = loaded.saturating_add(count);
+        kept = kept.saturating_add(o.simplify_to.map_or(count, |n| n.min(count)));
+    }
+    if kept > most {
+        return Err(AppError::invalid(format!(
+            "the scene would make at least {kept} patches (every triangle is at least one \
+             patch), more than this server precomputes for an upload ({most}); use fewer \
+             segments or simpler meshes (`simplify_to` in the scene file)"
+        )));
+    }
+    let most_loaded = most.saturating_mul(SOURCE_TRIANGLES_PER_PATCH);
+    if loaded > most_loaded {
+        return Err(AppError::invalid(format!(
+            "the scene's meshes hold {loaded} triangles, more than this server loads for an \
+             upload ({most_loaded}: {SOURCE_TRIANGLES_PER_PATCH} per patch it may make, even \
+             with `simplify_to`); simplify them before uploading"
         )));
     }
     Ok(())

@@ -808,6 +808,67 @@ async fn the_upload_patch_limit_counts_every_triangle() {
     assert!(jobs["jobs"].as_array().unwrap().is_empty(), "{jobs}");
 }
 
+/// An upload that asks for huge geometry in a few bytes is refused from the counts alone,
+/// before any triangle is built: eight 4,096-segment spheres (16.8 M triangles each) in a
+/// 1.5 KB scene file, and a glTF whose one mesh of a million triangles eight nodes place
+/// (its buffer file a few bytes). Building either took gigabytes before.
+#[tokio::test]
+async fn an_upload_of_huge_shapes_or_instances_is_refused_from_its_counts() {
+    let bundles = bundles_with(&[]);
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let spheres: Vec<Value> = (0..8)
+        .map(|k| {
+            json!({"name": format!("ball{k}"),
+                   "mesh": {"shape": "sphere", "radius": 0.1, "segments": 4096},
+                   "transform": {"translate": [k as f32 * 0.3, 0.2, 0]},
+                   "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}})
+        })
+        .collect();
+    let scene = json!({ "objects": spheres }).to_string();
+    assert!(scene.len() < 1600, "{}", scene.len());
+    let t = Instant::now();
+    let form = upload_form("balls.json", scene, &[], &[("id", "balls")]);
+    let (status, body, _) = post_upload(&s, Some(EDITOR), form).await;
+    let took = t.elapsed();
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    let text = body.to_string();
+    assert!(
+        text.contains("134152192") && text.contains("(50000)"),
+        "{text}"
+    );
+    assert!(took < Duration::from_secs(1), "refused after {took:?}");
+
+    let nodes: Vec<Value> = (0..8).map(|_| json!({"mesh": 0})).collect();
+    let gltf = json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1, 2, 3, 4, 5, 6, 7]}],
+        "nodes": nodes,
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3_000_000,
+                       "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 1]}],
+        "bufferViews": [{"buffer": 0, "byteLength": 36_000_000}],
+        "buffers": [{"uri": "big.bin", "byteLength": 36_000_000}],
+    })
+    .to_string();
+    let t = Instant::now();
+    let form = upload_form(
+        "many.json",
+        scene_json("many.gltf"),
+        &[("many.gltf", gltf.into_bytes()), ("big.bin", vec![0u8; 16])],
+        &[("id", "many")],
+    );
+    let (status, body, _) = post_upload(&s, Some(EDITOR), form).await;
+    let took = t.elapsed();
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    let text = body.to_string();
+    assert!(text.contains("8000002"), "{text}");
+    assert!(took < Duration::from_secs(1), "refused after {took:?}");
+    let jobs = s.get_json("/api/v1/jobs", Some(ADMIN)).await;
+    assert!(jobs["jobs"].as_array().unwrap().is_empty(), "{jobs}");
+    assert!(leftovers(bundles.path()).is_empty());
+}
+
 /// Meshes as people have them: a scan's PLY and a glTF with its buffer file beside it
 /// (named with a percent-escape, as exporters write spaces), uploaded with the scene file,
 /// become a served scene with both objects.
