@@ -65,8 +65,11 @@ impl std::fmt::Display for JsonError {
 
 impl std::error::Error for JsonError {}
 
-/// Parses JSON into `T`, reporting the path of the field that failed.
+/// Parses JSON into `T`, reporting the path of the field that failed. An object that gives
+/// a key twice is refused wherever it is ([`check_unique_keys`]): serde would keep the last
+/// value of a map's key without a word.
 pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, JsonError> {
+    check_unique_keys(text)?;
     let de = &mut serde_json::Deserializer::from_str(text);
     let parsed = serde_path_to_error::deserialize(&mut *de);
     // `end` refuses anything but whitespace after the value: `{} xyz` is not a JSON body.
@@ -112,10 +115,125 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, JsonE
     }
 }
 
+/// Refuses a JSON text in which any object, at any depth, gives the same key twice; the
+/// error names the key's path. Other syntax errors are left to the parse that follows.
+pub fn check_unique_keys(text: &str) -> Result<(), JsonError> {
+    use serde::de::DeserializeSeed;
+    let de = &mut serde_json::Deserializer::from_str(text);
+    let mut duplicate = None;
+    let result = UniqueKeys {
+        path: String::new(),
+        duplicate: &mut duplicate,
+    }
+    .deserialize(&mut *de);
+    match (result, duplicate) {
+        (Err(e), Some(path)) => Err(JsonError {
+            path,
+            line: e.line(),
+            column: e.column(),
+            message: "this key is given twice in its object; give each key once".to_owned(),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// Walks any JSON value, checking each object's keys ([`check_unique_keys`]); the path of
+/// the first repeated key goes to `duplicate`.
+struct UniqueKeys<'a> {
+    path: String,
+    duplicate: &'a mut Option<String>,
+}
+
+impl UniqueKeys<'_> {
+    fn at(&mut self, step: String) -> UniqueKeys<'_> {
+        UniqueKeys {
+            path: step,
+            duplicate: self.duplicate,
+        }
+    }
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for UniqueKeys<'_> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for UniqueKeys<'_> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("any JSON value")
+    }
+    fn visit_bool<E>(self, _: bool) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_i64<E>(self, _: i64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_u64<E>(self, _: u64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_f64<E>(self, _: f64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_str<E>(self, _: &str) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_unit<E>(self) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(mut self, mut seq: A) -> Result<(), A::Error> {
+        let mut k = 0usize;
+        loop {
+            let path = format!("{}[{k}]", self.path);
+            if seq.next_element_seed(self.at(path))?.is_none() {
+                return Ok(());
+            }
+            k += 1;
+        }
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(mut self, mut map: A) -> Result<(), A::Error> {
+        let mut seen = std::collections::HashSet::new();
+        while let Some(key) = map.next_key::<String>()? {
+            let path = if self.path.is_empty() {
+                key.clone()
+            } else {
+                format!("{}.{key}", self.path)
+            };
+            if !seen.insert(key) {
+                *self.duplicate = Some(path);
+                return Err(serde::de::Error::custom("duplicate key"));
+            }
+            map.next_value_seed(self.at(path))?;
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::scene::{Material, MeshRef, SceneFile, Shape};
+
+    #[test]
+    fn a_key_given_twice_is_refused_in_every_object() {
+        let e = parse_json::<crate::api::RelightRequest>(
+            r#"{"materials": {"block": {"type": "diffuse", "albedo": [1, 0, 0]},
+                              "block": {"type": "diffuse", "albedo": [0, 1, 0]}}}"#,
+        )
+        .unwrap_err();
+        assert_eq!(e.path, "materials.block", "{e}");
+        assert!(e.message.contains("twice"), "{e}");
+        assert_eq!(e.line, 2, "{e}");
+        let e =
+            parse_json::<serde_json::Value>(r#"[{"a": 1}, {"b": {"c": 1, "c": 2}}]"#).unwrap_err();
+        assert_eq!(e.path, "[1].b.c", "{e}");
+        // The same key in different objects is fine, and so are other errors' messages.
+        assert!(parse_json::<serde_json::Value>(r#"{"a": {"x": 1}, "b": {"x": 1}}"#).is_ok());
+        let e = parse_json::<serde_json::Value>(r#"{"a": 1,}"#).unwrap_err();
+        assert!(!e.message.contains("twice"), "{e}");
+    }
 
     #[test]
     fn trailing_garbage_after_a_json_value_is_refused() {

@@ -219,6 +219,9 @@ pub enum ClientMessage {
 
 /// Parses a text message; `Err` closes the stream with the code and reason.
 pub fn parse_message(text: &str) -> Result<ClientMessage, Close> {
+    // A key given twice would be lost in the `Value` below: refused first, as in REST bodies.
+    translux_proto::check_unique_keys(text)
+        .map_err(|e| Close::new(close_code::INVALID, format!("the message: {e}")))?;
     let value: Value = serde_json::from_str(text).map_err(|e| {
         Close::new(
             close_code::INVALID,
@@ -684,6 +687,20 @@ mod tests {
         assert!(c.reason.contains("exposure"), "{c:?}");
         let c = closes(r#"{"type":"config","tone_map":"aces"}"#);
         assert!(c.reason.contains("tone_map"), "{c:?}");
+        // A key given twice, at the top or inside the request, is never silently dropped.
+        let c = closes(r#"{"type":"relight","seq":1,"seq":2}"#);
+        assert_eq!(c.code, 1007);
+        assert!(
+            c.reason.contains("seq") && c.reason.contains("twice"),
+            "{c:?}"
+        );
+        let c = closes(
+            r#"{"type":"relight","seq":1,"request":{"materials":{"a":{"type":"diffuse","albedo":[1,1,1]},"a":{"type":"diffuse","albedo":[0,0,0]}}}}"#,
+        );
+        assert!(
+            c.reason.contains("request.materials.a") && c.reason.contains("twice"),
+            "{c:?}"
+        );
     }
 
     #[test]

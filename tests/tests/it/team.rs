@@ -1433,6 +1433,29 @@ async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
         let message = e["error"]["message"].as_str().unwrap();
         assert!(message.contains(says), "{body}: {message}");
     }
+    // The same object twice: refused, not the last one walked.
+    let twice = format!(
+        r#"{{"materials": {{"cube": {}, "cube": {}}}}}"#,
+        medium(1.0),
+        medium(2.0)
+    );
+    let r = s
+        .req(
+            reqwest::Method::POST,
+            "/api/v1/scenes/cube/resimulate",
+            Some(EDITOR),
+        )
+        .header(CONTENT_TYPE, "application/json")
+        .body(twice)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
+    let text = r.text().await.unwrap();
+    assert!(
+        text.contains("materials.cube") && text.contains("twice"),
+        "{text}"
+    );
     assert!(
         s.get_json("/api/v1/jobs", Some(EDITOR)).await["jobs"]
             .as_array()
