@@ -15,8 +15,9 @@
 //!   share of them when other workers are idle) and runs them with
 //!   [`relight::run_batch`] — one multi-right-hand-side product instead of several.
 //! - **Deadlines**: a job still queued [`ServerParams::deadline`] after it was accepted is
-//!   answered 503 `deadline_exceeded` instead of computed; a job whose client went away is
-//!   dropped.
+//!   answered 503 `deadline_exceeded` at its deadline (a reaper thread looks every 50 ms,
+//!   so the answer does not wait for a worker to free up) instead of computed; a queued job
+//!   whose client went away is dropped.
 //! - **Shutdown**: [`Pool::close`] refuses new jobs; the workers finish every job already
 //!   accepted, then exit ([`Pool::join`]).
 //!
@@ -117,6 +118,28 @@ impl<J> Queue<J> {
         }
         jobs.push_back(job);
         self.len += 1;
+    }
+
+    /// Removes and returns every queued job for which `expired` holds (each client's others
+    /// keep their order).
+    fn remove_where(&mut self, expired: impl Fn(&J) -> bool) -> Vec<J> {
+        let mut out = Vec::new();
+        for jobs in self.per_client.values_mut() {
+            if !jobs.iter().any(&expired) {
+                continue;
+            }
+            let (gone, kept): (VecDeque<J>, VecDeque<J>) =
+                std::mem::take(jobs).into_iter().partition(|j| expired(j));
+            out.extend(gone);
+            *jobs = kept;
+        }
+        if !out.is_empty() {
+            self.per_client.retain(|_, jobs| !jobs.is_empty());
+            let per_client = &self.per_client;
+            self.turn.retain(|c| per_client.contains_key(c));
+            self.len -= out.len();
+        }
+        out
     }
 
     /// Takes the next client's oldest job; if it has a batch key, also queued jobs with the
@@ -225,7 +248,7 @@ impl Pool {
             metrics,
             job_us: AtomicU64::new(0),
         });
-        let threads = (0..shared.params.workers)
+        let mut threads: Vec<JoinHandle<()>> = (0..shared.params.workers)
             .map(|k| {
                 let shared = shared.clone();
                 std::thread::Builder::new()
@@ -234,6 +257,13 @@ impl Pool {
                     .expect("cannot start a relight worker thread")
             })
             .collect();
+        let reaping = shared.clone();
+        threads.push(
+            std::thread::Builder::new()
+                .name("relight-deadlines".into())
+                .spawn(move || reaper(&reaping))
+                .expect("cannot start the relight deadline thread"),
+        );
         Pool {
             shared,
             threads: Arc::new(Mutex::new(threads)),
@@ -357,6 +387,58 @@ fn worker(s: &Shared) {
     }
 }
 
+/// Answers a job that waited past its deadline with 503 `deadline_exceeded`, `queued`
+/// jobs still waiting.
+fn answer_expired(s: &Shared, job: Job, waited: Duration, queued: usize) {
+    s.metrics.outcome("deadline", 1);
+    let retry = retry_after(s, queued);
+    let _ = job.reply.send(Answer {
+        result: Err(AppError::deadline_exceeded(
+            format!(
+                "the request waited {} ms in the queue, past the server's deadline of {} ms, \
+                 and was not computed; the server is overloaded, retry later",
+                waited.as_millis(),
+                s.params.deadline.as_millis()
+            ),
+            retry,
+        )),
+        waited,
+    });
+}
+
+/// How often the reaper looks for queued jobs past their deadline.
+const REAP_EVERY: Duration = Duration::from_millis(50);
+
+/// The reaper: answers queued jobs at their deadline while every worker is busy (a worker
+/// would only see them when it frees up, minutes later behind a long job), and drops those
+/// whose client went away. Exits once the pool is closed and its queue empty.
+fn reaper(s: &Shared) {
+    loop {
+        let (expired, queued) = {
+            let mut q = lock(&s.queue);
+            if q.closed && q.len == 0 {
+                return;
+            }
+            let now = Instant::now();
+            let expired = q.remove_where(|j| now > j.deadline || j.reply.is_closed());
+            if !expired.is_empty() {
+                s.metrics.queue_depth.set(q.len as i64);
+            }
+            (expired, q.len)
+        };
+        let now = Instant::now();
+        for job in expired {
+            if job.reply.is_closed() {
+                s.metrics.outcome("cancelled", 1);
+            } else {
+                let waited = now - job.accepted;
+                answer_expired(s, job, waited, queued);
+            }
+        }
+        std::thread::sleep(REAP_EVERY);
+    }
+}
+
 /// Answers a batch: drops jobs whose client is gone, refuses expired ones, computes the
 /// rest (relights of one scene together), and records the metrics.
 fn process(s: &Shared, batch: Vec<Job>) {
@@ -368,21 +450,8 @@ fn process(s: &Shared, batch: Vec<Job>) {
         if job.reply.is_closed() {
             m.outcome("cancelled", 1);
         } else if now > job.deadline {
-            m.outcome("deadline", 1);
             let queued = lock(&s.queue).len;
-            let retry = retry_after(s, queued);
-            let _ = job.reply.send(Answer {
-                result: Err(AppError::deadline_exceeded(
-                    format!(
-                        "the request waited {} ms in the queue, past the server's deadline of \
-                         {} ms, and was not computed; the server is overloaded, retry later",
-                        waited.as_millis(),
-                        s.params.deadline.as_millis()
-                    ),
-                    retry,
-                )),
-                waited,
-            });
+            answer_expired(s, job, waited, queued);
         } else {
             m.queue_wait.observe(waited.as_secs_f64());
             live.push((job, waited));
@@ -554,6 +623,29 @@ mod tests {
         let mut q = queue(&[("a", 1, Some(7)), ("b", 1, Some(7)), ("b", 2, Some(7))]);
         assert_eq!(names(&q.take_batch(1, 1, |j| j.2)), ["a1"]);
         assert_eq!(names(&q.take_batch(2, 1, |j| j.2)), ["b1", "b2"]);
+    }
+
+    #[test]
+    fn expired_jobs_leave_the_queue_and_the_rest_keep_their_turns() {
+        let mut q = queue(&[
+            ("a", 1, None),
+            ("a", 2, None),
+            ("b", 1, None),
+            ("c", 1, None),
+            ("c", 2, None),
+        ]);
+        let gone = q.remove_where(|j| j.1 == 1 && j.0 != "c");
+        let mut gone = names(&gone);
+        gone.sort();
+        assert_eq!(gone, ["a1", "b1"]);
+        assert_eq!(q.len, 3);
+        assert!(!q.per_client.contains_key("b") && !q.turn.contains(&"b".to_string()));
+        let mut order = Vec::new();
+        while q.len > 0 {
+            order.extend(names(&q.take_batch(1, 1, |j| j.2)));
+        }
+        assert_eq!(order, ["a2", "c1", "c2"]);
+        assert!(q.remove_where(|_| true).is_empty());
     }
 
     #[test]

@@ -295,6 +295,61 @@ async fn relights_that_wait_past_the_deadline_are_answered_503_not_computed() {
     Arc::into_inner(s).unwrap().stop().await;
 }
 
+/// The queue's deadline holds while every worker is busy: behind a long render on the only
+/// worker, a relight is answered 503 at its deadline, not when the render ends (it was
+/// answered only once a worker freed up: 424 s after a 30 s deadline behind lamp walks).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_queued_relight_is_answered_at_its_deadline_while_the_workers_are_busy() {
+    let deadline = Duration::from_millis(300);
+    let s = Arc::new(
+        TestServer::cornell(ServerParams {
+            workers: 1,
+            max_batch: 1,
+            deadline,
+            ..Default::default()
+        })
+        .await,
+    );
+    let start = std::time::Instant::now();
+    let long = {
+        let s = s.clone();
+        tokio::spawn(async move {
+            let r = s
+                .client
+                .post(s.url(&format!("/api/v1/scenes/{ID}/render")))
+                .header(reqwest::header::CONTENT_TYPE, "application/json")
+                .header(reqwest::header::ACCEPT, "image/png")
+                .body(json!({"width": 4096, "height": 4096}).to_string())
+                .send()
+                .await
+                .unwrap();
+            let status = r.status();
+            let _ = r.bytes().await;
+            (status, start.elapsed())
+        })
+    };
+    // The render has the worker before the relight is queued.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let sent = start.elapsed();
+    let r = s.relight(&many_lights(4, 0.3)).await;
+    let answered = start.elapsed();
+    assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE);
+    let (_, code, _) = error_of(r).await;
+    assert_eq!(code, "deadline_exceeded");
+    let (status, render_done) = long.await.unwrap();
+    assert_eq!(status, StatusCode::OK);
+    assert!(
+        answered - sent < deadline + Duration::from_millis(700),
+        "answered {:?} after it was sent (deadline {deadline:?})",
+        answered - sent
+    );
+    assert!(
+        answered < render_done,
+        "answered at {answered:?}, after the render ended at {render_done:?}"
+    );
+    Arc::into_inner(s).unwrap().stop().await;
+}
+
 fn copy_bundle(from: &std::path::Path, to: &std::path::Path) {
     std::fs::create_dir_all(to).unwrap();
     for e in std::fs::read_dir(from).unwrap() {
