@@ -10,6 +10,10 @@ pub enum ErrorKind {
     Unsupported,
     /// A bug: bad input never causes it.
     Internal,
+    /// Stopped by its caller (the client went away, the server is stopping).
+    Cancelled,
+    /// Stopped at the request's limit of work (its time ran out).
+    OverLimit,
 }
 
 /// A failure of the run-time transport; `message` names what and where.
@@ -30,6 +34,20 @@ impl EngineError {
     pub fn unsupported(message: impl Into<String>) -> Self {
         Self {
             kind: ErrorKind::Unsupported,
+            message: message.into(),
+        }
+    }
+
+    pub fn cancelled(message: impl Into<String>) -> Self {
+        Self {
+            kind: ErrorKind::Cancelled,
+            message: message.into(),
+        }
+    }
+
+    pub fn over_limit(message: impl Into<String>) -> Self {
+        Self {
+            kind: ErrorKind::OverLimit,
             message: message.into(),
         }
     }

@@ -33,7 +33,7 @@
 //! inside a mesh and keeps path lengths).
 
 use std::ops::Range;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -44,10 +44,12 @@ use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
 use crate::collimated::{Tilt, add_first_scatter, tilted_irradiance};
+use crate::error::EngineError;
 use crate::linalg::{Rgb, Scatter};
 use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
 use crate::simulated::{self, SimMedium};
+use crate::stop::{Reason, Stop};
 
 /// The most walks a relight may ask per lamp (each group of channels with its own σs walks
 /// as many again). What a walk costs depends on the medium and the object's size: 1.6
@@ -82,7 +84,16 @@ pub fn first_scatter(
 ) -> Option<Vec<Rgb>> {
     let tilt = crate::collimated::own_tilt(bundle)?;
     let materials = crate::smatrix::materials_with(bundle, &[]);
-    let walked = LampWalks::walk(bundle, geo, occ, lights, &materials, &tilt, per)?;
+    let walked = LampWalks::walk(
+        bundle,
+        geo,
+        occ,
+        (lights, &materials),
+        &tilt,
+        per,
+        (&Stop::never(), None),
+    )
+    .ok()??;
     let s = crate::transport::subsurface_operator(bundle, bundle.subsurface());
     let mut se = vec![[0.0f32; 3]; walked.e.len()];
     s.apply(&walked.e, &mut se);
@@ -111,25 +122,69 @@ pub(crate) struct ObjectWalks {
 impl LampWalks {
     /// Walks `per` beams per lamp of `lights` into the simulated objects, shared out over
     /// the lit patches by power (`materials`: the relight's, one per manifest object).
-    /// `None` when no lamp lights a simulated object. The streams are seeded by the
+    /// `Ok(None)` when no lamp lights a simulated object. The streams are seeded by the
     /// material's `seed` and the beam, so the walks do not depend on the thread count.
+    ///
+    /// `stop` ends the walks early (an error of kind `Cancelled`), and so does `limit`,
+    /// the most time they may take (kind `OverLimit`, with the time all of them would
+    /// take, estimated from the walks made): a request's cost is bounded and the walks
+    /// stop within a few milliseconds of either.
     pub fn walk(
         bundle: &Bundle,
         geo: PatchGeometry<'_>,
         occ: &Occluder,
-        lights: &[Light],
-        materials: &[&Material],
+        (lights, materials): (&[Light], &[&Material]),
         tilt: &Tilt,
         per: u32,
-    ) -> Option<LampWalks> {
+        (stop, limit): (&Stop, Option<Duration>),
+    ) -> Result<Option<LampWalks>, EngineError> {
+        let start = Instant::now();
+        let stop = match limit {
+            Some(limit) => stop.clone().until(start + limit),
+            None => stop.clone(),
+        };
+        Self::walk_until(bundle, geo, occ, (lights, materials), tilt, per, &stop).map_err(|made| {
+            let elapsed = start.elapsed().as_secs_f64();
+            match stop.reason() {
+                Some(Reason::Time) => {
+                    let lamps = lights.len().max(1) as f64;
+                    let all = per as f64 * lamps;
+                    EngineError::over_limit(format!(
+                        "lamp_walks: stopped at this request's limit of {:.1} s of \
+                         walks, with about {made} of its {all:.0} walks made; all of \
+                         them would take about {:.0} s. Ask fewer walks per lamp, or \
+                         use a token whose role has a higher limit",
+                        limit.map_or(elapsed, |l| l.as_secs_f64()),
+                        elapsed * all / made.max(1) as f64
+                    ))
+                }
+                _ => EngineError::cancelled(
+                    "lamp_walks: stopped (the client went away or the server is stopping)",
+                ),
+            }
+        })
+    }
+
+    /// [`LampWalks::walk`] until `stop`: `Err` with the walks made when it fired.
+    fn walk_until(
+        bundle: &Bundle,
+        geo: PatchGeometry<'_>,
+        occ: &Occluder,
+        (lights, materials): (&[Light], &[&Material]),
+        tilt: &Tilt,
+        per: u32,
+        stop: &Stop,
+    ) -> Result<Option<LampWalks>, u64> {
         let start = Instant::now();
         let manifest = bundle.manifest();
         let unit_mm = manifest.unit_mm;
         let lamps = PointLights::new(lights, occ, unit_mm);
         if lamps.is_empty() || per == 0 {
-            return None;
+            return Ok(None);
         }
-        let moments = tilted_irradiance(geo, occ, lights, unit_mm, tilt)?;
+        let Some(moments) = tilted_irradiance(geo, occ, lights, unit_mm, tilt) else {
+            return Ok(None);
+        };
         let n = geo.centroid.len();
         let corners_all = crate::smatrix::bundle_geometry(bundle).corners;
         let area_all = bundle.patch_areas();
@@ -161,7 +216,7 @@ impl LampWalks {
         }
         let total: f64 = media.iter().flat_map(|m| &m.3).map(|b| b.3).sum();
         if total <= 0.0 || !total.is_finite() {
-            return None;
+            return Ok(None);
         }
         let budget = per as f64 * lamps.len() as f64;
         let (mut objects, mut walks, mut sources) = (Vec::new(), 0u64, 0u64);
@@ -178,22 +233,23 @@ impl LampWalks {
                 &area_all[range],
                 &built,
                 unit_mm,
-                &beams,
-            );
+                (&beams, stop),
+            )
+            .map_err(|made| walks + made)?;
             walks += made;
             objects.push(obj);
         }
         if objects.is_empty() {
-            return None;
+            return Ok(None);
         }
-        Some(LampWalks {
+        Ok(Some(LampWalks {
             objects,
             e,
             moments,
             walks,
             sources,
             seconds: start.elapsed().as_secs_f64(),
-        })
+        }))
     }
 
     /// Adds c = X − (S E′ + the tilt's product with E′'s moments) to `y` (`[patch][rgb]`,
@@ -285,7 +341,8 @@ fn merged(mut recs: Vec<Record>) -> Vec<Record> {
 /// expected), each group of channels sharing σs walking a beam's expected count rounded at
 /// random (so each walk carries A_i E / expected, and the sum is unbiased). Returns the
 /// object's records and the walks made. Each beam's stream is seeded by the material's
-/// seed, the object's first patch and the beam's index.
+/// seed, the object's first patch and the beam's index. `Err` with the walks made (a bound:
+/// the chunk under way counts whole) where `stop` fired.
 pub(crate) fn walk_object(
     (object, range): (usize, Range<usize>),
     corners: &[[Vec3; 3]],
@@ -293,8 +350,8 @@ pub(crate) fn walk_object(
     area: &[f32],
     medium: &SimMedium,
     unit_mm: f64,
-    beams: &[(usize, Vec3, Rgb, f64)],
-) -> (ObjectWalks, u64) {
+    (beams, stop): (&[(usize, Vec3, Rgb, f64)], &Stop),
+) -> Result<(ObjectWalks, u64), u64> {
     let first_patch = range.start as u64;
     let n = corners.len();
     let frame = simulated::WalkFrame::new(corners, unit_mm);
@@ -323,6 +380,9 @@ pub(crate) fn walk_object(
             .map(|(k, &(i, d, c, expected))| {
                 let b = chunk.start + k;
                 let (mut out, mut made) = (Vec::new(), 0u64);
+                if stop.is_set() {
+                    return (out, made);
+                }
                 for (gi, group) in groups.iter().enumerate() {
                     let fl = group
                         .iter()
@@ -338,6 +398,7 @@ pub(crate) fn walk_object(
                         (medium.sigma_s[group[0]], medium.g, medium.eta, fl),
                         (i, d, count),
                         &mut rng,
+                        stop,
                         |j, mm, weight| {
                             let aj = area[j as usize].max(f32::MIN_POSITIVE);
                             let mut v = [0.0f32; 3];
@@ -352,6 +413,10 @@ pub(crate) fn walk_object(
             })
             .collect();
         walks += recs.iter().map(|r| r.1).sum::<u64>();
+        if stop.is_set() {
+            // Part of this chunk's walks were not made: nothing of it is kept.
+            return Err(walks);
+        }
         all.extend(recs.into_iter().flat_map(|r| r.0));
         all = merged(all);
     }
@@ -365,7 +430,7 @@ pub(crate) fn walk_object(
     for k in 0..n {
         row_ptr[k + 1] += row_ptr[k];
     }
-    (
+    Ok((
         ObjectWalks {
             object,
             range,
@@ -374,5 +439,5 @@ pub(crate) fn walk_object(
             w,
         },
         walks,
-    )
+    ))
 }

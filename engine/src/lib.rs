@@ -36,7 +36,8 @@
 //!   [`relight`] — a request checked against a scene ([`relight::plan`]) and computed
 //!   ([`relight::run`], [`relight::run_batch`]: the six components, T or the solver, warm
 //!   starts); [`picture`] — renders and exports of a relight. Failures are
-//!   [`error::EngineError`]s.
+//!   [`error::EngineError`]s; [`stop`] — long work (lamp walks) stopped by its caller or
+//!   its time limit.
 //!
 //! Crate graph: `proto ← engine ← {precompute, server (with its wgpu backend)}`; see
 //! `docs/architecture.md`.
@@ -66,6 +67,7 @@ pub mod smatrix;
 pub mod solver;
 pub mod specular;
 pub mod sterms;
+pub mod stop;
 pub mod subsurface;
 pub mod transport;
 pub mod vertexlight;

@@ -7,7 +7,7 @@
 
 use std::borrow::Cow;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use crate::inverse;
 use crate::radiosity::{Albedo, PatchGeometry, Rgb, Scatter, SolveParams, vertex_radiance};
@@ -23,6 +23,7 @@ use crate::error::EngineError;
 use crate::scene::Scene;
 use crate::smatrix::OverrideMaterials;
 use crate::specular::Gloss;
+use crate::stop::Stop;
 use crate::vertexlight::VertexLit;
 use translux_proto::api::DirectAt;
 
@@ -51,6 +52,12 @@ pub struct RelightPlan {
     /// Walks per lamp along the lamps' own beams into simulated objects
     /// ([`crate::lampwalk`]); `None`: the stored walks' model alone.
     pub lamp_walks: Option<u32>,
+    /// Stops the plan's long work early (its caller sets it: a server when the client
+    /// went away or it is stopping). [`plan`] gives one that never fires.
+    pub stop: Stop,
+    /// The most time the plan's lamp walks may take (a server sets it per role); `None`:
+    /// no limit. Past it the relight is refused with the time they would need.
+    pub work_limit: Option<Duration>,
 }
 
 impl RelightPlan {
@@ -209,6 +216,8 @@ pub fn plan(scene: &Scene, req: RelightRequest) -> Result<RelightPlan, EngineErr
         direct_at: req.direct_at,
         tolerance: solve_params().tolerance,
         lamp_walks: req.lamp_walks,
+        stop: Stop::never(),
+        work_limit: None,
     })
 }
 
@@ -539,13 +548,20 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
                             b,
                             geo,
                             &scene.occluder,
-                            &plan.lights,
-                            &materials,
+                            (&plan.lights, &materials),
                             t,
                             per,
+                            (&plan.stop, plan.work_limit),
                         )
                     });
-                    walked.map(|w| (w, materials.into_iter().cloned().collect()))
+                    match walked {
+                        Ok(w) => w.map(|w| (w, materials.into_iter().cloned().collect())),
+                        Err(e) => {
+                            out[idx] = Some(Err(e));
+                            prepared.push(None);
+                            continue;
+                        }
+                    }
                 }
                 _ => None,
             },

@@ -600,12 +600,10 @@ impl DirectCache {
     pub(crate) fn lamp_walks(
         &self,
         key: &str,
-        make: impl FnOnce() -> Option<crate::lampwalk::LampWalks>,
-    ) -> Option<Arc<crate::lampwalk::LampWalks>> {
-        let Ok(walks) = kept_or::<_, std::convert::Infallible>(&self.lamp_walks, key, || {
-            Ok(make().map(Arc::new))
-        });
-        walks
+        make: impl FnOnce() -> Result<Option<crate::lampwalk::LampWalks>, EngineError>,
+    ) -> Result<Option<Arc<crate::lampwalk::LampWalks>>, EngineError> {
+        // A walk stopped early is an error, never kept.
+        kept_or(&self.lamp_walks, key, || Ok(make()?.map(Arc::new)))
     }
 }
 

@@ -744,14 +744,16 @@ impl WalkFrame {
     /// `g`, boundary `eta`, cut where e^(−`floor` L) is negligible (`floor` in mm⁻¹, 0: never).
     /// `exit(j, length in mm, entry weight)` for each walk that scattered and left through
     /// local patch j (a beam crossing unscattered is the lamp seen through, not exitance).
+    /// Returns false, with fewer walks made, where `stop` fired.
     pub(crate) fn walk_beams(
         &self,
         (normal, area): (&[Vec3], &[f32]),
         (sigma_s, g, eta, floor): (f32, f32, f32, f32),
         (i, d, count): (usize, Vec3, u32),
         rng: &mut ChaCha8Rng,
+        stop: &crate::stop::Stop,
         mut exit: impl FnMut(u32, f64, f32),
-    ) {
+    ) -> bool {
         let mut w = Walker {
             p: SimPatches {
                 corners: &self.corners,
@@ -770,7 +772,11 @@ impl WalkFrame {
             },
             events: 0,
         };
-        for _ in 0..count {
+        for k in 0..count {
+            // A walk is microseconds to milliseconds: looking every 32 keeps a stop prompt.
+            if k % 32 == 0 && stop.is_set() {
+                return false;
+            }
             if let (
                 End::Out {
                     j,
@@ -784,6 +790,7 @@ impl WalkFrame {
                 exit(j, len as f64 * self.unit_mm, weight);
             }
         }
+        true
     }
 }
 
@@ -1561,8 +1568,9 @@ mod tests {
             &m.area,
             &built,
             1.0,
-            &beams,
-        );
+            (&beams, &crate::stop::Stop::never()),
+        )
+        .expect("never stopped");
         let k = top.len() as u64;
         assert!((19_999 * k..=20_000 * k).contains(&made), "{made} walks");
         assert!(

@@ -100,6 +100,15 @@ pub struct Identity {
     pub role: Option<Role>,
 }
 
+/// The role of a request by the identity the access check gave it; a router without the
+/// check in front of it (an embedding library, tests) acts for its only user, an admin.
+pub fn role_of(identity: &Option<axum::Extension<Identity>>) -> Option<Role> {
+    match identity {
+        Some(axum::Extension(i)) => i.role,
+        None => Some(Role::Admin),
+    }
+}
+
 /// The identity of every request when no tokens are configured (loopback only).
 pub const LOCAL_NAME: &str = "local";
 /// The identity of a request without a valid token on an open route.

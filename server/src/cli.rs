@@ -58,7 +58,7 @@ pub const DEMO_FRAME_PATCHES: u64 = 1500;
                   translux-server render --bundle demo-bundles/cornell --out cornell.png\n  \
                   translux-server export --bundle demo-bundles/cornell --request req.json --out cornell.glb\n\n\
                   Settings: flags, then TRANSLUX_* environment variables, then the --config TOML \
-                  file (keys: bundles, addr, demo, workers, queue, max_batch, deadline_ms), then \
+                  file (keys: bundles, addr, demo, workers, queue, max_batch, deadline_ms, viewer_work_s, editor_work_s), then \
                   the defaults.\n\
                   Logging: RUST_LOG (default info); RUST_LOG=debug logs every request."
 )]
@@ -79,7 +79,8 @@ pub struct Args {
     /// there, then serve DIR.
     #[arg(long)]
     pub demo: bool,
-    /// A TOML file with any of: bundles, addr, demo, workers, queue, max_batch, deadline_ms.
+    /// A TOML file with any of: bundles, addr, demo, workers, queue, max_batch, deadline_ms,
+    /// viewer_work_s, editor_work_s.
     #[arg(long, value_name = "FILE", env = "TRANSLUX_CONFIG")]
     pub config: Option<PathBuf>,
     /// Relight worker threads [default: one per core].
@@ -97,6 +98,13 @@ pub struct Args {
     /// How long a relight may wait in the queue before it is answered 503 [default: 30000].
     #[arg(long, value_name = "MS", env = "TRANSLUX_DEADLINE_MS")]
     pub deadline_ms: Option<u64>,
+    /// Seconds of lamp walks one viewer's request (or one without a token) may run before
+    /// it is stopped and answered 422 [default: 10].
+    #[arg(long, value_name = "S", env = "TRANSLUX_VIEWER_WORK_S")]
+    pub viewer_work_s: Option<f64>,
+    /// The same for editors and admins, and for every request without tokens [default: 600].
+    #[arg(long, value_name = "S", env = "TRANSLUX_EDITOR_WORK_S")]
+    pub editor_work_s: Option<f64>,
     /// Compute backend: auto (a hardware GPU if wgpu finds one, else the CPU), gpu (any
     /// adapter, a software one too; none is a start-up error) or cpu.
     #[arg(long, value_enum, env = "TRANSLUX_BACKEND", default_value_t = crate::backend::BackendChoice::Auto)]
@@ -127,6 +135,18 @@ pub struct Settings {
     pub addr: String,
     pub demo: bool,
     pub params: ServerParams,
+}
+
+/// A setting in seconds, `default` when not given; a negative, zero or non-finite number,
+/// or one over a year, is an error naming it.
+fn seconds(name: &str, given: Option<f64>, default: Duration) -> anyhow::Result<Duration> {
+    match given {
+        None => Ok(default),
+        Some(s) if s.is_finite() && s > 0.0 && s <= 365.0 * 86_400.0 => {
+            Ok(Duration::from_secs_f64(s))
+        }
+        Some(s) => bail!("{name} must be a number of seconds above 0 (at most a year), got {s}"),
+    }
 }
 
 /// The address when nothing sets one.
@@ -164,6 +184,16 @@ impl Args {
                 .deadline_ms
                 .or(file.deadline_ms)
                 .map_or(defaults.deadline, Duration::from_millis),
+            viewer_work: seconds(
+                "viewer_work_s",
+                self.viewer_work_s.or(file.viewer_work_s),
+                defaults.viewer_work,
+            )?,
+            editor_work: seconds(
+                "editor_work_s",
+                self.editor_work_s.or(file.editor_work_s),
+                defaults.editor_work,
+            )?,
             prepare: self
                 .prepare_translucency
                 .unwrap_or(if self.team.memory_budget.is_some() {
@@ -316,11 +346,13 @@ pub async fn run(
     let p = &settings.params;
     tracing::info!(
         "listening on http://{local}/ (Ctrl-C to stop); {} workers, queue {}, max batch {}, \
-         deadline {} ms",
+         deadline {} ms, lamp walks at most {} s a viewer's request, {} s an editor's",
         p.workers,
         p.queue,
         p.max_batch,
-        p.deadline.as_millis()
+        p.deadline.as_millis(),
+        p.viewer_work.as_secs_f64(),
+        p.editor_work.as_secs_f64()
     );
     let jobs = team.jobs.clone();
     let app = crate::team::app(state.clone(), team);
@@ -544,7 +576,7 @@ mod tests {
         std::fs::write(
             &file,
             "bundles = \"bb\"\naddr = \"0.0.0.0:1\"\nworkers = 3\nqueue = 5\nmax_batch = 4\n\
-             deadline_ms = 700\n",
+             deadline_ms = 700\nviewer_work_s = 2.5\n",
         )
         .unwrap();
         let cfg = file.to_str().unwrap();
@@ -552,6 +584,19 @@ mod tests {
             .unwrap()
             .settings()
             .unwrap();
+        assert_eq!(s.params.viewer_work, Duration::from_millis(2500));
+        assert_eq!(s.params.editor_work, Duration::from_secs(600));
+        let s2 = Args::try_parse_from(["translux-server", "--config", cfg, "--viewer-work-s", "1"])
+            .unwrap()
+            .settings()
+            .unwrap();
+        assert_eq!(s2.params.viewer_work, Duration::from_secs(1));
+        let bad =
+            Args::try_parse_from(["translux-server", "--config", cfg, "--editor-work-s", "0"])
+                .unwrap()
+                .settings()
+                .unwrap_err();
+        assert!(bad.to_string().contains("editor_work_s"), "{bad}");
         assert_eq!(s.bundles, dir.path().join("bb"));
         assert_eq!(s.addr, "0.0.0.0:1");
         assert_eq!(

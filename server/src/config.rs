@@ -12,6 +12,8 @@
 //! queue = 256                # relights waiting at most; more get 429
 //! max_batch = 32             # relights of one scene computed together; 1 = no batching
 //! deadline_ms = 30000        # a relight that waited longer gets 503
+//! viewer_work_s = 10         # lamp walks a viewer's request may run; longer gets 422
+//! editor_work_s = 600        # the same for editors and admins (and without tokens)
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -25,6 +27,10 @@ pub const DEFAULT_QUEUE: usize = 256;
 pub const DEFAULT_MAX_BATCH: usize = 32;
 pub const DEFAULT_DEADLINE_MS: u64 = 30_000;
 pub const DEFAULT_PING_S: u64 = 15;
+/// Default seconds of lamp walks one request may run: viewers (and requests without a
+/// token on open routes), then editors and admins (and every request without tokens).
+pub const DEFAULT_VIEWER_WORK_S: f64 = 10.0;
+pub const DEFAULT_EDITOR_WORK_S: f64 = 600.0;
 /// Upper bounds, so a typo cannot ask for a million threads.
 pub const MAX_WORKERS: usize = 1024;
 pub const MAX_QUEUE: usize = 1 << 20;
@@ -52,6 +58,13 @@ pub struct ServerParams {
     /// [`PrepareWhen::Off`] for an embedding library; the binary's `--prepare-translucency`
     /// defaults to `load`, or `request` under a memory budget).
     pub prepare: PrepareWhen,
+    /// The most time one request's lamp walks may take, for viewers and requests without
+    /// a token (default [`DEFAULT_VIEWER_WORK_S`]); past it the request is stopped and
+    /// answered 422 `work_limit` with the time it would need.
+    pub viewer_work: Duration,
+    /// The same for editors and admins, and for every request when no tokens are
+    /// configured (default [`DEFAULT_EDITOR_WORK_S`]).
+    pub editor_work: Duration,
 }
 
 /// When what a scene's first translucency change needs (S's radial terms on the CPU, the S
@@ -79,6 +92,18 @@ impl Default for ServerParams {
             ping_interval: Duration::from_secs(DEFAULT_PING_S),
             backend: "cpu".to_string(),
             prepare: PrepareWhen::Off,
+            viewer_work: Duration::from_secs_f64(DEFAULT_VIEWER_WORK_S),
+            editor_work: Duration::from_secs_f64(DEFAULT_EDITOR_WORK_S),
+        }
+    }
+}
+
+impl ServerParams {
+    /// The work limit of a request by `role` (`None`: no valid token on an open route).
+    pub fn work_limit(&self, role: Option<crate::auth::Role>) -> Duration {
+        match role {
+            Some(crate::auth::Role::Editor | crate::auth::Role::Admin) => self.editor_work,
+            _ => self.viewer_work,
         }
     }
 }
@@ -100,6 +125,14 @@ impl ServerParams {
         }
         if self.deadline.is_zero() {
             anyhow::bail!("deadline_ms must be at least 1");
+        }
+        for (name, limit) in [
+            ("viewer_work_s", self.viewer_work),
+            ("editor_work_s", self.editor_work),
+        ] {
+            if limit.is_zero() {
+                anyhow::bail!("{name} must be more than 0");
+            }
         }
         if self.ping_interval.is_zero() {
             anyhow::bail!("the ping interval must be at least 1 ms");
@@ -124,6 +157,8 @@ pub struct FileConfig {
     pub queue: Option<usize>,
     pub max_batch: Option<usize>,
     pub deadline_ms: Option<u64>,
+    pub viewer_work_s: Option<f64>,
+    pub editor_work_s: Option<f64>,
 }
 
 impl FileConfig {

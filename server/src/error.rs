@@ -59,6 +59,16 @@ impl AppError {
         Self::new(StatusCode::SERVICE_UNAVAILABLE, "shutting_down", message)
     }
 
+    /// 503: the work was stopped before it was done (the server is stopping).
+    pub fn cancelled(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::SERVICE_UNAVAILABLE, "cancelled", message)
+    }
+
+    /// 422: the request's work ran past its role's limit and was stopped there.
+    pub fn work_limit(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::UNPROCESSABLE_ENTITY, "work_limit", message)
+    }
+
     /// 404: unknown scene id or route.
     pub fn not_found(message: impl Into<String>) -> Self {
         Self::new(StatusCode::NOT_FOUND, "not_found", message)
@@ -122,6 +132,8 @@ impl From<translux_engine::error::EngineError> for AppError {
             ErrorKind::Invalid => AppError::invalid(e.message),
             ErrorKind::Unsupported => AppError::unsupported(e.message),
             ErrorKind::Internal => AppError::internal(e.message),
+            ErrorKind::Cancelled => AppError::cancelled(e.message),
+            ErrorKind::OverLimit => AppError::work_limit(e.message),
         }
     }
 }

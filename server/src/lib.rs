@@ -64,7 +64,8 @@ pub use state::{AppState, Scene, SceneState, load_bundles, load_bundles_with};
 
 /// Serves the API for `state` on `listener` until `shutdown` completes, then shuts down
 /// gracefully: stops accepting connections, lets every request in flight finish (their
-/// queued relights are computed), closes WebSocket streams once their work is done (1001),
+/// queued relights are computed; lamp walks stop and are answered 503 `cancelled`), closes
+/// WebSocket streams once their work is done (1001),
 /// and stops the worker pool after it has answered every job it accepted.
 pub async fn serve(
     listener: tokio::net::TcpListener,
@@ -161,6 +162,7 @@ pub async fn serve_router(
     }
     drop(listener);
     state.begin_shutdown();
+    state.pool().stop_long_work();
     let _ = stop_tx.send(true);
     let drained = tokio::time::timeout(SHUTDOWN_GRACE, async {
         while connections.join_next().await.is_some() {}

@@ -38,6 +38,7 @@ use crate::metrics::Metrics;
 use translux_engine::picture::{self, RenderOutput, RenderPlan};
 use translux_engine::relight::{self, RelightOutput, RelightPlan};
 use translux_engine::scene::Scene;
+use translux_engine::stop::{Stop, StopFlag};
 
 /// What a job computes.
 #[derive(Debug, Clone)]
@@ -63,8 +64,38 @@ pub struct Answer {
     pub waited: Duration,
 }
 
-/// The receiving end of a submitted job.
-pub type Ticket = oneshot::Receiver<Answer>;
+/// The receiving end of a submitted job: await it for the answer. Dropped before the
+/// answer came (the client went away: its request's future or its stream was dropped), it
+/// stops the job's long work ([`translux_engine::stop`]), so a lamp walk nobody waits for
+/// ends within milliseconds instead of running for hours.
+#[derive(Debug)]
+pub struct Ticket {
+    answer: oneshot::Receiver<Answer>,
+    cancel: StopFlag,
+    answered: bool,
+}
+
+impl std::future::Future for Ticket {
+    type Output = Result<Answer, oneshot::error::RecvError>;
+    fn poll(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Self::Output> {
+        let polled = std::pin::Pin::new(&mut self.answer).poll(cx);
+        if polled.is_ready() {
+            self.answered = true;
+        }
+        polled
+    }
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        if !self.answered {
+            self.cancel.set();
+        }
+    }
+}
 
 struct Job {
     scene: Arc<Scene>,
@@ -218,6 +249,9 @@ struct Shared {
     metrics: Metrics,
     /// Recent compute time per job in µs (an exponential moving average), for `Retry-After`.
     job_us: AtomicU64,
+    /// Set by [`Pool::close`]: running jobs' long work stops (a server that is stopping
+    /// does not wait for hours of lamp walks).
+    closing: StopFlag,
 }
 
 /// The worker pool; cheap to clone (one `Arc`).
@@ -247,6 +281,7 @@ impl Pool {
             params,
             metrics,
             job_us: AtomicU64::new(0),
+            closing: StopFlag::new(),
         });
         let mut threads: Vec<JoinHandle<()>> = (0..shared.params.workers)
             .map(|k| {
@@ -285,11 +320,22 @@ impl Pool {
     pub fn submit(
         &self,
         scene: Arc<Scene>,
-        work: Work,
+        mut work: Work,
         client: ClientKey,
     ) -> Result<Ticket, AppError> {
         let s = &self.shared;
-        let (reply, ticket) = oneshot::channel();
+        let (reply, answer) = oneshot::channel();
+        let cancel = StopFlag::new();
+        let stop = Stop::never().with(&cancel).with(&s.closing);
+        match &mut work {
+            Work::Relight(plan) => plan.stop = stop,
+            Work::Render(plan) => plan.relight.stop = stop,
+        }
+        let ticket = Ticket {
+            answer,
+            cancel,
+            answered: false,
+        };
         let mut q = lock(&s.queue);
         if q.closed {
             return Err(AppError::shutting_down(
@@ -342,8 +388,17 @@ impl Pool {
         retry_after(&self.shared, queued)
     }
 
-    /// Refuses new jobs from now on; queued and running jobs still finish.
+    /// Stops the long work (lamp walks) of every job, running or to come, which is answered
+    /// 503 `cancelled`; other work goes on. The server calls it when its stop begins, so
+    /// that no request in flight holds the stop for hours.
+    pub fn stop_long_work(&self) {
+        self.shared.closing.set();
+    }
+
+    /// Refuses new jobs from now on; queued and running jobs still finish, but their long
+    /// work stops ([`Pool::stop_long_work`]).
     pub fn close(&self) {
+        self.stop_long_work();
         lock(&self.shared.queue).closed = true;
         self.shared.ready.notify_all();
     }

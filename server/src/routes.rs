@@ -388,6 +388,7 @@ async fn relight(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     ClientKey(client): ClientKey,
+    identity: Option<axum::Extension<crate::auth::Identity>>,
     headers: HeaderMap,
     body: Result<JsonBody<RelightRequest>, AppError>,
 ) -> Result<Response, AppError> {
@@ -395,7 +396,10 @@ async fn relight(
     let format = negotiate(&headers)?;
     let JsonBody(req) = body?;
     let scene = scene.frame(req.frame)?;
-    let plan = relight::plan(&scene, req)?;
+    let plan = relight::RelightPlan {
+        work_limit: Some(state.params().work_limit(crate::auth::role_of(&identity))),
+        ..relight::plan(&scene, req)?
+    };
     let answer = state
         .pool()
         .run(scene.engine(), Work::Relight(plan), client)
@@ -469,6 +473,7 @@ async fn render(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     ClientKey(client): ClientKey,
+    identity: Option<axum::Extension<crate::auth::Identity>>,
     headers: HeaderMap,
     body: Result<JsonBody<RenderRequest>, AppError>,
 ) -> Result<Response, AppError> {
@@ -476,10 +481,11 @@ async fn render(
     let format = accept_picture(&headers)?;
     let JsonBody(req) = body?;
     let scene = scene.frame(req.frame)?;
-    let plan = picture::RenderPlan {
+    let mut plan = picture::RenderPlan {
         format,
         ..picture::plan(&scene, req)?
     };
+    plan.relight.work_limit = Some(state.params().work_limit(crate::auth::role_of(&identity)));
     let answer = state
         .pool()
         .run(scene.engine(), Work::Render(Box::new(plan)), client)

@@ -153,9 +153,11 @@ pub struct StreamQuery {
 pub async fn stream(
     State(state): State<AppState>,
     SceneId(id): SceneId,
+    identity: Option<axum::Extension<crate::auth::Identity>>,
     query: Result<Query<StreamQuery>, axum::extract::rejection::QueryRejection>,
     upgrade: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Result<Response, AppError> {
+    let role = crate::auth::role_of(&identity);
     let scene = state.lookup(&id)?;
     let Query(query) =
         query.map_err(|e| AppError::bad_request(format!("bad query: {}", e.body_text())))?;
@@ -181,7 +183,7 @@ pub async fn stream(
     Ok(upgrade
         .max_message_size(BODY_LIMIT)
         .on_upgrade(move |socket| async move {
-            run_stream(socket, state, scene, settings).await;
+            run_stream(socket, state, scene, settings, role).await;
         }))
 }
 
@@ -380,6 +382,8 @@ struct Conn {
     /// When to try submitting `pending` again after the queue was full.
     retry_at: Option<tokio::time::Instant>,
     dropped: u64,
+    /// The most time one relight's lamp walks may take, by the stream's role.
+    work_limit: std::time::Duration,
 }
 
 impl Conn {
@@ -413,7 +417,10 @@ impl Conn {
     fn relight(&mut self, seq: u64, request: Result<RelightRequest, String>) -> Option<Message> {
         let plan = request.map_err(AppError::bad_request).and_then(|r| {
             let scene = self.scene.frame(r.frame)?;
-            let plan = relight::plan(&scene, r).map_err(AppError::from)?;
+            let plan = relight::RelightPlan {
+                work_limit: Some(self.work_limit),
+                ..relight::plan(&scene, r).map_err(AppError::from)?
+            };
             Ok((plan, scene))
         });
         let (plan, scene) = match plan {
@@ -464,6 +471,7 @@ pub async fn run_stream<S>(
     state: AppState,
     scene: Arc<Scene>,
     settings: FrameSettings,
+    role: Option<crate::auth::Role>,
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message, Error = axum::Error> + Unpin,
 {
@@ -472,7 +480,7 @@ pub async fn run_stream<S>(
     let id = state.next_stream_id();
     tracing::debug!(scene = %scene.id, stream = id, "stream opened");
     let stall = stall_limit(state.params().ping_interval);
-    let outcome = drive(&mut socket, state, scene, settings, id).await;
+    let outcome = drive(&mut socket, state, scene, settings, (id, role)).await;
     match &outcome {
         Ok(Some(close)) => {
             tracing::debug!(stream = id, code = close.code, reason = %close.reason, "stream closed");
@@ -524,7 +532,7 @@ async fn drive<S>(
     state: AppState,
     scene: Arc<Scene>,
     settings: FrameSettings,
-    id: u64,
+    (id, role): (u64, Option<crate::auth::Role>),
 ) -> Result<Option<Close>, axum::Error>
 where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message, Error = axum::Error> + Unpin,
@@ -534,6 +542,7 @@ where
     let mut shutdown = state.shutdown_watch();
     let mut closing = *shutdown.borrow();
     let mut conn = Conn {
+        work_limit: state.params().work_limit(role),
         state,
         client: format!("stream-{id}"),
         scene,

@@ -329,3 +329,62 @@ async fn half_sent_headers_time_out_and_sigterm_still_ends_the_process() {
         t0.elapsed()
     );
 }
+
+/// SIGTERM while a request runs hours of lamp walks (three lamps × 10⁷ walks into a
+/// simulated cube): the walks stop, the request is answered 503 `cancelled`, and the
+/// process exits well within the shutdown grace (it ran on for hours).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_stops_lamp_walks_in_flight() {
+    let root = crate::support::kept_folder("server-shutdown-walks-");
+    let scene = root.join("cube.json");
+    std::fs::write(
+        &scene,
+        json!({"unit_mm": 1, "objects": [{"name": "cube",
+                 "mesh": {"shape": "box", "size": [20, 20, 20]},
+                 "material": {"type": "simulated", "sigma_s_prime": [2, 2, 2],
+                              "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0}}]})
+        .to_string(),
+    )
+    .unwrap();
+    let loaded = translux_precompute::scene::load_scene_file(&scene).unwrap();
+    let params = translux_precompute::pipeline::PrecomputeParams {
+        patches: Some(200),
+        progress: false,
+        ..Default::default()
+    };
+    translux_precompute::pipeline::precompute(&loaded, &root.join("cube"), &params).unwrap();
+    std::fs::remove_file(&scene).unwrap();
+
+    let mut server = Server::start(&root, &[]);
+    server.wait_for("serving \"cube\"");
+    let lamps: Vec<Value> = [[30.0, 0.0, 0.0], [0.0, 30.0, 0.0], [0.0, 0.0, 30.0]]
+        .iter()
+        .map(|p| json!({"type": "point", "position": p, "intensity": [1000, 1000, 1000]}))
+        .collect();
+    let body = json!({"lights": lamps, "lamp_walks": 10_000_000}).to_string();
+    let url = format!("{}/api/v1/scenes/cube/relight", server.base);
+    let walking = tokio::spawn(async move {
+        let r = reqwest::Client::new()
+            .post(url)
+            .header("content-type", "application/json")
+            .body(body)
+            .send()
+            .await
+            .expect("answered");
+        (r.status(), r.text().await.unwrap_or_default())
+    });
+    // Let the walks start.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(!walking.is_finished(), "the walks ended by themselves");
+    let t0 = Instant::now();
+    server.sigterm();
+    assert!(server.wait_exit(), "{:#?}", server.log);
+    let took = t0.elapsed();
+    let (status, text) = walking.await.unwrap();
+    assert_eq!(status.as_u16(), 503, "{text}");
+    assert!(text.contains("cancelled"), "{text}");
+    assert!(
+        took < Duration::from_secs(5),
+        "exit took {took:?} after SIGTERM"
+    );
+}

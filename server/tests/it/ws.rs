@@ -74,6 +74,7 @@ impl Client {
             state.clone(),
             scene.clone(),
             FrameSettings::default(),
+            None,
         ));
         Client {
             send,

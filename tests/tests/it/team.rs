@@ -100,13 +100,23 @@ struct Server {
 
 impl Server {
     /// A server on `bundles` with the team settings `args` (tokens added unless `open`).
-    async fn start(bundles: &Path, mut args: TeamArgs, open: bool) -> Server {
+    async fn start(bundles: &Path, args: TeamArgs, open: bool) -> Server {
+        Server::start_with(bundles, args, open, ServerParams::default()).await
+    }
+
+    /// [`Server::start`] with the pool's settings `params`.
+    async fn start_with(
+        bundles: &Path,
+        mut args: TeamArgs,
+        open: bool,
+        params: ServerParams,
+    ) -> Server {
         logs();
         if !open && args.tokens.is_none() {
             let secrets = tempfile::tempdir().unwrap().keep();
             args.tokens = Some(tokens_file(&secrets));
         }
-        let state = AppState::with_params(ServerParams::default());
+        let state = AppState::with_params(params);
         let (found, errors) = discover(bundles).unwrap();
         assert!(errors.is_empty(), "{errors:?}");
         for (id, dir) in found {
@@ -1354,6 +1364,114 @@ async fn tokens_never_reach_the_log() {
             "a token hash is in the log"
         );
     }
+}
+
+/// A simulated 20 mm cube (σs′ 2 mm⁻¹) precomputed as `cube` into `bundles`.
+fn simulated_cube(bundles: &Path) {
+    let scene = bundles.join("cube.json");
+    std::fs::write(
+        &scene,
+        json!({"unit_mm": 1, "objects": [{"name": "cube",
+                 "mesh": {"shape": "box", "size": [20, 20, 20]},
+                 "material": {"type": "simulated", "sigma_s_prime": [2, 2, 2],
+                              "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0}}],
+               "lights": [{"type": "directional", "direction": [0, -1, 0],
+                           "irradiance": [1, 1, 1]}]})
+        .to_string(),
+    )
+    .unwrap();
+    let loaded = translux_precompute::scene::load_scene_file(&scene).unwrap();
+    let params = translux_precompute::pipeline::PrecomputeParams {
+        patches: Some(200),
+        progress: false,
+        ..Default::default()
+    };
+    translux_precompute::pipeline::precompute(&loaded, &bundles.join("cube"), &params).unwrap();
+    std::fs::remove_file(&scene).unwrap();
+}
+
+/// Three point lamps round the cube, each walked 10⁷ times (the attack of issue #79: hours
+/// of walks from one request).
+fn walk_for_hours() -> Value {
+    let lamps: Vec<Value> = [[30.0, 0.0, 0.0], [0.0, 30.0, 0.0], [0.0, 0.0, 30.0]]
+        .iter()
+        .map(|p| json!({"type": "point", "position": p, "intensity": [1000, 1000, 1000]}))
+        .collect();
+    json!({"lights": lamps, "lamp_walks": 10_000_000})
+}
+
+/// The relights in flight, from `/metrics`.
+async fn in_flight(s: &Server) -> f64 {
+    let r = s
+        .req(reqwest::Method::GET, "/metrics", Some(VIEWER))
+        .send()
+        .await
+        .unwrap();
+    let text = r.text().await.unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix("translux_relights_in_flight "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no in-flight gauge in {text}"))
+}
+
+/// A request's lamp walks are bounded by its role's limit and stop when nobody waits for
+/// them: a viewer asking for hours of walks is stopped at the viewer's limit and answered
+/// 422 `work_limit` with the time they would need; an editor's (a limit of hours) whose
+/// client hangs up stops within a second, leaving the workers idle.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lamp_walks_stop_at_the_roles_limit_and_when_the_client_leaves() {
+    let bundles = bundles_with(&[]);
+    simulated_cube(bundles.path());
+    let params = ServerParams {
+        viewer_work: Duration::from_millis(1500),
+        editor_work: Duration::from_secs(3 * 3600),
+        ..ServerParams::default()
+    };
+    let s = Server::start_with(bundles.path(), TeamArgs::default(), false, params).await;
+    let post = |token: &'static str| {
+        s.req(
+            reqwest::Method::POST,
+            "/api/v1/scenes/cube/relight",
+            Some(token),
+        )
+        .header(CONTENT_TYPE, "application/json")
+        .body(walk_for_hours().to_string())
+    };
+
+    let t = Instant::now();
+    let r = post(VIEWER).send().await.unwrap();
+    let took = t.elapsed();
+    assert_eq!(r.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    let e: Value = r.json().await.unwrap();
+    assert_eq!(e["error"]["code"], "work_limit", "{e}");
+    let message = e["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("limit of 1.5 s") && message.contains("would take about"),
+        "{message}"
+    );
+    assert!(
+        took < Duration::from_millis(3500),
+        "the viewer's walks ran {took:?} against a limit of 1.5 s"
+    );
+    assert_eq!(in_flight(&s).await, 0.0);
+
+    // The editor's client gives up after half a second: the walks stop with it.
+    let gave_up = post(EDITOR)
+        .timeout(Duration::from_millis(500))
+        .send()
+        .await;
+    assert!(gave_up.is_err(), "answered within 0.5 s: {gave_up:?}");
+    let t = Instant::now();
+    while in_flight(&s).await > 0.0 {
+        assert!(
+            t.elapsed() < Duration::from_secs(2),
+            "the walks still run 2 s after the client left"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // The server is free: a plain relight is answered at once.
+    let lit = s.relight("cube", Some(VIEWER)).await;
+    assert!(lit.radiance.iter().all(|x| x.is_finite()));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
