@@ -399,30 +399,13 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
     };
     let buffers = load_buffers(&doc, base, blob)?;
 
-    let roots = gltf_roots(&doc);
-    let mut seen = vec![false; doc.nodes().len()];
-    let mut stack: Vec<(gltf::Node, Mat4)> = roots
-        .into_iter()
-        .rev()
-        .map(|n| (n, Mat4::IDENTITY))
-        .collect();
     let mut tris = Vec::new();
-    while let Some((node, parent)) = stack.pop() {
-        if std::mem::replace(&mut seen[node.index()], true) {
-            return Err(malformed(format!(
-                "node {} is reached twice: the node hierarchy must be a tree (no cycles, one \
-                 parent per node)",
-                node.index()
-            )));
-        }
-        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+    for (node, world) in gltf_placed(&doc)? {
         if let Some(mesh) = node.mesh() {
             for prim in mesh.primitives() {
                 read_primitive(&mesh, &prim, &buffers, world, &mut tris)?;
             }
         }
-        let children: Vec<_> = node.children().collect();
-        stack.extend(children.into_iter().rev().map(|c| (c, world)));
     }
     if tris.is_empty() {
         return Err(malformed(if doc.meshes().len() == 0 {
@@ -474,10 +457,11 @@ fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshE
     Ok((doc, blob))
 }
 
-/// The nodes a glTF file draws: its default scene's, else every root (a node no node has
-/// as child).
-fn gltf_roots(doc: &gltf::Document) -> Vec<gltf::Node<'_>> {
-    match doc.default_scene() {
+/// The nodes a glTF file draws, each with its world transform, parents before children:
+/// the hierarchy under its default scene's nodes, else under every root (a node no node
+/// has as child). A node reached twice (a cycle, two parents) is an error.
+fn gltf_placed(doc: &gltf::Document) -> Result<Vec<(gltf::Node<'_>, Mat4)>, MeshError> {
+    let roots: Vec<gltf::Node> = match doc.default_scene() {
         Some(scene) => scene.nodes().collect(),
         None => {
             let mut child = vec![false; doc.nodes().len()];
@@ -488,7 +472,28 @@ fn gltf_roots(doc: &gltf::Document) -> Vec<gltf::Node<'_>> {
             }
             doc.nodes().filter(|n| !child[n.index()]).collect()
         }
+    };
+    let mut seen = vec![false; doc.nodes().len()];
+    let mut stack: Vec<(gltf::Node, Mat4)> = roots
+        .into_iter()
+        .rev()
+        .map(|n| (n, Mat4::IDENTITY))
+        .collect();
+    let mut placed = Vec::new();
+    while let Some((node, parent)) = stack.pop() {
+        if std::mem::replace(&mut seen[node.index()], true) {
+            return Err(malformed(format!(
+                "node {} is reached twice: the node hierarchy must be a tree (no cycles, one \
+                 parent per node)",
+                node.index()
+            )));
+        }
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        let children: Vec<_> = node.children().collect();
+        stack.extend(children.into_iter().rev().map(|c| (c, world)));
+        placed.push((node, world));
     }
+    Ok(placed)
 }
 
 /// A glTF or GLB file parsed but not yet validated (see [`read_gltf`]).
@@ -944,17 +949,8 @@ fn ply_triangle_count(path: &Path) -> Result<u64, MeshError> {
 /// TRIANGLES primitive a third of its indices (or vertices), per strip or fan two fewer.
 fn gltf_triangle_count(path: &Path) -> Result<u64, MeshError> {
     let (doc, _) = gltf_document(path)?;
-    let mut seen = vec![false; doc.nodes().len()];
-    let mut stack = gltf_roots(&doc);
     let mut count = 0u64;
-    while let Some(node) = stack.pop() {
-        if std::mem::replace(&mut seen[node.index()], true) {
-            return Err(malformed(format!(
-                "node {} is reached twice: the node hierarchy must be a tree (no cycles, one \
-                 parent per node)",
-                node.index()
-            )));
-        }
+    for (node, _) in gltf_placed(&doc)? {
         for prim in node.mesh().iter().flat_map(|m| m.primitives()) {
             let corners = match prim.indices() {
                 Some(idx) => idx.count(),
@@ -966,7 +962,6 @@ fn gltf_triangle_count(path: &Path) -> Result<u64, MeshError> {
                 _ => 0,
             });
         }
-        stack.extend(node.children());
     }
     Ok(count)
 }

@@ -1366,15 +1366,13 @@ async fn tokens_never_reach_the_log() {
     }
 }
 
-/// A simulated 20 mm cube (σs′ 2 mm⁻¹) precomputed as `cube` into `bundles`.
-fn simulated_cube(bundles: &Path) {
+/// A simulated 20 mm cube of `material` precomputed as `cube` into `bundles` (200 patches).
+fn simulated_cube(bundles: &Path, material: Value) {
     let scene = bundles.join("cube.json");
     std::fs::write(
         &scene,
         json!({"unit_mm": 1, "objects": [{"name": "cube",
-                 "mesh": {"shape": "box", "size": [20, 20, 20]},
-                 "material": {"type": "simulated", "sigma_s_prime": [2, 2, 2],
-                              "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0}}],
+                 "mesh": {"shape": "box", "size": [20, 20, 20]}, "material": material}],
                "lights": [{"type": "directional", "direction": [0, -1, 0],
                            "irradiance": [1, 1, 1]}]})
         .to_string(),
@@ -1388,6 +1386,12 @@ fn simulated_cube(bundles: &Path) {
     };
     translux_precompute::pipeline::precompute(&loaded, &bundles.join("cube"), &params).unwrap();
     std::fs::remove_file(&scene).unwrap();
+}
+
+/// A simulated medium of σs′ `s` mm⁻¹ (σa 0.004, 0.008, 0.02 mm⁻¹, η = 1).
+fn medium(s: f32) -> Value {
+    json!({"type": "simulated", "sigma_s_prime": [s, s, s],
+           "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0})
 }
 
 /// Three point lamps round the cube, each walked 10⁷ times (the attack of issue #79: hours
@@ -1421,7 +1425,7 @@ async fn in_flight(s: &Server) -> f64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lamp_walks_stop_at_the_roles_limit_and_when_the_client_leaves() {
     let bundles = bundles_with(&[]);
-    simulated_cube(bundles.path());
+    simulated_cube(bundles.path(), medium(2.0));
     let params = ServerParams {
         viewer_work: Duration::from_millis(1500),
         editor_work: Duration::from_secs(3 * 3600),
@@ -1478,29 +1482,7 @@ async fn lamp_walks_stop_at_the_roles_limit_and_when_the_client_leaves() {
 async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
     // A simulated cube precomputed into the bundles folder.
     let bundles = bundles_with(&[]);
-    let scene = bundles.path().join("cube.json");
-    let medium = |s: f32| {
-        json!({"type": "simulated", "sigma_s_prime": [s, s, s],
-               "sigma_a": [0.004, 0.008, 0.02], "eta": 1.0})
-    };
-    std::fs::write(
-        &scene,
-        json!({"unit_mm": 1, "objects": [{"name": "cube",
-                 "mesh": {"shape": "box", "size": [20, 20, 20]}, "material": medium(0.5)}],
-               "lights": [{"type": "directional", "direction": [0, -1, 0],
-                           "irradiance": [1, 1, 1]}]})
-        .to_string(),
-    )
-    .unwrap();
-    let loaded = translux_precompute::scene::load_scene_file(&scene).unwrap();
-    let params = translux_precompute::pipeline::PrecomputeParams {
-        patches: Some(200),
-        progress: false,
-        ..Default::default()
-    };
-    translux_precompute::pipeline::precompute(&loaded, &bundles.path().join("cube"), &params)
-        .unwrap();
-    std::fs::remove_file(&scene).unwrap();
+    simulated_cube(bundles.path(), medium(0.5));
     let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
     let before = s.relight("cube", Some(VIEWER)).await;
     let post = |token: &'static str, body: Value| {

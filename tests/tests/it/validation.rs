@@ -1239,18 +1239,22 @@ fn lit_cube(
                 m,
             )
         },
-        &|_, n| {
-            let axis = (0..3)
-                .max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs()))
-                .unwrap();
-            match (axis, n[axis] > 0.0) {
-                (0, false) => 0,
-                (0, true) => 1,
-                (a, true) => 1 + a,
-                (a, false) => 3 + a,
-            }
-        },
+        &|_, n| box_face(n),
     )
+}
+
+/// The face of an axis-aligned box a normal `n` points out of, in the order −x, +x, +y,
+/// +z, −y, −z.
+fn box_face(n: [f32; 3]) -> usize {
+    let axis = (0..3)
+        .max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs()))
+        .unwrap();
+    match (axis, n[axis] > 0.0) {
+        (0, false) => 0,
+        (0, true) => 1,
+        (a, true) => 1 + a,
+        (a, false) => 3 + a,
+    }
 }
 
 /// A 16 mm cube lit on one face by a directional light, against Mitsuba's volumetric path
@@ -1775,15 +1779,7 @@ fn cube_in_a_coloured_room() -> Option<Vec<(String, Errors, Errors)>> {
             if (0..3).any(|a| (p[a] - c).abs() > half) {
                 return 6;
             }
-            let axis = (0..3)
-                .max_by(|&a, &b| n[a].abs().total_cmp(&n[b].abs()))
-                .unwrap();
-            match (axis, n[axis] > 0.0) {
-                (0, false) => 0,
-                (0, true) => 1,
-                (a, true) => 1 + a,
-                (a, false) => 3 + a,
-            }
+            box_face(n)
         },
     )
 }
