@@ -34,7 +34,7 @@
 //! ```
 //!
 //! G_u is estimated from the same diffuse walks: each entered along its own direction, so
-//! projecting their exits on u (G_u = 4 E[w u_in], as E[u²] = ¼ over cosine-weighted
+//! projecting their exits on u (G_u = 4 E[w u_in], as E\[u²\] = ¼ over cosine-weighted
 //! directions) is the least-squares slope of S in u, and it averages to zero over diffuse
 //! light (the diffuse S is unchanged).
 //!

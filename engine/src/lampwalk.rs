@@ -53,7 +53,7 @@ use crate::stop::{Reason, Stop};
 
 /// The most walks a relight may ask per lamp (each group of channels with its own σs walks
 /// as many again). What a walk costs depends on the medium and the object's size: 1.6
-/// µs·core on a 16 mm cube, 150 in the Cornell box's marble block (docs/benchmarks.md).
+/// µs·core on a 16 mm cube, 150 in the Cornell box's marble block (bench/results/HISTORY.md).
 pub const MAX_LAMP_WALKS: u32 = 10_000_000;
 
 /// The walked exitance of one set of lights in every simulated object.

@@ -11,6 +11,9 @@
 //! Modules, from the bottom up:
 //! - [`linalg`] — RGB vectors, y = F x ([`linalg::spmv_rgb`]) and the scattering operator S
 //!   ([`linalg::Scatter`]: diagonal ρ or sparse subsurface S).
+//! - [`transport`] — in: a bundle's F arrays, dense or hierarchical (C over patches and
+//!   cluster nodes); out: the products y = F x the solvers apply, row sums, F written densely
+//!   for T.
 //! - [`solver`] — Jacobi, Gauss-Seidel and BiCGSTAB for (I − S F) B = S E + Bₑ, warm
 //!   started, several right-hand sides per pass over F.
 //! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays.
@@ -25,11 +28,18 @@
 //!   [`subsurface`] — the quadrature of S between patches; [`sheet`] and [`hetero`] — S of
 //!   thin sheets and of heterogeneous objects; [`smatrix`] — the scene's S from the stored
 //!   distances and the materials (stage 2: the precompute's, and every translucency change);
+//!   [`sterms`] — in: an object's patches and stored distances; out: S's entries reduced to
+//!   a few radial terms each, so a translucency change is a short sum per entry;
 //!   [`simulated`] — a simulated S: random walks inside the mesh, re-weighted for absorption;
+//!   [`collimated`] — lamps into simulated objects by S at the lamp's angle (collimated
+//!   entry, its tilt and unscattered part); [`lampwalk`] — in: a relight's lamps and its
+//!   simulated objects; out: their first scattering walked along each lamp's own beam
+//!   (`"lamp_walks"`);
 //!   [`linkbound`] — the profile's error bound on a hierarchical S's links, over a slider's
 //!   range of translucency.
-//! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`export`] — the
-//!   relit mesh as binary glTF or PLY.
+//! - [`render`] — a CPU rasterizer from vertex radiance to an image; [`specular`] — in: a
+//!   surface point, the eye and the lights; out: the glossy coat's one bounce of reflected
+//!   radiance, added per pixel; [`export`] — the relit mesh as binary glTF or PLY.
 //! - [`scene`] — a bundle opened for relighting, with its caches and the [`backend`] it
 //!   relights on (a trait: the CPU's here, the server's wgpu backend beside it);
 //!   [`environment`] — environment lights (map paths and cache, E from visibility);

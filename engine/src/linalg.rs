@@ -181,7 +181,7 @@ fn spmv_narrow<const G: usize>(f: &CsrView<'_>, narrow: &NarrowCols, x: &[f32], 
 /// y = S h for `ch` channels per column (channel c uses S's colour c % 3), for each part
 /// (`rows`, y): y's row k is S's row `rows.start + k` (a hierarchical S's patch rows and
 /// node rows are two parts of one product). Up to 8 RGB systems (`ch` ≤ 24) go through
-/// [`product_lanes`], h laid out in lanes once for every part.
+/// `product_lanes`, h laid out in lanes once for every part.
 pub fn scatter_rows(
     s: &CsrView<'_, Rgb>,
     h: &[f32],

@@ -646,7 +646,7 @@ pub struct Warm {
     pub prev: Option<Arc<Warm>>,
 }
 
-/// What a relight starts from ([`WarmCache::history`]): the kept answer, whether its K is
+/// What a relight starts from (`WarmCache::history`): the kept answer, whether its K is
 /// the relight's (the same key), and an answer kept before it with the same flag.
 #[derive(Debug, Clone)]
 pub struct Kept {

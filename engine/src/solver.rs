@@ -476,7 +476,7 @@ pub fn solve_primed(
     })
 }
 
-/// Largest step along the residual a Jacobi iteration takes ([`minimal_residual_step`]).
+/// Largest step along the residual a Jacobi iteration takes (`minimal_residual_step`).
 /// Below 2 so the products derived for the new x carry at most 0.9 of the last ones'
 /// rounding (x + α r's are (1 − α) of x's plus α of a fresh pass): over a slider's chain
 /// of steps it stays a bounded multiple of one pass's.

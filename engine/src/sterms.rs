@@ -151,7 +151,7 @@ fn rgb(v: f32x4) -> [f32; 3] {
 /// one of W's total (W past the table). A term's position on the grid is clamped at N, so
 /// a term past the table reads the cell after its function's last, and a W term reads
 /// W's half: the sum has no branch per term, which a term of R past the table or a W term
-/// took (the slider's rewrite is a few tens of millions of terms; docs/benchmarks.md).
+/// took (the slider's rewrite is a few tens of millions of terms; bench/results/HISTORY.md).
 #[derive(Debug, Clone)]
 pub struct TermTable<'a> {
     tab: &'a Tabulated,
@@ -276,7 +276,7 @@ pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
 /// A link's profile value, R read through `r_at` (R at a root √r): at its two roots'
 /// mean when it has them ([`two_point_roots`]), at `root` alone otherwise. The one place
 /// the assembly (`smatrix::node_links`, a [`Tabulated`]) and the rewrite
-/// ([`ObjectTerms::write`], a [`TermTable`], through [`link_lanes`]) form it, so the two
+/// ([`ObjectTerms::write`], a [`TermTable`], through `link_lanes`) form it, so the two
 /// agree bit for bit.
 #[inline]
 pub fn link_reading(two: Option<[f32; 2]>, root: f32, r_at: impl Fn(f32) -> [f32; 3]) -> [f32; 3] {
@@ -1206,7 +1206,7 @@ impl ObjectTerms {
     /// distance per node (a representative patch's) was tried first: on the 60 mm marble
     /// cube at 4× its coefficients it put vertices 5% (median) off the pairwise S.
     /// Receivers left uncovered keep their own links. `theta` ≤ 0 leaves the links as they
-    /// are. Accuracy: docs/hierarchy.md, *Receiver-side clustering*.
+    /// are. Accuracy: bench/results/HISTORY.md, *Receiver-side clustering*.
     ///
     /// With `bounds` (one per profile of the object: a bundle cut by the profile's error
     /// bound), a receiver node is grouped only where the covered links' distances, each

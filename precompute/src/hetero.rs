@@ -19,7 +19,7 @@
 //! Eq. 9 is a heuristic ("not physically accurate", the paper says) and it is not idempotent:
 //! S(r₁)S(r₂)/S(0) = S(r₁ + r₂) only for an exponential S. For a dipole, a path split half and
 //! half between two copies of the *same* medium would scatter less than the homogeneous path
-//! of the same length. So media with equal profiles are merged first ([`merge_media`]): an
+//! of the same length. So media with equal profiles are merged first ([`merge_media`](translux_engine::hetero::merge_media)): an
 //! object whose materials are all the same profile is exactly the homogeneous object.
 //!
 //! Where the media are.

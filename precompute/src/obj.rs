@@ -19,7 +19,7 @@ pub type ObjTriangles = (Vec<[Vec3; 3]>, Option<Vec<Option<String>>>);
 /// the `usemtl` material name of every triangle (`None` before the first `usemtl`).
 ///
 /// tobj parses; its error says what kind of problem it met but not where, so on failure the
-/// file is scanned again by [`diagnose_obj`] to name the line. tobj also accepts `nan` and
+/// file is scanned again by `diagnose_obj` to name the line. tobj also accepts `nan` and
 /// `inf` as coordinates and silently ignores unknown statements, so the result is checked
 /// here too. Material libraries are not read: they carry nothing translux uses, and tobj
 /// 4.0 panics on some malformed `.mtl` lines. tobj only resolves `usemtl` names it found in

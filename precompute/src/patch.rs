@@ -210,7 +210,7 @@ pub(crate) fn weld(corners: &[[Vec3; 3]]) -> (Vec<Vec3>, Vec<[u32; 3]>, f32) {
     (points, ids, eps)
 }
 
-/// Welds corners within each object ([`weld`]), then splits each welded point into one vertex per
+/// Welds corners within each object (`weld`), then splits each welded point into one vertex per
 /// smoothing group: faces around a point join the first group whose seed normal is within
 /// `crease_deg[object]` of theirs. Vertex normals are area-weighted means of their group.
 pub fn viewer_mesh(p: &Patches, crease_deg: &[f32]) -> ViewerMesh {

@@ -11,8 +11,8 @@
 //! density is the job of [`crate::patch`].
 //!
 //! Conventions per shape:
-//! - `quad`: the rectangle |x| ≤ size[0]/2, |z| ≤ size[1]/2 at y = 0, facing +Y.
-//! - `box`: |x| ≤ size[0]/2, |y| ≤ size[1]/2, |z| ≤ size[2]/2, centred on the origin.
+//! - `quad`: the rectangle |x| ≤ size\[0\]/2, |z| ≤ size\[1\]/2 at y = 0, facing +Y.
+//! - `box`: |x| ≤ size\[0\]/2, |y| ≤ size\[1\]/2, |z| ≤ size\[2\]/2, centred on the origin.
 //! - `sphere`: radius r at the origin, `segments` around Y (default 32), `segments/2` rings.
 //! - `bowl`: outer hemisphere of radius R and inner hemisphere of radius R − t, both centred
 //!   on (0, R, 0), joined at y = R by a flat annular rim; the lowest outer point is the origin

@@ -100,12 +100,11 @@ pub struct SLinkParams {
     pub coarse_links: bool,
     /// The near field of links, in receiver sizes (`--s-link-near`): Some(k), k in
     /// [`LINK_NEAR_RANGE`], links nodes from k sizes on and reads each link at two
-    /// distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (links since
-    /// 2026-12-03, from 1 size since 2026-12-04), stores a fifth to two fifths of the
-    /// direct pairs of the quadrature's near-pair rule on the test objects, so a
-    /// translucency change writes fewer entries. None (`--s-link-near off`) keeps that rule
-    /// (3 sizes) and reads each link at its representative's distance, as bundles did
-    /// before.
+    /// distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (1 size), stores a
+    /// fifth to two fifths of the direct pairs of the quadrature's near-pair rule on the
+    /// test objects, so a translucency change writes fewer entries. None
+    /// (`--s-link-near off`) keeps that rule (3 sizes) and reads each link at its
+    /// representative's distance.
     pub near: Option<f32>,
     /// The profile's side of each link's error bound (`--s-link-variation`): a node is
     /// linked only where [`LinkBound::accepts`] it at every scale of a slider's range.
@@ -118,8 +117,8 @@ pub const LINK_NEAR_RANGE: RangeInclusive<f32> = 1.0..=3.0;
 /// The default near field of links, in receiver sizes: with links read at two distances and
 /// scaled with their columns by the energy bound, every test object stays within issue
 /// #20's bounds against the pairwise S (median 1%, p90 3%; `precompute/tests/it/slinks.rs`),
-/// with fewer direct pairs than at 1.5 sizes (the default until 2026-12-04, closer to the
-/// pairwise S; docs/hierarchy.md, *Links from one receiver size*).
+/// with fewer direct pairs than at 1.5 sizes (which come closer to the pairwise S;
+/// bench/results/HISTORY.md, *Links from one receiver size by default*).
 pub const DEFAULT_LINK_NEAR: f32 = 1.0;
 
 impl Default for SLinkParams {
@@ -444,7 +443,7 @@ impl<'a> Cutter<'a> {
     /// coarse grid with [`SLinkParams::coarse_links`], every one on the full grid
     /// otherwise; and how many jobs had a coarse run. A receiver's run to its direct
     /// candidates goes about 25 voxels on the bowls' bunny; its fine part then stops at 16
-    /// and the rest costs an eighth: `docs/benchmarks.md`.
+    /// and the rest costs an eighth: `bench/results/HISTORY.md`.
     fn runs(&self, oracle: &Oracle, jobs: &[(u32, Vec<u32>)]) -> (Vec<Vec<f32>>, usize) {
         if self.coarse_links {
             oracle.solve_far(jobs)

@@ -90,7 +90,7 @@ impl CsrValue for [f32; 3] {
 ///
 /// Made in memory from a checked [`CsrView`] (the bundle keeps the full u32 columns): a
 /// product over F reads 6 bytes an entry instead of 8, and F's product is bound by the
-/// bytes it streams (docs/benchmarks.md).
+/// bytes it streams (bench/results/HISTORY.md).
 #[derive(Debug, Clone, PartialEq)]
 pub struct NarrowCols {
     /// Blocks of 65,536 columns: at least 1.

@@ -10,6 +10,14 @@
 //! - [`light`]: lights and cameras, shared by scene files and relight requests.
 //! - [`csr`]: the compressed-sparse-row layout of F, with a checked borrowed view.
 //! - [`bundle`]: the on-disk bundle — manifest, array files, and the verifying loader.
+//! - [`transform`]: an object's placement (scale, rotate, translate), re-exported by
+//!   [`scene`].
+//! - [`validate`]: in: a parsed value; out: errors that name the field path and the rule,
+//!   e.g. `lights[0].intensity[1] must be finite and in [0, 1000000000000]`.
+//! - [`api`]: the HTTP API's JSON bodies (strict requests, plain-data responses), shared
+//!   by the server, scripts and tests.
+//! - `tagged` (private): internally tagged enums (`{"type": ...}`) whose decoding errors
+//!   keep the field path.
 //! - [`parse_json`]: JSON parsing whose errors carry the field path, line and column.
 //!
 //! ```

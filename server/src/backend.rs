@@ -27,7 +27,7 @@
 //! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU. A translucency
 //! change's S is written in place on the CPU, and the solves with it run there, warm (the
 //! faster way on every scene measured, [`SRebuild`]); with [`S_REBUILD_ENV`]`=device` it is
-//! rebuilt on the device instead ([`Backend::rebuild_s`], [`crate::gpu::subsurface`]; its
+//! rebuilt on the device instead ([`Backend::rebuild_s`](translux_engine::backend::Backend::rebuild_s), [`crate::gpu::subsurface`]; its
 //! template counts in the scene's bytes), except for heterogeneous objects.
 
 use std::collections::HashMap;
@@ -628,7 +628,7 @@ impl translux_engine::backend::Backend for Backend {
     }
 
     /// Builds and uploads the S template for the bundle's own materials now, as the first
-    /// [`Backend::rebuild_s`] would (a template covers every translucency of the materials'
+    /// [`Backend::rebuild_s`](translux_engine::backend::Backend::rebuild_s) would (a template covers every translucency of the materials'
     /// classes, `STemplate::covers`), so that first change does not wait for it.
     fn prepare_s(&self, scene: SceneRef<'_>) -> Result<SPrep, SError> {
         let Some(ctx) = self.inner.gpu.as_ref() else {

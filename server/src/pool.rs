@@ -383,7 +383,7 @@ impl Pool {
             .map_err(|_| AppError::internal("a relight worker stopped without answering"))
     }
 
-    /// Seconds a client should wait with `queued` jobs ahead of it (see [`retry_after`]).
+    /// Seconds a client should wait with `queued` jobs ahead of it (see the private `retry_after`).
     pub fn retry_after(&self, queued: usize) -> u64 {
         retry_after(&self.shared, queued)
     }

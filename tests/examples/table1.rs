@@ -847,8 +847,8 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
     (row.solver_err_median, row.solver_err_max) = rel_err(&cold.radiance, &exact.radiance);
     // Translucency change: a new scale each time, so S is rebuilt every time. The scales
     // are a slider dragged steadily (0.9, then 1, 1.137, 1.274, …): the untimed warm-up is
-    // the drag's second step, as a user's first moves are (until 2026-11-28 it jumped to
-    // 138×, a start from an unrelated answer that the median then carried).
+    // the drag's second step, as a user's first moves are (a jump to 138× would start from
+    // an unrelated answer that the median then carried).
     if !translucency(&scene, 1.0).is_empty() {
         // The first change also reduces S's entries to radial terms (engine::sterms), once
         // per scene: timed on its own, then the later changes.

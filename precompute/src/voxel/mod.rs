@@ -31,7 +31,7 @@
 //!   the centroids crosses the pattern ([`MediumField::straight`]);
 //! - voxel paths: every interior voxel carries a medium label (the checkerboard at its
 //!   centre, or for per-patch media the medium of the nearest entry voxel through the
-//!   interior, [`label_by_nearest_entry`]). Dijkstra carries along each node's per-medium
+//!   interior, `label_by_nearest_entry`). Dijkstra carries along each node's per-medium
 //!   graph lengths g_k: relaxing u → v with weight w adds w/2 to label(u) and w/2 to label(v)
 //!   (the edge's halves lie in the two voxels; the integer weights are even, so
 //!   Σ_k g_k = g exactly). A pair's lengths are its shares of the graph path applied to its
@@ -201,7 +201,7 @@ pub enum VoxelError {
     Matrix { object: String, error: CsrError },
 }
 
-/// Max of chamfer/Euclidean length for 26-neighbour paths with the integer weights [`W`]:
+/// Max of chamfer/Euclidean length for 26-neighbour paths with the integer weights `W`:
 /// |(W₁, W₂ − W₁, W₃ − W₂)| / W₁ = 1.128185 (1.128093 = |(1, √2 − 1, √3 − √2)| exactly).
 pub const CHAMFER_MAX_RATIO: f64 = 1.128_19;
 /// Fixed-point units per voxel for graph lengths. Integer weights make path lengths exact

@@ -207,7 +207,7 @@ impl Oracle {
 
     /// As [`Oracle::solve`], except that the targets lying at least [`FAR_RUN_VOXELS`]
     /// coarse voxel edges from their source (in a straight line) are found by a run on the
-    /// grid of twice the voxel edge ([`Traced::coarsened`]): an eighth of the voxels, so a
+    /// grid of twice the voxel edge (`Traced::coarsened`): an eighth of the voxels, so a
     /// run settles about an eighth as many; the job's nearer targets keep a run on the fine
     /// grid, which stops at the farthest of them. The far distances are no longer those
     /// [`optical_distances`] stores: the coarse interior covers the fine one, so a path may

@@ -233,7 +233,7 @@ impl Default for OpenOptions {
 /// Array files up to this size are read into memory when a bundle opens instead of being
 /// mapped: a private copy cannot change under the server, so truncating or rewriting such a
 /// file in place cannot bring the process down with `SIGBUS`. Larger arrays (F, S, T of a
-/// real scene: gigabytes) stay memory-mapped; see [`map_file`] for what that asks of
+/// real scene: gigabytes) stay memory-mapped; see `map_file` for what that asks of
 /// operators.
 pub const COPY_ON_OPEN_BYTES: u64 = 16 << 20;
 

@@ -46,7 +46,7 @@ compile_error!(
     "translux bundles hold little-endian arrays that are cast in place; big-endian targets are not supported"
 );
 
-/// The cluster tree of a hierarchical F ([`Bundle::tree`]): node k covers the patches
+/// The cluster tree of a hierarchical F ([`Bundle::tree`](super::Bundle::tree)): node k covers the patches
 /// `perm[range[k][0]..range[k][1]]`.
 #[derive(Debug, Clone, Copy)]
 pub struct TreeView<'a> {

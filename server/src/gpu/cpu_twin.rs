@@ -117,7 +117,7 @@ pub fn dense_vector_lanes(k: usize) -> usize {
     k.clamp(1, 64).next_power_of_two()
 }
 
-/// Twin of `dense_matmul_rgb.wgsl`: Y_c[j][v] = Σ_i T_c[j][i] X_c[i][v] for the `k` vectors
+/// Twin of `dense_matmul_rgb.wgsl`: Y_c\[j\]\[v\] = Σ_i T_c\[j\]\[i\] X_c\[i\]\[v\] for the `k` vectors
 /// of `x` (`[n_cols][k]`), into `y` (`[n_rows][k]`); column i goes to column lane
 /// i mod (256 / KV), then the lanes' tree. `k` ≤ 64 (one pass).
 pub fn dense_matmul_rgb(
