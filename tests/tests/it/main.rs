@@ -10,6 +10,7 @@
 
 mod browser;
 mod environment;
+mod python_client;
 mod server;
 mod sharing;
 mod stream;
