@@ -56,7 +56,7 @@
 //! Why by hand: no crate walks a medium inside a triangle mesh and keeps per-pair path
 //! lengths; the rays go through the scene's BVH crate (`obvhs`, [`Occluder`]).
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use glam::Vec3;
@@ -70,6 +70,7 @@ use translux_proto::scene::Material;
 use crate::profile;
 use crate::raycast::Occluder;
 use crate::specular::fresnel_dielectric;
+use crate::stop::Stop;
 
 pub use translux_proto::bundle::{
     SIM_BIN_L0_MM as BIN_L0_MM, SIM_BINS as BINS, SIM_BINS_PER_OCTAVE as BINS_PER_OCTAVE,
@@ -91,6 +92,8 @@ pub const DEFAULT_SEED: u64 = 1;
 /// Walks are added in batches of this size; no patch gets fewer than [`MIN_WALKS`].
 pub const BATCH: u32 = 64;
 pub const MIN_WALKS: u32 = 256;
+/// A source's walks read their [`Stop`] every this many walks.
+const STOP_EVERY: u32 = 4;
 
 /// The bin of a path of `len_mm` millimetres.
 #[inline]
@@ -275,6 +278,13 @@ pub enum SimError {
         lost: u64,
         walks: u64,
     },
+    /// Its [`Stop`] fired: no walks are kept.
+    #[error("object '{object}': walks stopped with {walked} of its {patches} patches walked")]
+    Stopped {
+        object: String,
+        walked: u64,
+        patches: u64,
+    },
 }
 
 /// One object's patches as the walks see them (local indices).
@@ -412,7 +422,7 @@ pub type RowMut<'a, T> = (&'a [u32], &'a mut [T]);
 /// `s_rows`, and into `tilt_rows` when given (the walks must carry collimated weights then),
 /// each row as [`ValidCsr::rewrite_vouched`](translux_proto::csr::ValidCsr::rewrite_vouched)
 /// hands it over. The rows must have the patterns a build from the same walks made (S's and
-/// the tilt's rows list each row's sources, [`sum_rows`]): where one does not, nothing is
+/// the tilt's rows list each row's sources, `sum_rows`): where one does not, nothing is
 /// promised of the values and the answer is `Err` with that row, so that the caller builds
 /// again. `Ok` says whether every value written is finite.
 ///
@@ -803,7 +813,7 @@ pub fn simulate(
     medium: &SimMedium,
     unit_mm: f64,
     first_patch: u64,
-    progress: &(dyn Fn(u64) + Sync),
+    (progress, stop): (&(dyn Fn(u64) + Sync), &Stop),
 ) -> Result<Walks, SimError> {
     let start = Instant::now();
     let n = p.corners.len();
@@ -817,6 +827,7 @@ pub fn simulate(
     let groups = medium.groups();
     let floor = medium.floor();
     let done = AtomicU64::new(0);
+    let stopped = AtomicBool::new(false);
     // Per source patch: its records (j, bin, w, w⁽ⁿ⁾ and the lamp weights per channel)
     // merged, its walk counts and noise.
     type Record = (u32, u32, [f32; 3], [f32; 3], [[f32; 3]; 2]);
@@ -835,6 +846,14 @@ pub fn simulate(
                 events: 0,
             },
             |w, i| {
+                // What a source stopped early gives: nothing (the whole result is refused).
+                let cut_short = || {
+                    stopped.store(true, Ordering::Relaxed);
+                    (Vec::new(), 0, 0, 0, 0, 0.0)
+                };
+                if stop.is_set() {
+                    return cut_short();
+                }
                 let mut recs: Vec<Record> = Vec::new();
                 let (mut walks, mut lost, mut cut) = (0u64, 0u64, 0u64);
                 let (tu, tv) = tangent_frame(&p.corners[i], p.normal[i]);
@@ -859,6 +878,10 @@ pub fn simulate(
                     let (mut sum, mut sum2, mut count) = (0.0f64, 0.0f64, 0u32);
                     while count < medium.max_walks {
                         for _ in 0..BATCH.min(medium.max_walks - count) {
+                            // A walk may take up to MAX_EVENTS steps (milliseconds).
+                            if count.is_multiple_of(STOP_EVERY) && stop.is_set() {
+                                return cut_short();
+                            }
                             count += 1;
                             let (end, weight, tangent) = w.walk(i, Entry::Diffuse, &mut rng);
                             let ret = match end {
@@ -918,7 +941,10 @@ pub fn simulate(
                         }
                     }
                     // As many walks entering collimated along the normal (S⁽ⁿ⁾).
-                    for _ in 0..count {
+                    for k in 0..count {
+                        if k.is_multiple_of(STOP_EVERY) && stop.is_set() {
+                            return cut_short();
+                        }
                         match w.walk(i, Entry::Normal, &mut rng) {
                             // A lamp seen through the object (no scattering) is not
                             // diffuse exitance: left out (see the module docs).
@@ -984,6 +1010,13 @@ pub fn simulate(
             },
         )
         .collect();
+    if stopped.load(Ordering::Relaxed) {
+        return Err(SimError::Stopped {
+            object: name.to_string(),
+            walked: done.load(Ordering::Relaxed),
+            patches: n as u64,
+        });
+    }
     // Transpose: rows j, records (i, bin, w / A_j).
     let mut counts = vec![0u64; n + 1];
     for (recs, ..) in &sources {
@@ -1154,7 +1187,7 @@ mod tests {
             normal: &m.normal,
             area: &m.area,
         };
-        simulate("box", p, medium, 1.0, 0, &|_| {}).expect("a closed box")
+        simulate("box", p, medium, 1.0, 0, (&|_| {}, &Stop::never())).expect("a closed box")
     }
 
     fn view(w: &Walks) -> WalksView<'_> {

@@ -190,6 +190,93 @@ fn sibling_name(out_name: &str, kind: &str) -> String {
     format!(".{out_name}.{kind}-{}-{nanos}-{seq}", std::process::id())
 }
 
+/// Whose leftovers [`settle_leftovers`] settles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Writers {
+    /// Those of processes that no longer run: folders of a process that still runs (or of
+    /// this one) may be a write in progress and are left alone.
+    Gone,
+    /// Every writer's: the caller knows that none still writes `out` (a server settling
+    /// the jobs its previous run left unfinished).
+    All,
+}
+
+/// What [`settle_leftovers`] did.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct Settled {
+    /// Folder names removed: temporary bundles, and old bundles already replaced.
+    pub removed: Vec<String>,
+    /// The old bundle's folder name, renamed back to `out` (a writer was killed between
+    /// moving it aside and renaming the new one into place).
+    pub restored: Option<String>,
+}
+
+/// Settles what writers of `out` that no longer run left beside it when they were killed
+/// (`.{name}.tmp-PID-*`, `.{name}.old-PID-*`, see the module docs): an old bundle whose
+/// replacement never arrived goes back to `out`; every other leftover is removed.
+/// [`write_bundle`] calls it first; a server calls it at start-up.
+pub fn settle_leftovers(out: &Path, writers: Writers) -> Result<Settled, BundleWriteError> {
+    let (Some(name), Some(parent)) = (out.file_name(), out.parent()) else {
+        return Err(BundleWriteError::BadOut(out.to_path_buf()));
+    };
+    let parent = if parent.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        parent
+    };
+    let name = name.to_string_lossy();
+    let mut found: Vec<(String, &str)> = Vec::new();
+    let entries = match fs::read_dir(parent) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Settled::default()),
+        Err(e) => return Err(io_err("reading", parent)(e)),
+    };
+    for e in entries.flatten() {
+        let file = e.file_name().to_string_lossy().into_owned();
+        for kind in ["tmp", "old"] {
+            let Some(rest) = file.strip_prefix(&format!(".{name}.{kind}-")) else {
+                continue;
+            };
+            let pid = rest.split('-').next().and_then(|p| p.parse::<u32>().ok());
+            let gone = match writers {
+                Writers::Gone => pid.is_some_and(|p| !process_runs(p)),
+                Writers::All => true,
+            };
+            if gone && e.path().is_dir() {
+                found.push((file.clone(), kind));
+            }
+        }
+    }
+    // Names sort by pid then time: the last old bundle is the newest one set aside.
+    found.sort();
+    let mut settled = Settled::default();
+    if !out.exists()
+        && let Some((old, _)) = found.iter().rev().find(|(_, kind)| *kind == "old")
+    {
+        fs::rename(parent.join(old), out).map_err(io_err("restoring", out))?;
+        settled.restored = Some(old.clone());
+    }
+    for (file, _) in found {
+        if settled.restored.as_ref() != Some(&file) {
+            let path = parent.join(&file);
+            fs::remove_dir_all(&path).map_err(io_err("removing", &path))?;
+            settled.removed.push(file);
+        }
+    }
+    if settled.restored.is_some() || !settled.removed.is_empty() {
+        sync_dir(parent)?;
+    }
+    Ok(settled)
+}
+
+/// Whether process `pid` runs (this one counts as running). Off Linux, where `/proc` is
+/// absent, every process is taken to run: nothing is removed.
+fn process_runs(pid: u32) -> bool {
+    pid == std::process::id()
+        || !Path::new("/proc/self").exists()
+        || Path::new("/proc").join(pid.to_string()).exists()
+}
+
 /// Flushes a folder's entries (renames, new files) to disk. Best effort off Unix, where a
 /// folder cannot be opened as a file.
 fn sync_dir(path: &Path) -> Result<(), BundleWriteError> {
@@ -312,6 +399,7 @@ pub fn write_bundle_keeping(
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
+    settle_leftovers(out, Writers::Gone)?;
     let replacing = match fs::symlink_metadata(out) {
         Ok(meta) => {
             let is_bundle = meta.is_dir()
@@ -681,6 +769,54 @@ mod tests {
             e,
             "ff_col.u32: F is not a valid CSR matrix: row 0: column 4 is out of range (columns: 4)"
         );
+    }
+
+    /// The states a writer killed with SIGKILL leaves, step by step (the test makes them):
+    /// the next writer, or a server starting up, puts the old bundle back where the new one
+    /// never arrived and removes every other leftover; a running writer's are kept.
+    #[test]
+    fn leftovers_of_a_killed_writer_are_settled_at_each_step() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("b");
+        write_good(&out);
+        let before = fs::read(out.join(MANIFEST_FILE)).unwrap();
+        // A pid above Linux's largest (2²²): no such process.
+        let dead = 4_000_000_000u32;
+        let partial = |name: &str| {
+            let d = tmp.path().join(name);
+            fs::create_dir(&d).unwrap();
+            fs::write(d.join("ff_val.f32"), b"half").unwrap();
+        };
+
+        // Killed while writing the new files: the temporary folder goes.
+        partial(&format!(".b.tmp-{dead}-1-0"));
+        let s = settle_leftovers(&out, Writers::Gone).unwrap();
+        assert_eq!(s.removed, vec![format!(".b.tmp-{dead}-1-0")]);
+        assert_eq!(entries(tmp.path()), vec!["b".to_string()]);
+
+        // Killed after moving the old bundle aside: it comes back.
+        partial(&format!(".b.tmp-{dead}-2-0"));
+        fs::rename(&out, tmp.path().join(format!(".b.old-{dead}-2-1"))).unwrap();
+        let s = settle_leftovers(&out, Writers::Gone).unwrap();
+        assert_eq!(s.restored, Some(format!(".b.old-{dead}-2-1")));
+        assert_eq!(s.removed, vec![format!(".b.tmp-{dead}-2-0")]);
+        assert_eq!(fs::read(out.join(MANIFEST_FILE)).unwrap(), before);
+        Bundle::open(&out).unwrap();
+
+        // Killed after the new bundle is in place: the old one goes.
+        fs::create_dir(tmp.path().join(format!(".b.old-{dead}-3-0"))).unwrap();
+        settle_leftovers(&out, Writers::Gone).unwrap();
+        assert_eq!(entries(tmp.path()), vec!["b".to_string()]);
+
+        // A running writer's folders (this process's) are left alone; the next write
+        // removes a dead one's.
+        let mine = format!(".b.tmp-{}-4-0", std::process::id());
+        partial(&mine);
+        partial(&format!(".b.tmp-{dead}-4-1"));
+        write_good(&out);
+        assert_eq!(entries(tmp.path()), vec![mine, "b".to_string()]);
+        settle_leftovers(&out, Writers::All).unwrap();
+        assert_eq!(entries(tmp.path()), vec!["b".to_string()]);
     }
 
     #[test]

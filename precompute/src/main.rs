@@ -83,10 +83,10 @@ struct Cli {
     #[arg(long)]
     s_exact_links: bool,
     /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3,
-    /// default 1; 1.5, the default until 2026-12-04, comes a little closer to the pairwise
-    /// S), each link read at two distances (the node's straight-line spread about its
-    /// representative's optical distance); `off` keeps the quadrature's near field (3
-    /// sizes) with each link read at one distance, as bundles before 2026-12-03. Nearer
+    /// default 1; 1.5 comes a little closer to the pairwise S), each link read at two
+    /// distances (the node's straight-line spread about its representative's optical
+    /// distance); `off` keeps the quadrature's near field (3 sizes) with each link read at
+    /// one distance. Nearer
     /// links store fewer direct pairs: a translucency change writes fewer entries and the
     /// subsurface stage takes less time.
     #[arg(long, default_value = "1", value_parser = link_near)]
@@ -137,6 +137,7 @@ fn resimulate(cli: &Cli) -> anyhow::Result<()> {
                 eprintln!("walks: {done} of {total} patches");
             }
         },
+        (&translux_engine::stop::Stop::never(), None),
     )
     .map_err(anyhow::Error::msg)
     .with_context(|| format!("re-simulating {}", cli.scene))?;

@@ -27,9 +27,11 @@ use crate::patch::{self, Density, Patches};
 use crate::scene::LoadedScene;
 use crate::voxel::VoxelParams;
 use translux_engine::raycast::Occluder;
+use translux_engine::simulated::SimError;
 use translux_engine::smatrix::{
     self, ObjectMaterial, SError, SParams, material_albedo_emission, patch_albedo,
 };
+use translux_engine::stop::Stop;
 
 /// Patch target for scene files that name no density.
 pub const DEFAULT_PATCHES: u64 = 10_000;
@@ -126,6 +128,11 @@ pub trait Observer: Send + Sync + std::fmt::Debug {
     /// form-factor rows) with [`PrecomputeError::Cancelled`]; nothing is written.
     fn cancelled(&self) -> bool {
         false
+    }
+    /// What the random walks of simulated objects read to stop (they run long between
+    /// stage checks); it should fire when [`Observer::cancelled`] turns `true`.
+    fn stop(&self) -> Stop {
+        Stop::never()
     }
     /// A note or warning about the scene for whoever runs the precompute (an object turned
     /// outward or simplified, distances that look like a units mistake). Without an
@@ -734,9 +741,20 @@ pub fn precompute(
     if sim_patches > 0 {
         bar.set_length(2 + sim_patches);
     }
-    let walks =
-        crate::simulate::scene_walks(&geometry, &materials, unit_mm, &|d| bar.set_position(d))
-            .map_err(PrecomputeError::Simulation)?;
+    let stop = params
+        .observer
+        .as_ref()
+        .map_or_else(Stop::never, |o| o.stop());
+    let walks = crate::simulate::scene_walks(
+        &geometry,
+        &materials,
+        unit_mm,
+        (&|d| bar.set_position(d), &stop),
+    )
+    .map_err(|e| match e {
+        SimError::Stopped { .. } => PrecomputeError::Cancelled,
+        e => PrecomputeError::Simulation(e.to_string()),
+    })?;
     for (name, info, seconds) in &walks.reports {
         tell(
             params,

@@ -12,10 +12,12 @@
 //! precompute of the scene with the new material.
 
 use std::path::Path;
-use std::time::Instant;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
-use translux_engine::simulated::SimMedium;
+use translux_engine::simulated::{SimError, SimMedium};
 use translux_engine::smatrix::{self, ObjectMaterial, SParams};
+use translux_engine::stop::{Reason, Stop};
 use translux_proto::bundle::{Bundle, Manifest, WalksView, arrays};
 use translux_proto::scene::Material;
 
@@ -76,16 +78,49 @@ pub fn check_changes(
     Ok(overrides)
 }
 
+/// The error of a re-simulation stopped by its [`Stop`]'s flag.
+pub const CANCELLED: &str = "cancelled";
+
+/// The error of a re-simulation stopped at its time limit after `seconds`, with `done` of
+/// `total` patches walked.
+fn over_limit(seconds: f64, done: u64, total: u64) -> String {
+    let all = if done == 0 {
+        // Each patch takes longer than `seconds` on one of the threads.
+        let threads = rayon::current_num_threads().max(1) as f64;
+        format!(
+            "more than {:.0} s (not one patch finished)",
+            seconds * total as f64 / threads
+        )
+    } else {
+        format!("about {:.0} s", seconds * total as f64 / done as f64)
+    };
+    format!(
+        "walks: stopped at this job's limit of {seconds:.1} s of walks, with {done} of \
+         {total} patches walked; all of them would take {all}. Ask fewer walks \
+         (max_walks, noise), a medium with fewer scattering events (lower sigma_s, higher \
+         sigma_a), or use a token with a higher limit"
+    )
+}
+
 /// Walks the simulated objects named in `changes` again with their new materials and
 /// rewrites the bundle in `dir` (see the module docs). `progress(done, total)` counts
 /// patches walked. Errors name the object and the problem; on any error the bundle is left
 /// as it was.
+///
+/// `stop` ends the walks within milliseconds (the error is [`CANCELLED`]), and so does
+/// `limit`, the most time they may take (the error says how long all of them would take,
+/// estimated from the patches walked).
 pub fn resimulate(
     dir: &Path,
     changes: &[(String, Material)],
     progress: &(dyn Fn(u64, u64) + Sync),
+    (stop, limit): (&Stop, Option<Duration>),
 ) -> Result<ResimulateReport, String> {
     let start = Instant::now();
+    let stop = match limit {
+        Some(limit) => stop.clone().until(start + limit),
+        None => stop.clone(),
+    };
     let bundle = Bundle::open(dir).map_err(|e| e.to_string())?;
     let m = bundle.manifest();
     let overrides = check_changes(m, changes)?;
@@ -120,7 +155,28 @@ pub fn resimulate(
         })
         .collect();
     let total: u64 = objects.iter().map(|o| o.patches.len() as u64).sum();
-    let fresh: SceneWalks = scene_walks(&g, &objects, m.unit_mm, &|d| progress(d, total))?;
+    let done = AtomicU64::new(0);
+    let fresh: SceneWalks = scene_walks(
+        &g,
+        &objects,
+        m.unit_mm,
+        (
+            &|d| {
+                done.fetch_max(d, Ordering::Relaxed);
+                progress(d, total)
+            },
+            &stop,
+        ),
+    )
+    .map_err(|e| match (&e, stop.reason()) {
+        (SimError::Stopped { .. }, Some(Reason::Time)) => over_limit(
+            start.elapsed().as_secs_f64(),
+            done.load(Ordering::Relaxed),
+            total,
+        ),
+        (SimError::Stopped { .. }, _) => CANCELLED.to_string(),
+        _ => e.to_string(),
+    })?;
 
     // The scene's records: walked-again rows from `fresh`, every other row as stored.
     let n = g.corners.len();

@@ -9,8 +9,9 @@
 use std::collections::HashMap;
 
 use glam::Vec3;
-use translux_engine::simulated::{self, SimMedium, SimPatches};
+use translux_engine::simulated::{self, SimError, SimMedium, SimPatches};
 use translux_engine::smatrix::{ObjectMaterial, PatchGeometry};
+use translux_engine::stop::Stop;
 use translux_proto::bundle::SimulationInfo;
 use translux_proto::scene::Material;
 
@@ -116,8 +117,8 @@ pub fn scene_walks(
     g: &PatchGeometry,
     objects: &[ObjectMaterial<'_>],
     unit_mm: f64,
-    progress: &(dyn Fn(u64) + Sync),
-) -> Result<SceneWalks, String> {
+    (progress, stop): (&(dyn Fn(u64) + Sync), &Stop),
+) -> Result<SceneWalks, SimError> {
     let n = g.corners.len();
     let mut rows: Vec<u64> = vec![0; n + 1];
     let mut per_object = Vec::new();
@@ -133,10 +134,14 @@ pub fn scene_walks(
             area: &g.area[r.clone()],
         };
         let base = done;
-        let w = simulated::simulate(o.name, p, &medium, unit_mm, r.start as u64, &|d| {
-            progress(base + d)
-        })
-        .map_err(|e| e.to_string())?;
+        let w = simulated::simulate(
+            o.name,
+            p,
+            &medium,
+            unit_mm,
+            r.start as u64,
+            (&|d| progress(base + d), stop),
+        )?;
         done += r.len() as u64;
         for (j, pair) in w.row_ptr.windows(2).enumerate() {
             rows[r.start + j + 1] = pair[1] - pair[0];

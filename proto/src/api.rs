@@ -588,7 +588,8 @@ pub enum PrepState {
 pub struct SceneDetail {
     pub id: String,
     pub name: String,
-    /// What the bundle was built from (`builtin:cornell`, a scene file).
+    /// What the bundle was built from: `builtin:cornell`, `upload:JOB/FILE`, or a scene
+    /// file's name (never a path on the server).
     pub source: String,
     pub created_by: String,
     /// Millimetres per scene unit.

@@ -16,6 +16,8 @@
 //! role = "editor"               # viewer < editor < admin
 //! sha256 = "9f86d081884c7d65…"  # hex SHA-256 of the token (translux-server token hash)
 //! rate = 50                     # optional: requests per second (default --rate-limit)
+//! work_s = 30                   # optional: seconds of long work per request (default: the
+//!                               # role's --viewer-work-s / --editor-work-s)
 //! ```
 //!
 //! The file holds only SHA-256 hashes: tokens are long random strings
@@ -34,7 +36,7 @@ use std::io::{BufRead, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use axum::extract::{Request, State};
@@ -98,6 +100,8 @@ pub struct Identity {
     /// [`ANONYMOUS_NAME`] on an open route without a (valid) token.
     pub name: Arc<str>,
     pub role: Option<Role>,
+    /// The token's own work limit (`None`: its role's; see `ServerParams::work_limit`).
+    pub work: Option<Duration>,
 }
 
 /// The role of a request by the identity the access check gave it; a router without the
@@ -123,6 +127,8 @@ struct TokenEntry {
     sha256: String,
     #[serde(default)]
     rate: Option<f64>,
+    #[serde(default)]
+    work_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -140,6 +146,8 @@ struct Token {
     hash: [u8; 32],
     /// Requests per second (`None`: the default rate).
     rate: Option<f64>,
+    /// The most time one request's long work may take (`None`: the role's limit).
+    work: Option<Duration>,
 }
 
 impl fmt::Debug for Token {
@@ -248,6 +256,10 @@ impl Auth {
             if let Some(r) = entry.rate {
                 check_rate(r, &format!("{at}.rate"))?;
             }
+            let work = entry
+                .work_s
+                .map(|s| check_work(s, &format!("{at}.work_s")))
+                .transpose()?;
             if let Some(other) = tokens.iter().find(|t| *t.name == *entry.name) {
                 bail!("{at}.name: {:?} is used twice", other.name);
             }
@@ -262,6 +274,7 @@ impl Auth {
                 role: entry.role,
                 hash,
                 rate: entry.rate,
+                work,
             });
         }
         if tokens.is_empty() {
@@ -307,6 +320,7 @@ impl Auth {
             return Ok(Identity {
                 name: LOCAL_NAME.into(),
                 role: Some(Role::Admin),
+                work: None,
             });
         }
         let token = presented.and_then(|p| self.lookup(p));
@@ -315,10 +329,12 @@ impl Auth {
                 Some(t) => Identity {
                     name: t.name.clone(),
                     role: Some(t.role),
+                    work: t.work,
                 },
                 None => Identity {
                     name: ANONYMOUS_NAME.into(),
                     role: None,
+                    work: None,
                 },
             });
         };
@@ -329,6 +345,7 @@ impl Auth {
             (Some(_), Some(t)) => Ok(Identity {
                 name: t.name.clone(),
                 role: Some(t.role),
+                work: t.work,
             }),
         }
     }
@@ -544,6 +561,14 @@ fn check_rate(r: f64, what: &str) -> anyhow::Result<()> {
         bail!("{what} must be a finite number of requests per second > 0, got {r}");
     }
     Ok(())
+}
+
+/// A token's `work_s`: seconds above 0, at most a year (as `--editor-work-s`).
+fn check_work(s: f64, what: &str) -> anyhow::Result<Duration> {
+    if !(s.is_finite() && s > 0.0 && s <= 365.0 * 86_400.0) {
+        bail!("{what} must be a number of seconds above 0 (at most a year), got {s}");
+    }
+    Ok(Duration::from_secs_f64(s))
 }
 
 fn line_of(text: &str, byte: usize) -> usize {

@@ -293,8 +293,6 @@ pub async fn run(
     if !dir.is_dir() {
         bail!("--bundles {}: no such folder", dir.display());
     }
-    let (mut bundles, errors) =
-        discover(&dir).map_err(|e| anyhow::anyhow!("--bundles {}: {e}", dir.display()))?;
     // The backend, once for the process; `gpu` without an adapter stops here.
     let backend = crate::backend::Backend::start(args.backend)
         .map_err(|e| anyhow::anyhow!("--backend gpu: {e}"))?;
@@ -302,10 +300,14 @@ pub async fn run(
     let mut params = settings.params.clone();
     params.backend = backend.name().to_string();
     let state = AppState::with_backend(params, backend);
+    // The team first: it settles what a killed job left (a bundle set aside goes back)
+    // before the folder is read.
     let team = crate::team::Team::start(&args.team, &dir, state.clone())?;
+    let (mut bundles, errors) =
+        discover(&dir).map_err(|e| anyhow::anyhow!("--bundles {}: {e}", dir.display()))?;
     for (id, error) in errors {
         tracing::warn!("skipping {id:?} in {}: {error}", dir.display());
-        state.set_failed(id, error);
+        state.set_failed(id, crate::jobs::strip_dir(&error, &dir));
     }
     if settings.demo {
         for (id, _) in DEMO_SCENES {
@@ -329,7 +331,7 @@ pub async fn run(
                 Ok(()) => state.load_one(id, &dir.join(id)),
                 Err(e) => {
                     tracing::error!("{e:#}");
-                    state.set_failed(id, format!("{e:#}"));
+                    state.set_failed(id, crate::jobs::strip_dir(&format!("{e:#}"), &dir));
                 }
             }
         }

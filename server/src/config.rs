@@ -27,6 +27,7 @@ pub const DEFAULT_QUEUE: usize = 256;
 pub const DEFAULT_MAX_BATCH: usize = 32;
 pub const DEFAULT_DEADLINE_MS: u64 = 30_000;
 pub const DEFAULT_PING_S: u64 = 15;
+pub const DEFAULT_WRITE_TIMEOUT_S: u64 = 30;
 /// Default seconds of lamp walks one request may run: viewers (and requests without a
 /// token on open routes), then editors and admins (and every request without tokens).
 pub const DEFAULT_VIEWER_WORK_S: f64 = 10.0;
@@ -52,6 +53,10 @@ pub struct ServerParams {
     pub deadline: Duration,
     /// How often a WebSocket stream is pinged (default [`DEFAULT_PING_S`] s).
     pub ping_interval: Duration,
+    /// How long a write to a client may make no progress before the connection is closed
+    /// (default [`DEFAULT_WRITE_TIMEOUT_S`] s): a client that stops reading its answer
+    /// does not hold the answer in memory.
+    pub write_timeout: Duration,
     /// The compute backend named in `/healthz` (`cpu`).
     pub backend: String,
     /// When a scene's first translucency change is made ready ahead of it (default
@@ -90,6 +95,7 @@ impl Default for ServerParams {
             max_batch: DEFAULT_MAX_BATCH,
             deadline: Duration::from_millis(DEFAULT_DEADLINE_MS),
             ping_interval: Duration::from_secs(DEFAULT_PING_S),
+            write_timeout: Duration::from_secs(DEFAULT_WRITE_TIMEOUT_S),
             backend: "cpu".to_string(),
             prepare: PrepareWhen::Off,
             viewer_work: Duration::from_secs_f64(DEFAULT_VIEWER_WORK_S),
@@ -99,9 +105,19 @@ impl Default for ServerParams {
 }
 
 impl ServerParams {
-    /// The work limit of a request by `role` (`None`: no valid token on an open route).
-    pub fn work_limit(&self, role: Option<crate::auth::Role>) -> Duration {
-        match role {
+    /// The work limit of a request by `identity`: its token's own (`work_s` in the tokens
+    /// file), else its role's (no valid token on an open route: a viewer's).
+    pub fn work_limit(
+        &self,
+        identity: &Option<axum::Extension<crate::auth::Identity>>,
+    ) -> Duration {
+        if let Some(axum::Extension(crate::auth::Identity {
+            work: Some(work), ..
+        })) = identity
+        {
+            return *work;
+        }
+        match crate::auth::role_of(identity) {
             Some(crate::auth::Role::Editor | crate::auth::Role::Admin) => self.editor_work,
             _ => self.viewer_work,
         }
@@ -133,6 +149,9 @@ impl ServerParams {
             if limit.is_zero() {
                 anyhow::bail!("{name} must be more than 0");
             }
+        }
+        if self.write_timeout.is_zero() {
+            anyhow::bail!("the write timeout must be more than 0");
         }
         if self.ping_interval.is_zero() {
             anyhow::bail!("the ping interval must be at least 1 ms");

@@ -15,7 +15,9 @@
 //!   then the oldest job), so one person's batch of uploads does not hold up everyone else.
 //! - **States**: `queued` → `running` (stage and percent) → `done` | `failed` (message) |
 //!   `cancelled`. [`Jobs::cancel`] cancels a queued job at once and a running one at the
-//!   next check (before each stage and between form-factor rows).
+//!   next check (before each stage, between form-factor rows, every few random walks).
+//!   A re-simulation's walks also stop at the submitter's work limit
+//!   ([`JobSpec::work_limit`]): the job fails saying how long they would take.
 //! - **Restarts**: each record is a small JSON file in the jobs folder, rewritten at every
 //!   change of state. On start-up ([`Jobs::start`]) a job found `queued` or `running` is
 //!   marked `failed` ("the server stopped before the job finished"), its temporary bundle
@@ -24,7 +26,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
@@ -32,6 +34,8 @@ use anyhow::Context;
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
+use translux_engine::stop::{Stop, StopFlag};
+use translux_precompute::bundle::{Writers, settle_leftovers};
 use translux_precompute::pipeline::{
     Observer, PrecomputeError, PrecomputeParams, hierarchical_s_by_default, precompute,
 };
@@ -154,6 +158,9 @@ pub struct JobSpec {
     /// A re-simulation of the scene's bundle with these materials (by object name) instead
     /// of a precompute of `scene_file`.
     pub resimulate: Option<Vec<(String, Material)>>,
+    /// The longest a re-simulation's walks may run (the submitter's work limit); `None`
+    /// for no limit. A precompute of an upload is bounded by its patch limit instead.
+    pub work_limit: Option<std::time::Duration>,
 }
 
 /// Called with `(scene id, bundle folder)` when a job's bundle is in place.
@@ -196,7 +203,7 @@ struct Entry {
     spec: JobSpec,
     record: Mutex<JobRecord>,
     tx: watch::Sender<JobRecord>,
-    cancel: AtomicBool,
+    cancel: StopFlag,
     /// Last published whole percent, to publish only changes.
     last_percent: AtomicU64,
 }
@@ -309,7 +316,11 @@ impl Observer for JobObserver {
     }
 
     fn cancelled(&self) -> bool {
-        self.entry.cancel.load(Ordering::Relaxed)
+        self.entry.cancel.is_set()
+    }
+
+    fn stop(&self) -> Stop {
+        Stop::never().with(&self.entry.cancel)
     }
 }
 
@@ -343,6 +354,7 @@ impl Jobs {
                 patches: r.patches,
                 max_edge: r.max_edge,
                 resimulate: None,
+                work_limit: None,
             };
             table
                 .jobs
@@ -519,7 +531,7 @@ impl Jobs {
     pub fn cancel(&self, id: &str) -> Option<JobRecord> {
         let mut t = self.table();
         let entry = t.jobs.get(id)?.clone();
-        entry.cancel.store(true, Ordering::Relaxed);
+        entry.cancel.set();
         if let Some(k) = t.queued.iter().position(|q| q == id) {
             t.queued.remove(k);
             drop(t);
@@ -620,7 +632,7 @@ impl Jobs {
             jobs_dir: cfg.jobs_dir.clone(),
         });
         let result: Result<JobResult, String> = (|| {
-            if entry.cancel.load(Ordering::Relaxed) {
+            if entry.cancel.is_set() {
                 return Err("cancelled".to_string());
             }
             if let Some(materials) = &spec.resimulate {
@@ -683,7 +695,7 @@ impl Jobs {
                 });
             }
             Err(msg) => {
-                let cancelled = entry.cancel.load(Ordering::Relaxed) && msg == "cancelled";
+                let cancelled = entry.cancel.is_set() && msg == "cancelled";
                 tracing::info!(job = %spec.id, scene = %spec.scene, "job ended: {msg}");
                 entry.update(&cfg.jobs_dir, true, |r| {
                     r.state = if cancelled {
@@ -701,7 +713,8 @@ impl Jobs {
 
 impl Jobs {
     /// A re-simulation job's work: the walks (stage `walks`, per patch), then the bundle
-    /// rewritten in place. It cannot be cancelled once running.
+    /// rewritten in place. Cancelling it, or its work limit, stops the walks within
+    /// milliseconds; the bundle is then left as it was.
     fn resimulate(
         &self,
         entry: &Arc<Entry>,
@@ -715,17 +728,22 @@ impl Jobs {
             r.stage_percent = 0.0;
         });
         let report = self.inner.rayon.install(|| {
-            translux_precompute::resimulate::resimulate(out, materials, &|done, total| {
-                let fraction = done as f64 / total.max(1) as f64;
-                let key = (fraction * 100.0).floor() as u64;
-                if entry.last_percent.swap(key, Ordering::Relaxed) == key {
-                    return;
-                }
-                entry.update(jobs_dir, false, |r| {
-                    r.stage_percent = r.stage_percent.max(100.0 * fraction);
-                    r.percent = r.percent.max(95.0 * fraction);
-                });
-            })
+            translux_precompute::resimulate::resimulate(
+                out,
+                materials,
+                &|done, total| {
+                    let fraction = done as f64 / total.max(1) as f64;
+                    let key = (fraction * 100.0).floor() as u64;
+                    if entry.last_percent.swap(key, Ordering::Relaxed) == key {
+                        return;
+                    }
+                    entry.update(jobs_dir, false, |r| {
+                        r.stage_percent = r.stage_percent.max(100.0 * fraction);
+                        r.percent = r.percent.max(95.0 * fraction);
+                    });
+                },
+                (&Stop::never().with(&entry.cancel), entry.spec.work_limit),
+            )
         })?;
         Ok(JobResult {
             patches: report.patches,
@@ -743,7 +761,7 @@ impl Entry {
             spec,
             tx: watch::channel(record.clone()).0,
             record: Mutex::new(record),
-            cancel: AtomicBool::new(false),
+            cancel: StopFlag::new(),
             last_percent: AtomicU64::new(u64::MAX),
         }
     }
@@ -812,31 +830,12 @@ fn recover(cfg: &JobsConfig) -> anyhow::Result<(Vec<JobRecord>, Vec<String>)> {
             }
         };
         if !r.state.is_final() {
-            let was = r.state;
-            r.state = JobState::Failed;
-            r.error = Some(format!(
-                "the server stopped before the job finished (it was {}); upload the scene again",
-                match was {
-                    JobState::Queued => "queued",
-                    _ => "running",
-                }
-            ));
-            r.finished = Some(now_unix());
-            let removed = remove_temporaries(&cfg.bundles, &r.scene);
+            notes.push(settle_unfinished(cfg, &mut r));
             write_record(&cfg.jobs_dir, &r)?;
-            notes.push(format!(
-                "job {} (scene {:?}) did not finish before the last stop: marked failed{}",
-                r.id,
-                r.scene,
-                if removed > 0 {
-                    format!(", {removed} temporary bundle folder(s) removed")
-                } else {
-                    String::new()
-                }
-            ));
         }
         records.push(r);
     }
+    notes.extend(remove_leftovers(&cfg.bundles));
     // No job waits after a restart: every upload folder is left over.
     if let Ok(entries) = std::fs::read_dir(&cfg.uploads_dir) {
         for e in entries.flatten() {
@@ -846,19 +845,117 @@ fn recover(cfg: &JobsConfig) -> anyhow::Result<(Vec<JobRecord>, Vec<String>)> {
     Ok((records, notes))
 }
 
-/// Removes `bundles/.SCENE.tmp-*` (the precompute's temporary folders for this scene).
-fn remove_temporaries(bundles: &Path, scene: &str) -> usize {
-    let prefix = format!(".{scene}.tmp-");
-    let mut n = 0;
-    if let Ok(entries) = std::fs::read_dir(bundles) {
-        for e in entries.flatten() {
-            if e.file_name().to_string_lossy().starts_with(&prefix) && e.path().is_dir() {
-                remove_quietly(&e.path());
-                n += 1;
+/// Settles job `r` that an earlier run left queued or running (see the module docs): what
+/// its bundle's writer left is settled (an old bundle set aside goes back, temporary ones
+/// go), and the record follows what is served: `done` when its bundle was written in place
+/// before the stop, `failed` otherwise. Returns the note for the log.
+fn settle_unfinished(cfg: &JobsConfig, r: &mut JobRecord) -> String {
+    let was = r.state;
+    let out = cfg.bundles.join(&r.scene);
+    let settled = match settle_leftovers(&out, Writers::All) {
+        Ok(s) => format!(
+            "{} temporary bundle folder(s) removed{}",
+            s.removed.len(),
+            if s.restored.is_some() {
+                ", the bundle it was replacing put back"
+            } else {
+                ""
             }
+        ),
+        Err(e) => format!("its leftovers could not be settled: {e}"),
+    };
+    r.finished = Some(now_unix());
+    if was == JobState::Running
+        && let Some(result) = written_since(&out, r.started.unwrap_or(u64::MAX))
+    {
+        r.state = JobState::Done;
+        r.percent = 100.0;
+        r.stage_percent = 100.0;
+        r.result = Some(result);
+        return format!(
+            "job {} (scene {:?}) had written its bundle before the last stop: marked done; {settled}",
+            r.id, r.scene
+        );
+    }
+    r.state = JobState::Failed;
+    r.error = Some(format!(
+        "the server stopped before the job finished (it was {}); upload the scene again",
+        match was {
+            JobState::Queued => "queued",
+            _ => "running",
+        }
+    ));
+    format!(
+        "job {} (scene {:?}) did not finish before the last stop: marked failed; {settled}",
+        r.id, r.scene
+    )
+}
+
+/// The result of the bundle at `out` if its manifest was written at or after `started`
+/// (unix seconds): a bundle is renamed into place whole, so one written since the job
+/// started is that job's.
+fn written_since(out: &Path, started: u64) -> Option<JobResult> {
+    let path = out.join(translux_proto::bundle::MANIFEST_FILE);
+    let written = std::fs::metadata(&path)
+        .and_then(|m| m.modified())
+        .ok()?
+        .duration_since(UNIX_EPOCH)
+        .ok()?
+        .as_secs();
+    if written < started {
+        return None;
+    }
+    let text = std::fs::read_to_string(&path).ok()?;
+    let m: translux_proto::bundle::Manifest = translux_proto::parse_json(&text).ok()?;
+    Some(JobResult {
+        patches: m.patch_count,
+        vertices: m.vertex_count,
+        nnz_f: m.form_factors.nnz,
+        bundle_bytes: m.arrays.values().map(|a| a.bytes).sum::<u64>() + text.len() as u64,
+        seconds: written.saturating_sub(started) as f64,
+    })
+}
+
+/// Settles what killed writers left beside every bundle in `bundles` (their processes no
+/// longer run: a command-line precompute writing there is left alone), and removes bundles
+/// a delete had renamed aside (`.ID.deleted-*`). One note per folder changed.
+fn remove_leftovers(bundles: &Path) -> Vec<String> {
+    let mut notes = Vec::new();
+    let Ok(entries) = std::fs::read_dir(bundles) else {
+        return notes;
+    };
+    let mut scenes = std::collections::BTreeSet::new();
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(rest) = name.strip_prefix('.') else {
+            continue;
+        };
+        if rest.contains(".deleted-") && e.path().is_dir() {
+            remove_quietly(&e.path());
+            notes.push(format!("removed {name}, a deleted bundle"));
+        } else if let Some((scene, _)) = rest
+            .rsplit_once(".tmp-")
+            .or_else(|| rest.rsplit_once(".old-"))
+        {
+            scenes.insert(scene.to_string());
         }
     }
-    n
+    for scene in scenes {
+        match settle_leftovers(&bundles.join(&scene), Writers::Gone) {
+            Ok(s) if s.restored.is_some() || !s.removed.is_empty() => notes.push(format!(
+                "scene {scene:?}: {} leftover bundle folder(s) of a killed writer removed{}",
+                s.removed.len(),
+                if s.restored.is_some() {
+                    ", the bundle it was replacing put back"
+                } else {
+                    ""
+                }
+            )),
+            Ok(_) => {}
+            Err(e) => notes.push(format!("scene {scene:?}: {e}")),
+        }
+    }
+    notes
 }
 
 fn remove_file_quietly(p: &Path) {
@@ -937,6 +1034,7 @@ mod tests {
             patches: Some(40_000),
             max_edge: None,
             resimulate: None,
+            work_limit: None,
         })
         .unwrap();
         let t0 = Instant::now();

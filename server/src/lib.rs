@@ -11,10 +11,11 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | routes and bodies | [`routes`] (REST; the full list is `openapi.json` and `docs/api.md`), [`ws`] (the stream, `docs/stream.md`) |
-//! | a relight | [`relight`] (plan, then run or run a batch), [`environment`] (environment lights) |
+//! | routes and bodies | [`routes`] (REST; the full list is `openapi.json` and `docs/api.md`), [`ws`] (the stream, `docs/stream.md`), [`extract`] (strict JSON bodies, `Accept` negotiation), [`error`] (every failure as `{"error":{"code","message"}}`) |
+//! | what it holds | [`state`] (one opened scene per bundle, the pool, the metrics, the shutdown signal), [`config`] (settings from flags, `TRANSLUX_*`, a TOML file) |
+//! | a relight | planned and run by the engine: [`translux_engine::relight`] (plan, then run or run a batch), [`translux_engine::environment`] (environment lights) |
 //! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction), [`prepare`] (translucency changes made ready in the background) |
-//! | team use | [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads, precompute jobs) |
+//! | team use | [`team`] (the API wrapped with access control, uploads, jobs, deletion, the budget), [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads in, precompute and resimulation jobs out) |
 //! | backends | [`backend`] (CPU or GPU, chosen at start-up), [`gpu`] (wgpu kernels, one WGSL file each) |
 //!
 //! The same binary works offline, without HTTP: `translux-server render | export | relight
@@ -91,8 +92,9 @@ pub const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(2
 ///
 /// The accept loop is written here rather than with `axum::serve`, which offers no
 /// header-read timeout: HTTP/1.1 connections (with upgrades, for WebSockets) from hyper's
-/// own builder with [`HEADER_TIMEOUT`], the body idle timeout of `tower-http`, and a
-/// graceful stop bounded by [`SHUTDOWN_GRACE`].
+/// own builder with [`HEADER_TIMEOUT`], the body idle timeout of `tower-http`, a write
+/// timeout ([`ServerParams::write_timeout`], `tokio-io-timeout`), and a graceful stop
+/// bounded by [`SHUTDOWN_GRACE`].
 pub async fn serve_router(
     listener: tokio::net::TcpListener,
     state: AppState,
@@ -124,6 +126,11 @@ pub async fn serve_router(
                     }
                 };
                 let _ = stream.set_nodelay(true);
+                // A write that makes no progress for this long fails, and hyper drops the
+                // connection with the answer it held.
+                let mut stream = tokio_io_timeout::TimeoutStream::new(stream);
+                stream.set_write_timeout(Some(state.params().write_timeout));
+                let stream = Box::pin(stream);
                 let app = app.clone();
                 let mut stop = stop_rx.clone();
                 connections.spawn(async move {

@@ -111,6 +111,17 @@ pub fn with_request_log(app: Router, state: AppState) -> Router {
 }
 
 /// A pre-serialised JSON answer.
+/// A manifest's `source` as clients see it: `builtin:…` and `upload:…` as they are, a scene
+/// file by its name alone (the command line may have named it by the server's path).
+fn public_source(source: &str) -> String {
+    if source.starts_with("builtin:") || source.starts_with("upload:") {
+        return source.to_string();
+    }
+    std::path::Path::new(source)
+        .file_name()
+        .map_or_else(|| source.to_string(), |f| f.to_string_lossy().into_owned())
+}
+
 fn json_bytes(bytes: impl Into<Body>) -> Response {
     (
         [(CONTENT_TYPE, HeaderValue::from_static("application/json"))],
@@ -301,7 +312,7 @@ async fn scene_detail(
     to_json(&SceneDetail {
         id: scene.id.clone(),
         name: m.name.clone(),
-        source: m.source.clone(),
+        source: public_source(&m.source),
         created_by: m.created_by.clone(),
         unit_mm: m.unit_mm,
         patches: m.patch_count,
@@ -397,7 +408,7 @@ async fn relight(
     let JsonBody(req) = body?;
     let scene = scene.frame(req.frame)?;
     let plan = relight::RelightPlan {
-        work_limit: Some(state.params().work_limit(crate::auth::role_of(&identity))),
+        work_limit: Some(state.params().work_limit(&identity)),
         ..relight::plan(&scene, req)?
     };
     let answer = state
@@ -485,7 +496,7 @@ async fn render(
         format,
         ..picture::plan(&scene, req)?
     };
-    plan.relight.work_limit = Some(state.params().work_limit(crate::auth::role_of(&identity)));
+    plan.relight.work_limit = Some(state.params().work_limit(&identity));
     let answer = state
         .pool()
         .run(scene.engine(), Work::Render(Box::new(plan)), client)
@@ -593,6 +604,14 @@ mod tests {
     use tower::ServiceExt;
 
     use super::*;
+
+    #[test]
+    fn a_scene_files_path_on_the_server_is_not_shown() {
+        assert_eq!(public_source("/srv/team/scenes/room.json"), "room.json");
+        assert_eq!(public_source("C:scenes/room.json"), "room.json");
+        assert_eq!(public_source("builtin:cornell"), "builtin:cornell");
+        assert_eq!(public_source("upload:j01/a b.json"), "upload:j01/a b.json");
+    }
 
     /// The answer's status and JSON body for `method path` with `body` (as JSON).
     async fn call(method: Method, path: &str, body: Body) -> (StatusCode, Value) {

@@ -517,7 +517,12 @@ impl AppState {
             }
             Err(e) => {
                 tracing::warn!("skipping bundle {id:?} in {}: {e}", dir.display());
-                self.set_failed(id, e.to_string());
+                // Clients (an open /healthz) see the bundle's folder, not the server's path.
+                let message = match dir.parent() {
+                    Some(root) => crate::jobs::strip_dir(&e.to_string(), root),
+                    None => e.to_string(),
+                };
+                self.set_failed(id, message);
             }
         }
     }

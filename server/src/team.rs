@@ -289,7 +289,11 @@ impl Team {
                         self.budget.charge(id, "host", bytes);
                     }
                     Err(err) => {
-                        let msg = format!("cannot reopen the evicted bundle: {err}");
+                        // Clients see the scene's folder, not the server's path to it.
+                        let msg = crate::jobs::strip_dir(
+                            &format!("cannot reopen the evicted bundle: {err}"),
+                            &self.bundles,
+                        );
                         self.state.set_failed(id, msg.clone());
                         return Err(AppError::not_found(format!(
                             "scene {id:?} is not served: {msg}"
@@ -487,6 +491,7 @@ async fn resimulate(
             "scene {id:?} is not a bundle of this server's bundles folder"
         )));
     }
+    let work_limit = team.state.params().work_limit(&identity);
     let owner = identity.map_or_else(|| "local".to_string(), |Extension(i)| i.name.to_string());
     let record = team.jobs.submit(crate::jobs::JobSpec {
         id: Jobs::new_id(),
@@ -496,6 +501,7 @@ async fn resimulate(
         patches: None,
         max_edge: None,
         resimulate: Some(changes),
+        work_limit: Some(work_limit),
     })?;
     let mut r = (StatusCode::ACCEPTED, Json(&record)).into_response();
     if let Ok(v) = axum::http::HeaderValue::from_str(&format!("/api/v1/jobs/{}", record.id)) {

@@ -480,6 +480,7 @@ pub async fn accept<R>(
         patches: got.patches,
         max_edge: got.max_edge,
         resimulate: None,
+        work_limit: None,
     })?;
     staging.0 = None;
     tracing::info!(

@@ -157,7 +157,7 @@ pub async fn stream(
     query: Result<Query<StreamQuery>, axum::extract::rejection::QueryRejection>,
     upgrade: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Result<Response, AppError> {
-    let role = crate::auth::role_of(&identity);
+    let work_limit = state.params().work_limit(&identity);
     let scene = state.lookup(&id)?;
     let Query(query) =
         query.map_err(|e| AppError::bad_request(format!("bad query: {}", e.body_text())))?;
@@ -183,7 +183,7 @@ pub async fn stream(
     Ok(upgrade
         .max_message_size(BODY_LIMIT)
         .on_upgrade(move |socket| async move {
-            run_stream(socket, state, scene, settings, role).await;
+            run_stream(socket, state, scene, settings, work_limit).await;
         }))
 }
 
@@ -382,7 +382,7 @@ struct Conn {
     /// When to try submitting `pending` again after the queue was full.
     retry_at: Option<tokio::time::Instant>,
     dropped: u64,
-    /// The most time one relight's lamp walks may take, by the stream's role.
+    /// The most time one relight's lamp walks may take, by the stream's token or role.
     work_limit: std::time::Duration,
 }
 
@@ -471,7 +471,7 @@ pub async fn run_stream<S>(
     state: AppState,
     scene: Arc<Scene>,
     settings: FrameSettings,
-    role: Option<crate::auth::Role>,
+    work_limit: std::time::Duration,
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message, Error = axum::Error> + Unpin,
 {
@@ -480,7 +480,7 @@ pub async fn run_stream<S>(
     let id = state.next_stream_id();
     tracing::debug!(scene = %scene.id, stream = id, "stream opened");
     let stall = stall_limit(state.params().ping_interval);
-    let outcome = drive(&mut socket, state, scene, settings, (id, role)).await;
+    let outcome = drive(&mut socket, state, scene, settings, (id, work_limit)).await;
     match &outcome {
         Ok(Some(close)) => {
             tracing::debug!(stream = id, code = close.code, reason = %close.reason, "stream closed");
@@ -532,7 +532,7 @@ async fn drive<S>(
     state: AppState,
     scene: Arc<Scene>,
     settings: FrameSettings,
-    (id, role): (u64, Option<crate::auth::Role>),
+    (id, work_limit): (u64, std::time::Duration),
 ) -> Result<Option<Close>, axum::Error>
 where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message, Error = axum::Error> + Unpin,
@@ -542,7 +542,7 @@ where
     let mut shutdown = state.shutdown_watch();
     let mut closing = *shutdown.borrow();
     let mut conn = Conn {
-        work_limit: state.params().work_limit(role),
+        work_limit,
         state,
         client: format!("stream-{id}"),
         scene,

@@ -3,9 +3,11 @@
 //! message that names the problem.
 
 use std::path::Path;
+use std::time::Duration;
 
 use translux_engine::collimated::{self, TiltOf};
 use translux_engine::smatrix::{self, SParams};
+use translux_engine::stop::{Stop, StopFlag};
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene_file;
 use translux_proto::bundle::Bundle;
@@ -343,6 +345,7 @@ fn a_new_scattering_medium_walks_again_in_the_bundle_and_equals_a_fresh_precompu
             assert!(d <= total);
             done.store(d, std::sync::atomic::Ordering::Relaxed);
         },
+        (&Stop::never(), None),
     )
     .unwrap();
     assert_eq!(done.into_inner(), report.patches);
@@ -368,6 +371,7 @@ fn a_new_scattering_medium_walks_again_in_the_bundle_and_equals_a_fresh_precompu
             &a.join("bundle"),
             &[(name.to_string(), m)],
             &|_, _| {},
+            (&Stop::never(), None),
         )
         .unwrap_err()
     };
@@ -386,6 +390,28 @@ fn a_new_scattering_medium_walks_again_in_the_bundle_and_equals_a_fresh_precompu
         r#"{"type": "simulated", "sigma_s_prime": [1, 1, 1], "sigma_a": [-1, 0, 0]}"#,
     );
     assert!(e.contains("materials.cube.sigma_a"), "{e}");
+
+    // Walks stopped by their flag or their time limit: the reasons told apart, nothing
+    // written.
+    let stopped = |stop: &Stop, limit: Option<Duration>| {
+        translux_precompute::resimulate::resimulate(
+            &a.join("bundle"),
+            &[("cube".to_string(), new.clone())],
+            &|_, _| {},
+            (stop, limit),
+        )
+        .unwrap_err()
+    };
+    let flag = StopFlag::new();
+    flag.set();
+    let e = stopped(&Stop::never().with(&flag), None);
+    assert_eq!(e, translux_precompute::resimulate::CANCELLED);
+    let e = stopped(&Stop::never(), Some(Duration::ZERO));
+    assert!(
+        e.contains("limit of 0.0 s")
+            && e.contains(&format!("of {} patches walked", report.patches)),
+        "{e}"
+    );
     let again = Bundle::open(&a.join("bundle")).unwrap();
     assert_eq!(again.subsurface().val(), fresh.subsurface().val());
 }

@@ -74,7 +74,7 @@ impl Client {
             state.clone(),
             scene.clone(),
             FrameSettings::default(),
-            None,
+            state.params().viewer_work,
         ));
         Client {
             send,

@@ -418,6 +418,15 @@ async fn scenes_answer_503_while_loading_and_healthz_shows_each_state() {
         broken.error.as_deref().unwrap().contains("ff_val.f32"),
         "{broken:?}"
     );
+    // An open route: the folder is named as in the bundles folder, not by the server's path.
+    assert!(
+        !broken
+            .error
+            .as_deref()
+            .unwrap()
+            .contains(&*tmp.path().to_string_lossy()),
+        "{broken:?}"
+    );
     assert_eq!(
         (h.scene_states[1].state.as_str(), h.scenes.clone()),
         ("ready", vec![ID.to_string()])
@@ -620,5 +629,72 @@ async fn the_openapi_document_describes_every_route_the_router_serves() {
         let expected = if path.ends_with("/stream") { 426 } else { 200 };
         assert_eq!(status, expected, "{method} {path}");
     }
+    s.stop().await;
+}
+
+/// A client that asks for a large picture and stops reading it (the attack of issue #79:
+/// clients holding 8192² EXRs in the server's memory): once a write has made no progress
+/// for the write timeout, the server closes the connection and lets the answer go; the
+/// client gets only what had fitted in the sockets' buffers.
+#[tokio::test]
+async fn a_client_that_stops_reading_its_answer_is_let_go_at_the_write_timeout() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let s = TestServer::cornell(ServerParams {
+        write_timeout: Duration::from_millis(500),
+        ..ServerParams::default()
+    })
+    .await;
+    let body = json!({"width": 6144, "height": 6144, "direct_at": "vertex"}).to_string();
+    // A small receive window (no autotuning): what the server can hand off is its own send
+    // buffer, a few MiB, less than the answer.
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(16 << 10).unwrap();
+    let mut c = socket.connect(s.addr).await.unwrap();
+    c.write_all(
+        format!(
+            "POST /api/v1/scenes/{ID}/render HTTP/1.1\r\nHost: x\r\nAccept: image/x-exr\r\n\
+             Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    // The head: the picture is made and its answer has begun.
+    let mut got = Vec::new();
+    let mut buf = vec![0u8; 1 << 16];
+    let head_end = loop {
+        let n = c.read(&mut buf).await.unwrap();
+        assert!(n > 0, "closed before the head");
+        got.extend_from_slice(&buf[..n]);
+        if let Some(k) = got.windows(4).position(|w| w == b"\r\n\r\n") {
+            break k + 4;
+        }
+    };
+    let head = String::from_utf8_lossy(&got[..head_end]).to_lowercase();
+    assert!(head.starts_with("http/1.1 200"), "{head}");
+    let length: usize = head
+        .lines()
+        .find_map(|l| l.strip_prefix("content-length: "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no content-length in {head}"));
+    assert!(
+        length > 5 << 20,
+        "a {length}-byte answer fits in the sockets' buffers"
+    );
+    // The client stops reading for longer than the write timeout, then drains what is left.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let mut body_bytes = got.len() - head_end;
+    loop {
+        match tokio::time::timeout(Duration::from_secs(10), c.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => break,
+            Ok(Ok(n)) => body_bytes += n,
+            Err(_) => panic!("the connection is still open after {body_bytes} bytes"),
+        }
+    }
+    assert!(
+        body_bytes < length,
+        "the client got all {length} bytes: the server kept the answer"
+    );
     s.stop().await;
 }

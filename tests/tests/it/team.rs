@@ -22,6 +22,8 @@ const VIEWER: &str = "tlx_viewer_0000000000000000000000000000";
 const EDITOR: &str = "tlx_editor_1111111111111111111111111111";
 const ADMIN: &str = "tlx_admin_22222222222222222222222222222";
 const BAD: &str = "tlx_unknown_333333333333333333333333333";
+/// An editor whose token has its own work limit of 1 s (`work_s`).
+const BRIEF: &str = "tlx_brief_44444444444444444444444444444";
 
 // ---------------------------------------------------------------------------------------
 // Log capture: every test's server logs into one buffer, at debug level for every crate.
@@ -81,11 +83,16 @@ fn tokens_file(dir: &Path) -> PathBuf {
         ("vic", "viewer", VIEWER),
         ("eddie", "editor", EDITOR),
         ("ada", "admin", ADMIN),
+        ("bree", "editor", BRIEF),
     ] {
         text.push_str(&format!(
-            "[[tokens]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n\n",
+            "[[tokens]]\nname = \"{name}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
             hash_token(token).unwrap()
         ));
+        if token == BRIEF {
+            text.push_str("work_s = 1\n");
+        }
+        text.push('\n');
     }
     std::fs::write(&path, text).unwrap();
     path
@@ -117,12 +124,13 @@ impl Server {
             args.tokens = Some(tokens_file(&secrets));
         }
         let state = AppState::with_params(params);
+        // As the server's start-up: the team settles leftovers before the folder is read.
+        let team = Team::start(&args, bundles, state.clone()).unwrap();
         let (found, errors) = discover(bundles).unwrap();
         assert!(errors.is_empty(), "{errors:?}");
         for (id, dir) in found {
             state.load_one(&id, &dir);
         }
-        let team = Team::start(&args, bundles, state.clone()).unwrap();
         let app = translux_server::team::app(state.clone(), team);
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
@@ -1141,6 +1149,116 @@ async fn cancelled_jobs_leave_no_bundle() {
     );
 }
 
+/// A job's bundle rewrite killed (SIGKILL, the server with it) at each of its steps — the
+/// test leaves on disk what each step leaves — then the server restarted: the bundle served
+/// and the job record agree (the old bundle and `failed` until the new one was renamed into
+/// place, then the new one and `done`), and no leftover stays.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rewrite_killed_at_any_step_restarts_with_the_record_and_the_bundle_agreeing() {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs();
+    // A bundle marked `which`, its manifest written `age` seconds ago.
+    let bundle = |dir: &Path, which: &str, age: u64| {
+        copy_dir(&crate::support::bundle_dir(), dir);
+        std::fs::write(dir.join("which"), which).unwrap();
+        let at = std::time::SystemTime::now() - Duration::from_secs(age);
+        std::fs::File::options()
+            .write(true)
+            .open(dir.join("manifest.json"))
+            .unwrap()
+            .set_modified(at)
+            .unwrap();
+    };
+    let id = "j0190000000001234abcd";
+    // The steps of a rewrite, and what is served and recorded after a kill there.
+    for (step, old, tmp, aside, new, (served, state)) in [
+        ("walking", true, false, false, false, ("old", "failed")),
+        (
+            "new files written",
+            true,
+            true,
+            false,
+            false,
+            ("old", "failed"),
+        ),
+        (
+            "old bundle moved aside",
+            false,
+            true,
+            true,
+            false,
+            ("old", "failed"),
+        ),
+        (
+            "new bundle in place",
+            false,
+            false,
+            true,
+            true,
+            ("new", "done"),
+        ),
+        (
+            "old bundle deleted",
+            false,
+            false,
+            false,
+            true,
+            ("new", "done"),
+        ),
+    ] {
+        let bundles = bundles_with(&[]);
+        let dir = bundles.path();
+        let jobs = dir.join(".jobs");
+        std::fs::create_dir_all(&jobs).unwrap();
+        std::fs::write(
+            jobs.join(format!("{id}.json")),
+            json!({
+                "id": id, "scene": "cup", "owner": "eddie", "state": "running",
+                "stage": "walks", "stage_percent": 40.0, "percent": 30.0, "error": null,
+                "patches": null, "max_edge": null, "created": now - 60, "started": now - 30,
+                "finished": null, "result": null, "resimulate": ["cube"]
+            })
+            .to_string(),
+        )
+        .unwrap();
+        let pid = 4_000_000_000u32; // no such process: the killed server
+        if old {
+            bundle(&dir.join("cup"), "old", 3600);
+        }
+        if aside {
+            bundle(&dir.join(format!(".cup.old-{pid}-1-1")), "old", 3600);
+        }
+        if tmp {
+            bundle(&dir.join(format!(".cup.tmp-{pid}-1-0")), "new", 5);
+        }
+        if new {
+            bundle(&dir.join("cup"), "new", 5);
+        }
+
+        let s = Server::start(dir, TeamArgs::default(), false).await;
+        let r = s.get_json(&format!("/api/v1/jobs/{id}"), Some(ADMIN)).await;
+        assert_eq!(r["state"], state, "killed at '{step}': {r}");
+        let on_disk = std::fs::read_to_string(dir.join("cup").join("which")).unwrap();
+        assert_eq!(on_disk, served, "killed at '{step}'");
+        assert_eq!(
+            s.get_json("/api/v1/scenes/cup", Some(VIEWER)).await["id"],
+            "cup",
+            "killed at '{step}'"
+        );
+        if state == "done" {
+            assert_eq!(r["percent"], 100.0, "{r}");
+            assert!(r["result"]["patches"].as_u64().unwrap() > 0, "{r}");
+        }
+        assert!(
+            leftovers(dir).is_empty(),
+            "killed at '{step}': {:?}",
+            leftovers(dir)
+        );
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_restart_after_a_killed_job_reports_it_failed_and_serves_no_half_bundle() {
     let bundles = bundles_with(&["cornell"]);
@@ -1609,6 +1727,113 @@ async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
         changed > after.radiance.len() / 2,
         "{changed} values changed"
     );
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+}
+
+/// This process's CPU time (user + system), s, from /proc/self/stat (the server runs in
+/// the test's process).
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap();
+    // Fields after the command name in parentheses: utime and stime are the 12th and 13th.
+    let rest = &stat[stat.rfind(')').unwrap() + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f[11].parse::<f64>().unwrap() + f[12].parse::<f64>().unwrap();
+    ticks / 100.0
+}
+
+/// A re-simulation that would walk for hours (σs′ 10⁴ mm⁻¹, σa 0, 10⁶ walks per patch, the
+/// attack of issue #79): a DELETE stops it within 2 s, the CPU goes idle and the job slot
+/// is free again; under a token with a work limit of 1 s the same job fails at the limit
+/// with the time it would need. Either way the bundle is served as it was.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resimulation_is_cancelled_by_delete_and_stopped_at_its_limit() {
+    let bundles = bundles_with(&[]);
+    simulated_cube(bundles.path(), medium(0.5));
+    let s = Server::start(bundles.path(), TeamArgs::default(), false).await;
+    let before = s.relight("cube", Some(VIEWER)).await;
+    let forever = json!({"materials": {"cube": {"type": "simulated",
+        "sigma_s_prime": [1e4, 1e4, 1e4], "sigma_a": [0, 0, 0], "eta": 1.0,
+        "max_walks": 1_000_000}}});
+    let submit = |token: &'static str| {
+        let r = s
+            .req(
+                reqwest::Method::POST,
+                "/api/v1/scenes/cube/resimulate",
+                Some(token),
+            )
+            .header(CONTENT_TYPE, "application/json")
+            .body(forever.to_string());
+        async move {
+            let r = r.send().await.unwrap();
+            assert_eq!(r.status(), StatusCode::ACCEPTED);
+            r.json::<Value>().await.unwrap()["id"]
+                .as_str()
+                .unwrap()
+                .to_string()
+        }
+    };
+    let s = &s;
+    let job_state = |id: String| async move {
+        s.get_json(&format!("/api/v1/jobs/{id}"), Some(EDITOR))
+            .await["state"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+
+    // Cancelled while walking: stopped within 2 s, then the process is idle.
+    let id = submit(EDITOR).await;
+    let t = Instant::now();
+    while job_state(id.clone()).await != "running" {
+        assert!(t.elapsed() < Duration::from_secs(30), "never started");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let r = s
+        .req(
+            reqwest::Method::DELETE,
+            &format!("/api/v1/jobs/{id}"),
+            Some(EDITOR),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let t = Instant::now();
+    while job_state(id.clone()).await != "cancelled" {
+        assert!(
+            t.elapsed() < Duration::from_secs(2),
+            "the walks still run 2 s after the DELETE"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let cpu = cpu_seconds();
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let busy = cpu_seconds() - cpu;
+    assert!(
+        busy < 0.3,
+        "{busy:.2} s of CPU in the second after the cancel"
+    );
+
+    // Under a token limited to 1 s: failed at the limit, saying what it would take.
+    let id = submit(BRIEF).await;
+    let t = Instant::now();
+    let done = s.wait_job(&id, ADMIN).await;
+    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    assert_eq!(done["state"], "failed", "{done}");
+    let message = done["error"].as_str().unwrap();
+    assert!(
+        message.contains("limit of 1.0 s") && message.contains("would take more than"),
+        "{message}"
+    );
+
+    // The bundle is the one served before, with nothing left beside it.
+    let after = s.relight("cube", Some(VIEWER)).await;
+    assert_eq!(after.radiance, before.radiance);
     assert!(
         leftovers(&s.bundles).is_empty(),
         "{:?}",
