@@ -5,10 +5,9 @@
 //!
 //! In: a bundle folder (or an opened [`Bundle`]) and the [`Resources`] to relight with.
 //! Out: a [`Scene`] that [`crate::relight`] and [`crate::picture`] take; with material
-//! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ (S rebuilt on the backend, or on
-//! the CPU by [`smatrix::rebuild_from_bundle`]). What the first translucency change would
-//! make (S's radial terms, a device's S template) can be made ahead of it:
-//! [`Scene::prepare_translucency`].
+//! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ (S written on the CPU from its
+//! radial terms, on every backend). What the first translucency change would make (S's
+//! radial terms) can be made ahead of it: [`Scene::prepare_translucency`].
 
 use std::path::Path;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -19,7 +18,7 @@ use translux_proto::bundle::{Bundle, BundleError, arrays};
 use translux_proto::csr::ValidCsr;
 use translux_proto::scene::Material;
 
-use crate::backend::{Backend, Cpu, SBuild, SPrep, SceneRef};
+use crate::backend::{Backend, Cpu, SceneRef};
 use crate::collimated::{Slant, Tilt, TiltOf};
 use crate::environment::{EnvCache, EnvScene};
 use crate::error::EngineError;
@@ -107,12 +106,12 @@ impl Scene {
             return Ok(Some((m.clone(), false)));
         }
         let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
-        let ((values, columns), built_on, in_place) = match self.rewrite_last(&key, overrides) {
-            Some(s) => (s.map_err(invalid)?, "cpu", true),
-            None => {
-                let (s, on) = self.build_s(&key, overrides)?;
-                ((s, ColumnScale::default()), on, false)
-            }
+        let ((values, columns), in_place) = match self.rewrite_last(&key, overrides) {
+            Some(s) => (s.map_err(invalid)?, true),
+            None => (
+                (self.build_s(&key, overrides)?, ColumnScale::default()),
+                false,
+            ),
         };
         let mut albedo = self.bundle.patch_albedo().to_vec();
         let mut emission = self.bundle.patch_emission().to_vec();
@@ -137,7 +136,6 @@ impl Scene {
             columns,
             albedo,
             emission,
-            built_on,
             in_place,
         });
         if let Ok(mut cache) = self.material_cache.lock() {
@@ -146,52 +144,28 @@ impl Scene {
         Ok(Some((m, true)))
     }
 
-    /// S for `overrides` built afresh: on the device when the backend can
-    /// (crate::gpu::subsurface), else on the CPU from the radial terms.
+    /// S for `overrides` built afresh on the CPU from the radial terms (on every backend).
     fn build_s(
         &self,
         key: &str,
         overrides: &[(usize, Material)],
-    ) -> Result<(ValidCsr<[f32; 3]>, &'static str), EngineError> {
+    ) -> Result<ValidCsr<[f32; 3]>, EngineError> {
         let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
-        let built = match self
-            .resources
-            .backend
-            .rebuild_s(self.view(), key, overrides)
-            .map_err(invalid)?
-        {
-            SBuild::Device(s) => {
-                self.settle_ready(TranslucencyPrep {
-                    on: Some("gpu".into()),
-                    ..Default::default()
-                });
-                (
-                    ValidCsr::new(s).map_err(|e| invalid(smatrix::SError::Matrix(e)))?,
-                    "gpu",
-                )
+        let params = SParams::default();
+        let terms = self.terms();
+        let (s, _, tilts) =
+            smatrix::rebuild_with_terms_and_tilt(&self.bundle, overrides, &params, terms)
+                .map_err(invalid)?;
+        if !tilts.is_empty() {
+            // The simulated objects' Δ came from the same pass over their walks: kept for
+            // this set of materials, where tilt_for finds it.
+            let materials = smatrix::materials_with(&self.bundle, overrides);
+            let t = crate::collimated::tilt_of_with(&self.bundle, &materials, tilts);
+            if let Ok(mut cache) = self.tilt_cache.lock() {
+                *cache = Some((key.to_string(), Arc::new(t)));
             }
-            SBuild::Cpu(why) => {
-                if let Some(why) = why {
-                    tracing::info!(scene = %self.id, "S rebuilt on the CPU: {why}");
-                }
-                let params = SParams::default();
-                let terms = self.terms();
-                let (s, _, tilts) =
-                    smatrix::rebuild_with_terms_and_tilt(&self.bundle, overrides, &params, terms)
-                        .map_err(invalid)?;
-                if !tilts.is_empty() {
-                    // The simulated objects' Δ came from the same pass over their walks:
-                    // kept for this set of materials, where tilt_for finds it.
-                    let materials = smatrix::materials_with(&self.bundle, overrides);
-                    let t = crate::collimated::tilt_of_with(&self.bundle, &materials, tilts);
-                    if let Ok(mut cache) = self.tilt_cache.lock() {
-                        *cache = Some((key.to_string(), Arc::new(t)));
-                    }
-                }
-                (s, "cpu")
-            }
-        };
-        Ok(built)
+        }
+        Ok(s)
     }
 
     /// S's entries reduced to radial terms: made by the first call (the first translucency
@@ -244,9 +218,8 @@ impl Scene {
         self.prep.lock().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
-    /// Makes now what the first translucency change would otherwise make and wait for:
-    /// the device's S template when the backend rebuilds S ([`Backend::prepare_s`]), else
-    /// S's radial terms ([`crate::sterms`]). Blocking, and as long as that first change's
+    /// Makes now what the first translucency change would otherwise make and wait for: S's
+    /// radial terms ([`crate::sterms`]). Blocking, and as long as that first change's
     /// wait (seconds to minutes on the paper's sizes); runs on the calling rayon pool, so
     /// a caller can leave relights cores of their own. Does nothing unless the state is
     /// [`PrepState::Pending`] (a scene without translucent objects, or one already made or
@@ -259,23 +232,7 @@ impl Scene {
             }
             p.state = PrepState::Preparing;
         }
-        let t = std::time::Instant::now();
-        match self.resources.backend.prepare_s(self.view()) {
-            Ok(SPrep::Device { bytes }) => self.settle_ready(TranslucencyPrep {
-                on: Some("gpu".into()),
-                seconds: Some(t.elapsed().as_secs_f64()),
-                message: Some(format!("S template on the device, {bytes} bytes")),
-                ..Default::default()
-            }),
-            Ok(SPrep::Cpu(why)) => {
-                if let Some(why) = &why {
-                    tracing::info!(scene = %self.id, "translucency changes rebuild S on the CPU: {why}");
-                }
-                self.settle_prep(|p| p.message = why);
-                self.terms();
-            }
-            Err(e) => self.prepare_failed(&format!("the bundle's materials: {e}")),
-        }
+        self.terms();
         self.translucency()
     }
 
@@ -309,9 +266,6 @@ impl Scene {
         let (last, changed, tilt) = {
             let mut cache = self.material_cache.lock().ok()?;
             let (_, m) = cache.as_ref()?;
-            if m.built_on != "cpu" {
-                return None;
-            }
             let changed = smatrix::changed_profiles(&m.overrides, overrides, terms)?;
             let (last_key, m) = cache.take()?;
             let simulated = overrides

@@ -981,8 +981,6 @@ pub struct OverrideMaterials {
     pub columns: ColumnScale,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
-    /// Where S was rebuilt: `gpu` or `cpu`.
-    pub built_on: &'static str,
     /// S is the last override set's, with the profiles that changed written into it in
     /// place ([`rewrite_with_terms`]), not built afresh.
     pub in_place: bool,

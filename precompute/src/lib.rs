@@ -13,7 +13,8 @@
 //!    [`simplify`] reduces scanned meshes toward a triangle budget (`simplify_to`);
 //!    [`orient`] turns closed parts wound inside out outward (`orientation`).
 //!    [`meshio`] picks a mesh file's format by extension and reads PLY and glTF 2.0;
-//!    [`obj`] reads OBJ (with `usemtl` groups).
+//!    [`obj`] reads OBJ (with `usemtl` groups). [`gltf_scene`] takes a glTF 2.0 file as a
+//!    whole scene (objects from its nodes, materials with textures, lights, camera).
 //! 2. [`patch`] — split triangles into patches, weld vertices (the crate's one weld, also
 //!    used by [`sheet`]), crease-aware normals.
 //! 3. [`formfactor`] — F with visibility (`translux_engine::raycast`), point-to-polygon,
@@ -40,6 +41,7 @@ pub mod builtin;
 pub mod bundle;
 pub mod distances;
 pub mod formfactor;
+pub mod gltf_scene;
 pub mod hetero;
 pub mod hierarchy;
 pub mod meshio;

@@ -16,13 +16,14 @@ use translux_precompute::formfactor::FormFactorParams;
 use translux_precompute::hierarchy::HierarchyParams;
 use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
-use translux_precompute::slinks::{SLinkParams, Trace};
+use translux_precompute::slinks::{DEFAULT_LINK_NEAR, SLinkParams};
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
 #[derive(Debug, Parser)]
 #[command(name = "translux-precompute", version)]
 struct Cli {
-    /// A scene file (JSON) or `builtin:NAME` (cornell, cornell_paper, cornell_checker, bowls, flower, rolling); with
+    /// A scene file (JSON), a glTF 2.0 file (`.gltf`/`.glb`, a whole scene: its objects,
+    /// materials, lights and camera) or `builtin:NAME` (cornell, cornell_paper, cornell_checker, bowls, flower, rolling); with
     /// `--resimulate`, a bundle folder.
     scene: String,
     /// Folder to write the bundle to (replaced atomically if it exists). For an animated
@@ -68,29 +69,13 @@ struct Cli {
     /// least R / S_ACCURACY; accepted 0.05 to 1.
     #[arg(long, default_value_t = SLinkParams::default().accuracy)]
     s_accuracy: f32,
-    /// Hierarchical S only: how translucent objects' optical paths are traced. `on-demand`:
-    /// only those the cut uses; `all`: every path within the profile's radius, then the
-    /// cut from those; `auto` (default): on demand (with `--s-exact-links` or in an
-    /// animation: where the cut keeps under a quarter of the paths or they exceed 2,000 per
-    /// patch). The bundle is the same either way, bit for bit, with `--s-exact-links`.
-    #[arg(long, value_enum, default_value_t = TraceArg::Auto)]
-    s_trace: TraceArg,
-    /// Hierarchical S traced on demand only: trace every path on the full voxel grid. By
-    /// default the runs (from each patch, distant patch and linked node) find their targets
-    /// 16 voxels away or more on a grid of twice the voxel edge (about an eighth of the work;
-    /// those distances then differ slightly from `--s-trace all`'s); with this flag the
-    /// bundle equals `--s-trace all`'s bit for bit.
-    #[arg(long)]
-    s_exact_links: bool,
     /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3,
     /// default 1; 1.5 comes a little closer to the pairwise S), each link read at two
     /// distances (the node's straight-line spread about its representative's optical
-    /// distance); `off` keeps the quadrature's near field (3 sizes) with each link read at
-    /// one distance. Nearer
-    /// links store fewer direct pairs: a translucency change writes fewer entries and the
-    /// subsurface stage takes less time.
-    #[arg(long, default_value = "1", value_parser = link_near)]
-    s_link_near: LinkNear,
+    /// distance). Nearer links store fewer direct pairs: a translucency change writes fewer
+    /// entries and the subsurface stage takes less time.
+    #[arg(long, value_name = "K", default_value_t = DEFAULT_LINK_NEAR)]
+    s_link_near: f32,
     /// Hierarchical S only: the largest relative variation of the profile across a linked
     /// node, (R(d − ρ) − R(d + ρ)) / mean, at every translucency from ×1/8 to ×8 of the
     /// scene's (0.01 to 2; smaller is more accurate and stores more). Nodes too small to
@@ -213,35 +198,12 @@ fn sequence(
     Ok(())
 }
 
-/// `--s-trace`.
-#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
-enum TraceArg {
-    Auto,
-    OnDemand,
-    All,
-}
-
 /// `--subsurface`.
 #[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
 enum SubsurfaceArg {
     Auto,
     Pairwise,
     Hierarchical,
-}
-
-/// `--s-link-near`: receiver sizes, or None for `off`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct LinkNear(Option<f32>);
-
-/// `--s-link-near K|off`: the range is checked with the other settings of S
-/// (`SLinkParams::check`), so the message is the same from every front end.
-fn link_near(s: &str) -> Result<LinkNear, String> {
-    if s.eq_ignore_ascii_case("off") {
-        return Ok(LinkNear(None));
-    }
-    s.parse::<f32>()
-        .map(|k| LinkNear(Some(k)))
-        .map_err(|_| format!("a number of receiver sizes (1 to 3) or `off`, not {s:?}"))
 }
 
 /// `--transport`.
@@ -314,17 +276,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         SubsurfaceArg::Auto | SubsurfaceArg::Hierarchical => Some(SLinkParams {
             accuracy: cli.s_accuracy,
-            trace: match cli.s_trace {
-                TraceArg::Auto => Trace::Auto,
-                TraceArg::OnDemand => Trace::OnDemand,
-                TraceArg::All => Trace::All,
-            },
-            coarse_links: !cli.s_exact_links,
-            near: cli.s_link_near.0,
+            near: cli.s_link_near,
             tolerance: LinkTolerance {
                 variation: cli.s_link_variation,
                 ..LinkTolerance::default()
             },
+            ..SLinkParams::default()
         }),
     };
     let params = PrecomputeParams {

@@ -20,6 +20,13 @@
 //!   `unit_mm: 1000` the numbers are metres; a scene in millimetres (`unit_mm: 1`) gives
 //!   the object `"transform": {"scale": 1000}`.
 //!
+//! - **One object of a glTF file**: a mesh path `room.glb#Wall` ([`split_node_ref`]) is the
+//!   object a whole-scene import names `Wall` (a node with a mesh; see
+//!   [`crate::gltf_scene`]), read with its texture coordinates and materials there.
+//!
+//! A glTF file that lists in `extensionsRequired` an extension translux does not read
+//! ([`GLTF_EXTENSIONS`]) is refused, naming it, whichever way it is read.
+//!
 //! Failures are [`MeshError`]s; [`crate::scene`] adds the scene, the object and the file.
 //! Bad input never panics: the few things the parsing crates would panic on (see
 //! [`read_gltf`]) are checked here first.
@@ -403,7 +410,7 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
     for (node, world) in gltf_placed(&doc)? {
         if let Some(mesh) = node.mesh() {
             for prim in mesh.primitives() {
-                read_primitive(&mesh, &prim, &buffers, world, &mut tris)?;
+                read_primitive(&mesh, &prim, &buffers, world, &mut tris, None)?;
             }
         }
     }
@@ -420,9 +427,46 @@ pub fn read_gltf(path: &Path) -> Result<Vec<[Vec3; 3]>, MeshError> {
     Ok(tris)
 }
 
+/// The glTF extensions translux reads (a whole-scene import: [`crate::gltf_scene`]); a file
+/// that lists any other in `extensionsRequired` is refused, naming it.
+pub const GLTF_EXTENSIONS: [&str; 7] = [
+    "KHR_lights_punctual",
+    "KHR_materials_emissive_strength",
+    "KHR_materials_volume",
+    "KHR_materials_transmission",
+    "KHR_materials_diffuse_transmission",
+    "KHR_materials_volume_scatter",
+    "KHR_materials_ior",
+];
+
+/// Refuses a file that requires an extension translux does not read (the glTF spec: a
+/// loader that does not support a required extension must not load the file).
+fn check_required_extensions(required: &[String]) -> Result<(), MeshError> {
+    let missing: Vec<&str> = required
+        .iter()
+        .map(String::as_str)
+        .filter(|e| !GLTF_EXTENSIONS.contains(e))
+        .collect();
+    if missing.is_empty() {
+        return Ok(());
+    }
+    Err(malformed(format!(
+        "the file requires the extension{} {} (extensionsRequired), which translux does not \
+         support; it reads {}",
+        if missing.len() > 1 { "s" } else { "" },
+        missing
+            .iter()
+            .map(|e| format!("\"{e}\""))
+            .collect::<Vec<_>>()
+            .join(", "),
+        GLTF_EXTENSIONS.join(", ")
+    )))
+}
+
 /// A glTF file's document, validated, and its GLB binary chunk if any (see [`read_gltf`]
-/// for what is checked before `gltf` validates).
-fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshError> {
+/// for what is checked before `gltf` validates). A required extension translux does not
+/// read is refused by name.
+pub(crate) fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshError> {
     let gltf = open_gltf(path)?;
     let json = gltf.as_json();
     for (m, mesh) in json.meshes.iter().enumerate() {
@@ -443,8 +487,13 @@ fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshE
             }
         }
     }
+    check_required_extensions(&json.extensions_required)?;
     let gltf::Gltf { document, blob } = gltf;
-    let doc = gltf::Document::from_json(document.into_json()).map_err(|e| match e {
+    let mut root = document.into_json();
+    // Checked above against what translux reads; gltf's own list knows fewer of them
+    // (KHR_materials_volume, _diffuse_transmission, _volume_scatter) and would refuse them.
+    root.extensions_required.clear();
+    let doc = gltf::Document::from_json(root).map_err(|e| match e {
         gltf::Error::Validation(list) => malformed(format!(
             "invalid glTF: {}",
             list.iter()
@@ -460,7 +509,7 @@ fn gltf_document(path: &Path) -> Result<(gltf::Document, Option<Vec<u8>>), MeshE
 /// The nodes a glTF file draws, each with its world transform, parents before children:
 /// the hierarchy under its default scene's nodes, else under every root (a node no node
 /// has as child). A node reached twice (a cycle, two parents) is an error.
-fn gltf_placed(doc: &gltf::Document) -> Result<Vec<(gltf::Node<'_>, Mat4)>, MeshError> {
+pub(crate) fn gltf_placed(doc: &gltf::Document) -> Result<Vec<(gltf::Node<'_>, Mat4)>, MeshError> {
     let roots: Vec<gltf::Node> = match doc.default_scene() {
         Some(scene) => scene.nodes().collect(),
         None => {
@@ -494,6 +543,35 @@ fn gltf_placed(doc: &gltf::Document) -> Result<Vec<(gltf::Node<'_>, Mat4)>, Mesh
         placed.push((node, world));
     }
     Ok(placed)
+}
+
+/// A glTF file's JSON as written, extensions and all (`gltf` keeps only those it knows):
+/// the whole `.gltf` file, or a `.glb`'s JSON chunk.
+pub(crate) fn gltf_raw_json(path: &Path) -> Result<serde_json::Value, MeshError> {
+    let mut bytes = Vec::new();
+    open(path)?.read_to_end(&mut bytes).map_err(MeshError::Io)?;
+    let parsed = if bytes.starts_with(b"glTF") {
+        let glb = gltf::binary::Glb::from_slice(&bytes)
+            .map_err(|e| malformed(format!("bad GLB container: {e}")))?;
+        serde_json::from_slice(&glb.json)
+    } else {
+        serde_json::from_slice(&bytes)
+    };
+    parsed.map_err(|e| malformed(format!("bad glTF JSON: {e}")))
+}
+
+/// A mesh path that names one object of a glTF file, `room.glb#Wall`: the file and the
+/// object's name as a whole-scene import names it ([`crate::gltf_scene`]). `None` for any
+/// other path. The file ends at the first `.gltf#` or `.glb#` (any case), so the name may
+/// itself hold a `#`.
+pub fn split_node_ref(mesh: &str) -> Option<(&str, &str)> {
+    // ASCII lower-casing keeps every byte where it was.
+    let lower = mesh.to_ascii_lowercase();
+    let end = [".glb#", ".gltf#"]
+        .iter()
+        .filter_map(|m| lower.find(m).map(|k| k + m.len() - 1))
+        .min()?;
+    Some((&mesh[..end], &mesh[end + 1..]))
 }
 
 /// A glTF or GLB file parsed but not yet validated (see [`read_gltf`]).
@@ -533,7 +611,7 @@ pub fn referenced_files(path: &Path) -> Result<Vec<String>, MeshError> {
 }
 
 /// Every buffer's bytes, in order (see [`read_gltf`]).
-fn load_buffers(
+pub(crate) fn load_buffers(
     doc: &gltf::Document,
     base: &Path,
     mut blob: Option<Vec<u8>>,
@@ -708,14 +786,17 @@ fn check_accessor(
     Ok(())
 }
 
-/// Appends one primitive's triangles, in world coordinates, to `out`.
-fn read_primitive(
+/// Appends one primitive's triangles, in world coordinates, to `out`, and with `uvs` each
+/// triangle's corners' `TEXCOORD_0` (zeros where the primitive has none it can read; the
+/// result says whether it had).
+pub(crate) fn read_primitive(
     mesh: &gltf::Mesh,
     prim: &gltf::Primitive,
     buffers: &[Vec<u8>],
     world: Mat4,
     out: &mut Vec<[Vec3; 3]>,
-) -> Result<(), MeshError> {
+    uvs: Option<&mut Vec<[[f32; 2]; 3]>>,
+) -> Result<bool, MeshError> {
     let label = primitive_label(mesh, prim);
     let fail = |what: String| malformed(format!("{label}: {what}"));
     let mode = prim.mode();
@@ -832,14 +913,23 @@ fn read_primitive(
         ));
     }
     let at = |i: u32| placed[i as usize];
-    out.extend(corners.into_iter().map(|[a, b, c]| {
-        if flip {
-            [at(a), at(c), at(b)]
-        } else {
-            [at(a), at(b), at(c)]
-        }
-    }));
-    Ok(())
+    let order = |[a, b, c]: [u32; 3]| if flip { [a, c, b] } else { [a, b, c] };
+    out.extend(corners.iter().map(|&t| order(t).map(at)));
+    let Some(uvs) = uvs else {
+        return Ok(false);
+    };
+    // TEXCOORD_0 as float pairs, one per vertex; anything else is read as no coordinates.
+    let coords: Option<Vec<[f32; 2]>> = prim
+        .get(&Semantic::TexCoords(0))
+        .filter(|acc| check_accessor(acc, Dimensions::Vec2, &[DataType::F32], buffers).is_ok())
+        .and_then(|_| reader.read_tex_coords(0))
+        .map(|r| r.into_f32().collect::<Vec<_>>())
+        .filter(|c| c.len() == n && c.iter().flatten().all(|x| x.is_finite()));
+    match &coords {
+        Some(c) => uvs.extend(corners.iter().map(|&t| order(t).map(|i| c[i as usize]))),
+        None => uvs.extend(corners.iter().map(|_| [[0.0; 2]; 3])),
+    }
+    Ok(coords.is_some())
 }
 
 // ---------------------------------------------------------------------------------------
@@ -850,6 +940,9 @@ fn read_primitive(
 /// scene's size is checked before it is loaded. Memory stays flat whatever the count: OBJ
 /// is read line by line, PLY keeps one corner count per face, glTF reads only its JSON.
 /// A file the readers would refuse may still be counted; loading it names the problem.
+///
+/// One object of a glTF file (`room.glb#Wall`) is counted by
+/// [`crate::scene::triangle_count`].
 pub fn triangle_count(path: &Path) -> Result<u64, MeshError> {
     match MeshFormat::from_path(path).map_err(malformed)? {
         MeshFormat::Obj => obj_triangle_count(path),
@@ -964,4 +1057,34 @@ fn gltf_triangle_count(path: &Path) -> Result<u64, MeshError> {
         }
     }
     Ok(count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn node_references_split_at_the_gltf_file() {
+        assert_eq!(split_node_ref("room.glb#Wall"), Some(("room.glb", "Wall")));
+        assert_eq!(
+            split_node_ref("dir/Room.GLTF#Lamp #2"),
+            Some(("dir/Room.GLTF", "Lamp #2"))
+        );
+        assert_eq!(split_node_ref("a#b.glb#C#D"), Some(("a#b.glb", "C#D")));
+        assert_eq!(split_node_ref("room.glb"), None);
+        assert_eq!(split_node_ref("model#1.obj"), None);
+    }
+
+    #[test]
+    fn a_required_extension_is_refused_by_name() {
+        check_required_extensions(&["KHR_materials_volume".to_owned()]).unwrap();
+        let e = check_required_extensions(&[
+            "KHR_lights_punctual".to_owned(),
+            "EXT_meshopt_compression".to_owned(),
+        ])
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("\"EXT_meshopt_compression\""), "{e}");
+        assert!(!e.contains("\"KHR_lights_punctual\""), "{e}");
+    }
 }

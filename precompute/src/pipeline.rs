@@ -361,6 +361,14 @@ pub fn available_memory() -> Option<u64> {
     Some(kib * 1024)
 }
 
+/// Resident set size of this process now (Linux `VmRSS`), if known.
+pub fn resident_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
 /// Peak resident set size of this process (Linux `VmHWM`), if known.
 pub fn peak_rss() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -445,7 +453,7 @@ pub fn precompute(
     let mut stages = Vec::new();
     let progress = params.progress;
     for (k, o) in scene.objects.iter().enumerate() {
-        for note in &o.orientation_notes {
+        for note in o.orientation_notes.iter().chain(&o.notes) {
             tell(params, &format!("note: objects[{k}] {:?}: {note}", o.name));
         }
         let loaded = o.triangles.len() + o.dropped_degenerate;
@@ -806,7 +814,6 @@ pub fn precompute(
                 &materials,
                 &reach,
                 &pairs,
-                sp,
                 sl,
                 &link_bounds,
                 reuse,
@@ -907,7 +914,6 @@ pub fn precompute(
                 &dist_len,
                 &dist_kind,
                 &oracles,
-                sp,
                 sl,
                 &link_bounds,
             )?;
@@ -923,7 +929,7 @@ pub fn precompute(
     // Links read at two distances (`--s-link-near`), recorded with their spreads.
     let link_near = params
         .subsurface_links
-        .and_then(|sl| sl.near)
+        .map(|sl| sl.near)
         .filter(|_| !dist_spread.is_empty());
     let cut_seconds = t_links.elapsed().as_secs_f64();
     // The paths an on-demand object traced belong to its stage-1 time.
@@ -978,7 +984,16 @@ pub fn precompute(
         None,
         walks_view.as_ref(),
     )?;
-    let smat = smat.into_csr();
+    let mut smat = smat.into_csr();
+    // Textured surfaces (glTF): each patch's ρ is the texture's mean over it, in S_jj and
+    // in the bundle's albedos (crate::gltf_scene).
+    let textured_objects: Vec<_> = scene
+        .objects
+        .iter()
+        .map(|o| (o.triangles.as_slice(), o.albedo_map.as_deref()))
+        .collect();
+    let textured = crate::gltf_scene::textured_albedos(&textured_objects, &patches, h);
+    crate::gltf_scene::set_diagonal(&mut smat, &textured);
     bar.inc(1);
     for d in &dist_reports {
         if let Some(w) = &d.warning {
@@ -1107,6 +1122,10 @@ pub fn precompute(
             patch_count: range.len() as u64,
             albedo: rho,
         });
+    }
+    // Textured patches carry their own ρ (the same as their S_jj, set above).
+    for &(p, rho) in &textured {
+        albedo[p] = rho;
     }
     let flat3 = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
     let np = patches.len() as u64;

@@ -81,9 +81,9 @@ pub fn check_changes(
 /// The error of a re-simulation stopped by its [`Stop`]'s flag.
 pub const CANCELLED: &str = "cancelled";
 
-/// The error of a re-simulation stopped at its time limit after `seconds`, with `done` of
-/// `total` patches walked.
-fn over_limit(seconds: f64, done: u64, total: u64) -> String {
+/// The error of a re-simulation stopped at its time `limit` after `seconds`, with `done`
+/// of `total` patches walked.
+fn over_limit(limit: Duration, seconds: f64, done: u64, total: u64) -> String {
     let all = if done == 0 {
         // Each patch takes longer than `seconds` on one of the threads.
         let threads = rayon::current_num_threads().max(1) as f64;
@@ -95,10 +95,11 @@ fn over_limit(seconds: f64, done: u64, total: u64) -> String {
         format!("about {:.0} s", seconds * total as f64 / done as f64)
     };
     format!(
-        "walks: stopped at this job's limit of {seconds:.1} s of walks, with {done} of \
+        "walks: stopped at this job's limit of {:.1} s of walks, with {done} of \
          {total} patches walked; all of them would take {all}. Ask fewer walks \
          (max_walks, noise), a medium with fewer scattering events (lower sigma_s, higher \
-         sigma_a), or use a token with a higher limit"
+         sigma_a), or use a token with a higher limit",
+        limit.as_secs_f64()
     )
 }
 
@@ -170,6 +171,7 @@ pub fn resimulate(
     )
     .map_err(|e| match (&e, stop.reason()) {
         (SimError::Stopped { .. }, Some(Reason::Time)) => over_limit(
+            limit.unwrap_or_default(),
             start.elapsed().as_secs_f64(),
             done.load(Ordering::Relaxed),
             total,

@@ -4,6 +4,10 @@
 //! `translux_proto::scene`) whose mesh files are given relative to the scene file's folder:
 //! OBJ (read by [`crate::obj`]), PLY or glTF 2.0 (`.gltf`, `.glb`; read by
 //! [`crate::meshio`]), by extension. Media by OBJ material (`by_obj_material`) need an OBJ mesh.
+//! A glTF file is also a whole scene, given directly (`room.glb`) or imported by a JSON
+//! scene file of the `{"gltf": "room.glb", ...}` form that overrides its materials and lights
+//! by name ([`crate::gltf_scene`]); either is read into an ordinary [`SceneFile`] whose
+//! objects are the file's (`"mesh": "room.glb#Wall"`), loaded with their textures.
 //! Out: a [`LoadedScene`]: the validated [`SceneFile`] and, per object, its material, crease
 //! angle and triangles in scene units with the object's transform applied (scale, then
 //! rotate about X, Y, Z, then translate). Geometry is never rescaled: `unit_mm` stays in
@@ -16,16 +20,31 @@
 //! has 3 vertices)`.
 //! Bad input never panics.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use glam::{Mat3, Vec3};
-use translux_proto::scene::{Material, MeshRef, ObjectDesc, Pattern, SceneFile, Shape, Transform};
+use translux_proto::scene::{
+    GltfSceneFile, Material, MeshRef, ObjectDesc, Pattern, SceneFile, Shape, Transform,
+};
 use translux_proto::{FieldError, JsonError};
 
 use crate::builtin::{BUILTIN_SCENES, builtin_scene};
+use crate::gltf_scene::{AlbedoMap, GltfFile, ImportError};
 use crate::meshio::{MeshError, MeshFormat};
 use crate::obj::load_obj_triangles;
 use crate::shapes::shape_triangles;
+
+/// How many triangles the mesh file `path` gives ([`crate::meshio::triangle_count`]), also
+/// for one object of a glTF file (`room.glb#Wall`: its node's triangles, read).
+pub fn triangle_count(path: &Path) -> Result<u64, MeshError> {
+    if let Some((file, node)) = path.to_str().and_then(crate::meshio::split_node_ref) {
+        let g = GltfFile::open(Path::new(file))?;
+        return Ok(g.object(node)?.triangles.len() as u64);
+    }
+    crate::meshio::triangle_count(path)
+}
 
 /// Default crease angle between smoothed and creased edges (degrees).
 pub const DEFAULT_CREASE_DEG: f32 = 40.0;
@@ -55,6 +74,13 @@ pub struct LoadedObject {
     /// of each triangle (the index of its `usemtl` name in the pattern's `names`), aligned
     /// with `triangles`. `None` for every other object.
     pub face_material: Option<Vec<u32>>,
+    /// For a diffuse glTF object with a base colour texture (or primitives of different base
+    /// colours) whose material is the file's own: the albedo over its surface, aligned with
+    /// `triangles` (see [`crate::gltf_scene`]); the pipeline averages it over each patch.
+    pub albedo_map: Option<Arc<AlbedoMap>>,
+    /// What loading read past or changed (a glTF extension translux ignores, a texture it
+    /// could not use), one line each; printed as notes by the pipeline.
+    pub notes: Vec<String>,
 }
 
 /// A validated scene with its geometry.
@@ -148,6 +174,14 @@ pub enum SceneError {
          (translux-precompute writes one bundle per frame), or read one frame of it"
     )]
     Animated { scene: String, frames: u32 },
+    /// A glTF file taken as a whole scene (or one of its objects) could not be read.
+    #[error("{scene}: glTF file \"{file}\" ({}): {detail}", .path.display())]
+    Gltf {
+        scene: String,
+        file: String,
+        path: PathBuf,
+        detail: String,
+    },
     /// The transform produced non-finite coordinates.
     #[error("{scene}: {object}: the transform gives non-finite coordinates (mesh {mesh})")]
     NonFinite {
@@ -205,27 +239,73 @@ pub fn read_scene(spec: &str) -> Result<SceneSource, SceneError> {
     read_scene_file(Path::new(spec))
 }
 
-/// Reads and parses a JSON scene file.
+/// A glTF file's failure to import, with the scene and the file named.
+fn gltf_error(e: MeshError, scene: &str, file: &str, path: &Path) -> SceneError {
+    SceneError::Gltf {
+        scene: scene.to_owned(),
+        file: file.to_owned(),
+        path: path.to_path_buf(),
+        detail: e.to_string(),
+    }
+}
+
+/// Reads and parses a scene file: JSON (a [`SceneFile`], or a [`GltfSceneFile`] that imports
+/// a glTF file), or a glTF 2.0 file (`.gltf`, `.glb`) taken as a whole scene
+/// ([`crate::gltf_scene`]).
 pub fn read_scene_file(path: &Path) -> Result<SceneSource, SceneError> {
     let scene = path.display().to_string();
+    let base_dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let stem = || {
+        path.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "scene".to_owned())
+    };
+    let import = |gltf: &str, import: Option<&GltfSceneFile>| {
+        let at = base_dir.join(gltf);
+        crate::gltf_scene::scene_from_gltf(&at, gltf, import).map_err(|e| match e {
+            ImportError::File(e) => gltf_error(e, &scene, gltf, &at),
+            ImportError::Field(error) => SceneError::Invalid {
+                scene: scene.clone(),
+                error,
+            },
+        })
+    };
+    if MeshFormat::from_path(path) == Ok(MeshFormat::Gltf) {
+        let gltf = path
+            .file_name()
+            .map_or_else(|| scene.clone(), |n| n.to_string_lossy().into_owned());
+        return Ok(SceneSource {
+            file: import(&gltf, None)?,
+            base_dir: base_dir.to_path_buf(),
+            name: stem(),
+            source: scene.clone(),
+        });
+    }
     let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
         scene: scene.clone(),
         source,
     })?;
-    let file: SceneFile = translux_proto::parse_json(&text).map_err(|error| SceneError::Json {
-        scene: scene.clone(),
-        error,
-    })?;
+    let file: SceneFile = if GltfSceneFile::is_gltf_import(&text) {
+        let imp: GltfSceneFile =
+            translux_proto::parse_json(&text).map_err(|error| SceneError::Json {
+                scene: scene.clone(),
+                error,
+            })?;
+        let mut file = import(&imp.gltf, Some(&imp))?;
+        file.name = imp.name.clone();
+        file
+    } else {
+        translux_proto::parse_json(&text).map_err(|error| SceneError::Json {
+            scene: scene.clone(),
+            error,
+        })?
+    };
     let name = match &file.name {
         Some(n) => n.clone(),
-        None => path
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "scene".to_owned()),
-    };
-    let base_dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
+        None => stem(),
     };
     Ok(SceneSource {
         file,
@@ -329,16 +409,47 @@ fn resolve_objects(
 ) -> Result<LoadedScene, SceneError> {
     // Meshes load in parallel; errors are reported in object order.
     use rayon::prelude::*;
+    // Each glTF file whose objects the scene names (`room.glb#Wall`) is opened once; the
+    // first of its objects carries the file's notes.
+    let mut gltf: HashMap<String, Arc<GltfFile>> = HashMap::new();
+    let mut file_notes: HashMap<usize, Vec<String>> = HashMap::new();
+    for (i, desc) in file.objects.iter().enumerate() {
+        let MeshRef::Path(rel) = &desc.mesh else {
+            continue;
+        };
+        let Some((g, _)) = crate::meshio::split_node_ref(rel) else {
+            continue;
+        };
+        if gltf.contains_key(g) {
+            continue;
+        }
+        let path = base_dir.join(g);
+        let opened = GltfFile::open(&path).map_err(|e| {
+            mesh_error(
+                e,
+                &source,
+                &format!("objects[{i}] \"{}\"", desc.name),
+                g,
+                path.clone(),
+            )
+        })?;
+        file_notes.insert(i, opened.file_notes());
+        gltf.insert(g.to_owned(), Arc::new(opened));
+    }
     let results: Vec<Result<LoadedObject, SceneError>> = file
         .objects
         .par_iter()
         .enumerate()
         .map(|(i, desc)| {
             let moved = motion.get(i).and_then(Option::as_ref);
-            load_object(i, desc, base_dir, &source, moved)
+            load_object(i, desc, base_dir, &source, moved, &gltf)
         })
         .collect();
     let mut objects = results.into_iter().collect::<Result<Vec<_>, _>>()?;
+    for (i, notes) in file_notes {
+        let o = &mut objects[i];
+        o.notes.splice(0..0, notes);
+    }
     orient_objects(&file, &mut objects);
     Ok(LoadedScene {
         name,
@@ -354,8 +465,11 @@ fn load_object(
     base_dir: &Path,
     scene: &str,
     motion: Option<&Transform>,
+    gltf: &HashMap<String, Arc<GltfFile>>,
 ) -> Result<LoadedObject, SceneError> {
     let object = format!("objects[{index}] \"{}\"", desc.name);
+    let mut albedo_map: Option<AlbedoMap> = None;
+    let mut notes = Vec::new();
     // Media by OBJ material: the `usemtl` group of every face, mapped to the pattern's names.
     let media_names = match &desc.material {
         Material::Heterogeneous {
@@ -375,6 +489,34 @@ fn load_object(
                 Shape::Sheet { .. } => "sheet",
             };
             (shape_triangles(shape), format!("(built-in {tag})"))
+        }
+        MeshRef::Path(rel) if let Some((g, node)) = crate::meshio::split_node_ref(rel) => {
+            let path = base_dir.join(g);
+            if media_names.is_some() {
+                return Err(SceneError::Invalid {
+                    scene: scene.to_owned(),
+                    error: FieldError::new(
+                        format!("objects[{index}].material.pattern"),
+                        format!(
+                            "by_obj_material reads the media from an OBJ mesh's `usemtl` \
+                             groups; mesh \"{rel}\" is a glTF object, which has none (use \
+                             another pattern)"
+                        ),
+                    ),
+                });
+            }
+            let file = gltf
+                .get(g)
+                .expect("resolve_objects opens every glTF file named");
+            let got = file
+                .object(node)
+                .map_err(|e| mesh_error(e, scene, &object, g, path.clone()))?;
+            notes = got.notes;
+            // The file's texture stays while the object keeps the file's own material.
+            if desc.material == got.material {
+                albedo_map = got.albedo_map;
+            }
+            (got.triangles, format!("\"{rel}\""))
         }
         MeshRef::Path(rel) => {
             let path = base_dir.join(rel);
@@ -430,10 +572,34 @@ fn load_object(
     }
     let source_triangles = raw.len();
     let raw = match desc.simplify_to {
-        Some(n) if raw.len() as u64 > n => crate::simplify::simplify(&raw, n as usize).triangles,
+        Some(n) if raw.len() as u64 > n => {
+            if albedo_map.take().is_some() {
+                notes.push(
+                    "simplify_to merges triangles, so the texture is not followed per \
+                     patch: the object's mean albedo is used"
+                        .to_owned(),
+                );
+            }
+            crate::simplify::simplify(&raw, n as usize).triangles
+        }
         _ => raw,
     };
     let transformed = apply_transform(apply_transform(raw, desc.transform.as_ref()), motion);
+    // The albedo map follows its triangles: moved the same way, corners (and their
+    // texture coordinates) swapped where a mirroring transform swaps them.
+    if let Some(map) = &mut albedo_map {
+        let corners: Vec<[Vec3; 3]> = map.triangles.iter().map(|t| t.corners).collect();
+        let moved = apply_transform(apply_transform(corners, desc.transform.as_ref()), motion);
+        let mirrored =
+            |t: Option<&Transform>| t.is_some() && transform_parts(t).0.determinant() < 0.0;
+        let flip = mirrored(desc.transform.as_ref()) != mirrored(motion);
+        for (t, c) in map.triangles.iter_mut().zip(moved) {
+            t.corners = c;
+            if flip {
+                t.uv.swap(1, 2);
+            }
+        }
+    }
     if transformed.iter().flatten().any(|v| !v.is_finite()) {
         return Err(SceneError::NonFinite {
             scene: scene.to_owned(),
@@ -441,13 +607,22 @@ fn load_object(
             mesh,
         });
     }
-    if let Some(f) = &mut face_material {
+    if face_material.is_some() || albedo_map.is_some() {
         let keep = non_degenerate(&transformed);
-        let mut k = 0;
-        f.retain(|_| {
-            k += 1;
-            keep[k - 1]
-        });
+        if let Some(f) = &mut face_material {
+            let mut k = 0;
+            f.retain(|_| {
+                k += 1;
+                keep[k - 1]
+            });
+        }
+        if let Some(map) = &mut albedo_map {
+            let mut k = 0;
+            map.triangles.retain(|_| {
+                k += 1;
+                keep[k - 1]
+            });
+        }
     }
     let (triangles, dropped) = drop_degenerate(transformed);
     if triangles.is_empty() {
@@ -468,6 +643,8 @@ fn load_object(
         reoriented: false,
         orientation_notes: Vec::new(),
         face_material,
+        albedo_map: albedo_map.map(Arc::new),
+        notes,
     })
 }
 

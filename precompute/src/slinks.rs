@@ -58,7 +58,7 @@ use rayon::prelude::*;
 use translux_engine::hetero::{MEDIA, MediaLen};
 use translux_engine::linkbound::{LinkBound, LinkTolerance};
 use translux_engine::sheet::KIND_SAME;
-use translux_engine::smatrix::{ObjectMaterial, PatchGeometry, SError, SParams};
+use translux_engine::smatrix::{ObjectMaterial, PatchGeometry, SError};
 use translux_engine::subsurface::Nodes;
 use translux_proto::bundle::TreeView;
 use translux_proto::csr::Csr;
@@ -87,7 +87,9 @@ pub struct SLinkParams {
     /// at least ρ/θ. Smaller is more accurate and stores more. Default 0.5; accepted 0.05
     /// to 1.
     pub accuracy: f32,
-    /// How a homogeneous translucent object's optical distances are traced.
+    /// How a homogeneous translucent object's optical distances are traced: [`Trace::Auto`]
+    /// in every precompute; the other ways are for the tests that hold the on-demand cut
+    /// to the pairwise one (`precompute/tests/it/slinks.rs`), and no flag sets them.
     pub trace: Trace,
     /// Traced on demand only: every run (from a receiver to its direct candidates, from a
     /// distant candidate, from a linked node's representative) finds its targets at least
@@ -95,17 +97,15 @@ pub struct SLinkParams {
     /// the voxel edge ([`Oracle::solve_far`]), settling about an eighth of the voxels;
     /// those distances then differ slightly from [`Trace::All`]'s (on the scanned bunny in
     /// skim milk, the U, the cube and a thin bowl, S stays as close to the pairwise S:
-    /// `precompute/tests/it/slinks.rs`). Default true; `false` keeps the bundle equal to
-    /// `Trace::All`'s bit for bit (`--s-exact-links`).
+    /// `precompute/tests/it/slinks.rs`). True in every precompute; `false` (the tests'
+    /// exact links, no flag) keeps the bundle equal to `Trace::All`'s bit for bit.
     pub coarse_links: bool,
-    /// The near field of links, in receiver sizes (`--s-link-near`): Some(k), k in
-    /// [`LINK_NEAR_RANGE`], links nodes from k sizes on and reads each link at two
-    /// distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (1 size), stores a
-    /// fifth to two fifths of the direct pairs of the quadrature's near-pair rule on the
-    /// test objects, so a translucency change writes fewer entries. None
-    /// (`--s-link-near off`) keeps that rule (3 sizes) and reads each link at its
-    /// representative's distance.
-    pub near: Option<f32>,
+    /// The near field of links, in receiver sizes (`--s-link-near`), in
+    /// [`LINK_NEAR_RANGE`]: nodes are linked from this many sizes on and each link is read
+    /// at two distances ([`link_spread`]); the default, [`DEFAULT_LINK_NEAR`] (1 size),
+    /// stores a fifth to two fifths of the direct pairs of the quadrature's near-pair rule
+    /// (3 sizes) on the test objects, so a translucency change writes fewer entries.
+    pub near: f32,
     /// The profile's side of each link's error bound (`--s-link-variation`): a node is
     /// linked only where [`LinkBound::accepts`] it at every scale of a slider's range.
     pub tolerance: LinkTolerance,
@@ -127,7 +127,7 @@ impl Default for SLinkParams {
             accuracy: 0.5,
             trace: Trace::Auto,
             coarse_links: true,
-            near: Some(DEFAULT_LINK_NEAR),
+            near: DEFAULT_LINK_NEAR,
             tolerance: LinkTolerance::default(),
         }
     }
@@ -136,6 +136,8 @@ impl Default for SLinkParams {
 /// How the optical distances of a homogeneous translucent object are traced for a
 /// hierarchical S. Both give the same distances, bit for bit, hence the same bundle, unless
 /// [`SLinkParams::coarse_links`] sends the far runs of the on-demand way to a coarser grid.
+/// Precomputes use [`Trace::Auto`]; [`Trace::OnDemand`] and [`Trace::All`] are for the tests
+/// that hold the two ways equal (`precompute/tests/it/slinks.rs`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Trace {
     /// With [`SLinkParams::coarse_links`] (the default), on demand: its far runs on the
@@ -174,7 +176,6 @@ pub fn trace_on_demand(
     objects: &[ObjectMaterial<'_>],
     reach: &[Option<f32>],
     pairs: &[u64],
-    sp: &SParams,
     params: &SLinkParams,
     bounds: &[Vec<LinkBound>],
     reuse: bool,
@@ -186,7 +187,7 @@ pub fn trace_on_demand(
     let ranges = tree.ranges();
     let pos = positions(tree);
     let rep = representatives(tree, g);
-    let cutter = Cutter::new(tree, &ranges, &pos, g, sp, params);
+    let cutter = Cutter::new(tree, &ranges, &pos, g, params);
     objects
         .iter()
         .enumerate()
@@ -233,9 +234,8 @@ impl SLinkParams {
                 self.accuracy
             ));
         }
-        if let Some(k) = self.near
-            && !(k.is_finite() && LINK_NEAR_RANGE.contains(&k))
-        {
+        let k = self.near;
+        if !(k.is_finite() && LINK_NEAR_RANGE.contains(&k)) {
             return Err(format!(
                 "--s-link-near must be in [{}, {}] (how many receiver sizes away a subsurface \
                  link may start), got {k}",
@@ -287,7 +287,7 @@ pub fn link_bounds(
         .collect()
 }
 
-/// A link's distance and spread when it is read at two distances (`SLinkParams::near`):
+/// A link's distance and spread, read at two distances ([`SLinkParams::near`]):
 /// receiver j (centroid x) gathers from node q (its patches, `members`, of centroids p and
 /// areas a), whose representative (centroid c) lies at optical distance `d`. The node's
 /// patches lie at straight distances |x − p| of area-weighted mean m and spread σ; the link
@@ -323,8 +323,8 @@ pub struct Collapsed {
     pub kind: Vec<u32>,
     pub nodes: Nodes,
     pub links: u64,
-    /// With [`SLinkParams::near`]: each stored distance's spread (aligned with the entries;
-    /// 0 for direct pairs, [`link_spread`] for links). Empty otherwise.
+    /// Each stored distance's spread (aligned with the entries; 0 for direct pairs,
+    /// [`link_spread`] for links). Empty when no link was made.
     pub spread: Vec<f32>,
     /// Seconds each object's cut took (0 for objects not cut), tracing included.
     pub seconds: Vec<f64>,
@@ -417,7 +417,6 @@ impl<'a> Cutter<'a> {
         ranges: &'a [[u32; 2]],
         pos: &'a [u32],
         g: &'a PatchGeometry,
-        sp: &SParams,
         params: &SLinkParams,
     ) -> Self {
         let node_area = translux_engine::transport::node_areas(
@@ -433,7 +432,7 @@ impl<'a> Cutter<'a> {
             pos,
             g,
             theta: params.accuracy,
-            near_factor: params.near.unwrap_or(sp.quadrature.near_factor),
+            near_factor: params.near,
             coarse_links: params.coarse_links,
             node_area,
         }
@@ -513,8 +512,7 @@ type Cut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32)>);
 
 /// Replaces the pairwise distances of every homogeneous translucent object and thin sheet
 /// (of two patches or more) by direct pairs and links (the module docs); other rows are
-/// copied. `stored[k]` is how far object k's distances reach; `sp` gives the quadrature's
-/// near-pair rule. An object with an [`Oracle`] in `on_demand` has no pairwise rows in
+/// copied. `stored[k]` is how far object k's distances reach. An object with an [`Oracle`] in `on_demand` has no pairwise rows in
 /// `dist`: its cut is made first and only the distances it uses are traced.
 #[expect(
     clippy::too_many_arguments,
@@ -529,7 +527,6 @@ pub fn collapse(
     material_len: &[MediaLen],
     kind: &[u32],
     on_demand: &[Option<Oracle>],
-    sp: &SParams,
     params: &SLinkParams,
     bounds: &[Vec<LinkBound>],
 ) -> Result<Collapsed, SError> {
@@ -547,7 +544,7 @@ pub fn collapse(
     };
     let pos = positions(tree);
     let rep = representatives(tree, g);
-    let cutter = Cutter::new(tree, &ranges, &pos, g, sp, params);
+    let cutter = Cutter::new(tree, &ranges, &pos, g, params);
 
     let cut: Vec<(usize, Child, bool)> = cut_roots(tree, objects)
         .into_iter()
@@ -622,40 +619,37 @@ pub fn collapse(
             }
         }
         // Links read at two distances: each one's distance moved and its spread.
-        let spreads: Vec<Vec<(f32, f32)>> = match params.near {
-            Some(_) => cuts
-                .par_iter()
-                .enumerate()
-                .map(|(jl, (_, links))| {
-                    let x = g.centroid[r.start + jl];
-                    links
-                        .iter()
-                        .map(|&(q, d, _)| {
-                            let [a, b] = ranges[q as usize];
-                            let members = &tree.perm[a as usize..b as usize];
-                            link_spread(g, x, members, rep[q as usize], d)
-                        })
-                        .collect()
-                })
-                .collect(),
-            None => Vec::new(),
-        };
-        for (jl, (_, links)) in cuts.into_iter().enumerate() {
+        let spreads: Vec<Vec<(f32, f32)>> = cuts
+            .par_iter()
+            .enumerate()
+            .map(|(jl, (_, links))| {
+                let x = g.centroid[r.start + jl];
+                links
+                    .iter()
+                    .map(|&(q, d, _)| {
+                        let [a, b] = ranges[q as usize];
+                        let members = &tree.perm[a as usize..b as usize];
+                        link_spread(g, x, members, rep[q as usize], d)
+                    })
+                    .collect()
+            })
+            .collect();
+        for (jl, ((_, links), moved)) in cuts.into_iter().zip(&spreads).enumerate() {
             links_total += links.len() as u64;
-            let moved = spreads.get(jl);
-            rows[r.start + jl].extend(links.into_iter().enumerate().map(|(e, (q, d, kd))| {
-                let (d, sigma) = moved.map_or((d, 0.0), |m| m[e]);
-                (n as u32 + q, d, [0.0; MEDIA], kd, sigma)
-            }));
+            rows[r.start + jl].extend(
+                links
+                    .into_iter()
+                    .zip(moved)
+                    .map(|((q, _, kd), &(d, sigma))| (n as u32 + q, d, [0.0; MEDIA], kd, sigma)),
+            );
         }
         seconds[k] = t.elapsed().as_secs_f64();
     }
     let linked = links_total > 0;
     let mut material_len = Vec::new();
     let mut kinds = Vec::new();
-    // Spreads are kept only for links read at two distances: the default path allocates
-    // nothing for them (a vector as long as the distances: 250 MB on the whole bunny).
-    let two_point = params.near.is_some();
+    // Spreads are kept only when there are links (a vector as long as the distances: 250 MB
+    // on the whole bunny).
     let mut spread = Vec::new();
     let plain: Vec<Vec<(u32, f32)>> = rows
         .into_iter()
@@ -664,7 +658,7 @@ pub fn collapse(
                 .map(|(c, d, l, kd, sigma)| {
                     material_len.push(l);
                     kinds.push(kd);
-                    if two_point {
+                    if linked {
                         spread.push(sigma);
                     }
                     (c, d)
@@ -672,9 +666,6 @@ pub fn collapse(
                 .collect()
         })
         .collect();
-    if !linked {
-        spread = Vec::new();
-    }
     let dist = Csr::from_rows(if linked { n + m } else { n }, plain).map_err(SError::Matrix)?;
     Ok(Collapsed {
         dist,

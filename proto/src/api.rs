@@ -27,6 +27,7 @@ use crate::scene::Material;
 /// heuristics). P = diag ρ̄ is each patch's opaque albedo (a translucent patch's profile's
 /// total diffuse reflectance); docs/transport.md defines each.
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Components {
     /// Everything: B = Bₑ + S(E + F B).
@@ -62,6 +63,7 @@ impl Components {
 
 /// How the transport equation is solved.
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Solver {
     /// The server picks (the transfer matrix T where the bundle has one, else iterative).
@@ -87,6 +89,7 @@ impl Solver {
 /// `POST /api/v1/scenes/{id}/relight`. Every field is optional; `{}` relights with the
 /// bundle's default lights and full transport.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(deny_unknown_fields)]
 pub struct RelightRequest {
     /// The lights; absent (or `null`) means the bundle's default lights, `[]` means none.
@@ -121,6 +124,7 @@ pub struct RelightRequest {
 
 /// Where the direct light of diffuse objects is evaluated (docs/transport.md).
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum DirectAt {
     /// At each vertex, interpolated across triangles with the rest of the transport.
@@ -143,6 +147,7 @@ fn pixel() -> DirectAt {
 /// The tone curve that maps exposed linear radiance to display values (before the sRGB
 /// encoding) in renders and exports.
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum ToneMap {
     /// Clamp to [0, 1]: what a plain sRGB display shows.
@@ -247,6 +252,38 @@ impl Serialize for Exposure {
     }
 }
 
+/// A number or `"auto"` (serialised by hand, so described by hand).
+#[cfg(feature = "openapi")]
+impl utoipa::PartialSchema for Exposure {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{
+            ObjectBuilder, OneOfBuilder, SchemaFormat, SchemaType, Type,
+        };
+        OneOfBuilder::new()
+            .item(
+                ObjectBuilder::new()
+                    .schema_type(SchemaType::Type(Type::Number))
+                    .format(Some(SchemaFormat::KnownFormat(
+                        utoipa::openapi::KnownFormat::Float,
+                    )))
+                    .description(Some("EV stops: radiance × 2^EV before the tone curve.")),
+            )
+            .item(
+                ObjectBuilder::new()
+                    .schema_type(SchemaType::Type(Type::String))
+                    .enum_values(Some(["auto"]))
+                    .description(Some("The viewer's automatic exposure for the relit scene.")),
+            )
+            .description(Some(
+                "How bright a render is: a number of EV stops, or \"auto\" (the default).",
+            ))
+            .into()
+    }
+}
+
+#[cfg(feature = "openapi")]
+impl utoipa::ToSchema for Exposure {}
+
 /// Hand-written rather than `#[serde(untagged)]`: untagged enums answer any mismatch with
 /// "data did not match any variant", which names neither choice.
 impl<'de> Deserialize<'de> for Exposure {
@@ -313,6 +350,16 @@ pub const DEFAULT_RENDER_HEIGHT: u32 = 600;
 /// assert!(translux_proto::parse_json::<RenderRequest>(r#"{"widht":3}"#).is_err());
 /// ```
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[cfg_attr(
+    feature = "openapi",
+    schema(
+        description = "`POST /api/v1/scenes/{id}/render`: the relight request's fields \
+                          plus how to picture it. Every field is optional; `{}` renders the \
+                          bundle's default lights from its camera at 800 × 600, \
+                          auto-exposed as the viewer would."
+    )
+)]
 #[serde(deny_unknown_fields)]
 pub struct RenderRequest {
     /// As in [`RelightRequest::lights`].
@@ -429,6 +476,7 @@ impl RenderRequest {
 
 /// What a relight did.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct RelightStats {
     /// What computed the transport: `inverse` (one product with the stored T), an
     /// iterative method (`bicgstab`, `jacobi`, `gauss_seidel`), or `none` when nothing was
@@ -450,10 +498,8 @@ pub struct RelightStats {
     /// overrides were applied just before and S came from the cache).
     #[serde(default)]
     pub materials_ms: f64,
-    /// Where S for the material overrides was rebuilt: `cpu` (both backends by default) or
-    /// `gpu` (the device kernels, on the GPU backend with `TRANSLUX_S_REBUILD=device`,
-    /// except what the device cannot do, e.g. heterogeneous objects; the server's log says
-    /// why). Absent without overrides.
+    /// Where S for the material overrides was made: `cpu` (on both backends). Absent without
+    /// overrides.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub materials_on: Option<String>,
     pub lights: usize,
@@ -485,6 +531,7 @@ fn one() -> usize {
 
 /// The JSON form of a relight answer.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct RelightResponse {
     pub vertex_count: usize,
     /// Linear outgoing radiance B/π, `[r, g, b]` per vertex of the mesh endpoint, flat.
@@ -494,6 +541,7 @@ pub struct RelightResponse {
 
 /// One entry of `GET /api/v1/scenes`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct SceneSummary {
     /// The bundle's folder name.
     pub id: String,
@@ -517,12 +565,14 @@ fn one_frame() -> u32 {
 
 /// `GET /api/v1/scenes`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct SceneList {
     pub scenes: Vec<SceneSummary>,
 }
 
 /// One object in `GET /api/v1/scenes/{id}`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct SceneObject {
     pub name: String,
     pub material: Material,
@@ -538,6 +588,7 @@ pub struct SceneObject {
 
 /// The absorption range of a simulated object's stored walks (mm⁻¹ per channel).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Absorption {
     /// σa of the scene file (the preset's where the file gives none).
     pub sigma_a: [f32; 3],
@@ -546,14 +597,15 @@ pub struct Absorption {
 }
 
 /// Where a scene stands in making what its first translucency change needs: S's entries
-/// reduced to radial terms on the CPU, or the S template on the GPU backend
+/// reduced to radial terms on the CPU, on both backends
 /// (`GET /api/v1/scenes/{id}`'s `translucency`). Without it made, the first change makes
 /// it and waits (seconds to minutes on large objects); the server makes it in the
 /// background instead (`docs/api.md#translucency-preparation`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct TranslucencyPrep {
     pub state: PrepState,
-    /// Where translucency changes rebuild S (`cpu` or `gpu`), once known.
+    /// Where translucency changes make S (`cpu`), once known.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub on: Option<String>,
     /// Seconds the preparation took.
@@ -562,13 +614,14 @@ pub struct TranslucencyPrep {
     /// Host bytes it holds (the CPU's radial terms).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bytes: Option<u64>,
-    /// Why it failed, or why the GPU backend leaves S to the CPU.
+    /// Why it failed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
 }
 
 /// [`TranslucencyPrep`]'s state.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum PrepState {
     /// No translucent object or thin sheet: nothing to prepare (a heterogeneous object's S
@@ -585,6 +638,7 @@ pub enum PrepState {
 
 /// `GET /api/v1/scenes/{id}`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct SceneDetail {
     pub id: String,
     pub name: String,
@@ -625,6 +679,7 @@ pub struct SceneDetail {
 
 /// One object's triangle range in `GET /api/v1/scenes/{id}/mesh`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct MeshObject {
     pub name: String,
     pub first_triangle: u64,
@@ -633,6 +688,7 @@ pub struct MeshObject {
 
 /// `GET /api/v1/scenes/{id}/mesh`: flat arrays, 3 floats per vertex, 3 indices per triangle.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Mesh {
     pub positions: Vec<f32>,
     pub normals: Vec<f32>,
@@ -642,6 +698,7 @@ pub struct Mesh {
 
 /// The GPU part of `GET /healthz`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct GpuHealth {
     pub available: bool,
     /// Why there is no GPU (absent when there is one).
@@ -660,6 +717,7 @@ pub struct GpuHealth {
 
 /// The adapter in [`GpuHealth`].
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct GpuAdapter {
     pub name: String,
     /// wgpu's backend: `vulkan`, …
@@ -674,6 +732,7 @@ pub struct GpuAdapter {
 
 /// One scene in [`GpuHealth`].
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct GpuScene {
     pub id: String,
     /// `gpu`, or `cpu` for a scene that does not fit (see `reason`).
@@ -685,6 +744,7 @@ pub struct GpuScene {
 
 /// `GET /healthz`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Health {
     /// Always `ok` while the server answers.
     pub status: String,
@@ -697,10 +757,18 @@ pub struct Health {
 
 /// The inside of every error answer.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ErrorDetail {
-    /// Machine-readable: `not_found`, `bad_request`, `invalid`, `unsupported`,
-    /// `payload_too_large`, `unsupported_media_type`, `not_acceptable`,
-    /// `method_not_allowed`, `internal`.
+    /// Machine-readable and stable: `bad_request` (400: the body, form, query or id is not
+    /// readable or not the request's shape), `invalid` (400: a value breaks a rule; the
+    /// message names the field), `unsupported` (400: valid, but this bundle or build cannot
+    /// do it), `unauthorized` (401), `forbidden` (403), `not_found` (404: unknown scene, job
+    /// or route), `method_not_allowed` (405), `not_acceptable` (406), `conflict` (409),
+    /// `payload_too_large` (413), `unsupported_media_type` (415), `work_limit` (422: the
+    /// request's work ran past its role's limit), `upgrade_required` (426: a plain GET on
+    /// the WebSocket route), `queue_full` and `rate_limited` (429, with `Retry-After`),
+    /// `internal` (500: a bug or a server-side I/O failure, never bad input), `loading`,
+    /// `deadline_exceeded`, `shutting_down` and `cancelled` (503).
     pub code: String,
     /// What was wrong and where (`lights[0].intensity[1] must be finite and in [0, 1000000000000]`).
     pub message: String,
@@ -708,8 +776,261 @@ pub struct ErrorDetail {
 
 /// Every 4xx/5xx answer: `{"error":{"code":"...","message":"..."}}`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ErrorBody {
     pub error: ErrorDetail,
+}
+
+/// OpenAPI schemas of the body types that live outside this module ([`Light`], [`Camera`],
+/// [`Material`] and what it holds, the manifest's [`FormFactorInfo`] and [`StageTime`]).
+///
+/// Those files are decoded through hand-written mirrors ([`crate::tagged`]), which a
+/// `ToSchema` derive cannot see, so each is described here by a twin with the same serde
+/// shape that derives its schema; the real type's schema is its twin's. The test below
+/// keeps the twins honest: a value of every variant, with every optional field set, must
+/// survive real → JSON → twin → JSON unchanged (the twins deny unknown fields), and the
+/// real type must read it back.
+#[cfg(feature = "openapi")]
+mod twins {
+    #![allow(dead_code)]
+
+    use serde::{Deserialize, Serialize};
+    use utoipa::ToSchema;
+
+    /// A light; the units are the scene's (W/sr, W/m², W·m⁻²·sr⁻¹).
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+    pub enum Light {
+        /// Intensity W/sr in every direction.
+        Point {
+            position: [f32; 3],
+            intensity: [f32; 3],
+        },
+        /// A point light in a cone: full intensity inside `inner_deg` of `direction`, none
+        /// outside `outer_deg` (half-angles, 0..=180).
+        Spot {
+            position: [f32; 3],
+            intensity: [f32; 3],
+            direction: [f32; 3],
+            inner_deg: f32,
+            outer_deg: f32,
+        },
+        /// Parallel light along `direction` with irradiance W/m² (a sun).
+        Directional {
+            direction: [f32; 3],
+            irradiance: [f32; 3],
+        },
+        /// Light from every direction: `builtin:sky`, `builtin:white`, or a Radiance `.hdr`
+        /// file as a relative path inside the bundles folder (docs/environment.md); `scale`
+        /// multiplies its radiance, `rotation_deg` turns it about +Y.
+        Environment {
+            map: String,
+            #[serde(default = "one")]
+            scale: f32,
+            #[serde(default)]
+            rotation_deg: f32,
+        },
+    }
+
+    fn one() -> f32 {
+        1.0
+    }
+
+    /// A pinhole camera.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct Camera {
+        pub position: [f32; 3],
+        pub target: [f32; 3],
+        /// Default `[0, 1, 0]`.
+        #[serde(default)]
+        pub up: [f32; 3],
+        /// Vertical field of view in degrees (default 40).
+        #[serde(default)]
+        pub fov_deg: f32,
+    }
+
+    /// What a surface does with light (docs/scenes.md).
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+    pub enum Material {
+        /// Opaque Lambertian: S_ii = albedo.
+        Diffuse {
+            albedo: [f32; 3],
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            specular: Option<Specular>,
+        },
+        /// Subsurface scattering through the object, described by a 1-D profile.
+        Translucent {
+            profile: Profile,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            specular: Option<Specular>,
+        },
+        /// A thin two-sided sheet (a petal, a leaf, paper) of constant thickness.
+        ThinSheet {
+            reflectance: Profile,
+            transmittance: Profile,
+            thickness_mm: f32,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            specular: Option<Specular>,
+        },
+        /// A Lambertian emitter of constant radiance (W·m⁻²·sr⁻¹); it reflects nothing.
+        Emitter { radiance: [f32; 3] },
+        /// A translucent object made of 2 to 4 homogeneous media laid out by `pattern`.
+        Heterogeneous {
+            materials: Vec<Profile>,
+            pattern: Pattern,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            specular: Option<Specular>,
+        },
+        /// A translucent object whose S is simulated by random walks inside its mesh: a
+        /// Jensen `preset` or coefficients in mm⁻¹.
+        Simulated {
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            preset: Option<String>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            sigma_a: Option<[f32; 3]>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            sigma_s_prime: Option<[f32; 3]>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            sigma_s: Option<[f32; 3]>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            g: Option<f32>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            eta: Option<f32>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            noise: Option<f32>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            max_walks: Option<u32>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            seed: Option<u64>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            specular: Option<Specular>,
+        },
+    }
+
+    /// A glossy GGX coat evaluated per pixel; it does not change the radiosity answer.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct Specular {
+        /// Perceptual roughness in [0.01, 1].
+        pub roughness: f32,
+        /// Relative index of refraction in [1, 3].
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub eta: Option<f32>,
+    }
+
+    /// A 1-D diffuse reflectance profile R(r) per RGB channel.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+    pub enum Profile {
+        /// The dipole of Jensen et al. 2001: a `preset`, or `sigma_a` and `sigma_s_prime`
+        /// (mm⁻¹) with `eta`; `scale` multiplies the mean free path.
+        Dipole {
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            preset: Option<String>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            sigma_a: Option<[f32; 3]>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            sigma_s_prime: Option<[f32; 3]>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            eta: Option<f32>,
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            scale: Option<f32>,
+        },
+        /// A measured table: R at `radius_mm[k]` is `values[k]` (mm⁻², RGB).
+        Table {
+            radius_mm: Vec<f32>,
+            values: Vec<[f32; 3]>,
+        },
+        /// R(r) = Σ a_k e^(−b_k r).
+        Exponentials { terms: Vec<ExpTerm> },
+    }
+
+    /// One term a·e^(−b r) of an exponential-sum profile.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct ExpTerm {
+        pub a: [f32; 3],
+        pub b: [f32; 3],
+    }
+
+    /// Which medium of a heterogeneous object is where.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+    pub enum Pattern {
+        /// A 3-D checkerboard of cubic cells of edge `cell` (scene units).
+        Checkerboard {
+            cell: f32,
+            #[serde(default)]
+            origin: [f32; 3],
+        },
+        /// Media by the OBJ's `usemtl` groups.
+        ByObjMaterial { names: Vec<String> },
+    }
+
+    /// How F was computed, and what was dropped.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct FormFactorInfo {
+        pub nnz: u64,
+        /// Entries below this were dropped (0: none).
+        pub threshold: f32,
+        /// Fraction of all power leaving patches that the dropped entries carried.
+        pub dropped_energy: f64,
+        /// Row sums Σ_j F_ij: mean, min, max.
+        pub row_sum_mean: f64,
+        pub row_sum_min: f64,
+        pub row_sum_max: f64,
+        /// Occlusion rays cast.
+        pub rays: u64,
+        /// Patch pairs considered after orientation culling.
+        pub pairs: u64,
+    }
+
+    /// Wall-clock time of one precompute stage.
+    #[derive(Debug, Serialize, Deserialize, ToSchema)]
+    #[serde(deny_unknown_fields)]
+    pub struct StageTime {
+        pub stage: String,
+        pub seconds: f64,
+    }
+}
+
+/// `ToSchema` of `$real` from its twin in [`twins`].
+#[cfg(feature = "openapi")]
+macro_rules! schema_from_twin {
+    ($($real:ty => $twin:ty),* $(,)?) => {$(
+        impl utoipa::PartialSchema for $real {
+            fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+                <$twin as utoipa::PartialSchema>::schema()
+            }
+        }
+
+        impl utoipa::ToSchema for $real {
+            fn name() -> std::borrow::Cow<'static, str> {
+                <$twin as utoipa::ToSchema>::name()
+            }
+
+            fn schemas(
+                schemas: &mut Vec<(
+                    String,
+                    utoipa::openapi::RefOr<utoipa::openapi::schema::Schema>,
+                )>,
+            ) {
+                <$twin as utoipa::ToSchema>::schemas(schemas)
+            }
+        }
+    )*};
+}
+
+#[cfg(feature = "openapi")]
+schema_from_twin! {
+    Light => twins::Light,
+    Camera => twins::Camera,
+    Material => twins::Material,
+    FormFactorInfo => twins::FormFactorInfo,
+    StageTime => twins::StageTime,
 }
 
 #[cfg(test)]
@@ -842,5 +1163,129 @@ mod tests {
         // Round trip.
         let back: RelightRequest = parse_json(&serde_json::to_string(&r).unwrap()).unwrap();
         assert_eq!(back, r);
+    }
+
+    /// Each twin of `twins` has its type's JSON shape: a value of every variant with every
+    /// field set goes real → JSON → twin → JSON unchanged, and the JSON is the input. The
+    /// `match`es fail to compile when the real enums gain a variant.
+    #[cfg(feature = "openapi")]
+    #[test]
+    fn the_schema_twins_have_the_shape_of_the_real_types() {
+        use crate::scene::{Pattern, Profile};
+        use serde::de::DeserializeOwned;
+
+        fn same<R: Serialize + DeserializeOwned, T: Serialize + DeserializeOwned>(text: &str) -> R {
+            let real: R = parse_json(text).unwrap_or_else(|e| panic!("{text}: {e}"));
+            let json = serde_json::to_value(&real).unwrap();
+            // Numbers as f64 on both sides (`1` in the text is `1.0` once an f32).
+            fn floats(v: &serde_json::Value) -> serde_json::Value {
+                use serde_json::Value;
+                match v {
+                    Value::Number(n) => n.as_f64().map_or(Value::Null, Value::from),
+                    Value::Array(a) => Value::Array(a.iter().map(floats).collect()),
+                    Value::Object(o) => {
+                        Value::Object(o.iter().map(|(k, v)| (k.clone(), floats(v))).collect())
+                    }
+                    other => other.clone(),
+                }
+            }
+            let input: serde_json::Value = serde_json::from_str(text).unwrap();
+            assert_eq!(
+                floats(&json),
+                floats(&input),
+                "a sample must set every field"
+            );
+            let twin: T = serde_json::from_value(json.clone())
+                .unwrap_or_else(|e| panic!("the twin does not read {json}: {e}"));
+            assert_eq!(serde_json::to_value(&twin).unwrap(), json);
+            real
+        }
+        let spec = r#""specular":{"roughness":0.5,"eta":1.5}"#;
+        let dipole = r#"{"type":"dipole","preset":"marble","sigma_a":[0.5,0.5,0.5],"sigma_s_prime":[2,2,2],"eta":1.25,"scale":2}"#;
+        let table = r#"{"type":"table","radius_mm":[0,1],"values":[[1,1,1],[0.5,0.5,0.5]]}"#;
+        let exps = r#"{"type":"exponentials","terms":[{"a":[1,1,1],"b":[2,2,2]}]}"#;
+        let mut kinds = std::collections::BTreeSet::new();
+        for text in [
+            r#"{"type":"point","position":[0,1,0],"intensity":[1,2,3]}"#.to_string(),
+            r#"{"type":"spot","position":[0,1,0],"intensity":[1,2,3],"direction":[0,-1,0],"inner_deg":10,"outer_deg":20}"#.into(),
+            r#"{"type":"directional","direction":[0,-1,0],"irradiance":[1,2,3]}"#.into(),
+            r#"{"type":"environment","map":"builtin:sky","scale":2,"rotation_deg":90}"#.into(),
+        ] {
+            let light: Light = same::<Light, twins::Light>(&text);
+            kinds.insert(match light {
+                Light::Point { .. } => "point",
+                Light::Spot { .. } => "spot",
+                Light::Directional { .. } => "directional",
+                Light::Environment { .. } => "environment",
+            });
+        }
+        assert_eq!(kinds.len(), 4);
+        let mut materials = std::collections::BTreeSet::new();
+        let mut profiles = std::collections::BTreeSet::new();
+        let mut patterns = std::collections::BTreeSet::new();
+        for text in [
+            format!(r#"{{"type":"diffuse","albedo":[0.5,0.5,0.5],{spec}}}"#),
+            format!(r#"{{"type":"translucent","profile":{dipole},{spec}}}"#),
+            format!(
+                r#"{{"type":"thin_sheet","reflectance":{table},"transmittance":{exps},"thickness_mm":0.25,{spec}}}"#
+            ),
+            r#"{"type":"emitter","radiance":[1,2,3]}"#.into(),
+            format!(
+                r#"{{"type":"heterogeneous","materials":[{dipole},{table}],"pattern":{{"type":"checkerboard","cell":0.5,"origin":[0,1,0]}},{spec}}}"#
+            ),
+            format!(
+                r#"{{"type":"heterogeneous","materials":[{exps},{table}],"pattern":{{"type":"by_obj_material","names":["a","b"]}}}}"#
+            ),
+            format!(
+                r#"{{"type":"simulated","preset":"skin1","sigma_a":[0.5,0.5,0.5],"sigma_s_prime":[1,1,1],"sigma_s":[2,2,2],"g":0.5,"eta":1.25,"noise":0.125,"max_walks":64,"seed":7,{spec}}}"#
+            ),
+        ] {
+            let m: Material = same::<Material, twins::Material>(&text);
+            let mut profile = |p: &Profile| {
+                profiles.insert(match p {
+                    Profile::Dipole { .. } => "dipole",
+                    Profile::Table { .. } => "table",
+                    Profile::Exponentials { .. } => "exponentials",
+                });
+            };
+            materials.insert(match &m {
+                Material::Diffuse { .. } => "diffuse",
+                Material::Translucent { profile: p, .. } => {
+                    profile(p);
+                    "translucent"
+                }
+                Material::ThinSheet {
+                    reflectance,
+                    transmittance,
+                    ..
+                } => {
+                    profile(reflectance);
+                    profile(transmittance);
+                    "thin_sheet"
+                }
+                Material::Emitter { .. } => "emitter",
+                Material::Heterogeneous {
+                    materials: ps,
+                    pattern,
+                    ..
+                } => {
+                    ps.iter().for_each(&mut profile);
+                    patterns.insert(match pattern {
+                        Pattern::Checkerboard { .. } => "checkerboard",
+                        Pattern::ByObjMaterial { .. } => "by_obj_material",
+                    });
+                    "heterogeneous"
+                }
+                Material::Simulated { .. } => "simulated",
+            });
+        }
+        assert_eq!((materials.len(), profiles.len(), patterns.len()), (6, 3, 2));
+        same::<Camera, twins::Camera>(
+            r#"{"position":[0,1,2],"target":[0,0,0],"up":[0,1,0],"fov_deg":35}"#,
+        );
+        same::<FormFactorInfo, twins::FormFactorInfo>(
+            r#"{"nnz":10,"threshold":0.5,"dropped_energy":0.25,"row_sum_mean":0.5,"row_sum_min":0.25,"row_sum_max":1,"rays":100,"pairs":50}"#,
+        );
+        same::<StageTime, twins::StageTime>(r#"{"stage":"bvh","seconds":1.5}"#);
     }
 }

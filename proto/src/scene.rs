@@ -63,6 +63,84 @@ pub struct SceneFile {
     pub animation: Option<Animation>,
 }
 
+/// A scene file that imports a whole glTF 2.0 file (`{"gltf": "room.glb", ...}`): the file's
+/// nodes become objects (named as in the file), its materials, `KHR_lights_punctual` lights
+/// and first camera the scene's (see docs/scenes.md for the mapping), and this file may
+/// override any of them by name and add objects of its own.
+///
+/// ```json
+/// {
+///   "gltf": "room.glb",
+///   "materials": {"Wall": {"type": "diffuse", "albedo": [0.8, 0.1, 0.1]}},
+///   "light_overrides": {"Lamp": {"type": "point", "position": [0, 2, 0], "intensity": [3, 3, 3]}},
+///   "objects": [{"name": "bunny", "mesh": "bunny.obj",
+///                "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}}}]
+/// }
+/// ```
+///
+/// The file's objects can also be placed one by one in an ordinary [`SceneFile`]: an
+/// object's `mesh` `"room.glb#Wall"` is the node the import names `Wall`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct GltfSceneFile {
+    /// The glTF file (`.gltf` or `.glb`), relative to this file (or absolute).
+    pub gltf: String,
+    /// Optional display name; defaults to this file's stem.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// Materials by object name, replacing what the file gives (textures included).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub materials: std::collections::BTreeMap<String, Material>,
+    /// When present, the scene's lights instead of the file's (`[]`: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lights: Option<Vec<Light>>,
+    /// The file's lights by their `KHR_lights_punctual` name: replaced by the light given,
+    /// or removed by `null`.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub light_overrides: std::collections::BTreeMap<String, Option<Light>>,
+    /// More objects, after the file's; their names must differ from the file's.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub objects: Vec<ObjectDesc>,
+    /// Patch density; `--patches` on the command line overrides it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub patches: Option<PatchDensity>,
+    /// The camera instead of the file's first one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<Camera>,
+}
+
+impl GltfSceneFile {
+    /// Checks what can be checked without the glTF file: the overriding materials and lights
+    /// and the extra objects' fields (names against the file's are checked on import).
+    pub fn validate(&self) -> Result<(), FieldError> {
+        if self.gltf.trim().is_empty() {
+            return Err(FieldError::new("gltf", "must name a .gltf or .glb file"));
+        }
+        for (name, m) in &self.materials {
+            m.validate(&format!("materials.{name}"))?;
+        }
+        for (i, l) in self.lights.iter().flatten().enumerate() {
+            l.validate(&format!("lights[{i}]"))?;
+        }
+        for (name, l) in &self.light_overrides {
+            if let Some(l) = l {
+                l.validate(&format!("light_overrides.{name}"))?;
+            }
+        }
+        if let Some(c) = &self.camera {
+            c.validate("camera")?;
+        }
+        Ok(())
+    }
+
+    /// Whether a scene file's text is this form rather than a [`SceneFile`]: a JSON object
+    /// with a `gltf` key (only looked for when the text is valid JSON).
+    pub fn is_gltf_import(text: &str) -> bool {
+        serde_json::from_str::<serde_json::Map<String, serde_json::Value>>(text)
+            .is_ok_and(|m| m.contains_key("gltf"))
+    }
+}
+
 /// How finely surfaces are split into patches.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -1138,6 +1216,36 @@ mod tests {
         ))
         .unwrap_err();
         assert!(e.message.contains("stripes"), "{e}");
+    }
+}
+
+#[cfg(test)]
+mod gltf_import_tests {
+    use super::*;
+    use crate::parse_json;
+
+    #[test]
+    fn a_gltf_import_parses_and_names_bad_overrides() {
+        let text = r#"{"gltf": "room.glb",
+            "materials": {"Wall": {"type": "diffuse", "albedo": [0.8, 0.1, 0.1]}},
+            "light_overrides": {"Lamp": {"type": "point", "position": [0, 2, 0], "intensity": [3, 3, 3]},
+                                "Fill": null}}"#;
+        assert!(GltfSceneFile::is_gltf_import(text));
+        assert!(!GltfSceneFile::is_gltf_import(r#"{"objects": []}"#));
+        let s: GltfSceneFile = parse_json(text).unwrap();
+        s.validate().unwrap();
+        assert_eq!(s.light_overrides["Fill"], None);
+        assert_eq!(s.materials["Wall"].kind(), "diffuse");
+        let bad: GltfSceneFile = parse_json(
+            r#"{"gltf": "room.glb", "materials": {"Wall": {"type": "diffuse", "albedo": [2, 0, 0]}}}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            bad.validate().unwrap_err().to_string(),
+            "materials.Wall.albedo[0] must be finite and in [0, 1]"
+        );
+        let e = parse_json::<GltfSceneFile>(r#"{"gltf": "room.glb", "lamps": []}"#).unwrap_err();
+        assert!(e.message.contains("lamps"), "{e}");
     }
 }
 

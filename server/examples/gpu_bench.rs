@@ -2,8 +2,8 @@
 //!
 //! Measures, per backend (the CPU, then the wgpu adapter), the paper's Table 1 columns:
 //! relight with the transfer matrix T (one relight, batches of 8 and 64: one pass over T per
-//! batch), relight with the iterative solver, and a translucency change (S rebuilt from the
-//! stored distances — on the device with the GPU backend — then solved); the product over T
+//! batch), relight with the iterative solver, and a translucency change (S written on the
+//! CPU with either backend, then solved there); the product over T
 //! alone with its achieved bandwidth against a measured copy bandwidth of the same device
 //! (for the CPU: a memcpy).
 //! Whole-relight times include the shadowed direct light, which runs on the CPU for both.
@@ -131,8 +131,8 @@ fn relight_rows(scene: &Scene, reps: usize) -> anyhow::Result<Vec<Row>> {
     });
     let mut stats = String::new();
     let ms = time_ms(reps, |r| {
-        // A new marble scale each time (a slider moving within ±25%): S is rebuilt, never
-        // cached; on the GPU backend its template is made by the warm-up run and reused.
+        // A new marble scale each time (a slider moving within ±25%): S is rewritten, never
+        // taken from the cache.
         let scale = 0.75 + 0.5 * ((r.min(1000) as f32 * 0.618_034).fract());
         let p = plan(&body(0, "iterative", Some(scale))).expect("valid request");
         match relight::run(scene, &p) {

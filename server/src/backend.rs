@@ -22,76 +22,26 @@
 //! A scene is uploaded once, when the server loads it or on its first solve (F, S, and the
 //! vectors of the solve; bind groups and staging buffers made once and reused; T on the first
 //! relight that uses it). A scene that does not fit — a row larger than one binding, the
-//! device refusing memory, or more than the budget
-//! `TRANSLUX_GPU_MEMORY_MIB` — is served from the CPU, with a warning in the log and its
-//! reason in `/healthz`. Direct lighting (shadow rays) stays on the CPU. A translucency
-//! change's S is written in place on the CPU, and the solves with it run there, warm (the
-//! faster way on every scene measured, [`SRebuild`]); with [`S_REBUILD_ENV`]`=device` it is
-//! rebuilt on the device instead ([`Backend::rebuild_s`](translux_engine::backend::Backend::rebuild_s), [`crate::gpu::subsurface`]; its
-//! template counts in the scene's bytes), except for heterogeneous objects.
+//! device refusing memory, or more than the budget (`--gpu-memory-mib`) — is served from
+//! the CPU, with a warning in the log and its reason in `/healthz`. Direct lighting (shadow
+//! rays) stays on the CPU. A translucency change's S is written in place on the CPU, and
+//! the solves with it run there, warm from the last answer's kept products: uploading S
+//! anew for every change cost more than the solve (`docs/gpu.md`).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use translux_engine::radiosity::{Rgb, SolveParams, SolveStats};
 
-use translux_engine::smatrix::{self, SError, SParams};
-use translux_proto::scene::Material;
-
-use crate::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
 use crate::gpu::{
-    AdapterSummary, DenseData, GpuContext, GpuCsr, GpuDense, GpuError, GpuOptions, GpuSystem,
-    SystemParams,
+    AdapterSummary, DenseData, GpuContext, GpuDense, GpuError, GpuOptions, GpuSystem, SystemParams,
 };
-pub use translux_engine::backend::SBuild;
-use translux_engine::backend::{SPrep, SceneRef};
+use translux_engine::backend::SceneRef;
 use translux_engine::smatrix::OverrideMaterials;
-use translux_engine::transport::push_node_rows;
 
-/// Scene `g`'s S template, built and uploaded for materials `m` unless the one it holds
-/// covers them; the reason (logged) when it does not fit on the device.
-fn template_for<'g>(
-    ctx: &GpuContext,
-    g: &'g GpuScene,
-    scene: SceneRef<'_>,
-    m: &SMaterials,
-    stored: &[f32],
-    sp: &SParams,
-) -> Result<std::sync::MutexGuard<'g, Option<GpuSTemplate>>, String> {
-    let mut slot = g.s_template.lock().unwrap_or_else(|p| p.into_inner());
-    if slot.as_ref().is_some_and(|t| t.template.covers(m)) {
-        return Ok(slot);
-    }
-    if let Some(old) = slot.take() {
-        old.release(ctx);
-    }
-    let t0 = std::time::Instant::now();
-    let b = scene.bundle;
-    let geo = smatrix::bundle_geometry(b);
-    let t = STemplate::build(b, &geo, m, stored, &sp.quadrature);
-    match GpuSTemplate::upload(ctx, &format!("{} S template", scene.id), t) {
-        Ok(t) => {
-            tracing::info!(
-                scene = %scene.id,
-                "S template on the GPU: {} entries, {} MiB, in {:.0} ms",
-                t.template.nnz(),
-                t.bytes() >> 20,
-                t0.elapsed().as_secs_f64() * 1e3
-            );
-            *slot = Some(t);
-            Ok(slot)
-        }
-        Err(e) => {
-            let what = "its S template does not fit on the GPU";
-            tracing::warn!(scene = %scene.id, "S is rebuilt on the CPU: {what}: {e}");
-            Err(format!("{what}: {e}"))
-        }
-    }
-}
-
-/// `--backend`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize)]
+/// `--backend` (`TRANSLUX_BACKEND`, the config file's `backend`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendChoice {
     /// A hardware GPU if there is one, else the CPU.
@@ -103,47 +53,6 @@ pub enum BackendChoice {
     Cpu,
 }
 
-/// The environment variable that caps the GPU memory all scenes may use (MiB).
-pub const MEMORY_ENV: &str = "TRANSLUX_GPU_MEMORY_MIB";
-
-/// The environment variable that says where the GPU backend makes a translucency change's
-/// S ([`SRebuild`]): `cpu` (the default) or `device`.
-pub const S_REBUILD_ENV: &str = "TRANSLUX_S_REBUILD";
-
-/// Where the GPU backend makes S for a translucency change.
-///
-/// The device rebuild evaluates every entry from its template and reads S back (the CPU
-/// needs it for S E), and its solve starts cold; the CPU writes only the changed objects'
-/// entries in place from their radial terms and solves warm from the last answer's kept
-/// products. The CPU's way was the faster on every scene measured on an H200 with 16 cores
-/// (`docs/gpu.md`, 2026-12-04: bowls and bunny at 30,003 patches 5.1 → 20.8 fps, at
-/// 73,245 1.2 → 7.0 fps, the Cornell box at 6,024 84 → 291 fps), and with 2 of its cores
-/// too (bowls: 5.8 fps against the device's 5.1 with 16). Uploading the CPU's S for a
-/// device solve instead cost more than the solve (2.8 fps on the bowls), so the solves with
-/// it stay on the CPU.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub enum SRebuild {
-    /// On the CPU, written in place, and the solves with it there too.
-    #[default]
-    Cpu,
-    /// On the device where it can (not heterogeneous objects; a template that fits), and
-    /// the solves with it there.
-    Device,
-}
-
-impl std::str::FromStr for SRebuild {
-    type Err = String;
-    fn from_str(v: &str) -> Result<SRebuild, String> {
-        match v.trim() {
-            "cpu" => Ok(SRebuild::Cpu),
-            "device" => Ok(SRebuild::Device),
-            other => Err(format!(
-                "{S_REBUILD_ENV} must be cpu or device, got {other:?}"
-            )),
-        }
-    }
-}
-
 /// Where a scene is served.
 #[derive(Debug)]
 enum Slot {
@@ -151,16 +60,10 @@ enum Slot {
     Cpu(String),
 }
 
-/// One scene on the device: F and the bundle's S, and the last override's S.
+/// One scene on the device: F and the bundle's S.
 #[derive(Debug)]
 struct GpuScene {
     base: GpuSystem,
-    /// The last material override's system, keyed by its overrides
-    /// ([`OverrideMaterials::key`]).
-    over: Mutex<Option<(String, GpuSystem)>>,
-    /// The structure of S and its quadrature plans, for rebuilding S on the device
-    /// ([`crate::gpu::subsurface`]); made on the first translucency change.
-    s_template: Mutex<Option<GpuSTemplate>>,
     /// The bundle's transfer matrix R = T − S, uploaded on first use; `Err`: it did not fit
     /// (the CPU computes the product).
     transfer: Mutex<Option<Result<Arc<GpuDense>, String>>>,
@@ -172,18 +75,7 @@ impl GpuScene {
             Some(Some(Ok(t))) => t.bytes(),
             _ => 0,
         };
-        let template = match self.s_template.lock().ok().as_deref() {
-            Some(Some(t)) => t.bytes(),
-            _ => 0,
-        };
-        t + template
-            + self.base.bytes()
-            + self
-                .over
-                .lock()
-                .ok()
-                .and_then(|o| o.as_ref().map(|(_, s)| s.own_bytes()))
-                .unwrap_or(0)
+        t + self.base.bytes()
     }
 }
 
@@ -201,7 +93,6 @@ struct Inner {
     /// By [`scene_key`]: the scene id and where it is served.
     scenes: Mutex<HashMap<String, (String, Slot)>>,
     params: SystemParams,
-    s_rebuild: SRebuild,
 }
 
 /// `/healthz`'s view of the backend.
@@ -240,7 +131,6 @@ impl Backend {
                 reason: Some(reason.into()),
                 scenes: Mutex::new(HashMap::new()),
                 params: SystemParams::default(),
-                s_rebuild: SRebuild::Cpu,
             }),
         }
     }
@@ -251,79 +141,36 @@ impl Backend {
         translux_engine::scene::Resources::on(Arc::new(self.clone()))
     }
 
-    /// A GPU backend on `ctx` that makes a translucency change's S on the CPU
-    /// ([`SRebuild::Cpu`]).
+    /// A GPU backend on `ctx` (a translucency change's S is made on the CPU, and the solves
+    /// with it run there).
     pub fn on_gpu(ctx: GpuContext) -> Backend {
-        Backend::on_gpu_rebuilding(ctx, SRebuild::Cpu)
-    }
-
-    /// A GPU backend on `ctx` that makes a translucency change's S where `s_rebuild` says.
-    pub fn on_gpu_rebuilding(ctx: GpuContext, s_rebuild: SRebuild) -> Backend {
         Backend {
             inner: Arc::new(Inner {
                 gpu: Some(ctx),
                 reason: None,
                 scenes: Mutex::new(HashMap::new()),
                 params: SystemParams::default(),
-                s_rebuild,
             }),
         }
     }
 
-    /// Why the CPU makes S for translucency changes (and solves with it) by [`SRebuild`], or
-    /// `None` when the device rebuilds it.
-    fn s_on_cpu(&self) -> Option<String> {
-        match self.inner.s_rebuild {
-            SRebuild::Device => None,
-            SRebuild::Cpu => Some(format!(
-                "S is written in place on the CPU, faster than the device rebuilds it and reads \
-                 it back ({S_REBUILD_ENV}=device rebuilds it there)"
-            )),
-        }
-    }
-
-    /// Whether a solve with `over`'s S stays on the CPU ([`SRebuild::Cpu`] made it there):
-    /// warm from the kept products, where the device would upload S anew every change.
-    fn solved_on_cpu(&self, over: Option<&Arc<OverrideMaterials>>) -> bool {
-        over.is_some() && self.inner.s_rebuild == SRebuild::Cpu
-    }
-
     /// Starts the chosen backend (see the module docs). `auto` never fails; `gpu` fails when
-    /// no adapter can be had. The budget comes from [`MEMORY_ENV`] when set.
-    pub fn start(choice: BackendChoice) -> Result<Backend, GpuError> {
-        let budget_bytes = match std::env::var(MEMORY_ENV) {
-            Ok(v) => Some(
-                v.trim()
-                    .parse::<u64>()
-                    .map_err(|_| {
-                        GpuError::Invalid(format!(
-                            "{MEMORY_ENV} must be a whole number of MiB, got {v:?}"
-                        ))
-                    })?
-                    .saturating_mul(1 << 20),
-            ),
-            Err(_) => None,
-        };
+    /// no adapter can be had. `memory_mib` caps the GPU memory all scenes may use
+    /// (`--gpu-memory-mib`; without it, what the device grants).
+    pub fn start(choice: BackendChoice, memory_mib: Option<u64>) -> Result<Backend, GpuError> {
         let mut opts = GpuOptions {
             allow_software: false,
             max_binding_bytes: None,
-            budget_bytes,
-        };
-        let s_rebuild = match std::env::var(S_REBUILD_ENV) {
-            Ok(v) => v.parse::<SRebuild>().map_err(GpuError::Invalid)?,
-            Err(_) => SRebuild::Cpu,
+            budget_bytes: memory_mib.map(|m| m.saturating_mul(1 << 20)),
         };
         match choice {
             BackendChoice::Cpu => Ok(Backend::cpu("--backend cpu")),
             BackendChoice::Gpu => {
                 opts.allow_software = true;
-                Ok(Backend::on_gpu_rebuilding(
-                    GpuContext::new(&opts)?,
-                    s_rebuild,
-                ))
+                Ok(Backend::on_gpu(GpuContext::new(&opts)?))
             }
             BackendChoice::Auto => match GpuContext::new(&opts) {
-                Ok(ctx) => Ok(Backend::on_gpu_rebuilding(ctx, s_rebuild)),
+                Ok(ctx) => Ok(Backend::on_gpu(ctx)),
                 Err(e) => Ok(Backend::cpu(format!("--backend auto: {e}"))),
             },
         }
@@ -350,7 +197,7 @@ impl Backend {
                 let a = ctx.adapter();
                 format!(
                     "backend gpu: {} ({}, {}{}), one binding holds {} MiB; translucency \
-                     changes make S on the {}",
+                     changes make S on the CPU",
                     a.name,
                     a.backend,
                     a.device_type,
@@ -360,10 +207,6 @@ impl Backend {
                         ""
                     },
                     a.max_binding_bytes >> 20,
-                    match self.inner.s_rebuild {
-                        SRebuild::Cpu => "CPU",
-                        SRebuild::Device => "device",
-                    }
                 )
             }
             (None, Some(r)) => format!("backend cpu: {r}"),
@@ -475,8 +318,6 @@ impl Backend {
                 );
                 let g = Arc::new(GpuScene {
                     base: sys,
-                    over: Mutex::new(None),
-                    s_template: Mutex::new(None),
                     transfer: Mutex::new(None),
                 });
                 scenes.insert(key, (scene.id.to_string(), Slot::Gpu(g.clone())));
@@ -496,10 +337,10 @@ impl Backend {
         }
     }
 
-    /// Solves B = Bₑ + S(E + F B) on the device for `scene` with the bundle's S, or with
-    /// `over`'s S for a material override (uploaded once per override set). `None`: solve on
-    /// the CPU (CPU backend, a scene that does not fit, or a device error, which is logged
-    /// and moves the scene to the CPU).
+    /// Solves B = Bₑ + S(E + F B) on the device for `scene` with the bundle's S. `None`:
+    /// solve on the CPU (CPU backend, a material override's S, made and solved on the CPU, a
+    /// scene that does not fit, or a device error, which is logged and moves the scene to the
+    /// CPU).
     pub fn solve(
         &self,
         scene: SceneRef<'_>,
@@ -509,73 +350,21 @@ impl Backend {
         params: &SolveParams,
     ) -> Option<(Vec<Rgb>, SolveStats)> {
         let ctx = self.inner.gpu.as_ref()?;
-        if self.solved_on_cpu(over) {
+        if over.is_some() {
             return None;
         }
         let g = self.scene(scene)?;
-        let run = |sys: &GpuSystem| {
-            sys.solve(ctx, emission, irradiance, params, &self.inner.params, None)
-                .map(|(b, s)| (b, s.stats))
-        };
-        match self.with_system(ctx, scene, &g, over, run) {
+        let run = g
+            .base
+            .solve(ctx, emission, irradiance, params, &self.inner.params, None)
+            .map(|(b, s)| (b, s.stats));
+        match run {
             Ok(r) => Some(r),
             Err(e) => {
                 self.fail(ctx, scene, "solve", &e);
                 None
             }
         }
-    }
-
-    /// The system of `scene` for `over`'s S (rebuilt on the device by
-    /// [`Backend::rebuild_s`], or uploaded once per override set) or the bundle's S, run
-    /// through `f`.
-    fn with_system<T>(
-        &self,
-        ctx: &GpuContext,
-        scene: SceneRef<'_>,
-        g: &GpuScene,
-        over: Option<&Arc<OverrideMaterials>>,
-        f: impl FnOnce(&GpuSystem) -> Result<T, GpuError>,
-    ) -> Result<T, GpuError> {
-        let Some(m) = over else {
-            return f(&g.base);
-        };
-        let mut slot = g.over.lock().unwrap_or_else(|p| p.into_inner());
-        if slot.as_ref().is_none_or(|(k, _)| *k != m.key) {
-            if let Some((_, old)) = slot.take() {
-                old.release(ctx);
-            }
-            // An S built on the CPU with node rows (node-to-node links) is uploaded with
-            // them pushed into its patch rows: the device's product reads patch rows alone.
-            let invalid = |e: translux_proto::csr::CsrError| {
-                GpuError::Invalid(format!("{}: S with its node rows pushed: {e}", scene.id))
-            };
-            // S itself (its values scaled by the column factors of a change written in
-            // place: the device's product reads its entries).
-            let s = m.s().map_err(invalid)?;
-            let view = s.view();
-            let pushed = match scene.bundle.tree() {
-                Some(t) if view.n_rows() > t.perm.len() => {
-                    Some(push_node_rows(view, t).map_err(invalid)?)
-                }
-                _ => None,
-            };
-            let view = match &pushed {
-                Some(p) => p.view().map_err(invalid)?,
-                None => view,
-            };
-            let s = GpuCsr::upload_rgb(ctx, &format!("{} S override", scene.id), &view)?;
-            let sys = GpuSystem::with_f(
-                ctx,
-                scene.id,
-                g.base.f().clone(),
-                s,
-                SolveParams::default().max_iterations.max(1000),
-            )?;
-            *slot = Some((m.key.clone(), sys));
-        }
-        let (_, sys) = slot.as_ref().expect("set above");
-        f(sys)
     }
 
     /// Moves a scene to the CPU after a device error (logged; its buffers go when the last
@@ -627,103 +416,6 @@ impl translux_engine::backend::Backend for Backend {
         self.scene(scene).is_some()
     }
 
-    /// Builds and uploads the S template for the bundle's own materials now, as the first
-    /// [`Backend::rebuild_s`](translux_engine::backend::Backend::rebuild_s) would (a template covers every translucency of the materials'
-    /// classes, `STemplate::covers`), so that first change does not wait for it.
-    fn prepare_s(&self, scene: SceneRef<'_>) -> Result<SPrep, SError> {
-        let Some(ctx) = self.inner.gpu.as_ref() else {
-            return Ok(SPrep::Cpu(None));
-        };
-        let Some(g) = self.scene(scene) else {
-            return Ok(SPrep::Cpu(Some("the scene is served from the CPU".into())));
-        };
-        if let Some(why) = self.s_on_cpu() {
-            return Ok(SPrep::Cpu(Some(why)));
-        }
-        let sp = SParams::default();
-        let (materials, stored) = smatrix::bundle_materials(scene.bundle, &[])?;
-        let m = match SMaterials::plan(scene.bundle, &materials, &stored, &sp)? {
-            Plan::Device(m) => m,
-            Plan::Cpu(why) => return Ok(SPrep::Cpu(Some(why))),
-        };
-        match template_for(ctx, &g, scene, &m, &stored, &sp) {
-            Ok(slot) => Ok(SPrep::Device {
-                bytes: slot.as_ref().map_or(0, |t| t.bytes()),
-            }),
-            Err(why) => Ok(SPrep::Cpu(Some(why))),
-        }
-    }
-
-    /// Rebuilds S for `overrides` on the device ([`crate::gpu::subsurface`]) and makes it
-    /// the scene's override system under `key`; answers S's values for the CPU's products.
-    /// [`SBuild::Cpu`] (with the reason, on the GPU backend) when the CPU must build it: the
-    /// CPU backend, a scene served from the CPU, a heterogeneous object, a template that
-    /// does not fit, or a device error (logged). Errors are the materials' own (a bad
-    /// profile), the same as the CPU rebuild's.
-    fn rebuild_s(
-        &self,
-        scene: SceneRef<'_>,
-        key: &str,
-        overrides: &[(usize, Material)],
-    ) -> Result<SBuild, SError> {
-        let Some(ctx) = self.inner.gpu.as_ref() else {
-            return Ok(SBuild::Cpu(None));
-        };
-        let Some(g) = self.scene(scene) else {
-            return Ok(SBuild::Cpu(Some("the scene is served from the CPU".into())));
-        };
-        if let Some(why) = self.s_on_cpu() {
-            return Ok(SBuild::Cpu(Some(why)));
-        }
-        let b = &scene.bundle;
-        let sp = SParams::default();
-        let (materials, stored) = smatrix::bundle_materials(b, overrides)?;
-        let m = match SMaterials::plan(b, &materials, &stored, &sp)? {
-            Plan::Device(m) => m,
-            Plan::Cpu(why) => return Ok(SBuild::Cpu(Some(why))),
-        };
-        let cpu = |what: &str, e: &GpuError| {
-            tracing::warn!(scene = %scene.id, "S is rebuilt on the CPU: {what}: {e}");
-            Ok(SBuild::Cpu(Some(format!("{what}: {e}"))))
-        };
-        let slot = match template_for(ctx, &g, scene, &m, &stored, &sp) {
-            Ok(slot) => slot,
-            Err(why) => return Ok(SBuild::Cpu(Some(why))),
-        };
-        let template = slot.as_ref().expect("made by template_for");
-        let t_assemble = std::time::Instant::now();
-        let built = match template.assemble(ctx, &format!("{} S", scene.id), &m, &sp.quadrature) {
-            Ok(d) => d,
-            Err(e) => return cpu("the device rebuild of S failed", &e),
-        };
-        drop(slot);
-        let assemble_ms = t_assemble.elapsed().as_secs_f64() * 1e3;
-        let t_bind = std::time::Instant::now();
-        let csr = built.csr;
-        let sys = match GpuSystem::with_f(
-            ctx,
-            scene.id,
-            g.base.f().clone(),
-            built.s,
-            SolveParams::default().max_iterations.max(1000),
-        ) {
-            Ok(sys) => sys,
-            Err(e) => return cpu("binding the rebuilt S failed", &e),
-        };
-        let mut over = g.over.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some((_, old)) = over.take() {
-            old.release(ctx);
-        }
-        *over = Some((key.to_string(), sys));
-        tracing::debug!(
-            scene = %scene.id,
-            assemble_ms,
-            bind_ms = t_bind.elapsed().as_secs_f64() * 1e3,
-            "S rebuilt on the GPU"
-        );
-        Ok(SBuild::Device(csr))
-    }
-
     /// y = R v with the bundle's stored transfer matrix R = T − S (f16, scaled per row and
     /// channel) for k right-hand sides (`[patch][k·3]`), one pass over R per 64 of them.
     /// `false`: compute it on the CPU (CPU backend, no T, T does not fit, device error).
@@ -768,8 +460,8 @@ impl translux_engine::backend::Backend for Backend {
     }
 
     /// Solves (I − S F) x = rhs on the device for the k RGB systems of `rhs`
-    /// (`[patch][k·3]`, the relight's batched layout), S the bundle's or `over`'s; one
-    /// device solve per system. `warm` (same layout) starts each from a previous solution.
+    /// (`[patch][k·3]`, the relight's batched layout) with the bundle's S (`over`, a material
+    /// override's S, is solved on the CPU); one device solve per system. `warm` (same layout) starts each from a previous solution.
     /// `None`: solve on the CPU (see [`Backend::solve`]).
     fn solve_rhs(
         &self,
@@ -781,7 +473,7 @@ impl translux_engine::backend::Backend for Backend {
         warm: Option<&[f32]>,
     ) -> Option<(Vec<f32>, SolveStats)> {
         let ctx = self.inner.gpu.as_ref()?;
-        if self.solved_on_cpu(over) {
+        if over.is_some() {
             return None;
         }
         let g = self.scene(scene)?;
@@ -829,7 +521,7 @@ impl translux_engine::backend::Backend for Backend {
             }
             Ok((x, total.expect("k > 0")))
         };
-        match self.with_system(ctx, scene, &g, over, run) {
+        match run(&g.base) {
             Ok(r) => Some(r),
             Err(e) => {
                 self.fail(ctx, scene, "solve", &e);

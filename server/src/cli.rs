@@ -58,8 +58,8 @@ pub const DEMO_FRAME_PATCHES: u64 = 1500;
                   translux-server render --bundle demo-bundles/cornell --out cornell.png\n  \
                   translux-server export --bundle demo-bundles/cornell --request req.json --out cornell.glb\n\n\
                   Settings: flags, then TRANSLUX_* environment variables, then the --config TOML \
-                  file (keys: bundles, addr, demo, workers, queue, max_batch, deadline_ms, viewer_work_s, editor_work_s), then \
-                  the defaults.\n\
+                  file, then the defaults. Every flag has all three: --max-batch, TRANSLUX_MAX_BATCH \
+                  and the key max_batch (sizes as \"8GiB\" or a number of bytes).\n\
                   Logging: RUST_LOG (default info); RUST_LOG=debug logs every request."
 )]
 pub struct Args {
@@ -77,10 +77,10 @@ pub struct Args {
     /// Precompute the built-in bowls, Cornell box and flower into DIR/bowls, DIR/cornell and
     /// DIR/flower (DIR: --bundles, else ./demo-bundles) unless valid bundles are already
     /// there, then serve DIR.
-    #[arg(long)]
+    #[arg(long, env = "TRANSLUX_DEMO")]
     pub demo: bool,
-    /// A TOML file with any of: bundles, addr, demo, workers, queue, max_batch, deadline_ms,
-    /// viewer_work_s, editor_work_s.
+    /// A TOML file with any of the other settings, each under its flag's name with `_` for
+    /// `-` (bundles, addr, max_batch, memory_budget, …; `crate::config`).
     #[arg(long, value_name = "FILE", env = "TRANSLUX_CONFIG")]
     pub config: Option<PathBuf>,
     /// Relight worker threads [default: one per core].
@@ -106,13 +106,17 @@ pub struct Args {
     #[arg(long, value_name = "S", env = "TRANSLUX_EDITOR_WORK_S")]
     pub editor_work_s: Option<f64>,
     /// Compute backend: auto (a hardware GPU if wgpu finds one, else the CPU), gpu (any
-    /// adapter, a software one too; none is a start-up error) or cpu.
-    #[arg(long, value_enum, env = "TRANSLUX_BACKEND", default_value_t = crate::backend::BackendChoice::Auto)]
-    pub backend: crate::backend::BackendChoice,
-    /// Make what a scene's first translucency change needs (S's radial terms, or the GPU's S
-    /// template: seconds to minutes on large translucent objects) on a background thread
-    /// with half the cores: when the scene is loaded, on its first request, or never
-    /// [default: load; request with --memory-budget].
+    /// adapter, a software one too; none is a start-up error) or cpu [default: auto].
+    #[arg(long, value_enum, env = "TRANSLUX_BACKEND")]
+    pub backend: Option<crate::backend::BackendChoice>,
+    /// GPU memory all scenes may use, in MiB; a scene that would go past it is served from
+    /// the CPU [default: what the device grants].
+    #[arg(long, value_name = "MIB", env = "TRANSLUX_GPU_MEMORY_MIB")]
+    pub gpu_memory_mib: Option<u64>,
+    /// Make what a scene's first translucency change needs (S's radial terms: seconds to
+    /// minutes on large translucent objects) on a background thread with half the cores:
+    /// when the scene is loaded, on its first request, or never [default: load; request
+    /// with --memory-budget].
     #[arg(
         long,
         value_enum,
@@ -129,12 +133,17 @@ pub struct Args {
 }
 
 /// The server's settings after flags, environment, config file and defaults.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Settings {
     pub bundles: PathBuf,
     pub addr: String,
     pub demo: bool,
     pub params: ServerParams,
+    pub backend: crate::backend::BackendChoice,
+    /// `--gpu-memory-mib`.
+    pub gpu_memory_mib: Option<u64>,
+    /// The team's settings, the config file's keys filled in where no flag gave them.
+    pub team: crate::team::TeamArgs,
 }
 
 /// A setting in seconds, `default` when not given; a negative, zero or non-finite number,
@@ -169,12 +178,42 @@ impl Args {
             ),
         };
         let defaults = ServerParams::default();
-        let max_batch = if self.no_batch {
+        let file_no_batch = file.no_batch.unwrap_or(false);
+        if file_no_batch && file.max_batch.is_some() {
+            bail!("no_batch and max_batch exclude each other");
+        }
+        let max_batch = if self.no_batch || (self.max_batch.is_none() && file_no_batch) {
             1
         } else {
             self.max_batch
                 .or(file.max_batch)
                 .unwrap_or(defaults.max_batch)
+        };
+        let t = &self.team;
+        let size = |flag: Option<u64>, key: &str, given: &Option<crate::config::Bytes>| match (
+            flag, given,
+        ) {
+            (Some(b), _) => Ok(Some(b)),
+            (None, Some(b)) => b.bytes(key).map(Some),
+            (None, None) => Ok(None),
+        };
+        // Every field named: a new team flag does not compile here without its config key.
+        let team = crate::team::TeamArgs {
+            tokens: t.tokens.clone().or(file.tokens),
+            rate_limit: t.rate_limit.or(file.rate_limit),
+            rate_burst: t.rate_burst.or(file.rate_burst),
+            memory_budget: size(t.memory_budget, "memory_budget", &file.memory_budget)?,
+            jobs: t.jobs.or(file.jobs),
+            job_threads: t.job_threads.or(file.job_threads),
+            job_queue: t.job_queue.or(file.job_queue),
+            job_memory: size(t.job_memory, "job_memory", &file.job_memory)?,
+            upload_limit: size(t.upload_limit, "upload_limit", &file.upload_limit)?,
+            upload_file_limit: size(
+                t.upload_file_limit,
+                "upload_file_limit",
+                &file.upload_file_limit,
+            )?,
+            max_upload_patches: t.max_upload_patches.or(file.max_upload_patches),
         };
         let params = ServerParams {
             workers: self.workers.or(file.workers).unwrap_or(defaults.workers),
@@ -196,7 +235,8 @@ impl Args {
             )?,
             prepare: self
                 .prepare_translucency
-                .unwrap_or(if self.team.memory_budget.is_some() {
+                .or(file.prepare_translucency)
+                .unwrap_or(if team.memory_budget.is_some() {
                     PrepareWhen::Request
                 } else {
                     PrepareWhen::Load
@@ -213,6 +253,9 @@ impl Args {
                 .unwrap_or_else(|| DEFAULT_ADDR.to_string()),
             demo,
             params,
+            backend: self.backend.or(file.backend).unwrap_or_default(),
+            gpu_memory_mib: self.gpu_memory_mib.or(file.gpu_memory_mib),
+            team,
         })
     }
 }
@@ -294,7 +337,7 @@ pub async fn run(
         bail!("--bundles {}: no such folder", dir.display());
     }
     // The backend, once for the process; `gpu` without an adapter stops here.
-    let backend = crate::backend::Backend::start(args.backend)
+    let backend = crate::backend::Backend::start(settings.backend, settings.gpu_memory_mib)
         .map_err(|e| anyhow::anyhow!("--backend gpu: {e}"))?;
     tracing::info!("{}", backend.describe());
     let mut params = settings.params.clone();
@@ -302,7 +345,7 @@ pub async fn run(
     let state = AppState::with_backend(params, backend);
     // The team first: it settles what a killed job left (a bundle set aside goes back)
     // before the folder is read.
-    let team = crate::team::Team::start(&args.team, &dir, state.clone())?;
+    let team = crate::team::Team::start(&settings.team, &dir, state.clone())?;
     let (mut bundles, errors) =
         discover(&dir).map_err(|e| anyhow::anyhow!("--bundles {}: {e}", dir.display()))?;
     for (id, error) in errors {
@@ -653,6 +696,82 @@ mod tests {
             .unwrap_err();
         let e = format!("{e:#}");
         assert!(e.contains("t.toml") && e.contains("queue"), "{e}");
+    }
+
+    /// The backend's, the GPU budget's, the preparation's and the team's settings have
+    /// config keys too, under their flags' names; a flag still wins over its key.
+    #[test]
+    fn every_setting_has_a_config_key() {
+        if std::env::vars().any(|(k, _)| k.starts_with("TRANSLUX_")) {
+            return; // the environment would take part
+        }
+        use crate::backend::BackendChoice;
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("t.toml");
+        std::fs::write(
+            &file,
+            "demo = true\nno_batch = true\nbackend = \"cpu\"\ngpu_memory_mib = 512\n\
+             prepare_translucency = \"off\"\ntokens = \"tok.toml\"\nrate_limit = 5\n\
+             rate_burst = 7\nmemory_budget = \"1GiB\"\njobs = 2\njob_threads = 3\n\
+             job_queue = 4\njob_memory = 1000\nupload_limit = \"2MiB\"\n\
+             upload_file_limit = \"1MiB\"\nmax_upload_patches = 900\n",
+        )
+        .unwrap();
+        let cfg = file.to_str().unwrap();
+        let s = Args::try_parse_from(["translux-server", "--config", cfg])
+            .unwrap()
+            .settings()
+            .unwrap();
+        assert!(s.demo);
+        assert_eq!(s.params.max_batch, 1);
+        assert_eq!(
+            (s.backend, s.gpu_memory_mib),
+            (BackendChoice::Cpu, Some(512))
+        );
+        assert_eq!(s.params.prepare, PrepareWhen::Off);
+        let t = &s.team;
+        assert_eq!(t.tokens, Some(dir.path().join("tok.toml")));
+        assert_eq!((t.rate_limit, t.rate_burst), (Some(5.0), Some(7.0)));
+        assert_eq!(t.memory_budget, Some(1 << 30));
+        assert_eq!(
+            (t.jobs, t.job_threads, t.job_queue),
+            (Some(2), Some(3), Some(4))
+        );
+        assert_eq!(t.job_memory, Some(1000));
+        assert_eq!(
+            (t.upload_limit, t.upload_file_limit),
+            (Some(2 << 20), Some(1 << 20))
+        );
+        assert_eq!(t.max_upload_patches, Some(900));
+        let s = Args::try_parse_from([
+            "translux-server",
+            "--config",
+            cfg,
+            "--backend",
+            "auto",
+            "--gpu-memory-mib",
+            "64",
+            "--max-batch",
+            "3",
+            "--memory-budget",
+            "2GiB",
+        ])
+        .unwrap()
+        .settings()
+        .unwrap();
+        assert_eq!(
+            (s.backend, s.gpu_memory_mib),
+            (BackendChoice::Auto, Some(64))
+        );
+        assert_eq!(s.params.max_batch, 3);
+        assert_eq!(s.team.memory_budget, Some(2 << 30));
+        std::fs::write(&file, "memory_budget = \"lots\"").unwrap();
+        let e = Args::try_parse_from(["translux-server", "--config", cfg, "--demo"])
+            .unwrap()
+            .settings()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("memory_budget"), "{e}");
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! Server settings: how many workers, how long a queue, how much batching, how long a
-//! request may wait. They come from, in order of precedence, the command line, the
-//! environment (`TRANSLUX_*`, read by clap), an optional TOML file (`--config FILE`), and
-//! the defaults documented on [`ServerParams`].
+//! request may wait, the backend, the team's limits. They come from, in order of precedence,
+//! the command line, the environment (`TRANSLUX_*`, read by clap), an optional TOML file
+//! (`--config FILE`), and the defaults documented on [`ServerParams`] and the flags. Every
+//! setting has all three: the flag `--max-batch`, the variable `TRANSLUX_MAX_BATCH`, the key
+//! `max_batch` ([`FileConfig`]).
 //!
 //! ```toml
 //! # translux.toml — every key optional
@@ -11,9 +13,25 @@
 //! workers = 2                # relight threads; default: one per core
 //! queue = 256                # relights waiting at most; more get 429
 //! max_batch = 32             # relights of one scene computed together; 1 = no batching
+//! no_batch = false           # true: the same as max_batch = 1
 //! deadline_ms = 30000        # a relight that waited longer gets 503
 //! viewer_work_s = 10         # lamp walks a viewer's request may run; longer gets 422
 //! editor_work_s = 600        # the same for editors and admins (and without tokens)
+//! backend = "auto"           # auto, gpu or cpu
+//! gpu_memory_mib = 8192      # GPU memory all scenes may use; default: what the device grants
+//! prepare_translucency = "load"  # load, request or off
+//! # The team (docs/team.md): sizes as "8GiB" or a number of bytes.
+//! tokens = "tokens.toml"     # relative to this file's folder
+//! rate_limit = 50
+//! rate_burst = 100
+//! memory_budget = "8GiB"
+//! jobs = 1
+//! job_threads = 4
+//! job_queue = 16
+//! job_memory = "4GiB"
+//! upload_limit = "256MiB"
+//! upload_file_limit = "64MiB"
+//! max_upload_patches = 50000
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -72,10 +90,11 @@ pub struct ServerParams {
     pub editor_work: Duration,
 }
 
-/// When what a scene's first translucency change needs (S's radial terms on the CPU, the S
-/// template on the GPU) is made on a background thread with half the cores
+/// When what a scene's first translucency change needs (S's radial terms) is made on a
+/// background thread with half the cores
 /// ([`translux_engine::scene::Scene::prepare_translucency`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum PrepareWhen {
     /// As soon as the scene is loaded.
     Load,
@@ -165,7 +184,8 @@ pub fn default_workers() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
-/// The TOML file's keys; all optional, unknown keys refused.
+/// The TOML file's keys, one per flag (`--max-batch` is `max_batch`); all optional,
+/// unknown keys refused.
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FileConfig {
@@ -175,9 +195,45 @@ pub struct FileConfig {
     pub workers: Option<usize>,
     pub queue: Option<usize>,
     pub max_batch: Option<usize>,
+    pub no_batch: Option<bool>,
     pub deadline_ms: Option<u64>,
     pub viewer_work_s: Option<f64>,
     pub editor_work_s: Option<f64>,
+    pub backend: Option<crate::backend::BackendChoice>,
+    pub gpu_memory_mib: Option<u64>,
+    pub prepare_translucency: Option<PrepareWhen>,
+    pub tokens: Option<PathBuf>,
+    pub rate_limit: Option<f64>,
+    pub rate_burst: Option<f64>,
+    pub memory_budget: Option<Bytes>,
+    pub jobs: Option<usize>,
+    pub job_threads: Option<usize>,
+    pub job_queue: Option<usize>,
+    pub job_memory: Option<Bytes>,
+    pub upload_limit: Option<Bytes>,
+    pub upload_file_limit: Option<Bytes>,
+    pub max_upload_patches: Option<u64>,
+}
+
+/// A size in the config file: a number of bytes, or text as the flags take it (`8GiB`,
+/// [`crate::budget::parse_bytes`]).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(untagged)]
+pub enum Bytes {
+    Count(u64),
+    Text(String),
+}
+
+impl Bytes {
+    /// The bytes; an error names `key`.
+    pub fn bytes(&self, key: &str) -> anyhow::Result<u64> {
+        match self {
+            Bytes::Count(n) => Ok(*n),
+            Bytes::Text(t) => {
+                crate::budget::parse_bytes(t).map_err(|e| anyhow::anyhow!("{key}: {e}"))
+            }
+        }
+    }
 }
 
 impl FileConfig {
@@ -188,11 +244,11 @@ impl FileConfig {
             .with_context(|| format!("cannot read the config file {}", path.display()))?;
         let mut cfg =
             FileConfig::parse(&text).with_context(|| format!("config file {}", path.display()))?;
-        if let Some(b) = &cfg.bundles
-            && b.is_relative()
-        {
-            let base = path.parent().unwrap_or(Path::new(""));
-            cfg.bundles = Some(base.join(b));
+        let base = path.parent().unwrap_or(Path::new(""));
+        for p in [&mut cfg.bundles, &mut cfg.tokens].into_iter().flatten() {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
         }
         Ok(cfg)
     }

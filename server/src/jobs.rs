@@ -37,7 +37,8 @@ use tokio::sync::watch;
 use translux_engine::stop::{Stop, StopFlag};
 use translux_precompute::bundle::{Writers, settle_leftovers};
 use translux_precompute::pipeline::{
-    Observer, PrecomputeError, PrecomputeParams, hierarchical_s_by_default, precompute,
+    Observer, PrecomputeError, PrecomputeParams, available_memory, hierarchical_s_by_default,
+    precompute, resident_memory,
 };
 use translux_precompute::scene::load_scene_file;
 use translux_precompute::slinks::SLinkParams;
@@ -46,7 +47,7 @@ use translux_proto::scene::Material;
 use crate::error::AppError;
 
 /// Where a job is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum JobState {
     Queued,
@@ -67,7 +68,7 @@ impl JobState {
 }
 
 /// What a finished job produced.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct JobResult {
     pub patches: u64,
     pub vertices: u64,
@@ -77,7 +78,7 @@ pub struct JobResult {
 }
 
 /// A job as clients see it (`GET /api/v1/jobs/{id}`) and as it is kept on disk.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct JobRecord {
     /// `j` and 20 hex digits.
     pub id: String,
@@ -125,6 +126,10 @@ pub struct JobsConfig {
     pub queue: usize,
     /// Jobs one token may have waiting.
     pub per_owner: usize,
+    /// Bytes one job may take (`None`: 85% of the memory available when it starts): the
+    /// precompute's own estimate is held to it up front, and the job is stopped when the
+    /// server's resident memory grows by more while it runs.
+    pub memory: Option<u64>,
 }
 
 impl JobsConfig {
@@ -140,6 +145,7 @@ impl JobsConfig {
             threads: (cores / 2).max(1),
             queue: 16,
             per_owner: 4,
+            memory: None,
         }
     }
 }
@@ -273,6 +279,65 @@ impl Entry {
 struct JobObserver {
     entry: Arc<Entry>,
     jobs_dir: PathBuf,
+    memory: MemoryWatch,
+}
+
+/// A job's memory budget, checked as it goes: the server's resident memory may grow by at
+/// most `limit` bytes over `base` (what it held when the job started).
+#[derive(Debug)]
+struct MemoryWatch {
+    limit: u64,
+    base: u64,
+    started: Instant,
+    /// Milliseconds after `started` of the last check (checks are 50 ms apart at most).
+    checked_ms: AtomicU64,
+    /// The growth that broke the budget (0 while within it).
+    over: AtomicU64,
+}
+
+impl MemoryWatch {
+    fn new(limit: u64) -> MemoryWatch {
+        MemoryWatch {
+            limit,
+            base: resident_memory().unwrap_or(0),
+            started: Instant::now(),
+            checked_ms: AtomicU64::new(0),
+            over: AtomicU64::new(0),
+        }
+    }
+
+    /// Whether the job has grown past its budget (reads the resident size at most every
+    /// 50 ms; called from many threads).
+    fn exceeded(&self) -> bool {
+        let now = self.started.elapsed().as_millis() as u64;
+        let last = self.checked_ms.load(Ordering::Relaxed);
+        if now >= last + 50
+            && self
+                .checked_ms
+                .compare_exchange(last, now, Ordering::Relaxed, Ordering::Relaxed)
+                .is_ok()
+            && let Some(rss) = resident_memory()
+        {
+            let grown = rss.saturating_sub(self.base);
+            if grown > self.limit {
+                self.over.store(grown, Ordering::Relaxed);
+            }
+        }
+        self.over.load(Ordering::Relaxed) > 0
+    }
+
+    /// The job's error when it was stopped for its memory.
+    fn message(&self) -> Option<String> {
+        let grown = self.over.load(Ordering::Relaxed);
+        (grown > 0).then(|| {
+            format!(
+                "memory: the job grew the server by {} MiB, past its budget of {} MiB \
+                 (--job-memory); ask fewer patches",
+                grown >> 20,
+                self.limit >> 20
+            )
+        })
+    }
 }
 
 impl Observer for JobObserver {
@@ -283,6 +348,9 @@ impl Observer for JobObserver {
     }
 
     fn progress(&self, stage: &str, done: u64, total: u64) {
+        if self.memory.exceeded() {
+            self.entry.cancel.set();
+        }
         let fraction = if total == 0 {
             1.0
         } else {
@@ -627,9 +695,13 @@ impl Jobs {
         tracing::info!(job = %spec.id, scene = %spec.scene, "job started");
         let t = Instant::now();
         let out = cfg.bundles.join(&spec.scene);
+        let memory_limit = cfg
+            .memory
+            .or_else(|| available_memory().map(|a| (a as f64 * 0.85) as u64));
         let observer = Arc::new(JobObserver {
             entry: entry.clone(),
             jobs_dir: cfg.jobs_dir.clone(),
+            memory: MemoryWatch::new(memory_limit.unwrap_or(u64::MAX)),
         });
         let result: Result<JobResult, String> = (|| {
             if entry.cancel.is_set() {
@@ -653,6 +725,7 @@ impl Jobs {
                 patches: spec.patches,
                 max_edge: spec.max_edge,
                 progress: false,
+                memory_limit,
                 observer: Some(observer.clone()),
                 ..Default::default()
             };
@@ -663,7 +736,10 @@ impl Jobs {
                 .rayon
                 .install(|| precompute(&scene, &out, &params))
                 .map_err(|e| match e {
-                    PrecomputeError::Cancelled => "cancelled".to_string(),
+                    PrecomputeError::Cancelled => observer
+                        .memory
+                        .message()
+                        .unwrap_or_else(|| "cancelled".to_string()),
                     e => e.to_string(),
                 })?;
             Ok(JobResult {
@@ -965,6 +1041,25 @@ fn remove_file_quietly(p: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The budget as it goes: growth past the limit is seen at the next check (50 ms
+    /// apart) and named in the job's error; within it nothing fires.
+    #[test]
+    fn a_job_growing_past_its_memory_budget_is_stopped() {
+        if resident_memory().is_none() {
+            return; // no /proc: the budget is only the precompute's estimate
+        }
+        let roomy = MemoryWatch::new(u64::MAX / 2);
+        let tight = MemoryWatch::new(8 << 20);
+        let block = vec![1u8; 64 << 20];
+        std::thread::sleep(std::time::Duration::from_millis(60));
+        assert!(block.iter().step_by(4096).all(|&b| b == 1));
+        assert!(!roomy.exceeded() && roomy.message().is_none());
+        assert!(tight.exceeded());
+        let m = tight.message().unwrap();
+        assert!(m.contains("past its budget of 8 MiB"), "{m}");
+        drop(block);
+    }
 
     #[test]
     fn ids_and_percentages() {

@@ -11,7 +11,7 @@
 //!
 //! | part | modules |
 //! | --- | --- |
-//! | routes and bodies | [`routes`] (REST; the full list is `openapi.json` and `docs/api.md`), [`ws`] (the stream, `docs/stream.md`), [`extract`] (strict JSON bodies, `Accept` negotiation), [`error`] (every failure as `{"error":{"code","message"}}`) |
+//! | routes and bodies | [`routes`] (REST; the full list is `docs/api.md` and the generated OpenAPI document, [`openapi`], [`schema`]), [`ws`] (the stream, `docs/stream.md`), [`extract`] (strict JSON bodies, `Accept` negotiation), [`error`] (every failure as `{"error":{"code","message"}}`) |
 //! | what it holds | [`state`] (one opened scene per bundle, the pool, the metrics, the shutdown signal), [`config`] (settings from flags, `TRANSLUX_*`, a TOML file) |
 //! | a relight | planned and run by the engine: [`translux_engine::relight`] (plan, then run or run a batch), [`translux_engine::environment`] (environment lights) |
 //! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction), [`prepare`] (translucency changes made ready in the background) |
@@ -48,9 +48,11 @@ pub mod gpu;
 pub mod jobs;
 pub mod metrics;
 pub mod offline;
+pub mod openapi;
 pub mod pool;
 pub mod prepare;
 pub mod routes;
+pub mod schema;
 pub mod state;
 pub mod team;
 pub mod upload;
@@ -186,4 +188,26 @@ pub async fn serve_router(
     let pool = state.pool().clone();
     let _ = tokio::task::spawn_blocking(move || pool.join()).await;
     Ok(())
+}
+
+/// `GET /api/v1/openapi.json`: this document, OpenAPI 3.1, generated from the server's
+/// routes and body types ([`openapi`]). It sits at the crate root because the document
+/// names every route, this one included: the routes' module lists it, and the document's
+/// module lists the routes.
+#[utoipa::path(
+    get,
+    path = "/api/v1/openapi.json",
+    tag = "operations",
+    responses((status = 200, description = "The OpenAPI document.", body = Object))
+)]
+pub(crate) async fn openapi_document() -> axum::response::Response {
+    use axum::response::IntoResponse;
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static("application/json"),
+        )],
+        openapi::json(),
+    )
+        .into_response()
 }

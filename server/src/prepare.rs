@@ -1,6 +1,6 @@
 //! Translucency preparation in the background: what a scene's first translucency change
-//! would otherwise make and wait for (S's radial terms on the CPU, the S template on the
-//! GPU; seconds on the benchmark's scenes, about two minutes on the paper's rose) is made
+//! would otherwise make and wait for (S's radial terms, on the CPU on both backends;
+//! seconds on the benchmark's scenes, about two minutes on the paper's rose) is made
 //! on one thread of its own, one scene at a time, on a rayon pool of half the cores so
 //! relights keep the other half ([`translux_engine::scene::Scene::prepare_translucency`]).
 //!

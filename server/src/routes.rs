@@ -1,8 +1,11 @@
 //! The HTTP API (axum): routes, handlers, and the middleware around them.
 //!
-//! Every route is registered through [`RouteTable`], which records its method and path, so
-//! [`routes`] lists exactly what [`router`] serves (a test checks each is in the OpenAPI
-//! document served at `/api/v1/openapi.json`, [`OPENAPI_JSON`]).
+//! Every route is registered through [`RouteTable`], which routes each handler under the
+//! one method and path it records, so [`routes`] lists exactly what [`router`] serves (and
+//! [`crate::team::routes`] what the team router adds). Each handler carries its OpenAPI
+//! description (`#[utoipa::path]`); [`crate::openapi`] gathers them into the document served
+//! at `/api/v1/openapi.json`, and its tests check that the document lists exactly the
+//! routes of both tables.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -10,15 +13,16 @@ use std::time::Instant;
 use axum::Router;
 use axum::body::{Body, Bytes};
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::handler::Handler;
 use axum::http::header::{CONTENT_TYPE, VARY};
 use axum::http::{HeaderMap, HeaderValue, Method, Uri};
 use axum::middleware::{self, Next};
 use axum::response::{Html, IntoResponse, Response};
-use axum::routing::{MethodRouter, get, post};
+use axum::routing::{MethodFilter, MethodRouter};
 use serde::{Deserialize, Serialize};
 use translux_proto::api::{
-    GpuHealth, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest, SceneDetail,
-    SceneList, SceneObject, SceneSummary,
+    ErrorBody, GpuHealth, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest,
+    SceneDetail, SceneList, SceneObject, SceneSummary,
 };
 
 use crate::error::AppError;
@@ -26,6 +30,7 @@ use crate::extract::{
     BODY_LIMIT, ClientKey, Format, FrameQuery, JsonBody, SceneId, accept_picture, negotiate,
 };
 use crate::pool::{Done, Work};
+use crate::schema::{ClientIdParam, FrameParam, SceneIdParam};
 use crate::state::{AppState, Scene, SceneState};
 use crate::ws;
 use translux_engine::{picture, relight};
@@ -37,66 +42,90 @@ pub const INDEX_HTML: &str = include_str!("../../web/index.html");
 #[path = "../../web/assets.rs"]
 pub mod web_assets;
 
-/// The OpenAPI 3 document of every route, written by hand (a generator such as utoipa
-/// would add a proc-macro dependency and annotations on every handler for a few routes).
-pub const OPENAPI_JSON: &str = include_str!("openapi.json");
-
-/// Records each route's method and path while building the router.
+/// Builds a router whose every route is recorded: each handler is routed under exactly the
+/// method and path written down (`on(method, handler)`, so a handler cannot answer a method
+/// the table does not list), and a path given twice gets both methods.
 #[derive(Debug)]
-pub struct RouteTable {
-    router: Router<AppState>,
+pub struct RouteTable<S> {
+    router: Router<S>,
     routes: Vec<(Method, &'static str)>,
 }
 
-impl RouteTable {
-    fn new() -> Self {
+impl<S: Clone + Send + Sync + 'static> RouteTable<S> {
+    pub(crate) fn new() -> Self {
         RouteTable {
             router: Router::new(),
             routes: Vec::new(),
         }
     }
 
-    fn add(mut self, method: Method, path: &'static str, handler: MethodRouter<AppState>) -> Self {
+    /// `handler` for `method path`, its method router passed through `wrap` (for layers:
+    /// `wrap` must not add methods).
+    pub(crate) fn add_with<H, T>(
+        mut self,
+        method: Method,
+        path: &'static str,
+        handler: H,
+        wrap: impl FnOnce(MethodRouter<S>) -> MethodRouter<S>,
+    ) -> Self
+    where
+        H: Handler<T, S>,
+        T: 'static,
+    {
+        let filter = MethodFilter::try_from(method.clone())
+            .unwrap_or_else(|e| panic!("{method} {path}: {e}"));
         self.routes.push((method, path));
-        self.router = self.router.route(path, handler);
+        self.router = self
+            .router
+            .route(path, wrap(axum::routing::on(filter, handler)));
         self
     }
 
-    fn get(self, path: &'static str, handler: MethodRouter<AppState>) -> Self {
-        self.add(Method::GET, path, handler)
+    pub(crate) fn get<H: Handler<T, S>, T: 'static>(self, path: &'static str, h: H) -> Self {
+        self.add_with(Method::GET, path, h, |m| m)
     }
 
-    fn post(self, path: &'static str, handler: MethodRouter<AppState>) -> Self {
-        self.add(Method::POST, path, handler)
+    pub(crate) fn post<H: Handler<T, S>, T: 'static>(self, path: &'static str, h: H) -> Self {
+        self.add_with(Method::POST, path, h, |m| m)
+    }
+
+    pub(crate) fn delete<H: Handler<T, S>, T: 'static>(self, path: &'static str, h: H) -> Self {
+        self.add_with(Method::DELETE, path, h, |m| m)
+    }
+
+    /// The router built so far, and `(method, path)` of each of its routes.
+    pub(crate) fn finish(self) -> (Router<S>, Vec<(Method, &'static str)>) {
+        (self.router, self.routes)
     }
 }
 
 /// Every route of the API.
-fn table() -> RouteTable {
+fn table() -> RouteTable<AppState> {
     RouteTable::new()
-        .get("/", get(index))
-        .get("/healthz", get(healthz))
-        .get("/metrics", get(metrics))
-        .get("/api/v1/openapi.json", get(openapi))
-        .get("/api/v1/scenes", get(list_scenes))
-        .get("/api/v1/scenes/{id}", get(scene_detail))
-        .get("/api/v1/scenes/{id}/mesh", get(scene_mesh))
-        .post("/api/v1/scenes/{id}/relight", post(relight))
-        .post("/api/v1/scenes/{id}/render", post(render))
-        .get("/api/v1/scenes/{id}/stream", get(ws::stream))
-        .get("/web/{*path}", get(web_assets::serve))
+        .get("/", index)
+        .get("/healthz", healthz)
+        .get("/metrics", metrics)
+        .get("/api/v1/openapi.json", crate::openapi_document)
+        .get("/api/v1/scenes", list_scenes)
+        .get("/api/v1/scenes/{id}", scene_detail)
+        .get("/api/v1/scenes/{id}/mesh", scene_mesh)
+        .post("/api/v1/scenes/{id}/relight", relight)
+        .post("/api/v1/scenes/{id}/render", render)
+        .get("/api/v1/scenes/{id}/stream", ws::stream)
+        .get("/web/{*path}", web_file)
 }
 
 /// `(method, path template)` of every route [`router`] serves.
 pub fn routes() -> Vec<(Method, &'static str)> {
-    table().routes
+    table().finish().1
 }
 
 /// The whole API over `state`, without the request log (see [`with_request_log`], which
 /// `serve` puts around everything, the team routes and the access checks included).
 pub fn router(state: AppState) -> Router {
     table()
-        .router
+        .finish()
+        .0
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(BODY_LIMIT))
@@ -140,12 +169,19 @@ fn find_scene(state: &AppState, id: &str) -> Result<Arc<Scene>, AppError> {
     state.lookup(id)
 }
 
-async fn index() -> Html<&'static str> {
+/// The viewer page.
+#[utoipa::path(
+    get,
+    path = "/",
+    tag = "viewer",
+    responses((status = 200, description = "The browser viewer (docs/viewer.md).", body = String, content_type = "text/html"))
+)]
+pub(crate) async fn index() -> Html<&'static str> {
     Html(INDEX_HTML)
 }
 
 /// `GET /healthz`: the backend, each scene's state, memory and the queue.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct HealthReport {
     /// `ok` while the server answers.
     pub status: String,
@@ -165,7 +201,7 @@ pub struct HealthReport {
 }
 
 /// One scene in [`HealthReport`].
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct SceneHealth {
     pub id: String,
     /// `loading`, `ready` or `failed`.
@@ -179,7 +215,7 @@ pub struct SceneHealth {
 }
 
 /// Memory in [`HealthReport`].
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct MemoryHealth {
     /// Resident set size of the process (absent where the OS does not say).
     pub rss_bytes: Option<u64>,
@@ -188,7 +224,7 @@ pub struct MemoryHealth {
 }
 
 /// The worker pool in [`HealthReport`].
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct QueueHealth {
     pub workers: usize,
     /// Relights waiting now.
@@ -237,12 +273,31 @@ fn health(state: &AppState) -> HealthReport {
     }
 }
 
-async fn healthz(State(state): State<AppState>) -> Result<Response, AppError> {
+/// Backend, GPU, scenes, memory and the queue.
+///
+/// Each scene's state is `loading`, `ready`, `failed` or `evicted`.
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "operations",
+    responses((status = 200, description = "The server's state.", body = HealthReport))
+)]
+pub(crate) async fn healthz(State(state): State<AppState>) -> Result<Response, AppError> {
     to_json(&health(&state))
 }
 
 /// `GET /metrics`: Prometheus text; the scene and memory gauges are read now.
-async fn metrics(State(state): State<AppState>) -> Result<Response, AppError> {
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "operations",
+    summary = "Prometheus text exposition.",
+    description = "Latency by route, queue depth, batch sizes, solver iterations, relights by \
+                   outcome, memory; the scene and memory gauges are read at the request.",
+    responses((status = 200, description = "Prometheus text format 0.0.4.", body = String,
+               content_type = "text/plain; version=0.0.4; charset=utf-8"))
+)]
+pub(crate) async fn metrics(State(state): State<AppState>) -> Result<Response, AppError> {
     let m = state.metrics();
     for s in ["loading", "ready", "failed", "evicted"] {
         m.scenes.with_label_values(&[s]).set(0);
@@ -267,11 +322,6 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, AppError> {
         .into_response())
 }
 
-/// `GET /api/v1/openapi.json`.
-async fn openapi() -> Response {
-    json_bytes(OPENAPI_JSON)
-}
-
 /// `GET /api/v1/scenes`' entry for `scene`.
 pub(crate) fn summary(scene: &Scene) -> SceneSummary {
     let m = scene.bundle.manifest();
@@ -286,7 +336,14 @@ pub(crate) fn summary(scene: &Scene) -> SceneSummary {
     }
 }
 
-async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError> {
+/// The scenes served (ready ones and those evicted by the memory budget).
+#[utoipa::path(
+    get,
+    path = "/api/v1/scenes",
+    tag = "scenes",
+    responses((status = 200, description = "The scenes.", body = SceneList))
+)]
+pub(crate) async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError> {
     to_json(&SceneList {
         // Evicted scenes (memory budget) are listed too: their next request reopens them.
         scenes: state
@@ -301,7 +358,20 @@ async fn list_scenes(State(state): State<AppState>) -> Result<Response, AppError
     })
 }
 
-async fn scene_detail(
+/// Counts, objects and their materials, default lights and camera, F statistics.
+#[utoipa::path(
+    get,
+    path = "/api/v1/scenes/{id}",
+    tag = "scenes",
+    params(SceneIdParam, FrameParam),
+    responses(
+        (status = 200, description = "The scene (the frame asked for).", body = SceneDetail),
+        (status = 400, description = "`bad_request`: a bad `frame`; `invalid`: a frame out of range.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene, or one whose bundle failed to load (the message says why).", body = ErrorBody),
+        (status = 503, description = "`loading`: the scene is still loading (`Retry-After: 1`).", body = ErrorBody),
+    )
+)]
+pub(crate) async fn scene_detail(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     FrameQuery(frame): FrameQuery,
@@ -376,7 +446,20 @@ fn mesh_of(scene: &Scene) -> Mesh {
     }
 }
 
-async fn scene_mesh(
+/// The viewer mesh: flat positions, normals, indices and each object's triangle range.
+#[utoipa::path(
+    get,
+    path = "/api/v1/scenes/{id}/mesh",
+    tag = "scenes",
+    params(SceneIdParam, FrameParam),
+    responses(
+        (status = 200, description = "The mesh, JSON only.", body = Mesh),
+        (status = 400, description = "`bad_request`: a bad `frame`; `invalid`: a frame out of range.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 503, description = "`loading`: the scene is still loading (`Retry-After: 1`).", body = ErrorBody),
+    )
+)]
+pub(crate) async fn scene_mesh(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     FrameQuery(frame): FrameQuery,
@@ -395,7 +478,41 @@ async fn scene_mesh(
     Ok(json_bytes(bytes))
 }
 
-async fn relight(
+/// Relight: per-vertex linear radiance B/π in the mesh's vertex order.
+///
+/// The answer's form follows `Accept`: `application/json` for the JSON form; otherwise
+/// (`application/octet-stream`, `*/*`, none) n × 3 little-endian f32.
+#[utoipa::path(
+    post,
+    path = "/api/v1/scenes/{id}/relight",
+    tag = "scenes",
+    params(SceneIdParam, ClientIdParam),
+    request_body(content = RelightRequest, content_type = "application/json",
+                 description = "Every field is optional: `{}` relights with the bundle's lights."),
+    responses(
+        (status = 200,
+         description = "The radiance: JSON, or n × 3 little-endian f32 (`[r, g, b]` per vertex).",
+         content(
+             (RelightResponse = "application/json"),
+             (crate::schema::Binary = "application/octet-stream"),
+         ),
+         headers(
+             ("X-Vertex-Count" = u64, description = "Vertices in the answer."),
+             ("Server-Timing" = String, description = "queue, direct, solve and total milliseconds."),
+             ("X-Auto-Exposure" = f32, description = "With `\"direct_at\": \"pixel\"`: the automatic exposure (EV) of the whole answer."),
+             ("Vary" = String, description = "`accept`."),
+         )),
+        (status = 400, description = "`bad_request`: the body is not a relight request (the message names the field); `invalid`: a value breaks a rule; `unsupported`: this bundle cannot do it.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 406, description = "`not_acceptable`: `Accept` allows neither form.", body = ErrorBody),
+        (status = 413, description = "`payload_too_large`: the body is over 1 MiB.", body = ErrorBody),
+        (status = 415, description = "`unsupported_media_type`: the body is not declared as JSON.", body = ErrorBody),
+        (status = 422, description = "`work_limit`: the request's lamp walks ran past its role's limit.", body = ErrorBody),
+        (status = 429, description = "`queue_full`: the relight queue is full (`Retry-After`); with tokens also `rate_limited`.", body = ErrorBody),
+        (status = 503, description = "`loading`, `deadline_exceeded`, `shutting_down` or `cancelled`.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn relight(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     ClientKey(client): ClientKey,
@@ -480,7 +597,42 @@ async fn relight(
 /// `Accept: image/x-exr`, a linear OpenEXR (see [`picture`]: `auto` leaves it unscaled and
 /// `X-Exposure` is then 0). The relight runs through the same [`relight::plan`] /
 /// [`relight::run`] as `/relight`.
-async fn render(
+#[utoipa::path(
+    post,
+    path = "/api/v1/scenes/{id}/render",
+    tag = "scenes",
+    summary = "Relight and render from a camera to a PNG, or a linear OpenEXR.",
+    description = "The relight request's fields plus a camera, the picture's size, exposure \
+                   (EV, or `auto`: the viewer's rule) and tone curve. The format follows \
+                   `Accept`: `image/x-exr` for a linear OpenEXR (`auto` leaves it unscaled); \
+                   otherwise (`image/png`, `image/*`, `*/*`, none) a PNG.",
+    params(SceneIdParam, ClientIdParam),
+    request_body(content = RenderRequest, content_type = "application/json",
+                 description = "Every field is optional: `{}` renders the bundle's lights from its camera at 800 × 600."),
+    responses(
+        (status = 200,
+         description = "The picture.",
+         content(
+             (crate::schema::Binary = "image/png"),
+             (crate::schema::Binary = "image/x-exr"),
+         ),
+         headers(
+             ("X-Exposure" = f32, description = "The EV used (0 for an `auto` OpenEXR, which is left unscaled)."),
+             ("X-Vertex-Count" = u64, description = "Vertices relit."),
+             ("Server-Timing" = String, description = "direct, solve, raster, encode and total milliseconds."),
+             ("Vary" = String, description = "`accept`."),
+         )),
+        (status = 400, description = "`bad_request`: the body is not a render request; `invalid`: a value breaks a rule; `unsupported`: this bundle cannot do it.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 406, description = "`not_acceptable`: `Accept` allows neither picture format.", body = ErrorBody),
+        (status = 413, description = "`payload_too_large`: the body is over 1 MiB.", body = ErrorBody),
+        (status = 415, description = "`unsupported_media_type`: the body is not declared as JSON.", body = ErrorBody),
+        (status = 422, description = "`work_limit`: the request's lamp walks ran past its role's limit.", body = ErrorBody),
+        (status = 429, description = "`queue_full`: the relight queue is full (`Retry-After`); with tokens also `rate_limited`.", body = ErrorBody),
+        (status = 503, description = "`loading`, `deadline_exceeded`, `shutting_down` or `cancelled`.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn render(
     State(state): State<AppState>,
     SceneId(id): SceneId,
     ClientKey(client): ClientKey,
@@ -537,6 +689,25 @@ async fn render(
         h.insert("server-timing", v);
     }
     Ok(response)
+}
+
+/// The viewer's scripts and styles, embedded in the binary.
+// Answered by `web_assets::serve`, whose file lives with the viewer's in web/.
+#[utoipa::path(
+    get,
+    path = "/web/{path}",
+    tag = "viewer",
+    params(("path" = String, Path, description = "A file of the viewer, e.g. `viewer.js`.")),
+    responses(
+        (status = 200, description = "The file.", content(
+            (String = "text/javascript; charset=utf-8"),
+            (String = "text/css; charset=utf-8"),
+        )),
+        (status = 404, description = "`not_found`: no such file; the message lists them.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn web_file(path: axum::extract::Path<String>) -> Result<Response, AppError> {
+    web_assets::serve(path).await
 }
 
 async fn not_found(method: Method, uri: Uri) -> AppError {

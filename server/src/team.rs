@@ -29,15 +29,17 @@ use axum::http::{Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{delete, get, post};
 use axum::{Extension, Json, Router};
-use serde_json::json;
+use serde::Serialize;
+use translux_proto::api::ErrorBody;
 use translux_proto::bundle::OpenOptions;
 
 use crate::auth::{Auth, Identity, RateLimit, Role};
 use crate::budget::{EvictedScene, MemoryBudget, parse_bytes};
 use crate::error::AppError;
 use crate::jobs::{JobRecord, Jobs, JobsConfig};
+use crate::routes::RouteTable;
+use crate::schema::SceneIdParam;
 use crate::state::{AppState, Scene, SceneState};
 use crate::upload::{UploadLimits, check_scene_id};
 
@@ -67,6 +69,11 @@ pub struct TeamArgs {
     /// Precompute jobs that may wait [default: 16; 4 per token].
     #[arg(long, value_name = "N", env = "TRANSLUX_JOB_QUEUE")]
     pub job_queue: Option<usize>,
+    /// Memory one precompute job may take (e.g. 4GiB): refused up front when its estimate
+    /// is larger, stopped when the server grows by more while it runs [default: 85% of the
+    /// memory available when it starts].
+    #[arg(long, value_name = "SIZE", env = "TRANSLUX_JOB_MEMORY", value_parser = parse_bytes)]
+    pub job_memory: Option<u64>,
     /// Largest upload, all files together [default: 256MiB].
     #[arg(long, value_name = "SIZE", env = "TRANSLUX_UPLOAD_LIMIT", value_parser = parse_bytes)]
     pub upload_limit: Option<u64>,
@@ -134,6 +141,7 @@ impl Team {
         cfg.workers = args.jobs.unwrap_or(cfg.workers);
         cfg.threads = args.job_threads.unwrap_or(cfg.threads);
         cfg.queue = args.job_queue.unwrap_or(cfg.queue);
+        cfg.memory = args.job_memory;
         cfg.per_owner = cfg.per_owner.min(cfg.queue);
         let budget = Arc::new(MemoryBudget::new(args.memory_budget));
         {
@@ -401,36 +409,32 @@ async fn residency(State(team): State<Team>, req: Request, next: Next) -> Respon
     next.run(req).await
 }
 
-/// `(method, path)` of the routes this module adds.
+/// The routes this module adds; uploads take bodies up to `body_limit` bytes.
+fn table(body_limit: usize) -> RouteTable<Team> {
+    RouteTable::new()
+        .add_with(Method::POST, "/api/v1/scenes", upload, |m| {
+            m.layer(DefaultBodyLimit::max(body_limit))
+        })
+        .delete("/api/v1/scenes/{id}", delete_scene)
+        .post("/api/v1/scenes/{id}/resimulate", resimulate)
+        .get("/api/v1/jobs", list_jobs)
+        .get("/api/v1/jobs/{id}", get_job)
+        .delete("/api/v1/jobs/{id}", cancel_job)
+        .get("/api/v1/jobs/{id}/events", job_events)
+        .get("/api/v1/whoami", whoami)
+}
+
+/// `(method, path)` of the routes this module adds (what [`app`] adds to
+/// [`crate::routes::routes`]).
 pub fn routes() -> Vec<(Method, &'static str)> {
-    vec![
-        (Method::POST, "/api/v1/scenes"),
-        (Method::DELETE, "/api/v1/scenes/{id}"),
-        (Method::POST, "/api/v1/scenes/{id}/resimulate"),
-        (Method::GET, "/api/v1/jobs"),
-        (Method::GET, "/api/v1/jobs/{id}"),
-        (Method::GET, "/api/v1/jobs/{id}/events"),
-        (Method::DELETE, "/api/v1/jobs/{id}"),
-        (Method::GET, "/api/v1/whoami"),
-    ]
+    table(0).finish().1
 }
 
 /// The whole API: [`crate::router`] and this module's routes, behind the residency and
 /// access middlewares.
 pub fn app(state: AppState, team: Team) -> Router {
     let body_limit = (team.limits.total_bytes as usize).saturating_add(1 << 20);
-    let ours = Router::new()
-        .route(
-            "/api/v1/scenes",
-            post(upload).layer(DefaultBodyLimit::max(body_limit)),
-        )
-        .route("/api/v1/scenes/{id}", delete(delete_scene))
-        .route("/api/v1/scenes/{id}/resimulate", post(resimulate))
-        .route("/api/v1/jobs", get(list_jobs))
-        .route("/api/v1/jobs/{id}", get(get_job).delete(cancel_job))
-        .route("/api/v1/jobs/{id}/events", get(job_events))
-        .route("/api/v1/whoami", get(whoami))
-        .with_state(team.clone());
+    let ours = table(body_limit).finish().0.with_state(team.clone());
     crate::router(state)
         .merge(ours)
         .layer(middleware::from_fn_with_state(team.clone(), residency))
@@ -441,7 +445,26 @@ pub fn app(state: AppState, team: Team) -> Router {
 }
 
 /// `POST /api/v1/scenes`: an upload becomes a precompute job ([`crate::upload::accept`]).
-async fn upload(
+#[utoipa::path(
+    post,
+    path = "/api/v1/scenes",
+    tag = "team",
+    summary = "Upload a scene; it becomes a precompute job.",
+    description = "The scene file and its meshes as `multipart/form-data` (docs/team.md). \
+                   The job's progress is at `Location` and its `/events`.",
+    request_body(content = crate::schema::UploadForm, content_type = "multipart/form-data"),
+    responses(
+        (status = 202, description = "The job, queued.", body = crate::jobs::JobRecord,
+         headers(("Location" = String, description = "`/api/v1/jobs/{id}` of the job."))),
+        (status = 400, description = "`bad_request` or `invalid`: a bad form, scene file, mesh or id (the message names it).", body = ErrorBody),
+        (status = 409, description = "`conflict`: the scene id is taken (served, in the bundles folder, or being made).", body = ErrorBody),
+        (status = 413, description = "`payload_too_large`: over the upload limits.", body = ErrorBody),
+        (status = 415, description = "`unsupported_media_type`: not `multipart/form-data`.", body = ErrorBody),
+        (status = 429, description = "`queue_full`: the job queue (or this token's share of it) is full; with tokens also `rate_limited`.", body = ErrorBody),
+        (status = 503, description = "`shutting_down`: the server is stopping.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn upload(
     State(team): State<Team>,
     identity: Option<Extension<Identity>>,
     form: Result<axum::extract::Multipart, axum::extract::multipart::MultipartRejection>,
@@ -457,9 +480,10 @@ async fn upload(
 }
 
 /// The body of `POST /api/v1/scenes/{id}/resimulate`.
-#[derive(Debug, serde::Deserialize)]
+#[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct ResimulateRequest {
+pub(crate) struct ResimulateRequest {
+    /// New media by object name: each a `simulated` material.
     materials: std::collections::BTreeMap<String, translux_proto::scene::Material>,
 }
 
@@ -467,7 +491,26 @@ struct ResimulateRequest {
 /// new media ([`translux_precompute::resimulate`]) as a job; the bundle is rewritten in
 /// place and served again when it is done. What the job would refuse (no such object, not
 /// simulated, an invalid medium) is a 400 here, before anything is queued.
-async fn resimulate(
+#[utoipa::path(
+    post,
+    path = "/api/v1/scenes/{id}/resimulate",
+    tag = "team",
+    summary = "Walk a scene's simulated objects again in new media (a job).",
+    description = "The bundle is rewritten in place and served again when the job is done; \
+                   an absorption-only change needs no job (relight with `materials`).",
+    params(SceneIdParam),
+    request_body(content = ResimulateRequest, content_type = "application/json"),
+    responses(
+        (status = 202, description = "The job, queued.", body = crate::jobs::JobRecord,
+         headers(("Location" = String, description = "`/api/v1/jobs/{id}` of the job."))),
+        (status = 400, description = "`bad_request`: not a resimulate request; `invalid`: no such object, not simulated, an invalid medium, an animated scene.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 409, description = "`conflict`: a job is already making this scene.", body = ErrorBody),
+        (status = 429, description = "`queue_full`: the job queue is full; with tokens also `rate_limited`.", body = ErrorBody),
+        (status = 503, description = "`loading` or `shutting_down`.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn resimulate(
     State(team): State<Team>,
     crate::extract::SceneId(id): crate::extract::SceneId,
     identity: Option<Extension<Identity>>,
@@ -534,20 +577,55 @@ fn job_or_404(
     Ok(r)
 }
 
-async fn list_jobs(
+/// `GET /api/v1/jobs`.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct JobList {
+    /// Newest first.
+    #[schema(value_type = Vec<crate::jobs::JobRecord>)]
+    pub jobs: Vec<JobRecord>,
+}
+
+/// Precompute jobs, newest first: your own (an admin sees every job).
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs",
+    tag = "team",
+    responses((status = 200, description = "The jobs.", body = JobList))
+)]
+pub(crate) async fn list_jobs(
     State(team): State<Team>,
     who: Option<Extension<Identity>>,
-) -> Json<serde_json::Value> {
+) -> Json<JobList> {
     let jobs: Vec<JobRecord> = team
         .jobs
         .list()
         .into_iter()
         .filter(|r| visible(r, &who))
         .collect();
-    Json(json!({ "jobs": jobs }))
+    Json(JobList { jobs })
 }
 
-async fn get_job(
+/// `{id}` of a job route.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+pub(crate) struct JobIdParam {
+    /// The job id: `j` and 20 hex digits.
+    id: String,
+}
+
+/// One precompute job's record.
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}",
+    tag = "team",
+    params(JobIdParam),
+    responses(
+        (status = 200, description = "The job.", body = crate::jobs::JobRecord),
+        (status = 404, description = "`not_found`: no such job, or another token's.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn get_job(
     State(team): State<Team>,
     UrlPath(id): UrlPath<String>,
     who: Option<Extension<Identity>>,
@@ -555,7 +633,18 @@ async fn get_job(
     Ok(Json(job_or_404(&team, &id, &who)?))
 }
 
-async fn cancel_job(
+/// Cancel a precompute job, queued or running; answers its record.
+#[utoipa::path(
+    delete,
+    path = "/api/v1/jobs/{id}",
+    tag = "team",
+    params(JobIdParam),
+    responses(
+        (status = 200, description = "The job, cancelled (or as it ended).", body = crate::jobs::JobRecord),
+        (status = 404, description = "`not_found`: no such job, or another token's.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn cancel_job(
     State(team): State<Team>,
     UrlPath(id): UrlPath<String>,
     who: Option<Extension<Identity>>,
@@ -570,7 +659,20 @@ async fn cancel_job(
 
 /// `GET /api/v1/jobs/{id}/events`: an SSE stream; each event's data is the job record,
 /// named `progress` while the job is queued or running and by the final state at the end.
-async fn job_events(
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/events",
+    tag = "team",
+    summary = "Server-Sent Events of a job: `progress`, then `done`, `failed` or `cancelled`.",
+    description = "Each event's `data` is the job record (JSON); the stream ends after the \
+                   final event. Comments keep the connection alive every 15 s.",
+    params(JobIdParam),
+    responses(
+        (status = 200, description = "The event stream.", body = String, content_type = "text/event-stream"),
+        (status = 404, description = "`not_found`: no such job, or another token's.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn job_events(
     State(team): State<Team>,
     UrlPath(id): UrlPath<String>,
     who: Option<Extension<Identity>>,
@@ -613,10 +715,22 @@ async fn job_events(
 /// `DELETE /api/v1/scenes/{id}` (admin): stops serving the scene and deletes its bundle
 /// folder (renamed aside first, so the id is free at once). Requests already running on it
 /// finish with the data they have mapped.
-async fn delete_scene(
+#[utoipa::path(
+    delete,
+    path = "/api/v1/scenes/{id}",
+    tag = "team",
+    summary = "Stop serving a scene and delete its bundle folder.",
+    params(SceneIdParam),
+    responses(
+        (status = 200, description = "The scene is gone.", body = SceneDeleted),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 409, description = "`conflict`: a job is making this scene; cancel it first.", body = ErrorBody),
+    )
+)]
+pub(crate) async fn delete_scene(
     State(team): State<Team>,
     UrlPath(id): UrlPath<String>,
-) -> Result<Json<serde_json::Value>, AppError> {
+) -> Result<Json<SceneDeleted>, AppError> {
     check_scene_id(&id).map_err(|_| AppError::not_found(format!("no scene {id:?}")))?;
     if let Some(job) = team.jobs.busy_scene(&id) {
         return Err(AppError::new(
@@ -657,18 +771,55 @@ async fn delete_scene(
         deleted = true;
     }
     tracing::info!(scene = %id, deleted, "scene removed");
-    Ok(Json(
-        json!({ "id": id, "unloaded": true, "deleted": deleted }),
-    ))
+    Ok(Json(SceneDeleted {
+        deleted,
+        id,
+        unloaded: true,
+    }))
 }
 
-async fn whoami(
+/// `DELETE /api/v1/scenes/{id}`.
+// Fields in the order `json!` wrote them before (alphabetical).
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct SceneDeleted {
+    /// Whether its bundle folder was deleted (a bundle outside the bundles folder is only
+    /// unloaded).
+    pub deleted: bool,
+    pub id: String,
+    /// Always `true`: the scene is no longer served.
+    pub unloaded: bool,
+}
+
+/// `GET /api/v1/whoami`.
+// Fields in the order `json!` wrote them before (alphabetical).
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct WhoAmI {
+    /// Whether access control is on (`--tokens`).
+    pub auth: bool,
+    /// The token's name (`local` without tokens).
+    pub name: String,
+    /// `viewer`, `editor` or `admin` (`admin` without tokens).
+    pub role: Option<&'static str>,
+}
+
+/// The token's name and role, and whether access control is on.
+#[utoipa::path(
+    get,
+    path = "/api/v1/whoami",
+    tag = "team",
+    responses((status = 200, description = "Who the request is from.", body = WhoAmI))
+)]
+pub(crate) async fn whoami(
     State(team): State<Team>,
     who: Option<Extension<Identity>>,
-) -> Json<serde_json::Value> {
+) -> Json<WhoAmI> {
     let (name, role) = match who {
         Some(Extension(i)) => (i.name.to_string(), i.role.map(Role::as_str)),
         None => (crate::auth::LOCAL_NAME.to_string(), Some("admin")),
     };
-    Json(json!({ "name": name, "role": role, "auth": team.auth.enabled() }))
+    Json(WhoAmI {
+        auth: team.auth.enabled(),
+        name,
+        role,
+    })
 }

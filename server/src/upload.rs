@@ -31,10 +31,11 @@ use axum::http::header::LOCATION;
 use axum::http::{HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
-use translux_precompute::meshio::{referenced_files, triangle_count};
+use translux_precompute::meshio::referenced_files;
 use translux_precompute::patch::{Density, plan};
 use translux_precompute::pipeline::{MAX_PATCHES, density_for};
 use translux_precompute::scene::load_scene_file;
+use translux_precompute::scene::triangle_count;
 use translux_precompute::shapes::shape_triangle_count;
 use translux_proto::scene::{MeshRef, SceneFile};
 

@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use translux_engine::radiosity::Rgb;
 use translux_engine::render::{display_rgb8, exposure_scale};
-use translux_proto::api::{RelightRequest, ToneMap};
+use translux_proto::api::{ErrorBody, RelightRequest, ToneMap};
 
 use crate::error::AppError;
 use crate::extract::{BODY_LIMIT, SceneId};
@@ -150,6 +150,27 @@ pub struct StreamQuery {
 
 /// `GET /api/v1/scenes/{id}/stream`: checks the scene (404, 503 while loading) and the
 /// format, then upgrades. A plain GET without the upgrade headers is 426.
+#[utoipa::path(
+    get,
+    path = "/api/v1/scenes/{id}/stream",
+    tag = "scenes",
+    summary = "WebSocket stream: relight messages in, binary colour frames out.",
+    description = "The protocol is in docs/stream.md: JSON relight messages in, one binary \
+                   frame of per-vertex colours out per message (the latest wins). Browsers, \
+                   which cannot set headers on a WebSocket, pass a token as `access_token`.",
+    params(
+        crate::schema::SceneIdParam,
+        ("format" = Option<String>, Query,
+         description = "The frames' encoding: `f32` (default), `f16` or `srgb8`."),
+    ),
+    responses(
+        (status = 101, description = "Switching to the WebSocket protocol."),
+        (status = 400, description = "`bad_request`: a bad query; `invalid`: an unknown `format`.", body = ErrorBody),
+        (status = 404, description = "`not_found`: no such scene.", body = ErrorBody),
+        (status = 426, description = "`upgrade_required`: a plain GET without the WebSocket upgrade headers.", body = ErrorBody),
+        (status = 503, description = "`loading`: the scene is still loading (`Retry-After: 1`).", body = ErrorBody),
+    )
+)]
 pub async fn stream(
     State(state): State<AppState>,
     SceneId(id): SceneId,

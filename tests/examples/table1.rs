@@ -50,7 +50,7 @@ use translux_precompute::pipeline::{
     FormFactorMethod, PrecomputeParams, hierarchical_s_by_default, precompute,
 };
 use translux_precompute::scene::resolve_scene;
-use translux_precompute::slinks::{SLinkParams, Trace};
+use translux_precompute::slinks::SLinkParams;
 use translux_proto::api::RelightStats;
 use translux_proto::bundle::MANIFEST_FILE;
 use translux_proto::light::Light;
@@ -63,8 +63,8 @@ use translux_tests::{mitsuba, scans};
 /// What `--help` prints, and an unknown flag's error after it.
 const USAGE: &str = "usage: table1 [--quick | --full] [--scenes cornell,bowls,flower,horses,cornell_simulated,gallop] \
 [--backend auto|cpu|gpu] [--no-mitsuba] [--reps N] [--out DIR] [--t-max N] \
-[--subsurface auto|pairwise|hierarchical] [--s-accuracy X] [--s-trace auto|on-demand|all] \
-[--s-exact-links] [--s-link-near K|off] [--s-link-variation TAU] [--keep DIR]
+[--subsurface auto|pairwise|hierarchical] [--s-accuracy X] [--s-link-near K] \
+[--s-link-variation TAU] [--keep DIR]
 (flags: docs/benchmarks.md, or this example's top comment)";
 
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
@@ -221,25 +221,10 @@ fn args() -> anyhow::Result<Args> {
                 let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
                 a.s_links.get_or_insert_with(SLinkParams::default).accuracy = theta;
             }
-            "--s-trace" => {
-                a.s_auto = false;
-                a.s_links.get_or_insert_with(SLinkParams::default).trace =
-                    match it.next().as_deref() {
-                        Some("auto") => Trace::Auto,
-                        Some("on-demand") => Trace::OnDemand,
-                        Some("all") => Trace::All,
-                        other => bail!("--s-trace auto|on-demand|all, not {other:?}"),
-                    };
-            }
             "--s-link-near" => {
                 a.s_auto = false;
-                let k = it.next().context("--s-link-near K|off")?;
-                a.s_links.get_or_insert_with(SLinkParams::default).near =
-                    if k.eq_ignore_ascii_case("off") {
-                        None
-                    } else {
-                        Some(k.parse()?)
-                    };
+                let k = it.next().context("--s-link-near K")?;
+                a.s_links.get_or_insert_with(SLinkParams::default).near = k.parse()?;
             }
             "--s-link-variation" => {
                 a.s_auto = false;
@@ -248,12 +233,6 @@ fn args() -> anyhow::Result<Args> {
                     .get_or_insert_with(SLinkParams::default)
                     .tolerance
                     .variation = v.parse()?;
-            }
-            "--s-exact-links" => {
-                a.s_auto = false;
-                a.s_links
-                    .get_or_insert_with(SLinkParams::default)
-                    .coarse_links = false;
             }
             "--help" | "-h" => {
                 println!("{USAGE}");
@@ -1123,7 +1102,7 @@ fn main() -> anyhow::Result<()> {
             .init();
     }
     let a = args()?;
-    let b = Backend::start(a.backend).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
+    let b = Backend::start(a.backend, None).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
     eprintln!("backend: {}", b.describe());
     // Bundles go beside the build (they are large), in a folder made if missing: with
     // CARGO_TARGET_DIR set elsewhere, the checkout has no target/.

@@ -690,7 +690,7 @@ function applyMaterial(name, t) {
 
 // ---- translucency preparation -----------------------------------------------------------
 //
-// What a scene's first translucency change needs (S's radial terms, or the GPU's S template)
+// What a scene's first translucency change needs (S's radial terms)
 // the server makes in the background; until it is made, that change takes seconds to
 // minutes. The scene detail's `translucency.state` says where it stands: `none`, `pending`,
 // `preparing`, `ready` or `failed`. The viewer asks for the detail again while the state

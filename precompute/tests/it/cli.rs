@@ -234,41 +234,30 @@ fn the_default_subsurface_is_hierarchical_where_it_can_be() {
         links(&["--transport", "dense", "--subsurface", "auto", "-q"]).0,
         0
     );
-    // Links from 1 receiver size, read at two distances, unless `--s-link-near off`
-    // keeps the quadrature's near field of 3 sizes (more direct pairs, no spreads).
-    let direct = |b: &Bundle| b.manifest().subsurface.distance_nnz - b.manifest().subsurface.links;
-    let (near, off) = (built(&["-q"]), built(&["--s-link-near", "OFF", "-q"]));
+    // Links from 1 receiver size, each read at two distances: every stored distance has
+    // its spread.
+    let near = built(&["-q"]);
     assert_eq!(near.manifest().subsurface.link_near, Some(1.0));
     assert_eq!(
         near.distance_spreads().len() as u64,
         near.manifest().subsurface.distance_nnz
     );
-    assert_eq!(off.manifest().subsurface.link_near, None);
-    assert!(off.distance_spreads().is_empty());
-    assert!(
-        off.manifest().subsurface.links > 0,
-        "--s-link-near off made no links"
-    );
-    // Nodes that near fail the links' error bound anyway: the nearer field never keeps more.
-    assert!(
-        direct(&near) <= direct(&off),
-        "1 size keeps {} direct pairs, 3 sizes {}",
-        direct(&near),
-        direct(&off)
-    );
-    let o = precompute(&[
-        scene.to_str().unwrap(),
-        "--out",
-        dir.path().join("never").to_str().unwrap(),
-        "--s-link-near",
-        "near",
-    ]);
-    assert!(!o.status.success());
-    assert!(
-        text(&o).contains("receiver sizes (1 to 3) or `off`"),
-        "{}",
-        text(&o)
-    );
+    // A number of receiver sizes, nothing else.
+    for bad in ["off", "near"] {
+        let o = precompute(&[
+            scene.to_str().unwrap(),
+            "--out",
+            dir.path().join("never").to_str().unwrap(),
+            "--s-link-near",
+            bad,
+        ]);
+        assert!(!o.status.success());
+        assert!(
+            text(&o).contains(&format!("invalid value '{bad}' for '--s-link-near")),
+            "{}",
+            text(&o)
+        );
+    }
 }
 
 #[test]

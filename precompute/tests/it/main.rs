@@ -3,8 +3,9 @@
 //! form factors and conservation), `transport` (the solvers and light components),
 //! `subsurface` (S through the pipeline), `dipole` (the default S against direct
 //! integration of the dipole on a sphere, a slab and a cube), `slinks` (hierarchical S against pairwise),
-//! `heterogeneous` (eq. 9 objects), `simulated` (S from random walks) and `animation`
-//! (animated scenes: one bundle per frame).
+//! `heterogeneous` (eq. 9 objects), `simulated` (S from random walks), `animation`
+//! (animated scenes: one bundle per frame) and `gltf_scene` (glTF 2.0 files as whole scenes,
+//! from fixtures written by the tests).
 //!
 //! Run one subject with `cargo test -p translux-precompute --test it physics::`. One binary
 //! links the crate's dependencies once instead of once per file.
@@ -12,6 +13,7 @@
 mod animation;
 mod cli;
 mod dipole;
+mod gltf_scene;
 mod heterogeneous;
 mod physics;
 mod simulated;

@@ -106,17 +106,10 @@ fn scene_in(dir: &std::path::Path, object: &str, unit_mm: f64) -> std::path::Pat
 /// Both ways of a comparison get the same optical distances: on the U from a voxel grid
 /// coarser than the default (0.25 M voxels, ~0.7 mm, instead of 2 M), which keeps its
 /// Dijkstra runs, most of this file's time, short.
-/// With `links`, the hierarchical S of the quadrature's near-pair rule (3 receiver sizes,
-/// each link read at one distance: `--s-link-near off`, the default before 2026-12-03).
+/// With `links`, the hierarchical S of [`geometric`] (links from the default near field,
+/// 1 receiver size, each read at two distances).
 fn build(path: &std::path::Path, out: &std::path::Path, links: bool) -> Bundle {
-    build_with(
-        path,
-        out,
-        links.then(|| SLinkParams {
-            near: None,
-            ..geometric()
-        }),
-    )
+    build_with(path, out, links.then(geometric))
 }
 
 /// The default link parameters but with links cut by geometry alone (τ = 2 bounds nothing):
@@ -131,18 +124,6 @@ fn geometric() -> SLinkParams {
         },
         ..SLinkParams::default()
     }
-}
-
-/// Links from 1 receiver size on, each read at two distances: the default.
-fn two_point() -> Option<SLinkParams> {
-    let p = geometric();
-    assert_eq!(
-        p.near,
-        Some(DEFAULT_LINK_NEAR),
-        "links from 1 size by default"
-    );
-    assert_eq!(DEFAULT_LINK_NEAR, 1.0);
-    Some(p)
 }
 
 /// [`build`] with a hierarchical S of `links` (pairwise for `None`).
@@ -631,14 +612,15 @@ fn compare(c: &Case<'_>, seed: u64) -> usize {
     scaled_columns
 }
 
-/// The cube or the U in marble on a floor (scene file in millimetres), both ways, and
-/// again with links from the default near field (1 receiver size) read at two distances.
+/// The cube or the U in marble on a floor (scene file in millimetres), both ways, with
+/// links from the default near field (1 receiver size) read at two distances.
 fn marble_object(object: &str, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
     let path = scene(dir.path(), object);
     let pair = build(&path, &dir.path().join("pairwise"), false);
     let hier_dir = dir.path().join("hierarchical");
     let hier = build(&path, &hier_dir, true);
+    spreads_recorded(&hier);
     compare(
         &Case {
             pair: &pair,
@@ -649,47 +631,20 @@ fn marble_object(object: &str, seed: u64) {
         },
         seed,
     );
-    let near_dir = dir.path().join("near");
-    let near = build_with(&path, &near_dir, two_point());
-    fewer_direct_pairs(&hier, &near);
-    compare(
-        &Case {
-            pair: &pair,
-            hier: &near,
-            objects: vec![1],
-            material: &|_, scale| marble(scale),
-            relight_dir: Some(&near_dir),
-        },
-        seed,
-    );
 }
 
-/// A bundle of links read at two distances from nearer in (`near`) stores no more direct
-/// pairs than the one at the quadrature's near field (`hier`), records its near field and a spread for every
-/// stored distance, some of them above 0 (links) and none on a direct pair.
-fn fewer_direct_pairs(hier: &Bundle, near: &Bundle) {
-    let direct = |b: &Bundle| {
-        let s = &b.manifest().subsurface;
-        s.distance_nnz - s.links
-    };
-    let (d3, d_near) = (direct(hier), direct(near));
+/// A bundle of links read at two distances records its near field (the default, 1
+/// receiver size) and a spread for every stored distance, some of them above 0 (links)
+/// and none on a direct pair.
+fn spreads_recorded(near: &Bundle) {
+    let s = &near.manifest().subsurface;
     eprintln!(
-        "direct pairs {d3} → {d_near}, links {} → {}",
-        hier.manifest().subsurface.links,
-        near.manifest().subsurface.links
+        "direct pairs {}, links {}",
+        s.distance_nnz - s.links,
+        s.links
     );
-    // Nodes that near fail the links' error bound anyway: the bound, not the near field,
-    // decides how many pairs stay direct, and the nearer field never keeps more.
-    assert!(
-        d_near <= d3,
-        "links from the default near field keep {d_near} direct pairs against {d3}"
-    );
-    assert_eq!(
-        near.manifest().subsurface.link_near,
-        Some(DEFAULT_LINK_NEAR)
-    );
-    assert_eq!(hier.manifest().subsurface.link_near, None);
-    assert!(hier.distance_spreads().is_empty());
+    assert_eq!(DEFAULT_LINK_NEAR, 1.0, "links from 1 size by default");
+    assert_eq!(s.link_near, Some(DEFAULT_LINK_NEAR));
     let (d, spread) = (near.distances(), near.distance_spreads());
     assert_eq!(spread.len(), d.nnz());
     let n = d.n_rows();
@@ -945,25 +900,14 @@ fn hierarchical_s_matches_pairwise_on_a_thin_sheet() {
     // side at a time.
     let dir = tempfile::tempdir().unwrap();
     let path = sheet_scene(dir.path());
+    // Links from 1 sheet-patch size on, read at two distances along the geodesics.
     let pair = build(&path, &dir.path().join("pairwise"), false);
     let hier = build(&path, &dir.path().join("hierarchical"), true);
+    spreads_recorded(&hier);
     compare(
         &Case {
             pair: &pair,
             hier: &hier,
-            objects: vec![1],
-            material: &|_, scale| petal(scale),
-            relight_dir: None,
-        },
-        13,
-    );
-    // Links from 1.5 sheet-patch sizes on, read at two distances along the geodesics.
-    let near = build_with(&path, &dir.path().join("near"), two_point());
-    fewer_direct_pairs(&hier, &near);
-    compare(
-        &Case {
-            pair: &pair,
-            hier: &near,
             objects: vec![1],
             material: &|_, scale| petal(scale),
             relight_dir: None,
@@ -985,7 +929,6 @@ fn build_traced(path: &std::path::Path, out: &std::path::Path, on_demand: bool) 
                 Trace::All
             },
             coarse_links: false,
-            near: None,
             ..geometric()
         }),
     )
@@ -1076,7 +1019,6 @@ fn coarse_link_runs_keep_the_bunny_within_the_pairwise_bounds() {
         Some(SLinkParams {
             trace: Trace::OnDemand,
             coarse_links,
-            near: None,
             ..geometric()
         })
     };
@@ -1117,17 +1059,9 @@ fn coarse_link_runs_keep_the_bunny_within_the_pairwise_bounds() {
         specular: None,
     };
     // Links from the default near field on, read at two distances (over the coarse grid too).
-    let near = build_links(
-        &path,
-        &dir.path().join("near"),
-        Some(SLinkParams {
-            near: Some(DEFAULT_LINK_NEAR),
-            ..on_demand(true).unwrap()
-        }),
-    );
-    fewer_direct_pairs(&hier, &near);
-    // The exact links for reference (printed), then the coarse ones held to the bounds.
-    for h in [&exact, &hier, &near] {
+    spreads_recorded(&hier);
+    // The exact links for reference, then the coarse ones, held to the bounds.
+    for h in [&exact, &hier] {
         let scaled = compare(
             &Case {
                 pair: &pair,

@@ -10,11 +10,6 @@ pub const CSR_SPMV_RGB: &str = include_str!("kernels/csr_spmv_rgb.wgsl");
 pub const DENSE_MATMUL_RGB: &str = include_str!("kernels/dense_matmul_rgb.wgsl");
 pub const JACOBI_UPDATE: &str = include_str!("kernels/jacobi_update.wgsl");
 pub const REDUCE_SUM: &str = include_str!("kernels/reduce_sum.wgsl");
-pub const S_ENTRIES: &str = include_str!("kernels/s_entries.wgsl");
-pub const S_COLUMN_BOUND: &str = include_str!("kernels/s_column_bound.wgsl");
-pub const S_NODE_ENERGY: &str = include_str!("kernels/s_node_energy.wgsl");
-pub const S_LINK_BOUND: &str = include_str!("kernels/s_link_bound.wgsl");
-pub const S_LINK_SCALE: &str = include_str!("kernels/s_link_scale.wgsl");
 
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
@@ -131,18 +126,6 @@ pub struct Kernels {
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
     pub(crate) jacobi_update: wgpu::ComputePipeline,
     pub(crate) reduce_sum: wgpu::ComputePipeline,
-    pub(crate) s_entries: Kernel,
-    pub(crate) s_column_bound: Kernel,
-    pub(crate) s_entries_pipeline: wgpu::ComputePipeline,
-    pub(crate) s_column_bound_pipeline: wgpu::ComputePipeline,
-    pub(crate) s_node_energy: Kernel,
-    pub(crate) s_link_bound: Kernel,
-    pub(crate) s_node_energy_pipeline: wgpu::ComputePipeline,
-    /// `s_link_bound`'s first pass (FINAL = false: each column's factor), and its last.
-    pub(crate) s_link_factor_pipeline: wgpu::ComputePipeline,
-    pub(crate) s_link_bound_pipeline: wgpu::ComputePipeline,
-    pub(crate) s_link_scale: Kernel,
-    pub(crate) s_link_scale_pipeline: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -174,50 +157,7 @@ impl Kernels {
             REDUCE_SUM,
             &[Read, ReadWrite, ReadWrite],
         );
-        let s_entries = Kernel::new(
-            device,
-            "s_entries",
-            S_ENTRIES,
-            &[Read, Read, Read, Read, Read, Read, ReadWrite, Read],
-        );
-        let s_column_bound = Kernel::new(
-            device,
-            "s_column_bound",
-            S_COLUMN_BOUND,
-            &[Read, Read, Read, Read, Read, ReadWrite, ReadWrite],
-        );
-        let s_node_energy = Kernel::new(
-            device,
-            "s_node_energy",
-            S_NODE_ENERGY,
-            &[Read, Read, Read, Read, Read, ReadWrite],
-        );
-        let s_link_bound = Kernel::new(
-            device,
-            "s_link_bound",
-            S_LINK_BOUND,
-            &[
-                Read, Read, Read, Read, ReadWrite, ReadWrite, Read, Read, ReadWrite,
-            ],
-        );
-        let s_link_scale = Kernel::new(
-            device,
-            "s_link_scale",
-            S_LINK_SCALE,
-            &[Read, Read, Read, ReadWrite, ReadWrite, Read, Read],
-        );
         Kernels {
-            s_node_energy_pipeline: s_node_energy.pipeline(device, &[]),
-            s_link_factor_pipeline: s_link_bound.pipeline(device, &[("FINAL", 0.0)]),
-            s_link_bound_pipeline: s_link_bound.pipeline(device, &[("FINAL", 1.0)]),
-            s_link_scale_pipeline: s_link_scale.pipeline(device, &[]),
-            s_link_scale,
-            s_node_energy,
-            s_link_bound,
-            s_entries_pipeline: s_entries.pipeline(device, &[]),
-            s_column_bound_pipeline: s_column_bound.pipeline(device, &[]),
-            s_entries,
-            s_column_bound,
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
             jacobi_update: jacobi.pipeline(device, &[]),

@@ -310,40 +310,6 @@ impl GpuCsr {
         }
     }
 
-    /// An RGB matrix whose arrays are already on the device, in one block: row pointers
-    /// (u32), columns and values (written by a kernel: the device rebuild of S). `bytes` is
-    /// what this matrix alone holds (returned to the budget on release).
-    pub(crate) fn from_device(
-        ctx: &GpuContext,
-        what: &str,
-        (n_rows, n_cols, nnz): (usize, usize, usize),
-        (row_ptr, col, val): (wgpu::Buffer, wgpu::Buffer, wgpu::Buffer),
-        bytes: u64,
-    ) -> GpuCsr {
-        let rows = n_rows as u32;
-        let groups = grid(rows.div_ceil(SPMV_ROWS_PER_WG));
-        let params = CsrParams {
-            row0: 0,
-            rows,
-            groups_x: groups.0,
-            _pad: 0,
-        };
-        GpuCsr {
-            n_rows,
-            n_cols,
-            nnz,
-            rgb: true,
-            blocks: vec![CsrBlock {
-                params: uniform(ctx, what, &params),
-                row_ptr,
-                col,
-                val,
-                groups,
-            }],
-            bytes,
-        }
-    }
-
     pub fn n_rows(&self) -> usize {
         self.n_rows
     }

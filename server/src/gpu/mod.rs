@@ -11,23 +11,16 @@
 //! | `dense_matmul_rgb` | Y = T X, T dense f16/f32 RGB, k ≤ 64 vectors per pass | same name |
 //! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup | same name |
 //! | `reduce_sum` | appends Σ of the partials to a residual history | same name |
-//! | `s_entries` | every entry of S from its stored quadrature plan and the profile tables | same name |
-//! | `s_column_bound` | Σ_j A_j S_ji ≤ A_i per column, offending columns scaled | same name |
-//! | `s_node_energy` | a hierarchical S: what each linked node re-emits, e_k | `s_link_bound` |
-//! | `s_link_bound` | a hierarchical S: the bound with the e_k of the nodes holding each patch (two passes: each column's factor, then its direct entries) | same name |
-//! | `s_link_scale` | a hierarchical S: each node's links and e_k by its patches' mean factor | `s_link_bound` |
 //!
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage
-//! binding (the adapter's real limit, or a smaller forced one for tests); [`subsurface`]
-//! rebuilds S on the device for a translucency change; [`system`] holds one scene's buffers
+//! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one scene's buffers
 //! and bind groups, built once and reused by every request. Nothing is read back per
 //! iteration: the residual history is read every [`SystemParams::readback_every`] iterations.
 
 pub mod cpu_twin;
 pub mod kernels;
 pub mod matrix;
-pub mod subsurface;
 pub mod system;
 
 use std::sync::{Arc, Mutex};

@@ -398,7 +398,7 @@ fn device_solve_matches_the_cpu_solvers_when_tiled() {
 fn auto_takes_only_hardware_and_gpu_takes_any_adapter() {
     use translux_server::backend::{Backend, BackendChoice};
     let Some(ctx) = ctx() else { return };
-    let auto = Backend::start(BackendChoice::Auto).unwrap();
+    let auto = Backend::start(BackendChoice::Auto, None).unwrap();
     let health = auto.gpu_health();
     if ctx.adapter().software {
         // lavapipe/llvmpipe: a CPU in disguise; auto serves from the CPU and says why.
@@ -410,14 +410,17 @@ fn auto_takes_only_hardware_and_gpu_takes_any_adapter() {
         assert_eq!(auto.name(), "gpu");
         assert!(health.available && health.reason.is_none());
     }
-    let gpu = Backend::start(BackendChoice::Gpu).unwrap();
+    let gpu = Backend::start(BackendChoice::Gpu, None).unwrap();
     let health = gpu.gpu_health();
     let adapter = health.adapter.unwrap();
     assert_eq!(gpu.name(), "gpu");
     assert_eq!(adapter.software, ctx.adapter().software);
     assert_eq!(adapter.name, ctx.adapter().name);
     assert!(gpu.describe().contains(&adapter.name));
-    assert_eq!(Backend::start(BackendChoice::Cpu).unwrap().name(), "cpu");
+    assert_eq!(
+        Backend::start(BackendChoice::Cpu, None).unwrap().name(),
+        "cpu"
+    );
 }
 
 mod relight_on_both_backends {
@@ -430,7 +433,7 @@ mod relight_on_both_backends {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::scene::load_scene;
     use translux_proto::api::RelightRequest;
-    use translux_server::backend::{Backend, SRebuild};
+    use translux_server::backend::Backend;
     use translux_server::gpu::GpuOptions;
 
     /// The radiance, the solver, and where S for the overrides was built, relit on `backend`.
@@ -447,8 +450,8 @@ mod relight_on_both_backends {
 
     /// Whole relights (shadowed direct light on the CPU, the solve on the device) agree with
     /// the CPU backend on a Cornell box with its marble block, with the bundle's S and with a
-    /// translucency override (S rebuilt from the stored distances); a scene over the memory
-    /// budget is served from the CPU, with its reason in the health report.
+    /// translucency override (S made and solved on the CPU on both backends); a scene over
+    /// the memory budget is served from the CPU, with its reason in the health report.
     #[test]
     fn whole_relights_agree_and_a_scene_over_budget_stays_on_the_cpu() {
         let Some(_) = ctx() else { return };
@@ -492,14 +495,12 @@ mod relight_on_both_backends {
         };
         // Both backends in one process, each scene on its own.
         let cpu_backend = Backend::cpu("the test's CPU half");
-        // S rebuilt on the device (the default writes it on the CPU: tested below).
-        let gpu_backend = Backend::on_gpu_rebuilding(
+        let gpu_backend = Backend::on_gpu(
             GpuContext::new(&GpuOptions {
                 allow_software: true,
                 ..Default::default()
             })
             .unwrap(),
-            SRebuild::Device,
         );
         let cpu_batch = run_batch(&dir, &cpu_backend);
         let cpu: Vec<(Vec<Rgb>, String, Option<String>)> = bodies
@@ -515,11 +516,13 @@ mod relight_on_both_backends {
         assert_eq!(cpu_backend.gpu_health().scenes.len(), 0);
         for (body, (want, cpu_solver, _)) in bodies.iter().zip(&cpu) {
             let (got, solver, on) = radiance(&dir, body, &gpu_backend);
-            // A translucency change rebuilds S on the device (s_entries, s_column_bound).
             if body.contains("materials") {
-                assert_eq!(on.as_deref(), Some("gpu"), "{body}");
-            }
-            if cpu_solver == "inverse" {
+                // A translucency change's S is made on the CPU and solved there, as on the
+                // CPU backend.
+                assert_eq!(on.as_deref(), Some("cpu"), "{body}");
+                assert_eq!(&solver, cpu_solver, "{body}");
+                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-6);
+            } else if cpu_solver == "inverse" {
                 // The same stored f16 T on both: only the summation order differs.
                 assert_eq!(solver, "inverse");
                 assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-4);
@@ -528,15 +531,7 @@ mod relight_on_both_backends {
                     solver, "jacobi",
                     "the device solves by Jacobi (CPU: {cpu_solver})"
                 );
-                // With a translucency override the CPU sums S from radial terms
-                // (engine::sterms, within 0.3% of the quadrature per column) while the device
-                // evaluates the full quadrature plans: 5e-3 then, 1e-3 otherwise.
-                let tol = if body.contains("materials") {
-                    5e-3
-                } else {
-                    1e-3
-                };
-                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, tol);
+                assert_close(&format!("GPU vs CPU relight {body}"), &got, want, 1e-3);
             }
         }
         let gpu_batch = run_batch(&dir, &gpu_backend);
@@ -580,71 +575,8 @@ mod relight_on_both_backends {
     }
 }
 
-/// A translucency change on a hierarchical S relit on both backends: the device rebuilds S
-/// with its links (and says so), and the answer agrees with the CPU backend's; so too with
-/// links read at two distances (`--s-link-near 1.5`).
-#[test]
-fn a_translucency_change_on_a_hierarchical_s_is_rebuilt_on_the_device() {
-    let Some(_) = ctx() else { return };
-    for near in [None, Some(1.5)] {
-        relit_on_both_backends(near);
-    }
-}
-
-fn relit_on_both_backends(near: Option<f32>) {
-    use translux_engine::relight;
-    use translux_engine::scene::Scene;
-    use translux_proto::api::RelightRequest;
-    use translux_server::backend::{Backend, SRebuild};
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("cornell");
-    hierarchical_cornell(&dir, 1500, near);
-    let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
-        "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":6}}}}"#;
-    let run = |backend: &Backend| {
-        let scene = Scene::open_with("cornell", &dir, &backend.resources()).unwrap();
-        assert!(
-            scene.bundle.manifest().subsurface.links > 0,
-            "a hierarchical S"
-        );
-        let req: RelightRequest = serde_json::from_str(body).unwrap();
-        let mut plan = relight::plan(&scene, req).unwrap();
-        plan.tolerance = 1e-6;
-        let out = relight::run(&scene, &plan).unwrap();
-        assert!(out.stats.converged, "{:?}", out.stats);
-        (out.radiance, out.stats.materials_on)
-    };
-    let cpu_backend = Backend::cpu("the test's CPU half");
-    let gpu_backend = Backend::on_gpu_rebuilding(
-        GpuContext::new(&GpuOptions {
-            allow_software: true,
-            ..Default::default()
-        })
-        .unwrap(),
-        SRebuild::Device,
-    );
-    let (want, cpu_on) = run(&cpu_backend);
-    let (got, gpu_on) = run(&gpu_backend);
-    assert_eq!(cpu_on.as_deref(), Some("cpu"));
-    assert_eq!(
-        gpu_on.as_deref(),
-        Some("gpu"),
-        "the device rebuilds a hierarchical S"
-    );
-    // The CPU sums S from radial terms (within 0.3% of the quadrature per column), the
-    // device evaluates the quadrature plans; the links are the same lookups on both.
-    assert_close(
-        &format!("GPU vs CPU relight, hierarchical S, near {near:?}"),
-        &got,
-        &want,
-        5e-3,
-    );
-    assert_eq!(gpu_backend.gpu_health().scenes[0].on, "gpu");
-}
-
-/// On the GPU backend as it starts, a translucency slider's S is written in place on the CPU
-/// and solved there (the device rebuild was the slower on every scene measured): preparing
-/// makes the CPU's radial terms and says why, nothing more is uploaded, and a slider's
+/// On the GPU backend a translucency slider's S is written in place on the CPU and solved
+/// there: preparing makes the CPU's radial terms, nothing more is uploaded, and a slider's
 /// steps answer as the CPU backend's do.
 #[test]
 fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
@@ -652,11 +584,11 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
     use translux_engine::relight;
     use translux_engine::scene::Scene;
     use translux_proto::api::{PrepState, RelightRequest};
-    use translux_server::backend::{Backend, S_REBUILD_ENV, SRebuild};
+    use translux_server::backend::Backend;
     let Some(_) = ctx() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("cornell");
-    hierarchical_cornell(&dir, 1500, None);
+    hierarchical_cornell(&dir, 1500);
     let body = |scale: f32| {
         format!(
             r#"{{"solver":"iterative","lights":[{{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}}],
@@ -682,10 +614,6 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
         let uploaded = backend.gpu_health().bytes;
         let p = scene.prepare_translucency();
         assert_eq!((p.state, p.on.as_deref()), (PrepState::Ready, Some("cpu")));
-        if on_device {
-            let why = p.message.unwrap_or_default();
-            assert!(why.contains(&format!("{S_REBUILD_ENV}=device")), "{why}");
-        }
         let steps: Vec<Vec<Rgb>> = [1.0f32, 1.25, 1.5, 0.75]
             .iter()
             .map(|&k| {
@@ -698,7 +626,7 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
                 out.radiance
             })
             .collect();
-        // No S template, no uploaded override S: the device holds what it held.
+        // Nothing uploaded for the changes: the device holds what it held.
         assert_eq!(backend.gpu_health().bytes, uploaded);
         steps
     };
@@ -707,68 +635,6 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_cpu() {
         // The same S and the same warm solves on the CPU: equal to rounding.
         assert_close(&format!("slider step {k}, GPU vs CPU backend"), g, w, 1e-6);
     }
-    assert_eq!("device".parse::<SRebuild>(), Ok(SRebuild::Device));
-    assert_eq!(" cpu\n".parse::<SRebuild>(), Ok(SRebuild::Cpu));
-    let e = "gpu".parse::<SRebuild>().unwrap_err();
-    assert!(e.contains(S_REBUILD_ENV) && e.contains("\"gpu\""), "{e}");
-}
-
-/// With S rebuilt on the device (`TRANSLUX_S_REBUILD=device`), preparing a scene for
-/// translucency changes builds its S template on the device (its bytes grow past the uploaded F and S), says so, and the first change
-/// then answers as on a scene that was not prepared.
-#[test]
-fn preparing_on_the_gpu_builds_the_s_template_ahead_of_the_first_change() {
-    use translux_engine::relight;
-    use translux_engine::scene::Scene;
-    use translux_proto::api::{PrepState, RelightRequest};
-    use translux_server::backend::{Backend, SRebuild};
-    let Some(_) = ctx() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("cornell");
-    hierarchical_cornell(&dir, 1500, None);
-    let body = r#"{"solver":"iterative","lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}],
-        "materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":0.5}}}}"#;
-    let backend = || {
-        Backend::on_gpu_rebuilding(
-            GpuContext::new(&GpuOptions {
-                allow_software: true,
-                ..Default::default()
-            })
-            .unwrap(),
-            SRebuild::Device,
-        )
-    };
-    let run = |scene: &Scene| {
-        let req: RelightRequest = serde_json::from_str(body).unwrap();
-        let out = relight::run(scene, &relight::plan(scene, req).unwrap()).unwrap();
-        assert_eq!(out.stats.materials_on.as_deref(), Some("gpu"));
-        out.radiance
-    };
-    let (b, lazy_b) = (backend(), backend());
-    let scene = Scene::open_with("cornell", &dir, &b.resources()).unwrap();
-    let lazy = Scene::open_with("cornell", &dir, &lazy_b.resources()).unwrap();
-    use translux_engine::backend::Backend as _;
-    assert!(b.prepare(scene.view()), "served on the device");
-    let uploaded = b.gpu_health().bytes;
-    let p = scene.prepare_translucency();
-    assert_eq!(
-        (p.state, p.on.as_deref()),
-        (PrepState::Ready, Some("gpu")),
-        "{p:?}"
-    );
-    assert!(
-        b.gpu_health().bytes > uploaded,
-        "the template is on the device: {} then {} bytes",
-        uploaded,
-        b.gpu_health().bytes
-    );
-    assert_eq!(
-        scene.material_cache_bytes(),
-        0,
-        "no radial terms on the host"
-    );
-    assert_eq!(run(&scene), run(&lazy));
-    assert_eq!(lazy.translucency().on.as_deref(), Some("gpu"));
 }
 
 mod server_start {
@@ -856,346 +722,6 @@ mod server_start {
     }
 }
 
-/// S rebuilt on the device for a translucency change: `s_entries` and `s_column_bound`
-/// against their twins, and the whole rebuild against the CPU's own
-/// `smatrix::rebuild_from_bundle` (the precompute's reference path), on a Cornell box with
-/// its marble block and on the flower's thin-sheet petals, with overrides drawn at random.
-mod s_rebuild {
-    use std::collections::HashMap;
-
-    use super::*;
-    use translux_engine::smatrix::{self, SParams};
-    use translux_precompute::pipeline::{PrecomputeParams, precompute};
-    use translux_precompute::scene::load_scene;
-    use translux_proto::bundle::Bundle;
-    use translux_proto::scene::{ExpTerm, Material, Profile};
-    use translux_server::gpu::subsurface::{GpuSTemplate, Plan, SMaterials, STemplate};
-
-    fn bundle(scene: &str, patches: u64) -> (tempfile::TempDir, Bundle) {
-        let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join(scene);
-        let params = PrecomputeParams {
-            patches: Some(patches),
-            ..Default::default()
-        };
-        precompute(
-            &load_scene(&format!("builtin:{scene}")).unwrap(),
-            &dir,
-            &params,
-        )
-        .unwrap();
-        let b = Bundle::open(&dir).unwrap();
-        (tmp, b)
-    }
-
-    /// The built material of object `name`, its profile(s) scaled by `scale`.
-    fn scaled(b: &Bundle, name: &str, scale: f32) -> (usize, Material) {
-        let k = b
-            .manifest()
-            .objects
-            .iter()
-            .position(|o| o.name == name)
-            .unwrap_or_else(|| panic!("no object {name}"));
-        // A dipole's mean free path × scale; an exponential sum's decay lengths × scale
-        // (b / scale) at the same total reflectance (a / scale²).
-        let with_scale = |p: &Profile| -> Profile {
-            match p.clone() {
-                Profile::Dipole {
-                    preset,
-                    sigma_a,
-                    sigma_s_prime,
-                    eta,
-                    scale: old,
-                } => Profile::Dipole {
-                    preset,
-                    sigma_a,
-                    sigma_s_prime,
-                    eta,
-                    scale: Some(old.unwrap_or(1.0) * scale),
-                },
-                Profile::Exponentials { terms } => Profile::Exponentials {
-                    terms: terms
-                        .into_iter()
-                        .map(|t| ExpTerm {
-                            a: t.a.map(|a| a / (scale * scale)),
-                            b: t.b.map(|b| b / scale),
-                        })
-                        .collect(),
-                },
-                other => panic!("no scaling for {other:?}"),
-            }
-        };
-        let m = match &b.manifest().objects[k].material {
-            Material::Translucent { profile, .. } => Material::Translucent {
-                profile: with_scale(profile),
-                specular: None,
-            },
-            Material::ThinSheet {
-                reflectance,
-                transmittance,
-                thickness_mm,
-                ..
-            } => Material::ThinSheet {
-                reflectance: with_scale(reflectance),
-                transmittance: with_scale(transmittance),
-                thickness_mm: *thickness_mm,
-                specular: None,
-            },
-            other => panic!("{name} is {}", other.kind()),
-        };
-        (k, m)
-    }
-
-    /// Relative difference of a and b against a floor `1e-4 · scale` (entries far below
-    /// the matrix's scale count by their absolute error).
-    fn worst(got: &[Rgb], want: &[Rgb]) -> f32 {
-        let scale = want.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs()));
-        got.iter()
-            .flatten()
-            .zip(want.iter().flatten())
-            .map(|(g, w)| (g - w).abs() / w.abs().max(1e-4 * scale))
-            .fold(0.0f32, f32::max)
-    }
-
-    fn device_materials(b: &Bundle, overrides: &[(usize, Material)]) -> (SMaterials, Vec<f32>) {
-        let (materials, stored) = smatrix::bundle_materials(b, overrides).unwrap();
-        match SMaterials::plan(b, &materials, &stored, &SParams::default()).unwrap() {
-            Plan::Device(m) => (m, stored),
-            Plan::Cpu(why) => panic!("the device should rebuild S: {why}"),
-        }
-    }
-
-    /// Holds the device rebuild of one scene to the twins and to the CPU rebuild for
-    /// `overrides`; returns (entries, worst relative error vs the CPU rebuild).
-    fn check(ctx: &GpuContext, b: &Bundle, overrides: &[(usize, Material)]) -> (usize, f32) {
-        let sp = SParams::default();
-        let (m, stored) = device_materials(b, overrides);
-        let g = smatrix::bundle_geometry(b);
-        let t = STemplate::build(b, &g, &m, &stored, &sp.quadrature);
-        let dev = GpuSTemplate::upload(ctx, "test S", t.clone()).unwrap();
-        // s_entries against its twin.
-        let mut twin = cpu_twin::s_entries(&t, &m, &sp.quadrature);
-        let got = dev.entries_once(ctx, &m, &sp.quadrature).unwrap();
-        let e = worst(&got, &twin);
-        assert!(e < 1e-4, "s_entries vs its twin: worst relative error {e}");
-        assert!(twin.iter().flatten().any(|v| *v > 0.0), "an all-zero S");
-        // The whole rebuild against the twins and against the CPU's rebuild.
-        let mut twin_reports = cpu_twin::s_column_bound(&t, &m, &mut twin);
-        cpu_twin::s_link_bound(&t, &mut twin, &mut twin_reports);
-        let s = dev.assemble(ctx, "test S", &m, &sp.quadrature).unwrap();
-        let e = worst(&s.csr.val, &twin);
-        assert!(e < 1e-4, "bounded S vs the twins: worst relative error {e}");
-        for (g, w) in s.reports.iter().zip(&twin_reports) {
-            assert_eq!(
-                g.scaled_columns, w.scaled_columns,
-                "{:?} vs {:?}",
-                s.reports, twin_reports
-            );
-            assert!((g.max_column - w.max_column).abs() <= 1e-4 * w.max_column.max(1.0));
-        }
-        let (cpu, _) = smatrix::rebuild_from_bundle(b, overrides, &sp).unwrap();
-        let mut want: HashMap<(usize, u32), Rgb> = HashMap::new();
-        for j in 0..cpu.row_ptr.len() - 1 {
-            for e in cpu.row_ptr[j] as usize..cpu.row_ptr[j + 1] as usize {
-                want.insert((j, cpu.col[e]), cpu.val[e]);
-            }
-        }
-        let (mut gv, mut wv) = (Vec::new(), Vec::new());
-        for j in 0..s.csr.row_ptr.len() - 1 {
-            for e in s.csr.row_ptr[j] as usize..s.csr.row_ptr[j + 1] as usize {
-                let w = want.remove(&(j, s.csr.col[e])).unwrap_or([0.0; 3]);
-                gv.push(s.csr.val[e]);
-                wv.push(w);
-            }
-        }
-        assert!(
-            want.is_empty(),
-            "{} entries of the CPU's S are missing on the device, e.g. {:?}",
-            want.len(),
-            want.iter().next()
-        );
-        let e = worst(&gv, &wv);
-        assert!(
-            e < 1e-4,
-            "device S vs the CPU rebuild: worst relative error {e}"
-        );
-        let nnz = s.csr.val.len();
-        s.release(ctx);
-        dev.release(ctx);
-        (nnz, e)
-    }
-
-    #[test]
-    fn s_entries_and_s_column_bound_match_their_twins_and_the_cpu_rebuild() {
-        let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = bundle("cornell", 600);
-        let mut rng = Rng(0x5eed_0005);
-        // As built, then translucencies drawn at random (more and less translucent).
-        let mut cases = vec![Vec::new()];
-        for _ in 0..3 {
-            cases.push(vec![scaled(&b, "tall_block", rng.f(0.4, 2.0))]);
-        }
-        for overrides in &cases {
-            let (nnz, e) = check(ctx, &b, overrides);
-            eprintln!("cornell {overrides:?}: {nnz} entries, worst {e:.2e}");
-        }
-    }
-
-    #[test]
-    fn thin_sheets_rebuild_on_the_device_like_the_cpu() {
-        let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = bundle("flower", 1500);
-        let names: Vec<String> = b
-            .manifest()
-            .objects
-            .iter()
-            .filter(|o| matches!(o.material, Material::ThinSheet { .. }))
-            .map(|o| o.name.clone())
-            .collect();
-        assert!(!names.is_empty());
-        let mut rng = Rng(0x5eed_0006);
-        let overrides: Vec<(usize, Material)> = names
-            .iter()
-            .take(3)
-            .map(|n| scaled(&b, n, rng.f(0.5, 1.8)))
-            .collect();
-        let (nnz, e) = check(ctx, &b, &overrides);
-        eprintln!("flower: {nnz} entries, worst {e:.2e}");
-    }
-
-    /// A template built for a profile serves translucencies within its 1.5× headroom (a
-    /// slider moving back and forth) and not past it.
-    #[test]
-    fn the_template_is_reused_within_its_headroom() {
-        let (_tmp, b) = bundle("cornell", 400);
-        let sp = SParams::default();
-        let (m, stored) = device_materials(&b, &[]);
-        let g = smatrix::bundle_geometry(&b);
-        let t = STemplate::build(&b, &g, &m, &stored, &sp.quadrature);
-        for (scale, covered) in [(0.8, true), (1.4, true), (1.9, false)] {
-            let (m2, _) = device_materials(&b, &[scaled(&b, "tall_block", scale)]);
-            assert_eq!(t.covers(&m2), covered, "scale {scale}");
-        }
-    }
-
-    /// `s_column_bound` on random values (many columns past 1) against its twin.
-    #[test]
-    fn s_column_bound_matches_its_twin_on_random_values() {
-        let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = bundle("cornell", 400);
-        bound_on_random_values(ctx, &b, 0x5eed_0007);
-    }
-
-    /// The column bounds (`s_column_bound`, and for a hierarchical S `s_node_energy` and
-    /// `s_link_bound`) on random values, many columns past 1, against their twins.
-    fn bound_on_random_values(ctx: &GpuContext, b: &Bundle, seed: u64) {
-        let sp = SParams::default();
-        let (m, stored) = device_materials(b, &[]);
-        let g = smatrix::bundle_geometry(b);
-        let t = STemplate::build(b, &g, &m, &stored, &sp.quadrature);
-        let dev = GpuSTemplate::upload(ctx, "test S", t.clone()).unwrap();
-        let mut rng = Rng(seed);
-        let mut val: Vec<Rgb> = (0..t.nnz()).map(|_| rng.rgb()).collect();
-        let (got, reports) = dev.column_bound_once(ctx, &m, &val).unwrap();
-        let mut want_reports = cpu_twin::s_column_bound(&t, &m, &mut val);
-        cpu_twin::s_link_bound(&t, &mut val, &mut want_reports);
-        let e = worst(&got, &val);
-        assert!(e < 1e-5, "the column bounds vs their twins: {e}");
-        assert_eq!(reports.len(), want_reports.len());
-        assert!(want_reports.iter().any(|r| r.scaled_columns > 0));
-        for (g, w) in reports.iter().zip(&want_reports) {
-            assert_eq!(g.scaled_columns, w.scaled_columns);
-            assert!((g.max_column - w.max_column).abs() <= 1e-5 * w.max_column.max(1.0));
-        }
-        dev.release(ctx);
-    }
-
-    fn hierarchical_bundle(patches: u64, near: Option<f32>) -> (tempfile::TempDir, Bundle) {
-        let tmp = tempfile::tempdir().unwrap();
-        let b = super::hierarchical_cornell(&tmp.path().join("cornell"), patches, near);
-        (tmp, b)
-    }
-
-    /// A hierarchical S (links to cluster nodes) rebuilt on the device: its links are
-    /// entries of the node columns, and the energy bound counts what the nodes re-emit. The
-    /// device's S equals the twins and the CPU's `rebuild_from_bundle` (links and bound
-    /// included) as built and at translucencies drawn within the template's headroom, and
-    /// the bounds match their twins on random values.
-    #[test]
-    fn a_hierarchical_s_rebuilds_on_the_device_like_the_cpu() {
-        let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = hierarchical_bundle(1500, None);
-        assert!(b.manifest().subsurface.links > 0, "the bundle has links");
-        let t = hierarchical_cases(ctx, &b, 0x5eed_0008, "hierarchical cornell");
-        assert!(t.has_links(), "the template holds the links");
-        assert_eq!(t.n_cols(), t.n + b.tree().unwrap().range.len());
-        bound_on_random_values(ctx, &b, 0x5eed_0009);
-    }
-
-    /// Links read at two distances (`--s-link-near`): the template carries each link's
-    /// spread, and the device reads the link at r ∓ σ as the CPU's assembly does, so its S
-    /// equals the twins and `rebuild_from_bundle` as built and at translucencies drawn
-    /// within the template's headroom (a device reading such links at r alone is off by
-    /// far more than the tolerance, the spread being a node's size).
-    #[test]
-    fn links_read_at_two_distances_rebuild_on_the_device_like_the_cpu() {
-        let Some(ctx) = ctx() else { return };
-        let (_tmp, b) = hierarchical_bundle(1500, Some(1.5));
-        assert_eq!(b.manifest().subsurface.link_near, Some(1.5));
-        let t = hierarchical_cases(ctx, &b, 0x5eed_000a, "two-point links, cornell");
-        let two = (0..t.nnz()).filter(|&e| t.spread(e).is_some()).count();
-        assert!(two > 0, "no link of the template is read at two distances");
-        eprintln!("two-point links: {two} of {} entries", t.nnz());
-    }
-
-    /// [`check`] on a hierarchical Cornell `b` as built and with its block's translucency
-    /// drawn twice within the template's headroom; returns the template as built.
-    fn hierarchical_cases(ctx: &GpuContext, b: &Bundle, seed: u64, what: &str) -> STemplate {
-        let sp = SParams::default();
-        let (m, stored) = device_materials(b, &[]);
-        let t = STemplate::build(b, &smatrix::bundle_geometry(b), &m, &stored, &sp.quadrature);
-        let mut rng = Rng(seed);
-        let mut cases = vec![Vec::new()];
-        for _ in 0..2 {
-            cases.push(vec![scaled(b, "tall_block", rng.f(0.4, 1.45))]);
-        }
-        for overrides in &cases {
-            let (nnz, e) = check(ctx, b, overrides);
-            eprintln!("{what} {overrides:?}: {nnz} entries, worst {e:.2e}");
-        }
-        t
-    }
-}
-
-/// A heterogeneous object (eq. 9 over per-medium lengths) is rebuilt on the CPU, and the
-/// plan says so rather than building a wrong S on the device.
-#[test]
-fn heterogeneous_objects_are_rebuilt_on_the_cpu_and_say_so() {
-    use translux_engine::smatrix::{self, SParams};
-    use translux_precompute::pipeline::{PrecomputeParams, precompute};
-    use translux_precompute::scene::load_scene;
-    use translux_proto::bundle::Bundle;
-    use translux_server::gpu::subsurface::{Plan, SMaterials};
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("checker");
-    let params = PrecomputeParams {
-        patches: Some(400),
-        ..Default::default()
-    };
-    precompute(
-        &load_scene("builtin:cornell_checker").unwrap(),
-        &dir,
-        &params,
-    )
-    .unwrap();
-    let b = Bundle::open(&dir).unwrap();
-    let (materials, stored) = smatrix::bundle_materials(&b, &[]).unwrap();
-    match SMaterials::plan(&b, &materials, &stored, &SParams::default()).unwrap() {
-        Plan::Cpu(why) => assert!(why.contains("heterogeneous"), "{why}"),
-        Plan::Device(_) => panic!("a heterogeneous object planned for the device"),
-    }
-}
-
 /// A hierarchical F on the device (the pull P' = [I; P] then C, the same CSR kernel) solves
 /// what the CPU solves with its prefix-sum pull; also split into 4 KiB blocks.
 #[test]
@@ -1244,14 +770,8 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
 }
 
 /// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
-/// the near field), precomputed into `out` with a hierarchical S at `patches`, its links'
-/// near field `near` receiver sizes (`--s-link-near`; None: 3 sizes, each link read at one
-/// distance, `--s-link-near off`).
-fn hierarchical_cornell(
-    out: &std::path::Path,
-    patches: u64,
-    near: Option<f32>,
-) -> translux_proto::bundle::Bundle {
+/// the near field), precomputed into `out` with a hierarchical S at `patches`.
+fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::bundle::Bundle {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::slinks::SLinkParams;
     use translux_proto::scene::{Material, Profile};
@@ -1276,9 +796,8 @@ fn hierarchical_cornell(
     let params = PrecomputeParams {
         patches: Some(patches),
         // Links cut by geometry alone (τ = 2 bounds nothing): this box is small against
-        // marble's reach at ×8, and the error bound would leave it few links to rebuild.
+        // marble's reach at ×8, and the error bound would leave it few links.
         subsurface_links: Some(SLinkParams {
-            near,
             tolerance: translux_engine::linkbound::LinkTolerance {
                 variation: 2.0,
                 ..Default::default()
@@ -1301,7 +820,7 @@ fn hierarchical_cornell(
 fn device_solve_of_a_hierarchical_s_matches_the_cpu() {
     use translux_engine::transport::{Transport, subsurface_operator};
     let dir = tempfile::tempdir().unwrap();
-    let b = hierarchical_cornell(&dir.path().join("cornell"), 3000, None);
+    let b = hierarchical_cornell(&dir.path().join("cornell"), 3000);
     let f = Transport::of(&b);
     let s = b.subsurface();
     let n = f.n();

@@ -933,6 +933,40 @@ async fn ply_and_gltf_meshes_can_be_uploaded() {
     assert!(lit.radiance.iter().all(|x| x.is_finite()));
 }
 
+/// A precompute job runs under its memory budget (`--job-memory`): a scene whose job needs
+/// more is failed, saying so, and nothing is served or left behind.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_precompute_job_over_its_memory_budget_fails_naming_it() {
+    let bundles = bundles_with(&[]);
+    let args = TeamArgs {
+        job_memory: Some(1 << 20),
+        ..TeamArgs::default()
+    };
+    let s = Server::start(bundles.path(), args, false).await;
+    let form = upload_form(
+        "cube-scene.json",
+        scene_json("cube.obj"),
+        &[("cube.obj", CUBE_OBJ.as_bytes().to_vec())],
+        &[("id", "cube"), ("patches", "3000")],
+    );
+    let (status, job, _) = post_upload(&s, Some(EDITOR), form).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let done = s.wait_job(job["id"].as_str().unwrap(), EDITOR).await;
+    assert_eq!(done["state"], "failed", "{done}");
+    let message = done["error"].as_str().unwrap();
+    assert!(
+        message.contains("1 MiB") || message.contains("1.0 MiB"),
+        "{message}"
+    );
+    let list = s.get_json("/api/v1/scenes", Some(VIEWER)).await;
+    assert_eq!(list["scenes"], json!([]), "{list}");
+    assert!(
+        leftovers(&s.bundles).is_empty(),
+        "{:?}",
+        leftovers(&s.bundles)
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_uploaded_scene_becomes_a_served_bundle() {
     let bundles = bundles_with(&[]);
