@@ -955,10 +955,15 @@ fn settle_unfinished(cfg: &JobsConfig, r: &mut JobRecord) -> String {
     }
     r.state = JobState::Failed;
     r.error = Some(format!(
-        "the server stopped before the job finished (it was {}); upload the scene again",
+        "the server stopped before the job finished (it was {}); {} again",
         match was {
             JobState::Queued => "queued",
             _ => "running",
+        },
+        if r.resimulate.is_some() {
+            "ask for the re-simulation"
+        } else {
+            "upload the scene"
         }
     ));
     format!(

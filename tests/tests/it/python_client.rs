@@ -11,10 +11,9 @@ use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
+use translux_server::ServerParams;
 use translux_server::auth::hash_token;
-use translux_server::state::discover;
-use translux_server::team::{Team, TeamArgs};
-use translux_server::{AppState, ServerParams};
+use translux_server::team::TeamArgs;
 
 const VIEWER: &str = "tlx_pyviewer_00000000000000000000000000";
 const EDITOR: &str = "tlx_pyeditor_11111111111111111111111111";
@@ -90,26 +89,7 @@ async fn team_server(bundles: &Path, secrets: &Path) -> (String, oneshot::Sender
         job_threads: Some(2),
         ..TeamArgs::default()
     };
-    let state = AppState::with_params(ServerParams::default());
-    let (found, errors) = discover(bundles).unwrap();
-    assert!(errors.is_empty(), "{errors:?}");
-    for (id, dir) in found {
-        state.load_one(&id, &dir);
-    }
-    let team = Team::start(&args, bundles, state.clone()).unwrap();
-    let app = translux_server::team::app(state.clone(), team);
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (tx, rx) = oneshot::channel::<()>();
-    tokio::spawn(translux_server::serve_router(
-        listener,
-        state,
-        app,
-        async move {
-            let _ = rx.await;
-        },
-    ));
-    (format!("http://{addr}"), tx)
+    crate::support::start_team_server(bundles, &args, ServerParams::default()).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -354,3 +354,34 @@ pub fn metric(text: &str, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
         })
         .map(|s| s.value)
 }
+
+/// A team server (the API behind access control, uploads and jobs) on 127.0.0.1:0 over the
+/// bundles folder `bundles`, started as the binary starts it: the team first (it settles
+/// what killed jobs left), then the folder's bundles loaded. Its base URL, and the sender
+/// whose drop (or send) stops it.
+pub async fn start_team_server(
+    bundles: &Path,
+    args: &translux_server::team::TeamArgs,
+    params: ServerParams,
+) -> (String, oneshot::Sender<()>) {
+    let state = AppState::with_params(params);
+    let team = translux_server::team::Team::start(args, bundles, state.clone()).unwrap();
+    let (found, errors) = translux_server::state::discover(bundles).unwrap();
+    assert!(errors.is_empty(), "{errors:?}");
+    for (id, dir) in found {
+        state.load_one(&id, &dir);
+    }
+    let app = translux_server::team::app(state.clone(), team);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (tx, rx) = oneshot::channel::<()>();
+    tokio::spawn(translux_server::serve_router(
+        listener,
+        state,
+        app,
+        async move {
+            let _ = rx.await;
+        },
+    ));
+    (format!("http://{addr}"), tx)
+}

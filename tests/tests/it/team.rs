@@ -13,10 +13,9 @@ use reqwest::multipart::{Form, Part};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
 use translux_proto::api::{RelightResponse, SceneList};
+use translux_server::ServerParams;
 use translux_server::auth::{Role, hash_token, required_role};
-use translux_server::state::discover;
-use translux_server::team::{Team, TeamArgs};
-use translux_server::{AppState, ServerParams};
+use translux_server::team::TeamArgs;
 
 const VIEWER: &str = "tlx_viewer_0000000000000000000000000000";
 const EDITOR: &str = "tlx_editor_1111111111111111111111111111";
@@ -123,31 +122,12 @@ impl Server {
             let secrets = tempfile::tempdir().unwrap().keep();
             args.tokens = Some(tokens_file(&secrets));
         }
-        let state = AppState::with_params(params);
-        // As the server's start-up: the team settles leftovers before the folder is read.
-        let team = Team::start(&args, bundles, state.clone()).unwrap();
-        let (found, errors) = discover(bundles).unwrap();
-        assert!(errors.is_empty(), "{errors:?}");
-        for (id, dir) in found {
-            state.load_one(&id, &dir);
-        }
-        let app = translux_server::team::app(state.clone(), team);
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let (tx, rx) = oneshot::channel::<()>();
-        tokio::spawn(translux_server::serve_router(
-            listener,
-            state,
-            app,
-            async move {
-                let _ = rx.await;
-            },
-        ));
+        let (base, stop) = crate::support::start_team_server(bundles, &args, params).await;
         Server {
-            base: format!("http://{addr}"),
+            base,
             client: reqwest::Client::new(),
             bundles: bundles.to_path_buf(),
-            _stop: tx,
+            _stop: stop,
         }
     }
 
@@ -1768,20 +1748,10 @@ async fn a_new_scattering_medium_walks_again_as_a_job_and_is_served() {
     );
 }
 
-/// This process's CPU time (user + system), s, from /proc/self/stat (the server runs in
-/// the test's process).
-fn cpu_seconds() -> f64 {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap();
-    // Fields after the command name in parentheses: utime and stime are the 12th and 13th.
-    let rest = &stat[stat.rfind(')').unwrap() + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f[11].parse::<f64>().unwrap() + f[12].parse::<f64>().unwrap();
-    ticks / 100.0
-}
-
 /// A re-simulation that would walk for hours (σs′ 10⁴ mm⁻¹, σa 0, 10⁶ walks per patch, the
-/// attack of issue #79): a DELETE stops it within 2 s, the CPU goes idle and the job slot
-/// is free again; under a token with a work limit of 1 s the same job fails at the limit
+/// attack of issue #79): a DELETE stops it within 2 s (the record turns `cancelled` only
+/// once every walking thread has returned) and the only job slot is free again (the next
+/// job runs); under a token with a work limit of 1 s the same job fails at the limit
 /// with the time it would need. Either way the bundle is served as it was.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_resimulation_is_cancelled_by_delete_and_stopped_at_its_limit() {
@@ -1819,7 +1789,7 @@ async fn a_resimulation_is_cancelled_by_delete_and_stopped_at_its_limit() {
             .to_string()
     };
 
-    // Cancelled while walking: stopped within 2 s, then the process is idle.
+    // Cancelled while walking: stopped within 2 s.
     let id = submit(EDITOR).await;
     let t = Instant::now();
     while job_state(id.clone()).await != "running" {
@@ -1845,13 +1815,6 @@ async fn a_resimulation_is_cancelled_by_delete_and_stopped_at_its_limit() {
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    let cpu = cpu_seconds();
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    let busy = cpu_seconds() - cpu;
-    assert!(
-        busy < 0.3,
-        "{busy:.2} s of CPU in the second after the cancel"
-    );
 
     // Under a token limited to 1 s: failed at the limit, saying what it would take.
     let id = submit(BRIEF).await;
