@@ -103,14 +103,18 @@ fn moment(y_lo: f64, y_hi: f64, phi0: f64, phi1: f64) -> Vec3 {
 /// Sub-samples per side of a cell that the horizon crosses.
 const HORIZON_SUB: u32 = 4;
 
-/// V as `[N · K]` f32 (patch-major), with `progress(k)` called as patches finish.
+/// V of the patches `rows` as `[rows · K]` f32 (patch-major), with `progress(k)` called as
+/// patches finish. A patch's rays are seeded by its index among all the patches, so V of a
+/// share of the rows is that share of V of all of them (a precompute's shards).
 ///
 /// Cosine part: a cell that faces the patch entirely (all four corners in front) is
 /// integrated exactly, n·∫_cell ω dω; a cell the horizon crosses by a 4 × 4 midpoint rule.
+#[allow(clippy::too_many_arguments)]
 pub fn visibility(
     centroid: &[Vec3],
     normal: &[Vec3],
     owner: Option<&[u32]>,
+    rows: std::ops::Range<usize>,
     occ: &Occluder,
     bins: Bins,
     params: &EnvVisParams,
@@ -151,11 +155,12 @@ pub fn visibility(
             })
         })
         .collect();
-    let mut out = vec![0.0f32; centroid.len() * k_count];
+    let mut out = vec![0.0f32; rows.len() * k_count];
     let rays: u64 = out
         .par_chunks_mut(k_count)
         .enumerate()
         .map(|(i, row)| {
+            let i = rows.start + i;
             let n = normal[i];
             let origin = centroid[i] + n * offset;
             // A face pressed against another (a block's base on the floor) sees nothing of
@@ -263,21 +268,22 @@ pub fn visibility(
     (out, EnvVisStats { rays })
 }
 
-/// The precompute stage: V for every patch as IEEE half-float bits (the bundle's
-/// `env_visibility.f16`, `[N, rows, cols]`) and its manifest entry, or `None` when
-/// `params.bins` is `None`. f16 keeps 11 significant bits: a relative error ≤ 2⁻¹¹ per
+/// The precompute stage: V for the patches `rows` (all of them on one box) as IEEE
+/// half-float bits (the bundle's `env_visibility.f16`, `[N, rows, cols]`) and its manifest
+/// entry, or `None` when `params.bins` is `None`. f16 keeps 11 significant bits: a relative error ≤ 2⁻¹¹ per
 /// entry, far below the estimate's own (see `docs/environment.md`).
 pub fn stage(
     centroid: &[Vec3],
     normal: &[Vec3],
     owner: Option<&[u32]>,
+    rows: std::ops::Range<usize>,
     occ: &Occluder,
     params: &EnvVisParams,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)> {
     let bins = params.bins?;
     let t = std::time::Instant::now();
-    let (v, stats) = visibility(centroid, normal, owner, occ, bins, params, progress);
+    let (v, stats) = visibility(centroid, normal, owner, rows, occ, bins, params, progress);
     let bits = v
         .par_iter()
         .map(|&x| half::f16::from_f32(x).to_bits())
@@ -351,7 +357,7 @@ mod tests {
             bins: Some(bins),
             ..Default::default()
         };
-        visibility(c, n, Some(owner), &occ, bins, &p, &|_| {}).0
+        visibility(c, n, Some(owner), 0..c.len(), &occ, bins, &p, &|_| {}).0
     }
 
     #[test]
@@ -615,7 +621,7 @@ mod tests {
                 rays,
                 ..Default::default()
             };
-            let (v, stats) = visibility(&c, &n, None, &occ, bins, &p, &|_| {});
+            let (v, stats) = visibility(&c, &n, None, 0..c.len(), &occ, bins, &p, &|_| {});
             let mean = bin_radiance(&sky, rotation, bins);
             let mut e = vec![[0.0f32; 3]; c.len()];
             environment_irradiance(&v, &mean, 1.0, &mut e);

@@ -396,14 +396,31 @@ pub fn compute(
     progress: &(dyn Fn(u64) + Sync),
     stop: &(dyn Fn() -> bool + Sync),
 ) -> Hierarchical {
-    let n = p.len();
     let tree = ClusterTree::build(p);
+    let rows = compute_rows(p, occ, ff, params, &tree, 0..p.len(), progress, stop);
+    assemble(tree, params, vec![rows])
+}
+
+/// The cuts of the receivers `rows` (a share of [`compute`]'s work: a precompute shard,
+/// [`crate::shard`]). Each receiver's cut depends on nothing but the patches, the tree and
+/// the parameters, so the rows of several blocks put together are [`compute`]'s rows.
+#[allow(clippy::too_many_arguments)]
+pub fn compute_rows(
+    p: &Patches,
+    occ: &Occluder,
+    ff: &FormFactorParams,
+    params: &HierarchyParams,
+    tree: &ClusterTree,
+    rows: std::ops::Range<usize>,
+    progress: &(dyn Fn(u64) + Sync),
+    stop: &(dyn Fn() -> bool + Sync),
+) -> RowBlock {
     let diag = occ.diagonal();
     let ctx = Cut {
         p,
         occ,
         ff,
-        tree: &tree,
+        tree,
         eta: params.accuracy,
         m: params.node_samples as usize,
         half_cone: (params.cone_deg * 0.5).to_radians(),
@@ -412,7 +429,8 @@ pub fn compute(
     };
     let rays = AtomicU64::new(0);
     let tests = AtomicU64::new(0);
-    let rows: Vec<(Vec<(u32, f32)>, RowStats)> = (0..n)
+    let cuts: Vec<(Vec<(u32, f32)>, RowStats)> = rows
+        .clone()
         .into_par_iter()
         .with_min_len(4)
         .map_init(Vec::new, |samples, i| {
@@ -426,27 +444,94 @@ pub fn compute(
             r
         })
         .collect();
+    let mut block = RowBlock {
+        first: rows.start as u64,
+        row_ptr: Vec::with_capacity(cuts.len() + 1),
+        rays: rays.into_inner(),
+        tests: tests.into_inner(),
+        ..Default::default()
+    };
+    block.row_ptr.push(0);
+    for (row, stats) in cuts {
+        block.node_entries += stats.node_entries;
+        block.patch_entries += stats.patch_entries;
+        block.covered += stats.covered;
+        for (j, v) in row {
+            block.col.push(j);
+            block.val.push(v);
+        }
+        block.row_ptr.push(block.col.len() as u64);
+    }
+    block
+}
 
+/// Consecutive rows of C ([`compute_rows`]) with their counts.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RowBlock {
+    /// The first receiver (row) of the block.
+    pub first: u64,
+    /// Offsets of each row's entries in `col`/`val`, from 0 (rows + 1 of them).
+    pub row_ptr: Vec<u64>,
+    pub col: Vec<u32>,
+    pub val: Vec<f32>,
+    /// Occlusion rays cast and nodes or patch pairs examined.
+    pub rays: u64,
+    pub tests: u64,
+    /// Entries linking a receiver to a cluster node, and to a single patch.
+    pub node_entries: u64,
+    pub patch_entries: u64,
+    /// Patches behind the entries (what dense F would store, visibility aside).
+    pub covered: u64,
+}
+
+impl RowBlock {
+    /// Rows in the block.
+    pub fn rows(&self) -> usize {
+        self.row_ptr.len().saturating_sub(1)
+    }
+}
+
+/// C and its summaries from row blocks that together cover every receiver in order (checked:
+/// a caller putting shards together has verified them already, so a gap is a bug).
+pub fn assemble(
+    tree: ClusterTree,
+    params: &HierarchyParams,
+    blocks: Vec<RowBlock>,
+) -> Hierarchical {
+    let n = tree.perm.len();
+    let nnz: usize = blocks.iter().map(|b| b.col.len()).sum();
     let mut c = Csr {
         n_rows: n,
         n_cols: n + tree.node_count(),
         row_ptr: Vec::with_capacity(n + 1),
-        col: Vec::new(),
-        val: Vec::new(),
+        col: Vec::with_capacity(nnz),
+        val: Vec::with_capacity(nnz),
     };
     c.row_ptr.push(0);
+    let (mut rays, mut tests) = (0u64, 0u64);
     let (mut node_entries, mut patch_entries, mut dense_equivalent) = (0u64, 0u64, 0u64);
-    for (row, stats) in rows {
-        node_entries += stats.node_entries;
-        patch_entries += stats.patch_entries;
-        dense_equivalent += stats.covered;
-        for (j, v) in row {
-            c.col.push(j);
-            c.val.push(v);
-        }
-        c.row_ptr.push(c.col.len() as u64);
+    for b in blocks {
+        assert_eq!(
+            b.first as usize,
+            c.row_ptr.len() - 1,
+            "row blocks out of order"
+        );
+        let base = c.col.len() as u64;
+        c.row_ptr.extend(b.row_ptr[1..].iter().map(|&o| base + o));
+        c.col.extend_from_slice(&b.col);
+        c.val.extend_from_slice(&b.val);
+        rays += b.rays;
+        tests += b.tests;
+        node_entries += b.node_entries;
+        patch_entries += b.patch_entries;
+        dense_equivalent += b.covered;
     }
-    let ff_info = summarize(&c, 0.0, 0.0, rays.into_inner(), tests.into_inner());
+    assert_eq!(
+        c.row_ptr.len(),
+        n + 1,
+        "row blocks do not cover every receiver"
+    );
+    let ff_info = summarize(&c, 0.0, 0.0, rays, tests);
     let info = HierarchyInfo {
         nodes: tree.node_count() as u64,
         depth: tree.depth,

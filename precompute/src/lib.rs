@@ -27,7 +27,9 @@
 //! 5. [`bundle`] — write arrays and manifest atomically; environment visibility and T come
 //!    from `translux_engine::{envvis, inverse}`.
 //!
-//! [`pipeline::precompute`] runs 1–5 with progress and a summary.
+//! [`pipeline::precompute`] runs 1–5 with progress and a summary. [`shard`] splits the
+//! receiver rows of stage 3 (and the environment visibility) over the tasks of a scheduler
+//! (`pipeline::precompute_shard`) and puts them together (`pipeline::precompute_merge`).
 //!
 //! ```no_run
 //! use translux_precompute::{pipeline, scene};
@@ -53,6 +55,7 @@ pub mod resimulate;
 pub mod scene;
 pub mod sequence;
 pub mod shapes;
+pub mod shard;
 pub mod sheet;
 pub mod simplify;
 pub mod simulate;

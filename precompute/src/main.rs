@@ -1,4 +1,5 @@
-//! `translux-precompute SCENE --out DIR [--patches N] [--inverse]`, or
+//! `translux-precompute SCENE --out DIR [--patches N] [--inverse]`, its shards
+//! (`--shard I/K`, then `--merge K`, [`translux_precompute::shard`]), or
 //! `translux-precompute BUNDLE --resimulate --materials JSON` (simulated objects walk again
 //! in a new medium, [`translux_precompute::resimulate`]).
 //!
@@ -16,6 +17,7 @@ use translux_precompute::formfactor::FormFactorParams;
 use translux_precompute::hierarchy::HierarchyParams;
 use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
+use translux_precompute::shard::{Shard, parse_count};
 use translux_precompute::slinks::{DEFAULT_LINK_NEAR, SLinkParams};
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
@@ -94,6 +96,18 @@ struct Cli {
     /// No progress bars or stage lines.
     #[arg(long, short)]
     quiet: bool,
+    /// Compute only shard I of K (0-based: 0/4 to 3/4) of the receiver rows — the form
+    /// factors and the environment visibility — into `OUT.parts/part-I-of-K/`, for a job
+    /// array on a scheduler. A shard already finished for the same scene and settings is
+    /// not computed again; a killed one leaves no part. Hierarchical transport only.
+    #[arg(long, value_name = "I/K", conflicts_with_all = ["merge", "resimulate"])]
+    shard: Option<Shard>,
+    /// Put the K parts in `OUT.parts/` together — each checked: none missing, from another
+    /// split, scene or settings, or damaged — run the remaining stages (subsurface, T) and
+    /// write the bundle, the same arrays as one run without shards; the parts are removed
+    /// after. Give the scene and the same settings as the shards.
+    #[arg(long, value_name = "K", conflicts_with = "resimulate", value_parser = parse_count)]
+    merge: Option<u32>,
     /// Environment-light visibility bins, ROWSxCOLS (default 16x32: 2 bytes per patch and
     /// bin), or 0 to skip the stage (environment lights are then refused for the bundle).
     #[arg(long, value_name = "ROWSxCOLS")]
@@ -213,6 +227,40 @@ enum TransportArg {
     Hierarchical,
 }
 
+/// `--shard I/K`: computes the part, prints what it holds.
+fn print_part(
+    name: &str,
+    loaded: &scene::LoadedScene,
+    out: &std::path::Path,
+    params: &PrecomputeParams,
+    shard: Shard,
+) -> anyhow::Result<()> {
+    let r = pipeline::precompute_shard(loaded, out, params, shard)
+        .with_context(|| format!("precomputing shard {shard} of {name}"))?;
+    if !r.computed {
+        println!(
+            "translux-precompute: shard {shard} of {name} is already in {} (same scene and \
+             settings): nothing to do",
+            r.dir.display()
+        );
+        return Ok(());
+    }
+    println!(
+        "translux-precompute: shard {shard} of {name} -> {}",
+        r.dir.display()
+    );
+    println!(
+        "  receiver rows      {}..{} ({} entries of F)",
+        r.rows.start, r.rows.end, r.entries
+    );
+    println!("  part               {}", human_bytes(r.bytes));
+    println!(
+        "  stage times        form factors {:.2} s, environment {:.2} s",
+        r.form_factor_seconds, r.environment_seconds
+    );
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
@@ -306,10 +354,23 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         ..Default::default()
     };
     let Some(loaded) = loaded else {
+        if cli.shard.is_some() || cli.merge.is_some() {
+            bail!(
+                "--shard and --merge split one scene's receiver rows; {} is animated (a \
+                 sequence of frames): precompute it whole",
+                cli.scene
+            );
+        }
         return sequence(&cli, &source, &out, &params);
     };
-    let report = pipeline::precompute(&loaded, &out, &params)
-        .with_context(|| format!("precomputing {}", cli.scene))?;
+    if let Some(shard) = cli.shard {
+        return print_part(&cli.scene, &loaded, &out, &params, shard);
+    }
+    let report = match cli.merge {
+        Some(count) => pipeline::precompute_merge(&loaded, &out, &params, count),
+        None => pipeline::precompute(&loaded, &out, &params),
+    }
+    .with_context(|| format!("precomputing {}", cli.scene))?;
 
     let ff = &report.form_factors;
     println!("translux-precompute: {} -> {}", cli.scene, out.display());

@@ -1,6 +1,8 @@
 //! The whole precompute: loaded scene in, verified bundle on disk out.
 //!
-//! Stages: plan and check memory → patches and viewer mesh → BVH → form factors → write.
+//! Stages: plan and check memory → patches and viewer mesh → BVH → form factors and
+//! environment visibility (all rows, one shard's rows into a part, or the parts merged:
+//! [`crate::shard`]) → subsurface → T → write.
 //! Each long stage reports progress (a bar on a terminal, a line per stage otherwise), and
 //! [`PrecomputeReport`] carries the summary the CLI prints.
 
@@ -25,6 +27,7 @@ use crate::hetero::{self, PatternFrame};
 use crate::hierarchy::{self, HierarchyParams};
 use crate::patch::{self, Density, Patches};
 use crate::scene::LoadedScene;
+use crate::shard::{PartReport, Shard, ShardRows, Split};
 use crate::voxel::VoxelParams;
 use translux_engine::raycast::Occluder;
 use translux_engine::simulated::SimError;
@@ -260,6 +263,9 @@ pub enum PrecomputeError {
     /// A simulated object that walks cannot run in (an open mesh, say).
     #[error("{0}")]
     Simulation(String),
+    /// A shard that cannot be written or parts that cannot be merged ([`crate::shard`]).
+    #[error("{0}")]
+    Shard(String),
 }
 
 /// Bytes per stored non-zero of F while building: the final CSR (col 4 + val 4), the upper
@@ -450,6 +456,57 @@ pub fn precompute(
     out: &Path,
     params: &PrecomputeParams,
 ) -> Result<PrecomputeReport, PrecomputeError> {
+    match run(scene, out, params, Split::Whole)? {
+        Outcome::Bundle(report) => Ok(*report),
+        Outcome::Part(_) => unreachable!("a whole precompute writes a bundle"),
+    }
+}
+
+/// Computes shard `shard` of the receiver rows (form factors and environment visibility)
+/// into `out`'s parts folder ([`crate::shard`]); a shard already finished for the same plan
+/// is left as it is (`computed: false`).
+pub fn precompute_shard(
+    scene: &LoadedScene,
+    out: &Path,
+    params: &PrecomputeParams,
+    shard: Shard,
+) -> Result<PartReport, PrecomputeError> {
+    match run(scene, out, params, Split::Shard(shard))? {
+        Outcome::Part(report) => Ok(report),
+        Outcome::Bundle(_) => unreachable!("a shard writes a part"),
+    }
+}
+
+/// Puts the `count` parts in `out`'s parts folder together (each checked against this
+/// run's plan), runs the remaining stages and writes the bundle (atomically); the parts
+/// folder is removed after. The bundle's arrays are the bytes [`precompute`] writes.
+pub fn precompute_merge(
+    scene: &LoadedScene,
+    out: &Path,
+    params: &PrecomputeParams,
+    count: u32,
+) -> Result<PrecomputeReport, PrecomputeError> {
+    let report = match run(scene, out, params, Split::Merge(count))? {
+        Outcome::Bundle(report) => *report,
+        Outcome::Part(_) => unreachable!("a merge writes a bundle"),
+    };
+    crate::shard::remove_parts(out);
+    Ok(report)
+}
+
+/// What one run of the stages made.
+enum Outcome {
+    Bundle(Box<PrecomputeReport>),
+    Part(PartReport),
+}
+
+/// The stages, whole, for one shard, or from the parts ([`Split`]).
+fn run(
+    scene: &LoadedScene,
+    out: &Path,
+    params: &PrecomputeParams,
+    split: Split,
+) -> Result<Outcome, PrecomputeError> {
     let mut stages = Vec::new();
     let progress = params.progress;
     for (k, o) in scene.objects.iter().enumerate() {
@@ -480,6 +537,13 @@ pub fn precompute(
     // Plan: density and the patch count it gives, checked before anything big is made.
     if params.patches == Some(0) {
         return Err(PrecomputeError::ZeroPatches);
+    }
+    if split != Split::Whole && params.transport == FormFactorMethod::Dense {
+        return Err(PrecomputeError::Shard(
+            "--shard and --merge split the hierarchical F's receiver rows; --transport dense \
+             computes F pair by pair and runs on one box"
+                .into(),
+        ));
     }
     let density = density_for(params.patches, params.max_edge, scene.file.patches);
     if let Density::MaxEdge(e) = density
@@ -659,70 +723,26 @@ pub fn precompute(
     bar.inc(1);
     finish(bar, progress, "bvh", t, &mut stages);
 
-    // Form factors.
-    let t = Instant::now();
+    // Form factors and environment visibility: every receiver's row, one shard's, or the
+    // parts' put together.
     let n = patches.len() as u64;
-    stage_start(params, "form factors")?;
-    let ff_total = n * n.saturating_sub(1) / 2;
-    let bar = stage_bar(progress, ff_total, "form factors");
-    let ff_done = std::sync::atomic::AtomicU64::new(0);
-    let stop = || params.observer.as_ref().is_some_and(|o| o.cancelled());
-    let (ff, ff_info, tree) = match &params.transport {
-        FormFactorMethod::Dense => {
-            let (ff, info) = formfactor::compute_with_stop(
-                &patches,
-                &occ,
-                &params.form_factors,
-                &|k| {
-                    bar.inc(k);
-                    if let Some(o) = &params.observer {
-                        let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
-                        o.progress("form factors", done, ff_total);
-                    }
-                },
-                &stop,
-            );
-            (ff, info, None)
+    let TransportRows {
+        ff,
+        ff_info,
+        tree,
+        environment,
+        ff_seconds,
+    } = match split {
+        Split::Whole => transport_rows(&patches, &occ, params, &mut stages)?,
+        Split::Shard(shard) => {
+            let plan = plan_of(&patches, &occluder_tris, params);
+            return shard_rows(&patches, &occ, params, out, (shard, plan)).map(Outcome::Part);
         }
-        FormFactorMethod::Hierarchical(hp) => {
-            bar.set_length(n);
-            let h = hierarchy::compute(
-                &patches,
-                &occ,
-                &params.form_factors,
-                hp,
-                &|k| {
-                    bar.inc(k);
-                    if let Some(o) = &params.observer {
-                        let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
-                        o.progress("form factors", done, n);
-                    }
-                },
-                &stop,
-            );
-            let ranges = h.tree.ranges();
-            (h.c, h.ff_info, Some((h.tree, ranges, h.info)))
+        Split::Merge(count) => {
+            let plan = plan_of(&patches, &occluder_tris, params);
+            merged_rows(scene, &patches, params, out, (count, plan), &mut stages)?
         }
     };
-    if params.observer.as_ref().is_some_and(|o| o.cancelled()) {
-        return Err(PrecomputeError::Cancelled);
-    }
-    let ff_seconds = t.elapsed().as_secs_f64();
-    finish(bar, progress, "form factors", t, &mut stages);
-
-    // Environment visibility per patch and direction bin ([`translux_engine::envvis`]).
-    let t = Instant::now();
-    stage_start(params, "environment")?;
-    let bar = stage_bar(progress, n, "environment");
-    let environment = translux_engine::envvis::stage(
-        &patches.centroid,
-        &patches.normal,
-        Some(&patches.object),
-        &occ,
-        &params.environment,
-        &|k| bar.inc(k),
-    );
-    finish(bar, progress, "environment", t, &mut stages);
 
     // Subsurface: distances and S per translucent object, ρ on the diagonal elsewhere.
     let t = Instant::now();
@@ -1345,7 +1365,7 @@ pub fn precompute(
     bar.inc(1);
     finish(bar, progress, "write bundle", t, &mut stages);
 
-    Ok(PrecomputeReport {
+    Ok(Outcome::Bundle(Box::new(PrecomputeReport {
         patch_count: patches.len(),
         vertex_count: mesh.positions.len(),
         occluder_count: occluder_tris.len(),
@@ -1359,6 +1379,266 @@ pub fn precompute(
         stages,
         memory_estimate,
         peak_rss: peak_rss(),
+    })))
+}
+
+/// F, its summary and tree, and the environment visibility, for every receiver.
+struct TransportRows {
+    ff: translux_proto::csr::Csr,
+    ff_info: FormFactorInfo,
+    tree: Option<(hierarchy::ClusterTree, Vec<[u32; 2]>, HierarchyInfo)>,
+    environment: Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)>,
+    ff_seconds: f64,
+}
+
+/// The F and environment stages over every receiver (one box).
+fn transport_rows(
+    patches: &Patches,
+    occ: &Occluder,
+    params: &PrecomputeParams,
+    stages: &mut Vec<StageTime>,
+) -> Result<TransportRows, PrecomputeError> {
+    let progress = params.progress;
+    let t = Instant::now();
+    let n = patches.len() as u64;
+    stage_start(params, "form factors")?;
+    let ff_total = n * n.saturating_sub(1) / 2;
+    let bar = stage_bar(progress, ff_total, "form factors");
+    let ff_done = std::sync::atomic::AtomicU64::new(0);
+    let stop = || params.observer.as_ref().is_some_and(|o| o.cancelled());
+    let (ff, ff_info, tree) = match &params.transport {
+        FormFactorMethod::Dense => {
+            let (ff, info) = formfactor::compute_with_stop(
+                patches,
+                occ,
+                &params.form_factors,
+                &|k| {
+                    bar.inc(k);
+                    if let Some(o) = &params.observer {
+                        let done = ff_done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+                        o.progress("form factors", done, ff_total);
+                    }
+                },
+                &stop,
+            );
+            (ff, info, None)
+        }
+        FormFactorMethod::Hierarchical(hp) => {
+            bar.set_length(n);
+            let h = hierarchy::compute(
+                patches,
+                occ,
+                &params.form_factors,
+                hp,
+                &row_progress(&bar, params, &ff_done, n),
+                &stop,
+            );
+            let ranges = h.tree.ranges();
+            (h.c, h.ff_info, Some((h.tree, ranges, h.info)))
+        }
+    };
+    if stop() {
+        return Err(PrecomputeError::Cancelled);
+    }
+    let ff_seconds = t.elapsed().as_secs_f64();
+    finish(bar, progress, "form factors", t, stages);
+    let environment = environment_rows(patches, occ, params, 0..patches.len(), stages)?;
+    Ok(TransportRows {
+        ff,
+        ff_info,
+        tree,
+        environment,
+        ff_seconds,
+    })
+}
+
+/// A hierarchical F's row counter: the bar and the observer, `n` rows in all.
+fn row_progress<'a>(
+    bar: &'a ProgressBar,
+    params: &'a PrecomputeParams,
+    done: &'a std::sync::atomic::AtomicU64,
+    n: u64,
+) -> impl Fn(u64) + Sync + 'a {
+    move |k| {
+        bar.inc(k);
+        if let Some(o) = &params.observer {
+            let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+            o.progress("form factors", d, n);
+        }
+    }
+}
+
+/// Environment visibility per patch of `rows` and direction bin ([`translux_engine::envvis`]).
+fn environment_rows(
+    patches: &Patches,
+    occ: &Occluder,
+    params: &PrecomputeParams,
+    rows: std::ops::Range<usize>,
+    stages: &mut Vec<StageTime>,
+) -> Result<Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)>, PrecomputeError> {
+    let t = Instant::now();
+    stage_start(params, "environment")?;
+    let bar = stage_bar(params.progress, rows.len() as u64, "environment");
+    let environment = translux_engine::envvis::stage(
+        &patches.centroid,
+        &patches.normal,
+        Some(&patches.object),
+        rows,
+        occ,
+        &params.environment,
+        &|k| bar.inc(k),
+    );
+    finish(bar, params.progress, "environment", t, stages);
+    Ok(environment)
+}
+
+/// The fingerprint of what the receiver rows depend on ([`crate::shard::plan_hash`]): the
+/// bundle format, the patches, the source triangles, the tree and the F and environment
+/// settings.
+fn plan_of(patches: &Patches, occluder_tris: &[[Vec3; 3]], params: &PrecomputeParams) -> u64 {
+    let corners: Vec<f32> = patches
+        .corners
+        .iter()
+        .flat_map(|c| c.iter().flat_map(|v| v.to_array()))
+        .collect();
+    let sources: Vec<f32> = occluder_tris
+        .iter()
+        .flat_map(|c| c.iter().flat_map(|v| v.to_array()))
+        .collect();
+    let tree = hierarchy::ClusterTree::build(patches);
+    let settings = format!(
+        "{:?}|{:?}|{:?}",
+        params.form_factors, params.transport, params.environment
+    );
+    crate::shard::plan_hash(&[
+        &FORMAT_VERSION.to_le_bytes(),
+        bytemuck::cast_slice(&corners),
+        bytemuck::cast_slice(&patches.object),
+        bytemuck::cast_slice(&sources),
+        bytemuck::cast_slice(&tree.perm),
+        settings.as_bytes(),
+    ])
+}
+
+/// One shard's rows into its part folder, or nothing when it is already there, finished,
+/// for the same plan.
+fn shard_rows(
+    patches: &Patches,
+    occ: &Occluder,
+    params: &PrecomputeParams,
+    out: &Path,
+    (shard, plan): (Shard, u64),
+) -> Result<PartReport, PrecomputeError> {
+    let rows = shard.rows(patches.len());
+    if crate::shard::finished(out, shard, plan).map_err(PrecomputeError::Shard)? {
+        return Ok(PartReport {
+            shard,
+            dir: crate::shard::part_dir(out, shard),
+            rows,
+            computed: false,
+            bytes: 0,
+            entries: 0,
+            form_factor_seconds: 0.0,
+            environment_seconds: 0.0,
+        });
+    }
+    let FormFactorMethod::Hierarchical(hp) = &params.transport else {
+        unreachable!("run() refuses a split of a dense F")
+    };
+    let t = Instant::now();
+    stage_start(params, "form factors")?;
+    let bar = stage_bar(params.progress, rows.len() as u64, "form factors");
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let stop = || params.observer.as_ref().is_some_and(|o| o.cancelled());
+    let tree = hierarchy::ClusterTree::build(patches);
+    let block = hierarchy::compute_rows(
+        patches,
+        occ,
+        &params.form_factors,
+        hp,
+        &tree,
+        rows.clone(),
+        &row_progress(&bar, params, &done, rows.len() as u64),
+        &stop,
+    );
+    if stop() {
+        return Err(PrecomputeError::Cancelled);
+    }
+    let form_factor_seconds = t.elapsed().as_secs_f64();
+    let mut stages = Vec::new();
+    finish(bar, params.progress, "form factors", t, &mut stages);
+    let t = Instant::now();
+    let environment = environment_rows(patches, occ, params, rows, &mut stages)?;
+    let part = ShardRows {
+        block,
+        environment,
+        form_factor_seconds,
+        environment_seconds: t.elapsed().as_secs_f64(),
+    };
+    crate::shard::write_part(out, shard, plan, &part).map_err(PrecomputeError::Shard)
+}
+
+/// The rows of the `count` parts, checked against this run's plan and put together; their
+/// stage times (summed over the shards) and the merge's own.
+fn merged_rows(
+    scene: &LoadedScene,
+    patches: &Patches,
+    params: &PrecomputeParams,
+    out: &Path,
+    (count, plan): (u32, u64),
+    stages: &mut Vec<StageTime>,
+) -> Result<TransportRows, PrecomputeError> {
+    let FormFactorMethod::Hierarchical(hp) = &params.transport else {
+        unreachable!("run() refuses a split of a dense F")
+    };
+    let t = Instant::now();
+    stage_start(params, "form factors")?;
+    let rerun = |s: Shard| {
+        format!(
+            "translux-precompute {} --out {} --shard {s}",
+            scene.source,
+            out.display()
+        )
+    };
+    let parts = crate::shard::read_parts(out, count, plan, patches.len(), &rerun)
+        .map_err(PrecomputeError::Shard)?;
+    let ff_seconds: f64 = parts.iter().map(|p| p.form_factor_seconds).sum();
+    let env_seconds: f64 = parts.iter().map(|p| p.environment_seconds).sum();
+    let mut environment: Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)> = None;
+    let mut blocks = Vec::with_capacity(parts.len());
+    for p in parts {
+        if let Some((bits, info)) = p.environment {
+            match &mut environment {
+                None => environment = Some((bits, info)),
+                Some((all, sum)) => {
+                    all.extend_from_slice(&bits);
+                    sum.rays += info.rays;
+                    sum.seconds += info.seconds;
+                }
+            }
+        }
+        blocks.push(p.block);
+    }
+    let h = hierarchy::assemble(hierarchy::ClusterTree::build(patches), hp, blocks);
+    let ranges = h.tree.ranges();
+    stages.push(StageTime {
+        stage: "form factors (shards)".into(),
+        seconds: ff_seconds,
+    });
+    stages.push(StageTime {
+        stage: "environment (shards)".into(),
+        seconds: env_seconds,
+    });
+    stages.push(StageTime {
+        stage: "merge parts".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
+    Ok(TransportRows {
+        ff: h.c,
+        ff_info: h.ff_info,
+        tree: Some((h.tree, ranges, h.info)),
+        environment,
+        ff_seconds,
     })
 }
 

@@ -5,7 +5,7 @@
 //! integration of the dipole on a sphere, a slab and a cube), `slinks` (hierarchical S against pairwise),
 //! `heterogeneous` (eq. 9 objects), `simulated` (S from random walks), `animation`
 //! (animated scenes: one bundle per frame) and `gltf_scene` (glTF 2.0 files as whole scenes,
-//! from fixtures written by the tests).
+//! from fixtures written by the tests) and `shard` (`--shard` and `--merge` by hand).
 //!
 //! Run one subject with `cargo test -p translux-precompute --test it physics::`. One binary
 //! links the crate's dependencies once instead of once per file.
@@ -16,6 +16,7 @@ mod dipole;
 mod gltf_scene;
 mod heterogeneous;
 mod physics;
+mod shard;
 mod simulated;
 mod slinks;
 mod subsurface;
