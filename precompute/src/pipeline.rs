@@ -1,8 +1,12 @@
 //! The whole precompute: loaded scene in, verified bundle on disk out.
 //!
-//! Stages: plan and check memory → patches and viewer mesh → BVH → form factors and
-//! environment visibility (all rows, one shard's rows into a part, or the parts merged:
-//! [`crate::shard`]) → subsurface → T → write.
+//! Stages, in the order `run` calls them, each a function of this module: the scene's notes
+//! and the settings checked (`check_settings`) → plan, patches and viewer mesh
+//! (`Stages::patches`) → the memory budget (`check_memory`) → BVH (`Stages::bvh`) → form
+//! factors and environment visibility: all rows (`transport_rows`), one shard's rows into a
+//! part (`shard_rows`) or the parts merged (`merged_rows`; [`crate::shard`]) → subsurface
+//! (`Stages::subsurface`: walks, which objects trace on demand, distances, links, S) → T
+//! (`Stages::transfer`) → write (`Stages::write`, its arrays from `bundle_arrays`).
 //! Each long stage reports progress (a bar on a terminal, a line per stage otherwise), and
 //! [`PrecomputeReport`] carries the summary the CLI prints.
 
@@ -17,6 +21,7 @@ use translux_proto::bundle::{
     FORMAT, FORMAT_VERSION, FormFactorInfo, HierarchyInfo, Manifest, ObjectInfo, StageTime,
     SubsurfaceInfo, TransferInfo, arrays,
 };
+use translux_proto::csr::{Csr, CsrView};
 use translux_proto::light::Camera;
 use translux_proto::scene::Material;
 
@@ -28,11 +33,15 @@ use crate::hierarchy::{self, HierarchyParams};
 use crate::patch::{self, Density, Patches};
 use crate::scene::LoadedScene;
 use crate::shard::{PartReport, Shard, ShardRows, Split};
+use crate::simulate::SceneWalks;
 use crate::voxel::VoxelParams;
+use translux_engine::hetero::MediaLen;
+use translux_engine::inverse::Transfer;
+use translux_engine::linkbound::LinkBound;
 use translux_engine::raycast::Occluder;
 use translux_engine::simulated::SimError;
 use translux_engine::smatrix::{
-    self, ObjectMaterial, SError, SParams, material_albedo_emission, patch_albedo,
+    self, AssemblyReport, ObjectMaterial, SError, SParams, material_albedo_emission, patch_albedo,
 };
 use translux_engine::stop::Stop;
 
@@ -500,15 +509,66 @@ enum Outcome {
     Part(PartReport),
 }
 
-/// The stages, whole, for one shard, or from the parts ([`Split`]).
+/// The stages, whole, for one shard, or from the parts ([`Split`]): notes and checks,
+/// patches, the memory budget, BVH, the receiver rows (where a shard stops), subsurface, T
+/// and the bundle.
 fn run(
     scene: &LoadedScene,
     out: &Path,
     params: &PrecomputeParams,
     split: Split,
 ) -> Result<Outcome, PrecomputeError> {
-    let mut stages = Vec::new();
-    let progress = params.progress;
+    let mut stages = Stages {
+        scene,
+        params,
+        times: Vec::new(),
+    };
+    tell_scene_notes(scene, params);
+    let density = check_settings(scene, params, split)?;
+    let sources = source_triangles(scene)?;
+    let patched = stages.patches(sources, density)?;
+    let materials = object_materials(scene, &patched.patches);
+    let budget = check_memory(scene, params, &patched.patches, &materials)?;
+    let (occluder_tris, occ) = stages.bvh(&patched.sources)?;
+
+    // Form factors and environment visibility: every receiver's row, one shard's, or the
+    // parts' put together.
+    let patches = &patched.patches;
+    let rows = match split {
+        Split::Whole => transport_rows(patches, &occ, params, &mut stages.times)?,
+        Split::Shard(shard) => {
+            let plan = plan_of(patches, &occluder_tris, params);
+            return shard_rows(patches, &occ, params, out, (shard, plan)).map(Outcome::Part);
+        }
+        Split::Merge(count) => {
+            let plan = plan_of(patches, &occluder_tris, params);
+            merged_rows(
+                scene,
+                patches,
+                params,
+                out,
+                (count, plan),
+                &mut stages.times,
+            )?
+        }
+    };
+
+    let tree = rows.tree.as_ref().map(|(t, _, _)| t);
+    let subsurface = stages.subsurface(&patched, &materials, &budget, tree)?;
+    let transfer = stages.transfer(&patched, &occ, &rows, &subsurface.smat, budget.limit)?;
+    let made = Made {
+        patched,
+        occluder_tris,
+        rows,
+        subsurface,
+        transfer,
+    };
+    let report = stages.write(out, made, budget.memory_estimate)?;
+    Ok(Outcome::Bundle(Box::new(report)))
+}
+
+/// Tells the notes the scene's loading left on its objects (turned outward, simplified).
+fn tell_scene_notes(scene: &LoadedScene, params: &PrecomputeParams) {
     for (k, o) in scene.objects.iter().enumerate() {
         for note in o.orientation_notes.iter().chain(&o.notes) {
             tell(params, &format!("note: objects[{k}] {:?}: {note}", o.name));
@@ -524,7 +584,16 @@ fn run(
             );
         }
     }
+}
 
+/// Checks the scene and the settings before any work: simulated objects' meshes, the patch
+/// density, the split, the hierarchical F and S settings and the patch target. Out: the
+/// patch density.
+fn check_settings(
+    scene: &LoadedScene,
+    params: &PrecomputeParams,
+    split: Split,
+) -> Result<Density, PrecomputeError> {
     // Simulated objects need closed meshes facing out: refused before any work.
     crate::simulate::check_meshes(
         scene
@@ -551,6 +620,18 @@ fn run(
     {
         return Err(PrecomputeError::BadMaxEdge(e));
     }
+    check_hierarchical_settings(params)?;
+    if let Density::Target(t) = density
+        && let Some(e) = too_many(params, t)
+    {
+        return Err(e);
+    }
+    Ok(density)
+}
+
+/// Checks the settings of a hierarchical S (its own, and that it has a hierarchical F and
+/// no T) and of a hierarchical F (its own, and no threshold).
+fn check_hierarchical_settings(params: &PrecomputeParams) -> Result<(), PrecomputeError> {
     if let Some(sl) = &params.subsurface_links {
         sl.check().map_err(PrecomputeError::BadHierarchy)?;
         if params.transport == FormFactorMethod::Dense {
@@ -578,7 +659,12 @@ fn run(
             ));
         }
     }
-    let too_many = |requested: u64| match params.transport {
+    Ok(())
+}
+
+/// The refusal of `requested` patches, when that is more than the F method allows.
+fn too_many(params: &PrecomputeParams, requested: u64) -> Option<PrecomputeError> {
+    match params.transport {
         FormFactorMethod::Dense if requested > MAX_PATCHES => {
             Some(PrecomputeError::TooManyPatches {
                 requested,
@@ -589,12 +675,11 @@ fn run(
             Some(PrecomputeError::TooManyPatchesHierarchical { requested })
         }
         _ => None,
-    };
-    if let Density::Target(t) = density
-        && let Some(e) = too_many(t)
-    {
-        return Err(e);
     }
+}
+
+/// Each object's source triangles, in object order; a scene without any is refused.
+fn source_triangles(scene: &LoadedScene) -> Result<Vec<&[[Vec3; 3]]>, PrecomputeError> {
     let sources: Vec<&[[Vec3; 3]]> = scene
         .objects
         .iter()
@@ -603,26 +688,59 @@ fn run(
     if sources.iter().all(|s| s.is_empty()) {
         return Err(PrecomputeError::Empty);
     }
-    let t = Instant::now();
-    let (h, count) = patch::plan(&sources, density);
-    if let Some(e) = too_many(count) {
-        return Err(e);
-    }
+    Ok(sources)
+}
 
-    // Patches and the viewer mesh.
-    stage_start(params, "patches")?;
-    let bar = stage_bar(progress, 2, "patches");
-    let patches = patch::subdivide(&sources, h);
-    bar.inc(1);
-    let crease: Vec<f32> = scene.objects.iter().map(|o| o.crease_deg).collect();
-    let mesh = patch::viewer_mesh(&patches, &crease);
-    bar.inc(1);
-    finish(bar, progress, "patches", t, &mut stages);
+/// Each object's name, material and patch range, as the memory check and the subsurface
+/// stage read them.
+fn object_materials<'a>(scene: &'a LoadedScene, patches: &Patches) -> Vec<ObjectMaterial<'a>> {
+    scene
+        .objects
+        .iter()
+        .zip(&patches.object_ranges)
+        .map(|(o, r)| ObjectMaterial {
+            name: &o.name,
+            material: &o.material,
+            patches: r.clone(),
+        })
+        .collect()
+}
 
+/// The scene cut into patches: each object's source triangles, the subdivision edge, the
+/// patches and the viewer's mesh of them.
+struct Patched<'a> {
+    sources: Vec<&'a [[Vec3; 3]]>,
+    h: f32,
+    patches: Patches,
+    mesh: patch::ViewerMesh,
+}
+
+/// The memory a run may use and what the checks before F estimated.
+struct Budget {
+    /// Bytes the run may use: `memory_limit`, else 85% of the memory available now.
+    limit: u64,
+    /// The estimated peak: F while it is built, or the subsurface stage where larger.
+    memory_estimate: u64,
+    /// Bytes of F kept through the subsurface stage.
+    f_kept: u64,
+    /// Per translucent object: its name, the paths a pairwise S stores (an estimate, an
+    /// upper bound) and their radius ([`distances::estimate_paths`]).
+    paths: Vec<(String, u64, f32)>,
+}
+
+/// Estimates the peak memory of F, of T (with `inverse`) and of the subsurface stage, and
+/// refuses a run that would exceed the limit before anything big is allocated. Out: the
+/// budget the later stages keep to.
+fn check_memory(
+    scene: &LoadedScene,
+    params: &PrecomputeParams,
+    patches: &Patches,
+    materials: &[ObjectMaterial<'_>],
+) -> Result<Budget, PrecomputeError> {
     // Memory estimate for F, refused before the big allocation.
     let nnz_est = match params.transport {
-        FormFactorMethod::Dense => estimate_nnz(&patches),
-        FormFactorMethod::Hierarchical(hp) => estimate_nnz(&patches)
+        FormFactorMethod::Dense => estimate_nnz(patches),
+        FormFactorMethod::Hierarchical(hp) => estimate_nnz(patches)
             .min(patches.len() as f64 * hierarchical_entries_bound(hp.accuracy)),
     };
     let memory_estimate =
@@ -647,44 +765,14 @@ fn run(
     }
     // The subsurface stage comes after F (which it keeps) and can outgrow it: a large
     // translucent object stores every path within its profile's radius. Refused up front.
-    let materials: Vec<ObjectMaterial<'_>> = scene
-        .objects
-        .iter()
-        .zip(&patches.object_ranges)
-        .map(|(o, r)| ObjectMaterial {
-            name: &o.name,
-            material: &o.material,
-            patches: r.clone(),
-        })
-        .collect();
     let paths = distances::estimate_paths(
         &patches.centroid,
-        &materials,
+        materials,
         scene.file.unit_mm,
         &params.subsurface,
     )?;
     let f_kept = (nnz_est * 8.0) as u64 + patches.len() as u64 * 200;
-    // A hierarchical S traced on demand never lists a homogeneous translucent object's
-    // pairs: it holds its direct pairs and links only.
-    let on_demand_bound = |name: &str| -> Option<u64> {
-        params
-            .subsurface_links
-            .as_ref()
-            .filter(|sl| sl.trace != crate::slinks::Trace::All)?;
-        if !matches!(params.transport, FormFactorMethod::Hierarchical(_)) {
-            return None;
-        }
-        let o = materials.iter().find(|o| o.name == name)?;
-        matches!(o.material, Material::Translucent { .. })
-            .then(|| o.patches.len() as u64 * crate::slinks::ENTRIES_BOUND)
-    };
-    let held: Vec<(String, u64, f32)> = paths
-        .iter()
-        .map(|(name, p, r)| {
-            let p = on_demand_bound(name).map_or(*p, |b| b.min(*p));
-            (name.clone(), p, *r)
-        })
-        .collect();
+    let held = held_paths(params, materials, &paths);
     let path_total: u64 = held.iter().map(|p| p.1).sum();
     let subsurface_estimate =
         f_kept.saturating_add(path_total.saturating_mul(distances::PEAK_BYTES_PER_PATH));
@@ -708,407 +796,752 @@ fn run(
             limit,
         });
     }
+    Ok(Budget {
+        limit,
+        memory_estimate,
+        f_kept,
+        paths,
+    })
+}
 
-    // BVH over the source triangles.
-    let t = Instant::now();
-    stage_start(params, "bvh")?;
-    let bar = stage_bar(progress, 1, "bvh");
-    let occluder_tris: Vec<[Vec3; 3]> = sources.iter().flat_map(|s| s.iter().copied()).collect();
-    let owners: Vec<u32> = sources
+/// The paths each object of `paths` holds at the subsurface stage's peak: a hierarchical S
+/// traced on demand never lists a homogeneous translucent object's pairs, it holds its
+/// direct pairs and links only (at most [`crate::slinks::ENTRIES_BOUND`] per patch).
+fn held_paths(
+    params: &PrecomputeParams,
+    materials: &[ObjectMaterial<'_>],
+    paths: &[(String, u64, f32)],
+) -> Vec<(String, u64, f32)> {
+    let on_demand_bound = |name: &str| -> Option<u64> {
+        params
+            .subsurface_links
+            .as_ref()
+            .filter(|sl| sl.trace != crate::slinks::Trace::All)?;
+        if !matches!(params.transport, FormFactorMethod::Hierarchical(_)) {
+            return None;
+        }
+        let o = materials.iter().find(|o| o.name == name)?;
+        matches!(o.material, Material::Translucent { .. })
+            .then(|| o.patches.len() as u64 * crate::slinks::ENTRIES_BOUND)
+    };
+    paths
         .iter()
-        .enumerate()
-        .flat_map(|(k, s)| std::iter::repeat_n(k as u32, s.len()))
-        .collect();
-    let occ = Occluder::with_owners(&occluder_tris, &owners);
-    bar.inc(1);
-    finish(bar, progress, "bvh", t, &mut stages);
+        .map(|(name, p, r)| {
+            let p = on_demand_bound(name).map_or(*p, |b| b.min(*p));
+            (name.clone(), p, *r)
+        })
+        .collect()
+}
 
-    // Form factors and environment visibility: every receiver's row, one shard's, or the
-    // parts' put together.
-    let n = patches.len() as u64;
-    let TransportRows {
-        ff,
-        ff_info,
-        tree,
-        environment,
-        ff_seconds,
-    } = match split {
-        Split::Whole => transport_rows(&patches, &occ, params, &mut stages)?,
-        Split::Shard(shard) => {
-            let plan = plan_of(&patches, &occluder_tris, params);
-            return shard_rows(&patches, &occ, params, out, (shard, plan)).map(Outcome::Part);
+impl Budget {
+    /// The estimate was an upper bound; should the `stored` paths of stage 1 still outgrow
+    /// the budget, stop here, before S (the larger half) is assembled.
+    fn check_stored(&self, stored: u64) -> Result<(), PrecomputeError> {
+        let grown = self
+            .f_kept
+            .saturating_add(stored.saturating_mul(distances::PEAK_BYTES_PER_PATH));
+        if grown > self.limit {
+            return Err(PrecomputeError::SubsurfaceOutOfMemory {
+                object: "all translucent objects".into(),
+                paths: stored,
+                radius: 0.0,
+                estimate: grown,
+                limit: self.limit,
+            });
         }
-        Split::Merge(count) => {
-            let plan = plan_of(&patches, &occluder_tris, params);
-            merged_rows(scene, &patches, params, out, (count, plan), &mut stages)?
-        }
-    };
+        Ok(())
+    }
+}
 
-    // Subsurface: distances and S per translucent object, ρ on the diagonal elsewhere.
-    let t = Instant::now();
-    stage_start(params, "subsurface")?;
-    let bar = stage_bar(progress, 2, "subsurface");
-    let geometry = smatrix::PatchGeometry {
-        corners: patches.corners.clone(),
-        centroid: patches.centroid.clone(),
-        normal: patches.normal.clone(),
-        area: patches.area.clone(),
-        size: patches.size.clone(),
-        nodes: None,
-    };
-    let mut geometry = geometry;
-    let unit_mm = scene.file.unit_mm;
-    let sp = &params.subsurface;
-    let media = scene_media(scene, &patches, h);
-    // Random walks of simulated objects, before the distances of the others.
-    let sim_patches: u64 = materials
-        .iter()
-        .filter(|o| matches!(o.material, Material::Simulated { .. }))
-        .map(|o| o.patches.len() as u64)
-        .sum();
-    if sim_patches > 0 {
-        bar.set_length(2 + sim_patches);
-    }
-    let stop = params
-        .observer
-        .as_ref()
-        .map_or_else(Stop::never, |o| o.stop());
-    let walks = crate::simulate::scene_walks(
-        &geometry,
-        &materials,
-        unit_mm,
-        (&|d| bar.set_position(d), &stop),
-    )
-    .map_err(|e| match e {
-        SimError::Stopped { .. } => PrecomputeError::Cancelled,
-        e => PrecomputeError::Simulation(e.to_string()),
-    })?;
-    for (name, info, seconds) in &walks.reports {
-        tell(
-            params,
-            &format!(
-                "note: simulated '{name}': {} walks, {} events in {seconds:.1} s; noise {:.2}% \
-                 median, {:.2}% max; {} records; {} lost, {} cut",
-                info.walks,
-                info.events,
-                100.0 * info.noise_median,
-                100.0 * info.noise_max,
-                info.records,
-                info.lost,
-                info.cut
-            ),
-        );
-    }
-    let walks_view = (!walks.is_empty()).then(|| {
-        translux_proto::bundle::WalksView::new_checked(
-            n as usize,
-            &walks.row_ptr,
-            &walks.col,
-            &walks.bin,
-            &walks.weight,
-            Some(&walks.weight_normal),
-        )
-        .and_then(|v| v.with_lamp(&walks.weight_lamp))
-        .expect("the walks build valid records")
-    });
-    // A hierarchical S traces the distances of homogeneous translucent objects on demand
-    // (the cut first, then only the paths it uses) where that saves work.
-    // Each cut object's link bound ([`crate::slinks::link_bounds`]).
-    let mut link_bounds = Vec::new();
-    let on_demand: Vec<bool> = match (&params.subsurface_links, &tree) {
-        (Some(sl), Some((t, _, _))) => {
-            let reach = materials
-                .iter()
-                .map(|o| smatrix::stored_radius(o, unit_mm, sp))
-                .collect::<Result<Vec<_>, _>>()?;
-            let pairs: Vec<u64> = materials
-                .iter()
-                .map(|o| paths.iter().find(|p| p.0 == o.name).map_or(0, |p| p.1))
-                .collect();
-            let reuse = params.distance_cache.is_some();
-            link_bounds =
-                crate::slinks::link_bounds(&geometry, &materials, &reach, unit_mm, sl.tolerance);
-            crate::slinks::trace_on_demand(
-                t,
-                &geometry,
-                &materials,
-                &reach,
-                &pairs,
-                sl,
-                &link_bounds,
-                reuse,
-            )
+/// One precompute's inputs, which every stage reads, and the times of the stages done.
+struct Stages<'a> {
+    scene: &'a LoadedScene,
+    params: &'a PrecomputeParams,
+    /// Each finished stage's time, in order (the manifest's and the report's `stages`).
+    times: Vec<StageTime>,
+}
+
+impl<'a> Stages<'a> {
+    /// Plan and patches: the subdivision edge for `density` (the patch count it gives is
+    /// checked first), then the patches and the viewer mesh.
+    fn patches(
+        &mut self,
+        sources: Vec<&'a [[Vec3; 3]]>,
+        density: Density,
+    ) -> Result<Patched<'a>, PrecomputeError> {
+        let params = self.params;
+        let t = Instant::now();
+        let (h, count) = patch::plan(&sources, density);
+        if let Some(e) = too_many(params, count) {
+            return Err(e);
         }
-        _ => vec![false; materials.len()],
-    };
-    if on_demand.iter().any(|&d| d) {
-        let names = |want: bool| -> Vec<&str> {
-            materials
-                .iter()
-                .zip(&on_demand)
-                .filter(|(o, d)| **d == want && matches!(o.material, Material::Translucent { .. }))
-                .map(|(o, _)| o.name)
-                .collect()
+        stage_start(params, "patches")?;
+        let bar = stage_bar(params.progress, 2, "patches");
+        let patches = patch::subdivide(&sources, h);
+        bar.inc(1);
+        let crease: Vec<f32> = self.scene.objects.iter().map(|o| o.crease_deg).collect();
+        let mesh = patch::viewer_mesh(&patches, &crease);
+        bar.inc(1);
+        finish(bar, params.progress, "patches", t, &mut self.times);
+        Ok(Patched {
+            sources,
+            h,
+            patches,
+            mesh,
+        })
+    }
+
+    /// The BVH over the source triangles. Out: the triangles, in object order (the
+    /// bundle's occluders), and the occluder that knows each one's object.
+    fn bvh(
+        &mut self,
+        sources: &[&[[Vec3; 3]]],
+    ) -> Result<(Vec<[Vec3; 3]>, Occluder), PrecomputeError> {
+        let t = Instant::now();
+        stage_start(self.params, "bvh")?;
+        let bar = stage_bar(self.params.progress, 1, "bvh");
+        let occluder_tris: Vec<[Vec3; 3]> =
+            sources.iter().flat_map(|s| s.iter().copied()).collect();
+        let owners: Vec<u32> = sources
+            .iter()
+            .enumerate()
+            .flat_map(|(k, s)| std::iter::repeat_n(k as u32, s.len()))
+            .collect();
+        let occ = Occluder::with_owners(&occluder_tris, &owners);
+        bar.inc(1);
+        finish(bar, self.params.progress, "bvh", t, &mut self.times);
+        Ok((occluder_tris, occ))
+    }
+
+    /// Subsurface: distances and S per translucent object, ρ on the diagonal elsewhere. In:
+    /// the patches, each object's material, the budget and a hierarchical F's cluster tree;
+    /// out: S and what the bundle stores beside it.
+    fn subsurface(
+        &mut self,
+        patched: &Patched<'_>,
+        materials: &[ObjectMaterial<'_>],
+        budget: &Budget,
+        tree: Option<&hierarchy::ClusterTree>,
+    ) -> Result<SubsurfaceOut, PrecomputeError> {
+        let (scene, params) = (self.scene, self.params);
+        let t = Instant::now();
+        stage_start(params, "subsurface")?;
+        let bar = stage_bar(params.progress, 2, "subsurface");
+        let patches = &patched.patches;
+        let mut geometry = smatrix::PatchGeometry {
+            corners: patches.corners.clone(),
+            centroid: patches.centroid.clone(),
+            normal: patches.normal.clone(),
+            area: patches.area.clone(),
+            size: patches.size.clone(),
+            nodes: None,
         };
-        tell(
+        let media = scene_media(scene, patches, patched.h);
+        let steps = SubsurfaceSteps {
             params,
-            &format!(
-                "note: hierarchical S: optical paths traced on demand in {:?}, every pair \
-                 within reach in {:?}",
-                names(true),
-                names(false)
-            ),
-        );
+            materials,
+            unit_mm: scene.file.unit_mm,
+            tree,
+            paths: &budget.paths,
+        };
+        // Random walks of simulated objects, before the distances of the others.
+        let walks = steps.walks(&geometry, &bar)?;
+        let (on_demand, link_bounds) = steps.on_demand(&geometry)?;
+        let found = steps.distances(&geometry, &patched.sources, &media, &on_demand)?;
+        bar.inc(1);
+        budget.check_stored(found.dist.col.len() as u64)?;
+        let stored = stored_radii(materials, &found.reports);
+        let linked = steps.links(&mut geometry, &stored, found, &link_bounds)?;
+        let (mut smat, s_reports) =
+            steps.assemble(&geometry, &linked, &media.patch_material, &stored, &walks)?;
+        let textured = textured_albedos(scene, patched);
+        crate::gltf_scene::set_diagonal(&mut smat, &textured);
+        bar.inc(1);
+        for d in &linked.reports {
+            if let Some(w) = &d.warning {
+                tell(params, &format!("warning: {w}"));
+            }
+        }
+        let info = steps.info(&smat, &linked, &walks, &s_reports);
+        finish(bar, params.progress, "subsurface", t, &mut self.times);
+        Ok(SubsurfaceOut {
+            smat,
+            linked,
+            walks,
+            patch_material: media.patch_material,
+            textured,
+            info,
+        })
     }
-    let distances::SceneDistances {
-        dist,
-        material_len: dist_len,
-        kind: dist_kind,
-        reports: mut dist_reports,
-        on_demand: oracles,
-    } = distances::scene_distances(
-        &geometry,
-        &materials,
-        &sources,
-        &media,
-        unit_mm,
-        sp,
-        &params.voxels,
-        params.distance_cache.as_deref(),
-        &on_demand,
-    )?;
-    for d in dist_reports.iter().filter(|d| d.reused) {
-        tell(
-            params,
-            &format!(
-                "note: '{}' only moved rigidly since an earlier frame: its optical distances \
-                 were reused",
-                d.name
-            ),
-        );
-    }
-    bar.inc(1);
-    // The estimate was an upper bound; should the stored paths still outgrow the budget,
-    // stop here, before S (the larger half) is assembled.
-    let grown = f_kept
-        .saturating_add((dist.col.len() as u64).saturating_mul(distances::PEAK_BYTES_PER_PATH));
-    if grown > limit {
-        return Err(PrecomputeError::SubsurfaceOutOfMemory {
-            object: "all translucent objects".into(),
-            paths: dist.col.len() as u64,
-            radius: 0.0,
-            estimate: grown,
-            limit,
+
+    /// The transfer matrix T = (I − S F)⁻¹ S, stored as f16 R = T − S; `None` without
+    /// `inverse`. In: the patches, the occluder, F (its tree's C·P multiplied out), S and
+    /// the memory limit.
+    fn transfer(
+        &mut self,
+        patched: &Patched<'_>,
+        occ: &Occluder,
+        rows: &TransportRows,
+        smat: &Csr<[f32; 3]>,
+        limit: u64,
+    ) -> Result<Option<Transfer>, PrecomputeError> {
+        let params = self.params;
+        if !params.inverse {
+            return Ok(None);
+        }
+        let patches = &patched.patches;
+        let n = patches.len();
+        let t = Instant::now();
+        stage_start(params, "inverse T")?;
+        let bar = stage_bar(params.progress, 6, "inverse T");
+        // T needs F itself: a hierarchical C·P is multiplied out (N² at most, like T).
+        let expanded = rows.tree.as_ref().map(|(t, range, _)| {
+            let tree = translux_proto::bundle::TreeView {
+                perm: &t.perm,
+                range,
+            };
+            let c = rows.ff.view().expect("form factors are a valid CSR");
+            translux_engine::transport::Transport::hierarchical(c, tree, &patches.area).expand()
         });
+        let f_view = expanded
+            .as_ref()
+            .unwrap_or(&rows.ff)
+            .view()
+            .expect("form factors are a valid CSR");
+        let s_view = CsrView::new_checked(n, n, &smat.row_ptr, &smat.col, &smat.val)
+            .expect("assemble_scene builds a valid CSR");
+        let emission = patch_emission(self.scene, patches);
+        let probe = relight_probe(self.scene, patches, occ, &f_view, &emission);
+        let tr =
+            translux_engine::inverse::compute(&f_view, &s_view, &emission, &probe, limit, &|k| {
+                bar.inc(k)
+            })?;
+        finish(bar, params.progress, "inverse T", t, &mut self.times);
+        Ok(Some(tr))
     }
-    let stored: Vec<f32> = materials
+
+    /// The bundle: the arrays, the manifest, written to `out` atomically. In: what the
+    /// stages made and the memory estimate; out: the report of the whole precompute.
+    fn write(
+        mut self,
+        out: &Path,
+        made: Made<'_>,
+        memory_estimate: u64,
+    ) -> Result<PrecomputeReport, PrecomputeError> {
+        let (scene, params) = (self.scene, self.params);
+        let transfer_info = made.transfer.as_ref().map(transfer_info);
+        let t = Instant::now();
+        stage_start(params, "write bundle")?;
+        let bar = stage_bar(params.progress, 1, "write bundle");
+        let patches = &made.patched.patches;
+        let s = &made.subsurface;
+        let (objects, albedo, emission) =
+            object_surfaces(scene, patches, &s.patch_material, &s.textured);
+        let np = patches.len() as u64;
+        let nv = made.patched.mesh.positions.len() as u64;
+        let occluder_count = made.occluder_tris.len() as u64;
+        let nnz = made.rows.ff.nnz() as u64;
+        let ff_seconds = made.rows.ff_seconds;
+        let ff_info = made.rows.ff_info.clone();
+        let subsurface_info = s.info.clone();
+        let hierarchy_info = made.rows.tree.as_ref().map(|(_, _, info)| info.clone());
+        let environment_info = made.rows.environment.as_ref().map(|(_, i)| i.clone());
+        let camera = scene.file.camera.unwrap_or_else(|| default_camera(patches));
+        let arrays_out = bundle_arrays(made, albedo, emission);
+        let manifest = Manifest {
+            format: FORMAT.into(),
+            version: FORMAT_VERSION,
+            name: scene.name.clone(),
+            source: scene.source.clone(),
+            created_by: format!("translux-precompute {}", env!("CARGO_PKG_VERSION")),
+            unit_mm: scene.file.unit_mm,
+            patch_count: np,
+            vertex_count: nv,
+            occluder_count,
+            objects,
+            lights: scene.file.lights.clone(),
+            camera,
+            form_factors: ff_info.clone(),
+            subsurface: subsurface_info.clone(),
+            stages: self.times.clone(),
+            transfer: transfer_info.clone(),
+            environment: environment_info,
+            hierarchy: hierarchy_info.clone(),
+            arrays: Default::default(),
+        };
+        let written = write_bundle(out, manifest, arrays_out)?;
+        bar.inc(1);
+        finish(bar, params.progress, "write bundle", t, &mut self.times);
+
+        Ok(PrecomputeReport {
+            patch_count: np as usize,
+            vertex_count: nv as usize,
+            occluder_count: occluder_count as usize,
+            nnz_f: nnz,
+            bundle_bytes: written.bytes,
+            rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
+            form_factors: ff_info,
+            hierarchy: hierarchy_info,
+            subsurface: subsurface_info,
+            transfer: transfer_info,
+            stages: self.times,
+            memory_estimate,
+            peak_rss: peak_rss(),
+        })
+    }
+}
+
+/// What the steps of the subsurface stage read: the settings, each object's material and
+/// patches, the scene's unit, a hierarchical F's cluster tree and the estimated paths.
+struct SubsurfaceSteps<'s> {
+    params: &'s PrecomputeParams,
+    materials: &'s [ObjectMaterial<'s>],
+    unit_mm: f64,
+    /// With `subsurface_links`, S links far pairs to this tree's nodes.
+    tree: Option<&'s hierarchy::ClusterTree>,
+    /// [`Budget::paths`]: what a pairwise S stores per object, estimated before F.
+    paths: &'s [(String, u64, f32)],
+}
+
+/// The distances S is assembled from, after a hierarchical S's cut (or as stage 1 left
+/// them), with stage 1's reports and what the cut counted.
+struct Linked {
+    dist: Csr<f32>,
+    material_len: Vec<MediaLen>,
+    kind: Vec<u32>,
+    /// Each entry's spread of distances (empty without a cut).
+    spread: Vec<f32>,
+    /// The entries of `dist` that are links to cluster nodes.
+    links: u64,
+    /// The nearer distance links are read at (`--s-link-near`), where spreads are stored.
+    link_near: Option<f32>,
+    /// The distances a pairwise S would have stored (estimated for objects traced on
+    /// demand).
+    pairwise_distances: u64,
+    /// Stage 1's report per object, an on-demand object's tracing time included.
+    reports: Vec<distances::DistanceReport>,
+}
+
+impl SubsurfaceSteps<'_> {
+    /// The random walks of the simulated objects (their progress on `bar`, a note per
+    /// object); the observer's stop cancels them.
+    fn walks(
+        &self,
+        geometry: &smatrix::PatchGeometry,
+        bar: &ProgressBar,
+    ) -> Result<SceneWalks, PrecomputeError> {
+        let sim_patches: u64 = self
+            .materials
+            .iter()
+            .filter(|o| matches!(o.material, Material::Simulated { .. }))
+            .map(|o| o.patches.len() as u64)
+            .sum();
+        if sim_patches > 0 {
+            bar.set_length(2 + sim_patches);
+        }
+        let stop = self
+            .params
+            .observer
+            .as_ref()
+            .map_or_else(Stop::never, |o| o.stop());
+        let walks = crate::simulate::scene_walks(
+            geometry,
+            self.materials,
+            self.unit_mm,
+            (&|d| bar.set_position(d), &stop),
+        )
+        .map_err(|e| match e {
+            SimError::Stopped { .. } => PrecomputeError::Cancelled,
+            e => PrecomputeError::Simulation(e.to_string()),
+        })?;
+        for (name, info, seconds) in &walks.reports {
+            tell(
+                self.params,
+                &format!(
+                    "note: simulated '{name}': {} walks, {} events in {seconds:.1} s; noise \
+                     {:.2}% median, {:.2}% max; {} records; {} lost, {} cut",
+                    info.walks,
+                    info.events,
+                    100.0 * info.noise_median,
+                    100.0 * info.noise_max,
+                    info.records,
+                    info.lost,
+                    info.cut
+                ),
+            );
+        }
+        Ok(walks)
+    }
+
+    /// Which objects a hierarchical S traces on demand (the cut first, then only the paths
+    /// it uses) where that saves work, with a note. Out: a flag per object, and each cut
+    /// object's link bound ([`crate::slinks::link_bounds`]; empty without a cut).
+    fn on_demand(
+        &self,
+        geometry: &smatrix::PatchGeometry,
+    ) -> Result<(Vec<bool>, Vec<Vec<LinkBound>>), PrecomputeError> {
+        let (materials, unit_mm) = (self.materials, self.unit_mm);
+        let mut link_bounds = Vec::new();
+        let on_demand: Vec<bool> = match (&self.params.subsurface_links, self.tree) {
+            (Some(sl), Some(t)) => {
+                let reach = materials
+                    .iter()
+                    .map(|o| smatrix::stored_radius(o, unit_mm, &self.params.subsurface))
+                    .collect::<Result<Vec<_>, _>>()?;
+                let pairs: Vec<u64> = materials
+                    .iter()
+                    .map(|o| self.paths.iter().find(|p| p.0 == o.name).map_or(0, |p| p.1))
+                    .collect();
+                let reuse = self.params.distance_cache.is_some();
+                link_bounds =
+                    crate::slinks::link_bounds(geometry, materials, &reach, unit_mm, sl.tolerance);
+                crate::slinks::trace_on_demand(
+                    t,
+                    geometry,
+                    materials,
+                    &reach,
+                    &pairs,
+                    sl,
+                    &link_bounds,
+                    reuse,
+                )
+            }
+            _ => vec![false; materials.len()],
+        };
+        if on_demand.iter().any(|&d| d) {
+            let names = |want: bool| -> Vec<&str> {
+                materials
+                    .iter()
+                    .zip(&on_demand)
+                    .filter(|(o, d)| {
+                        **d == want && matches!(o.material, Material::Translucent { .. })
+                    })
+                    .map(|(o, _)| o.name)
+                    .collect()
+            };
+            tell(
+                self.params,
+                &format!(
+                    "note: hierarchical S: optical paths traced on demand in {:?}, every pair \
+                     within reach in {:?}",
+                    names(true),
+                    names(false)
+                ),
+            );
+        }
+        Ok((on_demand, link_bounds))
+    }
+
+    /// Stage 1: the optical distances of the translucent objects (an object flagged in
+    /// `on_demand` gets an oracle instead of rows), with a note for each one reused from an
+    /// earlier frame.
+    fn distances(
+        &self,
+        geometry: &smatrix::PatchGeometry,
+        sources: &[&[[Vec3; 3]]],
+        media: &distances::SceneMedia,
+        on_demand: &[bool],
+    ) -> Result<distances::SceneDistances, PrecomputeError> {
+        let params = self.params;
+        let found = distances::scene_distances(
+            geometry,
+            self.materials,
+            sources,
+            media,
+            self.unit_mm,
+            &params.subsurface,
+            &params.voxels,
+            params.distance_cache.as_deref(),
+            on_demand,
+        )?;
+        for d in found.reports.iter().filter(|d| d.reused) {
+            tell(
+                params,
+                &format!(
+                    "note: '{}' only moved rigidly since an earlier frame: its optical \
+                     distances were reused",
+                    d.name
+                ),
+            );
+        }
+        Ok(found)
+    }
+
+    /// A hierarchical S: far pairs of translucent objects become links to whole nodes
+    /// ([`crate::slinks::collapse`], which gives `geometry` its nodes when it links any),
+    /// with a note. Without a cut, stage 1's distances pass through.
+    fn links(
+        &self,
+        geometry: &mut smatrix::PatchGeometry,
+        stored: &[f32],
+        found: distances::SceneDistances,
+        link_bounds: &[Vec<LinkBound>],
+    ) -> Result<Linked, PrecomputeError> {
+        let distances::SceneDistances {
+            dist,
+            material_len: dist_len,
+            kind: dist_kind,
+            reports: mut dist_reports,
+            on_demand: oracles,
+        } = found;
+        let materials = self.materials;
+        let t_links = Instant::now();
+        // Objects traced on demand never had their pairs listed: their share of what a
+        // pairwise S would have stored is the estimate made before F.
+        let pairwise_distances = dist.col.len() as u64
+            + materials
+                .iter()
+                .zip(&oracles)
+                .filter(|(_, o)| o.is_some())
+                .filter_map(|(m, _)| self.paths.iter().find(|p| p.0 == m.name).map(|p| p.1))
+                .sum::<u64>();
+        let mut cut_object_seconds = vec![0.0f64; materials.len()];
+        let mut node_runs = (0u64, 0u64);
+        let (dist, dist_len, dist_kind, dist_spread, links) =
+            match (&self.params.subsurface_links, self.tree) {
+                (Some(sl), Some(t)) => {
+                    let c = crate::slinks::collapse(
+                        t,
+                        geometry,
+                        materials,
+                        stored,
+                        &dist,
+                        &dist_len,
+                        &dist_kind,
+                        &oracles,
+                        sl,
+                        link_bounds,
+                    )?;
+                    if c.links > 0 {
+                        geometry.nodes = Some(c.nodes);
+                    }
+                    cut_object_seconds = c.seconds;
+                    node_runs = c.node_runs;
+                    (c.dist, c.material_len, c.kind, c.spread, c.links)
+                }
+                _ => (dist, dist_len, dist_kind, Vec::new(), 0),
+            };
+        // Links read at two distances (`--s-link-near`), recorded with their spreads.
+        let link_near = self
+            .params
+            .subsurface_links
+            .map(|sl| sl.near)
+            .filter(|_| !dist_spread.is_empty());
+        let cut_seconds = t_links.elapsed().as_secs_f64();
+        // The paths an on-demand object traced belong to its stage-1 time.
+        for ((m, _), secs) in materials
+            .iter()
+            .zip(&oracles)
+            .zip(&cut_object_seconds)
+            .filter(|((_, o), _)| o.is_some())
+        {
+            if let Some(d) = dist_reports.iter_mut().find(|d| d.name == m.name) {
+                d.seconds += secs;
+            }
+        }
+        if links > 0 {
+            tell(
+                self.params,
+                &format!(
+                    "note: hierarchical S: {links} links to cluster nodes beside {} direct \
+                     pairs, against {pairwise_distances} pairwise distances{} (cut in \
+                     {cut_seconds:.2} s)",
+                    dist.col.len() as u64 - links,
+                    if oracles.iter().any(Option::is_some) {
+                        format!(
+                            ", estimated; only the distances the cut uses were traced: {} \
+                             linked nodes' runs, {} of them on the grid of twice the voxel \
+                             edge",
+                            node_runs.0, node_runs.1
+                        )
+                    } else {
+                        String::new()
+                    },
+                ),
+            );
+        }
+        Ok(Linked {
+            dist,
+            material_len: dist_len,
+            kind: dist_kind,
+            spread: dist_spread,
+            links,
+            link_near,
+            pairwise_distances,
+            reports: dist_reports,
+        })
+    }
+
+    /// S from the distances, each patch's medium, how far each object's distances reach and
+    /// the simulated objects' walks. Out: S and a report per object.
+    fn assemble(
+        &self,
+        geometry: &smatrix::PatchGeometry,
+        linked: &Linked,
+        patch_material: &[u32],
+        stored: &[f32],
+        walks: &SceneWalks,
+    ) -> Result<(Csr<[f32; 3]>, Vec<AssemblyReport>), PrecomputeError> {
+        let n = geometry.corners.len();
+        let walks_view = (!walks.is_empty()).then(|| {
+            translux_proto::bundle::WalksView::new_checked(
+                n,
+                &walks.row_ptr,
+                &walks.col,
+                &walks.bin,
+                &walks.weight,
+                Some(&walks.weight_normal),
+            )
+            .and_then(|v| v.with_lamp(&walks.weight_lamp))
+            .expect("the walks build valid records")
+        });
+        let dist = &linked.dist;
+        let dist_view = CsrView::new_checked(n, dist.n_cols, &dist.row_ptr, &dist.col, &dist.val)
+            .expect("stage 1 builds a valid CSR");
+        let (smat, s_reports) = smatrix::assemble_scene(
+            geometry,
+            self.materials,
+            dist_view,
+            &linked.material_len,
+            patch_material,
+            &linked.kind,
+            &linked.spread,
+            stored,
+            self.unit_mm,
+            &self.params.subsurface,
+            None,
+            walks_view.as_ref(),
+        )?;
+        Ok((smat.into_csr(), s_reports))
+    }
+
+    /// The subsurface stage's summary (the manifest's and the report's): S, the distances,
+    /// the links and each object's method, entries and time.
+    fn info(
+        &self,
+        smat: &Csr<[f32; 3]>,
+        linked: &Linked,
+        walks: &SceneWalks,
+        s_reports: &[AssemblyReport],
+    ) -> SubsurfaceInfo {
+        let sp = &self.params.subsurface;
+        let links = linked.links;
+        let mut objects =
+            distances::subsurface_objects(&linked.reports, s_reports, sp.truncation_energy);
+        for (name, info, seconds) in &walks.reports {
+            let a = s_reports.iter().find(|a| &a.name == name);
+            objects.push(translux_proto::bundle::SubsurfaceObject {
+                name: name.clone(),
+                method: "simulated".into(),
+                truncation_energy: sp.truncation_energy,
+                max_column_energy: a.map_or(0.0, |a| a.max_column_energy),
+                entries: a.map_or(0, |a| a.entries),
+                simulation: Some(info.clone()),
+                seconds: seconds + a.map_or(0.0, |a| a.seconds),
+                ..Default::default()
+            });
+        }
+        SubsurfaceInfo {
+            nnz: smat.col.len() as u64,
+            distance_nnz: linked.dist.col.len() as u64,
+            links,
+            pairwise_distances: if links > 0 {
+                linked.pairwise_distances
+            } else {
+                0
+            },
+            link_near: linked.link_near,
+            link_variation: self
+                .params
+                .subsurface_links
+                .filter(|_| links > 0)
+                .map(|sl| sl.tolerance.variation),
+            walks: walks.col.len() as u64,
+            objects,
+        }
+    }
+}
+
+/// How far each object's stored distances reach (stage 1's radius; 0 where it has none).
+fn stored_radii(
+    materials: &[ObjectMaterial<'_>],
+    reports: &[distances::DistanceReport],
+) -> Vec<f32> {
+    materials
         .iter()
         .map(|o| {
-            dist_reports
+            reports
                 .iter()
                 .find(|d| d.name == o.name)
                 .map_or(0.0, |d| d.radius)
         })
-        .collect();
-    // A hierarchical S: far pairs of translucent objects become links to whole nodes.
-    let t_links = Instant::now();
-    // Objects traced on demand never had their pairs listed: their share of what a
-    // pairwise S would have stored is the estimate made before F.
-    let pairwise_distances = dist.col.len() as u64
-        + materials
-            .iter()
-            .zip(&oracles)
-            .filter(|(_, o)| o.is_some())
-            .filter_map(|(m, _)| paths.iter().find(|p| p.0 == m.name).map(|p| p.1))
-            .sum::<u64>();
-    let mut cut_object_seconds = vec![0.0f64; materials.len()];
-    let mut node_runs = (0u64, 0u64);
-    let (dist, dist_len, dist_kind, dist_spread, links) = match (&params.subsurface_links, &tree) {
-        (Some(sl), Some((t, _, _))) => {
-            let c = crate::slinks::collapse(
-                t,
-                &geometry,
-                &materials,
-                &stored,
-                &dist,
-                &dist_len,
-                &dist_kind,
-                &oracles,
-                sl,
-                &link_bounds,
-            )?;
-            if c.links > 0 {
-                geometry.nodes = Some(c.nodes);
-            }
-            cut_object_seconds = c.seconds;
-            node_runs = c.node_runs;
-            (c.dist, c.material_len, c.kind, c.spread, c.links)
-        }
-        _ => (dist, dist_len, dist_kind, Vec::new(), 0),
-    };
-    // Links read at two distances (`--s-link-near`), recorded with their spreads.
-    let link_near = params
-        .subsurface_links
-        .map(|sl| sl.near)
-        .filter(|_| !dist_spread.is_empty());
-    let cut_seconds = t_links.elapsed().as_secs_f64();
-    // The paths an on-demand object traced belong to its stage-1 time.
-    for ((m, _), secs) in materials
-        .iter()
-        .zip(&oracles)
-        .zip(&cut_object_seconds)
-        .filter(|((_, o), _)| o.is_some())
-    {
-        if let Some(d) = dist_reports.iter_mut().find(|d| d.name == m.name) {
-            d.seconds += secs;
-        }
-    }
-    if links > 0 {
-        tell(
-            params,
-            &format!(
-                "note: hierarchical S: {links} links to cluster nodes beside {} direct pairs, \
-                 against {pairwise_distances} pairwise distances{} (cut in {cut_seconds:.2} s)",
-                dist.col.len() as u64 - links,
-                if oracles.iter().any(Option::is_some) {
-                    format!(
-                        ", estimated; only the distances the cut uses were traced: {} linked \
-                         nodes' runs, {} of them on the grid of twice the voxel edge",
-                        node_runs.0, node_runs.1
-                    )
-                } else {
-                    String::new()
-                },
-            ),
-        );
-    }
-    let dist_view = translux_proto::csr::CsrView::new_checked(
-        n as usize,
-        dist.n_cols,
-        &dist.row_ptr,
-        &dist.col,
-        &dist.val,
-    )
-    .expect("stage 1 builds a valid CSR");
-    let (smat, s_reports) = smatrix::assemble_scene(
-        &geometry,
-        &materials,
-        dist_view,
-        &dist_len,
-        &media.patch_material,
-        &dist_kind,
-        &dist_spread,
-        &stored,
-        unit_mm,
-        sp,
-        None,
-        walks_view.as_ref(),
-    )?;
-    let mut smat = smat.into_csr();
-    // Textured surfaces (glTF): each patch's ρ is the texture's mean over it, in S_jj and
-    // in the bundle's albedos (crate::gltf_scene).
+        .collect()
+}
+
+/// Textured surfaces (glTF): each textured patch's ρ, the texture's mean over it, for S_jj
+/// and the bundle's albedos ([`crate::gltf_scene::textured_albedos`]).
+fn textured_albedos(scene: &LoadedScene, patched: &Patched<'_>) -> Vec<(usize, [f32; 3])> {
     let textured_objects: Vec<_> = scene
         .objects
         .iter()
         .map(|o| (o.triangles.as_slice(), o.albedo_map.as_deref()))
         .collect();
-    let textured = crate::gltf_scene::textured_albedos(&textured_objects, &patches, h);
-    crate::gltf_scene::set_diagonal(&mut smat, &textured);
-    bar.inc(1);
-    for d in &dist_reports {
-        if let Some(w) = &d.warning {
-            tell(params, &format!("warning: {w}"));
+    crate::gltf_scene::textured_albedos(&textured_objects, &patched.patches, patched.h)
+}
+
+/// What the subsurface stage made: S, the distances and walks the bundle stores beside it,
+/// each patch's medium, the textured patches' ρ and the summary.
+struct SubsurfaceOut {
+    smat: Csr<[f32; 3]>,
+    linked: Linked,
+    walks: SceneWalks,
+    patch_material: Vec<u32>,
+    textured: Vec<(usize, [f32; 3])>,
+    info: SubsurfaceInfo,
+}
+
+/// Each patch's emission Bₑ, its object's.
+fn patch_emission(scene: &LoadedScene, patches: &Patches) -> Vec<[f32; 3]> {
+    let mut emission = vec![[0.0f32; 3]; patches.len()];
+    for (o, range) in scene.objects.iter().zip(&patches.object_ranges) {
+        emission[range.clone()].fill(material_albedo_emission(&o.material).1);
+    }
+    emission
+}
+
+/// The probe of T's f16 error: v = E + F Bₑ for the scene's lights (uniform E = 1 W/m²
+/// where they cannot be evaluated here), to report what f16 storage does to a relight.
+fn relight_probe(
+    scene: &LoadedScene,
+    patches: &Patches,
+    occ: &Occluder,
+    f_view: &CsrView<'_>,
+    emission: &[[f32; 3]],
+) -> Vec<[f32; 3]> {
+    let geo = translux_engine::radiosity::PatchGeometry {
+        centroid: &patches.centroid,
+        normal: &patches.normal,
+    };
+    let mut probe = translux_engine::radiosity::direct_irradiance(
+        geo,
+        occ,
+        &scene.file.lights,
+        scene.file.unit_mm,
+    )
+    .unwrap_or_else(|_| vec![[1.0; 3]; patches.len()]);
+    let mut fbe = vec![[0.0f32; 3]; patches.len()];
+    translux_engine::radiosity::spmv_rgb(f_view, emission, &mut fbe);
+    for (p, x) in probe.iter_mut().zip(&fbe) {
+        for c in 0..3 {
+            p[c] += x[c];
         }
     }
-    let subsurface_info = SubsurfaceInfo {
-        nnz: smat.col.len() as u64,
-        distance_nnz: dist.col.len() as u64,
-        links,
-        pairwise_distances: if links > 0 { pairwise_distances } else { 0 },
-        link_near,
-        link_variation: params
-            .subsurface_links
-            .filter(|_| links > 0)
-            .map(|sl| sl.tolerance.variation),
-        walks: walks.col.len() as u64,
-        objects: {
-            let mut o =
-                distances::subsurface_objects(&dist_reports, &s_reports, sp.truncation_energy);
-            for (name, info, seconds) in &walks.reports {
-                let a = s_reports.iter().find(|a| &a.name == name);
-                o.push(translux_proto::bundle::SubsurfaceObject {
-                    name: name.clone(),
-                    method: "simulated".into(),
-                    truncation_energy: sp.truncation_energy,
-                    max_column_energy: a.map_or(0.0, |a| a.max_column_energy),
-                    entries: a.map_or(0, |a| a.entries),
-                    simulation: Some(info.clone()),
-                    seconds: seconds + a.map_or(0.0, |a| a.seconds),
-                    ..Default::default()
-                });
-            }
-            o
-        },
-    };
-    finish(bar, progress, "subsurface", t, &mut stages);
+    probe
+}
 
-    // The transfer matrix T = (I − S F)⁻¹ S, stored as f16 R = T − S.
-    let transfer = if params.inverse {
-        let t = Instant::now();
-        stage_start(params, "inverse T")?;
-        let bar = stage_bar(progress, 6, "inverse T");
-        // T needs F itself: a hierarchical C·P is multiplied out (N² at most, like T).
-        let expanded = tree.as_ref().map(|(t, range, _)| {
-            let tree = translux_proto::bundle::TreeView {
-                perm: &t.perm,
-                range,
-            };
-            let c = ff.view().expect("form factors are a valid CSR");
-            translux_engine::transport::Transport::hierarchical(c, tree, &patches.area).expand()
-        });
-        let f_view = expanded
-            .as_ref()
-            .unwrap_or(&ff)
-            .view()
-            .expect("form factors are a valid CSR");
-        let s_view = translux_proto::csr::CsrView::new_checked(
-            n as usize,
-            n as usize,
-            &smat.row_ptr,
-            &smat.col,
-            &smat.val,
-        )
-        .expect("assemble_scene builds a valid CSR");
-        let mut emission = vec![[0.0f32; 3]; patches.len()];
-        for (o, range) in scene.objects.iter().zip(&patches.object_ranges) {
-            emission[range.clone()].fill(material_albedo_emission(&o.material).1);
-        }
-        // The probe: v = E + F Bₑ for the scene's lights (uniform E = 1 W/m² where they
-        // cannot be evaluated here), to report what f16 storage does to a relight.
-        let geo = translux_engine::radiosity::PatchGeometry {
-            centroid: &patches.centroid,
-            normal: &patches.normal,
-        };
-        let mut probe =
-            translux_engine::radiosity::direct_irradiance(geo, &occ, &scene.file.lights, unit_mm)
-                .unwrap_or_else(|_| vec![[1.0; 3]; patches.len()]);
-        let mut fbe = vec![[0.0f32; 3]; patches.len()];
-        translux_engine::radiosity::spmv_rgb(&f_view, &emission, &mut fbe);
-        for (p, x) in probe.iter_mut().zip(&fbe) {
-            for c in 0..3 {
-                p[c] += x[c];
-            }
-        }
-        let tr =
-            translux_engine::inverse::compute(&f_view, &s_view, &emission, &probe, limit, &|k| {
-                bar.inc(k)
-            })?;
-        finish(bar, progress, "inverse T", t, &mut stages);
-        Some(tr)
-    } else {
-        None
-    };
-    let transfer_info = transfer.as_ref().map(|t| TransferInfo {
+/// T's storage and errors, for the manifest and the report.
+fn transfer_info(t: &Transfer) -> TransferInfo {
+    TransferInfo {
         storage: "f16 T - S, per-row scale".into(),
         method: "dense partial-pivot LU per channel (faer), f64".into(),
         median_rel_error: t.median_rel_error,
@@ -1117,12 +1550,26 @@ fn run(
         relight_rel_error: t.relight_rel_error,
         lu_residual: t.lu_residual,
         seconds: t.seconds,
-    });
+    }
+}
 
-    // Bundle.
-    let t = Instant::now();
-    stage_start(params, "write bundle")?;
-    let bar = stage_bar(progress, 1, "write bundle");
+/// What the bundle stores, as the stages left it.
+struct Made<'a> {
+    patched: Patched<'a>,
+    occluder_tris: Vec<[Vec3; 3]>,
+    rows: TransportRows,
+    subsurface: SubsurfaceOut,
+    transfer: Option<Transfer>,
+}
+
+/// Each object's manifest entry, and each patch's ρ and emission: its object's, per medium
+/// in a heterogeneous object, the texture's mean on a textured patch (as in its S_jj).
+fn object_surfaces(
+    scene: &LoadedScene,
+    patches: &Patches,
+    patch_material: &[u32],
+    textured: &[(usize, [f32; 3])],
+) -> (Vec<ObjectInfo>, Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let mut objects = Vec::new();
     let mut albedo = vec![[0.0f32; 3]; patches.len()];
     let mut emission = vec![[0.0f32; 3]; patches.len()];
@@ -1132,7 +1579,7 @@ fn run(
         emission[range.clone()].fill(be);
         if matches!(o.material, Material::Heterogeneous { .. }) {
             for p in range.clone() {
-                albedo[p] = patch_albedo(&o.material, media.patch_material[p]);
+                albedo[p] = patch_albedo(&o.material, patch_material[p]);
             }
         }
         objects.push(ObjectInfo {
@@ -1143,243 +1590,150 @@ fn run(
             albedo: rho,
         });
     }
-    // Textured patches carry their own ρ (the same as their S_jj, set above).
-    for &(p, rho) in &textured {
+    // Textured patches carry their own ρ (the same as their S_jj).
+    for &(p, rho) in textured {
         albedo[p] = rho;
     }
+    (objects, albedo, emission)
+}
+
+/// The bundle's arrays, in order: the patches, the viewer mesh, the occluders, F, S and the
+/// distances, then what the scene has of link spreads, walks, the tree, T and environment
+/// visibility. In: what the stages made and each patch's ρ and emission.
+fn bundle_arrays(
+    made: Made<'_>,
+    albedo: Vec<[f32; 3]>,
+    emission: Vec<[f32; 3]>,
+) -> Vec<NamedArray> {
+    let Made {
+        patched: Patched { patches, mesh, .. },
+        occluder_tris,
+        rows,
+        subsurface:
+            SubsurfaceOut {
+                smat,
+                linked,
+                walks,
+                patch_material,
+                ..
+            },
+        transfer,
+    } = made;
     let flat3 = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
     let np = patches.len() as u64;
     let nv = mesh.positions.len() as u64;
+    let (ff, dist) = (rows.ff, linked.dist);
     let nnz = ff.nnz() as u64;
+    let corners = patches.corners.iter().flat_map(|c| flat3(c)).collect();
+    let occluders = occluder_tris.iter().flat_map(|c| flat3(c)).collect();
     let mut arrays_out = vec![
-        NamedArray {
-            name: arrays::PATCH_CORNERS,
-            shape: vec![np, 3, 3],
-            data: ArrayData::F32(patches.corners.iter().flat_map(|c| flat3(c)).collect()),
-        },
-        NamedArray {
-            name: arrays::PATCH_NORMAL,
-            shape: vec![np, 3],
-            data: ArrayData::F32(flat3(&patches.normal)),
-        },
-        NamedArray {
-            name: arrays::PATCH_AREA,
-            shape: vec![np],
-            data: ArrayData::F32(patches.area.clone()),
-        },
-        NamedArray {
-            name: arrays::PATCH_OBJECT,
-            shape: vec![np],
-            data: ArrayData::U32(patches.object.clone()),
-        },
-        NamedArray {
-            name: arrays::PATCH_ALBEDO,
-            shape: vec![np, 3],
-            data: ArrayData::F32(albedo.concat()),
-        },
-        NamedArray {
-            name: arrays::PATCH_EMISSION,
-            shape: vec![np, 3],
-            data: ArrayData::F32(emission.concat()),
-        },
-        NamedArray {
-            name: arrays::VERTEX_POSITION,
-            shape: vec![nv, 3],
-            data: ArrayData::F32(mesh.positions.concat()),
-        },
-        NamedArray {
-            name: arrays::VERTEX_NORMAL,
-            shape: vec![nv, 3],
-            data: ArrayData::F32(mesh.normals.concat()),
-        },
-        NamedArray {
-            name: arrays::TRIANGLE_VERTEX,
-            shape: vec![np, 3],
-            data: ArrayData::U32(mesh.triangles.concat()),
-        },
-        NamedArray {
-            name: arrays::OCCLUDER_TRI,
-            shape: vec![occluder_tris.len() as u64, 3, 3],
-            data: ArrayData::F32(occluder_tris.iter().flat_map(|c| flat3(c)).collect()),
-        },
-        NamedArray {
-            name: arrays::FF_ROW_PTR,
-            shape: vec![np + 1],
-            data: ArrayData::U64(ff.row_ptr),
-        },
-        NamedArray {
-            name: arrays::FF_COL,
-            shape: vec![nnz],
-            data: ArrayData::U32(ff.col),
-        },
-        NamedArray {
-            name: arrays::FF_VAL,
-            shape: vec![nnz],
-            data: ArrayData::F32(ff.val),
-        },
-        NamedArray {
-            name: arrays::S_ROW_PTR,
-            shape: vec![np + 1],
-            data: ArrayData::U64(smat.row_ptr),
-        },
-        NamedArray {
-            name: arrays::S_COL,
-            shape: vec![smat.col.len() as u64],
-            data: ArrayData::U32(smat.col),
-        },
-        NamedArray {
-            name: arrays::S_VAL,
-            shape: vec![smat.val.len() as u64, 3],
-            data: ArrayData::F32(smat.val.concat()),
-        },
-        NamedArray {
-            name: arrays::DIST_ROW_PTR,
-            shape: vec![np + 1],
-            data: ArrayData::U64(dist.row_ptr),
-        },
-        NamedArray {
-            name: arrays::DIST_COL,
-            shape: vec![dist.col.len() as u64],
-            data: ArrayData::U32(dist.col),
-        },
-        NamedArray {
-            name: arrays::DIST_VAL,
-            shape: vec![dist.val.len() as u64],
-            data: ArrayData::F32(dist.val),
-        },
-        NamedArray {
-            name: arrays::DIST_KIND,
-            shape: vec![dist_kind.len() as u64],
-            data: ArrayData::U32(dist_kind),
-        },
-        NamedArray {
-            name: arrays::DIST_MATERIAL_LEN,
-            shape: vec![dist_len.len() as u64, hetero::MEDIA as u64],
-            data: ArrayData::F32(dist_len.concat()),
-        },
-        NamedArray {
-            name: arrays::PATCH_MATERIAL,
-            shape: vec![np],
-            data: ArrayData::U32(media.patch_material.clone()),
-        },
+        NamedArray::f32(arrays::PATCH_CORNERS, vec![np, 3, 3], corners),
+        NamedArray::f32(arrays::PATCH_NORMAL, vec![np, 3], flat3(&patches.normal)),
+        NamedArray::f32(arrays::PATCH_AREA, vec![np], patches.area),
+        NamedArray::u32(arrays::PATCH_OBJECT, vec![np], patches.object),
+        NamedArray::f32(arrays::PATCH_ALBEDO, vec![np, 3], albedo.concat()),
+        NamedArray::f32(arrays::PATCH_EMISSION, vec![np, 3], emission.concat()),
+        NamedArray::f32(
+            arrays::VERTEX_POSITION,
+            vec![nv, 3],
+            mesh.positions.concat(),
+        ),
+        NamedArray::f32(arrays::VERTEX_NORMAL, vec![nv, 3], mesh.normals.concat()),
+        NamedArray::u32(
+            arrays::TRIANGLE_VERTEX,
+            vec![np, 3],
+            mesh.triangles.concat(),
+        ),
+        NamedArray::f32(
+            arrays::OCCLUDER_TRI,
+            vec![occluder_tris.len() as u64, 3, 3],
+            occluders,
+        ),
+        NamedArray::u64(arrays::FF_ROW_PTR, vec![np + 1], ff.row_ptr),
+        NamedArray::u32(arrays::FF_COL, vec![nnz], ff.col),
+        NamedArray::f32(arrays::FF_VAL, vec![nnz], ff.val),
+        NamedArray::u64(arrays::S_ROW_PTR, vec![np + 1], smat.row_ptr),
+        NamedArray::u32(arrays::S_COL, vec![smat.col.len() as u64], smat.col),
+        NamedArray::f32(
+            arrays::S_VAL,
+            vec![smat.val.len() as u64, 3],
+            smat.val.concat(),
+        ),
+        NamedArray::u64(arrays::DIST_ROW_PTR, vec![np + 1], dist.row_ptr),
+        NamedArray::u32(arrays::DIST_COL, vec![dist.col.len() as u64], dist.col),
+        NamedArray::f32(arrays::DIST_VAL, vec![dist.val.len() as u64], dist.val),
+        NamedArray::u32(
+            arrays::DIST_KIND,
+            vec![linked.kind.len() as u64],
+            linked.kind,
+        ),
+        NamedArray::f32(
+            arrays::DIST_MATERIAL_LEN,
+            vec![linked.material_len.len() as u64, hetero::MEDIA as u64],
+            linked.material_len.concat(),
+        ),
+        NamedArray::u32(arrays::PATCH_MATERIAL, vec![np], patch_material),
     ];
-    if link_near.is_some() {
-        arrays_out.push(NamedArray {
-            name: arrays::DIST_SPREAD,
-            shape: vec![dist_spread.len() as u64],
-            data: ArrayData::F32(dist_spread),
-        });
+    if linked.link_near.is_some() {
+        let spread = linked.spread;
+        arrays_out.push(NamedArray::f32(
+            arrays::DIST_SPREAD,
+            vec![spread.len() as u64],
+            spread,
+        ));
     }
     if !walks.is_empty() {
-        let w = walks.col.len() as u64;
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_ROW_PTR,
-            shape: vec![np + 1],
-            data: ArrayData::U64(walks.row_ptr.clone()),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_COL,
-            shape: vec![w],
-            data: ArrayData::U32(walks.col.clone()),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_BIN,
-            shape: vec![w],
-            data: ArrayData::U32(walks.bin.clone()),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_WEIGHT,
-            shape: vec![w, 3],
-            data: ArrayData::F32(walks.weight.iter().flatten().copied().collect()),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_WEIGHT_NORMAL,
-            shape: vec![w, 3],
-            data: ArrayData::F32(walks.weight_normal.iter().flatten().copied().collect()),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::SIM_WEIGHT_LAMP,
-            shape: vec![w, 3],
-            data: ArrayData::U32(walks.weight_lamp.iter().flatten().copied().collect()),
-        });
+        arrays_out.extend(walk_arrays(np, walks));
     }
-    let hierarchy_info = tree.map(|(t, range, info)| {
-        arrays_out.push(NamedArray {
-            name: arrays::TREE_PERM,
-            shape: vec![np],
-            data: ArrayData::U32(t.perm),
-        });
-        arrays_out.push(NamedArray {
-            name: arrays::TREE_RANGE,
-            shape: vec![range.len() as u64, 2],
-            data: ArrayData::U32(range.concat()),
-        });
-        info
-    });
+    if let Some((t, range, _)) = rows.tree {
+        arrays_out.push(NamedArray::u32(arrays::TREE_PERM, vec![np], t.perm));
+        arrays_out.push(NamedArray::u32(
+            arrays::TREE_RANGE,
+            vec![range.len() as u64, 2],
+            range.concat(),
+        ));
+    }
     if let Some(tr) = transfer {
         arrays_out.push(NamedArray {
             name: arrays::TRANSFER,
             shape: vec![np, np, 3],
             data: ArrayData::F16(tr.bits),
         });
-        arrays_out.push(NamedArray {
-            name: arrays::TRANSFER_SCALE,
-            shape: vec![np, 3],
-            data: ArrayData::F32(tr.scale.concat()),
-        });
+        arrays_out.push(NamedArray::f32(
+            arrays::TRANSFER_SCALE,
+            vec![np, 3],
+            tr.scale.concat(),
+        ));
     }
-    let environment_info = environment.map(|(bits, info)| {
+    if let Some((bits, info)) = rows.environment {
         arrays_out.push(NamedArray {
             name: arrays::ENV_VISIBILITY,
             shape: vec![np, u64::from(info.rows), u64::from(info.cols)],
             data: ArrayData::F16(bits),
         });
-        info
-    });
-    let camera = scene
-        .file
-        .camera
-        .unwrap_or_else(|| default_camera(&patches));
-    let manifest = Manifest {
-        format: FORMAT.into(),
-        version: FORMAT_VERSION,
-        name: scene.name.clone(),
-        source: scene.source.clone(),
-        created_by: format!("translux-precompute {}", env!("CARGO_PKG_VERSION")),
-        unit_mm: scene.file.unit_mm,
-        patch_count: np,
-        vertex_count: nv,
-        occluder_count: occluder_tris.len() as u64,
-        objects,
-        lights: scene.file.lights.clone(),
-        camera,
-        form_factors: ff_info.clone(),
-        subsurface: subsurface_info.clone(),
-        stages: stages.clone(),
-        transfer: transfer_info.clone(),
-        environment: environment_info,
-        hierarchy: hierarchy_info.clone(),
-        arrays: Default::default(),
-    };
-    let written = write_bundle(out, manifest, arrays_out)?;
-    bar.inc(1);
-    finish(bar, progress, "write bundle", t, &mut stages);
+    }
+    arrays_out
+}
 
-    Ok(Outcome::Bundle(Box::new(PrecomputeReport {
-        patch_count: patches.len(),
-        vertex_count: mesh.positions.len(),
-        occluder_count: occluder_tris.len(),
-        nnz_f: nnz,
-        bundle_bytes: written.bytes,
-        rays_per_second: ff_info.rays as f64 / ff_seconds.max(1e-9),
-        form_factors: ff_info,
-        hierarchy: hierarchy_info,
-        subsurface: subsurface_info,
-        transfer: transfer_info,
-        stages,
-        memory_estimate,
-        peak_rss: peak_rss(),
-    })))
+/// The simulated objects' walk records as the bundle's arrays (rows over all `np` patches).
+fn walk_arrays(np: u64, walks: SceneWalks) -> Vec<NamedArray> {
+    let w = walks.col.len() as u64;
+    vec![
+        NamedArray::u64(arrays::SIM_ROW_PTR, vec![np + 1], walks.row_ptr),
+        NamedArray::u32(arrays::SIM_COL, vec![w], walks.col),
+        NamedArray::u32(arrays::SIM_BIN, vec![w], walks.bin),
+        NamedArray::f32(arrays::SIM_WEIGHT, vec![w, 3], walks.weight.concat()),
+        NamedArray::f32(
+            arrays::SIM_WEIGHT_NORMAL,
+            vec![w, 3],
+            walks.weight_normal.concat(),
+        ),
+        NamedArray::u32(
+            arrays::SIM_WEIGHT_LAMP,
+            vec![w, 3],
+            walks.weight_lamp.concat(),
+        ),
+    ]
 }
 
 /// F, its summary and tree, and the environment visibility, for every receiver.

@@ -563,6 +563,33 @@ fn one_frame() -> u32 {
     1
 }
 
+/// `GET /api/v1/presets`: the named media a material may give (`"preset": NAME` in a
+/// `dipole` profile or a `simulated` material), and the indices used where none is given.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct Presets {
+    /// Jensen et al. 2001's measured media, in the order [`crate::scene::DIPOLE_PRESETS`]
+    /// lists them.
+    pub dipole: Vec<DipolePreset>,
+    /// The relative index η of a dipole given by its coefficients without `eta`.
+    pub default_eta: f32,
+    /// η of a specular coat whose material states none and has no dipole to take it from.
+    pub default_coat_eta: f32,
+}
+
+/// One measured medium of [`Presets`].
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct DipolePreset {
+    pub name: String,
+    /// Reduced scattering coefficient σs′ per channel (R, G, B), mm⁻¹.
+    pub sigma_s_prime: [f32; 3],
+    /// Absorption coefficient σa per channel, mm⁻¹.
+    pub sigma_a: [f32; 3],
+    /// Relative index of refraction η.
+    pub eta: f32,
+}
+
 /// `GET /api/v1/scenes`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -746,7 +773,7 @@ pub struct GpuScene {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Health {
-    /// Always `ok` while the server answers.
+    /// Always `ok` (a stopping server answers 503 `shutting_down` instead of this report).
     pub status: String,
     /// `cpu` or `gpu`.
     pub backend: String,

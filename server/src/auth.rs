@@ -35,7 +35,7 @@ use std::fmt;
 use std::io::{BufRead, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
@@ -180,9 +180,32 @@ impl Default for RateLimit {
 /// The access rules of one server: its tokens (possibly none) and rate limits.
 #[derive(Debug)]
 pub struct Auth {
-    tokens: Vec<Token>,
+    /// Swapped whole when the tokens file changes ([`Auth::reload_if_changed`]).
+    tokens: RwLock<Arc<Vec<Token>>>,
     rate: RateLimit,
     buckets: Mutex<HashMap<Arc<str>, Bucket>>,
+    /// The tokens file the tokens were read from, if any.
+    source: Option<TokensSource>,
+}
+
+/// A tokens file and what it was (inode, size, modification time) when last read.
+#[derive(Debug)]
+struct TokensSource {
+    path: PathBuf,
+    seen: Mutex<Option<FileStamp>>,
+}
+
+/// A file's inode, size and modification time: a rewrite (renamed into place) or an
+/// append changes it.
+type FileStamp = (u64, u64, Option<std::time::SystemTime>);
+
+fn file_stamp(path: &Path) -> Option<FileStamp> {
+    let m = std::fs::metadata(path).ok()?;
+    #[cfg(unix)]
+    let ino = std::os::unix::fs::MetadataExt::ino(&m);
+    #[cfg(not(unix))]
+    let ino = 0;
+    Some((ino, m.len(), m.modified().ok()))
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -210,17 +233,60 @@ impl Auth {
 
     fn with_tokens(tokens: Vec<Token>, rate: RateLimit) -> Auth {
         Auth {
-            tokens,
+            tokens: RwLock::new(Arc::new(tokens)),
             rate,
             buckets: Mutex::new(HashMap::new()),
+            source: None,
         }
     }
 
-    /// Reads a tokens file (see the module documentation). Errors name the file and the entry.
+    /// Reads a tokens file (see the module documentation). Errors name the file and the
+    /// entry. The file is remembered: [`Auth::reload_if_changed`] reads it again.
     pub fn from_file(path: &Path, rate: RateLimit) -> anyhow::Result<Auth> {
+        // The stamp before the text: a change while reading is seen at the next look.
+        let stamp = file_stamp(path);
+        let mut auth = Auth::read_file(path, rate)?;
+        auth.source = Some(TokensSource {
+            path: path.to_path_buf(),
+            seen: Mutex::new(stamp),
+        });
+        Ok(auth)
+    }
+
+    fn read_file(path: &Path, rate: RateLimit) -> anyhow::Result<Auth> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read the tokens file {}", path.display()))?;
         Auth::from_toml(&text, rate).with_context(|| format!("tokens file {}", path.display()))
+    }
+
+    /// Reads the tokens file again if it changed since it was last read (servers sharing
+    /// a tokens file see a `token add` made on any of them): `None` when it did not change
+    /// (or there is no file), the new [`Auth::summary`] when the new tokens are in force,
+    /// the error when the file does not read — the tokens in force are then kept, and the
+    /// file is read again when it changes again.
+    pub fn reload_if_changed(&self) -> Option<anyhow::Result<String>> {
+        let source = self.source.as_ref()?;
+        let stamp = file_stamp(&source.path);
+        {
+            let mut seen = source.seen.lock().unwrap_or_else(|e| e.into_inner());
+            if *seen == stamp {
+                return None;
+            }
+            *seen = stamp;
+        }
+        Some(Auth::read_file(&source.path, self.rate).map(|fresh| {
+            let tokens = fresh.tokens();
+            *self.tokens.write().unwrap_or_else(|e| e.into_inner()) = tokens;
+            self.summary()
+        }))
+    }
+
+    /// The tokens in force.
+    fn tokens(&self) -> Arc<Vec<Token>> {
+        self.tokens
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
     }
 
     /// Parses the tokens file's text.
@@ -285,15 +351,16 @@ impl Auth {
 
     /// Whether any token is configured (otherwise every request is allowed).
     pub fn enabled(&self) -> bool {
-        !self.tokens.is_empty()
+        !self.tokens().is_empty()
     }
 
     /// The number of tokens per role, for the start-up log line.
     pub fn summary(&self) -> String {
-        let count = |r: Role| self.tokens.iter().filter(|t| t.role == r).count();
+        let tokens = self.tokens();
+        let count = |r: Role| tokens.iter().filter(|t| t.role == r).count();
         format!(
             "{} tokens ({} admin, {} editor, {} viewer)",
-            self.tokens.len(),
+            tokens.len(),
             count(Role::Admin),
             count(Role::Editor),
             count(Role::Viewer)
@@ -302,12 +369,12 @@ impl Auth {
 
     /// The token that hashes to the same value as `presented`, compared in constant time
     /// against every entry.
-    fn lookup(&self, presented: &str) -> Option<&Token> {
+    fn lookup(&self, presented: &str) -> Option<Token> {
         let hash = sha256(presented.as_bytes());
         let mut found = None;
-        for t in &self.tokens {
+        for t in self.tokens().iter() {
             if bool::from(t.hash.ct_eq(&hash)) {
-                found = Some(t);
+                found = Some(t.clone());
             }
         }
         found
@@ -353,7 +420,7 @@ impl Auth {
     /// Takes one request from `name`'s bucket; `Err(seconds)` to wait when it is empty.
     pub fn take(&self, name: &Arc<str>) -> Result<(), f64> {
         let per_second = self
-            .tokens
+            .tokens()
             .iter()
             .find(|t| t.name == *name)
             .and_then(|t| t.rate)
@@ -651,7 +718,8 @@ pub fn new_token() -> anyhow::Result<String> {
 }
 
 /// Appends an entry for `token` to the tokens file, after checking that the result still
-/// reads (no duplicate name).
+/// reads (no duplicate name). The file is locked meanwhile, so that two `token add` at
+/// once (servers sharing the file) cannot both pass the check and add one name twice.
 pub fn add_token(
     file: &Path,
     name: &str,
@@ -660,22 +728,6 @@ pub fn add_token(
     token: &str,
 ) -> anyhow::Result<()> {
     check_name(name).map_err(|e| anyhow::anyhow!("--name: {e}"))?;
-    let old = match std::fs::read_to_string(file) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
-        Err(e) => return Err(e).with_context(|| format!("cannot read {}", file.display())),
-    };
-    let mut entry = format!(
-        "\n[[tokens]]\nname = {}\nrole = \"{role}\"\nsha256 = \"{}\"\n",
-        toml_string(name),
-        hash_token(token)?
-    );
-    if let Some(r) = rate {
-        entry.push_str(&format!("rate = {r}\n"));
-    }
-    let new = format!("{old}{entry}");
-    Auth::from_toml(&new, RateLimit::default())
-        .with_context(|| format!("{} would not read after adding {name:?}", file.display()))?;
     let mut options = std::fs::OpenOptions::new();
     options.create(true).append(true);
     #[cfg(unix)]
@@ -686,6 +738,26 @@ pub fn add_token(
     let mut f = options
         .open(file)
         .with_context(|| format!("cannot open {}", file.display()))?;
+    // A filesystem without locks still gets the entry: the check below then guards alone.
+    let _ = f.lock();
+    let old =
+        std::fs::read_to_string(file).with_context(|| format!("cannot read {}", file.display()))?;
+    let mut entry = format!(
+        "\n[[tokens]]\nname = {}\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+        toml_string(name),
+        hash_token(token)?
+    );
+    if let Some(r) = rate {
+        entry.push_str(&format!("rate = {r}\n"));
+    }
+    let new = format!("{old}{entry}");
+    if let Err(e) = Auth::from_toml(&new, RateLimit::default()) {
+        if old.is_empty() {
+            let _ = std::fs::remove_file(file); // made just now, by this call
+        }
+        return Err(e)
+            .with_context(|| format!("{} would not read after adding {name:?}", file.display()));
+    }
     f.write_all(entry.as_bytes())
         .with_context(|| format!("cannot write {}", file.display()))?;
     Ok(())
@@ -711,6 +783,51 @@ mod tests {
             hash_token(BOB).unwrap()
         );
         Auth::from_toml(&text, RateLimit::default()).unwrap()
+    }
+
+    /// A shared tokens file read again when it changes: a token added is accepted; a
+    /// file that no longer reads keeps the tokens in force (and is read again when it
+    /// changes again).
+    #[test]
+    fn a_changed_tokens_file_is_read_again_and_a_broken_one_keeps_the_old_tokens() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("tokens.toml");
+        add_token(&file, "alice", Role::Editor, None, ALICE).unwrap();
+        let auth = Auth::from_file(&file, RateLimit::default()).unwrap();
+        assert!(auth.reload_if_changed().is_none(), "nothing changed");
+        assert_eq!(auth.check(Some(BOB), None).unwrap().role, None);
+
+        add_token(&file, "bob", Role::Viewer, None, BOB).unwrap();
+        let summary = auth.reload_if_changed().unwrap().unwrap();
+        assert!(summary.starts_with("2 tokens"), "{summary}");
+        assert_eq!(
+            auth.check(Some(BOB), None).unwrap().role,
+            Some(Role::Viewer)
+        );
+
+        let text = std::fs::read_to_string(&file).unwrap();
+        std::fs::write(&file, format!("{text}\n[[tokens]]\nname = \"half\"\n")).unwrap();
+        let e = auth.reload_if_changed().unwrap().unwrap_err();
+        assert!(format!("{e:#}").contains("tokens[2]"), "{e:#}");
+        assert!(
+            !format!("{e:#}").contains(&hash_token(BOB).unwrap()),
+            "{e:#}"
+        );
+        assert_eq!(
+            auth.check(Some(BOB), None).unwrap().role,
+            Some(Role::Viewer)
+        );
+        assert!(
+            auth.reload_if_changed().is_none(),
+            "the error is reported once"
+        );
+        std::fs::write(&file, text).unwrap();
+        std::fs::remove_file(&file).unwrap();
+        assert!(auth.reload_if_changed().unwrap().is_err(), "a missing file");
+        assert_eq!(
+            auth.check(Some(ALICE), None).unwrap().role,
+            Some(Role::Editor)
+        );
     }
 
     #[test]

@@ -158,6 +158,16 @@ fn seconds(name: &str, given: Option<f64>, default: Duration) -> anyhow::Result<
     }
 }
 
+/// `rescan_s` checked: a number of seconds from 0 (off) to a day.
+fn rescan_seconds(given: Option<f64>) -> anyhow::Result<Option<f64>> {
+    match given {
+        Some(s) if !(s.is_finite() && (0.0..=86_400.0).contains(&s)) => {
+            bail!("rescan_s must be a number of seconds from 0 (off) to 86400, got {s}")
+        }
+        _ => Ok(given),
+    }
+}
+
 /// The address when nothing sets one.
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
 
@@ -204,6 +214,8 @@ impl Args {
             rate_burst: t.rate_burst.or(file.rate_burst),
             memory_budget: size(t.memory_budget, "memory_budget", &file.memory_budget)?,
             jobs: t.jobs.or(file.jobs),
+            slurm_shards: t.slurm_shards.or(file.slurm_shards),
+            slurm_args: t.slurm_args.clone().or(file.slurm_args),
             job_threads: t.job_threads.or(file.job_threads),
             job_queue: t.job_queue.or(file.job_queue),
             job_memory: size(t.job_memory, "job_memory", &file.job_memory)?,
@@ -214,6 +226,7 @@ impl Args {
                 &file.upload_file_limit,
             )?,
             max_upload_patches: t.max_upload_patches.or(file.max_upload_patches),
+            rescan_s: rescan_seconds(t.rescan_s.or(file.rescan_s))?,
         };
         let params = ServerParams {
             workers: self.workers.or(file.workers).unwrap_or(defaults.workers),
@@ -399,6 +412,7 @@ pub async fn run(
         p.viewer_work.as_secs_f64(),
         p.editor_work.as_secs_f64()
     );
+    watch_folder(&team, settings.team.rescan_s)?;
     let jobs = team.jobs.clone();
     let app = crate::team::app(state.clone(), team);
     crate::serve_router(listener, state, app, shutdown)
@@ -415,6 +429,20 @@ pub async fn run(
         );
     }
     tracing::info!("stopped");
+    Ok(())
+}
+
+/// Starts the rescan of the bundles folder and tokens file (`--rescan-s`, unless 0).
+fn watch_folder(team: &crate::team::Team, rescan_s: Option<f64>) -> anyhow::Result<()> {
+    let every = rescan_s.unwrap_or(crate::team::DEFAULT_RESCAN_S);
+    if every > 0.0 {
+        team.watch_folder(Duration::from_secs_f64(every))
+            .context("cannot start the bundles folder rescan")?;
+        tracing::info!(
+            "looking for new, replaced and removed bundles (and tokens file changes) every \
+             {every} s"
+        );
+    }
     Ok(())
 }
 
@@ -714,7 +742,8 @@ mod tests {
              prepare_translucency = \"off\"\ntokens = \"tok.toml\"\nrate_limit = 5\n\
              rate_burst = 7\nmemory_budget = \"1GiB\"\njobs = 2\njob_threads = 3\n\
              job_queue = 4\njob_memory = 1000\nupload_limit = \"2MiB\"\n\
-             upload_file_limit = \"1MiB\"\nmax_upload_patches = 900\n",
+             upload_file_limit = \"1MiB\"\nmax_upload_patches = 900\nslurm_shards = 3\n\
+             slurm_args = \"--partition=p\"\n",
         )
         .unwrap();
         let cfg = file.to_str().unwrap();
@@ -735,7 +764,7 @@ mod tests {
         assert_eq!(t.memory_budget, Some(1 << 30));
         assert_eq!(
             (t.jobs, t.job_threads, t.job_queue),
-            (Some(2), Some(3), Some(4))
+            (Some(crate::slurm::JobsSetting::Local(2)), Some(3), Some(4))
         );
         assert_eq!(t.job_memory, Some(1000));
         assert_eq!(
@@ -743,6 +772,10 @@ mod tests {
             (Some(2 << 20), Some(1 << 20))
         );
         assert_eq!(t.max_upload_patches, Some(900));
+        assert_eq!(
+            (t.slurm_shards, t.slurm_args.as_deref()),
+            (Some(3), Some("--partition=p"))
+        );
         let s = Args::try_parse_from([
             "translux-server",
             "--config",
@@ -772,6 +805,33 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("memory_budget"), "{e}");
+    }
+
+    /// `--rescan-s` has its variable and key like every setting; 0 is off, a negative or
+    /// non-finite number is refused naming it.
+    #[test]
+    fn rescan_s_has_a_flag_and_a_config_key() {
+        if std::env::vars().any(|(k, _)| k.starts_with("TRANSLUX_")) {
+            return; // the environment would take part
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("t.toml");
+        std::fs::write(&file, "bundles = \".\"\nrescan_s = 0\n").unwrap();
+        let cfg = file.to_str().unwrap();
+        let parse = |extra: &[&str]| {
+            Args::try_parse_from([&["translux-server", "--config", cfg], extra].concat())
+                .unwrap()
+                .settings()
+        };
+        assert_eq!(parse(&[]).unwrap().team.rescan_s, Some(0.0));
+        assert_eq!(
+            parse(&["--rescan-s", "0.5"]).unwrap().team.rescan_s,
+            Some(0.5)
+        );
+        for bad in ["--rescan-s=-1", "--rescan-s=inf", "--rescan-s=NaN"] {
+            let e = parse(&[bad]).unwrap_err().to_string();
+            assert!(e.contains("rescan_s"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -25,13 +25,16 @@
 //! rate_limit = 50
 //! rate_burst = 100
 //! memory_budget = "8GiB"
-//! jobs = 1
+//! jobs = 1                   # local (= 1), a number of local jobs at once, or "slurm"
+//! slurm_shards = 2           # with jobs = "slurm": shards of an upload's precompute
+//! slurm_args = "--partition=gpu"  # with jobs = "slurm": more sbatch arguments
 //! job_threads = 4
 //! job_queue = 16
 //! job_memory = "4GiB"
 //! upload_limit = "256MiB"
 //! upload_file_limit = "64MiB"
 //! max_upload_patches = 50000
+//! rescan_s = 2               # looks at the bundles folder and tokens file; 0 = never
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -206,13 +209,16 @@ pub struct FileConfig {
     pub rate_limit: Option<f64>,
     pub rate_burst: Option<f64>,
     pub memory_budget: Option<Bytes>,
-    pub jobs: Option<usize>,
+    pub jobs: Option<crate::slurm::JobsSetting>,
+    pub slurm_shards: Option<u32>,
+    pub slurm_args: Option<String>,
     pub job_threads: Option<usize>,
     pub job_queue: Option<usize>,
     pub job_memory: Option<Bytes>,
     pub upload_limit: Option<Bytes>,
     pub upload_file_limit: Option<Bytes>,
     pub max_upload_patches: Option<u64>,
+    pub rescan_s: Option<f64>,
 }
 
 /// A size in the config file: a number of bytes, or text as the flags take it (`8GiB`,

@@ -8,6 +8,9 @@
 //! place: a bundle is there whole or not at all), handed to the `on_done` hook that starts
 //! serving it; and a [`JobRecord`] per job that clients poll or stream.
 //!
+//! - **Engines** ([`Engine`]): the work runs in this process (the default), or on Slurm
+//!   ([`crate::slurm`]: an upload as a job array of shards and a merge, a re-simulation as
+//!   one task), a worker then only submitting it and following it to the same record.
 //! - **Bounded**: `workers` jobs run at once (default 1), on their own rayon thread pool of
 //!   `threads` threads, so a precompute does not starve relighting; at most `queue` jobs wait,
 //!   and at most `per_owner` of them from one token; more are refused with 429 `queue_full`.
@@ -130,6 +133,19 @@ pub struct JobsConfig {
     /// precompute's own estimate is held to it up front, and the job is stopped when the
     /// server's resident memory grows by more while it runs.
     pub memory: Option<u64>,
+    /// Where jobs run: in this process (default), or on Slurm ([`crate::slurm`]).
+    pub engine: Engine,
+}
+
+/// Where a job's work runs.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub enum Engine {
+    /// In this process, on the job pool's threads.
+    #[default]
+    Local,
+    /// On Slurm: an upload as a job array of shards and a merge, a re-simulation as one
+    /// task; the workers only submit and follow them.
+    Slurm(crate::slurm::SlurmConfig),
 }
 
 impl JobsConfig {
@@ -146,6 +162,7 @@ impl JobsConfig {
             queue: 16,
             per_owner: 4,
             memory: None,
+            engine: Engine::Local,
         }
     }
 }
@@ -406,7 +423,10 @@ impl Jobs {
         for d in [&config.jobs_dir, &config.uploads_dir] {
             std::fs::create_dir_all(d).with_context(|| format!("cannot create {}", d.display()))?;
         }
-        let (records, notes) = recover(&config)?;
+        let (records, mut notes) = recover(&config)?;
+        notes.extend(crate::slurm::settle_leftovers(&config.bundles, &|job| {
+            !Jobs::valid_id(job) || record_is_live(&config.jobs_dir, job)
+        }));
         let rayon = rayon::ThreadPoolBuilder::new()
             .num_threads(config.threads)
             .thread_name(|k| format!("precompute-{k}"))
@@ -707,6 +727,9 @@ impl Jobs {
             if entry.cancel.is_set() {
                 return Err("cancelled".to_string());
             }
+            if let Engine::Slurm(slurm) = &cfg.engine {
+                return self.run_on_slurm(entry, slurm);
+            }
             if let Some(materials) = &spec.resimulate {
                 return self.resimulate(entry, &out, materials, t);
             }
@@ -831,6 +854,84 @@ impl Jobs {
     }
 }
 
+impl Jobs {
+    /// A job's work on Slurm ([`crate::slurm::run`]): this worker submits it and follows
+    /// it until it ends; the job's cancel flag cancels it there.
+    fn run_on_slurm(
+        &self,
+        entry: &Arc<Entry>,
+        slurm: &crate::slurm::SlurmConfig,
+    ) -> Result<JobResult, String> {
+        let spec = &entry.spec;
+        let work = match &spec.resimulate {
+            Some(materials) => crate::slurm::Work::Resimulate { materials },
+            None => crate::slurm::Work::Precompute {
+                scene_file: &spec.scene_file,
+                patches: spec.patches,
+                max_edge: spec.max_edge,
+            },
+        };
+        let follow = SlurmFollow {
+            entry,
+            jobs_dir: &self.inner.config.jobs_dir,
+        };
+        let bundles = &self.inner.config.bundles;
+        crate::slurm::run(slurm, bundles, &spec.id, &spec.scene, work, &follow)
+            .and_then(|elapsed| bundle_result(&bundles.join(&spec.scene), elapsed))
+            .map_err(|e| strip_dir(&e, bundles))
+    }
+}
+
+/// The numbers of the bundle at `out` (a job that ran elsewhere: on Slurm), read from its
+/// manifest.
+fn bundle_result(out: &Path, elapsed: std::time::Duration) -> Result<JobResult, String> {
+    let path = out.join(translux_proto::bundle::MANIFEST_FILE);
+    let text = std::fs::read_to_string(&path).map_err(|e| {
+        format!(
+            "the job's tasks succeeded but {} cannot be read: {e}",
+            path.display()
+        )
+    })?;
+    let m: translux_proto::bundle::Manifest =
+        translux_proto::parse_json(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(JobResult {
+        patches: m.patch_count,
+        vertices: m.vertex_count,
+        nnz_f: m.form_factors.nnz,
+        bundle_bytes: m.arrays.values().map(|a| a.bytes).sum::<u64>() + text.len() as u64,
+        seconds: elapsed.as_secs_f64(),
+    })
+}
+
+/// Whether job `job`'s record in `jobs_dir` says it is still queued or running.
+fn record_is_live(jobs_dir: &Path, job: &str) -> bool {
+    let Ok(text) = std::fs::read_to_string(jobs_dir.join(format!("{job}.json"))) else {
+        return false;
+    };
+    translux_proto::parse_json::<JobRecord>(&text).is_ok_and(|r| !r.state.is_final())
+}
+
+/// A job's record and cancel flag as [`crate::slurm`] sees them.
+struct SlurmFollow<'a> {
+    entry: &'a Entry,
+    jobs_dir: &'a Path,
+}
+
+impl crate::slurm::Follow for SlurmFollow<'_> {
+    fn cancelled(&self) -> bool {
+        self.entry.cancel.is_set()
+    }
+
+    fn progress(&self, stage: &str, stage_percent: f64, percent: f64) {
+        tracing::info!(job = %self.entry.spec.id, scene = %self.entry.spec.scene, "stage {stage}");
+        self.entry.update(self.jobs_dir, false, |r| {
+            r.stage = Some(stage.to_string());
+            r.stage_percent = stage_percent;
+            r.percent = r.percent.max(percent);
+        });
+    }
+}
+
 impl Entry {
     fn new(spec: JobSpec, record: JobRecord) -> Entry {
         Entry {
@@ -860,29 +961,163 @@ fn record_path(jobs_dir: &Path, id: &str) -> PathBuf {
     jobs_dir.join(format!("{id}.json"))
 }
 
-/// Writes the record next to its place and renames it there.
+/// The lock file of job `id`: held (an exclusive `flock`) by the process whose job it is
+/// while the job is queued or running ([`write_record`]).
+fn lock_path(jobs_dir: &Path, id: &str) -> PathBuf {
+    jobs_dir.join(format!("{id}.lock"))
+}
+
+/// How long a leftover that no live job can be shown to own must stay unchanged before a
+/// server starting over the folder removes it: another server's upload being received, a
+/// record being renamed into place, a writer on another machine (whose pid means nothing
+/// here).
+const ABANDONED_AFTER: std::time::Duration = std::time::Duration::from_secs(600);
+
+/// The job locks this process holds, by lock file. A queued or running job holds an
+/// exclusive lock on `JOBS/ID.lock` from its first record until its record is final, so
+/// that another server over the same folder (or this one restarted) can tell a live job
+/// from one whose server is gone: it can take the lock only of the latter (the kernel, or
+/// the file server, lets go of the locks of a process that dies). Kept with the records'
+/// writer ([`write_record`]), which alone sees a record become final.
+static HELD_LOCKS: std::sync::LazyLock<Mutex<HashMap<PathBuf, std::fs::File>>> =
+    std::sync::LazyLock::new(Default::default);
+
+/// The outcome of trying job `id`'s lock.
+enum JobLock {
+    /// Taken: no live process holds it (its writer is gone, or there never was one).
+    Taken(std::fs::File),
+    /// Another process (or this one) holds it: the job is live.
+    Held,
+    /// There is no lock file (and none was to be made).
+    Absent,
+    /// The filesystem does not lock (an NFS mount without its lock service, say).
+    Unsupported(std::io::Error),
+}
+
+/// Tries job `id`'s lock without waiting; `create` makes the lock file if it is missing.
+fn try_job_lock(jobs_dir: &Path, id: &str, create: bool) -> JobLock {
+    let path = lock_path(jobs_dir, id);
+    let file = match std::fs::OpenOptions::new()
+        .create(create)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+    {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return JobLock::Absent,
+        Err(e) => return JobLock::Unsupported(e),
+    };
+    match file.try_lock() {
+        Ok(()) => JobLock::Taken(file),
+        Err(std::fs::TryLockError::WouldBlock) => JobLock::Held,
+        Err(std::fs::TryLockError::Error(e)) => JobLock::Unsupported(e),
+    }
+}
+
+/// Makes this process hold job `id`'s lock (once; later records of the job find it held).
+/// A filesystem that cannot lock is logged and the job runs without one: one server over
+/// the folder works as before, several cannot tell each other's jobs apart.
+fn hold_job_lock(jobs_dir: &Path, id: &str) -> anyhow::Result<()> {
+    let path = lock_path(jobs_dir, id);
+    let mut held = HELD_LOCKS.lock().unwrap_or_else(|e| e.into_inner());
+    if held.contains_key(&path) {
+        return Ok(());
+    }
+    match try_job_lock(jobs_dir, id, true) {
+        JobLock::Taken(file) => {
+            held.insert(path, file);
+            Ok(())
+        }
+        JobLock::Held => anyhow::bail!("job {id}'s lock {} is held elsewhere", path.display()),
+        JobLock::Absent => anyhow::bail!("cannot create {}", path.display()),
+        JobLock::Unsupported(e) => {
+            tracing::warn!(
+                "job {id}: cannot lock {} ({e}); servers sharing this folder cannot see that \
+                 the job is live",
+                path.display()
+            );
+            Ok(())
+        }
+    }
+}
+
+/// Lets go of job `id`'s lock, its record final: the lock file goes first, then the lock.
+fn release_job_lock(jobs_dir: &Path, id: &str) {
+    let path = lock_path(jobs_dir, id);
+    let file = HELD_LOCKS
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(&path);
+    remove_file_quietly(&path);
+    drop(file);
+}
+
+/// Writes the record next to its place and renames it there. The job's lock is taken
+/// before its first record is written and let go after its final one.
 fn write_record(jobs_dir: &Path, r: &JobRecord) -> anyhow::Result<()> {
+    if !r.state.is_final() {
+        hold_job_lock(jobs_dir, &r.id)?;
+    }
     let path = record_path(jobs_dir, &r.id);
     let tmp = jobs_dir.join(format!(".{}.json.tmp", r.id));
     let text = serde_json::to_vec_pretty(r)?;
     std::fs::write(&tmp, text).with_context(|| format!("cannot write {}", tmp.display()))?;
     std::fs::rename(&tmp, &path).with_context(|| format!("cannot rename to {}", path.display()))?;
+    if r.state.is_final() {
+        release_job_lock(jobs_dir, &r.id);
+    }
     Ok(())
 }
 
-/// Reads the records an earlier run left; fails the unfinished ones and removes their
-/// temporary bundle folders; removes upload folders that belong to no waiting job.
+/// The record of job `id` in `jobs_dir`, as its server last wrote it (another server's
+/// job too: servers over one bundles folder share its records).
+pub fn read_record(jobs_dir: &Path, id: &str) -> Option<JobRecord> {
+    if !Jobs::valid_id(id) {
+        return None;
+    }
+    let text = std::fs::read_to_string(record_path(jobs_dir, id)).ok()?;
+    translux_proto::parse_json(&text).ok()
+}
+
+/// Every record in `jobs_dir` that reads, in no order.
+pub fn read_records(jobs_dir: &Path) -> Vec<JobRecord> {
+    let Ok(entries) = std::fs::read_dir(jobs_dir) else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name();
+            let id = name.to_str()?.strip_suffix(".json")?;
+            read_record(jobs_dir, id)
+        })
+        .collect()
+}
+
+/// Reads the records in the jobs folder and settles those an earlier run left
+/// unfinished, but only where that run is gone: an unfinished record whose lock this
+/// process can take is failed (or done, when its bundle was written) and its temporary
+/// bundle folders removed; one whose lock is held belongs to a live server over the same
+/// folder and is left to it (it is not in the returned list: [`read_record`] reads it).
+/// Upload folders and bundle leftovers go only when no live job or upload can own them.
 fn recover(cfg: &JobsConfig) -> anyhow::Result<(Vec<JobRecord>, Vec<String>)> {
     let mut records = Vec::new();
     let mut notes = Vec::new();
+    let mut live_scenes = std::collections::BTreeSet::new();
     let entries = std::fs::read_dir(&cfg.jobs_dir)
         .with_context(|| format!("cannot read {}", cfg.jobs_dir.display()))?;
     for e in entries.flatten() {
         let path = e.path();
         let name = e.file_name().to_string_lossy().into_owned();
         if name.starts_with('.') {
-            // A record being written when the server stopped.
-            remove_file_quietly(&path);
+            // A record being written: by a server that stopped, once it has aged.
+            if unchanged_for(&path, ABANDONED_AFTER) {
+                remove_file_quietly(&path);
+            }
+            continue;
+        }
+        if let Some(id) = name.strip_suffix(".lock") {
+            remove_orphan_lock(&cfg.jobs_dir, id);
             continue;
         }
         let Some(id) = name.strip_suffix(".json") else {
@@ -891,34 +1126,133 @@ fn recover(cfg: &JobsConfig) -> anyhow::Result<(Vec<JobRecord>, Vec<String>)> {
         if !Jobs::valid_id(id) {
             continue;
         }
-        let text = match std::fs::read_to_string(&path) {
-            Ok(t) => t,
-            Err(e) => {
-                notes.push(format!("cannot read job record {}: {e}", path.display()));
-                continue;
-            }
-        };
-        let mut r: JobRecord = match translux_proto::parse_json(&text) {
+        let r: JobRecord = match std::fs::read_to_string(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|t| translux_proto::parse_json(&t).map_err(|e| e.to_string()))
+        {
             Ok(r) => r,
             Err(e) => {
                 notes.push(format!("skipping job record {}: {e}", path.display()));
                 continue;
             }
         };
-        if !r.state.is_final() {
-            notes.push(settle_unfinished(cfg, &mut r));
-            write_record(&cfg.jobs_dir, &r)?;
+        if r.state.is_final() {
+            records.push(r);
+            continue;
         }
-        records.push(r);
-    }
-    notes.extend(remove_leftovers(&cfg.bundles));
-    // No job waits after a restart: every upload folder is left over.
-    if let Ok(entries) = std::fs::read_dir(&cfg.uploads_dir) {
-        for e in entries.flatten() {
-            remove_quietly(&e.path());
+        match settle_if_gone(cfg, r, &mut notes)? {
+            Ok(r) => records.push(r),
+            Err(scene) => {
+                live_scenes.insert(scene);
+            }
         }
     }
+    notes.extend(remove_leftovers(&cfg.bundles, &live_scenes));
+    remove_abandoned_uploads(cfg);
     Ok((records, notes))
+}
+
+/// Settles unfinished record `r` if its server is gone (its lock can be taken); `Err`
+/// with its scene when a live server holds it. Re-read under the lock: its server may have
+/// finished it meanwhile.
+fn settle_if_gone(
+    cfg: &JobsConfig,
+    r: JobRecord,
+    notes: &mut Vec<String>,
+) -> anyhow::Result<Result<JobRecord, String>> {
+    let lock = match try_job_lock(&cfg.jobs_dir, &r.id, true) {
+        JobLock::Taken(file) => Some(file),
+        JobLock::Held | JobLock::Absent => return Ok(Err(r.scene)),
+        JobLock::Unsupported(e) => {
+            notes.push(format!(
+                "job {}: cannot lock its record ({e}): settled as if its server were gone; \
+                 several servers over one folder need a filesystem with locks",
+                r.id
+            ));
+            None
+        }
+    };
+    let mut r = read_record(&cfg.jobs_dir, &r.id).unwrap_or(r);
+    if !r.state.is_final() {
+        notes.push(settle_unfinished(cfg, &mut r));
+        write_record(&cfg.jobs_dir, &r)?;
+    }
+    drop(lock);
+    Ok(Ok(r))
+}
+
+/// Removes job `id`'s lock file when no record goes with it and no one holds it (its
+/// server stopped between taking the lock and writing the record).
+fn remove_orphan_lock(jobs_dir: &Path, id: &str) {
+    if !Jobs::valid_id(id) || record_path(jobs_dir, id).exists() {
+        return;
+    }
+    if let JobLock::Taken(file) = try_job_lock(jobs_dir, id, false) {
+        remove_file_quietly(&lock_path(jobs_dir, id));
+        drop(file);
+    }
+}
+
+/// Removes the upload folders that no live job or upload can own: a job's whose lock is
+/// free (its server is gone; a final job's folder is left over), a folder not named like a
+/// job, and one with no record (an upload being received, on this server or another,
+/// before its job is queued) once it has not changed for [`ABANDONED_AFTER`].
+fn remove_abandoned_uploads(cfg: &JobsConfig) {
+    let Ok(entries) = std::fs::read_dir(&cfg.uploads_dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let path = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        let live = if !Jobs::valid_id(&name) {
+            false
+        } else if record_path(&cfg.jobs_dir, &name).exists() {
+            matches!(try_job_lock(&cfg.jobs_dir, &name, false), JobLock::Held)
+        } else {
+            !unchanged_for(&path, ABANDONED_AFTER)
+        };
+        if !live {
+            remove_quietly(&path);
+        }
+    }
+}
+
+/// Whether `path`, and each entry of it if it is a folder, has not been modified for `age`.
+fn unchanged_for(path: &Path, age: std::time::Duration) -> bool {
+    let old = |p: &Path| {
+        std::fs::symlink_metadata(p)
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|a| a >= age)
+    };
+    if !old(path) {
+        return false;
+    }
+    match std::fs::read_dir(path) {
+        Ok(entries) => entries.flatten().all(|e| old(&e.path())),
+        Err(_) => true,
+    }
+}
+
+/// Whether `path` was last renamed or otherwise changed (its status change time, which a
+/// rename sets and its modification time does not) at least `age` ago.
+fn renamed_before(path: &Path, age: std::time::Duration) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let Ok(m) = std::fs::symlink_metadata(path) else {
+            return false;
+        };
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs() as i64);
+        now.saturating_sub(m.ctime()) >= age.as_secs() as i64
+    }
+    #[cfg(not(unix))]
+    {
+        unchanged_for(path, age)
+    }
 }
 
 /// Settles job `r` that an earlier run left queued or running (see the module docs): what
@@ -997,31 +1331,42 @@ fn written_since(out: &Path, started: u64) -> Option<JobResult> {
     })
 }
 
-/// Settles what killed writers left beside every bundle in `bundles` (their processes no
-/// longer run: a command-line precompute writing there is left alone), and removes bundles
-/// a delete had renamed aside (`.ID.deleted-*`). One note per folder changed.
-fn remove_leftovers(bundles: &Path) -> Vec<String> {
+/// Settles what killed writers left beside the bundles in `bundles` and removes bundles a
+/// delete had renamed aside (`.ID.deleted-*`). One note per folder changed. Several
+/// servers (and command-line or scheduler precomputes on other machines) may share the
+/// folder, and a pid from another machine says nothing here, so a leftover goes only when
+/// its writer's process does not run here *and* it has not changed for
+/// [`ABANDONED_AFTER`]; the scenes of live jobs (`live`) are not touched at all.
+fn remove_leftovers(bundles: &Path, live: &std::collections::BTreeSet<String>) -> Vec<String> {
     let mut notes = Vec::new();
     let Ok(entries) = std::fs::read_dir(bundles) else {
         return notes;
     };
-    let mut scenes = std::collections::BTreeSet::new();
+    // Scene → whether every leftover of it has aged.
+    let mut scenes: BTreeMap<String, bool> = BTreeMap::new();
     for e in entries.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();
         let Some(rest) = name.strip_prefix('.') else {
             continue;
         };
-        if rest.contains(".deleted-") && e.path().is_dir() {
-            remove_quietly(&e.path());
-            notes.push(format!("removed {name}, a deleted bundle"));
-        } else if let Some((scene, _)) = rest
-            .rsplit_once(".tmp-")
-            .or_else(|| rest.rsplit_once(".old-"))
-        {
-            scenes.insert(scene.to_string());
+        let path = e.path();
+        if rest.contains(".deleted-") && path.is_dir() {
+            if renamed_before(&path, ABANDONED_AFTER) {
+                remove_quietly(&path);
+                notes.push(format!("removed {name}, a deleted bundle"));
+            }
+        } else if let Some((scene, _)) = rest.rsplit_once(".tmp-") {
+            let aged = unchanged_for(&path, ABANDONED_AFTER);
+            *scenes.entry(scene.to_string()).or_insert(true) &= aged;
+        } else if let Some((scene, _)) = rest.rsplit_once(".old-") {
+            let aged = renamed_before(&path, ABANDONED_AFTER);
+            *scenes.entry(scene.to_string()).or_insert(true) &= aged;
         }
     }
-    for scene in scenes {
+    for (scene, aged) in scenes {
+        if !aged || live.contains(&scene) {
+            continue;
+        }
         match settle_leftovers(&bundles.join(&scene), Writers::Gone) {
             Ok(s) if s.restored.is_some() || !s.removed.is_empty() => notes.push(format!(
                 "scene {scene:?}: {} leftover bundle folder(s) of a killed writer removed{}",
@@ -1175,6 +1520,8 @@ mod tests {
             resimulate: None,
         };
         write_record(&cfg.jobs_dir, &r).unwrap();
+        // Its server was killed: the kernel let go of the job's lock.
+        release_job_lock(&cfg.jobs_dir, &r.id);
         let done_id = Jobs::new_id();
         r = JobRecord {
             id: done_id.clone(),
@@ -1210,6 +1557,65 @@ mod tests {
         // The change is on disk too.
         let text = std::fs::read_to_string(record_path(&cfg.jobs_dir, &failed.id)).unwrap();
         assert!(text.contains("\"failed\""), "{text}");
+        jobs.close();
+    }
+
+    /// Another server over the same folder holds its running job's lock: a server starting
+    /// leaves the record, its upload folder and the fresh temporaries of its scene alone
+    /// (a pid from another machine means nothing here), and reads the record from disk.
+    #[test]
+    fn a_start_leaves_a_live_servers_jobs_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = JobsConfig::in_bundles(dir.path());
+        std::fs::create_dir_all(&cfg.jobs_dir).unwrap();
+        let id = Jobs::new_id();
+        let r = JobRecord {
+            id: id.clone(),
+            scene: "cup".into(),
+            owner: "alice".into(),
+            state: JobState::Running,
+            stage: Some("form factors".into()),
+            stage_percent: 40.0,
+            percent: 30.0,
+            error: None,
+            patches: Some(200),
+            max_edge: None,
+            created: 1,
+            started: Some(2),
+            finished: None,
+            result: None,
+            resimulate: None,
+        };
+        // Written as the live server writes it: holding the job's lock.
+        write_record(&cfg.jobs_dir, &r).unwrap();
+        let upload = cfg.uploads_dir.join(&id);
+        let receiving = cfg.uploads_dir.join(Jobs::new_id());
+        let tmp = dir.path().join(".cup.tmp-4294000-1-1");
+        let other = dir.path().join(".mug.tmp-4294000-1-1");
+        for d in [&upload, &receiving, &tmp, &other] {
+            std::fs::create_dir_all(d).unwrap();
+        }
+
+        let (jobs, notes) = Jobs::start(cfg.clone(), Arc::new(|_, _| {})).unwrap();
+        assert!(notes.is_empty(), "{notes:?}");
+        assert!(jobs.get(&id).is_none(), "the live job is not this pool's");
+        assert_eq!(read_record(&cfg.jobs_dir, &id), Some(r.clone()));
+        for d in [&upload, &receiving, &tmp, &other] {
+            assert!(d.exists(), "{} was removed", d.display());
+        }
+        jobs.close();
+
+        // Its server gone, the next start settles it.
+        release_job_lock(&cfg.jobs_dir, &id);
+        let (jobs, notes) = Jobs::start(cfg.clone(), Arc::new(|_, _| {})).unwrap();
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert_eq!(jobs.get(&id).unwrap().state, JobState::Failed);
+        assert!(!upload.exists() && !tmp.exists());
+        assert!(
+            receiving.exists() && other.exists(),
+            "fresh, unattributed: kept"
+        );
+        assert!(!lock_path(&cfg.jobs_dir, &id).exists());
         jobs.close();
     }
 }

@@ -15,7 +15,7 @@
 //! | what it holds | [`state`] (one opened scene per bundle, the pool, the metrics, the shutdown signal), [`config`] (settings from flags, `TRANSLUX_*`, a TOML file) |
 //! | a relight | planned and run by the engine: [`translux_engine::relight`] (plan, then run or run a batch), [`translux_engine::environment`] (environment lights) |
 //! | sharing one box | [`pool`] (bounded worker pool, fair queue, batching, deadlines), [`metrics`], [`budget`] (memory budget, LRU eviction), [`prepare`] (translucency changes made ready in the background) |
-//! | team use | [`team`] (the API wrapped with access control, uploads, jobs, deletion, the budget), [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads in, precompute and resimulation jobs out) |
+//! | team use | [`team`] (the API wrapped with access control, uploads, jobs, deletion, the budget), [`auth`] (tokens, roles, rate limits), [`upload`] and [`jobs`] (scene uploads in, precompute and resimulation jobs out), [`slurm`] (jobs run on Slurm: `--jobs slurm`) |
 //! | backends | [`backend`] (CPU or GPU, chosen at start-up), [`gpu`] (wgpu kernels, one WGSL file each) |
 //!
 //! The same binary works offline, without HTTP: `translux-server render | export | relight
@@ -53,6 +53,7 @@ pub mod pool;
 pub mod prepare;
 pub mod routes;
 pub mod schema;
+pub mod slurm;
 pub mod state;
 pub mod team;
 pub mod upload;

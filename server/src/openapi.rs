@@ -59,6 +59,7 @@ use crate::auth::Role;
         crate::routes::healthz,
         crate::routes::metrics,
         crate::openapi_document,
+        crate::routes::presets,
         crate::routes::list_scenes,
         crate::routes::scene_detail,
         crate::routes::scene_mesh,

@@ -21,8 +21,8 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{MethodFilter, MethodRouter};
 use serde::{Deserialize, Serialize};
 use translux_proto::api::{
-    ErrorBody, GpuHealth, Mesh, MeshObject, RelightRequest, RelightResponse, RenderRequest,
-    SceneDetail, SceneList, SceneObject, SceneSummary,
+    ErrorBody, GpuHealth, Mesh, MeshObject, Presets, RelightRequest, RelightResponse,
+    RenderRequest, SceneDetail, SceneList, SceneObject, SceneSummary,
 };
 
 use crate::error::AppError;
@@ -106,6 +106,7 @@ fn table() -> RouteTable<AppState> {
         .get("/healthz", healthz)
         .get("/metrics", metrics)
         .get("/api/v1/openapi.json", crate::openapi_document)
+        .get("/api/v1/presets", presets)
         .get("/api/v1/scenes", list_scenes)
         .get("/api/v1/scenes/{id}", scene_detail)
         .get("/api/v1/scenes/{id}/mesh", scene_mesh)
@@ -196,8 +197,6 @@ pub struct HealthReport {
     pub queue: QueueHealth,
     /// Open WebSocket streams.
     pub streams: i64,
-    /// `true` once shutdown has begun.
-    pub shutting_down: bool,
 }
 
 /// One scene in [`HealthReport`].
@@ -269,20 +268,30 @@ fn health(state: &AppState) -> HealthReport {
             deadline_ms: p.deadline.as_millis() as u64,
         },
         streams: state.metrics().ws_connections.get(),
-        shutting_down: *state.shutdown_watch().borrow(),
     }
 }
 
 /// Backend, GPU, scenes, memory and the queue.
 ///
-/// Each scene's state is `loading`, `ready`, `failed` or `evicted`.
+/// Each scene's state is `loading`, `ready`, `failed` or `evicted`. Once the server has begun
+/// to stop (SIGTERM) it answers 503 `shutting_down` instead, so that a load balancer's or an
+/// orchestrator's health check takes it out of rotation (docker/haproxy.cfg).
 #[utoipa::path(
     get,
     path = "/healthz",
     tag = "operations",
-    responses((status = 200, description = "The server's state.", body = HealthReport))
+    responses(
+        (status = 200, description = "The server's state.", body = HealthReport),
+        (status = 503, description = "`shutting_down`: the server is stopping.", body = ErrorBody),
+    )
 )]
 pub(crate) async fn healthz(State(state): State<AppState>) -> Result<Response, AppError> {
+    if *state.shutdown_watch().borrow() {
+        return Err(AppError::shutting_down(
+            "the server is stopping: it finishes the requests it has accepted and takes no \
+             new ones",
+        ));
+    }
     to_json(&health(&state))
 }
 
@@ -334,6 +343,34 @@ pub(crate) fn summary(scene: &Scene) -> SceneSummary {
         frames: scene.frame_count(),
         fps: scene.sequence.as_ref().map(|s| s.fps),
     }
+}
+
+/// The named media materials may use, with their coefficients (the viewer's lists come
+/// from here).
+#[utoipa::path(
+    get,
+    path = "/api/v1/presets",
+    tag = "scenes",
+    responses((status = 200, description = "The presets.", body = Presets))
+)]
+pub(crate) async fn presets() -> Result<Response, AppError> {
+    use translux_engine::profile;
+    let dipole = translux_proto::scene::DIPOLE_PRESETS
+        .iter()
+        .filter_map(|&name| {
+            profile::preset(name).map(|m| translux_proto::api::DipolePreset {
+                name: name.to_string(),
+                sigma_s_prime: m.sigma_s_prime,
+                sigma_a: m.sigma_a,
+                eta: m.eta,
+            })
+        })
+        .collect();
+    to_json(&Presets {
+        dipole,
+        default_eta: profile::DEFAULT_ETA,
+        default_coat_eta: translux_engine::specular::DEFAULT_ETA,
+    })
 }
 
 /// The scenes served (ready ones and those evicted by the memory budget).
@@ -814,6 +851,24 @@ mod tests {
         let (status, list) = call(Method::GET, "/api/v1/scenes", Body::empty()).await;
         assert_eq!(status, StatusCode::OK);
         assert_eq!(list["scenes"], serde_json::json!([]));
+    }
+
+    /// A load balancer's check sees a stopping server as down: 503 `shutting_down`.
+    #[tokio::test]
+    async fn health_answers_503_once_shutdown_has_begun() {
+        let state = AppState::default();
+        let app = router(state.clone());
+        let get = || Request::get("/healthz").body(Body::empty()).unwrap();
+        let before = app.clone().oneshot(get()).await.unwrap();
+        assert_eq!(before.status(), StatusCode::OK);
+        state.begin_shutdown();
+        let after = app.oneshot(get()).await.unwrap();
+        assert_eq!(after.status(), StatusCode::SERVICE_UNAVAILABLE);
+        let bytes = axum::body::to_bytes(after.into_body(), 1 << 20)
+            .await
+            .unwrap();
+        let h: Value = serde_json::from_slice(&bytes).unwrap();
+        assert_eq!(h["error"]["code"], "shutting_down", "{h}");
     }
 
     #[tokio::test]

@@ -2,10 +2,11 @@
 //! start-up, [`AppState::load_in_background`]) and shared, each in a [`SceneState`]; the
 //! worker pool, the metrics, the settings and the shutdown signal ([`AppState`]).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, OnceLock, RwLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use axum::body::Bytes;
 use tokio::sync::watch;
@@ -263,6 +264,11 @@ struct Inner {
     resources: Resources,
     /// Scenes' translucency preparation ([`crate::prepare`]).
     preparer: Preparer,
+    /// What each scene's folder held when it was last opened, for [`AppState::rescan`].
+    stamps: Mutex<HashMap<String, FolderStamp>>,
+    /// Scenes whose folder the last rescan did not find (dropped when the next one does
+    /// not either: a writer replacing a bundle leaves the name empty for a moment).
+    missing: Mutex<HashSet<String>>,
 }
 
 impl Drop for Inner {
@@ -310,6 +316,8 @@ impl AppState {
                 resources: Resources::on(Arc::new(backend.clone())),
                 backend,
                 preparer: Preparer::default(),
+                stamps: Mutex::default(),
+                missing: Mutex::default(),
             }),
         }
     }
@@ -343,6 +351,8 @@ impl AppState {
 
     /// Stops serving `id` altogether (a deleted scene); its old state.
     pub fn remove(&self, id: &str) -> Option<SceneState> {
+        lock(&self.inner.stamps).remove(id);
+        lock(&self.inner.missing).remove(id);
         self.inner
             .scenes
             .write()
@@ -479,41 +489,37 @@ impl AppState {
         self.inner.shutdown.subscribe()
     }
 
-    /// Opens the bundle in `dir` as scene `id` (marked loading first) and records the
-    /// outcome; logs it. Blocking.
+    /// Opens the bundle in `dir` as scene `id` and records the outcome; logs it. Blocking.
+    /// A new scene is marked loading first (503 until it is ready or failed). A scene
+    /// already served (ready or evicted) is a replacement: it is served as it was while the
+    /// new bundle opens, then swapped in, and requests already holding the old one finish
+    /// on it; a replacement that does not open leaves the old one served (and logs why).
     pub fn load_one(&self, id: &str, dir: &Path) {
-        self.set_loading(id);
+        let stamp = FolderStamp::of(dir);
+        let serving = matches!(
+            self.scene_state(id),
+            Some(SceneState::Ready(_) | SceneState::Evicted(_))
+        );
+        if !serving {
+            self.set_loading(id);
+        }
         let t = std::time::Instant::now();
         match Scene::open_with(id, dir, &self.inner.resources) {
             Ok(scene) => {
-                let m = scene.bundle.manifest();
-                let frames = match &scene.sequence {
-                    Some(s) => format!(
-                        " (frame 0 of {} frames in {} bundles, {:.1} MB in all)",
-                        s.frames.len(),
-                        s.bundles,
-                        scene.total_bytes() as f64 / 1e6
-                    ),
-                    None => String::new(),
-                };
-                tracing::info!(
-                    "serving {id:?} ({}, from {}): {} patches, {} vertices, {} objects, \
-                     nnz(F) {}, {:.1} MB{frames}, loaded in {:.2} s",
-                    m.name,
-                    m.source,
-                    m.patch_count,
-                    m.vertex_count,
-                    m.objects.len(),
-                    m.form_factors.nnz,
-                    scene.bundle.total_bytes() as f64 / 1e6,
-                    t.elapsed().as_secs_f64()
-                );
+                log_serving(id, &scene, t.elapsed());
                 // On the GPU backend, F and S go to the device now, not on the first relight.
                 scene.backend().prepare(scene.view());
                 self.insert_ready(scene);
                 if self.params().prepare == PrepareWhen::Load {
                     self.prepare_translucency(id);
                 }
+            }
+            Err(e) if serving => {
+                tracing::warn!(
+                    "still serving the bundle {id:?} had: its replacement in {} does not \
+                     open: {e}",
+                    dir.display()
+                );
             }
             Err(e) => {
                 tracing::warn!("skipping bundle {id:?} in {}: {e}", dir.display());
@@ -525,6 +531,70 @@ impl AppState {
                 self.set_failed(id, message);
             }
         }
+        if let Some(stamp) = stamp {
+            lock(&self.inner.stamps).insert(id.to_string(), stamp);
+        }
+    }
+
+    /// Brings what is served in line with the bundles folder `dir` (see `docs/team.md`,
+    /// "Several servers over one folder"): a folder with a new complete bundle, or whose
+    /// bundle changed since it was opened ([`FolderStamp`]), is handed to `load` (which
+    /// should end in [`AppState::load_one`]); a scene whose folder is gone on two rescans in
+    /// a row is dropped. Ids that `skip` names (scenes this server's own jobs are writing)
+    /// and scenes still loading are left alone, and so is everything when the folder
+    /// cannot be read. Blocking.
+    pub fn rescan(
+        &self,
+        dir: &Path,
+        skip: &dyn Fn(&str) -> bool,
+        load: &dyn Fn(&str, &Path),
+    ) -> Result<Rescanned, String> {
+        let (found, _) = discover(dir)?;
+        let mut done = Rescanned::default();
+        let mut present = HashSet::new();
+        for (id, path) in found {
+            if skip(&id) || matches!(self.scene_state(&id), Some(SceneState::Loading)) {
+                present.insert(id);
+                continue;
+            }
+            let Some(stamp) = FolderStamp::of(&path) else {
+                continue; // no manifest: not a bundle (yet)
+            };
+            present.insert(id.clone());
+            let known = lock(&self.inner.stamps).get(&id).cloned();
+            if known.as_ref() == Some(&stamp) {
+                continue;
+            }
+            let what = if known.is_some() {
+                "was replaced"
+            } else {
+                "appeared"
+            };
+            tracing::info!("bundles folder: {id:?} {what}; opening it");
+            load(&id, &path);
+            done.loaded.push(id);
+        }
+        let stamped: Vec<String> = lock(&self.inner.stamps).keys().cloned().collect();
+        let mut missing = lock(&self.inner.missing);
+        missing.retain(|id| !present.contains(id));
+        for id in stamped {
+            if present.contains(&id) || skip(&id) {
+                continue;
+            }
+            if missing.insert(id.clone()) {
+                continue; // gone once: maybe a bundle being renamed into place
+            }
+            missing.remove(&id);
+            lock(&self.inner.stamps).remove(&id);
+            self.inner
+                .scenes
+                .write()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&id);
+            tracing::info!("bundles folder: {id:?} was removed; no longer serving it");
+            done.removed.push(id);
+        }
+        Ok(done)
     }
 
     /// Queues scene `id`'s translucency preparation ([`crate::prepare`]; frame 0 of an
@@ -576,6 +646,87 @@ impl AppState {
             })
             .expect("cannot start the bundle loader thread")
     }
+}
+
+/// What one [`AppState::rescan`] changed.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct Rescanned {
+    /// Scenes opened: new folders and replaced bundles (ready now, or failed, or still
+    /// served as they were when the replacement did not open).
+    pub loaded: Vec<String>,
+    /// Scenes dropped: their folders are gone.
+    pub removed: Vec<String>,
+}
+
+/// What a bundle folder holds, as cheaply as it can be told: the name, identity (inode),
+/// size and modification time of each entry. A bundle renamed into place whole has a new
+/// manifest inode (and new files); a bundle copied in file by file changes as its files
+/// do, so a copy that failed to open half-way is opened again once it has changed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FolderStamp(Vec<(OsString, u64, u64, Option<std::time::SystemTime>)>);
+
+impl FolderStamp {
+    /// The stamp of the bundle in `dir`; `None` when it has no `manifest.json` (nor
+    /// `sequence.json`): no bundle there, or not yet.
+    pub fn of(dir: &Path) -> Option<FolderStamp> {
+        if !dir.join(MANIFEST_FILE).is_file() && !dir.join(SEQUENCE_FILE).is_file() {
+            return None;
+        }
+        let mut entries: Vec<_> = std::fs::read_dir(dir)
+            .ok()?
+            .flatten()
+            .filter_map(|e| {
+                let m = e.metadata().ok()?;
+                Some((e.file_name(), inode(&m), m.len(), m.modified().ok()))
+            })
+            .collect();
+        entries.sort();
+        Some(FolderStamp(entries))
+    }
+}
+
+/// A file's inode number (0 where there is none to read).
+fn inode(m: &std::fs::Metadata) -> u64 {
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::MetadataExt::ino(m)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = m;
+        0
+    }
+}
+
+/// Locks `m`, a poisoned lock included (what it guards stays consistent at every step).
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The log line of a scene that is served now.
+fn log_serving(id: &str, scene: &Scene, took: std::time::Duration) {
+    let m = scene.bundle.manifest();
+    let frames = match &scene.sequence {
+        Some(s) => format!(
+            " (frame 0 of {} frames in {} bundles, {:.1} MB in all)",
+            s.frames.len(),
+            s.bundles,
+            scene.total_bytes() as f64 / 1e6
+        ),
+        None => String::new(),
+    };
+    tracing::info!(
+        "serving {id:?} ({}, from {}): {} patches, {} vertices, {} objects, nnz(F) {}, \
+         {:.1} MB{frames}, loaded in {:.2} s",
+        m.name,
+        m.source,
+        m.patch_count,
+        m.vertex_count,
+        m.objects.len(),
+        m.form_factors.nnz,
+        scene.bundle.total_bytes() as f64 / 1e6,
+        took.as_secs_f64()
+    );
 }
 
 /// `(id, folder)` of each bundle found, and `(name, why)` of each folder that cannot be one.
@@ -649,8 +800,10 @@ pub fn load_bundles_with(dir: &Path, params: ServerParams) -> (AppState, Vec<(St
 
 /// Removes the temporary folders (`.ID.tmp-PID-NANOS-SEQ`) that a precompute which
 /// crashed or was killed left in `dir`: those whose process no longer runs and that have not
-/// changed for ten minutes (a reused PID cannot keep a live writer's folder from aging).
-/// Returns the names removed. Folders of running precomputes are never touched.
+/// changed for ten minutes (a reused PID cannot keep a live writer's folder from aging; nor
+/// can a writer on another machine sharing the folder, whose PID means nothing here, but
+/// it adds files to its folder as it goes). Returns the names removed. Folders of running
+/// precomputes are never touched.
 pub fn remove_abandoned_temporaries(dir: &Path) -> Vec<String> {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return Vec::new();

@@ -60,9 +60,25 @@ pub struct TeamArgs {
     /// evicted beyond it and reopened on their next request [default: no limit].
     #[arg(long, value_name = "SIZE", env = "TRANSLUX_MEMORY_BUDGET", value_parser = parse_bytes)]
     pub memory_budget: Option<u64>,
-    /// Precompute jobs run at once [default: 1].
-    #[arg(long, value_name = "N", env = "TRANSLUX_JOBS")]
-    pub jobs: Option<usize>,
+    /// Where precompute jobs run: `local` (in the server, one at a time), a number N (in
+    /// the server, N at once) or `slurm` (submitted to Slurm with sbatch: docs/team.md)
+    /// [default: local].
+    #[arg(long, value_name = "local|N|slurm", env = "TRANSLUX_JOBS",
+          value_parser = crate::slurm::JobsSetting::parse)]
+    pub jobs: Option<crate::slurm::JobsSetting>,
+    /// With `--jobs slurm`: shards of an upload's precompute, the tasks of its job array
+    /// [default: 2].
+    #[arg(long, value_name = "K", env = "TRANSLUX_SLURM_SHARDS")]
+    pub slurm_shards: Option<u32>,
+    /// With `--jobs slurm`: more sbatch arguments for every job, split on spaces (e.g.
+    /// "--partition=gpu --account=lab --time=1:00:00") [default: none].
+    #[arg(
+        long,
+        value_name = "ARGS",
+        env = "TRANSLUX_SLURM_ARGS",
+        allow_hyphen_values = true
+    )]
+    pub slurm_args: Option<String>,
     /// Threads of the precompute pool [default: half the cores].
     #[arg(long, value_name = "N", env = "TRANSLUX_JOB_THREADS")]
     pub job_threads: Option<usize>,
@@ -83,10 +99,18 @@ pub struct TeamArgs {
     /// Most patches an uploaded scene may ask for [default: 50000].
     #[arg(long, value_name = "N", env = "TRANSLUX_MAX_UPLOAD_PATCHES")]
     pub max_upload_patches: Option<u64>,
+    /// Seconds between looks at the bundles folder for bundles that appeared, were
+    /// replaced or were removed, and at the tokens file for changes (several servers over
+    /// one shared folder); 0 turns it off [default: 2].
+    #[arg(long, value_name = "S", env = "TRANSLUX_RESCAN_S")]
+    pub rescan_s: Option<f64>,
 }
 
+/// `--rescan-s` when not given.
+pub const DEFAULT_RESCAN_S: f64 = 2.0;
+
 /// Everything the team routes need; cheap to clone.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct Team {
     pub auth: Arc<Auth>,
     pub jobs: Jobs,
@@ -98,6 +122,9 @@ pub struct Team {
     reloading: Arc<Mutex<std::collections::HashMap<String, Arc<tokio::sync::Mutex<()>>>>>,
     /// Scene ids of uploads accepted but not yet queued as jobs (see [`Team::reserve`]).
     reserved: Arc<Mutex<std::collections::HashSet<String>>>,
+    /// Serves a bundle that is in place: a finished job's, or one the rescan found
+    /// ([`Team::rescan`]); one mechanism for both.
+    on_bundle: crate::jobs::OnDone,
 }
 
 /// An upload's hold on a scene id, from the first check until its job is queued (then the
@@ -115,6 +142,18 @@ impl Drop for Reservation {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .remove(&self.id);
+    }
+}
+
+impl std::fmt::Debug for Team {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Team")
+            .field("auth", &self.auth)
+            .field("jobs", &self.jobs)
+            .field("budget", &self.budget)
+            .field("limits", &self.limits)
+            .field("bundles", &self.bundles)
+            .finish_non_exhaustive()
     }
 }
 
@@ -138,11 +177,23 @@ impl Team {
             patches: args.max_upload_patches.unwrap_or(d.patches),
         };
         let mut cfg = JobsConfig::in_bundles(bundles);
-        cfg.workers = args.jobs.unwrap_or(cfg.workers);
+        match args.jobs.unwrap_or_default() {
+            crate::slurm::JobsSetting::Local(n) => cfg.workers = n,
+            crate::slurm::JobsSetting::Slurm => {
+                let slurm =
+                    crate::slurm::SlurmConfig::new(args.slurm_shards, args.slurm_args.as_deref())?;
+                tracing::info!("{}", slurm.describe());
+                cfg.engine = crate::jobs::Engine::Slurm(slurm);
+            }
+        }
         cfg.threads = args.job_threads.unwrap_or(cfg.threads);
         cfg.queue = args.job_queue.unwrap_or(cfg.queue);
         cfg.memory = args.job_memory;
         cfg.per_owner = cfg.per_owner.min(cfg.queue);
+        if cfg.engine != crate::jobs::Engine::Local {
+            // Slurm queues and runs the jobs; a worker only submits and follows one.
+            cfg.workers = cfg.queue;
+        }
         let budget = Arc::new(MemoryBudget::new(args.memory_budget));
         {
             // A prepared scene holds its radial terms: charged, and others evicted beyond
@@ -159,18 +210,8 @@ impl Team {
                 }
             }));
         }
-        let hook_state = state.clone();
-        let hook_budget = budget.clone();
-        let (jobs, notes) = Jobs::start(
-            cfg,
-            Arc::new(move |id: &str, dir: &Path| {
-                hook_state.load_one(id, dir);
-                if let Some(scene) = hook_state.scene(id) {
-                    hook_budget.charge(id, "host", host_bytes(&scene));
-                    evict(&hook_state, &hook_budget, id);
-                }
-            }),
-        )?;
+        let on_bundle = serve_bundle(state.clone(), budget.clone());
+        let (jobs, notes) = Jobs::start(cfg, on_bundle.clone())?;
         for n in notes {
             tracing::warn!("{n}");
         }
@@ -183,7 +224,51 @@ impl Team {
             bundles: bundles.to_path_buf(),
             reloading: Default::default(),
             reserved: Default::default(),
+            on_bundle,
         })
+    }
+
+    /// One look at the shared bundles folder and tokens file (see `docs/team.md`, "Several
+    /// servers over one folder"): bundles that appeared, were replaced or were removed
+    /// ([`AppState::rescan`]; each opened as a finished job's bundle is, and charged to the
+    /// memory budget), leaving alone the scenes this server's jobs are writing; then the
+    /// tokens file, read again if it changed ([`Auth::reload_if_changed`]). Blocking.
+    pub fn rescan(&self) {
+        let jobs = self.jobs.clone();
+        let skip = move |id: &str| jobs.busy_scene(id).is_some();
+        match self.state.rescan(&self.bundles, &skip, &*self.on_bundle) {
+            Ok(done) => {
+                for id in &done.removed {
+                    self.budget.forget(id);
+                }
+            }
+            Err(e) => tracing::warn!("cannot rescan {}: {e}", self.bundles.display()),
+        }
+        match self.auth.reload_if_changed() {
+            Some(Ok(summary)) => tracing::info!("the tokens file changed: {summary}"),
+            Some(Err(e)) => tracing::error!(
+                "the tokens file changed but does not read; keeping the tokens it had: {e:#}"
+            ),
+            None => {}
+        }
+    }
+
+    /// Runs [`Team::rescan`] every `period` on a thread of its own until the server
+    /// begins to shut down.
+    pub fn watch_folder(&self, period: Duration) -> std::io::Result<std::thread::JoinHandle<()>> {
+        let team = self.clone();
+        let stop = self.state.shutdown_watch();
+        std::thread::Builder::new()
+            .name("bundle-rescan".into())
+            .spawn(move || {
+                loop {
+                    std::thread::sleep(period);
+                    if *stop.borrow() {
+                        return;
+                    }
+                    team.rescan();
+                }
+            })
     }
 
     /// The start-up log line about access.
@@ -316,6 +401,18 @@ impl Team {
         }
         Ok(())
     }
+}
+
+/// What serves a bundle that is in place: open it ([`AppState::load_one`], swapping out
+/// the scene it replaces), charge it to the budget and evict beyond it.
+fn serve_bundle(state: AppState, budget: Arc<MemoryBudget>) -> crate::jobs::OnDone {
+    Arc::new(move |id: &str, dir: &Path| {
+        state.load_one(id, dir);
+        if let Some(scene) = state.scene(id) {
+            budget.charge(id, "host", host_bytes(&scene));
+            evict(&state, &budget, id);
+        }
+    })
 }
 
 /// Evicts what the budget says, keeping `keep`.
@@ -570,7 +667,11 @@ fn job_or_404(
     if !Jobs::valid_id(id) {
         return Err(missing());
     }
-    let r = team.jobs.get(id).ok_or_else(missing)?;
+    let r = team
+        .jobs
+        .get(id)
+        .or_else(|| crate::jobs::read_record(&team.jobs.config().jobs_dir, id))
+        .ok_or_else(missing)?;
     if !visible(&r, who) {
         return Err(missing());
     }
@@ -596,12 +697,16 @@ pub(crate) async fn list_jobs(
     State(team): State<Team>,
     who: Option<Extension<Identity>>,
 ) -> Json<JobList> {
-    let jobs: Vec<JobRecord> = team
-        .jobs
-        .list()
-        .into_iter()
-        .filter(|r| visible(r, &who))
-        .collect();
+    let mut jobs = team.jobs.list();
+    // Servers over one bundles folder share its records: the others' jobs too.
+    let ours: std::collections::HashSet<String> = jobs.iter().map(|r| r.id.clone()).collect();
+    let jobs_dir = team.jobs.config().jobs_dir.clone();
+    let theirs = tokio::task::spawn_blocking(move || crate::jobs::read_records(&jobs_dir))
+        .await
+        .unwrap_or_default();
+    jobs.extend(theirs.into_iter().filter(|r| !ours.contains(&r.id)));
+    jobs.retain(|r| visible(r, &who));
+    jobs.sort_by(|a, b| b.id.cmp(&a.id));
     Json(JobList { jobs })
 }
 
@@ -642,6 +747,7 @@ pub(crate) async fn get_job(
     responses(
         (status = 200, description = "The job, cancelled (or as it ended).", body = crate::jobs::JobRecord),
         (status = 404, description = "`not_found`: no such job, or another token's.", body = ErrorBody),
+        (status = 409, description = "`conflict`: the job runs on another server over the same bundles folder; cancel it there.", body = ErrorBody),
     )
 )]
 pub(crate) async fn cancel_job(
@@ -649,12 +755,16 @@ pub(crate) async fn cancel_job(
     UrlPath(id): UrlPath<String>,
     who: Option<Extension<Identity>>,
 ) -> Result<Json<JobRecord>, AppError> {
-    job_or_404(&team, &id, &who)?;
-    let r = team
-        .jobs
-        .cancel(&id)
-        .ok_or_else(|| AppError::not_found(format!("no job {id:?}")))?;
-    Ok(Json(r))
+    let on_disk = job_or_404(&team, &id, &who)?;
+    match team.jobs.cancel(&id) {
+        Some(r) => Ok(Json(r)),
+        None if on_disk.state.is_final() => Ok(Json(on_disk)),
+        None => Err(AppError::new(
+            StatusCode::CONFLICT,
+            "conflict",
+            format!("job {id} runs on another server over this bundles folder; cancel it there"),
+        )),
+    }
 }
 
 /// `GET /api/v1/jobs/{id}/events`: an SSE stream; each event's data is the job record,
@@ -677,11 +787,11 @@ pub(crate) async fn job_events(
     UrlPath(id): UrlPath<String>,
     who: Option<Extension<Identity>>,
 ) -> Result<Response, AppError> {
-    job_or_404(&team, &id, &who)?;
-    let rx = team
-        .jobs
-        .watch(&id)
-        .ok_or_else(|| AppError::not_found(format!("no job {id:?}")))?;
+    let on_disk = job_or_404(&team, &id, &who)?;
+    let rx = match team.jobs.watch(&id) {
+        Some(rx) => rx,
+        None => follow_record(team.jobs.config().jobs_dir.clone(), on_disk),
+    };
     // (receiver, whether the first event was sent, finished)
     let stream =
         futures_util::stream::unfold((rx, false, false), |(mut rx, started, ended)| async move {
@@ -710,6 +820,28 @@ pub(crate) async fn job_events(
     Ok(Sse::new(stream)
         .keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
         .into_response())
+}
+
+/// A receiver of the record of a job that another server over the same folder runs: its
+/// file is read again every second until it is final or no one listens. Another server
+/// writes its record at every change of state, not at every percent.
+fn follow_record(jobs_dir: PathBuf, first: JobRecord) -> tokio::sync::watch::Receiver<JobRecord> {
+    let (tx, rx) = tokio::sync::watch::channel(first);
+    tokio::spawn(async move {
+        while !tx.is_closed() && !tx.borrow().state.is_final() {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            let (dir, id) = (jobs_dir.clone(), tx.borrow().id.clone());
+            let read = tokio::task::spawn_blocking(move || crate::jobs::read_record(&dir, &id));
+            if let Ok(Some(r)) = read.await {
+                tx.send_if_modified(|old| {
+                    let changed = *old != r;
+                    *old = r;
+                    changed
+                });
+            }
+        }
+    });
+    rx
 }
 
 /// `DELETE /api/v1/scenes/{id}` (admin): stops serving the scene and deletes its bundle

@@ -16,11 +16,14 @@ import {
   anglesFromDir,
 } from "./math.js";
 
-/** Jensen et al. 2001's media, as proto/src/scene.rs DIPOLE_PRESETS names them. */
-const PRESETS = [
-  "apple", "chicken1", "chicken2", "cream", "ketchup", "marble", "potato", "skimmilk",
-  "skin1", "skin2", "wholemilk",
-];
+/**
+ * The server's named media (GET /api/v1/presets, read by `start`): their names, each one's
+ * index of refraction, a dipole's index where neither it nor its preset gives one, and a
+ * specular coat's where there is no dipole to take it from.
+ */
+const PRESETS = [];
+const PRESET_ETA = {};
+const DEFAULT_ETA = { dipole: NaN, coat: NaN };
 const COMPONENT_LABELS = {
   full: "full", direct: "direct", subsurface_only: "subsurface", interreflection_only: "inter-refl.",
   heuristic_a: "heuristic A", heuristic_b: "heuristic B",
@@ -814,13 +817,6 @@ function showPrep() {
   note.replaceChildren(...(kind === "busy" ? [el("span", { class: "spin" })] : []), text);
 }
 
-// The dipole presets' eta: 1.3 but marble's 1.5, and 1.3 for a dipole given by its
-// coefficients (engine/src/profile.rs, `preset` and `dipole_medium`); without a dipole, a
-// coat's eta is 1.5 (engine/src/specular.rs). Change them together.
-const DIPOLE_ETA = 1.3;
-const PRESET_ETA = { marble: 1.5 };
-const DEFAULT_COAT_ETA = 1.5;
-
 /** A material's specular coat as [alpha, eta], or null: the rule of `Gloss::of`. */
 function glossOf(m) {
   const spec = m && m.specular;
@@ -828,11 +824,11 @@ function glossOf(m) {
   const profile = m.type === "translucent" ? m.profile
     : m.type === "thin_sheet" ? m.reflectance
       : m.type === "heterogeneous" ? m.materials[0] : null;
-  const dipoleEta = (p) => p.eta ?? PRESET_ETA[p.preset] ?? DIPOLE_ETA;
+  const dipoleEta = (p) => p.eta ?? PRESET_ETA[p.preset] ?? DEFAULT_ETA.dipole;
   // A simulated medium's eta follows the same rule (profile::eta_of).
   const mediumEta = m.type === "simulated" ? dipoleEta(m)
     : profile && profile.type === "dipole" ? dipoleEta(profile) : null;
-  return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_COAT_ETA];
+  return [spec.roughness * spec.roughness, spec.eta ?? mediumEta ?? DEFAULT_ETA.coat];
 }
 
 /**
@@ -1442,6 +1438,11 @@ async function start() {
   app.linkNotes = [];
   let list;
   try {
+    const presets = await getJson("/api/v1/presets");
+    PRESETS.splice(0, PRESETS.length, ...presets.dipole.map((p) => p.name));
+    for (const p of presets.dipole) PRESET_ETA[p.name] = p.eta;
+    DEFAULT_ETA.dipole = presets.default_eta;
+    DEFAULT_ETA.coat = presets.default_coat_eta;
     list = await getJson("/api/v1/scenes");
   } catch (e) {
     if (isDenial(e.status)) askForToken(e.status, e.serverMessage);

@@ -249,6 +249,27 @@ fn floats(bytes: &[u8]) -> Vec<f32> {
         .collect()
 }
 
+/// The viewer's lists of media come from `GET /api/v1/presets`: every name the scene file
+/// accepts, each with the coefficients a scene naming it gets.
+#[tokio::test]
+async fn presets_are_the_media_the_scene_file_accepts() {
+    let s = TestServer::cornell().await;
+    let p: translux_proto::api::Presets = s.get_json("/api/v1/presets").await;
+    let names: Vec<&str> = p.dipole.iter().map(|d| d.name.as_str()).collect();
+    assert_eq!(names, translux_proto::scene::DIPOLE_PRESETS);
+    for d in &p.dipole {
+        let m = translux_engine::profile::preset(&d.name).unwrap();
+        assert_eq!(
+            (d.sigma_s_prime, d.sigma_a, d.eta),
+            (m.sigma_s_prime, m.sigma_a, m.eta)
+        );
+    }
+    let marble = p.dipole.iter().find(|d| d.name == "marble").unwrap();
+    assert_eq!(marble.eta, 1.5);
+    assert_eq!((p.default_eta, p.default_coat_eta), (1.3, 1.5));
+    s.stop().await;
+}
+
 #[tokio::test]
 async fn scene_list_detail_health_and_index() {
     let s = TestServer::cornell().await;

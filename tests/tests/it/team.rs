@@ -1069,7 +1069,7 @@ async fn an_uploaded_scene_becomes_a_served_bundle() {
 async fn cancelled_jobs_leave_no_bundle() {
     let bundles = bundles_with(&[]);
     let args = TeamArgs {
-        jobs: Some(1),
+        jobs: Some(translux_server::slurm::JobsSetting::Local(1)),
         max_upload_patches: Some(60_000),
         ..Default::default()
     };
