@@ -104,7 +104,8 @@ for k in 2 4; do
     [ "$name" = manifest.json ] && continue
     cmp -s "$f" "$out/$name" || same="NO ($name differs)"
   done
-  rows+=("| $k | $(IFS=' / '; echo "${shard_times[*]}") | $shards_wall | $merge_wall ($parts reading parts) | $share | $total | $same |")
+  joined=$(printf ' / %s' "${shard_times[@]}")
+  rows+=("| $k | ${joined:3} | $shards_wall | $merge_wall ($parts reading parts) | $share | $total | $same |")
   rm -rf "$out"
 done
 

@@ -165,247 +165,431 @@ pub fn assemble_scene(
     fast: Option<&FastPath<'_>>,
     walks: Option<&WalksView<'_>>,
 ) -> Result<(ValidCsr<[f32; 3]>, Vec<AssemblyReport>), SError> {
-    let n = g.corners.len();
-    let mut rows: Vec<Vec<(u32, [f32; 3])>> = vec![Vec::new(); n];
-    let mut reports = Vec::new();
-    let terms = fast.map(|f| f.terms);
-    // Objects summed from their terms: laid out now, their values written into the matrix.
-    let mut pending: Vec<(usize, &ObjectTerms, f32)> = Vec::new();
-    // Node rows (node-to-node links of objects summed from terms), by node; empty if none.
-    let mut node_rows: Vec<NodeRow> = Vec::new();
+    let scene = StoredScene {
+        g,
+        distances,
+        material_len,
+        patch_material,
+        dist_kind,
+        dist_spread,
+        stored_radius,
+        unit_mm,
+        params,
+        fast,
+        walks,
+    };
+    let mut laid = SceneRows::new(g.corners.len());
     for (k, o) in objects.iter().enumerate() {
+        scene.object_rows(k, o, &mut laid)?;
+    }
+    let SceneRows {
+        rows,
+        mut reports,
+        pending,
+        node_rows,
+    } = laid;
+    let s = scene_matrix(g, rows, node_rows)?;
+    let s = scene.write_pending(s, objects, pending, &mut reports)?;
+    reports.sort_by_key(|r| r.0);
+    Ok((s, reports.into_iter().map(|r| r.1).collect()))
+}
+
+/// What [`assemble_scene`] reads besides the objects: the patch geometry, stage 1's stored
+/// arrays, the settings, and a translucency change's fast path and the stored walks.
+#[derive(Clone, Copy)]
+struct StoredScene<'a> {
+    g: &'a PatchGeometry,
+    distances: CsrView<'a, f32>,
+    material_len: &'a [MediaLen],
+    patch_material: &'a [u32],
+    dist_kind: &'a [u32],
+    dist_spread: &'a [f32],
+    stored_radius: &'a [f32],
+    unit_mm: f64,
+    params: &'a SParams,
+    fast: Option<&'a FastPath<'a>>,
+    walks: Option<&'a WalksView<'a>>,
+}
+
+/// The scene's S as [`assemble_scene`] lays it out object by object: the patch rows, the
+/// reports by object index, the objects summed from their terms once the matrix stands
+/// (index, terms, reach), and the node rows of their node-to-node links (by node; empty
+/// if none).
+struct SceneRows<'a> {
+    rows: Vec<Vec<(u32, [f32; 3])>>,
+    reports: Vec<(usize, AssemblyReport)>,
+    pending: Vec<(usize, &'a ObjectTerms, f32)>,
+    node_rows: Vec<NodeRow>,
+}
+
+impl SceneRows<'_> {
+    /// Empty rows for `n` patches.
+    fn new(n: usize) -> Self {
+        SceneRows {
+            rows: vec![Vec::new(); n],
+            reports: Vec::new(),
+            pending: Vec::new(),
+            node_rows: Vec::new(),
+        }
+    }
+}
+
+impl<'a> StoredScene<'a> {
+    /// How far object k's stored distances reach (0 if none are stored).
+    fn reach(&self, k: usize) -> f32 {
+        self.stored_radius.get(k).copied().unwrap_or(0.0)
+    }
+
+    /// In: object k. Lays out its rows in `out` (its values, or zeros to be summed from
+    /// its terms later) and adds its report; out: the first error of its material.
+    fn object_rows(
+        &self,
+        k: usize,
+        o: &ObjectMaterial<'_>,
+        out: &mut SceneRows<'a>,
+    ) -> Result<(), SError> {
         let r = o.patches.clone();
-        if let Some(f) = fast.filter(|f| f.kept.get(k) == Some(&true)) {
+        if let Some(f) = self.fast.filter(|f| f.kept.get(k) == Some(&true)) {
             for j in r {
                 let (cols, vals) = f.stored.row(j);
-                rows[j] = cols.iter().copied().zip(vals.iter().copied()).collect();
+                out.rows[j] = cols.iter().copied().zip(vals.iter().copied()).collect();
             }
-            continue;
+            return Ok(());
         }
-        // Objects summed from terms: the pattern (zeros) now, the values written once the
-        // matrix stands.
-        let sheet = matches!(o.material, Material::ThinSheet { .. });
-        if matches!(
-            o.material,
-            Material::Translucent { .. } | Material::ThinSheet { .. }
-        ) && let Some(t) = terms.and_then(|t| t.get(k, sheet))
-        {
-            for (j, row) in t
-                .pattern(r.start, g.nodes.is_some())
-                .into_iter()
-                .enumerate()
-            {
-                rows[r.start + j] = row;
-            }
-            if let Some(nodes) = g.nodes.as_ref().filter(|_| !t.receiver_nodes().is_empty()) {
-                node_rows.resize_with(nodes.range.len(), Vec::new);
-                for (m, row) in t.node_rows() {
-                    node_rows[m] = row;
-                }
-            }
-            pending.push((k, t, stored_radius.get(k).copied().unwrap_or(0.0)));
-            continue;
+        if let Some(t) = self.terms_of(k, o) {
+            self.lay_out_terms(k, r, t, out);
+            return Ok(());
         }
-        match o.material {
+        let rows = &mut out.rows;
+        let report = match o.material {
             Material::Diffuse { albedo, .. } => {
                 for j in r {
                     rows[j] = vec![(j as u32, *albedo)];
                 }
+                return Ok(());
             }
-            Material::Emitter { .. } => {}
+            Material::Emitter { .. } => return Ok(()),
             Material::ThinSheet {
                 reflectance,
                 transmittance,
                 ..
-            } => {
-                let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let (s, report) = sheet::object_s(
-                    o.name,
-                    (reflectance, transmittance),
-                    object_patches(g, r.clone()),
-                    r.clone(),
-                    distances,
-                    dist_kind,
-                    reach,
-                    unit_mm,
-                    params,
-                )?;
-                let (mut s, mut report) = (s, report);
-                if let Some(nodes) = &g.nodes {
-                    // Links read the table of their kind (the representative's side).
-                    let (tr, tt, _) = sheet::tables(
-                        o.name,
-                        (reflectance, transmittance),
-                        reach,
-                        unit_mm,
-                        params,
-                    )?;
-                    let tab = |kind: u32| {
-                        if kind == sheet::KIND_OPPOSITE {
-                            &tt
-                        } else {
-                            &tr
-                        }
-                    };
-                    let links =
-                        node_links(distances, dist_kind, dist_spread, r.clone(), nodes, &tab);
-                    subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
-                    report.max_column_energy = s.report.max_column;
-                    report.scaled_columns = s.report.scaled_columns as u64;
-                    report.entries = s.report.nnz;
-                    report.links = s.links.iter().map(|l| l.len() as u64).sum();
-                }
-                place(&mut rows, r.start, s.rows, s.links);
-                reports.push((k, report));
-            }
+            } => self.sheet_rows(k, o, (reflectance, transmittance), rows)?,
             Material::Heterogeneous { materials, .. } => {
-                let t = Instant::now();
-                let object = || o.name.to_string();
-                if material_len.len() != distances.nnz() || patch_material.len() != n {
-                    return Err(SError::Media {
-                        object: object(),
-                        why: "no per-medium path lengths were stored for it".into(),
-                    });
-                }
-                // Equal media merge (eq. 9 is not idempotent); each distinct medium gets a
-                // table out to the largest wanted radius, capped by the stored distances.
-                let (map, distinct) = hetero::merge_media(materials);
-                let mut evals = Vec::with_capacity(distinct.len());
-                let mut wanted = 0.0f32;
-                for &d in &distinct {
-                    let eval = ProfileEval::new(&materials[d], unit_mm).map_err(|error| {
-                        SError::Profile {
-                            object: object(),
-                            error,
-                        }
-                    })?;
-                    wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
-                    evals.push(eval);
-                }
-                let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
-                let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
-                // Local CSR of this object's block, with its per-medium lengths.
-                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
-                let lens: Vec<MediaLen> = block.entries.iter().map(|&e| material_len[e]).collect();
-                let tabs: Vec<Tabulated> = evals
-                    .iter()
-                    .map(|e| Tabulated::new(e, radius, 4096))
-                    .collect();
-                let media = &patch_material[r.clone()];
-                let s = hetero::assemble(
-                    object_patches(g, r.clone()),
-                    block.view(),
-                    &lens,
-                    media,
-                    &map,
-                    &tabs,
-                    &params.quadrature,
-                );
-                reports.push((
-                    k,
-                    AssemblyReport {
-                        name: o.name.to_string(),
-                        radius,
-                        capped_from,
-                        max_column_energy: s.report.max_column,
-                        scaled_columns: s.report.scaled_columns as u64,
-                        entries: s.report.nnz,
-                        links: 0,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ));
-                place(&mut rows, r.start, s.rows, Vec::new());
+                self.heterogeneous_rows(k, o, materials, rows)?
             }
-            Material::Simulated { .. } => {
-                let t = Instant::now();
-                let Some(walks) = walks else {
-                    return Err(SError::Media {
-                        object: o.name.to_string(),
-                        why: "no walks were stored for it (precompute it with this material)"
-                            .into(),
-                    });
-                };
-                let medium = SimMedium::of(o.material).ok_or_else(|| SError::Media {
-                    object: o.name.to_string(),
-                    why: "its simulated medium is incomplete".into(),
-                })?;
-                let sink = fast.and_then(|f| f.tilt);
-                let (local, max_column) = match sink {
-                    Some(sink) => {
-                        let (local, delta, max) = simulated::reweight_with_tilt(
-                            walks,
-                            r.clone(),
-                            &g.area,
-                            medium.sigma_a,
-                        );
-                        if let Some(delta) = delta
-                            && let Ok(mut sink) = sink.lock()
-                        {
-                            sink.push((k, delta));
-                        }
-                        (local, max)
-                    }
-                    None => simulated::reweight(walks, r.clone(), &g.area, medium.sigma_a),
-                };
-                let entries = local.iter().map(|row| row.len() as u64).sum();
-                for (k, row) in local.into_iter().enumerate() {
-                    rows[r.start + k] = row;
-                }
-                reports.push((
-                    k,
-                    AssemblyReport {
-                        name: o.name.to_string(),
-                        radius: 0.0,
-                        capped_from: None,
-                        max_column_energy: max_column,
-                        scaled_columns: 0,
-                        entries,
-                        links: 0,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ));
-            }
-            Material::Translucent { profile, .. } => {
-                let t = Instant::now();
-                let reach = stored_radius.get(k).copied().unwrap_or(0.0);
-                let (tab, capped_from) =
-                    translucent_table(o.name, profile, reach, unit_mm, params)?;
-                let radius = tab.r_max();
-                // This object's block of the distances, within the radius.
-                let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
-                let s = subsurface::assemble(
-                    object_patches(g, r.clone()),
-                    block.view(),
-                    &tab,
-                    &params.quadrature,
-                );
-                let mut s = s;
-                if let Some(nodes) = &g.nodes {
-                    let links =
-                        node_links(distances, dist_kind, dist_spread, r.clone(), nodes, &|_| {
-                            &tab
-                        });
-                    subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
-                }
-                let links = s.links.iter().map(|l| l.len() as u64).sum();
-                reports.push((
-                    k,
-                    AssemblyReport {
-                        name: o.name.to_string(),
-                        radius,
-                        capped_from,
-                        max_column_energy: s.report.max_column,
-                        scaled_columns: s.report.scaled_columns as u64,
-                        entries: s.report.nnz,
-                        links,
-                        seconds: t.elapsed().as_secs_f64(),
-                    },
-                ));
-                place(&mut rows, r.start, s.rows, s.links);
+            Material::Simulated { .. } => self.simulated_rows(k, o, rows)?,
+            Material::Translucent { profile, .. } => self.translucent_rows(k, o, profile, rows)?,
+        };
+        out.reports.push((k, report));
+        Ok(())
+    }
+
+    /// Object k's radial terms when a translucency change sums it from them (a
+    /// translucent object or thin sheet the bundle built as such); None otherwise.
+    fn terms_of(&self, k: usize, o: &ObjectMaterial<'_>) -> Option<&'a ObjectTerms> {
+        let sheet = matches!(o.material, Material::ThinSheet { .. });
+        if !matches!(
+            o.material,
+            Material::Translucent { .. } | Material::ThinSheet { .. }
+        ) {
+            return None;
+        }
+        self.fast?.terms.get(k, sheet)
+    }
+
+    /// In: object k (patches `r`) summed from its terms `t`. Lays out its rows and node
+    /// rows as zeros in `out` (the values are written once the matrix stands) and queues
+    /// it.
+    fn lay_out_terms(
+        &self,
+        k: usize,
+        r: Range<usize>,
+        t: &'a ObjectTerms,
+        out: &mut SceneRows<'a>,
+    ) {
+        let g = self.g;
+        for (j, row) in t
+            .pattern(r.start, g.nodes.is_some())
+            .into_iter()
+            .enumerate()
+        {
+            out.rows[r.start + j] = row;
+        }
+        if let Some(nodes) = g.nodes.as_ref().filter(|_| !t.receiver_nodes().is_empty()) {
+            out.node_rows.resize_with(nodes.range.len(), Vec::new);
+            for (m, row) in t.node_rows() {
+                out.node_rows[m] = row;
             }
         }
+        out.pending.push((k, t, self.reach(k)));
     }
+
+    /// In: thin sheet k with its reflectance and transmittance profiles. Writes its rows
+    /// of S (R by same-side, T by other-side distances, then its links) into `rows`; out:
+    /// its report.
+    fn sheet_rows(
+        &self,
+        k: usize,
+        o: &ObjectMaterial<'_>,
+        (reflectance, transmittance): (&Profile, &Profile),
+        rows: &mut [Vec<(u32, [f32; 3])>],
+    ) -> Result<AssemblyReport, SError> {
+        let (g, n, r) = (self.g, self.g.corners.len(), o.patches.clone());
+        let (unit_mm, params) = (self.unit_mm, self.params);
+        let reach = self.reach(k);
+        let (s, report) = sheet::object_s(
+            o.name,
+            (reflectance, transmittance),
+            object_patches(g, r.clone()),
+            r.clone(),
+            self.distances,
+            self.dist_kind,
+            reach,
+            unit_mm,
+            params,
+        )?;
+        let (mut s, mut report) = (s, report);
+        if let Some(nodes) = &g.nodes {
+            // Links read the table of their kind (the representative's side).
+            let (tr, tt, _) =
+                sheet::tables(o.name, (reflectance, transmittance), reach, unit_mm, params)?;
+            let tab = |kind: u32| {
+                if kind == sheet::KIND_OPPOSITE {
+                    &tt
+                } else {
+                    &tr
+                }
+            };
+            let links = node_links(
+                self.distances,
+                self.dist_kind,
+                self.dist_spread,
+                r.clone(),
+                nodes,
+                &tab,
+            );
+            subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
+            report.max_column_energy = s.report.max_column;
+            report.scaled_columns = s.report.scaled_columns as u64;
+            report.entries = s.report.nnz;
+            report.links = s.links.iter().map(|l| l.len() as u64).sum();
+        }
+        place(rows, r.start, s.rows, s.links);
+        Ok(report)
+    }
+
+    /// In: heterogeneous object k with its media's profiles. Writes its rows of S (eq. 9
+    /// from the stored per-medium lengths) into `rows`; out: its report, or an error where
+    /// no lengths were stored or a profile is invalid.
+    fn heterogeneous_rows(
+        &self,
+        k: usize,
+        o: &ObjectMaterial<'_>,
+        materials: &[Profile],
+        rows: &mut [Vec<(u32, [f32; 3])>],
+    ) -> Result<AssemblyReport, SError> {
+        let (g, n, r) = (self.g, self.g.corners.len(), o.patches.clone());
+        let (distances, params) = (self.distances, self.params);
+        let t = Instant::now();
+        let object = || o.name.to_string();
+        if self.material_len.len() != distances.nnz() || self.patch_material.len() != n {
+            return Err(SError::Media {
+                object: object(),
+                why: "no per-medium path lengths were stored for it".into(),
+            });
+        }
+        // Equal media merge (eq. 9 is not idempotent); each distinct medium gets a
+        // table out to the largest wanted radius, capped by the stored distances.
+        let (map, distinct) = hetero::merge_media(materials);
+        let mut evals = Vec::with_capacity(distinct.len());
+        let mut wanted = 0.0f32;
+        for &d in &distinct {
+            let eval =
+                ProfileEval::new(&materials[d], self.unit_mm).map_err(|error| SError::Profile {
+                    object: object(),
+                    error,
+                })?;
+            wanted = wanted.max(eval.truncation_radius(params.truncation_energy));
+            evals.push(eval);
+        }
+        let reach = self.reach(k);
+        let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
+        let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
+        // Local CSR of this object's block, with its per-medium lengths.
+        let block = ObjectBlock::of(distances, r.clone(), |_, d, _| d < radius);
+        let lens: Vec<MediaLen> = block
+            .entries
+            .iter()
+            .map(|&e| self.material_len[e])
+            .collect();
+        let tabs: Vec<Tabulated> = evals
+            .iter()
+            .map(|e| Tabulated::new(e, radius, 4096))
+            .collect();
+        let media = &self.patch_material[r.clone()];
+        let s = hetero::assemble(
+            object_patches(g, r.clone()),
+            block.view(),
+            &lens,
+            media,
+            &map,
+            &tabs,
+            &params.quadrature,
+        );
+        let report = AssemblyReport {
+            name: o.name.to_string(),
+            radius,
+            capped_from,
+            max_column_energy: s.report.max_column,
+            scaled_columns: s.report.scaled_columns as u64,
+            entries: s.report.nnz,
+            links: 0,
+            seconds: t.elapsed().as_secs_f64(),
+        };
+        place(rows, r.start, s.rows, Vec::new());
+        Ok(report)
+    }
+
+    /// In: simulated object k. Writes its rows of S (its stored walks reweighted by its
+    /// absorption; with the fast path's tilt, its Δ goes there) into `rows`; out: its
+    /// report, or an error where no walks were stored or the medium is incomplete.
+    fn simulated_rows(
+        &self,
+        k: usize,
+        o: &ObjectMaterial<'_>,
+        rows: &mut [Vec<(u32, [f32; 3])>],
+    ) -> Result<AssemblyReport, SError> {
+        let (g, r) = (self.g, o.patches.clone());
+        let t = Instant::now();
+        let Some(walks) = self.walks else {
+            return Err(SError::Media {
+                object: o.name.to_string(),
+                why: "no walks were stored for it (precompute it with this material)".into(),
+            });
+        };
+        let medium = SimMedium::of(o.material).ok_or_else(|| SError::Media {
+            object: o.name.to_string(),
+            why: "its simulated medium is incomplete".into(),
+        })?;
+        let sink = self.fast.and_then(|f| f.tilt);
+        let (local, max_column) = match sink {
+            Some(sink) => {
+                let (local, delta, max) =
+                    simulated::reweight_with_tilt(walks, r.clone(), &g.area, medium.sigma_a);
+                if let Some(delta) = delta
+                    && let Ok(mut sink) = sink.lock()
+                {
+                    sink.push((k, delta));
+                }
+                (local, max)
+            }
+            None => simulated::reweight(walks, r.clone(), &g.area, medium.sigma_a),
+        };
+        let entries = local.iter().map(|row| row.len() as u64).sum();
+        for (k, row) in local.into_iter().enumerate() {
+            rows[r.start + k] = row;
+        }
+        Ok(AssemblyReport {
+            name: o.name.to_string(),
+            radius: 0.0,
+            capped_from: None,
+            max_column_energy: max_column,
+            scaled_columns: 0,
+            entries,
+            links: 0,
+            seconds: t.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// In: translucent object k with its profile. Writes its rows of S (the quadrature over
+    /// its block of the distances, then its links) into `rows`; out: its report.
+    fn translucent_rows(
+        &self,
+        k: usize,
+        o: &ObjectMaterial<'_>,
+        profile: &Profile,
+        rows: &mut [Vec<(u32, [f32; 3])>],
+    ) -> Result<AssemblyReport, SError> {
+        let (g, n, r) = (self.g, self.g.corners.len(), o.patches.clone());
+        let t = Instant::now();
+        let reach = self.reach(k);
+        let (tab, capped_from) =
+            translucent_table(o.name, profile, reach, self.unit_mm, self.params)?;
+        let radius = tab.r_max();
+        // This object's block of the distances, within the radius.
+        let block = ObjectBlock::of(self.distances, r.clone(), |_, d, _| d < radius);
+        let s = subsurface::assemble(
+            object_patches(g, r.clone()),
+            block.view(),
+            &tab,
+            &self.params.quadrature,
+        );
+        let mut s = s;
+        if let Some(nodes) = &g.nodes {
+            let links = node_links(
+                self.distances,
+                self.dist_kind,
+                self.dist_spread,
+                r.clone(),
+                nodes,
+                &|_| &tab,
+            );
+            subsurface::add_links(&mut s, r.start, &g.area[r.clone()], links, nodes, n);
+        }
+        let links = s.links.iter().map(|l| l.len() as u64).sum();
+        let report = AssemblyReport {
+            name: o.name.to_string(),
+            radius,
+            capped_from,
+            max_column_energy: s.report.max_column,
+            scaled_columns: s.report.scaled_columns as u64,
+            entries: s.report.nnz,
+            links,
+            seconds: t.elapsed().as_secs_f64(),
+        };
+        place(rows, r.start, s.rows, s.links);
+        Ok(report)
+    }
+
+    /// In: S laid out, the objects, and those queued to be summed from their terms. Writes
+    /// each queued object's values into its rows of `s`, adding its report; out: S.
+    fn write_pending(
+        &self,
+        s: ValidCsr<[f32; 3]>,
+        objects: &[ObjectMaterial<'_>],
+        pending: Vec<(usize, &ObjectTerms, f32)>,
+        reports: &mut Vec<(usize, AssemblyReport)>,
+    ) -> Result<ValidCsr<[f32; 3]>, SError> {
+        let mut s = s;
+        let mut scratch = Scratch::default();
+        for (k, t, reach) in pending {
+            let report;
+            (s, report) = write_terms(
+                s,
+                self.g,
+                &objects[k],
+                t,
+                reach,
+                self.unit_mm,
+                self.params,
+                &mut scratch,
+                None,
+            )?;
+            reports.push((k, report));
+        }
+        Ok(s)
+    }
+}
+
+/// In: the patch rows and the node rows (node-to-node links; empty if none). Out: S as a
+/// valid CSR, (N + M) × (N + M) where any row links to a node, N × N otherwise.
+fn scene_matrix(
+    g: &PatchGeometry,
+    rows: Vec<Vec<(u32, [f32; 3])>>,
+    node_rows: Vec<NodeRow>,
+) -> Result<ValidCsr<[f32; 3]>, SError> {
+    let n = g.corners.len();
+    let mut rows = rows;
     // Node rows after the patch rows ((N + M) × (N + M), transport::LinkedScatter).
     rows.extend(node_rows);
     // Node columns when any row links to a node (a hierarchical S).
@@ -424,25 +608,7 @@ pub fn assemble_scene(
         b.push_row(row)?;
     }
     drop(rows);
-    let mut s = b.finish_valid();
-    let mut scratch = Scratch::default();
-    for (k, t, reach) in pending {
-        let report;
-        (s, report) = write_terms(
-            s,
-            g,
-            &objects[k],
-            t,
-            reach,
-            unit_mm,
-            params,
-            &mut scratch,
-            None,
-        )?;
-        reports.push((k, report));
-    }
-    reports.sort_by_key(|r| r.0);
-    Ok((s, reports.into_iter().map(|r| r.1).collect()))
+    Ok(b.finish_valid())
 }
 
 /// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its

@@ -939,6 +939,265 @@ pub struct Placement<'a> {
     pub defer_bound: bool,
 }
 
+/// What every row of one [`ObjectTerms::write`] reads besides its own cells: the object's
+/// patch areas, the tables of its two profiles, and where its rows are placed.
+#[derive(Clone, Copy)]
+struct WriteInput<'a> {
+    area: &'a [f32],
+    same: &'a TermTable<'a>,
+    other: &'a TermTable<'a>,
+    at: Placement<'a>,
+}
+
+/// One row's place in an object's arrays: its index j (n + x for node row x), its
+/// entries, the link set and range its links are read from, and the receiver's area.
+struct RowSpan<'a> {
+    j: usize,
+    entries: Range<usize>,
+    set: &'a Links,
+    links: Range<usize>,
+    aj: f32,
+}
+
+/// A write's block sums added up in block order: per column Σ_j A_j S_ji, per linked node
+/// e_k, the entries kept, the links within reach, and whether every value was finite.
+struct BlockTotals {
+    column: Vec<[f32; 3]>,
+    node: Vec<[f32; 3]>,
+    kept: u64,
+    linked: u64,
+    finite: bool,
+}
+
+impl BlockTotals {
+    /// In: the blocks a write filled, its count of columns and of linked nodes. Out: their sums, added
+    /// block by block in order.
+    fn add(blocks: &[BlockSums], n: usize, node_count: usize) -> BlockTotals {
+        let mut column = vec![f32x4::ZERO; n];
+        let mut node = vec![f32x4::ZERO; node_count];
+        let (mut kept, mut linked, mut finite) = (0u64, 0u64, true);
+        for s in blocks {
+            for (t, p) in column.iter_mut().zip(&s.column) {
+                *t += *p;
+            }
+            for (t, p) in node.iter_mut().zip(&s.node) {
+                *t += *p;
+            }
+            kept += s.kept;
+            finite &= s.finite;
+            linked += s.linked;
+        }
+        BlockTotals {
+            column: column.into_iter().map(rgb).collect(),
+            node: node.into_iter().map(rgb).collect(),
+            kept,
+            linked,
+            finite,
+        }
+    }
+}
+
+/// The energy bound on an object's columns: the report so far, each column's direct
+/// energy Σ_j A_j S_ji / A_i (`total`), and the factor its direct entries are scaled by.
+struct ColumnBound {
+    report: EnergyReport,
+    total: Vec<[f32; 3]>,
+    factor: Vec<[f32; 3]>,
+}
+
+impl ColumnBound {
+    /// In: each column's Σ_j A_j S_ji, the patches' areas, the entries kept. Out: the bound
+    /// on the direct entries alone (a column only scaled in some channel keeps its divisor
+    /// 1 in the others).
+    fn direct(column: &[[f32; 3]], area: &[f32], kept: u64) -> ColumnBound {
+        let n = column.len();
+        let mut report = EnergyReport {
+            nnz: kept,
+            ..Default::default()
+        };
+        let total: Vec<[f32; 3]> = column
+            .iter()
+            .zip(area)
+            .map(|(t, &a)| t.map(|v| v / a))
+            .collect();
+        let mut factor = vec![[1.0f32; 3]; n];
+        let mut mean = 0.0f64;
+        for (i, t) in total.iter().enumerate() {
+            let worst = t.iter().cloned().fold(0.0f32, f32::max);
+            report.max_column = report.max_column.max(worst);
+            mean += t[1] as f64;
+            if worst > 1.0 {
+                report.scaled_columns += 1;
+                factor[i] = t.map(|v| 1.0 / v.max(1.0));
+            }
+        }
+        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+        ColumnBound {
+            report,
+            total,
+            factor,
+        }
+    }
+
+    /// In: each column's direct energy after its own bound, its links' energy before and
+    /// after the nodes' factors, and its pairwise factor. Counts the links into the report
+    /// and scales the factors further, as `subsurface::add_links` counts.
+    fn count_links(
+        &mut self,
+        direct: &[[f32; 3]],
+        far: &[[f32; 3]],
+        far_kept: &[[f32; 3]],
+        pair_factor: &[[f32; 3]],
+    ) {
+        let n = direct.len();
+        let report = &mut self.report;
+        let mut mean = 0.0f64;
+        for i in 0..n {
+            mean += (direct[i][1] + far[i][1]) as f64;
+            if far[i] == [0.0; 3] {
+                continue;
+            }
+            // As subsurface::add_links counts: a column scaled again for its links
+            // counts again.
+            let mut any = false;
+            for c in 0..3 {
+                let sum = direct[i][c] + far[i][c];
+                report.max_column = report.max_column.max(sum);
+                if pair_factor[i][c] < 1.0 && direct[i][c] > 0.0 {
+                    self.factor[i][c] *=
+                        pair_factor[i][c].min((1.0 - far_kept[i][c]).max(0.0) / direct[i][c]);
+                    any = true;
+                }
+            }
+            report.scaled_columns += any as usize;
+        }
+        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
+    }
+}
+
+/// The linked nodes of one object's write over the cluster tree: node k of the sums is
+/// the tree's node `first` + k; the object's patches are `start..start + n`.
+struct NodeSpan<'a> {
+    nodes: &'a Nodes,
+    first: usize,
+    start: usize,
+    n: usize,
+}
+
+impl NodeSpan<'_> {
+    /// In: each node's e_k = Σ_j A_j R(r_jk) and a weight w_k. Out: per patch, Σ over the
+    /// nodes holding it of e_k × w_k (node k's column re-emits e_k over its patches).
+    fn spread(&self, node: &[[f32; 3]], w: &dyn Fn(usize) -> [f32; 3]) -> Vec<[f32; 3]> {
+        let nodes = self.nodes;
+        // A node covers a contiguous range of the tree's order, so one difference array
+        // over that order adds every e_k.
+        let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
+        for (k, e) in node.iter().enumerate() {
+            if e.iter().all(|&v| v == 0.0) {
+                continue;
+            }
+            let [a, b] = nodes.range[self.first + k];
+            let wk = w(k);
+            for c in 0..3 {
+                diff[a as usize][c] += (e[c] * wk[c]) as f64;
+                diff[b as usize][c] -= (e[c] * wk[c]) as f64;
+            }
+        }
+        let mut out = vec![[0.0f32; 3]; self.n];
+        let mut run = [0.0f64; 3];
+        for (q, &p) in nodes.perm.iter().enumerate() {
+            for c in 0..3 {
+                run[c] += diff[q][c];
+            }
+            let i = (p as usize).wrapping_sub(self.start);
+            if i < self.n {
+                out[i] = run.map(|v| v as f32);
+            }
+        }
+        out
+    }
+
+    /// In: the patches' areas and pairwise factors, each node's e_k. Out: each linked
+    /// node's factor, its patches' area-weighted mean factor (1 where e_k is 0, or where
+    /// no patch is scaled).
+    fn mean_factors(
+        &self,
+        area: &[f32],
+        pair_factor: &[[f32; 3]],
+        node: &[[f32; 3]],
+    ) -> Vec<[f32; 3]> {
+        let (nodes, n) = (self.nodes, self.n);
+        let mut mean_factor = vec![[1.0f32; 3]; node.len()];
+        if !pair_factor.iter().any(|f| *f != [1.0; 3]) {
+            return mean_factor;
+        }
+        // Σ A_p f_p and Σ A_p over the tree's order, this object's patches only.
+        let mut prefix = Vec::with_capacity(nodes.perm.len() + 1);
+        let mut run = [0.0f64; 4];
+        prefix.push(run);
+        for &p in &nodes.perm {
+            let i = (p as usize).wrapping_sub(self.start);
+            if i < n {
+                for c in 0..3 {
+                    run[c] += area[i] as f64 * pair_factor[i][c] as f64;
+                }
+                run[3] += area[i] as f64;
+            }
+            prefix.push(run);
+        }
+        for (k, (m, e)) in mean_factor.iter_mut().zip(node).enumerate() {
+            if e.iter().all(|&v| v == 0.0) {
+                continue;
+            }
+            let [a, b] = nodes.range[self.first + k];
+            let (hi, lo) = (prefix[b as usize], prefix[a as usize]);
+            let den = hi[3] - lo[3];
+            if den > 0.0 {
+                *m = std::array::from_fn(|c| ((hi[c] - lo[c]) / den) as f32);
+            }
+        }
+        mean_factor
+    }
+}
+
+/// Scales every row's links (a node row holds links alone) by their node's factor `mf`,
+/// node k's column being `first` + k.
+fn scale_links(rows: &mut [(usize, Row<'_>)], first: usize, mf: &[[f32; 3]]) {
+    rows.par_iter_mut().for_each(|(_, (cols, out))| {
+        for (o, &c) in out.iter_mut().zip(cols.iter()).rev() {
+            let Some(m) = (c as usize).checked_sub(first).and_then(|k| mf.get(k)) else {
+                break; // the direct entries, before the row's links
+            };
+            *o = std::array::from_fn(|ch| o[ch] * m[ch]);
+        }
+    });
+}
+
+/// Scales the entries of the `scaled` columns (of the object's n, starting at patch
+/// `start`) by their `factor` in one parallel pass over every row's columns (many columns).
+fn scale_every_row(
+    rows: &mut [(usize, Row<'_>)],
+    factor: &[[f32; 3]],
+    scaled: &[bool],
+    start: usize,
+    n: usize,
+) {
+    // A byte per column tells the scaled ones: the pass over every row's columns
+    // reads a table that stays in cache.
+    rows.par_iter_mut().for_each(|(_, (cols, out))| {
+        for (o, &c) in out.iter_mut().zip(cols.iter()) {
+            let i = (c as usize).wrapping_sub(start);
+            if i >= n {
+                break; // the links, after the row's direct entries
+            }
+            if scaled[i] {
+                let f = factor[i];
+                *o = std::array::from_fn(|ch| o[ch] * f[ch]);
+            }
+        }
+    });
+}
+
 impl ObjectTerms {
     /// Reduces every entry of one object: `d` is its block of the stored distances (local
     /// indices), `opposite(e)` tells a sheet's other-side entries (by index in `d`).
@@ -1459,6 +1718,61 @@ impl ObjectTerms {
         scratch: &mut Scratch,
     ) -> Written {
         let n = self.row_ptr.len() - 1;
+        let mut rows = self.tree_order(at, rows);
+        let (same, other) = (TermTable::new(same), TermTable::new(other));
+        let input = WriteInput {
+            area,
+            same: &same,
+            other: &other,
+            at,
+        };
+        let blocks = self.write_blocks(input, &mut rows, scratch);
+        let sums = BlockTotals::add(&scratch.blocks[..blocks], n, self.node_count(at));
+        let mut bound = ColumnBound::direct(&sums.column, area, sums.kept);
+        let node_factor = match (at.nodes, sums.linked > 0) {
+            (Some(nodes), true) => self.bound_links(nodes, input, &sums, &mut bound, &mut rows),
+            _ => vec![[1.0f32; 3]; sums.node.len()],
+        };
+        // A factor is in [0, 1] (a finite value stays finite).
+        debug_assert!(
+            bound
+                .factor
+                .iter()
+                .flatten()
+                .all(|f| (0.0..=1.0).contains(f))
+        );
+        if at.defer_bound {
+            return Written {
+                report: bound.report,
+                links: sums.linked,
+                finite: sums.finite,
+                columns: Some(ColumnFactors {
+                    patches: bound.factor,
+                    nodes: node_factor,
+                    node_column: at.n + self.links.nodes.start,
+                }),
+            };
+        }
+        self.scale_columns(&mut rows, &bound.factor, at.start);
+        Written {
+            report: bound.report,
+            links: sums.linked,
+            finite: sums.finite,
+            columns: None,
+        }
+    }
+
+    /// The nodes this object's links reach (a contiguous span of them) where `at` places
+    /// links; 0 without a tree.
+    fn node_count(&self, at: Placement<'_>) -> usize {
+        at.nodes.map_or(0, |_| self.links.nodes.len())
+    }
+
+    /// In: [`ObjectTerms::write`]'s rows (the patch rows, then the node rows). Out: each
+    /// with its row index (local; node row x is n + x), in the cluster tree's order.
+    /// Panics unless there is one row per patch, then one per node row.
+    fn tree_order<'r>(&self, at: Placement<'_>, rows: Vec<Row<'r>>) -> Vec<(usize, Row<'r>)> {
+        let n = self.row_ptr.len() - 1;
         let node_rows = if at.nodes.is_some() {
             self.recv.len()
         } else {
@@ -1474,7 +1788,7 @@ impl ObjectTerms {
         // The rows in the cluster tree's order: neighbouring receivers read and add to the
         // same few columns and nodes, so a block's sums stay in cache (in patch order the
         // scattered adds cost as much as the sums themselves on the bowls' bunny).
-        let mut rows: Vec<(usize, Row<'_>)> = match at.nodes {
+        match at.nodes {
             Some(nodes) => {
                 let mut slots: Vec<_> = rows.into_iter().map(Some).collect();
                 let mut ordered: Vec<_> = nodes
@@ -1502,26 +1816,27 @@ impl ObjectTerms {
                 ordered
             }
             None => rows.into_iter().enumerate().collect(),
-        };
-        let (same, other) = (TermTable::new(same), TermTable::new(other));
-        // The nodes this object's links reach, a contiguous span of them.
-        let node_count = at.nodes.map_or(0, |_| self.links.nodes.len());
+        }
+    }
+
+    /// In: the ordered rows and what every row reads. Writes every row's values (before the
+    /// energy bound) in parallel blocks of rows; out: how many blocks, whose sums are the
+    /// first ones of `scratch`.
+    fn write_blocks(
+        &self,
+        input: WriteInput<'_>,
+        rows: &mut [(usize, Row<'_>)],
+        scratch: &mut Scratch,
+    ) -> usize {
+        let n = self.row_ptr.len() - 1;
+        let node_count = self.node_count(input.at);
         // Blocks over every row, node rows included, of about equal work: a row's terms,
         // entries and links (each link reads the table twice). Blocks of equal row counts
         // differed 3.5× in entries on the bowls' bunny (its rows' reach varies with the
         // shape, and node rows hold links alone), and one thread sat idle for a quarter of
         // the loop while the other finished the heaviest block.
-        let cost = |(j, (cols, _)): &(usize, Row<'_>)| -> u64 {
-            let (entries, terms) = match self.row_ptr.get(*j..*j + 2) {
-                Some(&[a, b]) => (
-                    (b - a) as u64,
-                    (self.term_ptr[b as usize] - self.term_ptr[a as usize]) as u64,
-                ),
-                _ => (0, 0),
-            };
-            terms + entries + 2 * (cols.len() as u64 - entries)
-        };
-        let chunks = even_runs(&mut rows, rayon::current_num_threads() * 4, cost);
+        let cost = |(j, (cols, _)): &(usize, Row<'_>)| self.row_cost(*j, cols.len());
+        let chunks = even_runs(rows, rayon::current_num_threads() * 4, cost);
         let blocks = chunks.len();
         scratch.blocks.resize_with(blocks, BlockSums::default);
         chunks
@@ -1537,253 +1852,199 @@ impl ObjectTerms {
                 // that is not (cheaper than testing each).
                 let mut probe = f32x4::ZERO;
                 for (j, (cols, out)) in chunk.iter_mut() {
-                    let j = *j;
-                    // A node row (j ≥ n): node m's links alone, weighed by m's area.
-                    let (set, entries, aj) = match at.nodes {
-                        Some(nodes) if j >= n => {
-                            (&self.pairs, 0..0, { nodes.area[self.recv[j - n] as usize] })
-                        }
-                        _ => (
-                            &self.links,
-                            self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize,
-                            area[j],
-                        ),
-                    };
-                    let l = if j >= n { j - n } else { j };
-                    let links = match set.ptr.get(l..l + 2).filter(|_| at.nodes.is_some()) {
-                        Some(l) => l[0] as usize..l[1] as usize,
-                        None => 0..0,
-                    };
-                    assert_eq!(
-                        out.len(),
-                        entries.len() + links.len(),
-                        "row {j} is not laid out as ObjectTerms::pattern made it"
-                    );
-                    let (direct, tail) = out.split_at_mut(entries.len());
-                    // The row's entries' fields side by side: one bounds check a row, not
-                    // five an entry.
-                    let fields = self.src[entries.clone()]
-                        .iter()
-                        .zip(&self.dist[entries.clone()])
-                        .zip(&self.hi_max[entries.clone()])
-                        .zip(&self.opposite[entries.clone()])
-                        .zip(self.term_ptr[entries.start..=entries.end].windows(2));
-                    for (k, (o, ((((&i, &dist), &hi_max), &opposite), t))) in
-                        direct.iter_mut().zip(fields).enumerate()
-                    {
-                        let i = i as usize;
-                        let e = EntryRef {
-                            src: i,
-                            dist,
-                            hi_max,
-                            opposite,
-                            terms: t[0] as usize..t[1] as usize,
-                        };
-                        let (v, kept) = self.value(e, j, &same, &other);
-                        debug_assert_eq!(cols[k] as usize, at.start + i);
-                        sums.kept += kept as u64;
-                        probe += v * f32x4::ZERO;
-                        sums.column[i] += f32x4::splat(aj) * v;
-                        *o = rgb(v);
-                    }
-                    let Some(nodes) = at.nodes else {
-                        tail.fill([0.0; 3]);
-                        continue;
-                    };
-                    // Links: node k's A_k R(r), read through the table of the entry's kind.
-                    let node_cols = &cols[direct.len()..];
-                    let two = set.two.get(links.clone()).unwrap_or(&[]);
-                    let fields = set.root[links.clone()].iter().zip(&set.opposite[links]);
-                    for (l, ((o, &c), (&root, &opposite))) in
-                        tail.iter_mut().zip(node_cols).zip(fields).enumerate()
-                    {
-                        let tab = if opposite { &other } else { &same };
-                        let within = root < tab.end;
-                        sums.linked += within as u64;
-                        // A link read at two distances: the mean of the profile at both (as
-                        // `smatrix::node_links` reads it), 0 past the table's end.
-                        let two = two.get(l).copied().filter(|_| within);
-                        let r = link_lanes(two, root, |x| tab.r_lanes(x));
-                        let k = c as usize - at.n;
-                        let a = nodes.area[k];
-                        sums.node[k - self.links.nodes.start] += f32x4::splat(aj) * r;
-                        let v = r * f32x4::splat(a);
-                        probe += v * f32x4::ZERO;
-                        *o = rgb(v);
-                    }
+                    self.write_row(*j, (*cols, &mut **out), input, sums, &mut probe);
                 }
                 sums.finite = probe.to_array().iter().all(|&x| x == 0.0);
             });
-        // The blocks' sums, in order.
-        let mut column = vec![f32x4::ZERO; n];
-        let mut node = vec![f32x4::ZERO; node_count];
-        let (mut kept, mut linked, mut finite) = (0u64, 0u64, true);
-        for s in &scratch.blocks[..blocks] {
-            for (t, p) in column.iter_mut().zip(&s.column) {
-                *t += *p;
-            }
-            for (t, p) in node.iter_mut().zip(&s.node) {
-                *t += *p;
-            }
-            kept += s.kept;
-            finite &= s.finite;
-            linked += s.linked;
-        }
-        let column: Vec<[f32; 3]> = column.into_iter().map(rgb).collect();
-        let node: Vec<[f32; 3]> = node.into_iter().map(rgb).collect();
-        let mut report = EnergyReport {
-            nnz: kept,
-            ..Default::default()
+        blocks
+    }
+
+    /// Row j's work in a block (its terms, entries and links, a link counted twice), from
+    /// its index and its count of columns.
+    fn row_cost(&self, j: usize, cols: usize) -> u64 {
+        let (entries, terms) = match self.row_ptr.get(j..j + 2) {
+            Some(&[a, b]) => (
+                (b - a) as u64,
+                (self.term_ptr[b as usize] - self.term_ptr[a as usize]) as u64,
+            ),
+            _ => (0, 0),
         };
-        // Each column's direct energy, and its divisor per channel: a column only scaled
-        // in some channel keeps its divisor 1 in the others.
-        let total: Vec<[f32; 3]> = column
+        terms + entries + 2 * (cols as u64 - entries)
+    }
+
+    /// Writes row j (a patch's, or node row j − n) into `out`: its direct entries, then its
+    /// links; adds into `sums` its columns' and nodes' energies, its entries kept and links
+    /// within reach, and into `probe` 0 × every value written.
+    #[inline]
+    fn write_row(
+        &self,
+        j: usize,
+        (cols, out): Row<'_>,
+        input: WriteInput<'_>,
+        sums: &mut BlockSums,
+        probe: &mut f32x4,
+    ) {
+        let n = self.row_ptr.len() - 1;
+        let at = input.at;
+        // A node row (j ≥ n): node m's links alone, weighed by m's area.
+        let (set, entries, aj) = match at.nodes {
+            Some(nodes) if j >= n => (&self.pairs, 0..0, { nodes.area[self.recv[j - n] as usize] }),
+            _ => (
+                &self.links,
+                self.row_ptr[j] as usize..self.row_ptr[j + 1] as usize,
+                input.area[j],
+            ),
+        };
+        let l = if j >= n { j - n } else { j };
+        let links = match set.ptr.get(l..l + 2).filter(|_| at.nodes.is_some()) {
+            Some(l) => l[0] as usize..l[1] as usize,
+            None => 0..0,
+        };
+        assert_eq!(
+            out.len(),
+            entries.len() + links.len(),
+            "row {j} is not laid out as ObjectTerms::pattern made it"
+        );
+        let (direct, tail) = out.split_at_mut(entries.len());
+        let span = RowSpan {
+            j,
+            entries,
+            set,
+            links,
+            aj,
+        };
+        self.write_entries(&span, (cols, direct), input, sums, probe);
+        let Some(nodes) = at.nodes else {
+            tail.fill([0.0; 3]);
+            return;
+        };
+        let node_cols = &cols[direct.len()..];
+        self.write_links(&span, (node_cols, tail), nodes, input, sums, probe);
+    }
+
+    /// Writes a row's direct entries into `direct` (`cols` the row's columns): each entry's
+    /// sum of terms, 0 where not kept; adds A_j S_ji into column i's sum.
+    #[inline]
+    fn write_entries(
+        &self,
+        span: &RowSpan<'_>,
+        (cols, direct): Row<'_>,
+        input: WriteInput<'_>,
+        sums: &mut BlockSums,
+        probe: &mut f32x4,
+    ) {
+        let (j, entries, aj) = (span.j, span.entries.clone(), span.aj);
+        // The row's entries' fields side by side: one bounds check a row, not
+        // five an entry.
+        let fields = self.src[entries.clone()]
             .iter()
-            .zip(area)
-            .map(|(t, &a)| t.map(|v| v / a))
+            .zip(&self.dist[entries.clone()])
+            .zip(&self.hi_max[entries.clone()])
+            .zip(&self.opposite[entries.clone()])
+            .zip(self.term_ptr[entries.start..=entries.end].windows(2));
+        for (k, (o, ((((&i, &dist), &hi_max), &opposite), t))) in
+            direct.iter_mut().zip(fields).enumerate()
+        {
+            let i = i as usize;
+            let e = EntryRef {
+                src: i,
+                dist,
+                hi_max,
+                opposite,
+                terms: t[0] as usize..t[1] as usize,
+            };
+            let (v, kept) = self.value(e, j, input.same, input.other);
+            debug_assert_eq!(cols[k] as usize, input.at.start + i);
+            sums.kept += kept as u64;
+            *probe += v * f32x4::ZERO;
+            sums.column[i] += f32x4::splat(aj) * v;
+            *o = rgb(v);
+        }
+    }
+
+    /// Writes a row's links into `tail` (`node_cols` their columns, N + k): node k's
+    /// A_k R(r), read through the table of the entry's kind; adds A_j R(r) into e_k.
+    #[inline]
+    fn write_links(
+        &self,
+        span: &RowSpan<'_>,
+        (node_cols, tail): Row<'_>,
+        nodes: &Nodes,
+        input: WriteInput<'_>,
+        sums: &mut BlockSums,
+        probe: &mut f32x4,
+    ) {
+        let (set, links, aj) = (span.set, span.links.clone(), span.aj);
+        let two = set.two.get(links.clone()).unwrap_or(&[]);
+        let fields = set.root[links.clone()].iter().zip(&set.opposite[links]);
+        for (l, ((o, &c), (&root, &opposite))) in
+            tail.iter_mut().zip(node_cols).zip(fields).enumerate()
+        {
+            let tab = if opposite { input.other } else { input.same };
+            let within = root < tab.end;
+            sums.linked += within as u64;
+            // A link read at two distances: the mean of the profile at both (as
+            // `smatrix::node_links` reads it), 0 past the table's end.
+            let two = two.get(l).copied().filter(|_| within);
+            let r = link_lanes(two, root, |x| tab.r_lanes(x));
+            let k = c as usize - input.at.n;
+            let a = nodes.area[k];
+            sums.node[k - self.links.nodes.start] += f32x4::splat(aj) * r;
+            let v = r * f32x4::splat(a);
+            *probe += v * f32x4::ZERO;
+            *o = rgb(v);
+        }
+    }
+
+    /// In: the tree, the write's input, its blocks' sums and the direct bound. Bounds every
+    /// column with its links counted (as `subsurface::add_links`), updating `bound`, and
+    /// (unless deferred) scales the links in `rows`; out: each linked node's factor.
+    fn bound_links(
+        &self,
+        nodes: &Nodes,
+        input: WriteInput<'_>,
+        sums: &BlockTotals,
+        bound: &mut ColumnBound,
+        rows: &mut [(usize, Row<'_>)],
+    ) -> Vec<[f32; 3]> {
+        let (at, n) = (input.at, self.row_ptr.len() - 1);
+        let span = NodeSpan {
+            nodes,
+            first: self.links.nodes.start,
+            start: at.start,
+            n,
+        };
+        let node = &sums.node;
+        let far = span.spread(node, &|_| [1.0; 3]);
+        // As subsurface::add_links: each column's factor as a pairwise S would scale
+        // it, every link to node k scaled by k's patches' area-weighted mean factor
+        // (a node covers a contiguous range of the tree's order: prefix sums), then the
+        // direct entries by that factor, or further where the node's mean left more.
+        let direct: Vec<[f32; 3]> = (0..n)
+            .map(|i| std::array::from_fn(|c| bound.total[i][c] * bound.factor[i][c]))
             .collect();
-        let mut factor = vec![[1.0f32; 3]; n];
-        let mut mean = 0.0f64;
-        for (i, t) in total.iter().enumerate() {
-            let worst = t.iter().cloned().fold(0.0f32, f32::max);
-            report.max_column = report.max_column.max(worst);
-            mean += t[1] as f64;
-            if worst > 1.0 {
-                report.scaled_columns += 1;
-                factor[i] = t.map(|v| 1.0 / v.max(1.0));
-            }
+        let pair_factor: Vec<[f32; 3]> = (0..n)
+            .map(|i| std::array::from_fn(|c| 1.0 / (direct[i][c] + far[i][c]).max(1.0)))
+            .collect();
+        let mean_factor = span.mean_factors(input.area, &pair_factor, node);
+        let nodes_scaled = mean_factor.iter().any(|m| *m != [1.0; 3]);
+        let far_kept = if nodes_scaled {
+            span.spread(node, &|k| mean_factor[k])
+        } else {
+            far.clone()
+        };
+        if nodes_scaled && !at.defer_bound {
+            scale_links(rows, at.n + self.links.nodes.start, &mean_factor);
         }
-        report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
-        // Each linked node's factor (its links' in every row).
-        let mut node_factor = vec![[1.0f32; 3]; node_count];
-        if let (Some(nodes), true) = (at.nodes, linked > 0) {
-            // e_k = Σ_j A_j R(r_jk) (node k's column re-emits e_k over each of its patches
-            // by area), spread over its members: a node covers a contiguous range of the
-            // tree's order, so one difference array over that order adds every e_k.
-            // Σ over the nodes holding each patch of e_k × w_k: one difference array.
-            let spread = |w: &dyn Fn(usize) -> [f32; 3]| {
-                let mut diff = vec![[0.0f64; 3]; nodes.perm.len() + 1];
-                for (k, e) in node.iter().enumerate() {
-                    if e.iter().all(|&v| v == 0.0) {
-                        continue;
-                    }
-                    let [a, b] = nodes.range[self.links.nodes.start + k];
-                    let wk = w(k);
-                    for c in 0..3 {
-                        diff[a as usize][c] += (e[c] * wk[c]) as f64;
-                        diff[b as usize][c] -= (e[c] * wk[c]) as f64;
-                    }
-                }
-                let mut out = vec![[0.0f32; 3]; n];
-                let mut run = [0.0f64; 3];
-                for (q, &p) in nodes.perm.iter().enumerate() {
-                    for c in 0..3 {
-                        run[c] += diff[q][c];
-                    }
-                    let i = (p as usize).wrapping_sub(at.start);
-                    if i < n {
-                        out[i] = run.map(|v| v as f32);
-                    }
-                }
-                out
-            };
-            let far = spread(&|_| [1.0; 3]);
-            // As subsurface::add_links: each column's factor as a pairwise S would scale
-            // it, every link to node k scaled by k's patches' area-weighted mean factor
-            // (a node covers a contiguous range of the tree's order: prefix sums), then the
-            // direct entries by that factor, or further where the node's mean left more.
-            let direct: Vec<[f32; 3]> = (0..n)
-                .map(|i| std::array::from_fn(|c| total[i][c] * factor[i][c]))
-                .collect();
-            let pair_factor: Vec<[f32; 3]> = (0..n)
-                .map(|i| std::array::from_fn(|c| 1.0 / (direct[i][c] + far[i][c]).max(1.0)))
-                .collect();
-            let mut mean_factor = vec![[1.0f32; 3]; node_count];
-            if pair_factor.iter().any(|f| *f != [1.0; 3]) {
-                // Σ A_p f_p and Σ A_p over the tree's order, this object's patches only.
-                let mut prefix = Vec::with_capacity(nodes.perm.len() + 1);
-                let mut run = [0.0f64; 4];
-                prefix.push(run);
-                for &p in &nodes.perm {
-                    let i = (p as usize).wrapping_sub(at.start);
-                    if i < n {
-                        for c in 0..3 {
-                            run[c] += area[i] as f64 * pair_factor[i][c] as f64;
-                        }
-                        run[3] += area[i] as f64;
-                    }
-                    prefix.push(run);
-                }
-                for (k, (m, e)) in mean_factor.iter_mut().zip(&node).enumerate() {
-                    if e.iter().all(|&v| v == 0.0) {
-                        continue;
-                    }
-                    let [a, b] = nodes.range[self.links.nodes.start + k];
-                    let (hi, lo) = (prefix[b as usize], prefix[a as usize]);
-                    let den = hi[3] - lo[3];
-                    if den > 0.0 {
-                        *m = std::array::from_fn(|c| ((hi[c] - lo[c]) / den) as f32);
-                    }
-                }
-            }
-            let nodes_scaled = mean_factor.iter().any(|m| *m != [1.0; 3]);
-            let far_kept = if nodes_scaled {
-                spread(&|k| mean_factor[k])
-            } else {
-                far.clone()
-            };
-            if nodes_scaled && !at.defer_bound {
-                // The links, in every row (a node row holds links alone).
-                let (first, mf) = (at.n + self.links.nodes.start, &mean_factor);
-                rows.par_iter_mut().for_each(|(_, (cols, out))| {
-                    for (o, &c) in out.iter_mut().zip(cols.iter()).rev() {
-                        let Some(m) = (c as usize).checked_sub(first).and_then(|k| mf.get(k))
-                        else {
-                            break; // the direct entries, before the row's links
-                        };
-                        *o = std::array::from_fn(|ch| o[ch] * m[ch]);
-                    }
-                });
-            }
-            let mut mean = 0.0f64;
-            for i in 0..n {
-                mean += (direct[i][1] + far[i][1]) as f64;
-                if far[i] == [0.0; 3] {
-                    continue;
-                }
-                // As subsurface::add_links counts: a column scaled again for its links
-                // counts again.
-                let mut any = false;
-                for c in 0..3 {
-                    let sum = direct[i][c] + far[i][c];
-                    report.max_column = report.max_column.max(sum);
-                    if pair_factor[i][c] < 1.0 && direct[i][c] > 0.0 {
-                        factor[i][c] *=
-                            pair_factor[i][c].min((1.0 - far_kept[i][c]).max(0.0) / direct[i][c]);
-                        any = true;
-                    }
-                }
-                report.scaled_columns += any as usize;
-            }
-            report.mean_column = if n > 0 { (mean / n as f64) as f32 } else { 0.0 };
-            report.nnz += linked;
-            node_factor = mean_factor;
-        }
-        // The direct entries of the columns over the bound, scaled. A factor is in [0, 1]
-        // (a finite value stays finite).
-        debug_assert!(factor.iter().flatten().all(|f| (0.0..=1.0).contains(f)));
-        if at.defer_bound {
-            return Written {
-                report,
-                links: linked,
-                finite,
-                columns: Some(ColumnFactors {
-                    patches: factor,
-                    nodes: node_factor,
-                    node_column: at.n + self.links.nodes.start,
-                }),
-            };
-        }
+        bound.count_links(&direct, &far, &far_kept, &pair_factor);
+        bound.report.nnz += sums.linked;
+        mean_factor
+    }
+
+    /// Scales the direct entries of the columns over the bound (`factor` per local column,
+    /// the object starting at patch `start`) in `rows`.
+    fn scale_columns(&self, rows: &mut [(usize, Row<'_>)], factor: &[[f32; 3]], start: usize) {
+        let n = self.row_ptr.len() - 1;
         let scaled: Vec<bool> = factor.iter().map(|f| *f != [1.0; 3]).collect();
         // The entries of the scaled columns: few (a few hundred columns of the bunny's
         // 69,451) are found through the entries by source, many (most columns of a bowl
@@ -1793,44 +2054,38 @@ impl ObjectTerms {
             .map(|i| (self.by_src_ptr[i + 1] - self.by_src_ptr[i]) as usize)
             .sum();
         if touched > 0 && touched * 16 < self.src.len() {
-            // Where row j sits among `rows`.
-            let mut slot = vec![u32::MAX; n];
-            for (x, (j, _)) in rows.iter().enumerate() {
-                if let Some(s) = slot.get_mut(*j) {
-                    *s = x as u32;
-                }
-            }
-            for (i, f) in factor.iter().enumerate().filter(|&(i, _)| scaled[i]) {
-                let entries = self.by_src_ptr[i] as usize..self.by_src_ptr[i + 1] as usize;
-                for &[j, e] in &self.by_src[entries] {
-                    let (j, e) = (j as usize, e as usize);
-                    let (_, (cols, out)) = &mut rows[slot[j] as usize];
-                    let k = e - self.row_ptr[j] as usize;
-                    debug_assert_eq!(cols[k] as usize, at.start + i);
-                    out[k] = std::array::from_fn(|ch| out[k][ch] * f[ch]);
-                }
-            }
+            self.scale_by_source(rows, factor, &scaled, start);
         } else if touched > 0 {
-            // A byte per column tells the scaled ones: the pass over every row's columns
-            // reads a table that stays in cache.
-            rows.par_iter_mut().for_each(|(_, (cols, out))| {
-                for (o, &c) in out.iter_mut().zip(cols.iter()) {
-                    let i = (c as usize).wrapping_sub(at.start);
-                    if i >= n {
-                        break; // the links, after the row's direct entries
-                    }
-                    if scaled[i] {
-                        let f = factor[i];
-                        *o = std::array::from_fn(|ch| o[ch] * f[ch]);
-                    }
-                }
-            });
+            scale_every_row(rows, factor, &scaled, start, n);
         }
-        Written {
-            report,
-            links: linked,
-            finite,
-            columns: None,
+    }
+
+    /// Scales the entries of the `scaled` columns by their `factor`, found through the
+    /// entries by source (few columns).
+    fn scale_by_source(
+        &self,
+        rows: &mut [(usize, Row<'_>)],
+        factor: &[[f32; 3]],
+        scaled: &[bool],
+        start: usize,
+    ) {
+        let n = self.row_ptr.len() - 1;
+        // Where row j sits among `rows`.
+        let mut slot = vec![u32::MAX; n];
+        for (x, (j, _)) in rows.iter().enumerate() {
+            if let Some(s) = slot.get_mut(*j) {
+                *s = x as u32;
+            }
+        }
+        for (i, f) in factor.iter().enumerate().filter(|&(i, _)| scaled[i]) {
+            let entries = self.by_src_ptr[i] as usize..self.by_src_ptr[i + 1] as usize;
+            for &[j, e] in &self.by_src[entries] {
+                let (j, e) = (j as usize, e as usize);
+                let (_, (cols, out)) = &mut rows[slot[j] as usize];
+                let k = e - self.row_ptr[j] as usize;
+                debug_assert_eq!(cols[k] as usize, start + i);
+                out[k] = std::array::from_fn(|ch| out[k][ch] * f[ch]);
+            }
         }
     }
 

@@ -23,18 +23,27 @@
 //!    translucent objects (voxel Dijkstra), along thin two-sided sheets (geodesics, same or
 //!    other side) and per medium in heterogeneous objects; S from them and the materials is
 //!    `translux_engine::smatrix` (profiles, quadrature, eq. 9), run here once and by the
-//!    server for every translucency change.
+//!    server for every translucency change. [`simulate`] walks simulated media (random
+//!    walks, stage 1 of their S); [`slinks`] links far parts of an object to receivers
+//!    through whole cluster nodes (the hierarchical S).
 //! 5. [`bundle`] — write arrays and manifest atomically; environment visibility and T come
 //!    from `translux_engine::{envvis, inverse}`.
 //!
-//! [`pipeline::precompute`] runs 1–5 with progress and a summary. [`shard`] splits the
-//! receiver rows of stage 3 (and the environment visibility) over the tasks of a scheduler
-//! (`pipeline::precompute_shard`) and puts them together (`pipeline::precompute_merge`).
+//! [`pipeline::precompute`] runs 1–5 with progress and a summary. Its settings are
+//! [`options::PrecomputeOptions`]: the command line's flags as one clap `Args` (flattened
+//! into `translux-precompute`'s, used too by the server's upload jobs and the Table 1
+//! benchmark), which checks them and resolves `--subsurface auto` into
+//! [`pipeline::PrecomputeParams`]. [`shard`] splits the receiver rows of stage 3 (and the
+//! environment visibility) over the tasks of a scheduler (`pipeline::precompute_shard`) and
+//! puts them together (`pipeline::precompute_merge`). [`sequence`] precomputes an animated
+//! scene, one bundle per frame; [`resimulate`] walks the simulated objects of a bundle again
+//! in new media.
 //!
 //! ```no_run
-//! use translux_precompute::{pipeline, scene};
+//! use translux_precompute::{options::PrecomputeOptions, pipeline, scene};
 //! let loaded = scene::load_scene("builtin:cornell").unwrap();
-//! let params = pipeline::PrecomputeParams { patches: Some(2000), ..Default::default() };
+//! // As `translux-precompute builtin:cornell --patches 2000`.
+//! let params = PrecomputeOptions { patches: Some(2000), ..Default::default() }.params().unwrap();
 //! let report = pipeline::precompute(&loaded, std::path::Path::new("out/cornell"), &params).unwrap();
 //! println!("{} patches, nnz(F) = {}", report.patch_count, report.nnz_f);
 //! ```
@@ -48,6 +57,7 @@ pub mod hetero;
 pub mod hierarchy;
 pub mod meshio;
 pub mod obj;
+pub mod options;
 pub mod orient;
 pub mod patch;
 pub mod pipeline;

@@ -3,8 +3,10 @@
 //! `translux-precompute BUNDLE --resimulate --materials JSON` (simulated objects walk again
 //! in a new medium, [`translux_precompute::resimulate`]).
 //!
-//! Parses the command line, loads the scene, runs [`translux_precompute::pipeline`] and
-//! prints the summary. Exit codes: 0 done, 1 failed (the message says why), 2 bad usage.
+//! Parses the command line (the precompute's settings are
+//! [`translux_precompute::options::PrecomputeOptions`], flattened in), loads the scene, runs
+//! [`translux_precompute::pipeline`] and prints the summary. Exit codes: 0 done, 1 failed
+//! (the message says why), 2 bad usage.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -12,87 +14,39 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use translux_engine::linkbound::LinkTolerance;
-use translux_precompute::formfactor::FormFactorParams;
-use translux_precompute::hierarchy::HierarchyParams;
-use translux_precompute::pipeline::{self, FormFactorMethod, PrecomputeParams, human_bytes};
+use translux_precompute::options::PrecomputeOptions;
+use translux_precompute::pipeline::{self, PrecomputeParams, human_bytes};
 use translux_precompute::scene;
 use translux_precompute::shard::{Shard, parse_count};
-use translux_precompute::slinks::{DEFAULT_LINK_NEAR, SLinkParams};
 
 /// Precompute a translux bundle (patches, viewer mesh, form factors) from a scene.
 #[derive(Debug, Parser)]
-#[command(name = "translux-precompute", version)]
+#[command(name = "translux-precompute", version, next_line_help = true)]
 struct Cli {
     /// A scene file (JSON), a glTF 2.0 file (`.gltf`/`.glb`, a whole scene: its objects,
     /// materials, lights and camera) or `builtin:NAME` (cornell, cornell_paper, cornell_checker, bowls, flower, rolling); with
     /// `--resimulate`, a bundle folder.
     scene: String,
-    /// Folder to write the bundle to (replaced atomically if it exists). For an animated
-    /// scene, the sequence folder: one bundle per frame and `sequence.json`; a rerun keeps
-    /// the frames whose inputs did not change (it resumes).
-    #[arg(long, required_unless_present = "resimulate")]
-    out: Option<PathBuf>,
     /// Walk the simulated objects named in `--materials` again, in their new media, inside
     /// the bundle SCENE, and rewrite it in place (atomically): a change of scattering (σs,
     /// g, η) without the scene's sources. The bundle's transfer matrix T is dropped.
-    #[arg(long, requires = "materials")]
+    #[arg(long, requires = "materials", help_heading = "Input")]
     resimulate: bool,
     /// With `--resimulate`: `{"NAME": {"type": "simulated", ...}, ...}`, JSON or `@FILE`.
-    #[arg(long, requires = "resimulate")]
+    #[arg(long, requires = "resimulate", help_heading = "Input")]
     materials: Option<String>,
-    /// Target patch count (overrides the scene file; builtin:cornell defaults to 24,640).
-    #[arg(long)]
-    patches: Option<u64>,
-    /// Maximum patch edge in scene units (instead of a count).
-    #[arg(long, conflicts_with = "patches")]
-    max_edge: Option<f32>,
-    /// Also compute the transfer matrix T = (I − S F)⁻¹ S.
-    #[arg(long)]
-    inverse: bool,
-    /// How F is stored: `hierarchical` (a cluster tree and, per patch, links to whole
-    /// clusters far enough away: F̃ = C·P) or `dense` (one entry per visible patch pair,
-    /// O(N²): for validation and small scenes).
-    #[arg(long, value_enum, default_value_t = TransportArg::Hierarchical)]
-    transport: TransportArg,
-    /// Hierarchical F only: a cluster of radius R is linked whole only from a distance of
-    /// at least R / ACCURACY (it bounds the angle a link subtends). Smaller is more accurate
-    /// and larger; accepted 0.02 to 1.
-    #[arg(long, default_value_t = HierarchyParams::default().accuracy)]
-    accuracy: f32,
-    /// How S is stored inside translucent objects: `pairwise` (one entry per patch pair
-    /// within the profile's reach), `hierarchical` (near pairs as pairs, far parts of the
-    /// object through whole cluster nodes of F's tree; needs `--transport hierarchical`),
-    /// or `auto` (default): hierarchical with the hierarchical transport unless `--inverse`
-    /// asks for T (which needs a pairwise S), pairwise otherwise.
-    #[arg(long, value_enum, default_value_t = SubsurfaceArg::Auto)]
-    subsurface: SubsurfaceArg,
-    /// Hierarchical S only: a node of radius R is linked whole only from a distance of at
-    /// least R / S_ACCURACY; accepted 0.05 to 1.
-    #[arg(long, default_value_t = SLinkParams::default().accuracy)]
-    s_accuracy: f32,
-    /// Hierarchical S only: link cluster nodes from this many receiver sizes away (1 to 3,
-    /// default 1; 1.5 comes a little closer to the pairwise S), each link read at two
-    /// distances (the node's straight-line spread about its representative's optical
-    /// distance). Nearer links store fewer direct pairs: a translucency change writes fewer
-    /// entries and the subsurface stage takes less time.
-    #[arg(long, value_name = "K", default_value_t = DEFAULT_LINK_NEAR)]
-    s_link_near: f32,
-    /// Hierarchical S only: the largest relative variation of the profile across a linked
-    /// node, (R(d − ρ) − R(d + ρ)) / mean, at every translucency from ×1/8 to ×8 of the
-    /// scene's (0.01 to 2; smaller is more accurate and stores more). Nodes too small to
-    /// matter (10⁻⁶ of the total reflectance) are linked whatever it is.
-    #[arg(long, default_value_t = LinkTolerance::DEFAULT_VARIATION)]
-    s_link_variation: f32,
-    /// Dense F only: drop form factors below this value and report the power they carried.
-    #[arg(long, default_value_t = 0.0)]
-    threshold: f32,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
-    /// Refuse when the estimated peak memory exceeds this many GiB (default: 85% of free).
-    #[arg(long)]
-    max_memory_gib: Option<f64>,
+    #[command(flatten)]
+    options: PrecomputeOptions,
+    /// Folder to write the bundle to (replaced atomically if it exists). For an animated
+    /// scene, the sequence folder: one bundle per frame and `sequence.json`; a rerun keeps
+    /// the frames whose inputs did not change (it resumes).
+    #[arg(
+        long,
+        required_unless_present = "resimulate",
+        help_heading = "Output",
+        display_order = 0
+    )]
+    out: Option<PathBuf>,
     /// No progress bars or stage lines.
     #[arg(long, short)]
     quiet: bool,
@@ -108,10 +62,6 @@ struct Cli {
     /// after. Give the scene and the same settings as the shards.
     #[arg(long, value_name = "K", conflicts_with = "resimulate", value_parser = parse_count)]
     merge: Option<u32>,
-    /// Environment-light visibility bins, ROWSxCOLS (default 16x32: 2 bytes per patch and
-    /// bin), or 0 to skip the stage (environment lights are then refused for the bundle).
-    #[arg(long, value_name = "ROWSxCOLS")]
-    env_bins: Option<String>,
 }
 
 /// `--resimulate`: walks again, prints what changed.
@@ -212,21 +162,6 @@ fn sequence(
     Ok(())
 }
 
-/// `--subsurface`.
-#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
-enum SubsurfaceArg {
-    Auto,
-    Pairwise,
-    Hierarchical,
-}
-
-/// `--transport`.
-#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum)]
-enum TransportArg {
-    Dense,
-    Hierarchical,
-}
-
 /// `--shard I/K`: computes the part, prints what it holds.
 fn print_part(
     name: &str,
@@ -277,32 +212,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         return resimulate(&cli);
     }
     let out = cli.out.clone().context("--out DIR is required")?;
-    if !(cli.threshold.is_finite() && (0.0..1.0).contains(&cli.threshold)) {
-        bail!("--threshold must be in [0, 1), got {}", cli.threshold);
-    }
-    let hierarchy = HierarchyParams {
-        accuracy: cli.accuracy,
-        ..Default::default()
+    let params = PrecomputeParams {
+        progress: !cli.quiet,
+        ..cli.options.params().map_err(anyhow::Error::msg)?
     };
-    let transport = match cli.transport {
-        TransportArg::Dense => FormFactorMethod::Dense,
-        TransportArg::Hierarchical => {
-            hierarchy.check().map_err(anyhow::Error::msg)?;
-            if cli.threshold > 0.0 {
-                bail!(
-                    "--threshold drops entries of a dense F; use it with --transport dense \
-                     (a hierarchical F is bounded by --accuracy instead)"
-                );
-            }
-            FormFactorMethod::Hierarchical(hierarchy)
-        }
-    };
-    if let Some(t) = cli.threads {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t.max(1))
-            .build_global()
-            .context("setting up the thread pool")?;
-    }
+    cli.options
+        .build_global_thread_pool()
+        .map_err(anyhow::Error::msg)?;
     let t0 = Instant::now();
     let source = scene::read_scene(&cli.scene)?;
     let animated = source.file.animation.is_some();
@@ -317,42 +233,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         )?)
     };
     let load_s = t0.elapsed().as_secs_f64();
-    let subsurface_links = match cli.subsurface {
-        SubsurfaceArg::Pairwise => None,
-        SubsurfaceArg::Auto if !pipeline::hierarchical_s_by_default(&transport, cli.inverse) => {
-            None
-        }
-        SubsurfaceArg::Auto | SubsurfaceArg::Hierarchical => Some(SLinkParams {
-            accuracy: cli.s_accuracy,
-            near: cli.s_link_near,
-            tolerance: LinkTolerance {
-                variation: cli.s_link_variation,
-                ..LinkTolerance::default()
-            },
-            ..SLinkParams::default()
-        }),
-    };
-    let params = PrecomputeParams {
-        patches: cli.patches,
-        max_edge: cli.max_edge,
-        form_factors: FormFactorParams {
-            threshold: cli.threshold,
-            ..Default::default()
-        },
-        transport,
-        memory_limit: cli.max_memory_gib.map(|g| (g * (1u64 << 30) as f64) as u64),
-        progress: !cli.quiet,
-        inverse: cli.inverse,
-        subsurface_links,
-        environment: match cli.env_bins.as_deref() {
-            None => Default::default(),
-            Some(text) => translux_engine::envvis::EnvVisParams {
-                bins: translux_engine::envvis::parse_bins(text).map_err(anyhow::Error::msg)?,
-                ..Default::default()
-            },
-        },
-        ..Default::default()
-    };
     let Some(loaded) = loaded else {
         if cli.shard.is_some() || cli.merge.is_some() {
             bail!(

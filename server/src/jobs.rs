@@ -21,11 +21,15 @@
 //!   next check (before each stage, between form-factor rows, every few random walks).
 //!   A re-simulation's walks also stop at the submitter's work limit
 //!   ([`JobSpec::work_limit`]): the job fails saying how long they would take.
-//! - **Restarts**: each record is a small JSON file in the jobs folder, rewritten at every
-//!   change of state. On start-up ([`Jobs::start`]) a job found `queued` or `running` is
-//!   marked `failed` ("the server stopped before the job finished"), its temporary bundle
-//!   folders (`BUNDLES/.ID.tmp-*`) and its upload folder are removed: a restart never leaves
-//!   half a bundle.
+//! - **Restarts and several servers**: each record is a small JSON file in the jobs folder,
+//!   rewritten at every change of state, and a running job holds an exclusive lock on its
+//!   `ID.lock` beside it. On start-up ([`Jobs::start`]) a job found `queued` or `running`
+//!   whose lock is free (its server is gone) is marked `failed` ("the server stopped before
+//!   the job finished"), its upload folder removed, and temporary bundle folders
+//!   (`BUNDLES/.ID.tmp-*`) no live process here writes and unchanged for ten minutes are
+//!   removed: a restart never leaves half a bundle, and a server starting beside another on
+//!   a shared folder leaves that server's running jobs alone. Records another server wrote
+//!   are listed and served too.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -39,12 +43,11 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
 use translux_engine::stop::{Stop, StopFlag};
 use translux_precompute::bundle::{Writers, settle_leftovers};
+use translux_precompute::options::PrecomputeOptions;
 use translux_precompute::pipeline::{
-    Observer, PrecomputeError, PrecomputeParams, available_memory, hierarchical_s_by_default,
-    precompute, resident_memory,
+    Observer, PrecomputeError, PrecomputeParams, available_memory, precompute, resident_memory,
 };
 use translux_precompute::scene::load_scene_file;
-use translux_precompute::slinks::SLinkParams;
 use translux_proto::scene::Material;
 
 use crate::error::AppError;
@@ -742,18 +745,19 @@ impl Jobs {
                 .file_name()
                 .map_or_else(|| "scene.json".into(), |f| f.to_string_lossy().into_owned());
             scene.source = format!("upload:{}/{file}", spec.id);
-            // As `translux-precompute`'s default (`--subsurface auto`); no T is made for
-            // uploads.
-            let mut params = PrecomputeParams {
+            // `translux-precompute --patches N` or `--max-edge L` at its other defaults
+            // (`--subsurface auto` resolved there); no T is made for uploads.
+            let options = PrecomputeOptions {
                 patches: spec.patches,
                 max_edge: spec.max_edge,
+                ..Default::default()
+            };
+            let params = PrecomputeParams {
                 progress: false,
                 memory_limit,
                 observer: Some(observer.clone()),
-                ..Default::default()
+                ..options.params()?
             };
-            params.subsurface_links = hierarchical_s_by_default(&params.transport, params.inverse)
-                .then(SLinkParams::default);
             let report = self
                 .inner
                 .rayon

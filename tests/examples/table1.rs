@@ -20,16 +20,20 @@
 //! paper's horses are a 48-frame gallop) and reports per-frame precompute, memory and
 //! playback relights in a table of its own.
 //!
-//! Flags: `--quick`, `--full` (the paper's polygon counts: Cornell 24,640, the whole bunny
-//! and 73,256 patches, the rose at 72,474, two horses at ~63,000), `--scenes cornell,bowls,flower,horses`, `--backend auto|cpu|gpu`,
-//! `--no-mitsuba`, `--reps N`, `--out DIR` (default `bench/results`), `--t-max N` (largest
-//! patch count for which T is computed; the dense LU is O(N³) and needs 22 N² bytes),
-//! `--subsurface auto|pairwise|hierarchical` (default `auto`, as `translux-precompute`'s: a
-//! hierarchical S where T is not computed, pairwise where it is),
-//! `--keep DIR` (bundles are kept in DIR, and a scene whose bundle is already there is
-//! relit again without its precompute: for profiling relights of long precomputes; the
-//! kept bundle is not checked against the scene, so empty DIR after changing either).
-//!
+//! Flags (`--help` lists them): `--quick`, `--full` (the paper's polygon counts: Cornell
+//! 24,640, the whole bunny and 73,256 patches, the rose at 72,474, two horses at ~63,000),
+//! `--scenes cornell,bowls,flower,horses`, `--backend auto|cpu|gpu`, `--no-mitsuba`,
+//! `--reps N`, `--out DIR` (default `bench/results`), `--t-max N` (largest patch count for
+//! which T is computed; the dense LU is O(N³) and needs 22 N² bytes), `--keep DIR` (bundles
+//! are kept in DIR, and a scene whose bundle is already there is relit again without its
+//! precompute: for profiling relights of long precomputes; the kept bundle is not checked
+//! against the scene, so empty DIR after changing either), and `translux-precompute`'s own
+//! settings ([`PrecomputeOptions`]: `--subsurface auto|pairwise|hierarchical`, `--s-accuracy`,
+//! `--s-link-near`, `--s-link-variation`, `--transport`, `--accuracy`, ...), with the same
+//! names, defaults and checks. `--subsurface auto` is, as there, a hierarchical S where T is
+//! not computed (above `--t-max` patches) and pairwise where it is; `--patches N` runs every
+//! scene at N patches instead of its sizes; `--inverse` computes T at every size.
+
 //! Sizes: by default the bunny (69k triangles) and the horse (97k) are simplified
 //! (`simplify_to`) to keep the run short; `--full` runs the paper's polygon counts, which
 //! the hierarchical F (the default transport) makes fit: dense F at 73k patches would
@@ -40,17 +44,16 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use clap::Parser;
 use serde::Serialize;
 use serde_json::{Value, json};
 use translux_engine::radiosity::Rgb;
 use translux_engine::relight;
 use translux_engine::scene::Scene;
 use translux_precompute::builtin::builtin_scene;
-use translux_precompute::pipeline::{
-    FormFactorMethod, PrecomputeParams, hierarchical_s_by_default, precompute,
-};
+use translux_precompute::options::{PrecomputeOptions, Subsurface};
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::resolve_scene;
-use translux_precompute::slinks::SLinkParams;
 use translux_proto::api::RelightStats;
 use translux_proto::bundle::MANIFEST_FILE;
 use translux_proto::light::Light;
@@ -59,13 +62,6 @@ use translux_proto::scene::{
 };
 use translux_server::backend::{Backend, BackendChoice};
 use translux_tests::{mitsuba, scans};
-
-/// What `--help` prints, and an unknown flag's error after it.
-const USAGE: &str = "usage: table1 [--quick | --full] [--scenes cornell,bowls,flower,horses,cornell_simulated,gallop] \
-[--backend auto|cpu|gpu] [--no-mitsuba] [--reps N] [--out DIR] [--t-max N] \
-[--subsurface auto|pairwise|hierarchical] [--s-accuracy X] [--s-link-near K] \
-[--s-link-variation TAU] [--keep DIR]
-(flags: docs/benchmarks.md, or this example's top comment)";
 
 /// A row of the paper's Table 1 (GTX 590, quad-core i7).
 #[derive(Debug, Clone, Serialize)]
@@ -145,122 +141,84 @@ struct MitsubaRow {
     extrapolated: bool,
 }
 
+/// The paper's Table 1 on this machine, and translux against a path tracer (the flags:
+/// docs/benchmarks.md).
+#[derive(Debug, Parser)]
+#[command(name = "table1")]
 struct Args {
+    /// Small sizes (3,000–10,000 patches), for a quick look.
+    #[arg(long, conflicts_with = "full")]
     quick: bool,
     /// The paper's polygon counts, meshes unsimplified where the paper's count allows.
+    #[arg(long)]
     full: bool,
+    /// Run only these scenes (`gallop`, the animated horses, is not in the default set).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "cornell,bowls,flower,horses",
+        value_parser = ["cornell", "bowls", "flower", "horses", "cornell_simulated", "gallop"]
+    )]
     scenes: Vec<String>,
+    /// Which backend relights (`auto`: a hardware GPU if there is one).
+    #[arg(long, value_enum, default_value_t = BackendChoice::Auto)]
     backend: BackendChoice,
-    mitsuba: bool,
+    /// Without the comparison against Mitsuba 3's path tracer.
+    #[arg(long)]
+    no_mitsuba: bool,
+    /// Timed repetitions of each relight.
+    #[arg(long, value_name = "N", default_value_t = 5)]
     reps: usize,
-    out: PathBuf,
+    /// Folder of the results (default: `bench/results`).
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Largest patch count for which T is computed (the dense LU is O(N³) and needs 22 N²
+    /// bytes).
+    #[arg(long, value_name = "N", default_value_t = 6_100)]
     t_max: u64,
-    /// `--subsurface hierarchical`: S with links to cluster nodes.
-    s_links: Option<SLinkParams>,
-    /// `--subsurface auto` (the default, as `translux-precompute`'s): a hierarchical S where
-    /// T is not computed (above `--t-max` patches), pairwise where it is.
-    s_auto: bool,
-    /// `--keep DIR`: bundles are kept in DIR, and one already there is relit again instead
-    /// of precomputed (for profiling the relight of a scene whose precompute is long).
+    /// Bundles are kept in DIR, and one already there is relit again instead of
+    /// precomputed (for profiling the relight of a scene whose precompute is long; the kept
+    /// bundle is not checked against the scene).
+    #[arg(long, value_name = "DIR")]
     keep: Option<PathBuf>,
+    /// `translux-precompute`'s settings. `--patches N`: every scene at N patches instead of
+    /// its sizes; `--inverse`: T at every size, not only up to `--t-max`.
+    #[command(flatten)]
+    precompute: PrecomputeOptions,
 }
 
-fn args() -> anyhow::Result<Args> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let mut a = Args {
-        quick: false,
-        full: false,
-        scenes: ["cornell", "bowls", "flower", "horses"]
-            .map(String::from)
-            .to_vec(),
-        backend: BackendChoice::Auto,
-        mitsuba: true,
-        reps: 5,
-        out: root.join("bench/results"),
-        t_max: 6_100,
-        s_links: None,
-        s_auto: true,
-        keep: None,
-    };
-    let mut it = std::env::args().skip(1);
-    while let Some(flag) = it.next() {
-        match flag.as_str() {
-            "--quick" => a.quick = true,
-            "--full" => a.full = true,
-            "--no-mitsuba" => a.mitsuba = false,
-            "--scenes" => {
-                a.scenes = it
-                    .next()
-                    .context("--scenes a,b")?
-                    .split(',')
-                    .map(String::from)
-                    .collect()
-            }
-            "--backend" => {
-                a.backend = match it.next().as_deref() {
-                    Some("auto") => BackendChoice::Auto,
-                    Some("cpu") => BackendChoice::Cpu,
-                    Some("gpu") => BackendChoice::Gpu,
-                    other => bail!("--backend auto|cpu|gpu, not {other:?}"),
-                }
-            }
-            "--reps" => a.reps = it.next().context("--reps N")?.parse()?,
-            "--out" => a.out = PathBuf::from(it.next().context("--out DIR")?),
-            "--t-max" => a.t_max = it.next().context("--t-max N")?.parse()?,
-            "--keep" => a.keep = Some(PathBuf::from(it.next().context("--keep DIR")?)),
-            "--subsurface" => {
-                (a.s_auto, a.s_links) = match it.next().as_deref() {
-                    Some("auto") => (true, None),
-                    Some("pairwise") => (false, None),
-                    Some("hierarchical") => (false, Some(SLinkParams::default())),
-                    other => bail!("--subsurface auto|pairwise|hierarchical, not {other:?}"),
-                }
-            }
-            "--s-accuracy" => {
-                a.s_auto = false;
-                let theta: f32 = it.next().context("--s-accuracy X")?.parse()?;
-                a.s_links.get_or_insert_with(SLinkParams::default).accuracy = theta;
-            }
-            "--s-link-near" => {
-                a.s_auto = false;
-                let k = it.next().context("--s-link-near K")?;
-                a.s_links.get_or_insert_with(SLinkParams::default).near = k.parse()?;
-            }
-            "--s-link-variation" => {
-                a.s_auto = false;
-                let v = it.next().context("--s-link-variation TAU")?;
-                a.s_links
-                    .get_or_insert_with(SLinkParams::default)
-                    .tolerance
-                    .variation = v.parse()?;
-            }
-            "--help" | "-h" => {
-                println!("{USAGE}");
-                std::process::exit(0);
-            }
-            other => bail!("unknown argument {other:?}\n{USAGE}"),
+impl Args {
+    fn parse_checked() -> anyhow::Result<Args> {
+        let a = Args::parse();
+        if a.precompute.max_edge.is_some() {
+            bail!("--max-edge: table1 sizes its scenes by patch count (--patches N)");
         }
+        // The settings are checked once, before any scene is built.
+        a.precompute.params().map_err(anyhow::Error::msg)?;
+        a.precompute
+            .build_global_thread_pool()
+            .map_err(anyhow::Error::msg)?;
+        Ok(a)
     }
-    if a.quick && a.full {
-        bail!("--quick and --full exclude each other");
-    }
-    for s in &a.scenes {
-        if ![
-            "cornell",
-            "bowls",
-            "flower",
-            "horses",
-            "cornell_simulated",
-            "gallop",
-        ]
-        .contains(&s.as_str())
-        {
-            bail!(
-                "unknown scene {s:?} (cornell, bowls, flower, horses, cornell_simulated, gallop)"
-            );
+
+    /// The precompute's settings for `patches` patches: T up to `--t-max` patches (or at
+    /// every size with `--inverse`) unless S is to be hierarchical, which T cannot have.
+    fn params(&self, patches: u64) -> anyhow::Result<PrecomputeParams> {
+        let o = &self.precompute;
+        let inverse =
+            o.inverse || (patches <= self.t_max && o.subsurface != Subsurface::Hierarchical);
+        let params = PrecomputeOptions {
+            patches: Some(patches),
+            inverse,
+            ..o.clone()
         }
+        .params()
+        .map_err(anyhow::Error::msg)?;
+        Ok(PrecomputeParams {
+            progress: true,
+            ..params
+        })
     }
-    Ok(a)
 }
 
 fn obj(name: &str, file: &str, translate: [f32; 3], rotate: [f32; 3], scale: f32) -> ObjectDesc {
@@ -482,8 +440,14 @@ fn specs(a: &Args) -> anyhow::Result<Vec<Spec>> {
             }
             // Measured on its own (`measure_gallop`): a sequence, not one bundle.
             "gallop" => {}
-            _ => unreachable!("checked in args()"),
+            _ => unreachable!("checked by clap"),
         }
+    }
+    if let Some(n) = a.precompute.patches {
+        for s in &mut out {
+            s.patches = n;
+        }
+        out.dedup_by(|x, y| x.key == y.key && x.patches == y.patches);
     }
     Ok(out)
 }
@@ -674,21 +638,8 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
         format!("table1:{}", spec.key),
     )?;
     let dir = work.join(format!("{}-{}", spec.key, spec.patches));
-    // T needs a pairwise S.
-    let s_links = if a.s_auto {
-        hierarchical_s_by_default(&FormFactorMethod::default(), spec.patches <= a.t_max)
-            .then(SLinkParams::default)
-    } else {
-        a.s_links
-    };
-    let inverse = spec.patches <= a.t_max && s_links.is_none();
-    let params = PrecomputeParams {
-        patches: Some(spec.patches),
-        inverse,
-        subsurface_links: s_links,
-        progress: true,
-        ..Default::default()
-    };
+    let params = a.params(spec.patches)?;
+    let inverse = params.inverse;
     eprintln!(
         "== {} at {} patches{}",
         spec.title,
@@ -874,7 +825,7 @@ fn measure(spec: &Spec, a: &Args, work: &Path, backend: &Backend) -> anyhow::Res
             );
         }
     }
-    if a.mitsuba {
+    if !a.no_mitsuba {
         row.mitsuba = against_mitsuba(&scene, a.quick)?;
     }
     drop(scene);
@@ -1101,7 +1052,7 @@ fn main() -> anyhow::Result<()> {
             .with_writer(std::io::stderr)
             .init();
     }
-    let a = args()?;
+    let a = Args::parse_checked()?;
     let b = Backend::start(a.backend, None).map_err(|e| anyhow::anyhow!("--backend: {e}"))?;
     eprintln!("backend: {}", b.describe());
     // Bundles go beside the build (they are large), in a folder made if missing: with
@@ -1142,7 +1093,11 @@ fn main() -> anyhow::Result<()> {
         md += &gallop_markdown(g);
     }
     println!("{md}");
-    std::fs::create_dir_all(&a.out)?;
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/results"));
+    std::fs::create_dir_all(&out)?;
     let stem = if a.scenes == ["gallop"] {
         if a.quick {
             "table1-gallop-quick"
@@ -1156,7 +1111,7 @@ fn main() -> anyhow::Result<()> {
     } else {
         "table1"
     };
-    let md_path = a.out.join(format!("{stem}-{date}.md"));
+    let md_path = out.join(format!("{stem}-{date}.md"));
     std::fs::write(&md_path, &md)?;
     let mut doc = BTreeMap::new();
     doc.insert("date", json!(date));
@@ -1166,7 +1121,7 @@ fn main() -> anyhow::Result<()> {
         doc.insert("gallop", serde_json::to_value(g)?);
     }
     std::fs::write(
-        a.out.join(format!("{stem}-{date}.json")),
+        out.join(format!("{stem}-{date}.json")),
         serde_json::to_string_pretty(&doc)?,
     )?;
     eprintln!("saved {} and .json", md_path.display());
@@ -1233,10 +1188,14 @@ fn measure_gallop(a: &Args, work: &Path, backend: &Backend) -> anyhow::Result<Ga
             o.simplify_to = Some(tris);
         }
     }
-    let params = PrecomputeParams {
+    // No T for a sequence (unless --inverse); S as `translux-precompute` makes it.
+    let patches = a.precompute.patches.unwrap_or(patches);
+    let params = PrecomputeOptions {
         patches: Some(patches),
-        ..Default::default()
-    };
+        ..a.precompute.clone()
+    }
+    .params()
+    .map_err(anyhow::Error::msg)?;
     let dir = work.join("gallop");
     eprintln!("== animated horses: 48 frames at {patches} patches each");
     let t0 = Instant::now();
