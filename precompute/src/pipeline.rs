@@ -537,17 +537,19 @@ fn run(
     let rows = match split {
         Split::Whole => transport_rows(patches, &occ, params, &mut stages.times)?,
         Split::Shard(shard) => {
-            let plan = plan_of(patches, &occluder_tris, params);
-            return shard_rows(patches, &occ, params, out, (shard, plan)).map(Outcome::Part);
+            let tree = hierarchy::ClusterTree::build(patches);
+            let plan = plan_of(patches, &occluder_tris, &tree, params);
+            return shard_rows(patches, &occ, params, out, (shard, plan, &tree)).map(Outcome::Part);
         }
         Split::Merge(count) => {
-            let plan = plan_of(patches, &occluder_tris, params);
+            let tree = hierarchy::ClusterTree::build(patches);
+            let plan = plan_of(patches, &occluder_tris, &tree, params);
             merged_rows(
                 scene,
                 patches,
                 params,
                 out,
-                (count, plan),
+                (count, plan, tree),
                 &mut stages.times,
             )?
         }
@@ -1849,26 +1851,21 @@ fn environment_rows(
 /// The fingerprint of what the receiver rows depend on ([`crate::shard::plan_hash`]): the
 /// bundle format, the patches, the source triangles, the tree and the F and environment
 /// settings.
-fn plan_of(patches: &Patches, occluder_tris: &[[Vec3; 3]], params: &PrecomputeParams) -> u64 {
-    let corners: Vec<f32> = patches
-        .corners
-        .iter()
-        .flat_map(|c| c.iter().flat_map(|v| v.to_array()))
-        .collect();
-    let sources: Vec<f32> = occluder_tris
-        .iter()
-        .flat_map(|c| c.iter().flat_map(|v| v.to_array()))
-        .collect();
-    let tree = hierarchy::ClusterTree::build(patches);
+fn plan_of(
+    patches: &Patches,
+    occluder_tris: &[[Vec3; 3]],
+    tree: &hierarchy::ClusterTree,
+    params: &PrecomputeParams,
+) -> u64 {
     let settings = format!(
         "{:?}|{:?}|{:?}",
         params.form_factors, params.transport, params.environment
     );
     crate::shard::plan_hash(&[
         &FORMAT_VERSION.to_le_bytes(),
-        bytemuck::cast_slice(&corners),
+        bytemuck::cast_slice(&patches.corners),
         bytemuck::cast_slice(&patches.object),
-        bytemuck::cast_slice(&sources),
+        bytemuck::cast_slice(occluder_tris),
         bytemuck::cast_slice(&tree.perm),
         settings.as_bytes(),
     ])
@@ -1881,7 +1878,7 @@ fn shard_rows(
     occ: &Occluder,
     params: &PrecomputeParams,
     out: &Path,
-    (shard, plan): (Shard, u64),
+    (shard, plan, tree): (Shard, u64, &hierarchy::ClusterTree),
 ) -> Result<PartReport, PrecomputeError> {
     let rows = shard.rows(patches.len());
     if crate::shard::finished(out, shard, plan).map_err(PrecomputeError::Shard)? {
@@ -1904,13 +1901,12 @@ fn shard_rows(
     let bar = stage_bar(params.progress, rows.len() as u64, "form factors");
     let done = std::sync::atomic::AtomicU64::new(0);
     let stop = || params.observer.as_ref().is_some_and(|o| o.cancelled());
-    let tree = hierarchy::ClusterTree::build(patches);
     let block = hierarchy::compute_rows(
         patches,
         occ,
         &params.form_factors,
         hp,
-        &tree,
+        tree,
         rows.clone(),
         &row_progress(&bar, params, &done, rows.len() as u64),
         &stop,
@@ -1939,7 +1935,7 @@ fn merged_rows(
     patches: &Patches,
     params: &PrecomputeParams,
     out: &Path,
-    (count, plan): (u32, u64),
+    (count, plan, tree): (u32, u64, hierarchy::ClusterTree),
     stages: &mut Vec<StageTime>,
 ) -> Result<TransportRows, PrecomputeError> {
     let FormFactorMethod::Hierarchical(hp) = &params.transport else {
@@ -1973,7 +1969,7 @@ fn merged_rows(
         }
         blocks.push(p.block);
     }
-    let h = hierarchy::assemble(hierarchy::ClusterTree::build(patches), hp, blocks);
+    let h = hierarchy::assemble(tree, hp, blocks);
     let ranges = h.tree.ranges();
     stages.push(StageTime {
         stage: "form factors (shards)".into(),
