@@ -351,6 +351,9 @@ pub struct Slant {
     /// Where row i's weights start in `w` (N + 1 offsets; empty rows outside the simulated
     /// objects).
     start: Vec<usize>,
+    /// The column of F's stored matrix each weight goes with (a patch's whole row: its
+    /// own entries and a two-sided F's node rows that hold it, [`Transport::patch_row`]).
+    cols: Vec<u32>,
     w: Vec<[f32; 3]>,
 }
 
@@ -364,17 +367,17 @@ impl Slant {
         let mut at = Pulled::default();
         f.pull(&flat, 3, &mut at);
         let from = &at.values;
-        let matrix = f.matrix();
         let mut simulated = vec![false; n];
         for r in &tilt.ranges {
             simulated[r.clone()].fill(true);
         }
         let harmonic = tilt.has_harmonic();
-        let rows: Vec<Vec<[f32; 3]>> = (0..n)
+        let holders = f.holders(|p| simulated[p]);
+        let rows: Vec<(Vec<u32>, Vec<[f32; 3]>)> = (0..n)
             .into_par_iter()
             .map(|i| {
                 if !simulated[i] {
-                    return Vec::new();
+                    return Default::default();
                 }
                 let (p, nrm) = (geo.centroid[i], geo.normal[i]);
                 let (fu, fv) = if harmonic {
@@ -382,9 +385,10 @@ impl Slant {
                 } else {
                     (Vec3::ZERO, Vec3::ZERO)
                 };
-                let (cols, vals) = matrix.row(i);
-                cols.iter()
-                    .zip(vals)
+                let (cols, vals) = f.patch_row(i, &holders[i]);
+                let w = cols
+                    .iter()
+                    .zip(&vals)
                     .map(|(&c, &fij)| {
                         let c = c as usize;
                         let src = Vec3::new(from[3 * c], from[3 * c + 1], from[3 * c + 2]);
@@ -394,15 +398,20 @@ impl Slant {
                             [fij * (3.0 * mu - 2.0), fij * d.dot(fu), fij * d.dot(fv)]
                         })
                     })
-                    .collect()
+                    .collect();
+                (cols, w)
             })
             .collect();
         let mut start = vec![0usize; n + 1];
         for (i, r) in rows.iter().enumerate() {
-            start[i + 1] = start[i] + r.len();
+            start[i + 1] = start[i] + r.0.len();
         }
-        let w = rows.concat();
-        Slant { start, w }
+        let (cols, w): (Vec<Vec<u32>>, Vec<Vec<[f32; 3]>>) = rows.into_iter().unzip();
+        Slant {
+            start,
+            cols: cols.concat(),
+            w: w.concat(),
+        }
     }
 }
 
@@ -418,14 +427,13 @@ pub fn interreflected_moments(slant: &Slant, f: &Transport<'_>, x: &[f32], k: us
     let mut pulled = Pulled::default();
     f.pull(x, ch, &mut pulled);
     let xbar = &pulled.values;
-    let matrix = f.matrix();
     let mut out = vec![0.0f32; n * 4 * ch];
     out.par_chunks_mut(4 * ch)
         .with_min_len(16)
         .enumerate()
         .filter(|(i, _)| slant.start[i + 1] > slant.start[*i])
         .for_each(|(i, e)| {
-            let cols = matrix.row(i).0;
+            let cols = &slant.cols[slant.start[i]..slant.start[i + 1]];
             let ws = &slant.w[slant.start[i]..slant.start[i + 1]];
             // Plan by plan, each summed in registers and stored once: adding into `e`
             // entry by entry made every add wait on the store before it (2.7 times

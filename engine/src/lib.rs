@@ -45,9 +45,11 @@
 //!   [`environment`] — environment lights (map paths and cache, E from visibility);
 //!   [`relight`] — a request checked against a scene ([`relight::plan`]) and computed
 //!   ([`relight::run`], [`relight::run_batch`]: the six components, T or the solver, warm
-//!   starts); [`picture`] — renders and exports of a relight. Failures are
-//!   [`error::EngineError`]s; [`stop`] — long work (lamp walks) stopped by its caller or
-//!   its time limit.
+//!   starts), a pipeline whose stages are its submodules: `prepare` (direct light and S for
+//!   a plan's materials), `transport` (per group of plans: the transport and its solve) and
+//!   `colours` (vertex colours and stats); [`picture`] — renders and exports of a relight.
+//!   Failures are [`error::EngineError`]s; [`stop`] — long work (lamp walks) stopped by its
+//!   caller or its time limit.
 //!
 //! Crate graph: `proto ← engine ← {precompute, server (with its wgpu backend)}`; see
 //! `docs/architecture.md`.

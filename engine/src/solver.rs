@@ -573,13 +573,18 @@ fn jacobi(
         match (params.method, sys.k.diagonal()) {
             (Method::GaussSeidel, Some(rho)) => {
                 // Patches are read as they are updated; cluster nodes (hierarchical F) hold
-                // their means from the start of the sweep.
+                // their means from the start of the sweep, and what nodes receive (a
+                // two-sided F's node rows) is gathered once then.
                 let n = x.len() / ch;
                 sys.f.pull(x, ch, &mut sys.pulled);
                 let nodes = &sys.pulled.values;
+                let held = sys.f.node_rows_pushed(nodes, ch);
                 let mut acc = vec![0.0f32; ch];
                 for i in 0..n {
-                    acc.fill(0.0);
+                    match &held {
+                        Some(h) => acc.copy_from_slice(&h[i * ch..(i + 1) * ch]),
+                        None => acc.fill(0.0),
+                    }
                     let (cols, vals) = sys.f.matrix().row(i);
                     for (&j, &v) in cols.iter().zip(vals) {
                         let j = j as usize;

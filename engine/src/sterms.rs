@@ -845,6 +845,207 @@ impl Links {
             + self.two.len() * 8
             + self.opposite.len()
     }
+
+    /// Every link of an object's `n` receivers (scene patches `start..start + n`) as
+    /// (source node, its receiver's position in the tree's order, link), sorted
+    /// ([`ObjectTerms::with_node_pairs`]).
+    fn by_source(&self, nodes: &Nodes, start: usize, n: usize) -> Vec<(u32, u32, u32)> {
+        let big_n = nodes.perm.len() as u32;
+        let mut pos = vec![0u32; n];
+        for (q, &p) in nodes.perm.iter().enumerate() {
+            let j = (p as usize).wrapping_sub(start);
+            if j < n {
+                pos[j] = q as u32;
+            }
+        }
+        let mut by: Vec<(u32, u32, u32)> = Vec::with_capacity(self.col.len());
+        for (j, &q) in pos.iter().enumerate() {
+            for e in self.ptr[j]..self.ptr[j + 1] {
+                by.push((self.col[e as usize] - big_n, q, e));
+            }
+        }
+        by.par_sort_unstable();
+        by
+    }
+
+    /// The node links of the receiver cut's sources ([`ReceiverCut::cover`]), by receiver
+    /// node and then column, and which of these links they cover.
+    fn gather(&self, cut: Vec<(Vec<NodePair>, Vec<u32>)>) -> (Vec<NodePair>, Vec<bool>) {
+        let mut removed = vec![false; self.col.len()];
+        let mut pairs: Vec<NodePair> = Vec::new();
+        for (taken, covered) in cut {
+            pairs.extend(taken);
+            for e in covered {
+                removed[e as usize] = true;
+            }
+        }
+        // The node rows, by receiver node, columns ascending.
+        pairs.par_sort_unstable_by_key(|&(m, e, ..)| (m, self.col[e as usize]));
+        (pairs, removed)
+    }
+
+    /// The node rows of `pairs` (sorted by [`Links::gather`]), one per receiver node, and
+    /// those nodes ascending: each link at the column and side of a link it covers, read at
+    /// the covered distances' mean and spread ([`two_point_roots`]).
+    fn node_rows_of(&self, pairs: &[NodePair]) -> (Links, Vec<u32>) {
+        let mut p = Links {
+            ptr: vec![0],
+            nodes: self.nodes.clone(),
+            ..Default::default()
+        };
+        let mut recv: Vec<u32> = Vec::new();
+        for &(m, e, mean, spread) in pairs {
+            if recv.last().is_some_and(|&last| last != m) {
+                p.ptr.push(p.col.len() as u32);
+            }
+            if recv.last() != Some(&m) {
+                recv.push(m);
+            }
+            // The column and side of any covered link; the distances of them all.
+            let root = mean.max(0.0).sqrt();
+            p.col.push(self.col[e as usize]);
+            p.opposite.push(self.opposite[e as usize]);
+            p.root.push(root);
+            p.two
+                .push(two_point_roots(mean, spread).unwrap_or([root, root]));
+        }
+        if !recv.is_empty() {
+            p.ptr.push(p.col.len() as u32);
+        }
+        (p, recv)
+    }
+
+    /// The links left where `removed` is false, by the same receivers.
+    fn without(&self, removed: &[bool]) -> Links {
+        let take = |out: &mut Links, e: usize| {
+            out.col.push(self.col[e]);
+            out.root.push(self.root[e]);
+            out.opposite.push(self.opposite[e]);
+            if !self.two.is_empty() {
+                out.two.push(self.two[e]);
+            }
+        };
+        let mut kept = Links {
+            ptr: vec![0],
+            nodes: self.nodes.clone(),
+            ..Default::default()
+        };
+        for w in self.ptr.windows(2) {
+            let (a, b) = (w[0] as usize, w[1] as usize);
+            for (e, _) in removed[a..b].iter().enumerate().filter(|(_, gone)| !**gone) {
+                take(&mut kept, a + e);
+            }
+            kept.ptr.push(kept.col.len() as u32);
+        }
+        kept
+    }
+}
+
+/// The receiver side's rule of [`ObjectTerms::with_node_pairs`] over an object's links:
+/// which receiver nodes m one source node's links may be grouped into.
+struct ReceiverCut<'a> {
+    links: &'a Links,
+    /// A node m is small from the source k where ρ_m ≤ θ |c_m − c_k|.
+    theta: f32,
+    nodes: &'a Nodes,
+    shapes: &'a NodeShapes,
+    /// One per profile of the object: each must accept a grouped link's range.
+    bounds: &'a [LinkBound],
+}
+
+/// A receiver node taken for a source: (m, its patches, the first link it covers, the
+/// covered distances' mean and spread).
+type Taken = (u32, usize, u32, f32, f32);
+
+impl ReceiverCut<'_> {
+    /// One source node's links `g` (sorted by receiver position, [`Links::by_source`]):
+    /// its receivers' runs covered, in the tree's order, by the widest nodes that may group
+    /// them ([`ReceiverCut::widest`]); the node links taken and the links they cover.
+    fn cover(&self, g: &[(u32, u32, u32)]) -> (Vec<NodePair>, Vec<u32>) {
+        let (mut taken, mut covered) = (Vec::new(), Vec::new());
+        let mut i = 0;
+        while i < g.len() {
+            let mut run = i + 1;
+            while run < g.len() && g[run].1 == g[run - 1].1 + 1 {
+                run += 1;
+            }
+            let end = g[run - 1].1 as usize + 1;
+            match self.widest(g, i, end) {
+                Some((m, size, first, mean, spread)) => {
+                    taken.push((m, first, mean, spread));
+                    covered.extend(g[i..i + size].iter().map(|t| t.2));
+                    i += size;
+                }
+                None => i += 1,
+            }
+        }
+        (taken, covered)
+    }
+
+    /// The widest node m starting at the receiver position of `g[i]` that ends by `end`
+    /// (within the run of consecutive receivers), is small from the source, has all its
+    /// links on one side of a sheet and a range of distances every bound accepts; `None`
+    /// where there is none.
+    fn widest(&self, g: &[(u32, u32, u32)], i: usize, end: usize) -> Option<Taken> {
+        let (l, nodes, shapes) = (self.links, self.nodes, self.shapes);
+        let ck = shapes.centre[g[0].0 as usize];
+        let q = g[i].1 as usize;
+        shapes.starting(q).iter().find_map(|&m| {
+            let m = m as usize;
+            let [a, b] = nodes.range[m];
+            if b as usize > end || shapes.radius[m] > self.theta * shapes.centre[m].distance(ck) {
+                return None;
+            }
+            let size = (b - a) as usize;
+            let first = g[i].2;
+            let side = l.opposite[first as usize];
+            let covered = &g[i..i + size];
+            if covered.iter().any(|t| l.opposite[t.2 as usize] != side) {
+                return None;
+            }
+            let (mean, spread) = self.distances(covered, &shapes.area_at[q..q + size], g[0].0)?;
+            Some((m as u32, size, first, mean, spread))
+        })
+    }
+
+    /// The `covered` links' distances ρ = root² (a two-point link's as its pair ρ ± s),
+    /// weighted by their receivers' `areas`: their mean and spread, in f64; `None` where
+    /// a bound does not accept their range for the source node `k`.
+    fn distances(&self, covered: &[(u32, u32, u32)], areas: &[f32], k: u32) -> Option<(f32, f32)> {
+        let l = self.links;
+        let (mut w, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for (t, &area) in covered.iter().zip(areas) {
+            let e = t.2 as usize;
+            let rho = (l.root[e] as f64).powi(2);
+            let own = l
+                .two
+                .get(e)
+                .map_or(0.0, |[lo, hi]| (*hi as f64).powi(2) - (*lo as f64).powi(2))
+                / 2.0;
+            let a = area as f64;
+            w += a;
+            s1 += a * rho;
+            s2 += a * (rho * rho + own * own);
+            lo = lo.min(rho - own);
+            hi = hi.max(rho + own);
+        }
+        let source_area = self.nodes.area[k as usize];
+        if !self
+            .bounds
+            .iter()
+            .all(|b| b.accepts_range(lo as f32, hi as f32, source_area))
+        {
+            return None;
+        }
+        let mean = if w > 0.0 { s1 / w } else { 0.0 };
+        let spread = if w > 0.0 {
+            (s2 / w - mean * mean).max(0.0).sqrt()
+        } else {
+            0.0
+        };
+        Some((mean as f32, spread as f32))
+    }
 }
 
 /// Per-block sums of a rebuild, kept between translucency changes: fresh ones cost page
@@ -1483,155 +1684,27 @@ impl ObjectTerms {
         if theta.is_nan() || theta <= 0.0 || self.links.col.is_empty() {
             return self;
         }
-        let big_n = nodes.perm.len() as u32;
         let n = self.row_ptr.len() - 1;
         let l = &self.links;
-        let mut pos = vec![0u32; n];
-        for (q, &p) in nodes.perm.iter().enumerate() {
-            let j = (p as usize).wrapping_sub(start);
-            if j < n {
-                pos[j] = q as u32;
-            }
-        }
         // Every link as (source node, its receiver's position in the tree's order, link).
-        let mut by: Vec<(u32, u32, u32)> = Vec::with_capacity(l.col.len());
-        for (j, &q) in pos.iter().enumerate() {
-            for e in l.ptr[j]..l.ptr[j + 1] {
-                by.push((l.col[e as usize] - big_n, q, e));
-            }
-        }
-        by.par_sort_unstable();
+        let by = l.by_source(nodes, start, n);
         // Per source node, its receivers' runs covered (independent of the other sources).
         let groups: Vec<&[(u32, u32, u32)]> = by.chunk_by(|a, b| a.0 == b.0).collect();
-        let cut: Vec<(Vec<NodePair>, Vec<u32>)> = groups
-            .par_iter()
-            .map(|g| {
-                let ck = shapes.centre[g[0].0 as usize];
-                let (mut taken, mut covered) = (Vec::new(), Vec::new());
-                let mut i = 0;
-                while i < g.len() {
-                    let q = g[i].1 as usize;
-                    let mut run = i + 1;
-                    while run < g.len() && g[run].1 == g[run - 1].1 + 1 {
-                        run += 1;
-                    }
-                    let end = g[run - 1].1 as usize + 1;
-                    let pick = shapes.starting(q).iter().find_map(|&m| {
-                        let m = m as usize;
-                        let [a, b] = nodes.range[m];
-                        if b as usize > end
-                            || shapes.radius[m] > theta * shapes.centre[m].distance(ck)
-                        {
-                            return None;
-                        }
-                        let size = (b - a) as usize;
-                        let first = g[i].2;
-                        let side = l.opposite[first as usize];
-                        let covered = &g[i..i + size];
-                        if covered.iter().any(|t| l.opposite[t.2 as usize] != side) {
-                            return None;
-                        }
-                        // The covered links' distances ρ = root² (a two-point link's as
-                        // its pair ρ ± s): area-weighted mean and spread, in f64.
-                        let (mut w, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
-                        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
-                        for (t, &area) in covered.iter().zip(&shapes.area_at[q..q + size]) {
-                            let e = t.2 as usize;
-                            let rho = (l.root[e] as f64).powi(2);
-                            let own = l.two.get(e).map_or(0.0, |[lo, hi]| {
-                                (*hi as f64).powi(2) - (*lo as f64).powi(2)
-                            }) / 2.0;
-                            let a = area as f64;
-                            w += a;
-                            s1 += a * rho;
-                            s2 += a * (rho * rho + own * own);
-                            lo = lo.min(rho - own);
-                            hi = hi.max(rho + own);
-                        }
-                        let source_area = nodes.area[g[0].0 as usize];
-                        if !bounds
-                            .iter()
-                            .all(|b| b.accepts_range(lo as f32, hi as f32, source_area))
-                        {
-                            return None;
-                        }
-                        let mean = if w > 0.0 { s1 / w } else { 0.0 };
-                        let spread = if w > 0.0 {
-                            (s2 / w - mean * mean).max(0.0).sqrt()
-                        } else {
-                            0.0
-                        };
-                        Some((m as u32, size, first, mean as f32, spread as f32))
-                    });
-                    match pick {
-                        Some((m, size, first, mean, spread)) => {
-                            taken.push((m, first, mean, spread));
-                            covered.extend(g[i..i + size].iter().map(|t| t.2));
-                            i += size;
-                        }
-                        None => i += 1,
-                    }
-                }
-                (taken, covered)
-            })
-            .collect();
+        let rule = ReceiverCut {
+            links: l,
+            theta,
+            nodes,
+            shapes,
+            bounds,
+        };
+        let cut: Vec<(Vec<NodePair>, Vec<u32>)> =
+            groups.par_iter().map(|g| rule.cover(g)).collect();
         drop(groups);
         drop(by);
-        let mut removed = vec![false; l.col.len()];
-        let mut pairs: Vec<NodePair> = Vec::new();
-        for (taken, covered) in cut {
-            pairs.extend(taken);
-            for e in covered {
-                removed[e as usize] = true;
-            }
-        }
-        // The node rows, by receiver node, columns ascending.
-        pairs.par_sort_unstable_by_key(|&(m, e, ..)| (m, l.col[e as usize]));
-        let take = |out: &mut Links, e: usize| {
-            out.col.push(l.col[e]);
-            out.root.push(l.root[e]);
-            out.opposite.push(l.opposite[e]);
-            if !l.two.is_empty() {
-                out.two.push(l.two[e]);
-            }
-        };
-        let mut p = Links {
-            ptr: vec![0],
-            nodes: l.nodes.clone(),
-            ..Default::default()
-        };
-        let mut recv: Vec<u32> = Vec::new();
-        for &(m, e, mean, spread) in &pairs {
-            if recv.last().is_some_and(|&last| last != m) {
-                p.ptr.push(p.col.len() as u32);
-            }
-            if recv.last() != Some(&m) {
-                recv.push(m);
-            }
-            // The column and side of any covered link; the distances of them all.
-            let root = mean.max(0.0).sqrt();
-            p.col.push(l.col[e as usize]);
-            p.opposite.push(l.opposite[e as usize]);
-            p.root.push(root);
-            p.two
-                .push(two_point_roots(mean, spread).unwrap_or([root, root]));
-        }
-        if !recv.is_empty() {
-            p.ptr.push(p.col.len() as u32);
-        }
-        // The patch links left.
-        let mut kept = Links {
-            ptr: vec![0],
-            nodes: l.nodes.clone(),
-            ..Default::default()
-        };
-        for w in l.ptr.windows(2) {
-            let (a, b) = (w[0] as usize, w[1] as usize);
-            for (e, _) in removed[a..b].iter().enumerate().filter(|(_, gone)| !**gone) {
-                take(&mut kept, a + e);
-            }
-            kept.ptr.push(kept.col.len() as u32);
-        }
+        // The node links, and the patch links they replace.
+        let (pairs, removed) = l.gather(cut);
+        let (p, recv) = l.node_rows_of(&pairs);
+        let kept = l.without(&removed);
         (self.links, self.pairs, self.recv) = (kept, p, recv);
         self
     }

@@ -12,6 +12,11 @@
 //! product, however deep the tree. The pulled vector x̄ = [x; P x] has N + M rows and C is an
 //! ordinary CSR matrix over it, so the CSR products serve both kinds unchanged.
 //!
+//! A two-sided F̃ = Q·C·P (`translux-precompute --links two-sided`) also links cluster nodes
+//! as receivers: C then has N + M rows, row N + k holding what node k's patches receive
+//! alike, and Q pushes each node row down to every patch of the node — a difference array
+//! over the same tree order, O(N + M) as the pull is.
+//!
 //! A hierarchical S (`translux-precompute --subsurface hierarchical`) is built the same way
 //! over the same tree: [`LinkedScatter`] pulls the irradiance and applies S̃ = C_S·P, C_S
 //! holding near pairs in its first N columns and links to whole nodes after them
@@ -48,9 +53,37 @@ pub struct Pulled {
     /// x̄ = [x; P x], `(N + M) × ch`.
     pub values: Vec<f32>,
     prefix: Vec<f64>,
+    /// C x̄ over every row of a two-sided C, `(N + M) × ch`, before the push.
+    rows: Vec<f32>,
 }
 
 impl<'a> Tree<'a> {
+    /// Adds node rows' values `node_y` (`M × ch`) to every patch of each node (`y`: `N ×
+    /// ch`): a difference array over the tree's order, summed in f64 so that a patch deep
+    /// in the order does not carry the rounding of every node closed before it.
+    fn push(&self, node_y: &[f32], y: &mut [f32], ch: usize) {
+        let perm = self.view.perm;
+        let mut diff = vec![0.0f64; (perm.len() + 1) * ch];
+        for (v, r) in node_y.chunks_exact(ch).zip(self.view.range) {
+            if v.iter().all(|&x| x == 0.0) {
+                continue;
+            }
+            let (a, b) = (r[0] as usize * ch, r[1] as usize * ch);
+            for c in 0..ch {
+                diff[a + c] += v[c] as f64;
+                diff[b + c] -= v[c] as f64;
+            }
+        }
+        let mut run = vec![0.0f64; ch];
+        for (q, &p) in perm.iter().enumerate() {
+            let yp = &mut y[p as usize * ch..(p as usize + 1) * ch];
+            for c in 0..ch {
+                run[c] += diff[q * ch + c];
+                yp[c] += run[c] as f32;
+            }
+        }
+    }
+
     /// x̄ = [x; P x] into `out.values` (`x` is `N × ch`).
     fn pull(&self, x: &[f32], ch: usize, out: &mut Pulled) {
         let n = self.view.perm.len();
@@ -99,11 +132,16 @@ impl<'a> Transport<'a> {
     }
 
     /// A hierarchical F̃ = C·P: `c` is `N × (N + M)` over the patches then the nodes of
-    /// `tree`, whose means are weighted by `area` (`[N]`). The bundle loader has checked
-    /// that the tree's permutation and ranges are valid; the shapes are checked here.
+    /// `tree`, whose means are weighted by `area` (`[N]`) — or `(N + M) × (N + M)` for a
+    /// two-sided F̃ = Q·C·P, whose node rows are pushed to their patches. The bundle loader
+    /// has checked that the tree's permutation and ranges are valid; the shapes are checked
+    /// here.
     pub fn hierarchical(c: CsrView<'a>, tree: TreeView<'a>, area: &'a [f32]) -> Self {
-        let n = c.n_rows();
-        assert_eq!(tree.perm.len(), n, "the tree orders every patch");
+        let n = tree.perm.len();
+        assert!(
+            c.n_rows() == n || c.n_rows() == n + tree.range.len(),
+            "C's rows: the patches, or the patches then the nodes"
+        );
         assert_eq!(area.len(), n, "an area per patch");
         assert_eq!(
             c.n_cols(),
@@ -132,7 +170,12 @@ impl<'a> Transport<'a> {
 
     /// Patches N (rows of F).
     pub fn n(&self) -> usize {
-        self.f.n_rows()
+        self.tree.map_or(self.f.n_rows(), |t| t.view.perm.len())
+    }
+
+    /// Whether cluster nodes receive too (a two-sided F̃ = Q·C·P: C has N + M rows).
+    pub fn has_node_rows(&self) -> bool {
+        self.f.n_rows() > self.n()
     }
 
     /// Cluster nodes M (0 for a dense F).
@@ -145,7 +188,9 @@ impl<'a> Transport<'a> {
         self.tree.is_some()
     }
 
-    /// The stored matrix: F itself, or C (whose columns past N are nodes).
+    /// The stored matrix: F itself, or C (whose columns past N are nodes, and whose rows
+    /// past N, when [`Transport::has_node_rows`], are nodes' rows: see
+    /// [`Transport::holders`] for the rows a patch receives through).
     pub fn matrix(&self) -> &CsrView<'a> {
         &self.f
     }
@@ -168,18 +213,137 @@ impl<'a> Transport<'a> {
     }
 
     /// y = F x for `ch` channels per patch: one pass over the stored matrix serves every
-    /// channel. `scratch` is reused between calls.
+    /// channel (and a two-sided C's node rows are pushed after). `scratch` is reused
+    /// between calls.
     pub fn apply_multi(&self, x: &[f32], y: &mut [f32], ch: usize, scratch: &mut Pulled) {
+        if self.tree.is_some() {
+            self.pull(x, ch, scratch);
+        }
         let x = if self.tree.is_none() {
             x
         } else {
-            self.pull(x, ch, scratch);
             &scratch.values
         };
+        let Some(tree) = self.tree.filter(|_| self.has_node_rows()) else {
+            self.spmv(x, y, ch);
+            return;
+        };
+        let n = self.n();
+        let rows = &mut scratch.rows;
+        rows.resize(self.f.n_rows() * ch, 0.0);
+        self.spmv(x, rows, ch);
+        y[..n * ch].copy_from_slice(&rows[..n * ch]);
+        tree.push(&rows[n * ch..], y, ch);
+    }
+
+    /// Every stored row's product over the pulled vector `x` (y has as many rows as it
+    /// holds).
+    fn spmv(&self, x: &[f32], y: &mut [f32], ch: usize) {
         match self.bundle {
             Some(b) => crate::linalg::spmv_multi_narrow(&self.f, b.form_factor_cols(), x, y, ch),
             None => crate::linalg::spmv_multi(&self.f, x, y, ch),
         }
+    }
+
+    /// The node rows of a two-sided C over the pulled vector `xbar` (`(N + M) × ch`, from
+    /// [`Transport::pull`]), pushed to their patches: what each patch receives through the
+    /// nodes that hold it (`N × ch`). `None` when no node receives.
+    pub fn node_rows_pushed(&self, xbar: &[f32], ch: usize) -> Option<Vec<f32>> {
+        let tree = self.tree.filter(|_| self.has_node_rows())?;
+        let (n, m) = (self.n(), self.nodes());
+        let mut node_y = vec![0.0f32; m * ch];
+        node_y
+            .par_chunks_mut(ch)
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(k, yk)| {
+                let (cols, vals) = self.f.row(n + k);
+                for (&j, &v) in cols.iter().zip(vals) {
+                    let xj = &xbar[j as usize * ch..(j as usize + 1) * ch];
+                    for (a, &b) in yk.iter_mut().zip(xj) {
+                        *a += v * b;
+                    }
+                }
+            });
+        let mut y = vec![0.0f32; n * ch];
+        tree.push(&node_y, &mut y, ch);
+        Some(y)
+    }
+
+    /// For each patch p with `wanted(p)`, the nodes whose (non-empty) rows it receives
+    /// through, root first; empty lists without node rows. O(N × depth) at worst: for
+    /// consumers that need whole patch rows ([`Transport::patch_row`]).
+    pub fn holders(&self, wanted: impl Fn(usize) -> bool) -> Vec<Vec<u32>> {
+        let n = self.n();
+        let mut out = vec![Vec::new(); n];
+        let Some(tree) = self.tree.filter(|_| self.has_node_rows()) else {
+            return out;
+        };
+        for (k, r) in tree.view.range.iter().enumerate() {
+            if self.f.row(n + k).0.is_empty() {
+                continue;
+            }
+            for &p in &tree.view.perm[r[0] as usize..r[1] as usize] {
+                if wanted(p as usize) {
+                    out[p as usize].push(k as u32);
+                }
+            }
+        }
+        out
+    }
+
+    /// Patch i's whole row of C: its own entries and those of the node rows it receives
+    /// through (`holders`: [`Transport::holders`]'s list for i), one entry per column,
+    /// columns ascending.
+    pub fn patch_row(&self, i: usize, holders: &[u32]) -> (Vec<u32>, Vec<f32>) {
+        let (cols, vals) = self.f.row(i);
+        if holders.is_empty() {
+            return (cols.to_vec(), vals.to_vec());
+        }
+        let n = self.n();
+        let mut row: Vec<(u32, f32)> = cols.iter().copied().zip(vals.iter().copied()).collect();
+        for &k in holders {
+            let (c, v) = self.f.row(n + k as usize);
+            row.extend(c.iter().copied().zip(v.iter().copied()));
+        }
+        row.sort_by_key(|e| e.0);
+        let mut out: (Vec<u32>, Vec<f32>) = (Vec::with_capacity(row.len()), Vec::new());
+        for (c, v) in row {
+            match out.0.last() {
+                Some(&lc) if lc == c => *out.1.last_mut().expect("paired") += v,
+                _ => {
+                    out.0.push(c);
+                    out.1.push(v);
+                }
+            }
+        }
+        out
+    }
+
+    /// The push as a matrix, `N × (N + M)`: the identity over the patch rows, then a 1 in
+    /// column N + k of every patch of node k — so y = Q' (C x̄) is a CSR product (the GPU
+    /// backend's form of the push, tested against [`Transport::apply_multi`]). `None`
+    /// without node rows. About N × (tree depth + 1) entries.
+    pub fn push_matrix(&self) -> Option<Csr> {
+        let tree = self.tree.filter(|_| self.has_node_rows())?;
+        let n = self.n();
+        let mut by_patch: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for (k, r) in tree.view.range.iter().enumerate() {
+            for &p in &tree.view.perm[r[0] as usize..r[1] as usize] {
+                by_patch[p as usize].push((n + k) as u32);
+            }
+        }
+        let rows: Vec<Vec<(u32, f32)>> = by_patch
+            .into_iter()
+            .enumerate()
+            .map(|(p, mut nodes)| {
+                nodes.sort_unstable();
+                std::iter::once((p as u32, 1.0))
+                    .chain(nodes.into_iter().map(|c| (c, 1.0)))
+                    .collect()
+            })
+            .collect();
+        Csr::from_rows(self.f.n_rows(), &rows).ok()
     }
 
     /// y = F x for one RGB vector.
@@ -233,12 +397,21 @@ impl<'a> Transport<'a> {
         crate::linalg::spmv_rgb(&self.f, x, y);
     }
 
-    /// Σ_j F_ij per row (P keeps constants, so these are C's row sums).
+    /// Σ_j F_ij per patch (P keeps constants, so these are C's row sums, a two-sided C's
+    /// node rows added to their patches).
     pub fn row_sums(&self) -> Vec<f64> {
-        (0..self.n())
-            .into_par_iter()
-            .map(|i| self.f.row(i).1.iter().map(|&v| v as f64).sum())
-            .collect()
+        let sum = |i: usize| self.f.row(i).1.iter().map(|&v| v as f64).sum::<f64>();
+        let mut sums: Vec<f64> = (0..self.n()).into_par_iter().map(sum).collect();
+        if let Some(tree) = self.tree.filter(|_| self.has_node_rows()) {
+            let n = self.n();
+            let node: Vec<f32> = (n..self.f.n_rows()).map(|k| sum(k) as f32).collect();
+            let mut pushed = vec![0.0f32; n];
+            tree.push(&node, &mut pushed, 1);
+            for (s, p) in sums.iter_mut().zip(pushed) {
+                *s += p as f64;
+            }
+        }
+        sums
     }
 
     /// F as an `N × N` CSR matrix: C·P multiplied out (each node entry spread over the
@@ -246,12 +419,14 @@ impl<'a> Transport<'a> {
     /// for what a dense factorisation needs anyway (the transfer matrix T).
     pub fn expand(&self) -> Csr {
         let n = self.n();
+        let holders = self.holders(|_| true);
         let rows: Vec<(Vec<u32>, Vec<f32>)> = (0..n)
             .into_par_iter()
             .map_init(
                 || vec![0.0f64; n],
                 |acc, i| {
-                    let (cols, vals) = self.f.row(i);
+                    let (cols, vals) = self.patch_row(i, &holders[i]);
+                    let (cols, vals) = (cols.as_slice(), vals.as_slice());
                     for (&j, &v) in cols.iter().zip(vals) {
                         let j = j as usize;
                         match &self.tree {
@@ -347,32 +522,6 @@ impl<'a> LinkedScatter<'a> {
     pub fn has_node_rows(&self) -> bool {
         self.s.n_rows() > self.tree.view.perm.len()
     }
-
-    /// Adds node rows' values `node_y` (`M × ch`) to every patch of each node (`y`: `N ×
-    /// ch`): a difference array over the tree's order, summed in f64 so that a patch deep
-    /// in the order does not carry the rounding of every node closed before it.
-    fn push(&self, node_y: &[f32], y: &mut [f32], ch: usize) {
-        let perm = self.tree.view.perm;
-        let mut diff = vec![0.0f64; (perm.len() + 1) * ch];
-        for (v, r) in node_y.chunks_exact(ch).zip(self.tree.view.range) {
-            if v.iter().all(|&x| x == 0.0) {
-                continue;
-            }
-            let (a, b) = (r[0] as usize * ch, r[1] as usize * ch);
-            for c in 0..ch {
-                diff[a + c] += v[c] as f64;
-                diff[b + c] -= v[c] as f64;
-            }
-        }
-        let mut run = vec![0.0f64; ch];
-        for (q, &p) in perm.iter().enumerate() {
-            let yp = &mut y[p as usize * ch..(p as usize + 1) * ch];
-            for c in 0..ch {
-                run[c] += diff[q * ch + c];
-                yp[c] += run[c] as f32;
-            }
-        }
-    }
 }
 
 impl Scatter for LinkedScatter<'_> {
@@ -402,7 +551,7 @@ impl Scatter for LinkedScatter<'_> {
             &mut [(patch_rows, &mut *y), (n..n + m, &mut node_y)],
         );
         if m > 0 {
-            self.push(&node_y, y, ch);
+            self.tree.push(&node_y, y, ch);
         }
     }
     fn diagonal(&self) -> Option<&[Rgb]> {
@@ -615,6 +764,91 @@ mod tests {
             .zip(&pulled.values)
         {
             assert!((a - b).abs() < 1e-6);
+        }
+    }
+
+    /// The fixture's C with two node rows after its patch rows (a two-sided F̃ = Q·C·P):
+    /// node 0 ({2, 0}) receives 0.2·patch 1 + 0.3·patch 3, node 1 (all) 0.05·node 0.
+    fn two_sided() -> Csr {
+        let (_, _, _, mut c) = fixture();
+        c.n_rows = 6;
+        c.col.extend([1, 3, 4]);
+        c.val.extend([0.2, 0.3, 0.05]);
+        c.row_ptr.extend([7, 8]);
+        c
+    }
+
+    #[test]
+    fn node_rows_of_f_are_pushed_to_every_patch_of_their_node() {
+        let (perm, range, area, _) = fixture();
+        let c = two_sided();
+        let tree = TreeView {
+            perm: &perm,
+            range: &range,
+        };
+        let t = Transport::hierarchical(c.view().unwrap(), tree, &area);
+        assert!(t.has_node_rows());
+        assert_eq!((t.n(), t.nodes()), (4, 2));
+        let x: Vec<Rgb> = vec![
+            [1.0, 0.0, 2.0],
+            [2.0, 1.0, 0.0],
+            [3.0, 0.0, 1.0],
+            [4.0, 2.0, 0.0],
+        ];
+        let mut y = vec![[0.0f32; 3]; 4];
+        t.apply_rgb(&x, &mut y);
+        // By hand, red: node 0's mean 2.5, node 1's 3; node rows 0.2·2 + 0.3·4 = 1.6 and
+        // 0.05·2.5 = 0.125. Patch 0 (in both nodes): 0.5·2.5 + 1.6 + 0.125; patch 1 (node 1
+        // only): 0.25·1 + 0.5·3 + 0.125; patch 2 (both): 0.1·3 + 1.725; patch 3: 0.3 + 0.125.
+        let want = [1.25 + 1.725, 0.25 + 1.5 + 0.125, 0.3 + 1.725, 0.3 + 0.125];
+        for (i, w) in want.iter().enumerate() {
+            assert!((y[i][0] - w).abs() < 1e-6, "patch {i}: {} vs {w}", y[i][0]);
+        }
+        // Written out, as rows, as row sums and as the device's push: the same operator.
+        let dense = t.expand();
+        let mut yd = vec![[0.0f32; 3]; 4];
+        Transport::dense(dense.view().unwrap()).apply_rgb(&x, &mut yd);
+        let holders = t.holders(|_| true);
+        assert_eq!(holders, vec![vec![0, 1], vec![1], vec![0, 1], vec![1]]);
+        let sums = t.row_sums();
+        let mut ones = vec![[0.0f32; 3]; 4];
+        t.apply_rgb(&[[1.0; 3]; 4], &mut ones);
+        let q = t.push_matrix().unwrap();
+        assert_eq!((q.n_rows, q.n_cols), (4, 6));
+        let mut pulled = Pulled::default();
+        t.pull(bytemuck::cast_slice(&x), 3, &mut pulled);
+        let mut rows = vec![0.0f32; 6 * 3];
+        crate::linalg::spmv_multi(&c.view().unwrap(), &pulled.values, &mut rows, 3);
+        let mut yq = vec![0.0f32; 4 * 3];
+        crate::linalg::spmv_multi(&q.view().unwrap(), &rows, &mut yq, 3);
+        let held = t.node_rows_pushed(&pulled.values, 3).unwrap();
+        for i in 0..4 {
+            let (cols, vals) = t.patch_row(i, &holders[i]);
+            let by_row: f32 = cols
+                .iter()
+                .zip(&vals)
+                .map(|(&j, &v)| v * pulled.values[j as usize * 3])
+                .sum();
+            let own: f32 = {
+                let (cols, vals) = c.view().unwrap().row(i);
+                cols.iter()
+                    .zip(vals)
+                    .map(|(&j, &v)| v * pulled.values[j as usize * 3])
+                    .sum()
+            };
+            for (what, v) in [
+                ("expand", yd[i][0]),
+                ("patch_row", by_row),
+                ("push matrix", yq[i * 3]),
+                ("own row + node_rows_pushed", own + held[i * 3]),
+            ] {
+                assert!(
+                    (v - y[i][0]).abs() < 1e-5,
+                    "{what}, patch {i}: {v} vs {}",
+                    y[i][0]
+                );
+            }
+            assert!((sums[i] as f32 - ones[i][0]).abs() < 1e-6);
         }
     }
 

@@ -237,16 +237,35 @@ pub(crate) fn summarize(
     rays: u64,
     pairs: u64,
 ) -> FormFactorInfo {
-    let n = csr.n_rows;
-    let sums: Vec<f64> = (0..n)
+    let sums: Vec<f64> = (0..csr.n_rows)
         .into_par_iter()
         .map(|i| {
             let (a, b) = (csr.row_ptr[i] as usize, csr.row_ptr[i + 1] as usize);
             csr.val[a..b].iter().map(|&v| v as f64).sum()
         })
         .collect();
+    summarize_sums(
+        &sums,
+        csr.nnz() as u64,
+        threshold,
+        dropped_energy,
+        rays,
+        pairs,
+    )
+}
+
+/// [`summarize`] from each patch's row sum (a two-sided C's node rows already added).
+pub(crate) fn summarize_sums(
+    sums: &[f64],
+    nnz: u64,
+    threshold: f32,
+    dropped_energy: f64,
+    rays: u64,
+    pairs: u64,
+) -> FormFactorInfo {
+    let n = sums.len();
     FormFactorInfo {
-        nnz: csr.nnz() as u64,
+        nnz,
         threshold,
         dropped_energy,
         row_sum_mean: if n > 0 {

@@ -26,6 +26,9 @@
 //!   far as the samples resolve the kernel;
 //! - otherwise its children are visited; two patches use the dense code's pair rule (exact
 //!   point-to-polygon, sub-sampled when near). Nothing depends on a light.
+//!
+//! With [`HierarchyParams::two_sided`] nodes receive too ([`twosided`], its visibility by
+//! [`shaft`]s between boxes): C then has a row per node after the patch rows.
 
 use std::f32::consts::{FRAC_PI_2, PI};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -36,8 +39,13 @@ use translux_engine::raycast::Occluder;
 use translux_proto::bundle::{FormFactorInfo, HierarchyInfo};
 use translux_proto::csr::Csr;
 
-use crate::formfactor::{FormFactorParams, any_in_front, pair, point_to_polygon, summarize};
+use crate::formfactor::{
+    FormFactorParams, any_in_front, pair, point_to_polygon, summarize, summarize_sums,
+};
 use crate::patch::Patches;
+
+pub mod shaft;
+pub mod twosided;
 
 /// The accuracy parameters a precompute accepts ([`HierarchyParams::check`]).
 pub const ACCURACY_RANGE: std::ops::RangeInclusive<f32> = 0.02..=1.0;
@@ -55,6 +63,9 @@ pub struct HierarchyParams {
     pub node_samples: u32,
     /// Widest normal cone (full angle, degrees) a linked node may have. Default 60.
     pub cone_deg: f32,
+    /// Whether cluster nodes receive too ([`twosided`]: links between nodes on both
+    /// sides), or only patches (the one-sided cut below). Default false.
+    pub two_sided: bool,
 }
 
 impl Default for HierarchyParams {
@@ -63,6 +74,7 @@ impl Default for HierarchyParams {
             accuracy: 0.2,
             node_samples: 8,
             cone_deg: 60.0,
+            two_sided: false,
         }
     }
 }
@@ -378,7 +390,7 @@ const POINT_KERNEL_RATIO2: f32 = 10.0 * 10.0;
 /// What [`compute`] made.
 #[derive(Debug)]
 pub struct Hierarchical {
-    /// C: `N × (N + M)`.
+    /// C: `N × (N + M)`, or `(N + M) × (N + M)` two-sided.
     pub c: Csr,
     pub tree: ClusterTree,
     pub info: HierarchyInfo,
@@ -397,7 +409,11 @@ pub fn compute(
     stop: &(dyn Fn() -> bool + Sync),
 ) -> Hierarchical {
     let tree = ClusterTree::build(p);
-    let rows = compute_rows(p, occ, ff, params, &tree, 0..p.len(), progress, stop);
+    let rows = if params.two_sided {
+        twosided::compute(p, occ, ff, params, &tree, progress, stop)
+    } else {
+        compute_rows(p, occ, ff, params, &tree, 0..p.len(), progress, stop)
+    };
     assemble(tree, params, vec![rows])
 }
 
@@ -415,18 +431,7 @@ pub fn compute_rows(
     progress: &(dyn Fn(u64) + Sync),
     stop: &(dyn Fn() -> bool + Sync),
 ) -> RowBlock {
-    let diag = occ.diagonal();
-    let ctx = Cut {
-        p,
-        occ,
-        ff,
-        tree,
-        eta: params.accuracy,
-        m: params.node_samples as usize,
-        half_cone: (params.cone_deg * 0.5).to_radians(),
-        eps_plane: 1e-6 * diag,
-        offset: 1e-5 * diag,
-    };
+    let ctx = Cut::new(p, occ, ff, params, tree);
     let rays = AtomicU64::new(0);
     let tests = AtomicU64::new(0);
     let cuts: Vec<(Vec<(u32, f32)>, RowStats)> = rows
@@ -499,9 +504,14 @@ pub fn assemble(
     blocks: Vec<RowBlock>,
 ) -> Hierarchical {
     let n = tree.perm.len();
+    let rows = if params.two_sided {
+        n + tree.node_count()
+    } else {
+        n
+    };
     let nnz: usize = blocks.iter().map(|b| b.col.len()).sum();
     let mut c = Csr {
-        n_rows: n,
+        n_rows: rows,
         n_cols: n + tree.node_count(),
         row_ptr: Vec::with_capacity(n + 1),
         col: Vec::with_capacity(nnz),
@@ -528,10 +538,15 @@ pub fn assemble(
     }
     assert_eq!(
         c.row_ptr.len(),
-        n + 1,
+        rows + 1,
         "row blocks do not cover every receiver"
     );
-    let ff_info = summarize(&c, 0.0, 0.0, rays, tests);
+    let ff_info = if params.two_sided {
+        let sums = pushed_row_sums(&c, &tree);
+        summarize_sums(&sums, c.nnz() as u64, 0.0, 0.0, rays, tests)
+    } else {
+        summarize(&c, 0.0, 0.0, rays, tests)
+    };
     let info = HierarchyInfo {
         nodes: tree.node_count() as u64,
         depth: tree.depth,
@@ -540,6 +555,7 @@ pub fn assemble(
         node_entries,
         patch_entries,
         dense_equivalent,
+        receiver_nodes: params.two_sided,
     };
     Hierarchical {
         c,
@@ -547,6 +563,29 @@ pub fn assemble(
         info,
         ff_info,
     }
+}
+
+/// Each patch's row sum of a two-sided C: its own row plus the rows of every node holding
+/// it (a difference array over the tree order, as the engine's push).
+fn pushed_row_sums(c: &Csr, tree: &ClusterTree) -> Vec<f64> {
+    let n = tree.perm.len();
+    let row_sum = |i: usize| -> f64 {
+        let (a, b) = (c.row_ptr[i] as usize, c.row_ptr[i + 1] as usize);
+        c.val[a..b].iter().map(|&v| v as f64).sum()
+    };
+    let mut diff = vec![0.0f64; n + 1];
+    for (k, node) in tree.nodes.iter().enumerate() {
+        let v = row_sum(n + k);
+        diff[node.range[0] as usize] += v;
+        diff[node.range[1] as usize] -= v;
+    }
+    let mut sums: Vec<f64> = (0..n).map(row_sum).collect();
+    let mut run = 0.0;
+    for (q, &p) in tree.perm.iter().enumerate() {
+        run += diff[q];
+        sums[p as usize] += run;
+    }
+    sums
 }
 
 /// Counts of one receiver's cut.
@@ -573,7 +612,30 @@ struct Cut<'a> {
     offset: f32,
 }
 
-impl Cut<'_> {
+impl<'a> Cut<'a> {
+    /// The cut's inputs and the tolerances they give (planes within 10⁻⁶ of the scene's
+    /// diagonal count as touching; rays leave 10⁻⁵ of it off their surfaces).
+    fn new(
+        p: &'a Patches,
+        occ: &'a Occluder,
+        ff: &'a FormFactorParams,
+        params: &HierarchyParams,
+        tree: &'a ClusterTree,
+    ) -> Self {
+        let diag = occ.diagonal();
+        Cut {
+            p,
+            occ,
+            ff,
+            tree,
+            eta: params.accuracy,
+            m: params.node_samples as usize,
+            half_cone: (params.cone_deg * 0.5).to_radians(),
+            eps_plane: 1e-6 * diag,
+            offset: 1e-5 * diag,
+        }
+    }
+
     /// Receiver i's entries, sorted by column, and its counts.
     fn row(&self, i: usize, samples: &mut Vec<Vec3>) -> (Vec<(u32, f32)>, RowStats) {
         let p = self.p;
@@ -668,57 +730,78 @@ impl Cut<'_> {
     /// disagree about visibility (then the caller descends).
     fn link(&self, x: Vec3, ni: Vec3, s: &Node, rays: &mut u64) -> Option<f32> {
         let p = self.p;
-        let t = self.tree;
-        let (a, b) = (s.range[0] as usize, s.range[1] as usize);
         let from = x + ni * self.offset;
         let (mut seen, mut hidden) = (0u32, 0u32);
         let mut sum = 0.0f64;
-        // Each sample is a patch q of s: its exact point-to-polygon form factor F(x → q)
-        // over its area is the kernel's mean over q; weighted by w it estimates s's share.
-        // The first disagreement about visibility ends the test (the caller descends).
-        let mut sample = |q: usize, w: f64| -> bool {
-            let y = p.centroid[q];
-            let ny = p.normal[q];
+        // Each sample is a patch q of s: the kernel's mean over q, weighted by w, estimates
+        // s's share. The first disagreement about visibility ends the test (the caller
+        // descends).
+        let mut strata = Vec::with_capacity(self.m);
+        self.tree
+            .strata(s.range, s.area, self.m, &p.area, &mut strata);
+        for (q, w) in strata {
+            let (y, ny) = (p.centroid[q], p.normal[q]);
             if ny.dot(x - y) <= 0.0 || ni.dot(y - x) <= 0.0 {
-                return true;
+                continue;
             }
             *rays += 1;
             if self.occ.occluded(from, y + ny * self.offset) {
                 hidden += 1;
             } else {
                 seen += 1;
-                let r = y - x;
-                let r2 = r.length_squared();
-                // Far against its own size (the point kernel is then within ~(size/r)² ≈
-                // 1% of the exact polygon integral) the differential kernel, else exact.
-                let per_area = if p.size[q] * p.size[q] * POINT_KERNEL_RATIO2 <= r2 {
-                    (ni.dot(r) * ny.dot(-r) / (r2 * r2 * PI)) as f64
-                } else {
-                    point_to_polygon(x, ni, &p.corners[q]) as f64 / p.area[q] as f64
-                };
-                sum += w * per_area;
+                sum += w * kernel_per_area(p, x, ni, q);
             }
-            seen == 0 || hidden == 0
-        };
-        if b - a <= self.m {
-            for &q in &t.perm[a..b] {
-                if !sample(q as usize, p.area[q as usize] as f64) {
-                    return None;
-                }
-            }
-        } else {
-            // Area-stratified: the patch at the middle of each of m equal shares of the area.
-            let w = s.area / self.m as f64;
-            let base = t.area_prefix[a];
-            for k in 0..self.m {
-                let target = base + (k as f64 + 0.5) * w;
-                let at = a + t.area_prefix[a + 1..=b].partition_point(|&c| c <= target);
-                if !sample(t.perm[at.min(b - 1)] as usize, w) {
-                    return None;
-                }
+            if seen > 0 && hidden > 0 {
+                return None;
             }
         }
         Some(sum as f32)
+    }
+}
+
+/// The form-factor kernel's mean over patch q per unit of its area, seen from x with normal
+/// nᵢ (both facing each other): far from q against its size (the point kernel is then within
+/// ~(size/r)² ≈ 1% of the exact polygon integral) the differential kernel
+/// cos θ cos θ' / (π r²), else the exact point-to-polygon form factor over A_q.
+fn kernel_per_area(p: &Patches, x: Vec3, ni: Vec3, q: usize) -> f64 {
+    let r = p.centroid[q] - x;
+    let r2 = r.length_squared();
+    if p.size[q] * p.size[q] * POINT_KERNEL_RATIO2 <= r2 {
+        (ni.dot(r) * p.normal[q].dot(-r) / (r2 * r2 * PI)) as f64
+    } else {
+        point_to_polygon(x, ni, &p.corners[q]) as f64 / p.area[q] as f64
+    }
+}
+
+impl ClusterTree {
+    /// Area-stratified patches of the tree-order `range` (of total area `area`) with their
+    /// weights: each patch with its own area when there are at most `m`, else the patch at
+    /// the middle of each of `m` equal shares of the area, weighted area/m.
+    fn strata(
+        &self,
+        range: [u32; 2],
+        area: f64,
+        m: usize,
+        patch_area: &[f32],
+        out: &mut Vec<(usize, f64)>,
+    ) {
+        out.clear();
+        let (a, b) = (range[0] as usize, range[1] as usize);
+        if b - a <= m {
+            out.extend(
+                self.perm[a..b]
+                    .iter()
+                    .map(|&q| (q as usize, patch_area[q as usize] as f64)),
+            );
+            return;
+        }
+        let w = area / m as f64;
+        let base = self.area_prefix[a];
+        for k in 0..m {
+            let target = base + (k as f64 + 0.5) * w;
+            let at = a + self.area_prefix[a + 1..=b].partition_point(|&c| c <= target);
+            out.push((self.perm[at.min(b - 1)] as usize, w));
+        }
     }
 }
 

@@ -12,7 +12,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use clap::Parser;
 use translux_precompute::options::PrecomputeOptions;
 use translux_precompute::pipeline::{self, PrecomputeParams, human_bytes};
@@ -53,13 +53,17 @@ struct Cli {
     /// Compute only shard I of K (0-based: 0/4 to 3/4) of the receiver rows — the form
     /// factors and the environment visibility — into `OUT.parts/part-I-of-K/`, for a job
     /// array on a scheduler. A shard already finished for the same scene and settings is
-    /// not computed again; a killed one leaves no part. Hierarchical transport only.
+    /// not computed again; a killed one leaves no part. Hierarchical transport only. For an
+    /// animated scene, the I-th share of the frames (consecutive blocks of 8) instead, each
+    /// a whole bundle in `OUT/frame-NNNN/`; frames already done for the same inputs are kept.
     #[arg(long, value_name = "I/K", conflicts_with_all = ["merge", "resimulate"])]
     shard: Option<Shard>,
     /// Put the K parts in `OUT.parts/` together — each checked: none missing, from another
     /// split, scene or settings, or damaged — run the remaining stages (subsurface, T) and
     /// write the bundle, the same arrays as one run without shards; the parts are removed
-    /// after. Give the scene and the same settings as the shards.
+    /// after. Give the scene and the same settings as the shards. For an animated scene:
+    /// check that every frame is there and made from the current inputs (refusing, with the
+    /// `--shard` command that makes it, one missing or stale), then write `sequence.json`.
     #[arg(long, value_name = "K", conflicts_with = "resimulate", value_parser = parse_count)]
     merge: Option<u32>,
 }
@@ -103,21 +107,25 @@ fn resimulate(cli: &Cli) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// An animated scene: one bundle per frame in `out` ([`translux_precompute::sequence`]).
+/// An animated scene: one bundle per frame in `out` ([`translux_precompute::sequence`]),
+/// all of them, a shard's share of them (`--shard I/K`) or the shards' put together
+/// (`--merge K`).
 fn sequence(
     cli: &Cli,
     source: &scene::SceneSource,
     out: &std::path::Path,
     params: &PrecomputeParams,
 ) -> anyhow::Result<()> {
-    use translux_precompute::sequence::{FrameOutcome, precompute_sequence};
+    use translux_precompute::sequence::{
+        FrameOutcome, merge_sequence, precompute_sequence, precompute_sequence_shard, shard_frames,
+    };
     let quiet = cli.quiet;
     // One line per frame instead of every frame's stage bars.
     let params = &PrecomputeParams {
         progress: false,
         ..params.clone()
     };
-    let report = precompute_sequence(source, out, params, &|f, total| {
+    let on_frame = |f: &translux_precompute::sequence::FrameReport, total: u32| {
         if quiet {
             return;
         }
@@ -134,11 +142,41 @@ fn sequence(
             f.folder,
             f.seconds
         );
-    })
-    .with_context(|| format!("precomputing {}", cli.scene))?;
+    };
+    let (report, what) = if let Some(shard) = cli.shard {
+        let report = precompute_sequence_shard(source, out, params, shard, &on_frame)
+            .with_context(|| format!("precomputing shard {shard} of {}", cli.scene))?;
+        let frames = source.file.animation.map_or(0, |a| a.frames);
+        let share = shard_frames(frames, shard);
+        if share.is_empty() {
+            let block = translux_precompute::sequence::BLOCK_FRAMES;
+            println!(
+                "translux-precompute: shard {shard} of {} has no frames (its {frames} frames \
+                 make {} blocks of {block}, fewer than the {} shards): nothing to do",
+                cli.scene,
+                frames.div_ceil(block),
+                shard.count
+            );
+            return Ok(());
+        }
+        let what = format!(
+            "shard {shard} of a sequence: frames {} to {} of {frames}",
+            share.start,
+            share.end - 1
+        );
+        (report, what)
+    } else if let Some(count) = cli.merge {
+        let report = merge_sequence(source, out, params, count, &shard_command)
+            .with_context(|| format!("merging the {count} shards of {}", cli.scene))?;
+        (report, format!("sequence merged from {count} shards"))
+    } else {
+        let report = precompute_sequence(source, out, params, &on_frame)
+            .with_context(|| format!("precomputing {}", cli.scene))?;
+        (report, "sequence".to_string())
+    };
     let n = report.frames.len().max(1);
     println!(
-        "translux-precompute: {} -> {} (sequence, {} frames)",
+        "translux-precompute: {} -> {} ({what}, {} frames)",
         cli.scene,
         out.display(),
         report.frames.len()
@@ -160,6 +198,34 @@ fn sequence(
     );
     println!("  total              {:.1} s", report.seconds);
     Ok(())
+}
+
+/// This command line with `--merge K` turned into `--shard I/K`: what makes shard `s`.
+fn shard_command(s: Shard) -> String {
+    let mut words = vec!["translux-precompute".to_string()];
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        if a == "--merge" {
+            args.next();
+        } else if !a.starts_with("--merge=") {
+            words.push(quoted(&a));
+        }
+    }
+    words.push(format!("--shard {s}"));
+    words.join(" ")
+}
+
+/// `word` as a shell reads it back.
+fn quoted(word: &str) -> String {
+    let plain = !word.is_empty()
+        && word
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./:=@%+,".contains(c));
+    if plain {
+        word.to_string()
+    } else {
+        format!("'{}'", word.replace('\'', r"'\''"))
+    }
 }
 
 /// `--shard I/K`: computes the part, prints what it holds.
@@ -234,13 +300,6 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     };
     let load_s = t0.elapsed().as_secs_f64();
     let Some(loaded) = loaded else {
-        if cli.shard.is_some() || cli.merge.is_some() {
-            bail!(
-                "--shard and --merge split one scene's receiver rows; {} is animated (a \
-                 sequence of frames): precompute it whole",
-                cli.scene
-            );
-        }
         return sequence(&cli, &source, &out, &params);
     };
     if let Some(shard) = cli.shard {

@@ -51,6 +51,12 @@ pub struct PrecomputeOptions {
     /// and larger; accepted 0.02 to 1.
     #[arg(long, default_value_t = HierarchyParams::default().accuracy, help_heading = FORM_FACTORS)]
     pub accuracy: f32,
+    /// Hierarchical F only: which side of a link may be a cluster: `one-sided` (each
+    /// receiver patch links to source clusters) or `two-sided` (clusters receive too:
+    /// links between nodes on both sides, O(N) links at a fixed accuracy; one box only, not
+    /// with --shard).
+    #[arg(long, value_enum, default_value_t = Links::OneSided, help_heading = FORM_FACTORS)]
+    pub links: Links,
     /// Dense F only: drop form factors below this value and report the power they carried.
     #[arg(long, default_value_t = 0.0, help_heading = FORM_FACTORS)]
     pub threshold: f32,
@@ -100,6 +106,13 @@ pub enum Transport {
     Hierarchical,
 }
 
+/// `--links`: which sides of a hierarchical F's links may be clusters.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Links {
+    OneSided,
+    TwoSided,
+}
+
 /// `--subsurface`: how S is stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Subsurface {
@@ -137,10 +150,18 @@ impl PrecomputeOptions {
             ));
         }
         let transport = match self.transport {
+            Transport::Dense if self.links == Links::TwoSided => {
+                return Err(
+                    "--links two-sided links clusters of the hierarchical F; use it \
+                            with --transport hierarchical"
+                        .into(),
+                );
+            }
             Transport::Dense => FormFactorMethod::Dense,
             Transport::Hierarchical => {
                 let hierarchy = HierarchyParams {
                     accuracy: self.accuracy,
+                    two_sided: self.links == Links::TwoSided,
                     ..Default::default()
                 };
                 hierarchy.check()?;
@@ -285,6 +306,14 @@ mod tests {
                     ..Default::default()
                 },
                 "",
+            ),
+            (
+                PrecomputeOptions {
+                    transport: Transport::Dense,
+                    links: Links::TwoSided,
+                    ..Default::default()
+                },
+                "--links two-sided links clusters of the hierarchical F",
             ),
         ] {
             let e = o.params().unwrap_err();

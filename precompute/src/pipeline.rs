@@ -623,6 +623,15 @@ fn check_settings(
         return Err(PrecomputeError::BadMaxEdge(e));
     }
     check_hierarchical_settings(params)?;
+    if split != Split::Whole
+        && matches!(params.transport, FormFactorMethod::Hierarchical(h) if h.two_sided)
+    {
+        return Err(PrecomputeError::Shard(
+            "--shard and --merge split the one-sided F's receiver rows; --links two-sided \
+             links whole clusters on both sides and runs on one box"
+                .into(),
+        ));
+    }
     if let Density::Target(t) = density
         && let Some(e) = too_many(params, t)
     {
@@ -1651,7 +1660,7 @@ fn bundle_arrays(
             vec![occluder_tris.len() as u64, 3, 3],
             occluders,
         ),
-        NamedArray::u64(arrays::FF_ROW_PTR, vec![np + 1], ff.row_ptr),
+        NamedArray::u64(arrays::FF_ROW_PTR, vec![ff.n_rows as u64 + 1], ff.row_ptr),
         NamedArray::u32(arrays::FF_COL, vec![nnz], ff.col),
         NamedArray::f32(arrays::FF_VAL, vec![nnz], ff.val),
         NamedArray::u64(arrays::S_ROW_PTR, vec![np + 1], smat.row_ptr),

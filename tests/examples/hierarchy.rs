@@ -3,7 +3,7 @@
 //! ```text
 //! cargo run --release -p translux-tests --example hierarchy -- \
 //!     [--scene builtin:cornell_paper] [--patches 24640] [--accuracy 0.25,0.15] [--lights 16] \
-//!     [--samples 8] [--cone 60] [--no-dense [--rows 200]]
+//!     [--samples 8] [--cone 60] [--links one-sided,two-sided] [--no-dense [--rows 200]]
 //! ```
 //!
 //! Per transport: F precompute time, entries per patch, F's bytes, occlusion rays, relight
@@ -51,6 +51,8 @@ struct Args {
     lights: usize,
     no_dense: bool,
     rows: usize,
+    /// Two-sided links (nodes receive too) for each entry.
+    two_sided: Vec<bool>,
 }
 
 fn args() -> anyhow::Result<Args> {
@@ -63,6 +65,7 @@ fn args() -> anyhow::Result<Args> {
         cone: HierarchyParams::default().cone_deg,
         no_dense: false,
         rows: 200,
+        two_sided: vec![false],
     };
     let mut it = std::env::args().skip(1);
     while let Some(k) = it.next() {
@@ -75,6 +78,16 @@ fn args() -> anyhow::Result<Args> {
             "--cone" => a.cone = v()?.parse()?,
             "--no-dense" => a.no_dense = true,
             "--rows" => a.rows = v()?.parse()?,
+            "--links" => {
+                a.two_sided = v()?
+                    .split(',')
+                    .map(|s| match s.trim() {
+                        "one-sided" => Ok(false),
+                        "two-sided" => Ok(true),
+                        other => anyhow::bail!("--links takes one-sided or two-sided, got {other}"),
+                    })
+                    .collect::<anyhow::Result<_>>()?
+            }
             "--accuracy" => {
                 a.accuracy = v()?
                     .split(',')
@@ -133,14 +146,18 @@ fn main() -> anyhow::Result<()> {
         methods.push(("dense".to_string(), FormFactorMethod::Dense));
     }
     for &accuracy in &a.accuracy {
-        methods.push((
-            format!("hierarchical η={accuracy}"),
-            FormFactorMethod::Hierarchical(HierarchyParams {
-                accuracy,
-                node_samples: a.samples,
-                cone_deg: a.cone,
-            }),
-        ));
+        for &two_sided in &a.two_sided {
+            let sides = if two_sided { ", two-sided" } else { "" };
+            methods.push((
+                format!("hierarchical η={accuracy}{sides}"),
+                FormFactorMethod::Hierarchical(HierarchyParams {
+                    accuracy,
+                    node_samples: a.samples,
+                    cone_deg: a.cone,
+                    two_sided,
+                }),
+            ));
+        }
     }
     let mut bundles = Vec::new();
     println!(

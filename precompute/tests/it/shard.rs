@@ -253,6 +253,10 @@ fn missing_duplicated_foreign_and_damaged_parts_are_refused_by_name() {
             &["--shard", "0/2", "--transport", "dense"][..],
             "--transport dense",
         ),
+        (
+            &["--shard", "0/2", "--links", "two-sided"][..],
+            "--links two-sided links whole clusters on both sides and runs on one box",
+        ),
     ] {
         let e = run_err(&with(extra));
         assert!(e.contains(want), "{extra:?}: {e}");

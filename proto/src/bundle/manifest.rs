@@ -17,8 +17,9 @@ pub const FORMAT: &str = "translux-bundle";
 /// added hierarchical S, [`SubsurfaceInfo::links`], and reads every version 5 bundle; version
 /// 7 added [`arrays::SIM_WEIGHT_NORMAL`], and a version 6 bundle's walks serve diffuse entry
 /// only; version 8 added [`arrays::SIM_WEIGHT_LAMP`], and a version 7 bundle's lamps
-/// enter by their angle to the normal alone).
-pub const FORMAT_VERSION: u32 = 8;
+/// enter by their angle to the normal alone; version 9 added F's node rows,
+/// [`HierarchyInfo::receiver_nodes`], and reads every version 8 bundle as one-sided).
+pub const FORMAT_VERSION: u32 = 9;
 /// The first version whose walks carry [`arrays::SIM_WEIGHT_NORMAL`].
 pub const SIM_NORMAL_SINCE: u32 = 7;
 /// The first version whose walks carry [`arrays::SIM_WEIGHT_LAMP`].
@@ -188,6 +189,11 @@ pub struct HierarchyInfo {
     /// Entries dense F would have held, estimated from the links' patch counts (visibility
     /// aside).
     pub dense_equivalent: u64,
+    /// Whether cluster nodes receive too (version 9, two-sided links): C then has N + M rows,
+    /// row N + k gathering what node k's patches receive alike (pushed to each of them), and
+    /// `ff_row_ptr` N + M + 1 offsets. Absent (false) in a one-sided bundle.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub receiver_nodes: bool,
 }
 
 /// How S was built, per translucent object.

@@ -42,6 +42,9 @@ enum Rows {
     Patches,
     /// `patch_count + 1`
     PatchesPlusOne,
+    /// F's rows + 1: `patch_count + 1`, or with receiver nodes `patch_count +
+    /// hierarchy.nodes + 1`
+    FfRowsPlusOne,
     /// `vertex_count`
     Vertices,
     /// `occluder_count`
@@ -66,7 +69,7 @@ const SHAPES: &[(&str, Rows, &[u64])] = &[
     (arrays::VERTEX_NORMAL, Rows::Vertices, &[3]),
     (arrays::TRIANGLE_VERTEX, Rows::Patches, &[3]),
     (arrays::OCCLUDER_TRI, Rows::Occluders, &[3, 3]),
-    (arrays::FF_ROW_PTR, Rows::PatchesPlusOne, &[]),
+    (arrays::FF_ROW_PTR, Rows::FfRowsPlusOne, &[]),
     (arrays::FF_COL, Rows::Nnz, &[]),
     (arrays::FF_VAL, Rows::Nnz, &[]),
     (arrays::S_ROW_PTR, Rows::PatchesPlusOne, &[]),
@@ -321,7 +324,7 @@ pub struct Bundle {
     manifest: Manifest,
     manifest_bytes: u64,
     arrays: BTreeMap<String, MappedArray>,
-    /// The rows of F, equal to patch_count.
+    /// patch_count: the rows of F before any node rows.
     n_patches: usize,
     /// Cluster nodes of a hierarchical F (0 for a dense one): F has N + M columns.
     n_nodes: usize,
@@ -332,6 +335,8 @@ pub struct Bundle {
 /// The counts of a manifest, as `usize`.
 struct Counts {
     patches: u64,
+    /// Rows of F: the patches, then the receiving nodes of a two-sided F.
+    ff_rows: u64,
     vertices: u64,
     occluders: u64,
     nnz: u64,
@@ -348,6 +353,12 @@ impl Counts {
                     .checked_add(1)
                     .ok_or_else(|| invalid(MANIFEST_FILE, "patch_count is too large"))?,
                 "N + 1 with N = patch_count".into(),
+            ),
+            Rows::FfRowsPlusOne => (
+                self.ff_rows
+                    .checked_add(1)
+                    .ok_or_else(|| invalid(MANIFEST_FILE, "patch_count is too large"))?,
+                "F's rows + 1: N + 1, or N + M + 1 with hierarchy.receiver_nodes".into(),
             ),
             Rows::Vertices => (self.vertices, "V = vertex_count".into()),
             Rows::Occluders => (self.occluders, "M = occluder_count".into()),
@@ -574,8 +585,13 @@ impl Bundle {
                 found: manifest.version,
             });
         }
+        let ff_rows = match &manifest.hierarchy {
+            Some(h) if h.receiver_nodes => manifest.patch_count.saturating_add(h.nodes),
+            _ => manifest.patch_count,
+        };
         let counts = Counts {
             patches: manifest.patch_count,
+            ff_rows,
             vertices: manifest.vertex_count,
             occluders: manifest.occluder_count,
             nnz: manifest.form_factors.nnz,
@@ -859,7 +875,7 @@ impl Bundle {
                 .map_err(|why| invalid(array_file_name(arrays::SIM_ROW_PTR, DType::U64), why))?;
         }
         crate::csr::CsrView::new_checked(
-            n,
+            self.ff_rows(),
             n + self.n_nodes,
             self.u64s(arrays::FF_ROW_PTR),
             self.u32s(arrays::FF_COL),
@@ -1272,11 +1288,20 @@ impl Bundle {
         self.u32s(arrays::DIST_KIND)
     }
 
-    /// F (`N × N`), or for a hierarchical bundle C (`N × (N + M)`, see
-    /// [`Manifest::hierarchy`]); use it with [`Bundle::tree`].
+    /// Rows of F: N, or N + M when cluster nodes receive
+    /// ([`HierarchyInfo::receiver_nodes`]).
+    pub fn ff_rows(&self) -> usize {
+        match &self.manifest.hierarchy {
+            Some(h) if h.receiver_nodes => self.n_patches + self.n_nodes,
+            _ => self.n_patches,
+        }
+    }
+
+    /// F (`N × N`), or for a hierarchical bundle C (`N × (N + M)`, or `(N + M) × (N + M)`
+    /// with node rows; see [`Manifest::hierarchy`]); use it with [`Bundle::tree`].
     pub fn form_factors(&self) -> crate::csr::CsrView<'_> {
         crate::csr::CsrView::from_checked_parts(
-            self.n_patches,
+            self.ff_rows(),
             self.n_patches + self.n_nodes,
             self.u64s(arrays::FF_ROW_PTR),
             self.u32s(arrays::FF_COL),

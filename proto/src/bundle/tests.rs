@@ -664,6 +664,42 @@ fn hierarchical_f_opens_and_a_bad_tree_is_refused() {
     assert!(open_err(m, &a).contains("out of range"));
 }
 
+/// A two-sided F: with `hierarchy.receiver_nodes` C has a row per node after the patch
+/// rows (`ff_row_ptr` N + M + 1 long); without the flag those offsets are refused.
+#[test]
+fn node_rows_of_f_open_with_receiver_nodes_only() {
+    let two_sided = |receiver_nodes: bool| {
+        let (mut m, mut a) = two_patches();
+        m.hierarchy = Some(HierarchyInfo {
+            nodes: 1,
+            receiver_nodes,
+            ..Default::default()
+        });
+        m.form_factors.nnz = 3;
+        // Row 0 sees patch 1, row 1 nothing, node 0 (both patches) receives 0.25·node 0.
+        replace(&mut a, u64s(arrays::FF_ROW_PTR, &[4], &[0, 1, 1, 3]));
+        replace(&mut a, u32s(arrays::FF_COL, &[3], &[1, 0, 2]));
+        replace(&mut a, f32s(arrays::FF_VAL, &[3], &[0.5, 0.125, 0.25]));
+        a.push(u32s(arrays::TREE_PERM, &[2], &[0, 1]));
+        a.push(u32s(arrays::TREE_RANGE, &[1, 2], &[0, 2]));
+        (m, a)
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let (m, a) = two_sided(true);
+    write(tmp.path(), m, &a);
+    let b = Bundle::open(tmp.path()).unwrap();
+    assert_eq!(b.ff_rows(), 3);
+    let f = b.form_factors();
+    assert_eq!((f.n_rows(), f.n_cols()), (3, 3));
+    assert_eq!(f.row(2).0, &[0, 2]);
+    let (m, a) = two_sided(false);
+    let err = open_err(m, &a);
+    assert!(
+        err.contains("ff_row_ptr") && err.contains("receiver_nodes"),
+        "{err}"
+    );
+}
+
 /// A hierarchical S: with `subsurface.links` S and the distances have node columns over
 /// F's tree; without the tree it is refused, and without `links` a node column is out of
 /// range.

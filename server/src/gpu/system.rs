@@ -73,6 +73,8 @@ struct Vectors {
     sfx: wgpu::Buffer,
     /// x̄ = [x; P x] of a hierarchical F (a stub otherwise).
     pulled: wgpu::Buffer,
+    /// C x̄ over a two-sided C's N + M rows, before the push (a stub otherwise).
+    rows: wgpu::Buffer,
     partial: wgpu::Buffer,
     history: wgpu::Buffer,
     counter: wgpu::Buffer,
@@ -99,31 +101,37 @@ struct Ops {
 
 /// F on the device: a dense F, or a hierarchical F̃ = C·P as C with its pull
 /// P' = [I; P] ((N + M) × N, [`Transport::pull_matrix`]): F x is then two CSR products,
-/// x̄ ← P' x and y ← C x̄, with the same kernel.
+/// x̄ ← P' x and y ← C x̄, with the same kernel. A two-sided F̃ = Q·C·P adds its push
+/// Q' = [I | Q] (N × (N + M), [`Transport::push_matrix`]) as a third: ỹ ← C x̄, y ← Q' ỹ.
 #[derive(Debug)]
 pub struct GpuF {
     c: GpuCsr,
     pull: Option<GpuCsr>,
+    push: Option<GpuCsr>,
 }
 
 impl GpuF {
     /// Uploads F (and the pull of a hierarchical one).
     pub fn upload(ctx: &GpuContext, what: &str, f: &Transport<'_>) -> Result<GpuF, GpuError> {
-        let pull = match f.pull_matrix() {
-            Some(p) => {
-                let view = p
-                    .view()
-                    .map_err(|e| GpuError::Invalid(format!("{what} pull: {e}")))?;
-                Some(GpuCsr::upload_f32(ctx, &format!("{what} pull"), &view)?)
-            }
-            None => None,
+        let upload = |m: Option<translux_proto::csr::Csr>, part: &str| -> Result<_, GpuError> {
+            let Some(m) = m else { return Ok(None) };
+            let view = m
+                .view()
+                .map_err(|e| GpuError::Invalid(format!("{what} {part}: {e}")))?;
+            GpuCsr::upload_f32(ctx, &format!("{what} {part}"), &view).map(Some)
         };
+        let pull = upload(f.pull_matrix(), "pull")?;
+        let release = |m: &Option<GpuCsr>| {
+            if let Some(m) = m {
+                ctx.release(m.bytes());
+            }
+        };
+        let push = upload(f.push_matrix(), "push").inspect_err(|_| release(&pull))?;
         match GpuCsr::upload_f32(ctx, &format!("{what} F"), f.matrix()) {
-            Ok(c) => Ok(GpuF { c, pull }),
+            Ok(c) => Ok(GpuF { c, pull, push }),
             Err(e) => {
-                if let Some(p) = pull {
-                    ctx.release(p.bytes());
-                }
+                release(&pull);
+                release(&push);
                 Err(e)
             }
         }
@@ -131,6 +139,11 @@ impl GpuF {
 
     /// Rows of F (patches).
     pub fn n_rows(&self) -> usize {
+        self.push.as_ref().map_or(self.c.n_rows(), GpuCsr::n_rows)
+    }
+
+    /// Rows of C x̄ before the push (patches, then the receiving nodes of a two-sided F).
+    fn stored_rows(&self) -> usize {
         self.c.n_rows()
     }
 
@@ -141,38 +154,58 @@ impl GpuF {
 
     /// Whether the pulled vector matches C (dense: C is square; hierarchical: P' feeds it).
     fn consistent(&self) -> bool {
-        match &self.pull {
-            None => self.c.n_cols() == self.c.n_rows(),
-            Some(p) => p.n_rows() == self.c.n_cols() && p.n_cols() == self.c.n_rows(),
-        }
+        let n = self.n_rows();
+        let pushed = match &self.push {
+            None => true,
+            Some(q) => q.n_cols() == self.c.n_rows() && self.pull.is_some(),
+        };
+        pushed
+            && match &self.pull {
+                None => self.c.n_cols() == self.c.n_rows(),
+                Some(p) => p.n_rows() == self.c.n_cols() && p.n_cols() == n,
+            }
     }
 
     /// Row blocks of C (and of the pull).
     pub fn blocks(&self) -> usize {
-        self.c.blocks() + self.pull.as_ref().map_or(0, GpuCsr::blocks)
+        [&self.pull, &self.push]
+            .into_iter()
+            .flatten()
+            .fold(self.c.blocks(), |a, m| a + m.blocks())
     }
 
     /// GPU bytes held.
     pub fn bytes(&self) -> u64 {
-        self.c.bytes() + self.pull.as_ref().map_or(0, GpuCsr::bytes)
+        [&self.pull, &self.push]
+            .into_iter()
+            .flatten()
+            .fold(self.c.bytes(), |a, m| a + m.bytes())
     }
 
     /// Bytes one product reads.
     pub fn stream_bytes(&self) -> u64 {
-        self.c.stream_bytes() + self.pull.as_ref().map_or(0, GpuCsr::stream_bytes)
+        [&self.pull, &self.push]
+            .into_iter()
+            .flatten()
+            .fold(self.c.stream_bytes(), |a, m| a + m.stream_bytes())
     }
 
-    /// y = F x; `pulled` holds x̄ for a hierarchical F.
+    /// y = F x; `pulled` holds x̄ for a hierarchical F, `rows` C x̄ for a two-sided one.
     fn bind(
         &self,
         ctx: &GpuContext,
         x: &wgpu::Buffer,
         pulled: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
         y: &wgpu::Buffer,
     ) -> BoundOp {
-        match &self.pull {
-            None => self.c.bind(ctx, x, y),
-            Some(p) => p.bind(ctx, x, pulled).then(self.c.bind(ctx, pulled, y)),
+        match (&self.pull, &self.push) {
+            (None, _) => self.c.bind(ctx, x, y),
+            (Some(p), None) => p.bind(ctx, x, pulled).then(self.c.bind(ctx, pulled, y)),
+            (Some(p), Some(q)) => p
+                .bind(ctx, x, pulled)
+                .then(self.c.bind(ctx, pulled, rows))
+                .then(q.bind(ctx, rows, y)),
         }
     }
 }
@@ -277,10 +310,16 @@ impl GpuSystem {
         } else {
             16
         };
+        let rows_bytes = if f.push.is_some() {
+            alloc_size(12 * f.stored_rows() as u64)
+        } else {
+            16
+        };
         let groups = (n as u32).div_ceil(256);
         let capacity = max_iterations + 2;
         let vector_bytes = 6 * vb
             + pulled_bytes
+            + rows_bytes
             + alloc_size(4 * groups as u64)
             + 2 * alloc_size(4 * capacity as u64)
             + 16
@@ -299,6 +338,7 @@ impl GpuSystem {
                 fx: storage_zeroed(ctx, "Fx", vb),
                 sfx: storage_zeroed(ctx, "SFx", vb),
                 pulled: storage_zeroed(ctx, "pulled", pulled_bytes),
+                rows: storage_zeroed(ctx, "rows", rows_bytes),
                 partial: storage_zeroed(ctx, "partial", 4 * groups as u64),
                 history: storage_zeroed(ctx, "history", 4 * capacity as u64),
                 counter: storage_zeroed(ctx, "counter", 16),
@@ -337,7 +377,7 @@ impl GpuSystem {
                         g,
                     )],
                 ),
-                f_x: f.bind(ctx, &v.x, &v.pulled, &v.fx),
+                f_x: f.bind(ctx, &v.x, &v.pulled, &v.rows, &v.fx),
                 s_fx: s_product(&f, &s, s_linked, ctx, &v.fx, &v.pulled, &v.sfx),
                 update: BoundOp::new(
                     k.jacobi_update.clone(),

@@ -726,6 +726,17 @@ mod server_start {
 /// what the CPU solves with its prefix-sum pull; also split into 4 KiB blocks.
 #[test]
 fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
+    device_solve_of_hierarchical_f(false);
+}
+
+/// A two-sided F on the device (pull, C over patch and node rows, then the push Q' = [I | Q]
+/// as a third CSR product) solves what the CPU solves with its difference-array push.
+#[test]
+fn device_solve_of_a_two_sided_f_matches_the_cpu() {
+    device_solve_of_hierarchical_f(true);
+}
+
+fn device_solve_of_hierarchical_f(two_sided: bool) {
     use translux_engine::transport::Transport;
     use translux_precompute::hierarchy::HierarchyParams;
     use translux_precompute::pipeline::{FormFactorMethod, PrecomputeParams, precompute};
@@ -733,7 +744,10 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
     let out = dir.path().join("cornell");
     let params = PrecomputeParams {
         patches: Some(700),
-        transport: FormFactorMethod::Hierarchical(HierarchyParams::default()),
+        transport: FormFactorMethod::Hierarchical(HierarchyParams {
+            two_sided,
+            ..Default::default()
+        }),
         environment: translux_engine::envvis::EnvVisParams {
             bins: None,
             ..Default::default()
@@ -745,6 +759,11 @@ fn device_solve_of_a_hierarchical_f_matches_the_cpu() {
     let b = translux_proto::bundle::Bundle::open(&out).unwrap();
     let f = Transport::of(&b);
     assert!(f.is_hierarchical() && f.nodes() > 0);
+    assert_eq!(f.has_node_rows(), two_sided);
+    if two_sided {
+        let node_rows = &f.matrix().row_ptr()[f.n()..];
+        assert!(node_rows.last() > node_rows.first(), "nodes receive");
+    }
     let n = f.n();
     let mut rng = Rng(41);
     let e: Vec<Rgb> = (0..n).map(|_| rng.rgb()).collect();

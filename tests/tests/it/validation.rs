@@ -1579,6 +1579,17 @@ fn hierarchical_f_agrees_with_dense_f_on_a_closed_room_and_the_bowls() {
 /// with a hierarchical F (clusters of the floor and ceiling span both sides).
 #[test]
 fn a_thin_wall_keeps_the_other_room_dark_with_hierarchical_f() {
+    thin_wall_room(false);
+}
+
+/// The same room with two-sided links: floor and ceiling clusters that receive whole must
+/// not carry light through the wall either.
+#[test]
+fn a_thin_wall_keeps_the_other_room_dark_with_two_sided_f() {
+    thin_wall_room(true);
+}
+
+fn thin_wall_room(two_sided: bool) {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     std::fs::write(
@@ -1606,9 +1617,13 @@ fn a_thin_wall_keeps_the_other_room_dark_with_hierarchical_f() {
         d,
         "split",
         4000,
-        FormFactorMethod::Hierarchical(HierarchyParams::default()),
+        FormFactorMethod::Hierarchical(HierarchyParams {
+            two_sided,
+            ..Default::default()
+        }),
     );
-    assert!(b.manifest().hierarchy.is_some());
+    let h = b.manifest().hierarchy.clone().unwrap();
+    assert_eq!(h.receiver_nodes, two_sided);
     let (x, centroids, _) = patch_radiance(&b, &b.manifest().lights.clone());
     let (mut lit, mut dark) = ((0.0f64, 0usize), (0.0f64, 0usize));
     for (c, v) in centroids.iter().zip(&x) {
