@@ -311,90 +311,164 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     }
     .with_context(|| format!("precomputing {}", cli.scene))?;
 
-    let ff = &report.form_factors;
-    println!("translux-precompute: {} -> {}", cli.scene, out.display());
-    println!("  patches            {}", report.patch_count);
-    println!("  viewer vertices    {}", report.vertex_count);
-    println!("  source triangles   {}", report.occluder_count);
-    let turned: Vec<&str> = loaded
+    let turned = loaded
         .objects
         .iter()
         .filter(|o| o.reoriented)
         .map(|o| o.name.as_str())
         .collect();
-    if !turned.is_empty() {
-        println!(
-            "  orientation        turned over: {} (see the notes above; \"orientation\" in \
-             the scene file decides)",
-            turned.join(", ")
-        );
-    }
-    let n = report.patch_count as f64;
-    match &report.hierarchy {
-        None => println!(
-            "  nnz(F)             {} ({:.1}% of N²), dense",
-            report.nnz_f,
-            100.0 * report.nnz_f as f64 / (n * n).max(1.0)
-        ),
-        Some(h) => {
-            println!(
-                "  nnz(F)             {} ({:.1} per patch: {} to clusters, {} to patches), \
-                 hierarchical F̃ = C·P, accuracy {}",
-                report.nnz_f,
-                report.nnz_f as f64 / n.max(1.0),
-                h.node_entries,
-                h.patch_entries,
-                h.accuracy
-            );
-            // Dense F stores 8 bytes per entry (column, value) plus the row pointers.
-            let dense_bytes = h.dense_equivalent * 8 + (report.patch_count as u64 + 1) * 8;
-            let bytes =
-                report.nnz_f * 8 + (report.patch_count as u64 + 1) * 8 + n as u64 * 4 + h.nodes * 8;
-            println!(
-                "  cluster tree       {} nodes, depth {}; F̃ {} against {} for dense F \
-                 ({:.1}% of N² pairs in view of the cut)",
-                h.nodes,
-                h.depth,
-                human_bytes(bytes),
-                human_bytes(dense_bytes),
-                100.0 * h.dense_equivalent as f64 / (n * n).max(1.0)
-            );
+    print!(
+        "{}",
+        Summary {
+            scene: &cli.scene,
+            out: &out,
+            report: &report,
+            turned,
+            load_s,
         }
-    }
-    println!(
-        "  F row sums         mean {:.4}, min {:.4}, max {:.4}",
-        ff.row_sum_mean,
-        ff.row_sum_min.max(0.0),
-        ff.row_sum_max
     );
-    if ff.threshold > 0.0 {
-        println!(
-            "  threshold          {} dropped {:.4}% of the power",
-            ff.threshold,
-            100.0 * ff.dropped_energy
-        );
+    Ok(())
+}
+
+/// What `translux-precompute` prints after a bundle is written: its counts, F, S, T, the
+/// bundle and the stage times ([`std::fmt::Display`], a section per method).
+struct Summary<'a> {
+    scene: &'a str,
+    out: &'a std::path::Path,
+    report: &'a pipeline::PrecomputeReport,
+    /// Objects whose winding the loader turned over.
+    turned: Vec<&'a str>,
+    /// Seconds spent reading the scene.
+    load_s: f64,
+}
+
+impl std::fmt::Display for Summary<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.counts(f)?;
+        self.form_factors(f)?;
+        self.subsurface(f)?;
+        self.transfer(f)?;
+        self.bundle(f)
     }
-    println!(
-        "  occlusion rays     {} ({:.2} M rays/s over the F stage)",
-        ff.rays,
-        report.rays_per_second / 1e6
-    );
-    let ss = &report.subsurface;
-    if ss.links > 0 {
-        println!(
-            "  nnz(S)             {} (optical distances stored: {}, {} of them links to cluster \
-             nodes; pair by pair: {})",
-            ss.nnz, ss.distance_nnz, ss.links, ss.pairwise_distances
-        );
-    } else {
-        println!(
-            "  nnz(S)             {} (optical distances stored: {})",
-            ss.nnz, ss.distance_nnz
-        );
+}
+
+impl Summary<'_> {
+    /// The scene, the output and the counts.
+    fn counts(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self.report;
+        writeln!(
+            f,
+            "translux-precompute: {} -> {}",
+            self.scene,
+            self.out.display()
+        )?;
+        writeln!(f, "  patches            {}", r.patch_count)?;
+        writeln!(f, "  viewer vertices    {}", r.vertex_count)?;
+        writeln!(f, "  source triangles   {}", r.occluder_count)?;
+        if !self.turned.is_empty() {
+            writeln!(
+                f,
+                "  orientation        turned over: {} (see the notes above; \"orientation\" in \
+                 the scene file decides)",
+                self.turned.join(", ")
+            )?;
+        }
+        Ok(())
     }
-    for o in &ss.objects {
+
+    /// F: its entries (and cluster tree), row sums, threshold and rays.
+    fn form_factors(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self.report;
+        let ff = &r.form_factors;
+        let n = r.patch_count as f64;
+        match &r.hierarchy {
+            None => writeln!(
+                f,
+                "  nnz(F)             {} ({:.1}% of N²), dense",
+                r.nnz_f,
+                100.0 * r.nnz_f as f64 / (n * n).max(1.0)
+            )?,
+            Some(h) => {
+                writeln!(
+                    f,
+                    "  nnz(F)             {} ({:.1} per patch: {} to clusters, {} to patches), \
+                     hierarchical F̃ = C·P, accuracy {}",
+                    r.nnz_f,
+                    r.nnz_f as f64 / n.max(1.0),
+                    h.node_entries,
+                    h.patch_entries,
+                    h.accuracy
+                )?;
+                // Dense F stores 8 bytes per entry (column, value) plus the row pointers.
+                let dense_bytes = h.dense_equivalent * 8 + (r.patch_count as u64 + 1) * 8;
+                let bytes =
+                    r.nnz_f * 8 + (r.patch_count as u64 + 1) * 8 + n as u64 * 4 + h.nodes * 8;
+                writeln!(
+                    f,
+                    "  cluster tree       {} nodes, depth {}; F̃ {} against {} for dense F \
+                     ({:.1}% of N² pairs in view of the cut)",
+                    h.nodes,
+                    h.depth,
+                    human_bytes(bytes),
+                    human_bytes(dense_bytes),
+                    100.0 * h.dense_equivalent as f64 / (n * n).max(1.0)
+                )?;
+            }
+        }
+        writeln!(
+            f,
+            "  F row sums         mean {:.4}, min {:.4}, max {:.4}",
+            ff.row_sum_mean,
+            ff.row_sum_min.max(0.0),
+            ff.row_sum_max
+        )?;
+        if ff.threshold > 0.0 {
+            writeln!(
+                f,
+                "  threshold          {} dropped {:.4}% of the power",
+                ff.threshold,
+                100.0 * ff.dropped_energy
+            )?;
+        }
+        writeln!(
+            f,
+            "  occlusion rays     {} ({:.2} M rays/s over the F stage)",
+            ff.rays,
+            r.rays_per_second / 1e6
+        )
+    }
+
+    /// S: its entries, then a line or two per translucent object.
+    fn subsurface(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ss = &self.report.subsurface;
+        if ss.links > 0 {
+            writeln!(
+                f,
+                "  nnz(S)             {} (optical distances stored: {}, {} of them links to \
+                 cluster nodes; pair by pair: {})",
+                ss.nnz, ss.distance_nnz, ss.links, ss.pairwise_distances
+            )?;
+        } else {
+            writeln!(
+                f,
+                "  nnz(S)             {} (optical distances stored: {})",
+                ss.nnz, ss.distance_nnz
+            )?;
+        }
+        for o in &ss.objects {
+            Self::object(f, o)?;
+        }
+        Ok(())
+    }
+
+    /// One translucent object's line: its walks when simulated, else its paths and voxels.
+    fn object(
+        f: &mut std::fmt::Formatter<'_>,
+        o: &translux_proto::bundle::SubsurfaceObject,
+    ) -> std::fmt::Result {
         if let Some(sim) = &o.simulation {
-            println!(
+            return writeln!(
+                f,
                 "    {:<16} simulated: {} walks ({} scattering events), noise {:.2}% median / \
                  {:.2}% max, {} records, {} entries of S, {} lost, {} cut, max column energy \
                  {:.3}, {:.2} s",
@@ -410,9 +484,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 o.max_column_energy,
                 o.seconds
             );
-            continue;
         }
-        println!(
+        writeln!(
+            f,
             "    {:<16} {} paths, r ≤ {:.4} (scene units), {} voxels ({} inside, size {:.4}), \
              max column energy {:.3}{}, {:.2} s",
             o.name,
@@ -428,47 +502,59 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 String::new()
             },
             o.seconds
-        );
+        )?;
         if o.links > 0 {
-            println!(
+            writeln!(
+                f,
                 "    {:<16} hierarchical S: {} entries, {} of them links to cluster nodes",
                 "", o.entries, o.links
-            );
+            )?;
         }
         if let Some(w) = &o.warning {
-            println!("    warning: {w}");
+            writeln!(f, "    warning: {w}")?;
         }
+        Ok(())
     }
-    if let Some(t) = &report.transfer {
-        let n = report.patch_count as u64;
-        println!(
+
+    /// T, when computed: its storage, time and the f16 error.
+    fn transfer(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let Some(t) = &self.report.transfer else {
+            return Ok(());
+        };
+        let n = self.report.patch_count as u64;
+        writeln!(
+            f,
             "  transfer T         {} ({}), {:.2} s, LU residual {:.1e}",
             human_bytes(translux_engine::inverse::stored_bytes(n)),
             t.storage,
             t.seconds,
             t.lu_residual
-        );
-        println!(
+        )?;
+        writeln!(
+            f,
             "    f16 error        entries: median {:.2e}, max {:.2e}; relight (default \
              lights): max {:.2e}, norm {:.2e}",
             t.median_rel_error, t.max_rel_error, t.relight_max_rel_error, t.relight_rel_error
-        );
+        )
     }
-    println!(
-        "  bundle             {} ({} bytes)",
-        human_bytes(report.bundle_bytes),
-        report.bundle_bytes
-    );
-    println!("  stage times        load {load_s:.2} s");
-    for s in &report.stages {
-        println!("                     {} {:.2} s", s.stage, s.seconds);
+
+    /// The bundle's size, the stage times and the memory.
+    fn bundle(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self.report;
+        writeln!(
+            f,
+            "  bundle             {} ({} bytes)",
+            human_bytes(r.bundle_bytes),
+            r.bundle_bytes
+        )?;
+        writeln!(f, "  stage times        load {:.2} s", self.load_s)?;
+        for s in &r.stages {
+            writeln!(f, "                     {} {:.2} s", s.stage, s.seconds)?;
+        }
+        writeln!(f, "  memory estimate    {}", human_bytes(r.memory_estimate))?;
+        if let Some(rss) = r.peak_rss {
+            writeln!(f, "  peak memory (RSS)  {}", human_bytes(rss))?;
+        }
+        Ok(())
     }
-    println!(
-        "  memory estimate    {}",
-        human_bytes(report.memory_estimate)
-    );
-    if let Some(rss) = report.peak_rss {
-        println!("  peak memory (RSS)  {}", human_bytes(rss));
-    }
-    Ok(())
 }
