@@ -1,8 +1,9 @@
 //! Where the heavy products of a relight run: the [`Backend`] trait, and the CPU's
 //! ([`Cpu`]), which leaves everything to the engine's own CPU code.
 //!
-//! In: a scene ([`SceneRef`]), and per call the vectors of one relight batch. Out: the
-//! product or the solve when the backend did it, or "not here" (`false`, `None`), which
+//! In: a scene ([`SceneRef`]), and per call the vectors of one relight batch, or a whole
+//! relight ([`DeviceRelight`]: lights in, vertex colours out). Out: the product, the solve
+//! or the colours when the backend did it, or "not here" (`false`, `None`), which
 //! tells the engine to compute it on the CPU — so a backend may decline any call (a scene
 //! that does not fit, a device error) and the answer is still computed. S for a
 //! translucency change is always made on the CPU ([`crate::scene::Scene`]).
@@ -15,8 +16,12 @@ use std::sync::Arc;
 
 use translux_proto::bundle::Bundle;
 
+use translux_proto::light::Light;
+
+use crate::linalg::Rgb;
 use crate::smatrix::OverrideMaterials;
 use crate::solver::{SolveParams, SolveStats};
+use crate::vertexrows::VertexRows;
 
 /// What a backend sees of a scene ([`crate::scene::Scene::view`]): its id (named in logs,
 /// a key of the device's copy with the bundle's checksums) and its bundle.
@@ -24,6 +29,31 @@ use crate::solver::{SolveParams, SolveStats};
 pub struct SceneRef<'a> {
     pub id: &'a str,
     pub bundle: &'a Bundle,
+}
+
+/// A relight a backend may do whole, where the matrices are: the direct light of `lights`
+/// (point, spot and directional lamps, shadowed) at the patches and at the vertices, the
+/// solve of B = Bₑ + S(E + F B) with the bundle's S and emission, and the vertex colours
+/// by `rows` ([`crate::relight`] hands over only plans that need nothing else).
+#[derive(Debug, Clone, Copy)]
+pub struct DeviceRelight<'a> {
+    pub lights: &'a [Light],
+    pub params: &'a SolveParams,
+    /// The colour stage for the bundle's materials.
+    pub rows: &'a std::sync::Arc<VertexRows>,
+}
+
+/// What a backend's whole relight gave: B/π per vertex (as [`crate::relight`]'s colour
+/// stage makes it), the solve's stats and what it took on the device.
+#[derive(Debug, Clone)]
+pub struct DeviceAnswer {
+    pub radiance: Vec<Rgb>,
+    pub stats: SolveStats,
+    /// Command submissions.
+    pub submissions: u32,
+    /// Bytes written to the device and read back.
+    pub bytes_up: u64,
+    pub bytes_down: u64,
 }
 
 /// A compute backend for the relight's products. Every method may decline.
@@ -50,6 +80,10 @@ pub trait Backend: Send + Sync + std::fmt::Debug {
         params: &SolveParams,
         warm: Option<&[f32]>,
     ) -> Option<(Vec<f32>, SolveStats)>;
+
+    /// The whole relight `job` of `scene` where the matrices are; `None` to leave it to
+    /// the engine's stages.
+    fn relight(&self, scene: SceneRef<'_>, job: &DeviceRelight<'_>) -> Option<DeviceAnswer>;
 }
 
 /// The CPU backend: declines every call, so the engine computes everything itself.
@@ -84,6 +118,10 @@ impl Backend for Cpu {
         _params: &SolveParams,
         _warm: Option<&[f32]>,
     ) -> Option<(Vec<f32>, SolveStats)> {
+        None
+    }
+
+    fn relight(&self, _scene: SceneRef<'_>, _job: &DeviceRelight<'_>) -> Option<DeviceAnswer> {
         None
     }
 }

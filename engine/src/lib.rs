@@ -19,7 +19,9 @@
 //! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays.
 //! - [`radiosity`] — direct irradiance from the lights (with shadows), the solve
 //!   B = Bₑ + S (E + F B), and patch values to vertex values; [`vertexlight`] — the direct
-//!   term of opaque diffuse surfaces evaluated at the viewer's vertices themselves.
+//!   term of opaque diffuse surfaces evaluated at the viewer's vertices themselves;
+//!   [`vertexrows`] — that colour stage as sparse rows per vertex, for a backend that makes
+//!   the colours where B is.
 //! - [`inverse`] — the transfer matrix T = (I − S F)⁻¹ S: computing it (dense LU) and
 //!   applying the stored f16 T.
 //! - [`envmap`], [`envvis`] — environment maps (`.hdr`, built-in skies) binned by
@@ -83,3 +85,4 @@ pub mod stop;
 pub mod subsurface;
 pub mod transport;
 pub mod vertexlight;
+pub mod vertexrows;

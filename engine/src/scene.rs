@@ -13,7 +13,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use glam::Vec3;
-use translux_proto::api::{PrepState, TranslucencyPrep};
+use translux_proto::api::{Components, PrepState, TranslucencyPrep};
 use translux_proto::bundle::{Bundle, BundleError, arrays};
 use translux_proto::csr::ValidCsr;
 use translux_proto::scene::Material;
@@ -81,6 +81,9 @@ pub struct Scene {
     slant_cache: Mutex<Option<(String, Arc<Slant>)>>,
     /// Where direct light is evaluated at the viewer's vertices (made on first use).
     pub(crate) vertex_samples: OnceLock<VertexSamples>,
+    /// The colour stage as rows for the bundle's materials, made on a backend's first
+    /// whole relight ([`Scene::vertex_rows`]).
+    pub(crate) vertex_rows: OnceLock<Arc<crate::vertexrows::VertexRows>>,
     /// The last solutions, for warm starts (see [`WarmCache`]).
     pub(crate) warm: WarmCache,
     /// The last lights' direct light (see [`DirectCache`]).
@@ -441,6 +444,7 @@ impl Scene {
             }),
             s_scratch: Mutex::new(Scratch::default()),
             vertex_samples: OnceLock::new(),
+            vertex_rows: OnceLock::new(),
             warm: Default::default(),
             direct: Default::default(),
             resources: resources.clone(),
@@ -451,6 +455,20 @@ impl Scene {
     pub fn vertex_samples(&self) -> &VertexSamples {
         self.vertex_samples
             .get_or_init(|| VertexSamples::new(&self.bundle, &self.occluder))
+    }
+
+    /// The colour stage of a relight with the bundle's materials and the `full`
+    /// components as rows ([`crate::vertexrows`]), for a backend's whole relight.
+    pub fn vertex_rows(&self) -> &Arc<crate::vertexrows::VertexRows> {
+        self.vertex_rows.get_or_init(|| {
+            let materials = crate::smatrix::materials_with(&self.bundle, &[]);
+            let opaque = crate::vertexlight::opaque_objects(&materials, Components::Full);
+            Arc::new(crate::vertexrows::VertexRows::new(
+                &self.bundle,
+                self.vertex_samples(),
+                &opaque,
+            ))
+        })
     }
 
     /// What environment lighting reads of it ([`crate::environment`]).

@@ -429,7 +429,7 @@ pub struct VertexMeans {
 /// as a share of their spread: enough for a vertex a third of a patch beyond the outermost
 /// centroid of a linear field (a mesh's edge), not for a fit that a kink in the field
 /// (a shadow's edge in the indirect light) throws far off.
-const OVERSHOOT: f64 = 0.5;
+pub(crate) const OVERSHOOT: f64 = 0.5;
 
 impl VertexMeans {
     pub fn new(b: &Bundle, samples: &VertexSamples, patches: PatchTerms<'_>) -> VertexMeans {

@@ -523,6 +523,22 @@ pub struct RelightStats {
     /// exposes with this. Absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub auto_exposure: Option<f32>,
+    /// Present when the GPU did the whole relight (direct light, solve and vertex colours
+    /// in one submission): what it took on the device. Absent on the CPU stages.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device: Option<DeviceStats>,
+}
+
+/// What a relight done whole on the GPU took ([`RelightStats::device`]).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct DeviceStats {
+    /// Command submissions (1 when the iterations recorded up front sufficed).
+    pub submissions: u32,
+    /// Bytes the host wrote to the device (the lights, the solve's parameters).
+    pub bytes_up: u64,
+    /// Bytes read back (the vertex colours, the solve's counter and residual history).
+    pub bytes_down: u64,
 }
 
 fn one() -> usize {

@@ -34,11 +34,13 @@ use std::sync::{Arc, Mutex};
 use serde::{Deserialize, Serialize};
 use translux_engine::radiosity::{Rgb, SolveParams, SolveStats};
 
+use crate::gpu::relight::DeviceRelight;
 use crate::gpu::{
-    AdapterSummary, DenseData, GpuContext, GpuDense, GpuError, GpuOptions, GpuSystem, SystemParams,
+    AdapterSummary, DenseData, GpuContext, GpuDense, GpuError, GpuOptions, GpuSystem,
 };
-use translux_engine::backend::SceneRef;
+use translux_engine::backend::{DeviceAnswer, SceneRef};
 use translux_engine::smatrix::OverrideMaterials;
+use translux_engine::vertexrows::VertexRows;
 
 /// `--backend` (`TRANSLUX_BACKEND`, the config file's `backend`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
@@ -67,6 +69,10 @@ struct GpuScene {
     /// The bundle's transfer matrix R = T − S, uploaded on first use; `Err`: it did not fit
     /// (the CPU computes the product).
     transfer: Mutex<Option<Result<Arc<GpuDense>, String>>>,
+    /// What the whole relight needs beside `base` (the occluder, the sample points, the
+    /// colour rows), uploaded on the first one; `Err`: it did not fit (the engine's
+    /// stages relight on the CPU and solve here).
+    whole: Mutex<Option<Result<Arc<DeviceRelight>, String>>>,
 }
 
 impl GpuScene {
@@ -75,7 +81,38 @@ impl GpuScene {
             Some(Some(Ok(t))) => t.bytes(),
             _ => 0,
         };
-        t + self.base.bytes()
+        let w = match self.whole.lock().ok().as_deref() {
+            Some(Some(Ok(w))) => w.bytes(),
+            _ => 0,
+        };
+        t + w + self.base.bytes()
+    }
+
+    /// The whole relight's buffers, uploaded on first use (a failure is logged once and
+    /// kept: `None` from then on).
+    fn whole(
+        &self,
+        ctx: &GpuContext,
+        scene: SceneRef<'_>,
+        rows: &VertexRows,
+    ) -> Option<Arc<DeviceRelight>> {
+        let mut slot = self.whole.lock().unwrap_or_else(|p| p.into_inner());
+        if slot.is_none() {
+            let made = DeviceRelight::new(ctx, &self.base, scene.bundle, rows);
+            match &made {
+                Ok(d) => tracing::info!(
+                    scene = %scene.id,
+                    "the whole relight runs on the GPU (direct light, solve, vertex colours):                      {} MiB more",
+                    d.bytes() >> 20
+                ),
+                Err(e) => tracing::warn!(
+                    scene = %scene.id,
+                    "the direct light and the vertex colours stay on the CPU: {e}"
+                ),
+            }
+            *slot = Some(made.map(Arc::new).map_err(|e| e.to_string()));
+        }
+        slot.as_ref().and_then(|r| r.as_ref().ok().cloned())
     }
 }
 
@@ -92,7 +129,6 @@ struct Inner {
     reason: Option<String>,
     /// By [`scene_key`]: the scene id and where it is served.
     scenes: Mutex<HashMap<String, (String, Slot)>>,
-    params: SystemParams,
 }
 
 /// `/healthz`'s view of the backend.
@@ -130,7 +166,6 @@ impl Backend {
                 gpu: None,
                 reason: Some(reason.into()),
                 scenes: Mutex::new(HashMap::new()),
-                params: SystemParams::default(),
             }),
         }
     }
@@ -149,7 +184,6 @@ impl Backend {
                 gpu: Some(ctx),
                 reason: None,
                 scenes: Mutex::new(HashMap::new()),
-                params: SystemParams::default(),
             }),
         }
     }
@@ -319,6 +353,7 @@ impl Backend {
                 let g = Arc::new(GpuScene {
                     base: sys,
                     transfer: Mutex::new(None),
+                    whole: Mutex::new(None),
                 });
                 scenes.insert(key, (scene.id.to_string(), Slot::Gpu(g.clone())));
                 Some(g)
@@ -356,7 +391,7 @@ impl Backend {
         let g = self.scene(scene)?;
         let run = g
             .base
-            .solve(ctx, emission, irradiance, params, &self.inner.params, None)
+            .solve(ctx, emission, irradiance, params, None)
             .map(|(b, s)| (b, s.stats));
         match run {
             Ok(r) => Some(r),
@@ -495,13 +530,7 @@ impl translux_engine::backend::Backend for Backend {
             let mut total: Option<SolveStats> = None;
             for s in 0..k {
                 let w = warm.filter(|w| w.len() == n * ch).map(|w| column(w, s));
-                let (b, st) = sys.solve_rhs(
-                    ctx,
-                    &column(rhs, s),
-                    params,
-                    &self.inner.params,
-                    w.as_deref(),
-                )?;
+                let (b, st) = sys.solve_rhs(ctx, &column(rhs, s), params, w.as_deref())?;
                 for (j, v) in b.iter().enumerate() {
                     x[j * ch + 3 * s..j * ch + 3 * s + 3].copy_from_slice(v);
                 }
@@ -525,6 +554,33 @@ impl translux_engine::backend::Backend for Backend {
             Ok(r) => Some(r),
             Err(e) => {
                 self.fail(ctx, scene, "solve", &e);
+                None
+            }
+        }
+    }
+
+    /// The whole relight on the device ([`crate::gpu::relight`]): direct light, solve and
+    /// vertex colours in one submission, from the last answer the device holds. `None`:
+    /// the engine's stages (CPU backend, the scene or its relight buffers do not fit, a
+    /// device error, which moves the scene to the CPU).
+    fn relight(
+        &self,
+        scene: SceneRef<'_>,
+        job: &translux_engine::backend::DeviceRelight<'_>,
+    ) -> Option<DeviceAnswer> {
+        let ctx = self.inner.gpu.as_ref()?;
+        let g = self.scene(scene)?;
+        let whole = g.whole(ctx, scene, job.rows)?;
+        match whole.relight(ctx, &g.base, job.lights, job.params) {
+            Ok((radiance, st)) => Some(DeviceAnswer {
+                radiance,
+                stats: st.stats,
+                submissions: st.submissions,
+                bytes_up: st.bytes_up,
+                bytes_down: st.bytes_down,
+            }),
+            Err(e) => {
+                self.fail(ctx, scene, "relight", &e);
                 None
             }
         }

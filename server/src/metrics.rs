@@ -12,6 +12,8 @@
 //! | `translux_compute_seconds` | histogram | — one batch's compute time |
 //! | `translux_batch_size` | histogram | — relights per batch |
 //! | `translux_solver_iterations` | histogram | — per relight |
+//! | `translux_gpu_submissions_total` | counter | — command submissions of relights done whole on the GPU |
+//! | `translux_gpu_transfer_bytes_total` | counter | `direction`: `up` (host to device), `down` (read back), for those relights |
 //! | `translux_ws_connections` | gauge | — open streams |
 //! | `translux_ws_frames_total` | counter | `format` |
 //! | `translux_ws_dropped_total` | counter | — stream requests superseded before computing |
@@ -49,6 +51,10 @@ pub struct Metrics {
     pub mapped_bytes: IntGauge,
     /// GPU bytes held by the scenes (0 on the CPU backend).
     pub gpu_bytes: IntGauge,
+    /// Submissions of the relights done whole on the GPU.
+    pub gpu_submissions: IntCounter,
+    /// Bytes those relights moved, by `direction` (`up`, `down`).
+    pub gpu_transfer: IntCounterVec,
     /// 1, labelled with what this build is (so dashboards can tell servers apart).
     pub build_info: IntGaugeVec,
 }
@@ -66,6 +72,21 @@ impl Default for Metrics {
 }
 
 impl Metrics {
+    /// Counts a relight's stats: its solver iterations, and what it took on the GPU when
+    /// the GPU did it whole.
+    pub fn relit(&self, stats: &translux_proto::api::RelightStats) {
+        self.iterations.observe(stats.iterations as f64);
+        if let Some(d) = &stats.device {
+            self.gpu_submissions.inc_by(d.submissions as u64);
+            self.gpu_transfer
+                .with_label_values(&["up"])
+                .inc_by(d.bytes_up);
+            self.gpu_transfer
+                .with_label_values(&["down"])
+                .inc_by(d.bytes_down);
+        }
+    }
+
     /// Registers every metric in a fresh registry.
     pub fn new() -> Metrics {
         let registry = Registry::new();
@@ -206,6 +227,25 @@ impl Metrics {
                     "translux_gpu_bytes",
                     "GPU memory held by the scenes' matrices and vectors (0 on the CPU backend).",
                 ),
+            ),
+            gpu_submissions: reg(
+                &registry,
+                IntCounter::new(
+                    "translux_gpu_submissions_total",
+                    "Command submissions of the relights done whole on the GPU.",
+                )
+                .expect("valid counter"),
+            ),
+            gpu_transfer: reg(
+                &registry,
+                IntCounterVec::new(
+                    Opts::new(
+                        "translux_gpu_transfer_bytes_total",
+                        "Bytes the relights done whole on the GPU wrote (up) and read back (down).",
+                    ),
+                    &["direction"],
+                )
+                .expect("valid counter"),
             ),
             build_info: reg(
                 &registry,

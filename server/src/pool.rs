@@ -562,11 +562,11 @@ fn process(s: &Shared, batch: Vec<Job>) {
         match &result {
             Ok(Done::Relight(o)) => {
                 m.outcome("ok", 1);
-                m.iterations.observe(o.stats.iterations as f64);
+                m.relit(&o.stats);
             }
             Ok(Done::Render(o)) => {
                 m.outcome("ok", 1);
-                m.iterations.observe(o.stats.iterations as f64);
+                m.relit(&o.stats);
             }
             Err(_) => m.outcome("failed", 1),
         }

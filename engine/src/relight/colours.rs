@@ -65,6 +65,7 @@ pub(super) fn answer(
         batch: done.batch,
         note: p.note.clone(),
         auto_exposure,
+        device: None,
     };
     Ok(RelightOutput { radiance, stats })
 }

@@ -4,6 +4,9 @@
 //! [`run`] and [`run_batch`] do the work and belong on a blocking thread. The work is a
 //! pipeline of stages, each a function of its own:
 //!
+//! 0. *The whole relight on the backend* (`device::relight`): a plan that needs only the
+//!    bundle's materials, lamps and the solve goes to the scene's backend whole (the GPU:
+//!    direct light, solve and vertex colours in one submission) and skips the rest.
 //! 1. *Direct light* per plan (`prepare::prepare`): E per patch from the lights, shadowed,
 //!    the direct light at the vertices of opaque surfaces ([`crate::vertexlight`]), the
 //!    lamps' collimated entry into simulated objects ([`crate::collimated`]) and their walked
@@ -36,6 +39,7 @@ use translux_proto::api::DirectAt;
 use prepare::Prepared;
 
 mod colours;
+mod device;
 mod prepare;
 mod transport;
 
@@ -310,11 +314,16 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
         centroid: &scene.centroids,
         normal: &scene.normals,
     };
-    // Stages 1 and 2, plan by plan: direct light, then S for its materials.
+    // Stage 0: the plans the backend does whole.
     let mut out: Vec<Option<Result<RelightOutput, EngineError>>> =
-        plans.iter().map(|_| None).collect();
+        plans.iter().map(|p| device::relight(scene, p)).collect();
+    // Stages 1 and 2, plan by plan: direct light, then S for its materials.
     let mut prepared: Vec<Option<Prepared>> = Vec::with_capacity(plans.len());
     for (idx, plan) in plans.iter().enumerate() {
+        if out[idx].is_some() {
+            prepared.push(None);
+            continue;
+        }
         match prepare::prepare(scene, geo, plan) {
             Ok(p) => prepared.push(Some(p)),
             Err(e) => {

@@ -234,7 +234,7 @@ pub(super) fn prepare(
 /// Whether the plan's transport takes the bundle's T (its components solve, they are
 /// `full`, T exists and holds for its materials, and the plan does not ask for the
 /// iterative solver), and, where `auto` falls back to the solver, why.
-fn path(scene: &Scene, plan: &RelightPlan) -> (bool, Option<String>) {
+pub(super) fn path(scene: &Scene, plan: &RelightPlan) -> (bool, Option<String>) {
     let has_t = scene.bundle.transfer().is_some();
     let stale = transfer_stale(scene, &plan.overrides);
     let solves = !matches!(

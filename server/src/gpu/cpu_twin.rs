@@ -196,3 +196,269 @@ pub fn reduce_sum(partial: &[f32]) -> f32 {
     }
     part[0]
 }
+
+/// What one `reduce_sum.wgsl` dispatch keeps between dispatches: the history, the counter
+/// (`[next slot, the iteration the solve stopped at or 0]`) and the indirect dispatch
+/// triples it zeroes when the solve stops.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReduceState {
+    pub history: Vec<f32>,
+    pub counter: [u32; 2],
+    pub args: Vec<u32>,
+}
+
+/// Twin of one `reduce_sum.wgsl` dispatch with its stopping rule: nothing once stopped;
+/// else the sum ([`reduce_sum`]) appended to the history, and at a slot k ≥ 1 with
+/// `h[k] ≤ tol2 · h[0]` (or `h[0] = 0`) the stop recorded and `args` zeroed (no `args`:
+/// never stops).
+pub fn reduce_stop(partial: &[f32], tol2: f32, state: &mut ReduceState) {
+    if state.counter[1] != 0 {
+        return;
+    }
+    let sum = reduce_sum(partial);
+    let slot = state.counter[0] as usize;
+    if slot < state.history.len() {
+        state.history[slot] = sum;
+    }
+    state.counter[0] += 1;
+    let h0 = state.history.first().copied().unwrap_or(0.0);
+    let met = h0 == 0.0 || sum <= tol2 * h0;
+    if !state.args.is_empty() && slot >= 1 && met {
+        state.counter[1] = slot as u32;
+        state.args.iter_mut().for_each(|a| *a = 0);
+    }
+}
+
+/// Twin of `vertex_colours.wgsl`: one vertex at a time, in f32, from `rows`
+/// ([`translux_engine::vertexrows::VertexRows`]), B (`x`) and E (`e`) per patch and E at
+/// each vertex's sample point (`ev`).
+pub fn vertex_colours(
+    rows: &translux_engine::vertexrows::VertexRows,
+    x: &[Rgb],
+    e: &[Rgb],
+    ev: &[Rgb],
+) -> Vec<Rgb> {
+    let inv_pi = std::f32::consts::FRAC_1_PI;
+    (0..rows.len())
+        .map(|q| {
+            let (a, z) = (rows.offsets[q] as usize, rows.offsets[q + 1] as usize);
+            let entries = rows.patch[a..z].iter().zip(&rows.weight[a..z]);
+            let own = rows.own[q];
+            if own[3] == 0.0 {
+                let mut value = [0.0f32; 3];
+                for (&k, &w) in entries {
+                    for c in 0..3 {
+                        value[c] += w * x[k as usize][c];
+                    }
+                }
+                return value;
+            }
+            let (mut sum, mut lo, mut hi) = ([0.0f32; 3], [0.0f32; 3], [0.0f32; 3]);
+            for (i, (&k, &w)) in entries.enumerate() {
+                let k = k as usize;
+                let r: Rgb = std::array::from_fn(|c| x[k][c] - rows.albedo[k][c] * e[k][c]);
+                for c in 0..3 {
+                    sum[c] += w * r[c];
+                    (lo[c], hi[c]) = if i == 0 {
+                        (r[c], r[c])
+                    } else {
+                        (lo[c].min(r[c]), hi[c].max(r[c]))
+                    };
+                }
+            }
+            std::array::from_fn(|c| {
+                let rest = if z > a {
+                    let slack = rows.overshoot * (hi[c] - lo[c]);
+                    sum[c].clamp(lo[c] - slack, hi[c] + slack)
+                } else {
+                    0.0
+                };
+                ((rest + own[c] * ev[q][c]) * inv_pi).max(0.0)
+            })
+        })
+        .collect()
+}
+
+/// Twin of `bvh_traverse.wgsl`'s `slab`: the ray's interval inside the box, clipped to
+/// (tmin, tmax); empty when enter > exit.
+fn bvh_slab(r: &super::direct::ShadowRay, lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
+    let (mut t0, mut t1) = (r.tmin, r.tmax);
+    for k in 0..3 {
+        let (o, d) = (r.origin[k], r.dir[k]);
+        if d.abs() < 1e-30 {
+            if o < lo[k] || o > hi[k] {
+                return (1.0, 0.0);
+            }
+        } else {
+            let a = (lo[k] - o) / d;
+            let b = (hi[k] - o) / d;
+            t0 = t0.max(a.min(b));
+            t1 = t1.min(a.max(b));
+        }
+    }
+    (t0, t1)
+}
+
+/// Twin of `bvh_traverse.wgsl`'s `hit_tri` (the engine's `intersect_closed`).
+fn bvh_hit_tri(r: &super::direct::ShadowRay, t: &super::direct::BvhTri) -> bool {
+    use glam::Vec3;
+    const EPS: f32 = super::direct::TRI_EPS;
+    let v = t.v.map(|p| Vec3::new(p[0], p[1], p[2]));
+    let (o, d) = (Vec3::from(r.origin), Vec3::from(r.dir));
+    let e1 = v[1] - v[0];
+    let e2 = v[2] - v[0];
+    let p = d.cross(e2);
+    let det = e1.dot(p);
+    if det.abs() < 1e-20 {
+        return false;
+    }
+    let inv = 1.0 / det;
+    let s = o - v[0];
+    let u = s.dot(p) * inv;
+    if !(-EPS..=1.0 + EPS).contains(&u) {
+        return false;
+    }
+    let q = s.cross(e1);
+    let w = d.dot(q) * inv;
+    if w < -EPS || u + w > 1.0 + EPS {
+        return false;
+    }
+    let t = e2.dot(q) * inv;
+    t > r.tmin && t < r.tmax
+}
+
+/// Twin of `bvh_traverse.wgsl`'s `occluded`: the same stack walk, near child first.
+fn bvh_occluded(bvh: &super::direct::FlatBvh, r: &super::direct::ShadowRay) -> bool {
+    let box_of = |i: usize| bvh_slab(r, bvh.nodes[i].lo, bvh.nodes[i].hi);
+    let root = box_of(0);
+    if root.0 > root.1 {
+        return false;
+    }
+    let mut stack = [0u32; super::direct::MAX_DEPTH as usize];
+    let mut sp = 0usize;
+    let mut i = 0usize;
+    loop {
+        let n = bvh.nodes[i];
+        if n.count > 0 {
+            let tris = &bvh.tris[n.a as usize..(n.a + n.count) as usize];
+            if tris.iter().any(|t| bvh_hit_tri(r, t)) {
+                return true;
+            }
+        } else {
+            let (a, b) = (n.a as usize, n.a as usize + 1);
+            let (l, h) = (box_of(a), box_of(b));
+            let (hit_l, hit_h) = (l.0 <= l.1, h.0 <= h.1);
+            if hit_l && hit_h {
+                let (near, far) = if l.0 <= h.0 { (a, b) } else { (b, a) };
+                if sp < stack.len() {
+                    stack[sp] = far as u32;
+                    sp += 1;
+                }
+                i = near;
+                continue;
+            }
+            if hit_l {
+                i = a;
+                continue;
+            }
+            if hit_h {
+                i = b;
+                continue;
+            }
+        }
+        if sp == 0 {
+            return false;
+        }
+        sp -= 1;
+        i = stack[sp] as usize;
+    }
+}
+
+/// Twin of `shadow_rays.wgsl`: one occluded flag per ray through `bvh`.
+pub fn shadow_rays(bvh: &super::direct::FlatBvh, rays: &[super::direct::ShadowRay]) -> Vec<bool> {
+    rays.iter().map(|r| bvh_occluded(bvh, r)).collect()
+}
+
+/// Twin of `direct_light.wgsl`: E at each point (normal `normals[i]`) from `lights`, each
+/// light's term added in order.
+pub fn direct_light(
+    bvh: &super::direct::FlatBvh,
+    points: &[glam::Vec3],
+    normals: &[glam::Vec3],
+    lights: &super::direct::GpuLights,
+) -> Vec<Rgb> {
+    points
+        .iter()
+        .zip(normals)
+        .map(|(&x, &n)| {
+            let o = x + n * lights.offset;
+            let mut e = glam::Vec3::ZERO;
+            for l in &lights.lights {
+                e += direct_light_one(bvh, lights, l, x, n, o);
+            }
+            e.into()
+        })
+        .collect()
+}
+
+/// One light's term of [`direct_light`] (`light_at` in the shader).
+fn direct_light_one(
+    bvh: &super::direct::FlatBvh,
+    lights: &super::direct::GpuLights,
+    l: &super::direct::GpuLight,
+    x: glam::Vec3,
+    n: glam::Vec3,
+    o: glam::Vec3,
+) -> glam::Vec3 {
+    use glam::Vec3;
+    let pos = Vec3::new(l.pos[0], l.pos[1], l.pos[2]);
+    let power = Vec3::new(l.power[0], l.power[1], l.power[2]);
+    if l.kind == super::direct::LIGHT_AT {
+        let d = pos - o;
+        let r = d.length();
+        if r <= 0.0 {
+            return Vec3::ZERO;
+        }
+        let c = n.dot(d) / r;
+        if c <= 0.0 {
+            return Vec3::ZERO;
+        }
+        let spot = if l.cone != 0 {
+            let axis = Vec3::new(l.axis[0], l.axis[1], l.axis[2]);
+            let c_axis = axis.dot((x - pos).normalize_or_zero());
+            bvh_falloff(c_axis, l.cos_inner, l.cos_outer)
+        } else {
+            1.0
+        };
+        let ray = super::direct::ShadowRay::segment(o, pos);
+        if spot <= 0.0 || bvh_occluded(bvh, &ray) {
+            return Vec3::ZERO;
+        }
+        let rm = r * lights.to_m;
+        let w = spot * c / (rm * rm);
+        return w * power;
+    }
+    let c = n.dot(pos);
+    let ray = super::direct::ShadowRay {
+        origin: o.into(),
+        tmin: 0.0,
+        dir: pos.into(),
+        tmax: lights.far,
+    };
+    if c <= 0.0 || bvh_occluded(bvh, &ray) {
+        return Vec3::ZERO;
+    }
+    c * power
+}
+
+/// Twin of `direct_light.wgsl`'s `falloff` (the engine's `spot_falloff` from cosines).
+fn bvh_falloff(c: f32, ci: f32, co: f32) -> f32 {
+    if c >= ci {
+        1.0
+    } else if c <= co {
+        0.0
+    } else {
+        let t = (c - co) / (ci - co);
+        t * t * (3.0 - 2.0 * t)
+    }
+}

@@ -10,6 +10,11 @@ pub const CSR_SPMV_RGB: &str = include_str!("kernels/csr_spmv_rgb.wgsl");
 pub const DENSE_MATMUL_RGB: &str = include_str!("kernels/dense_matmul_rgb.wgsl");
 pub const JACOBI_UPDATE: &str = include_str!("kernels/jacobi_update.wgsl");
 pub const REDUCE_SUM: &str = include_str!("kernels/reduce_sum.wgsl");
+/// The BVH traversal `shadow_rays` and `direct_light` share, put in front of each source.
+pub const BVH_TRAVERSE: &str = include_str!("kernels/bvh_traverse.wgsl");
+pub const SHADOW_RAYS: &str = include_str!("kernels/shadow_rays.wgsl");
+pub const DIRECT_LIGHT: &str = include_str!("kernels/direct_light.wgsl");
+pub const VERTEX_COLOURS: &str = include_str!("kernels/vertex_colours.wgsl");
 
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
@@ -122,10 +127,16 @@ pub struct Kernels {
     pub(crate) dense: Kernel,
     pub(crate) jacobi: Kernel,
     pub(crate) reduce: Kernel,
+    pub(crate) shadow: Kernel,
+    pub(crate) direct: Kernel,
+    pub(crate) colours: Kernel,
     pub(crate) spmv_scalar: wgpu::ComputePipeline,
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
     pub(crate) jacobi_update: wgpu::ComputePipeline,
     pub(crate) reduce_sum: wgpu::ComputePipeline,
+    pub(crate) shadow_rays: wgpu::ComputePipeline,
+    pub(crate) direct_light: wgpu::ComputePipeline,
+    pub(crate) vertex_colours: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -155,17 +166,42 @@ impl Kernels {
             device,
             "reduce_sum",
             REDUCE_SUM,
-            &[Read, ReadWrite, ReadWrite],
+            &[Read, ReadWrite, ReadWrite, ReadWrite],
+        );
+        let colours = Kernel::new(
+            device,
+            "vertex_colours",
+            VERTEX_COLOURS,
+            &[Read, Read, Read, Read, Read, Read, Read, ReadWrite],
+        );
+        // Bindings 1 and 2 (nodes, triangles) are the traversal's, declared in BVH_TRAVERSE.
+        let shadow = Kernel::new(
+            device,
+            "shadow_rays",
+            &format!("{BVH_TRAVERSE}\n{SHADOW_RAYS}"),
+            &[Read, Read, Read, ReadWrite],
+        );
+        let direct = Kernel::new(
+            device,
+            "direct_light",
+            &format!("{BVH_TRAVERSE}\n{DIRECT_LIGHT}"),
+            &[Read, Read, Read, Read, Read, ReadWrite],
         );
         Kernels {
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
             jacobi_update: jacobi.pipeline(device, &[]),
             reduce_sum: reduce.pipeline(device, &[]),
+            shadow_rays: shadow.pipeline(device, &[]),
+            direct_light: direct.pipeline(device, &[]),
+            vertex_colours: colours.pipeline(device, &[]),
             spmv,
             dense,
             jacobi,
             reduce,
+            shadow,
+            direct,
+            colours,
             dense_variants: Mutex::new(HashMap::new()),
         }
     }

@@ -164,6 +164,35 @@ impl BoundOp {
             }
         }
     }
+
+    /// The workgroup grid of each dispatch, in the order [`Self::encode`] records them.
+    pub(crate) fn grids(&self) -> Vec<(u32, u32)> {
+        self.steps
+            .iter()
+            .flat_map(|(_, groups)| groups.iter().map(|(_, g)| *g))
+            .collect()
+    }
+
+    /// Records the op's dispatches into `pass` as indirect dispatches whose grids are the
+    /// (x, y, 1) triples of `args` from triple `first` on (as [`Self::grids`] lays them out);
+    /// answers the triple after the last. A triple zeroed on the device dispatches nothing.
+    pub(crate) fn encode_indirect(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        args: &wgpu::Buffer,
+        first: u32,
+    ) -> u32 {
+        let mut slot = first;
+        for (pipeline, groups) in &self.steps {
+            pass.set_pipeline(pipeline);
+            for (bg, _) in groups {
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups_indirect(args, 12 * slot as u64);
+                slot += 1;
+            }
+        }
+        slot
+    }
 }
 
 /// Row blocks of a CSR matrix: (first row, end row) pairs whose entries fit `tile` bytes

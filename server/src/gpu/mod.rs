@@ -11,16 +11,25 @@
 //! | `dense_matmul_rgb` | Y = T X, T dense f16/f32 RGB, k ≤ 64 vectors per pass | same name |
 //! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup | same name |
 //! | `reduce_sum` | appends Σ of the partials to a residual history | same name |
+//! | `shadow_rays` | one occluded flag per ray, any-hit walk of the occluder BVH | same name |
+//! | `direct_light` | shadowed direct irradiance E per surface point (point, spot, directional) | same name |
+//!
+//! `shadow_rays` and `direct_light` share one traversal source, `bvh_traverse.wgsl`, put in
+//! front of each at compile time.
 //!
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage
-//! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one scene's buffers
-//! and bind groups, built once and reused by every request. Nothing is read back per
-//! iteration: the residual history is read every [`SystemParams::readback_every`] iterations.
+//! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one
+//! scene's buffers and bind groups, built once and reused by every request; [`direct`] holds
+//! the occluder BVH on the device and the direct-light dispatch a relight records into its own
+//! pass. A solve is one submission and one read-back (the counter, the residual history and
+//! the answer); the stopping rule runs on the device ([`system`]).
 
 pub mod cpu_twin;
+pub mod direct;
 pub mod kernels;
 pub mod matrix;
+pub mod relight;
 pub mod system;
 
 use std::sync::{Arc, Mutex};
@@ -29,7 +38,7 @@ use thiserror::Error;
 
 pub use cpu_twin::DenseData;
 pub use matrix::{GpuCsr, GpuDense};
-pub use system::{GpuSystem, SystemParams};
+pub use system::{GpuSolveStats, GpuSystem};
 
 /// Why the GPU cannot do something.
 #[derive(Debug, Error)]

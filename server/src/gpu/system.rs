@@ -1,24 +1,31 @@
 //! One scene's transport system on the device: F, S and the solve's vectors, with every bind
-//! group made once, so a request only writes E and Bₑ, runs, and reads B back.
+//! group made once, so a request writes only what the host holds, runs, and reads back.
 //!
 //! The Jacobi solve of B = b + S F B, b = Bₑ + S E (the CPU's [`radiosity::solve`] with
-//! [`radiosity::Method::Jacobi`], same stopping rule on the relative residual):
+//! [`radiosity::Method::Jacobi`], same stopping rule on the relative residual), recorded
+//! into one submission:
 //!
 //! ```text
+//!   [before: E on the device]
 //!   sfx ← S E;  b ← Bₑ + sfx, h[0] = ‖b‖²             (jacobi_update with x = 0)
 //!   x ← b (or the warm start)
-//!   repeat, m iterations per submission:
+//!   m times, each dispatched indirectly from `args`:
 //!     fx ← F x; sfx ← S fx; r = b + sfx − x, x ← b + sfx; h[k] = ‖r‖²
-//!   read h back; stop at the first k with √h[k] / √h[0] ≤ tolerance, or at the cap
+//!     (reduce_sum: at the first k with √h[k] / √h[0] ≤ tolerance it zeroes `args`, so
+//!      the iterations after it dispatch nothing)
+//!   [after: vertex colours from x]
+//!   copy the counter, the history and the answer to staging; read back once
 //! ```
 //!
-//! Only the residual history (a few floats) crosses the bus between submissions; B is read
-//! once at the end. The returned B has had every iteration of the last submission applied,
-//! so it is at least as converged as the iterate whose residual met the tolerance.
+//! m is half as many again as the last solve took (at least 8); a solve that did not
+//! converge in them continues in a further submission, up to the cap. The returned B has
+//! had every iteration up to the stop applied, so it is at least as converged as the
+//! iterate whose residual met the tolerance.
 //!
 //! [`radiosity::solve`]: translux_engine::radiosity::solve
 //! [`radiosity::Method::Jacobi`]: translux_engine::radiosity::Method::Jacobi
 
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -45,41 +52,82 @@ struct VecParams {
 struct ReduceParams {
     count: u32,
     capacity: u32,
-    _pad0: u32,
-    _pad1: u32,
+    /// Indirect dispatch triples zeroed when the solve stops (0: it never stops).
+    n_args: u32,
+    /// The relative tolerance, squared.
+    tol2: f32,
 }
 
-/// Settings of the device solve beyond [`SolveParams`].
-#[derive(Debug, Clone, Copy)]
-pub struct SystemParams {
-    /// Iterations per submission: the residual history is read back after each. Default 8.
-    pub readback_every: u32,
-}
-
-impl Default for SystemParams {
-    fn default() -> Self {
-        Self { readback_every: 8 }
-    }
-}
-
-/// The per-scene vectors (n × RGB f32 each) and the residual history.
+/// The per-scene vectors (n × RGB f32 each) the host and the stages touch, the residual
+/// history and the indirect dispatch arguments of one iteration. (F x, the pulled vector
+/// x̄ = [x; P x] of a hierarchical F, C x̄ of a two-sided one and the residual's partial
+/// sums live only in the bind groups that use them.)
 #[derive(Debug)]
 struct Vectors {
     e: wgpu::Buffer,
     be: wgpu::Buffer,
     b: wgpu::Buffer,
     x: wgpu::Buffer,
-    fx: wgpu::Buffer,
     sfx: wgpu::Buffer,
-    /// x̄ = [x; P x] of a hierarchical F (a stub otherwise).
-    pulled: wgpu::Buffer,
-    /// C x̄ over a two-sided C's N + M rows, before the push (a stub otherwise).
-    rows: wgpu::Buffer,
-    partial: wgpu::Buffer,
     history: wgpu::Buffer,
+    /// `[next history slot, the iteration the solve stopped at (0: running), 0, 0]`.
     counter: wgpu::Buffer,
-    history_read: wgpu::Buffer,
-    x_read: wgpu::Buffer,
+    /// `reduce_sum`'s parameters (the tolerance changes per solve).
+    reduce_params: wgpu::Buffer,
+    /// The grids of an iteration's dispatches, read indirectly; zeroed on the device when
+    /// the solve stops.
+    args: wgpu::Buffer,
+    /// The same grids as made, copied over `args` at the start of each solve.
+    args_full: wgpu::Buffer,
+    /// Staging for the counter, the history and B.
+    read: wgpu::Buffer,
+}
+
+/// Where one of a solve's vectors comes from.
+#[derive(Clone, Copy)]
+pub(crate) enum Input<'a> {
+    /// Written by the host (counted in the bytes sent).
+    Host(&'a [Rgb]),
+    /// Copied on the device from another buffer.
+    Copy(&'a wgpu::Buffer),
+    /// Already where it belongs: written by the job's `before` stage (E), or kept on the
+    /// device from the last solve (the warm start).
+    OnDevice,
+    /// Not given: no S E (the right-hand side is given whole), or a cold start (x = b).
+    Absent,
+}
+
+/// A stage recorded into a compute pass of the solve's one submission.
+pub(crate) type Stage<'a> = &'a dyn Fn(&mut wgpu::ComputePass<'_>);
+
+/// One solve as the device runs it: its inputs, the stages recorded before and after it,
+/// and what it reads back.
+pub(crate) struct Job<'a> {
+    /// E: on the host, recorded by `before`, or absent (then `be` is the whole b).
+    pub(crate) e: Input<'a>,
+    /// Bₑ (or the whole right-hand side): on the host or copied from a device buffer.
+    pub(crate) be: Input<'a>,
+    /// The start: on the host, x as the last solve left it, or b.
+    pub(crate) warm: Input<'a>,
+    /// Records work before the solve (the device's direct light into E).
+    pub(crate) before: Option<Stage<'a>>,
+    /// Records work after the solve (vertex colours from x).
+    pub(crate) after: Option<Stage<'a>>,
+    /// What is read back after the counters: `(buffer, bytes, staging)`, the staging
+    /// buffer holding [`GpuSystem::counter_bytes`] before it; `None`: x.
+    pub(crate) out: Option<(&'a wgpu::Buffer, u64, &'a wgpu::Buffer)>,
+}
+
+/// What a device solve did, and what crossed the bus for it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GpuSolveStats {
+    pub stats: SolveStats,
+    /// Command submissions (1 when the iterations recorded sufficed).
+    pub submissions: u32,
+    /// Bytes the host wrote to the device (vectors, parameters).
+    pub bytes_up: u64,
+    /// Bytes read back (the counters, the residual history, the answer).
+    pub bytes_down: u64,
 }
 
 /// The dispatches of the solve, bound once.
@@ -227,6 +275,153 @@ fn s_product(
     }
 }
 
+/// The byte sizes of a system's vectors.
+struct Sizes {
+    n: usize,
+    /// One n × RGB vector.
+    vector: u64,
+    pulled: u64,
+    rows: u64,
+    groups: u32,
+    capacity: u32,
+}
+
+impl Sizes {
+    fn of(f: &GpuF, capacity: u32) -> Sizes {
+        let n = f.n_rows();
+        Sizes {
+            n,
+            vector: alloc_size(12 * n as u64),
+            pulled: if f.pull.is_some() {
+                alloc_size(12 * f.pulled_rows() as u64)
+            } else {
+                16
+            },
+            rows: if f.push.is_some() {
+                alloc_size(12 * f.stored_rows() as u64)
+            } else {
+                16
+            },
+            groups: (n as u32).div_ceil(256),
+            capacity,
+        }
+    }
+
+    /// Every buffer of [`Vectors`] (the indirect arguments counted at a generous 4 KiB).
+    fn total(&self) -> u64 {
+        6 * self.vector
+            + self.pulled
+            + self.rows
+            + alloc_size(4 * self.groups as u64)
+            + alloc_size(4 * self.capacity as u64)
+            + 16
+            + 16
+            + 2 * 4096
+            + alloc_size(counter_bytes(self.capacity) + self.vector)
+    }
+}
+
+/// The solve's vectors and its dispatches, bound once; answers them with the number of
+/// indirect triples an iteration takes.
+fn bind_solve(
+    ctx: &GpuContext,
+    f: &GpuF,
+    s: &GpuCsr,
+    s_linked: bool,
+    z: &Sizes,
+) -> (Vectors, Ops, u32) {
+    let g = grid(z.groups);
+    let vp = uniform(
+        ctx,
+        "vec-params",
+        &VecParams {
+            n: z.n as u32,
+            groups_x: g.0,
+            _pad0: 0,
+            _pad1: 0,
+        },
+    );
+    let e = storage_zeroed(ctx, "E", z.vector);
+    let be = storage_zeroed(ctx, "Be", z.vector);
+    let b = storage_zeroed(ctx, "b", z.vector);
+    let x = storage_zeroed(ctx, "x", z.vector);
+    let fx = storage_zeroed(ctx, "Fx", z.vector);
+    let sfx = storage_zeroed(ctx, "SFx", z.vector);
+    let pulled = storage_zeroed(ctx, "pulled", z.pulled);
+    let rows = storage_zeroed(ctx, "rows", z.rows);
+    let partial = storage_zeroed(ctx, "partial", 4 * z.groups as u64);
+    let f_x = f.bind(ctx, &x, &pulled, &rows, &fx);
+    let s_fx = s_product(f, s, s_linked, ctx, &fx, &pulled, &sfx);
+    let k = &ctx.kernels;
+    let dev = &ctx.device;
+    let update = BoundOp::new(
+        k.jacobi_update.clone(),
+        vec![(k.jacobi.bind(dev, &vp, &[&b, &sfx, &x, &partial]), g)],
+    );
+    // The grids of one iteration's indirect dispatches, in the order `iterate` records.
+    let grids: Vec<u32> = [&f_x, &s_fx, &update]
+        .iter()
+        .flat_map(|op| op.grids())
+        .flat_map(|(gx, gy)| [gx, gy, 1])
+        .collect();
+    let n_args = (grids.len() / 3) as u32;
+    let args = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("solve-args"),
+        size: alloc_size(4 * grids.len() as u64),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::INDIRECT
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let args_full =
+        super::matrix::storage_init(ctx, "solve-args-full", bytemuck::cast_slice(&grids));
+    let history = storage_zeroed(ctx, "history", 4 * z.capacity as u64);
+    let counter = storage_zeroed(ctx, "counter", 16);
+    let reduce_params = uniform(
+        ctx,
+        "reduce-params",
+        &ReduceParams {
+            count: z.groups,
+            capacity: z.capacity,
+            n_args,
+            tol2: 0.0,
+        },
+    );
+    let reduce = BoundOp::new(
+        k.reduce_sum.clone(),
+        vec![(
+            k.reduce
+                .bind(dev, &reduce_params, &[&partial, &history, &counter, &args]),
+            (1, 1),
+        )],
+    );
+    let ops = Ops {
+        s_e: s_product(f, s, s_linked, ctx, &e, &pulled, &sfx),
+        rhs: BoundOp::new(
+            k.jacobi_update.clone(),
+            vec![(k.jacobi.bind(dev, &vp, &[&be, &sfx, &b, &partial]), g)],
+        ),
+        f_x,
+        s_fx,
+        update,
+        reduce,
+    };
+    let v = Vectors {
+        e,
+        be,
+        b,
+        x,
+        sfx,
+        history,
+        counter,
+        reduce_params,
+        args,
+        args_full,
+        read: staging(ctx, "solve-read", counter_bytes(z.capacity) + z.vector),
+    };
+    (v, ops, n_args)
+}
+
 /// A scene's F and S on the device, with everything the solve needs.
 #[derive(Debug)]
 pub struct GpuSystem {
@@ -237,17 +432,27 @@ pub struct GpuSystem {
     v: Vectors,
     ops: Ops,
     capacity: u32,
+    /// Indirect dispatch triples of one iteration (`Vectors::args`).
+    n_args: u32,
     vector_bytes: u64,
+    /// Iterations the last solve took: the next one records half as many again (and at
+    /// least [`MIN_RECORDED`]) in its one submission.
+    last_iterations: AtomicU32,
+    /// Whether x holds the answer of a solve of this system (a warm start on the device).
+    x_solved: AtomicBool,
     /// One solve at a time: the vectors are shared.
     busy: Mutex<()>,
 }
 
-/// What a device solve did.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GpuSolveStats {
-    pub stats: SolveStats,
-    /// Submissions (each followed by one read-back of the residual history).
-    pub readbacks: u32,
+/// Fewest iterations a submission records. Iterations past the stop dispatch no
+/// workgroups, so recording a few spare costs little; a solve that needs more than were
+/// recorded continues in a further submission.
+const MIN_RECORDED: u32 = 8;
+
+/// Bytes of the counter and history a solve reads back before its answer, for a history
+/// of `slots` entries.
+fn counter_bytes(slots: u32) -> u64 {
+    16 + 4 * slots as u64
 }
 
 impl GpuSystem {
@@ -304,108 +509,26 @@ impl GpuSystem {
                 s.n_cols()
             )));
         }
-        let vb = alloc_size(12 * n as u64);
-        let pulled_bytes = if f.pull.is_some() {
-            alloc_size(12 * f.pulled_rows() as u64)
-        } else {
-            16
-        };
-        let rows_bytes = if f.push.is_some() {
-            alloc_size(12 * f.stored_rows() as u64)
-        } else {
-            16
-        };
-        let groups = (n as u32).div_ceil(256);
         let capacity = max_iterations + 2;
-        let vector_bytes = 6 * vb
-            + pulled_bytes
-            + rows_bytes
-            + alloc_size(4 * groups as u64)
-            + 2 * alloc_size(4 * capacity as u64)
-            + 16
-            + vb
-            + 48;
+        let sizes = Sizes::of(&f, capacity);
+        let vector_bytes = sizes.total();
         if let Err(e) = ctx.reserve(&format!("{what} vectors"), vector_bytes) {
             ctx.release(s.bytes());
             return Err(e);
         }
-        let made = ctx.scoped(|| {
-            let v = Vectors {
-                e: storage_zeroed(ctx, "E", vb),
-                be: storage_zeroed(ctx, "Be", vb),
-                b: storage_zeroed(ctx, "b", vb),
-                x: storage_zeroed(ctx, "x", vb),
-                fx: storage_zeroed(ctx, "Fx", vb),
-                sfx: storage_zeroed(ctx, "SFx", vb),
-                pulled: storage_zeroed(ctx, "pulled", pulled_bytes),
-                rows: storage_zeroed(ctx, "rows", rows_bytes),
-                partial: storage_zeroed(ctx, "partial", 4 * groups as u64),
-                history: storage_zeroed(ctx, "history", 4 * capacity as u64),
-                counter: storage_zeroed(ctx, "counter", 16),
-                history_read: staging(ctx, "history-read", 4 * capacity as u64),
-                x_read: staging(ctx, "x-read", vb),
-            };
-            let g = grid(groups);
-            let vp = uniform(
-                ctx,
-                "vec-params",
-                &VecParams {
-                    n: n as u32,
-                    groups_x: g.0,
-                    _pad0: 0,
-                    _pad1: 0,
-                },
-            );
-            let rp = uniform(
-                ctx,
-                "reduce-params",
-                &ReduceParams {
-                    count: groups,
-                    capacity,
-                    _pad0: 0,
-                    _pad1: 0,
-                },
-            );
-            let k = &ctx.kernels;
-            let dev = &ctx.device;
-            let ops = Ops {
-                s_e: s_product(&f, &s, s_linked, ctx, &v.e, &v.pulled, &v.sfx),
-                rhs: BoundOp::new(
-                    k.jacobi_update.clone(),
-                    vec![(
-                        k.jacobi.bind(dev, &vp, &[&v.be, &v.sfx, &v.b, &v.partial]),
-                        g,
-                    )],
-                ),
-                f_x: f.bind(ctx, &v.x, &v.pulled, &v.rows, &v.fx),
-                s_fx: s_product(&f, &s, s_linked, ctx, &v.fx, &v.pulled, &v.sfx),
-                update: BoundOp::new(
-                    k.jacobi_update.clone(),
-                    vec![(
-                        k.jacobi.bind(dev, &vp, &[&v.b, &v.sfx, &v.x, &v.partial]),
-                        g,
-                    )],
-                ),
-                reduce: BoundOp::new(
-                    k.reduce_sum.clone(),
-                    vec![(
-                        k.reduce
-                            .bind(dev, &rp, &[&v.partial, &v.history, &v.counter]),
-                        (1, 1),
-                    )],
-                ),
-            };
-            Ok((v, ops))
-        });
+        let made = ctx.scoped(|| Ok(bind_solve(ctx, &f, &s, s_linked, &sizes)));
         match made {
-            Ok((v, ops)) => Ok(GpuSystem {
+            Ok((v, ops, n_args)) => Ok(GpuSystem {
                 n,
                 f,
                 s,
                 v,
                 ops,
                 capacity,
+                n_args,
                 vector_bytes,
+                last_iterations: AtomicU32::new(0),
+                x_solved: AtomicBool::new(false),
                 busy: Mutex::new(()),
             }),
             Err(e) => {
@@ -463,7 +586,6 @@ impl GpuSystem {
         emission: &[Rgb],
         irradiance: &[Rgb],
         params: &SolveParams,
-        sys: &SystemParams,
         warm: Option<&[Rgb]>,
     ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
         let n = self.n;
@@ -474,7 +596,15 @@ impl GpuSystem {
                 irradiance.len()
             )));
         }
-        self.run(ctx, Some(irradiance), emission, params, sys, warm)
+        let job = Job {
+            e: Input::Host(irradiance),
+            be: Input::Host(emission),
+            warm: self.host_start(warm),
+            before: None,
+            after: None,
+            out: None,
+        };
+        self.solve_x(ctx, &job, params)
     }
 
     /// Solves (I − S F) B = rhs on the device for a right-hand side computed elsewhere
@@ -484,7 +614,6 @@ impl GpuSystem {
         ctx: &GpuContext,
         rhs: &[Rgb],
         params: &SolveParams,
-        sys: &SystemParams,
         warm: Option<&[Rgb]>,
     ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
         if rhs.len() != self.n {
@@ -494,124 +623,286 @@ impl GpuSystem {
                 self.n
             )));
         }
-        self.run(ctx, None, rhs, params, sys, warm)
+        let job = Job {
+            e: Input::Absent,
+            be: Input::Host(rhs),
+            warm: self.host_start(warm),
+            before: None,
+            after: None,
+            out: None,
+        };
+        self.solve_x(ctx, &job, params)
     }
 
-    /// The solve: b = `be` + S `e` (S E skipped without `e`), then Jacobi.
-    fn run(
+    /// A warm start given by the host, when it has the system's length.
+    fn host_start<'a>(&self, warm: Option<&'a [Rgb]>) -> Input<'a> {
+        match warm {
+            Some(w) if w.len() == self.n => Input::Host(w),
+            _ => Input::Absent,
+        }
+    }
+
+    /// [`Self::run`] reading back x: B per patch (0 where b = 0).
+    fn solve_x(
         &self,
         ctx: &GpuContext,
-        e: Option<&[Rgb]>,
-        be: &[Rgb],
+        job: &Job<'_>,
         params: &SolveParams,
-        sys: &SystemParams,
-        warm: Option<&[Rgb]>,
     ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
+        let run = self.run(ctx, job, params)?;
+        let b: Vec<Rgb> = if run.dark {
+            vec![[0.0; 3]; self.n]
+        } else {
+            let x: Vec<f32> = bytemuck::pod_collect_to_vec(&run.out);
+            x.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+        };
+        Ok((b, run.stats))
+    }
+
+    /// The buffer E lives in (a job's `before` stage writes it on the device).
+    pub(crate) fn e_buffer(&self) -> &wgpu::Buffer {
+        &self.v.e
+    }
+
+    /// The buffer the solve leaves B in (a job's `after` stage reads it).
+    pub(crate) fn x_buffer(&self) -> &wgpu::Buffer {
+        &self.v.x
+    }
+
+    /// Bytes a job's staging buffer holds before its answer: the counter and the longest
+    /// history.
+    pub(crate) fn counter_bytes(&self) -> u64 {
+        counter_bytes(self.capacity)
+    }
+
+    /// Whether x holds the answer of an earlier solve of this system, so a job may start
+    /// there ([`Input::OnDevice`]).
+    pub(crate) fn holds_answer(&self) -> bool {
+        self.x_solved.load(Ordering::Relaxed)
+    }
+
+    /// A solve in as few submissions as the iterations allow, usually one: the job's inputs
+    /// written, then one command buffer that records `before`, b = Bₑ + S E and ‖b‖², the
+    /// start, [`Self::recorded`] iterations (dispatched indirectly: `reduce_sum` zeroes
+    /// their grids once the residual meets the tolerance), `after`, and the copy of the
+    /// counter, the history and the answer into staging, read back once. Only when the
+    /// iterations recorded did not reach the tolerance (nor the cap) does a further
+    /// submission record more.
+    pub(crate) fn run(
+        &self,
+        ctx: &GpuContext,
+        job: &Job<'_>,
+        params: &SolveParams,
+    ) -> Result<Run, GpuError> {
         let t0 = Instant::now();
-        let n = self.n;
-        // At least one iteration: its residual is the one reported.
         let max_it = params.max_iterations.clamp(1, self.capacity - 2);
-        let every = sys.readback_every.max(1);
-        let is_warm = warm.is_some_and(|w| w.len() == n);
         let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         ctx.scoped(|| {
-            let q = &ctx.queue;
-            if let Some(e) = e {
-                q.write_buffer(&self.v.e, 0, bytemuck::cast_slice(e));
-            }
-            q.write_buffer(&self.v.be, 0, bytemuck::cast_slice(be));
-            q.write_buffer(&self.v.counter, 0, bytemuck::bytes_of(&[0u32; 4]));
-            let vb = 12 * n as u64;
-            // b = Bₑ + S E (or the given rhs: sfx = 0) and ‖b‖², then x = b (or the warm
-            // start).
+            let bytes_up = self.write_inputs(ctx, job, params);
             let mut enc = ctx.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(&self.v.b, 0, None);
-            if e.is_none() {
-                enc.clear_buffer(&self.v.sfx, 0, None);
-            }
-            {
-                let mut pass = enc.begin_compute_pass(&Default::default());
-                if e.is_some() {
-                    self.ops.s_e.encode(&mut pass);
+            self.record_start(&mut enc, job);
+            let mut per = self.recorded(max_it);
+            let (mut done, mut submissions, mut bytes_down) = (0u32, 0u32, 0u64);
+            loop {
+                let count = per.min(max_it - done);
+                let (slots, out_bytes) = self.record_iterations(&mut enc, job, done, count);
+                ctx.queue.submit([enc.finish()]);
+                submissions += 1;
+                let staging = job.out.map_or(&self.v.read, |o| o.2);
+                let read_bytes = counter_bytes(slots) + out_bytes;
+                let bytes = ctx.read_back(staging, read_bytes)?;
+                bytes_down += read_bytes;
+                done += count;
+                let state = History::parse(&bytes, slots);
+                if state.stopped.is_some() || done >= max_it || state.dark() {
+                    let out = bytes[counter_bytes(slots) as usize..].to_vec();
+                    let stats = self.finish(&state, job, t0, max_it);
+                    return Ok(Run {
+                        out,
+                        dark: state.dark(),
+                        stats: GpuSolveStats {
+                            stats,
+                            submissions,
+                            bytes_up,
+                            bytes_down,
+                        },
+                    });
                 }
-                self.ops.rhs.encode(&mut pass);
+                per = per.saturating_mul(2);
+                enc = ctx.device.create_command_encoder(&Default::default());
+            }
+        })
+    }
+
+    /// Iterations the next submission records: half as many again as the last solve took,
+    /// at least [`MIN_RECORDED`], at most the cap.
+    fn recorded(&self, max_it: u32) -> u32 {
+        let last = self.last_iterations.load(Ordering::Relaxed);
+        (last + last / 2 + 2).max(MIN_RECORDED).min(max_it)
+    }
+
+    /// Writes the job's host vectors and the tolerance; answers the bytes written.
+    fn write_inputs(&self, ctx: &GpuContext, job: &Job<'_>, params: &SolveParams) -> u64 {
+        let q = &ctx.queue;
+        let mut up = 0u64;
+        let mut put = |buffer: &wgpu::Buffer, v: &[Rgb]| {
+            q.write_buffer(buffer, 0, bytemuck::cast_slice(v));
+            up += 12 * v.len() as u64;
+        };
+        if let Input::Host(e) = job.e {
+            put(&self.v.e, e);
+        }
+        if let Input::Host(be) = job.be {
+            put(&self.v.be, be);
+        }
+        if let Input::Host(w) = job.warm {
+            put(&self.v.x, w);
+        }
+        let rp = ReduceParams {
+            count: (self.n as u32).div_ceil(256),
+            capacity: self.capacity,
+            n_args: self.n_args,
+            tol2: params.tolerance * params.tolerance,
+        };
+        q.write_buffer(&self.v.reduce_params, 0, bytemuck::bytes_of(&rp));
+        up + std::mem::size_of::<ReduceParams>() as u64
+    }
+
+    /// Records the start of a solve: Bₑ copied in where the job gives it on the device, the
+    /// iteration grids restored, the counter cleared; then `before`, S E, b and ‖b‖²; then
+    /// x = b unless the job starts elsewhere.
+    fn record_start(&self, enc: &mut wgpu::CommandEncoder, job: &Job<'_>) {
+        let vb = 12 * self.n as u64;
+        if let Input::Copy(be) = job.be {
+            enc.copy_buffer_to_buffer(be, 0, &self.v.be, 0, vb);
+        }
+        let args_bytes = 12 * self.n_args as u64;
+        enc.copy_buffer_to_buffer(&self.v.args_full, 0, &self.v.args, 0, args_bytes);
+        enc.clear_buffer(&self.v.counter, 0, None);
+        enc.clear_buffer(&self.v.b, 0, None);
+        if matches!(job.e, Input::Absent) {
+            enc.clear_buffer(&self.v.sfx, 0, None);
+        }
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            if let Some(before) = job.before {
+                before(&mut pass);
+            }
+            if !matches!(job.e, Input::Absent) {
+                self.ops.s_e.encode(&mut pass);
+            }
+            self.ops.rhs.encode(&mut pass);
+            self.ops.reduce.encode(&mut pass);
+        }
+        if matches!(job.warm, Input::Absent) {
+            enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb);
+        }
+    }
+
+    /// Records `count` iterations (after `done`), the job's `after` stage and the copies of
+    /// the counter, the history and the answer into staging; answers the history slots
+    /// copied and the answer's bytes.
+    fn record_iterations(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        job: &Job<'_>,
+        done: u32,
+        count: u32,
+    ) -> (u32, u64) {
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            for _ in 0..count {
+                let slot = self.ops.f_x.encode_indirect(&mut pass, &self.v.args, 0);
+                let slot = self.ops.s_fx.encode_indirect(&mut pass, &self.v.args, slot);
+                self.ops
+                    .update
+                    .encode_indirect(&mut pass, &self.v.args, slot);
                 self.ops.reduce.encode(&mut pass);
             }
-            match warm {
-                Some(w) if w.len() == n => q.write_buffer(&self.v.x, 0, bytemuck::cast_slice(w)),
-                _ => enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb),
+            if let Some(after) = job.after {
+                after(&mut pass);
             }
-            ctx.queue.submit([enc.finish()]);
-            let mut done = 0u32;
-            let mut readbacks = 0u32;
-            let (b_norm, residual, converged) = loop {
-                let batch = every.min(max_it - done);
-                let mut enc = ctx.device.create_command_encoder(&Default::default());
-                if batch > 0 {
-                    let mut pass = enc.begin_compute_pass(&Default::default());
-                    for _ in 0..batch {
-                        self.ops.f_x.encode(&mut pass);
-                        self.ops.s_fx.encode(&mut pass);
-                        self.ops.update.encode(&mut pass);
-                        self.ops.reduce.encode(&mut pass);
-                    }
-                }
-                let slots = (done + batch + 1) as u64;
-                enc.copy_buffer_to_buffer(&self.v.history, 0, &self.v.history_read, 0, 4 * slots);
-                ctx.queue.submit([enc.finish()]);
-                readbacks += 1;
-                let bytes = ctx.read_back(&self.v.history_read, 4 * slots)?;
-                let h: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes);
-                done += batch;
-                let b_norm = (h[0] as f64).sqrt();
-                if b_norm == 0.0 {
-                    break (0.0, 0.0, true);
-                }
-                // h[k], k ≥ 1: the residual of the iterate before update k.
-                let rel = |k: usize| ((h[k] as f64).sqrt() / b_norm) as f32;
-                let hit = (1..h.len()).find(|&k| rel(k) <= params.tolerance);
-                let last = if h.len() > 1 {
-                    rel(h.len() - 1)
-                } else {
-                    f32::INFINITY
-                };
-                if let Some(k) = hit {
-                    let _ = k;
-                    break (b_norm, last, true);
-                }
-                if done >= max_it {
-                    break (b_norm, last, false);
-                }
-            };
-            if b_norm == 0.0 {
-                let stats = SolveStats {
-                    method: Method::Jacobi,
-                    iterations: 0,
-                    products: 0,
-                    warm: is_warm,
-                    residual: 0.0,
-                    converged: true,
-                    seconds: t0.elapsed().as_secs_f64(),
-                };
-                return Ok((vec![[0.0; 3]; n], GpuSolveStats { stats, readbacks }));
+        }
+        let slots = done + count + 1;
+        let (out, out_bytes, staging) =
+            job.out
+                .unwrap_or((&self.v.x, 12 * self.n as u64, &self.v.read));
+        enc.copy_buffer_to_buffer(&self.v.counter, 0, staging, 0, 16);
+        enc.copy_buffer_to_buffer(&self.v.history, 0, staging, 16, 4 * slots as u64);
+        enc.copy_buffer_to_buffer(out, 0, staging, counter_bytes(slots), out_bytes);
+        (slots, out_bytes)
+    }
+
+    /// The solve's stats from its history, remembering its iterations for the next one.
+    fn finish(&self, h: &History, job: &Job<'_>, t0: Instant, max_it: u32) -> SolveStats {
+        let iterations = h.iterations().min(max_it);
+        self.last_iterations.store(iterations, Ordering::Relaxed);
+        self.x_solved.store(true, Ordering::Relaxed);
+        let (residual, converged) = if h.dark() {
+            (0.0, true)
+        } else {
+            (h.relative(iterations as usize), h.stopped.is_some())
+        };
+        SolveStats {
+            method: Method::Jacobi,
+            iterations: if h.dark() { 0 } else { iterations },
+            products: if h.dark() { 0 } else { iterations },
+            warm: matches!(job.warm, Input::Host(_) | Input::OnDevice),
+            residual,
+            converged,
+            seconds: t0.elapsed().as_secs_f64(),
+        }
+    }
+}
+
+/// What a solve read back: its answer and stats.
+pub(crate) struct Run {
+    /// The bytes of the job's answer (x, or what `out` names).
+    pub(crate) out: Vec<u8>,
+    /// ‖b‖ = 0: the answer is 0 whatever x holds.
+    pub(crate) dark: bool,
+    pub(crate) stats: GpuSolveStats,
+}
+
+/// The counter and the residual history as read back.
+struct History {
+    /// The next free slot.
+    next: u32,
+    /// The iteration whose residual met the tolerance.
+    stopped: Option<u32>,
+    /// h[0] = ‖b‖², then the squared residual of each iteration.
+    h: Vec<f32>,
+}
+
+impl History {
+    fn parse(bytes: &[u8], slots: u32) -> History {
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[..16]);
+        let h: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[16..counter_bytes(slots) as usize]);
+        History {
+            next: words[0],
+            stopped: (words[1] != 0).then_some(words[1]),
+            h,
+        }
+    }
+
+    /// ‖b‖ = 0.
+    fn dark(&self) -> bool {
+        self.h.first().is_none_or(|&h0| h0 == 0.0)
+    }
+
+    /// Iterations run: up to the stop, else every slot after ‖b‖².
+    fn iterations(&self) -> u32 {
+        self.stopped.unwrap_or(self.next.saturating_sub(1))
+    }
+
+    /// √h[k] / √h[0] (the residual of the iterate before update k).
+    fn relative(&self, k: usize) -> f32 {
+        match (self.h.first(), self.h.get(k)) {
+            (Some(&h0), Some(&hk)) if k > 0 && h0 > 0.0 => {
+                ((hk as f64).sqrt() / (h0 as f64).sqrt()) as f32
             }
-            let mut enc = ctx.device.create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(&self.v.x, 0, &self.v.x_read, 0, vb);
-            ctx.queue.submit([enc.finish()]);
-            let bytes = ctx.read_back(&self.v.x_read, vb)?;
-            let x: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes);
-            let b: Vec<Rgb> = x.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-            let stats = SolveStats {
-                method: Method::Jacobi,
-                iterations: done,
-                products: done,
-                warm: is_warm,
-                residual,
-                converged,
-                seconds: t0.elapsed().as_secs_f64(),
-            };
-            Ok((b, GpuSolveStats { stats, readbacks }))
-        })
+            _ => f32::INFINITY,
+        }
     }
 }
 
@@ -667,45 +958,72 @@ pub fn jacobi_update_once(
     })
 }
 
-/// One dispatch of `reduce_sum` on uploaded partials, run `times` times into a fresh
-/// history: returns the history (what the tests hold to [`super::cpu_twin::reduce_sum`]).
+/// `reduce_sum` dispatched once per entry of `partials` (each the same length, copied in
+/// before its dispatch) into a fresh history of `partials.len()` slots, with the stopping
+/// rule at `tol2` over `n_args` indirect triples (set to 1): answers the history, the
+/// counter and the triples (what the tests hold to [`super::cpu_twin::reduce_stop`]).
 pub fn reduce_sum_once(
     ctx: &GpuContext,
-    partial: &[f32],
-    times: u32,
-) -> Result<Vec<f32>, GpuError> {
-    let capacity = times.max(1);
+    partials: &[Vec<f32>],
+    tol2: f32,
+    n_args: u32,
+) -> Result<super::cpu_twin::ReduceState, GpuError> {
+    let count = partials.first().map_or(0, Vec::len);
+    if partials.iter().any(|p| p.len() != count) {
+        return Err(GpuError::Invalid("partials must have equal lengths".into()));
+    }
+    let capacity = (partials.len() as u32).max(1);
     ctx.scoped(|| {
         let p = uniform(
             ctx,
             "reduce-params",
             &ReduceParams {
-                count: partial.len() as u32,
+                count: count as u32,
                 capacity,
-                _pad0: 0,
-                _pad1: 0,
+                n_args,
+                tol2,
             },
         );
-        let pb = super::matrix::storage_init(ctx, "partial", bytemuck::cast_slice(partial));
+        let all: Vec<f32> = partials.iter().flatten().copied().collect();
+        let src = super::matrix::storage_init(ctx, "partials", bytemuck::cast_slice(&all));
+        let pb = storage_zeroed(ctx, "partial", 4 * count as u64);
         let hb = storage_zeroed(ctx, "history", 4 * capacity as u64);
         let cb = storage_zeroed(ctx, "counter", 16);
+        let ab = super::matrix::storage_init(
+            ctx,
+            "args",
+            bytemuck::cast_slice(&vec![1u32; 3 * n_args as usize]),
+        );
         let k = &ctx.kernels;
         let op = BoundOp::new(
             k.reduce_sum.clone(),
-            vec![(k.reduce.bind(&ctx.device, &p, &[&pb, &hb, &cb]), (1, 1))],
+            vec![(
+                k.reduce.bind(&ctx.device, &p, &[&pb, &hb, &cb, &ab]),
+                (1, 1),
+            )],
         );
-        let hr = staging(ctx, "history-read", 4 * capacity as u64);
+        let (hbytes, abytes) = (4 * capacity as u64, alloc_size(12 * n_args as u64));
+        let read = staging(ctx, "reduce-read", 16 + hbytes + abytes);
         let mut enc = ctx.device.create_command_encoder(&Default::default());
-        {
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            for _ in 0..times {
-                op.encode(&mut pass);
+        for i in 0..partials.len() {
+            let chunk = 4 * count as u64;
+            if chunk > 0 {
+                enc.copy_buffer_to_buffer(&src, i as u64 * chunk, &pb, 0, chunk);
             }
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            op.encode(&mut pass);
         }
-        enc.copy_buffer_to_buffer(&hb, 0, &hr, 0, 4 * capacity as u64);
+        enc.copy_buffer_to_buffer(&cb, 0, &read, 0, 16);
+        enc.copy_buffer_to_buffer(&hb, 0, &read, 16, hbytes);
+        enc.copy_buffer_to_buffer(&ab, 0, &read, 16 + hbytes, abytes);
         ctx.queue.submit([enc.finish()]);
-        Ok(bytemuck::pod_collect_to_vec(
-            &ctx.read_back(&hr, 4 * capacity as u64)?,
-        ))
+        let bytes = ctx.read_back(&read, 16 + hbytes + abytes)?;
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
+        let h = 4 + capacity as usize;
+        Ok(super::cpu_twin::ReduceState {
+            counter: [words[0], words[1]],
+            history: bytemuck::cast_slice(&words[4..h]).to_vec(),
+            args: words[h..h + 3 * n_args as usize].to_vec(),
+        })
     })
 }

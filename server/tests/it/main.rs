@@ -2,7 +2,10 @@
 //! (two servers behind haproxy running docker/haproxy.cfg), `k8s` (docker/k8s's manifests
 //! against the Kubernetes schemas), `cli` (the
 //! binary's offline commands and flags), `deploy` (the container set-up), `gpu` (every
-//! kernel against its CPU twin, on lavapipe here), `prepare` (translucency preparation in
+//! kernel against its CPU twin, on lavapipe here), `gpu_direct` (the device BVH's shadow
+//! rays and direct light against the engine's `Occluder` and `direct_irradiance`), `gpu_relight` (the
+//! whole relight on the device: its colour kernel, its answers against the CPU backend, one
+//! submission and the bytes it moves), `prepare` (translucency preparation in
 //! the binary), `shared_folder` (several servers over one bundles folder), `shutdown` (SIGTERM with queued
 //! relights), `slurm` (precompute jobs on a munged, slurmctld and slurmd the test starts), `team_cluster` (an upload
 //! through haproxy run as a Slurm array and merge: the same bytes as one box, served by both
@@ -16,6 +19,8 @@ mod balancer;
 mod cli;
 mod deploy;
 mod gpu;
+mod gpu_direct;
+mod gpu_relight;
 mod k8s;
 mod prepare;
 mod shared_folder;

@@ -1,0 +1,124 @@
+//! Stage 0 of the relight: a plan the scene's backend can do whole goes there — the
+//! direct light, the solve and the vertex colours where the matrices are, lights in and
+//! colours out ([`crate::backend::Backend::relight`]) — and skips the other stages.
+//!
+//! A plan qualifies when it needs nothing the backend's relight leaves out: the bundle's
+//! materials (no translucency change), the `full` components, point, spot and directional
+//! lamps (no environment), the direct light at the vertices (`direct_at: vertex`), no
+//! lamp walks, no simulated objects (their collimated entry), and the iterative path (not
+//! the bundle's T). Every other plan, and every plan the backend declines, runs the stages.
+
+use std::time::Instant;
+
+use translux_proto::api::{Components, DeviceStats, DirectAt, RelightStats, Solver};
+use translux_proto::light::Light;
+use translux_proto::scene::Material;
+
+use super::{RelightOutput, RelightPlan, solve_params};
+use crate::backend::{DeviceAnswer, DeviceRelight};
+use crate::error::EngineError;
+use crate::radiosity::SolveParams;
+use crate::scene::Scene;
+
+/// The plan done whole by the scene's backend, or `None` (it does not qualify, or the
+/// backend declined).
+pub(super) fn relight(
+    scene: &Scene,
+    plan: &RelightPlan,
+) -> Option<Result<RelightOutput, EngineError>> {
+    if scene.backend().name() == "cpu" {
+        return None;
+    }
+    if let Err(why) = qualifies(scene, plan) {
+        tracing::debug!(scene = %scene.id, "relight through the engine's stages: {why}");
+        return None;
+    }
+    let t0 = Instant::now();
+    let params = SolveParams {
+        tolerance: plan.tolerance,
+        ..solve_params()
+    };
+    let job = DeviceRelight {
+        lights: &plan.lights,
+        params: &params,
+        rows: scene.vertex_rows(),
+    };
+    let answer = scene.backend().relight(scene.view(), &job)?;
+    Some(output(plan, answer, t0.elapsed().as_secs_f64() * 1e3))
+}
+
+/// Whether the plan needs nothing beyond what a backend's whole relight does; else what
+/// it needs.
+fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
+    let simulated = scene
+        .bundle
+        .manifest()
+        .objects
+        .iter()
+        .any(|o| matches!(o.material, Material::Simulated { .. }));
+    let why = if !plan.overrides.is_empty() {
+        "a translucency or material change (S is made on the CPU)"
+    } else if plan.components != Components::Full {
+        "components other than full"
+    } else if plan.direct_at != DirectAt::Vertex {
+        "direct light per pixel"
+    } else if plan.lamp_walks.is_some() {
+        "lamp walks"
+    } else if plan
+        .lights
+        .iter()
+        .any(|l| matches!(l, Light::Environment { .. }))
+    {
+        "an environment light (its visibility is stored per patch)"
+    } else if simulated {
+        "simulated objects (their collimated entry)"
+    } else if plan.solver == Solver::Inverse || super::prepare::path(scene, plan).0 {
+        "the bundle's T"
+    } else {
+        return Ok(());
+    };
+    Err(why)
+}
+
+/// The answer and its stats (the direct light is part of the one submission: its time is
+/// in `solve_ms`, `direct_ms` is 0).
+fn output(plan: &RelightPlan, answer: DeviceAnswer, ms: f64) -> Result<RelightOutput, EngineError> {
+    if let Some(k) = answer
+        .radiance
+        .iter()
+        .position(|v| !v.iter().all(|x| x.is_finite()))
+    {
+        return Err(EngineError::invalid(format!(
+            "lights: the result overflows (radiance at vertex {k} is not finite); use \
+             smaller intensities or irradiances"
+        )));
+    }
+    let s = answer.stats;
+    let stats = RelightStats {
+        solver: s.method.as_str().to_string(),
+        components: plan.components,
+        iterations: s.iterations,
+        residual: s.residual,
+        converged: s.converged,
+        ms,
+        direct_ms: 0.0,
+        solve_ms: ms,
+        materials_ms: 0.0,
+        materials_on: None,
+        lights: plan.lights.len(),
+        products: s.products,
+        warm: s.warm,
+        batch: 1,
+        note: None,
+        auto_exposure: None,
+        device: Some(DeviceStats {
+            submissions: answer.submissions,
+            bytes_up: answer.bytes_up,
+            bytes_down: answer.bytes_down,
+        }),
+    };
+    Ok(RelightOutput {
+        radiance: answer.radiance,
+        stats,
+    })
+}

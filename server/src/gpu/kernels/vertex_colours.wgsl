@@ -1,0 +1,82 @@
+// vertex_colours: B/π per viewer vertex from B, E and ρ per patch and E at the vertex
+// (translux_engine::vertexrows), one thread per vertex:
+//
+//   mean vertex (own.w = 0):   L = Σ_k w_k B_k                 (w = a_k / (π Σ a))
+//   opaque vertex (own.w = 1): c = Σ_k w_k (B_k − ρ_k E_k), clamped to its terms' spread
+//                              widened by `overshoot` on each side;
+//                              L = max(0, (c + ρ̄ E(v)) / π),   ρ̄ = own.xyz
+//
+// CPU twin: `cpu_twin::vertex_colours`.
+
+const WG: u32 = 256u;
+
+struct Params {
+    nv: u32,
+    groups_x: u32,
+    overshoot: f32,
+    inv_pi: f32,
+}
+
+@group(0) @binding(0) var<uniform> p: Params;
+@group(0) @binding(1) var<storage, read> offsets: array<u32>;
+// (patch, weight bits) per entry.
+@group(0) @binding(2) var<storage, read> entries: array<vec2<u32>>;
+@group(0) @binding(3) var<storage, read> own: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> albedo: array<f32>;
+@group(0) @binding(5) var<storage, read> x: array<f32>;
+@group(0) @binding(6) var<storage, read> e: array<f32>;
+@group(0) @binding(7) var<storage, read> ev: array<f32>;
+@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+
+fn x_at(k: u32) -> vec3<f32> {
+    return vec3<f32>(x[3u * k], x[3u * k + 1u], x[3u * k + 2u]);
+}
+
+fn rho_e_at(k: u32) -> vec3<f32> {
+    let rho = vec3<f32>(albedo[3u * k], albedo[3u * k + 1u], albedo[3u * k + 2u]);
+    return rho * vec3<f32>(e[3u * k], e[3u * k + 1u], e[3u * k + 2u]);
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32) {
+    let q = (wid.x + wid.y * p.groups_x) * WG + li;
+    if (q >= p.nv) {
+        return;
+    }
+    let a = offsets[q];
+    let z = offsets[q + 1u];
+    let o = own[q];
+    var value = vec3<f32>(0.0);
+    if (o.w == 0.0) {
+        for (var k = a; k < z; k++) {
+            let en = entries[k];
+            value += bitcast<f32>(en.y) * x_at(en.x);
+        }
+    } else {
+        var sum = vec3<f32>(0.0);
+        var lo = vec3<f32>(0.0);
+        var hi = vec3<f32>(0.0);
+        for (var k = a; k < z; k++) {
+            let en = entries[k];
+            let r = x_at(en.x) - rho_e_at(en.x);
+            sum += bitcast<f32>(en.y) * r;
+            if (k == a) {
+                lo = r;
+                hi = r;
+            } else {
+                lo = min(lo, r);
+                hi = max(hi, r);
+            }
+        }
+        var rest = vec3<f32>(0.0);
+        if (z > a) {
+            let slack = p.overshoot * (hi - lo);
+            rest = clamp(sum, lo - slack, hi + slack);
+        }
+        let e_v = vec3<f32>(ev[3u * q], ev[3u * q + 1u], ev[3u * q + 2u]);
+        value = max((rest + o.xyz * e_v) * p.inv_pi, vec3<f32>(0.0));
+    }
+    out[3u * q] = value.x;
+    out[3u * q + 1u] = value.y;
+    out[3u * q + 2u] = value.z;
+}

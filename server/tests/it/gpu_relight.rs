@@ -1,0 +1,280 @@
+//! The whole relight on the device (`translux_server::gpu::relight`): the colour kernel
+//! against its twin and the engine's rows, whole relights on the GPU backend against the
+//! CPU backend per vertex for each lamp type, one submission per relight with only the
+//! colours read back, and the plans the device leaves to the engine's stages.
+//!
+//! On lavapipe in CI; `TRANSLUX_SKIP_GPU_TESTS=1` skips them where no adapter exists.
+
+use std::path::Path;
+use std::sync::OnceLock;
+
+use translux_engine::radiosity::Rgb;
+use translux_engine::relight;
+use translux_engine::scene::Scene;
+use translux_precompute::pipeline::{PrecomputeParams, precompute};
+use translux_precompute::scene::load_scene;
+use translux_proto::api::{RelightRequest, RelightStats};
+use translux_server::backend::Backend;
+use translux_server::gpu::{GpuContext, GpuOptions, cpu_twin, relight::vertex_colours_once};
+
+fn ctx() -> Option<&'static GpuContext> {
+    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
+    CTX.get_or_init(|| {
+        let opts = GpuOptions {
+            allow_software: true,
+            ..Default::default()
+        };
+        match GpuContext::new(&opts) {
+            Ok(c) => Some(c),
+            Err(e) if std::env::var("TRANSLUX_SKIP_GPU_TESTS").as_deref() == Ok("1") => {
+                eprintln!("GPU tests skipped (TRANSLUX_SKIP_GPU_TESTS=1): {e}");
+                None
+            }
+            Err(e) => panic!(
+                "the GPU tests need a GPU adapter and found none: {e}\n\
+                 Install Mesa's software Vulkan (apt-get install -y mesa-vulkan-drivers \
+                 libvulkan1) or set TRANSLUX_SKIP_GPU_TESTS=1 to skip them"
+            ),
+        }
+    })
+    .as_ref()
+}
+
+/// The GPU backend on an adapter of its own (software ones too).
+fn gpu_backend() -> Backend {
+    Backend::on_gpu(
+        GpuContext::new(&GpuOptions {
+            allow_software: true,
+            ..Default::default()
+        })
+        .unwrap(),
+    )
+}
+
+/// A Cornell box with its marble block at 400 patches, precomputed once per test binary.
+fn cornell() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let params = PrecomputeParams {
+            patches: Some(400),
+            ..Default::default()
+        };
+        precompute(
+            &load_scene("builtin:cornell").unwrap(),
+            &tmp.path().join("cornell"),
+            &params,
+        )
+        .unwrap();
+        tmp
+    })
+    .path()
+    .join("cornell")
+    .leak()
+}
+
+/// A seeded xorshift generator.
+struct Rng(u64);
+
+impl Rng {
+    fn f(&mut self, lo: f32, hi: f32) -> f32 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        lo + (hi - lo) * ((self.0 >> 40) as f32 / (1u64 << 24) as f32)
+    }
+    fn rgb(&mut self, lo: f32, hi: f32) -> Rgb {
+        [self.f(lo, hi), self.f(lo, hi), self.f(lo, hi)]
+    }
+}
+
+/// The largest difference per vertex and channel, relative to the largest value of `want`.
+fn max_rel(got: &[Rgb], want: &[Rgb]) -> f32 {
+    assert_eq!(got.len(), want.len());
+    let scale = want
+        .iter()
+        .flatten()
+        .fold(0.0f32, |m, v| m.max(v.abs()))
+        .max(1e-30);
+    got.iter()
+        .flatten()
+        .zip(want.iter().flatten())
+        .map(|(g, w)| (g - w).abs() / scale)
+        .fold(0.0, f32::max)
+}
+
+/// A relight of `body` on `scene` to a tight tolerance.
+fn relit(scene: &Scene, body: &str) -> (Vec<Rgb>, RelightStats) {
+    let req: RelightRequest = serde_json::from_str(body).unwrap();
+    let mut plan = relight::plan(scene, req).unwrap();
+    plan.tolerance = 1e-6;
+    let out = relight::run(scene, &plan).unwrap();
+    assert!(out.stats.converged, "{body}: {:?}", out.stats);
+    (out.radiance, out.stats)
+}
+
+#[test]
+fn vertex_colours_matches_its_twin_and_the_engines_rows() {
+    let Some(ctx) = ctx() else { return };
+    let scene = Scene::open("cornell", cornell()).unwrap();
+    let rows = scene.vertex_rows();
+    let (n, nv) = (rows.albedo.len(), rows.len());
+    assert!(
+        rows.own.iter().any(|o| o[3] == 1.0),
+        "some vertices are opaque"
+    );
+    let mut rng = Rng(77);
+    // B ≥ ρE as on a real answer: E at most 1, B at least 1.
+    let e: Vec<Rgb> = (0..n).map(|_| rng.rgb(0.0, 1.0)).collect();
+    let x: Vec<Rgb> = (0..n).map(|_| rng.rgb(1.0, 3.0)).collect();
+    let ev: Vec<Rgb> = (0..nv).map(|_| rng.rgb(0.0, 2.0)).collect();
+    let got = vertex_colours_once(ctx, rows, &x, &e, &ev).unwrap();
+    let twin = cpu_twin::vertex_colours(rows, &x, &e, &ev);
+    let engine = rows.colours(&x, &e, &ev);
+    assert!(
+        max_rel(&got, &twin) <= 1e-5,
+        "kernel vs twin: {}",
+        max_rel(&got, &twin)
+    );
+    assert!(
+        max_rel(&twin, &engine) <= 1e-5,
+        "twin vs engine: {}",
+        max_rel(&twin, &engine)
+    );
+}
+
+/// Every lamp type, two lamps at once, the bundle's own lights and none: the GPU backend's
+/// whole relight against the CPU backend's stages, per vertex.
+#[test]
+fn the_whole_relight_on_the_device_agrees_with_the_cpu_for_every_lamp() {
+    let Some(_) = ctx() else { return };
+    let bodies = [
+        r#"{"solver":"iterative"}"#,
+        r#"{"lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}]}"#,
+        r#"{"lights":[{"type":"spot","position":[0.0,0.95,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}]}"#,
+        r#"{"lights":[{"type":"directional","direction":[0.3,-1,-0.2],"irradiance":[1,0.9,0.8]}]}"#,
+        r#"{"lights":[{"type":"point","position":[-0.3,0.7,0.3],"intensity":[1,1,1]},{"type":"directional","direction":[-0.2,-1,0.4],"irradiance":[0.5,0.5,0.6]}]}"#,
+        r#"{"lights":[]}"#,
+    ];
+    let cpu =
+        Scene::open_with("cornell", cornell(), &Backend::cpu("reference").resources()).unwrap();
+    let gpu_backend = gpu_backend();
+    let gpu = Scene::open_with("cornell", cornell(), &gpu_backend.resources()).unwrap();
+    for body in bodies {
+        let (want, cs) = relit(&cpu, body);
+        let (got, gs) = relit(&gpu, body);
+        assert!(cs.device.is_none(), "{body}: {cs:?}");
+        let device = gs
+            .device
+            .unwrap_or_else(|| panic!("{body}: not on the device: {gs:?}"));
+        assert!(device.submissions >= 1, "{body}: {gs:?}");
+        assert_eq!(gs.solver, "jacobi", "{body}");
+        let err = max_rel(&got, &want);
+        assert!(
+            err <= 1e-4,
+            "{body}: device vs CPU {err} of the brightest vertex"
+        );
+    }
+    let h = gpu_backend.gpu_health();
+    assert_eq!(h.scenes[0].on, "gpu", "{h:?}");
+}
+
+/// A batch of relights of one scene (as the worker pool runs concurrent requests): each
+/// done whole on the device, each as the CPU backend answers it.
+#[test]
+fn a_batch_of_whole_relights_agrees_with_the_cpu() {
+    let Some(_) = ctx() else { return };
+    let bodies: Vec<String> = (0..3)
+        .map(|i| {
+            format!(
+                r#"{{"lights":[{{"type":"point","position":[{},0.55,0.1],"intensity":[1,2,1]}}]}}"#,
+                0.15 * i as f32 - 0.15
+            )
+        })
+        .collect();
+    let batch = |backend: &Backend| -> Vec<(Vec<Rgb>, RelightStats)> {
+        let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
+        let plans: Vec<_> = bodies
+            .iter()
+            .map(|b| {
+                let mut p = relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap();
+                p.tolerance = 1e-6;
+                p
+            })
+            .collect();
+        relight::run_batch(&scene, &plans)
+            .into_iter()
+            .map(|r| {
+                let r = r.unwrap();
+                (r.radiance, r.stats)
+            })
+            .collect()
+    };
+    let cpu = batch(&Backend::cpu("reference"));
+    let gpu = batch(&gpu_backend());
+    for (k, ((want, _), (got, s))) in cpu.iter().zip(&gpu).enumerate() {
+        assert!(s.device.is_some(), "relight {k}: {s:?}");
+        let err = max_rel(got, want);
+        assert!(err <= 1e-4, "relight {k}: device vs CPU {err}");
+    }
+}
+
+/// A dragged light: after the first relight every one is a single submission that writes
+/// the lights and reads back the colours with the solve's counter and history, warm from
+/// the last answer on the device.
+#[test]
+fn a_relight_makes_one_submission_and_reads_back_only_vertex_colours() {
+    let Some(_) = ctx() else { return };
+    let backend = gpu_backend();
+    let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
+    let nv = scene.bundle.vertex_positions().len() as u64;
+    let body = |x: f32| {
+        format!(r#"{{"lights":[{{"type":"point","position":[{x},0.6,0.1],"intensity":[1,1,1]}}]}}"#)
+    };
+    let (_, first) = relit(&scene, &body(-0.3));
+    assert!(!first.warm, "{first:?}");
+    for step in 1..=6 {
+        let (radiance, s) = relit(&scene, &body(-0.3 + 0.1 * step as f32));
+        let d = s.device.unwrap();
+        assert_eq!(d.submissions, 1, "step {step}: {s:?}");
+        assert!(s.warm, "step {step}: {s:?}");
+        assert!(
+            d.bytes_down <= 16 * nv + 4096,
+            "step {step}: {d:?} for {nv} vertices"
+        );
+        assert!(d.bytes_down >= 12 * nv, "step {step}: {d:?}");
+        assert!(d.bytes_up <= 1024, "step {step}: {d:?}");
+        assert_eq!(radiance.len() as u64, nv);
+    }
+}
+
+/// Plans that need more than lamps and the bundle's own S run the engine's stages on the
+/// GPU backend too, and say so by having no `device` stats.
+#[test]
+fn plans_the_device_leaves_to_the_stages_have_no_device_stats() {
+    let Some(_) = ctx() else { return };
+    let backend = gpu_backend();
+    let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
+    for body in [
+        r#"{"lights":[{"type":"environment","map":"builtin:sky"}]}"#,
+        r#"{"materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":2}}}}"#,
+        r#"{"direct_at":"pixel"}"#,
+        r#"{"components":"direct"}"#,
+    ] {
+        let req: RelightRequest = match serde_json::from_str(body) {
+            Ok(r) => r,
+            Err(e) => panic!("{body}: {e}"),
+        };
+        let plan = match relight::plan(&scene, req) {
+            Ok(p) => p,
+            // A bundle without the environment's visibility refuses the sky outright.
+            Err(e) if body.contains("environment") => {
+                eprintln!("{body}: {e}");
+                continue;
+            }
+            Err(e) => panic!("{body}: {e}"),
+        };
+        let out = relight::run(&scene, &plan).unwrap();
+        assert!(out.stats.device.is_none(), "{body}: {:?}", out.stats);
+    }
+}
