@@ -31,20 +31,23 @@ pub struct SceneRef<'a> {
     pub bundle: &'a Bundle,
 }
 
-/// A relight a backend may do whole, where the matrices are: the direct light of `lights`
-/// (point, spot and directional lamps, shadowed) at the patches and at the vertices, the
-/// solve of B = Bₑ + S(E + F B) with the bundle's S and emission, and the vertex colours
-/// by `rows` ([`crate::relight`] hands over only plans that need nothing else).
+/// Relights a backend may do whole, where the matrices are: for each set of `lights`
+/// (point, spot and directional lamps, shadowed) the direct light at the patches and at the
+/// vertices, the solve of B = Bₑ + S(E + F B) with the bundle's S and emission, and the
+/// vertex colours by `rows` ([`crate::relight`] hands over only plans that need nothing
+/// else). Several sets are a batch (concurrent requests), which a backend may solve
+/// together.
 #[derive(Debug, Clone, Copy)]
 pub struct DeviceRelight<'a> {
-    pub lights: &'a [Light],
+    pub lights: &'a [&'a [Light]],
     pub params: &'a SolveParams,
     /// The colour stage for the bundle's materials.
     pub rows: &'a std::sync::Arc<VertexRows>,
 }
 
 /// What a backend's whole relight gave: B/π per vertex (as [`crate::relight`]'s colour
-/// stage makes it), the solve's stats and what it took on the device.
+/// stage makes it), the solve's stats and what it took on the device (for a relight solved
+/// in a batch: the batch's submissions, and its share of the bytes).
 #[derive(Debug, Clone)]
 pub struct DeviceAnswer {
     pub radiance: Vec<Rgb>,
@@ -81,9 +84,9 @@ pub trait Backend: Send + Sync + std::fmt::Debug {
         warm: Option<&[f32]>,
     ) -> Option<(Vec<f32>, SolveStats)>;
 
-    /// The whole relight `job` of `scene` where the matrices are; `None` to leave it to
-    /// the engine's stages.
-    fn relight(&self, scene: SceneRef<'_>, job: &DeviceRelight<'_>) -> Option<DeviceAnswer>;
+    /// The whole relights of `job` for `scene` where the matrices are, one answer per set of
+    /// lights in order; `None` to leave them to the engine's stages.
+    fn relight(&self, scene: SceneRef<'_>, job: &DeviceRelight<'_>) -> Option<Vec<DeviceAnswer>>;
 }
 
 /// The CPU backend: declines every call, so the engine computes everything itself.
@@ -121,7 +124,7 @@ impl Backend for Cpu {
         None
     }
 
-    fn relight(&self, _scene: SceneRef<'_>, _job: &DeviceRelight<'_>) -> Option<DeviceAnswer> {
+    fn relight(&self, _scene: SceneRef<'_>, _job: &DeviceRelight<'_>) -> Option<Vec<DeviceAnswer>> {
         None
     }
 }

@@ -559,26 +559,32 @@ impl translux_engine::backend::Backend for Backend {
         }
     }
 
-    /// The whole relight on the device ([`crate::gpu::relight`]): direct light, solve and
-    /// vertex colours in one submission, from the last answer the device holds. `None`:
-    /// the engine's stages (CPU backend, the scene or its relight buffers do not fit, a
-    /// device error, which moves the scene to the CPU).
+    /// The whole relights on the device ([`crate::gpu::relight`]): direct light, solve and
+    /// vertex colours in one submission per batch of up to [`crate::gpu::kernels::BATCH`],
+    /// from the last answer the device holds. `None`: the engine's stages (CPU backend, the
+    /// scene or its relight buffers do not fit, a device error, which moves the scene to the
+    /// CPU).
     fn relight(
         &self,
         scene: SceneRef<'_>,
         job: &translux_engine::backend::DeviceRelight<'_>,
-    ) -> Option<DeviceAnswer> {
+    ) -> Option<Vec<DeviceAnswer>> {
         let ctx = self.inner.gpu.as_ref()?;
         let g = self.scene(scene)?;
         let whole = g.whole(ctx, scene, job.rows)?;
         match whole.relight(ctx, &g.base, job.lights, job.params) {
-            Ok((radiance, st)) => Some(DeviceAnswer {
-                radiance,
-                stats: st.stats,
-                submissions: st.submissions,
-                bytes_up: st.bytes_up,
-                bytes_down: st.bytes_down,
-            }),
+            Ok(answers) => Some(
+                answers
+                    .into_iter()
+                    .map(|(radiance, st)| DeviceAnswer {
+                        radiance,
+                        stats: st.stats,
+                        submissions: st.submissions,
+                        bytes_up: st.bytes_up,
+                        bytes_down: st.bytes_down,
+                    })
+                    .collect(),
+            ),
             Err(e) => {
                 self.fail(ctx, scene, "relight", &e);
                 None

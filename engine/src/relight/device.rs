@@ -1,6 +1,7 @@
-//! Stage 0 of the relight: a plan the scene's backend can do whole goes there — the
+//! Stage 0 of the relight: the plans the scene's backend can do whole go there — the
 //! direct light, the solve and the vertex colours where the matrices are, lights in and
-//! colours out ([`crate::backend::Backend::relight`]) — and skips the other stages.
+//! colours out ([`crate::backend::Backend::relight`]), a batch of them together — and skip
+//! the other stages.
 //!
 //! A plan qualifies when it needs nothing the backend's relight leaves out: the bundle's
 //! materials (no translucency change), the `full` components, point, spot and directional
@@ -20,31 +21,65 @@ use crate::error::EngineError;
 use crate::radiosity::SolveParams;
 use crate::scene::Scene;
 
-/// The plan done whole by the scene's backend, or `None` (it does not qualify, or the
-/// backend declined).
+/// The plans done whole by the scene's backend, one slot per plan: `None` where a plan does
+/// not qualify or the backend declined. Qualifying plans with the same tolerance go to the
+/// backend together, as one batch.
 pub(super) fn relight(
     scene: &Scene,
-    plan: &RelightPlan,
-) -> Option<Result<RelightOutput, EngineError>> {
+    plans: &[RelightPlan],
+) -> Vec<Option<Result<RelightOutput, EngineError>>> {
+    let mut out: Vec<Option<Result<RelightOutput, EngineError>>> =
+        plans.iter().map(|_| None).collect();
     if scene.backend().name() == "cpu" {
-        return None;
+        return out;
     }
-    if let Err(why) = qualifies(scene, plan) {
-        tracing::debug!(scene = %scene.id, "relight through the engine's stages: {why}");
-        return None;
+    let mut groups: Vec<(u32, Vec<usize>)> = Vec::new();
+    for (i, plan) in plans.iter().enumerate() {
+        if let Err(why) = qualifies(scene, plan) {
+            tracing::debug!(scene = %scene.id, "relight through the engine's stages: {why}");
+            continue;
+        }
+        let key = plan.tolerance.to_bits();
+        match groups.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, g)) => g.push(i),
+            None => groups.push((key, vec![i])),
+        }
     }
+    for (_, group) in groups {
+        let answers = batch(scene, plans, &group);
+        for (i, answer) in group.into_iter().zip(answers) {
+            out[i] = answer;
+        }
+    }
+    out
+}
+
+/// One batch of qualifying plans (indices into `plans`) on the backend.
+fn batch(
+    scene: &Scene,
+    plans: &[RelightPlan],
+    group: &[usize],
+) -> Vec<Option<Result<RelightOutput, EngineError>>> {
     let t0 = Instant::now();
     let params = SolveParams {
-        tolerance: plan.tolerance,
+        tolerance: plans[group[0]].tolerance,
         ..solve_params()
     };
+    let lights: Vec<&[Light]> = group.iter().map(|&i| plans[i].lights.as_slice()).collect();
     let job = DeviceRelight {
-        lights: &plan.lights,
+        lights: &lights,
         params: &params,
         rows: scene.vertex_rows(),
     };
-    let answer = scene.backend().relight(scene.view(), &job)?;
-    Some(output(plan, answer, t0.elapsed().as_secs_f64() * 1e3))
+    let Some(answers) = scene.backend().relight(scene.view(), &job) else {
+        return group.iter().map(|_| None).collect();
+    };
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    group
+        .iter()
+        .zip(answers)
+        .map(|(&i, answer)| Some(output(&plans[i], answer, ms, group.len())))
+        .collect()
 }
 
 /// Whether the plan needs nothing beyond what a backend's whole relight does; else what
@@ -81,8 +116,13 @@ fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
 }
 
 /// The answer and its stats (the direct light is part of the one submission: its time is
-/// in `solve_ms`, `direct_ms` is 0).
-fn output(plan: &RelightPlan, answer: DeviceAnswer, ms: f64) -> Result<RelightOutput, EngineError> {
+/// in `solve_ms`, `direct_ms` is 0; a batch's relights share its time).
+fn output(
+    plan: &RelightPlan,
+    answer: DeviceAnswer,
+    ms: f64,
+    batch: usize,
+) -> Result<RelightOutput, EngineError> {
     if let Some(k) = answer
         .radiance
         .iter()
@@ -108,7 +148,7 @@ fn output(plan: &RelightPlan, answer: DeviceAnswer, ms: f64) -> Result<RelightOu
         lights: plan.lights.len(),
         products: s.products,
         warm: s.warm,
-        batch: 1,
+        batch,
         note: None,
         auto_exposure: None,
         device: Some(DeviceStats {

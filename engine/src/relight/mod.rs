@@ -315,8 +315,7 @@ pub fn run_batch(scene: &Scene, plans: &[RelightPlan]) -> Vec<Result<RelightOutp
         normal: &scene.normals,
     };
     // Stage 0: the plans the backend does whole.
-    let mut out: Vec<Option<Result<RelightOutput, EngineError>>> =
-        plans.iter().map(|p| device::relight(scene, p)).collect();
+    let mut out = device::relight(scene, plans);
     // Stages 1 and 2, plan by plan: direct light, then S for its materials.
     let mut prepared: Vec<Option<Prepared>> = Vec::with_capacity(plans.len());
     for (idx, plan) in plans.iter().enumerate() {

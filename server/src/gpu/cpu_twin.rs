@@ -207,22 +207,27 @@ pub struct ReduceState {
     pub args: Vec<u32>,
 }
 
-/// Twin of one `reduce_sum.wgsl` dispatch with its stopping rule: nothing once stopped;
-/// else the sum ([`reduce_sum`]) appended to the history, and at a slot k ≥ 1 with
-/// `h[k] ≤ tol2 · h[0]` (or `h[0] = 0`) the stop recorded and `args` zeroed (no `args`:
-/// never stops).
-pub fn reduce_stop(partial: &[f32], tol2: f32, state: &mut ReduceState) {
+/// Twin of one `reduce_sum.wgsl` dispatch with its stopping rule, for `kv` systems whose
+/// partial sums lie one after another in `partial`: nothing once stopped; else each
+/// system's sum ([`reduce_sum`]) appended to the history (slot after slot, one entry per
+/// system), and at a slot k ≥ 1 where every system has `h[k] ≤ tol2 · h[0]` (or
+/// `h[0] = 0`) the stop recorded and `args` zeroed (no `args`: never stops).
+pub fn reduce_stop(partial: &[f32], kv: usize, tol2: f32, state: &mut ReduceState) {
     if state.counter[1] != 0 {
         return;
     }
-    let sum = reduce_sum(partial);
     let slot = state.counter[0] as usize;
-    if slot < state.history.len() {
-        state.history[slot] = sum;
+    let count = partial.len() / kv.max(1);
+    let mut met = true;
+    for q in 0..kv {
+        let sum = reduce_sum(&partial[q * count..(q + 1) * count]);
+        if (slot + 1) * kv <= state.history.len() {
+            state.history[slot * kv + q] = sum;
+        }
+        let h0 = state.history.get(q).copied().unwrap_or(0.0);
+        met &= h0 == 0.0 || sum <= tol2 * h0;
     }
     state.counter[0] += 1;
-    let h0 = state.history.first().copied().unwrap_or(0.0);
-    let met = h0 == 0.0 || sum <= tol2 * h0;
     if !state.args.is_empty() && slot >= 1 && met {
         state.counter[1] = slot as u32;
         state.args.iter_mut().for_each(|a| *a = 0);

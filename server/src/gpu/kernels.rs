@@ -16,6 +16,10 @@ pub const SHADOW_RAYS: &str = include_str!("kernels/shadow_rays.wgsl");
 pub const DIRECT_LIGHT: &str = include_str!("kernels/direct_light.wgsl");
 pub const VERTEX_COLOURS: &str = include_str!("kernels/vertex_colours.wgsl");
 
+/// Relights one batched device solve carries (`KV` of the batch's `csr_spmv_rgb`; at most
+/// its `KMAX`).
+pub const BATCH: u32 = 8;
+
 /// A binding's kind, in binding order after the uniform at binding 0.
 #[derive(Debug, Clone, Copy)]
 enum Slot {
@@ -132,6 +136,9 @@ pub struct Kernels {
     pub(crate) colours: Kernel,
     pub(crate) spmv_scalar: wgpu::ComputePipeline,
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
+    /// The same for [`BATCH`] vectors at once.
+    pub(crate) spmv_scalar_batch: wgpu::ComputePipeline,
+    pub(crate) spmv_rgb_batch: wgpu::ComputePipeline,
     pub(crate) jacobi_update: wgpu::ComputePipeline,
     pub(crate) reduce_sum: wgpu::ComputePipeline,
     pub(crate) shadow_rays: wgpu::ComputePipeline,
@@ -190,6 +197,8 @@ impl Kernels {
         Kernels {
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
+            spmv_scalar_batch: spmv.pipeline(device, &[("VAL_RGB", 0.0), ("KV", BATCH as f64)]),
+            spmv_rgb_batch: spmv.pipeline(device, &[("VAL_RGB", 1.0), ("KV", BATCH as f64)]),
             jacobi_update: jacobi.pipeline(device, &[]),
             reduce_sum: reduce.pipeline(device, &[]),
             shadow_rays: shadow.pipeline(device, &[]),

@@ -26,6 +26,11 @@ pub(crate) struct CsrParams {
     rows: u32,
     groups_x: u32,
     _pad: u32,
+    /// RGB entries between a batch's vectors in x (A's columns) and y (A's rows).
+    x_stride: u32,
+    y_stride: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 /// Keep in sync with `Params` in `dense_matmul_rgb.wgsl`.
@@ -308,6 +313,10 @@ impl GpuCsr {
                     rows,
                     groups_x: groups.0,
                     _pad: 0,
+                    x_stride: n_cols as u32,
+                    y_stride: n_rows as u32,
+                    _pad1: 0,
+                    _pad2: 0,
                 };
                 blocks.push(CsrBlock {
                     params: uniform(ctx, what, &params),
@@ -364,11 +373,24 @@ impl GpuCsr {
 
     /// y = A x bound to the buffers `x` (n_cols × 3 f32) and `y` (n_rows × 3 f32).
     pub(crate) fn bind(&self, ctx: &GpuContext, x: &wgpu::Buffer, y: &wgpu::Buffer) -> BoundOp {
+        self.bind_lanes(ctx, x, y, false)
+    }
+
+    /// y = A x for every vector of a batch ([`super::kernels::BATCH`] vectors one after
+    /// another in `x` and `y`), or for one (`batch` false), reading A once.
+    pub(crate) fn bind_lanes(
+        &self,
+        ctx: &GpuContext,
+        x: &wgpu::Buffer,
+        y: &wgpu::Buffer,
+        batch: bool,
+    ) -> BoundOp {
         let k = &ctx.kernels;
-        let pipeline = if self.rgb {
-            k.spmv_rgb.clone()
-        } else {
-            k.spmv_scalar.clone()
+        let pipeline = match (self.rgb, batch) {
+            (true, false) => k.spmv_rgb.clone(),
+            (false, false) => k.spmv_scalar.clone(),
+            (true, true) => k.spmv_rgb_batch.clone(),
+            (false, true) => k.spmv_scalar_batch.clone(),
         };
         let groups = self
             .blocks

@@ -1,18 +1,21 @@
-//! The wgpu compute backend: the relight's matrix work on a GPU.
+//! The wgpu compute backend: the relight's matrix work on a GPU, and whole relights.
 //!
 //! In: a bundle's sparse F and S (CSR, [`translux_proto::csr`]), a dense transfer matrix T
-//! when one is given, and per request the direct irradiance E and emission Bₑ. Out: the
-//! radiosity B = Bₑ + S(E + F B) from a Jacobi solve that runs on the device, or the products
-//! T X for a batch of up to 64 right-hand sides in one pass over T.
+//! when one is given, the occluder triangles and the colour rows, and per request the
+//! direct irradiance E and emission Bₑ, or the lamps of one relight or a batch. Out: the
+//! radiosity B = Bₑ + S(E + F B) from a Jacobi solve that runs on the device, the vertex
+//! colours of whole relights ([`relight`]), or the products T X for a batch of up to 64
+//! right-hand sides in one pass over T.
 //!
 //! | kernel (`kernels/*.wgsl`) | work | CPU twin ([`cpu_twin`]) |
 //! | --- | --- | --- |
-//! | `csr_spmv_rgb` | y = A x, A CSR with f32 (F) or RGB (S) values, 32 threads a row | same name |
+//! | `csr_spmv_rgb` | y = A x, A CSR with f32 (F) or RGB (S) values, 32 threads a row, for 1 or [`kernels::BATCH`] vectors per read of A | same name |
 //! | `dense_matmul_rgb` | Y = T X, T dense f16/f32 RGB, k ≤ 64 vectors per pass | same name |
-//! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup | same name |
-//! | `reduce_sum` | appends Σ of the partials to a residual history | same name |
+//! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup, for each system of a batch | same name |
+//! | `reduce_sum` | appends each system's Σ of the partials to a residual history; stops the iterations once all meet the tolerance | `reduce_sum`, `reduce_stop` |
 //! | `shadow_rays` | one occluded flag per ray, any-hit walk of the occluder BVH | same name |
 //! | `direct_light` | shadowed direct irradiance E per surface point (point, spot, directional) | same name |
+//! | `vertex_colours` | B/π per vertex from B, E, ρ and E at the vertex (`translux_engine::vertexrows`) | same name |
 //!
 //! `shadow_rays` and `direct_light` share one traversal source, `bvh_traverse.wgsl`, put in
 //! front of each at compile time.
@@ -20,10 +23,11 @@
 //! Layout: [`GpuContext`] acquires the adapter and device once and compiles the kernels
 //! ([`kernels`]); [`matrix`] uploads matrices, split into row blocks that each fit one storage
 //! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one
-//! scene's buffers and bind groups, built once and reused by every request; [`direct`] holds
-//! the occluder BVH on the device and the direct-light dispatch a relight records into its own
-//! pass. A solve is one submission and one read-back (the counter, the residual history and
-//! the answer); the stopping rule runs on the device ([`system`]).
+//! scene's buffers and bind groups, built once and reused by every request (one set of
+//! vectors per solve, one more for batches); [`direct`] holds the occluder BVH on the device
+//! and the direct-light dispatch; [`relight`] puts direct light, solve and colours in one
+//! submission. A solve is one submission and one read-back (the counter, the residual
+//! history and the answer); the stopping rule runs on the device ([`system`]).
 
 pub mod cpu_twin;
 pub mod direct;

@@ -3,8 +3,9 @@
 //! In: a scene's [`GpuSystem`] (F, S and the solve), its bundle (the occluder triangles,
 //! patch centroids and normals, emission) and the colour stage as rows
 //! ([`translux_engine::vertexrows::VertexRows`]), uploaded once by [`DeviceRelight::new`];
-//! per request the point, spot and directional lamps and the solve's tolerance. Out: B/π
-//! per viewer vertex, as the engine's colour stage makes it, with what crossed the bus.
+//! per request the point, spot and directional lamps of one relight or of a batch, and the
+//! solve's tolerance. Out: B/π per viewer vertex for each relight, as the engine's colour
+//! stage makes it, with what crossed the bus.
 //!
 //! One command buffer records, in order (the system's one-submission solve, [`super::system`]):
 //!
@@ -17,17 +18,24 @@
 //!   copy the counter, the residual history and the colours to staging
 //! ```
 //!
-//! The host writes only the lights and a few parameters, and reads back the colours (12
-//! bytes a vertex) with the counter and the history of the iterations recorded.
+//! A batch of relights (the worker pool's concurrent requests for one scene) runs
+//! [`BATCH`] at a time in one such submission: each has its own direct light, and the
+//! iterations read F and S once for all of them (`csr_spmv_rgb` with KV vectors); the solve
+//! stops when every one has met the tolerance. The host writes only the lights and a few
+//! parameters, and reads back the colours (12 bytes a vertex and relight) with the counter
+//! and the history of the iterations recorded.
+
+use std::sync::OnceLock;
 
 use translux_engine::radiosity::{Rgb, SolveParams};
 use translux_engine::vertexrows::VertexRows;
 use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 
-use super::direct::{DirectPass, GpuLights, GpuOccluder, SurfacePoints};
+use super::direct::{DirectParams, DirectPass, GpuLight, GpuLights, GpuOccluder, SurfacePoints};
+use super::kernels::BATCH;
 use super::matrix::{BoundOp, alloc_size, staging, storage_init, storage_zeroed, uniform};
-use super::system::{GpuSolveStats, GpuSystem, Input, Job};
+use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes};
 use super::{GpuContext, GpuError, grid};
 
 /// Most lights one relight may carry (the engine's `relight::MAX_LIGHTS`).
@@ -41,23 +49,236 @@ struct ColourParams {
     groups_x: u32,
     overshoot: f32,
     inv_pi: f32,
+    n: u32,
+    kv: u32,
+    gpv: u32,
+    _pad: u32,
+}
+
+/// The colour rows on the device (uploaded once, read by every lane).
+#[derive(Debug)]
+struct ColourRows {
+    offsets: wgpu::Buffer,
+    entries: wgpu::Buffer,
+    own: wgpu::Buffer,
+    albedo: wgpu::Buffer,
+    overshoot: f32,
+    n: usize,
+    nv: usize,
+}
+
+impl ColourRows {
+    fn upload(ctx: &GpuContext, rows: &VertexRows) -> ColourRows {
+        let entries: Vec<[u32; 2]> = rows
+            .patch
+            .iter()
+            .zip(&rows.weight)
+            .map(|(&k, &w)| [k, w.to_bits()])
+            .collect();
+        ColourRows {
+            offsets: storage_init(ctx, "colour-offsets", bytemuck::cast_slice(&rows.offsets)),
+            entries: storage_init(ctx, "colour-entries", bytemuck::cast_slice(&entries)),
+            own: storage_init(ctx, "colour-own", bytemuck::cast_slice(&rows.own)),
+            albedo: storage_init(ctx, "albedo", bytemuck::cast_slice(&rows.albedo)),
+            overshoot: rows.overshoot,
+            n: rows.albedo.len(),
+            nv: rows.len(),
+        }
+    }
+
+    fn bytes(rows: &VertexRows) -> u64 {
+        alloc_size(4 * (rows.len() as u64 + 1))
+            + alloc_size(8 * rows.patch.len() as u64)
+            + alloc_size(16 * rows.len() as u64)
+            + alloc_size(12 * rows.albedo.len() as u64)
+    }
+
+    /// The `vertex_colours` dispatch for `kv` relights: B from `x`, E from `e`, E(v) from
+    /// `ev`, colours into `out` (each relight's vector after the last's).
+    fn bind(
+        &self,
+        ctx: &GpuContext,
+        kv: u32,
+        (x, e, ev): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        out: &wgpu::Buffer,
+    ) -> BoundOp {
+        let gpv = (self.nv as u32).div_ceil(256);
+        let g = grid(gpv * kv);
+        let params = uniform(
+            ctx,
+            "colour-params",
+            &ColourParams {
+                nv: self.nv as u32,
+                groups_x: g.0,
+                overshoot: self.overshoot,
+                inv_pi: std::f32::consts::FRAC_1_PI,
+                n: self.n as u32,
+                kv,
+                gpv,
+                _pad: 0,
+            },
+        );
+        let k = &ctx.kernels;
+        let bind = k.colours.bind(
+            &ctx.device,
+            &params,
+            &[
+                &self.offsets,
+                &self.entries,
+                &self.own,
+                &self.albedo,
+                x,
+                e,
+                ev,
+                out,
+            ],
+        );
+        BoundOp::new(k.vertex_colours.clone(), vec![(bind, g)])
+    }
+}
+
+/// The per-lane part of the whole relight: for each of the lane's relights a direct pass
+/// at the patches and one at the vertices, E(v), the colours and their staging.
+#[derive(Debug)]
+struct Lane {
+    kv: usize,
+    at_patches: Vec<DirectPass>,
+    at_vertices: Vec<DirectPass>,
+    /// A batch's per-relight E and E(v), copied into the lane's vectors after the direct
+    /// passes (empty for one relight: its passes write the vectors themselves).
+    e_parts: Vec<wgpu::Buffer>,
+    ev_parts: Vec<wgpu::Buffer>,
+    ev: wgpu::Buffer,
+    colours: BoundOp,
+    out: wgpu::Buffer,
+    read: wgpu::Buffer,
+    bytes: u64,
+}
+
+impl Lane {
+    /// Bytes a lane of `kv` relights holds for `n` patches and `nv` vertices.
+    fn bytes(kv: u64, n: u64, nv: u64, head: u64) -> u64 {
+        let parts = if kv > 1 {
+            kv * (alloc_size(12 * n) + alloc_size(12 * nv))
+        } else {
+            0
+        };
+        let lights = 2 * kv * alloc_size((MAX_LIGHTS * std::mem::size_of::<GpuLight>()) as u64);
+        parts + lights + 2 * alloc_size(12 * nv * kv) + alloc_size(head + 12 * nv * kv)
+    }
+
+    /// Binds a lane over `lanes` (the system's vectors for as many relights).
+    fn new(
+        ctx: &GpuContext,
+        system: &GpuSystem,
+        lanes: &Lanes,
+        scene: &SceneBuffers,
+    ) -> Result<Lane, GpuError> {
+        let (n, nv, kv) = (system.n(), scene.rows.nv, lanes.kv());
+        let bytes = Lane::bytes(kv as u64, n as u64, nv as u64, lanes.counter_bytes(system));
+        ctx.reserve("relight lane", bytes)?;
+        ctx.scoped(|| {
+            let ev = storage_zeroed(ctx, "E(v)", 12 * (nv * kv) as u64);
+            let (e_parts, ev_parts) = if kv > 1 {
+                (
+                    (0..kv).map(|_| DirectPass::output_buffer(ctx, n)).collect(),
+                    (0..kv)
+                        .map(|_| DirectPass::output_buffer(ctx, nv))
+                        .collect(),
+                )
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let mut at_patches = Vec::with_capacity(kv);
+            let mut at_vertices = Vec::with_capacity(kv);
+            for r in 0..kv {
+                let (e_out, ev_out) = if kv > 1 {
+                    (&e_parts[r], &ev_parts[r])
+                } else {
+                    (lanes.e_buffer(), &ev)
+                };
+                let p = &scene.patches;
+                let v = &scene.vertices;
+                let occ = &scene.occluder;
+                at_patches.push(DirectPass::new(
+                    ctx, occ, &p.points, &p.normals, n, e_out, MAX_LIGHTS,
+                )?);
+                at_vertices.push(DirectPass::new(
+                    ctx, occ, &v.points, &v.normals, nv, ev_out, MAX_LIGHTS,
+                )?);
+            }
+            let out = storage_zeroed(ctx, "colours", 12 * (nv * kv) as u64);
+            let colours = scene.rows.bind(
+                ctx,
+                kv as u32,
+                (lanes.x_buffer(), lanes.e_buffer(), &ev),
+                &out,
+            );
+            let read = staging(
+                ctx,
+                "relight-read",
+                lanes.counter_bytes(system) + 12 * (nv * kv) as u64,
+            );
+            Ok(Lane {
+                kv,
+                at_patches,
+                at_vertices,
+                e_parts,
+                ev_parts,
+                ev,
+                colours,
+                out,
+                read,
+                bytes,
+            })
+        })
+        .inspect_err(|_| ctx.release(bytes))
+    }
+
+    /// Records the direct light of every relight of the lane, and for a batch the copies of
+    /// each one's E and E(v) into the lane's vectors.
+    fn record_direct(&self, enc: &mut wgpu::CommandEncoder, lanes: &Lanes, n: usize, nv: usize) {
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            for (p, v) in self.at_patches.iter().zip(&self.at_vertices) {
+                p.encode(&mut pass);
+                v.encode(&mut pass);
+            }
+        }
+        let (eb, evb) = (12 * n as u64, 12 * nv as u64);
+        for (r, (e, ev)) in self.e_parts.iter().zip(&self.ev_parts).enumerate() {
+            let r = r as u64;
+            if eb > 0 {
+                enc.copy_buffer_to_buffer(e, 0, lanes.e_buffer(), r * eb, eb);
+            }
+            if evb > 0 {
+                enc.copy_buffer_to_buffer(ev, 0, &self.ev, r * evb, evb);
+            }
+        }
+    }
+}
+
+/// What every lane reads: the occluder, the sample points, the colour rows.
+#[derive(Debug)]
+struct SceneBuffers {
+    occluder: GpuOccluder,
+    patches: SurfacePoints,
+    vertices: SurfacePoints,
+    rows: ColourRows,
 }
 
 /// What a scene keeps on the device for its whole relights, beside its [`GpuSystem`].
 #[derive(Debug)]
 pub struct DeviceRelight {
-    occluder: GpuOccluder,
-    patches: SurfacePoints,
-    vertices: SurfacePoints,
-    at_patches: DirectPass,
-    at_vertices: DirectPass,
+    scene: SceneBuffers,
     emission: wgpu::Buffer,
-    colours: BoundOp,
-    out: wgpu::Buffer,
-    read: wgpu::Buffer,
+    /// The lane of one relight, and the lane of a batch (made on the first batch; `Err`: it
+    /// did not fit, and batches run one relight at a time).
+    one: Lane,
+    batch: OnceLock<Result<Lane, String>>,
     nv: usize,
     unit_mm: f64,
-    /// Bytes of the buffers this holds besides the occluder and the points.
+    /// Bytes of the emission and the colour rows.
     own_bytes: u64,
     /// One relight at a time from writing its lights to reading its colours: the light
     /// buffers are shared.
@@ -96,58 +317,38 @@ impl DeviceRelight {
         let vertices = SurfacePoints::upload(ctx, &points, &vnormals)
             .inspect_err(|_| ctx.release(occluder.bytes() + patches.bytes()))?;
         let held = occluder.bytes() + patches.bytes() + vertices.bytes();
-        let nv = rows.len();
-        let own_bytes = 2 * alloc_size(12 * nv as u64)
-            + alloc_size(12 * n as u64)
-            + alloc_size(system.counter_bytes() + 12 * nv as u64)
-            + alloc_size(4 * (nv as u64 + 1))
-            + alloc_size(8 * rows.patch.len() as u64)
-            + alloc_size(16 * nv as u64)
-            + alloc_size(12 * n as u64);
+        let own_bytes = ColourRows::bytes(rows) + alloc_size(12 * n as u64);
         ctx.reserve("relight buffers", own_bytes)
             .inspect_err(|_| ctx.release(held))?;
-        let made = ctx.scoped(|| {
-            let ev = storage_zeroed(ctx, "E(v)", 12 * nv as u64);
-            let at_patches = DirectPass::new(
-                ctx,
-                &occluder,
-                &patches.points,
-                &patches.normals,
-                n,
-                system.e_buffer(),
-                MAX_LIGHTS,
-            )?;
-            let at_vertices = DirectPass::new(
-                ctx,
-                &occluder,
-                &vertices.points,
-                &vertices.normals,
-                nv,
-                &ev,
-                MAX_LIGHTS,
-            )?;
-            let emission = storage_init(
-                ctx,
-                "emission",
-                bytemuck::cast_slice(bundle.patch_emission()),
-            );
-            let out = storage_zeroed(ctx, "colours", 12 * nv as u64);
-            let colours = bind_colours(ctx, rows, system.x_buffer(), system.e_buffer(), &ev, &out);
-            let read = staging(ctx, "relight-read", system.counter_bytes() + 12 * nv as u64);
-            Ok((at_patches, at_vertices, emission, colours, out, read))
-        });
-        match made {
-            Ok((at_patches, at_vertices, emission, colours, out, read)) => Ok(DeviceRelight {
-                occluder,
-                patches,
-                vertices,
-                at_patches,
-                at_vertices,
+        let (rows_dev, emission) = match ctx.scoped(|| {
+            Ok((
+                ColourRows::upload(ctx, rows),
+                storage_init(
+                    ctx,
+                    "emission",
+                    bytemuck::cast_slice(bundle.patch_emission()),
+                ),
+            ))
+        }) {
+            Ok(made) => made,
+            Err(e) => {
+                ctx.release(held + own_bytes);
+                return Err(e);
+            }
+        };
+        let scene = SceneBuffers {
+            occluder,
+            patches,
+            vertices,
+            rows: rows_dev,
+        };
+        match Lane::new(ctx, system, system.one(), &scene) {
+            Ok(one) => Ok(DeviceRelight {
+                scene,
                 emission,
-                colours,
-                out,
-                read,
-                nv,
+                one,
+                batch: OnceLock::new(),
+                nv: rows.len(),
                 unit_mm: bundle.manifest().unit_mm,
                 own_bytes,
                 busy: std::sync::Mutex::new(()),
@@ -161,7 +362,16 @@ impl DeviceRelight {
 
     /// GPU bytes held.
     pub fn bytes(&self) -> u64 {
-        self.occluder.bytes() + self.patches.bytes() + self.vertices.bytes() + self.own_bytes
+        let batch = match self.batch.get() {
+            Some(Ok(l)) => l.bytes,
+            _ => 0,
+        };
+        self.scene.occluder.bytes()
+            + self.scene.patches.bytes()
+            + self.scene.vertices.bytes()
+            + self.own_bytes
+            + self.one.bytes
+            + batch
     }
 
     /// Returns the bytes to the context's budget; call when dropping it.
@@ -171,100 +381,127 @@ impl DeviceRelight {
         ctx.release(bytes);
     }
 
-    /// The relight of `lights` (point, spot and directional; environment lights are
-    /// refused) on `system`, the system this was made with: B/π per vertex and the solve's
-    /// stats with what crossed the bus. Starts from the last answer the device holds.
+    /// The relights of `lights` (one set of point, spot and directional lamps per relight;
+    /// environment lights are refused) on `system`, the system this was made with: B/π per
+    /// vertex and the solve's stats with what crossed the bus, per relight. One relight
+    /// runs alone; several run [`BATCH`] at a time where the batch's vectors fit (else one
+    /// by one). Each solve starts from the last answer the device holds.
     pub fn relight(
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
-        lights: &[Light],
+        lights: &[&[Light]],
         params: &SolveParams,
-    ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
+    ) -> Result<Vec<(Vec<Rgb>, GpuSolveStats)>, GpuError> {
         if lights
             .iter()
-            .any(|l| matches!(l, Light::Environment { .. }))
+            .any(|set| set.iter().any(|l| matches!(l, Light::Environment { .. })))
         {
             return Err(GpuError::Invalid(
                 "environment lights are lit on the CPU, not in a device relight".into(),
             ));
         }
-        let lamps = GpuLights::new(lights, self.occluder.diagonal(), self.unit_mm);
-        let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
-        self.at_patches.write_lights(ctx, &lamps)?;
-        self.at_vertices.write_lights(ctx, &lamps)?;
-        let lights_up = 2
-            * (std::mem::size_of_val(lamps.lights.as_slice())
-                + std::mem::size_of::<super::direct::DirectParams>()) as u64;
-        let before = |pass: &mut wgpu::ComputePass<'_>| {
-            self.at_patches.encode(pass);
-            self.at_vertices.encode(pass);
+        let batch = if lights.len() > 1 {
+            self.batch_lane(ctx, system)
+        } else {
+            None
         };
-        let after = |pass: &mut wgpu::ComputePass<'_>| self.colours.encode(pass);
+        let mut answers = Vec::with_capacity(lights.len());
+        match batch {
+            Some((lane, lanes)) => {
+                for chunk in lights.chunks(BATCH as usize) {
+                    answers.extend(self.run_lane(ctx, system, lane, lanes, chunk, params)?);
+                }
+            }
+            None => {
+                for set in lights {
+                    let one = std::slice::from_ref(set);
+                    answers.extend(self.run_lane(
+                        ctx,
+                        system,
+                        &self.one,
+                        system.one(),
+                        one,
+                        params,
+                    )?);
+                }
+            }
+        }
+        Ok(answers)
+    }
+
+    /// The batch's lane and vectors, made on the first batch; `None` when they do not fit.
+    fn batch_lane<'a>(
+        &'a self,
+        ctx: &GpuContext,
+        system: &'a GpuSystem,
+    ) -> Option<(&'a Lane, &'a Lanes)> {
+        let lanes = system.batch(ctx)?;
+        let lane = self.batch.get_or_init(|| {
+            Lane::new(ctx, system, lanes, &self.scene).map_err(|e| {
+                tracing::warn!("batched relights run one by one: {e}");
+                e.to_string()
+            })
+        });
+        lane.as_ref().ok().map(|l| (l, lanes))
+    }
+
+    /// One submission's relights (at most the lane's): their lights written (lanes past
+    /// them get none), the solve run, each one's colours and its share of the bytes.
+    fn run_lane(
+        &self,
+        ctx: &GpuContext,
+        system: &GpuSystem,
+        lane: &Lane,
+        lanes: &Lanes,
+        lights: &[&[Light]],
+        params: &SolveParams,
+    ) -> Result<Vec<(Vec<Rgb>, GpuSolveStats)>, GpuError> {
+        let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
+        let mut lights_up = 0u64;
+        for r in 0..lane.kv {
+            let set = lights.get(r).copied().unwrap_or(&[]);
+            let lamps = GpuLights::new(set, self.scene.occluder.diagonal(), self.unit_mm);
+            lane.at_patches[r].write_lights(ctx, &lamps)?;
+            lane.at_vertices[r].write_lights(ctx, &lamps)?;
+            lights_up += 2
+                * (std::mem::size_of_val(lamps.lights.as_slice())
+                    + std::mem::size_of::<DirectParams>()) as u64;
+        }
+        let (n, nv) = (system.n(), self.nv);
+        let before = |enc: &mut wgpu::CommandEncoder| lane.record_direct(enc, lanes, n, nv);
+        let after = |pass: &mut wgpu::ComputePass<'_>| lane.colours.encode(pass);
         let job = Job {
             e: Input::OnDevice,
             be: Input::Copy(&self.emission),
-            warm: if system.holds_answer() {
+            warm: if lanes.holds_answer() {
                 Input::OnDevice
             } else {
                 Input::Absent
             },
             before: Some(&before),
             after: Some(&after),
-            out: Some((&self.out, 12 * self.nv as u64, &self.read)),
+            // Only the lanes that carry a relight are read back.
+            out: Some((&lane.out, 12 * (nv * lights.len()) as u64, &lane.read)),
         };
-        let run = system.run(ctx, &job, params)?;
-        let radiance: Vec<Rgb> = if run.dark {
-            vec![[0.0; 3]; self.nv]
-        } else {
-            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&run.out);
-            v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
-        };
-        let mut stats = run.stats;
-        stats.bytes_up += lights_up;
-        Ok((radiance, stats))
+        let run = system.run(ctx, lanes, &job, params)?;
+        let m = lights.len().max(1) as u64;
+        Ok((0..lights.len())
+            .map(|r| {
+                let radiance: Vec<Rgb> = if run.dark[r] {
+                    vec![[0.0; 3]; nv]
+                } else {
+                    let bytes = &run.out[12 * nv * r..12 * nv * (r + 1)];
+                    let v: Vec<f32> = bytemuck::pod_collect_to_vec(bytes);
+                    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+                };
+                let mut stats = run.stats[r];
+                stats.bytes_up = (stats.bytes_up + lights_up).div_ceil(m);
+                stats.bytes_down = stats.bytes_down.div_ceil(m);
+                (radiance, stats)
+            })
+            .collect())
     }
-}
-
-/// The `vertex_colours` dispatch over `rows`, reading B from `x`, E from `e` and E(v)
-/// from `ev`, writing `out`.
-fn bind_colours(
-    ctx: &GpuContext,
-    rows: &VertexRows,
-    x: &wgpu::Buffer,
-    e: &wgpu::Buffer,
-    ev: &wgpu::Buffer,
-    out: &wgpu::Buffer,
-) -> BoundOp {
-    let nv = rows.len();
-    let g = grid((nv as u32).div_ceil(256));
-    let params = uniform(
-        ctx,
-        "colour-params",
-        &ColourParams {
-            nv: nv as u32,
-            groups_x: g.0,
-            overshoot: rows.overshoot,
-            inv_pi: std::f32::consts::FRAC_1_PI,
-        },
-    );
-    let entries: Vec<[u32; 2]> = rows
-        .patch
-        .iter()
-        .zip(&rows.weight)
-        .map(|(&k, &w)| [k, w.to_bits()])
-        .collect();
-    let offsets = storage_init(ctx, "colour-offsets", bytemuck::cast_slice(&rows.offsets));
-    let entries = storage_init(ctx, "colour-entries", bytemuck::cast_slice(&entries));
-    let own = storage_init(ctx, "colour-own", bytemuck::cast_slice(&rows.own));
-    let albedo = storage_init(ctx, "albedo", bytemuck::cast_slice(&rows.albedo));
-    let k = &ctx.kernels;
-    let bind = k.colours.bind(
-        &ctx.device,
-        &params,
-        &[&offsets, &entries, &own, &albedo, x, e, ev, out],
-    );
-    BoundOp::new(k.vertex_colours.clone(), vec![(bind, g)])
 }
 
 /// One `vertex_colours` dispatch on uploaded inputs: B (`x`) and E (`e`) per patch, E at
@@ -286,11 +523,12 @@ pub fn vertex_colours_once(
         )));
     }
     ctx.scoped(|| {
+        let dev_rows = ColourRows::upload(ctx, rows);
         let xb = storage_init(ctx, "x", bytemuck::cast_slice(x));
         let eb = storage_init(ctx, "e", bytemuck::cast_slice(e));
         let evb = storage_init(ctx, "ev", bytemuck::cast_slice(ev));
         let out = storage_zeroed(ctx, "colours", 12 * nv as u64);
-        let op = bind_colours(ctx, rows, &xb, &eb, &evb, &out);
+        let op = dev_rows.bind(ctx, 1, (&xb, &eb, &evb), &out);
         let read = staging(ctx, "colours-read", 12 * nv as u64);
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         {

@@ -18,7 +18,10 @@
 //! ```
 //!
 //! m is half as many again as the last solve took (at least 8); a solve that did not
-//! converge in them continues in a further submission, up to the cap. The returned B has
+//! converge in them continues in a further submission, up to the cap. A batch of
+//! [`BATCH`] systems (concurrent relights) solves the same way on a second set of vectors
+//! (`Lanes`) laid out system after system: each product reads F and S once for all of
+//! them, and the iterations stop when every system's residual meets the tolerance. The returned B has
 //! had every iteration up to the stop applied, so it is at least as converged as the
 //! iterate whose residual met the tolerance.
 //!
@@ -26,13 +29,14 @@
 //! [`radiosity::Method::Jacobi`]: translux_engine::radiosity::Method::Jacobi
 
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use translux_engine::radiosity::{Method, Rgb, SolveParams, SolveStats};
 use translux_engine::transport::Transport;
 use translux_proto::csr::CsrView;
 
+use super::kernels::BATCH;
 use super::matrix::{BoundOp, GpuCsr, alloc_size, staging, storage_zeroed, uniform};
 use super::{GpuContext, GpuError, grid};
 
@@ -42,8 +46,9 @@ use super::{GpuContext, GpuError, grid};
 struct VecParams {
     n: u32,
     groups_x: u32,
-    _pad0: u32,
-    _pad1: u32,
+    /// Workgroups per system, systems.
+    gpk: u32,
+    kv: u32,
 }
 
 /// Keep in sync with `Params` in `reduce_sum.wgsl`.
@@ -56,6 +61,11 @@ struct ReduceParams {
     n_args: u32,
     /// The relative tolerance, squared.
     tol2: f32,
+    /// Systems solved together (a batch).
+    kv: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 /// The per-scene vectors (n × RGB f32 each) the host and the stages touch, the residual
@@ -100,6 +110,9 @@ pub(crate) enum Input<'a> {
 /// A stage recorded into a compute pass of the solve's one submission.
 pub(crate) type Stage<'a> = &'a dyn Fn(&mut wgpu::ComputePass<'_>);
 
+/// A stage recorded into the solve's command encoder (its own passes and copies).
+pub(crate) type EncoderStage<'a> = &'a dyn Fn(&mut wgpu::CommandEncoder);
+
 /// One solve as the device runs it: its inputs, the stages recorded before and after it,
 /// and what it reads back.
 pub(crate) struct Job<'a> {
@@ -110,7 +123,7 @@ pub(crate) struct Job<'a> {
     /// The start: on the host, x as the last solve left it, or b.
     pub(crate) warm: Input<'a>,
     /// Records work before the solve (the device's direct light into E).
-    pub(crate) before: Option<Stage<'a>>,
+    pub(crate) before: Option<EncoderStage<'a>>,
     /// Records work after the solve (vertex colours from x).
     pub(crate) after: Option<Stage<'a>>,
     /// What is read back after the counters: `(buffer, bytes, staging)`, the staging
@@ -238,7 +251,8 @@ impl GpuF {
             .fold(self.c.stream_bytes(), |a, m| a + m.stream_bytes())
     }
 
-    /// y = F x; `pulled` holds x̄ for a hierarchical F, `rows` C x̄ for a two-sided one.
+    /// y = F x (for a batch's every vector with `batch`); `pulled` holds x̄ for a
+    /// hierarchical F, `rows` C x̄ for a two-sided one.
     fn bind(
         &self,
         ctx: &GpuContext,
@@ -246,20 +260,25 @@ impl GpuF {
         pulled: &wgpu::Buffer,
         rows: &wgpu::Buffer,
         y: &wgpu::Buffer,
+        batch: bool,
     ) -> BoundOp {
+        let c = &self.c;
         match (&self.pull, &self.push) {
-            (None, _) => self.c.bind(ctx, x, y),
-            (Some(p), None) => p.bind(ctx, x, pulled).then(self.c.bind(ctx, pulled, y)),
+            (None, _) => c.bind_lanes(ctx, x, y, batch),
+            (Some(p), None) => p
+                .bind_lanes(ctx, x, pulled, batch)
+                .then(c.bind_lanes(ctx, pulled, y, batch)),
             (Some(p), Some(q)) => p
-                .bind(ctx, x, pulled)
-                .then(self.c.bind(ctx, pulled, rows))
-                .then(q.bind(ctx, rows, y)),
+                .bind_lanes(ctx, x, pulled, batch)
+                .then(c.bind_lanes(ctx, pulled, rows, batch))
+                .then(q.bind_lanes(ctx, rows, y, batch)),
         }
     }
 }
 
 /// y = S x: one CSR product, or for a hierarchical S (`linked`) F's pull of x into
 /// `pulled` and then S over it (the pulled vector is free again once F's product is done).
+#[allow(clippy::too_many_arguments)]
 fn s_product(
     f: &GpuF,
     s: &GpuCsr,
@@ -268,37 +287,44 @@ fn s_product(
     x: &wgpu::Buffer,
     pulled: &wgpu::Buffer,
     y: &wgpu::Buffer,
+    batch: bool,
 ) -> BoundOp {
     match (&f.pull, linked) {
-        (Some(p), true) => p.bind(ctx, x, pulled).then(s.bind(ctx, pulled, y)),
-        _ => s.bind(ctx, x, y),
+        (Some(p), true) => p
+            .bind_lanes(ctx, x, pulled, batch)
+            .then(s.bind_lanes(ctx, pulled, y, batch)),
+        _ => s.bind_lanes(ctx, x, y, batch),
     }
 }
 
-/// The byte sizes of a system's vectors.
+/// The byte sizes of one set of the solve's vectors, for `kv` systems.
 struct Sizes {
     n: usize,
-    /// One n × RGB vector.
+    kv: u32,
+    /// One n × RGB vector per system.
     vector: u64,
     pulled: u64,
     rows: u64,
+    /// Workgroups of `jacobi_update` per system.
     groups: u32,
     capacity: u32,
 }
 
 impl Sizes {
-    fn of(f: &GpuF, capacity: u32) -> Sizes {
+    fn of(f: &GpuF, capacity: u32, kv: u32) -> Sizes {
         let n = f.n_rows();
+        let k = kv as u64;
         Sizes {
             n,
-            vector: alloc_size(12 * n as u64),
+            kv,
+            vector: alloc_size(12 * n as u64 * k),
             pulled: if f.pull.is_some() {
-                alloc_size(12 * f.pulled_rows() as u64)
+                alloc_size(12 * f.pulled_rows() as u64 * k)
             } else {
                 16
             },
             rows: if f.push.is_some() {
-                alloc_size(12 * f.stored_rows() as u64)
+                alloc_size(12 * f.stored_rows() as u64 * k)
             } else {
                 16
             },
@@ -307,38 +333,53 @@ impl Sizes {
         }
     }
 
-    /// Every buffer of [`Vectors`] (the indirect arguments counted at a generous 4 KiB).
+    /// Every buffer of [`Vectors`] and the stubs beside them (the indirect arguments
+    /// counted at a generous 4 KiB).
     fn total(&self) -> u64 {
         6 * self.vector
             + self.pulled
             + self.rows
-            + alloc_size(4 * self.groups as u64)
-            + alloc_size(4 * self.capacity as u64)
+            + alloc_size(4 * (self.groups * self.kv) as u64)
+            + alloc_size(4 * (self.capacity * self.kv) as u64)
             + 16
-            + 16
+            + 32
             + 2 * 4096
-            + alloc_size(counter_bytes(self.capacity) + self.vector)
+            + alloc_size(counter_bytes(self.capacity, self.kv) + self.vector)
     }
 }
 
-/// The solve's vectors and its dispatches, bound once; answers them with the number of
-/// indirect triples an iteration takes.
-fn bind_solve(
-    ctx: &GpuContext,
-    f: &GpuF,
-    s: &GpuCsr,
-    s_linked: bool,
-    z: &Sizes,
-) -> (Vectors, Ops, u32) {
-    let g = grid(z.groups);
+/// One set of the solve's vectors and its dispatches, bound once, for `kv` systems at once
+/// (1, or a batch of [`BATCH`] relights sharing each pass over F and S).
+#[derive(Debug)]
+pub(crate) struct Lanes {
+    kv: u32,
+    v: Vectors,
+    ops: Ops,
+    /// Indirect dispatch triples of one iteration (`Vectors::args`).
+    n_args: u32,
+    /// GPU bytes of the vectors.
+    bytes: u64,
+    /// Iterations the last solve took: the next one records half as many again (and at
+    /// least [`MIN_RECORDED`]) in its one submission.
+    last_iterations: AtomicU32,
+    /// Whether x holds the answer of a solve (a warm start on the device).
+    x_solved: AtomicBool,
+    /// One solve at a time: the vectors are shared.
+    busy: Mutex<()>,
+}
+
+/// The solve's vectors and its dispatches, bound once.
+fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes) -> Lanes {
+    let batch = z.kv > 1;
+    let g = grid(z.groups * z.kv);
     let vp = uniform(
         ctx,
         "vec-params",
         &VecParams {
             n: z.n as u32,
             groups_x: g.0,
-            _pad0: 0,
-            _pad1: 0,
+            gpk: z.groups,
+            kv: z.kv,
         },
     );
     let e = storage_zeroed(ctx, "E", z.vector);
@@ -349,9 +390,9 @@ fn bind_solve(
     let sfx = storage_zeroed(ctx, "SFx", z.vector);
     let pulled = storage_zeroed(ctx, "pulled", z.pulled);
     let rows = storage_zeroed(ctx, "rows", z.rows);
-    let partial = storage_zeroed(ctx, "partial", 4 * z.groups as u64);
-    let f_x = f.bind(ctx, &x, &pulled, &rows, &fx);
-    let s_fx = s_product(f, s, s_linked, ctx, &fx, &pulled, &sfx);
+    let partial = storage_zeroed(ctx, "partial", 4 * (z.groups * z.kv) as u64);
+    let f_x = f.bind(ctx, &x, &pulled, &rows, &fx, batch);
+    let s_fx = s_product(f, s, s_linked, ctx, &fx, &pulled, &sfx, batch);
     let k = &ctx.kernels;
     let dev = &ctx.device;
     let update = BoundOp::new(
@@ -375,7 +416,7 @@ fn bind_solve(
     });
     let args_full =
         super::matrix::storage_init(ctx, "solve-args-full", bytemuck::cast_slice(&grids));
-    let history = storage_zeroed(ctx, "history", 4 * z.capacity as u64);
+    let history = storage_zeroed(ctx, "history", 4 * (z.capacity * z.kv) as u64);
     let counter = storage_zeroed(ctx, "counter", 16);
     let reduce_params = uniform(
         ctx,
@@ -385,6 +426,10 @@ fn bind_solve(
             capacity: z.capacity,
             n_args,
             tol2: 0.0,
+            kv: z.kv,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
         },
     );
     let reduce = BoundOp::new(
@@ -396,7 +441,7 @@ fn bind_solve(
         )],
     );
     let ops = Ops {
-        s_e: s_product(f, s, s_linked, ctx, &e, &pulled, &sfx),
+        s_e: s_product(f, s, s_linked, ctx, &e, &pulled, &sfx, batch),
         rhs: BoundOp::new(
             k.jacobi_update.clone(),
             vec![(k.jacobi.bind(dev, &vp, &[&be, &sfx, &b, &partial]), g)],
@@ -417,9 +462,22 @@ fn bind_solve(
         reduce_params,
         args,
         args_full,
-        read: staging(ctx, "solve-read", counter_bytes(z.capacity) + z.vector),
+        read: staging(
+            ctx,
+            "solve-read",
+            counter_bytes(z.capacity, z.kv) + z.vector,
+        ),
     };
-    (v, ops, n_args)
+    Lanes {
+        kv: z.kv,
+        v,
+        ops,
+        n_args,
+        bytes: z.total(),
+        last_iterations: AtomicU32::new(0),
+        x_solved: AtomicBool::new(false),
+        busy: Mutex::new(()),
+    }
 }
 
 /// A scene's F and S on the device, with everything the solve needs.
@@ -429,19 +487,13 @@ pub struct GpuSystem {
     /// Shared by every system of the scene (the bundle's S and overridden ones).
     f: Arc<GpuF>,
     s: GpuCsr,
-    v: Vectors,
-    ops: Ops,
+    s_linked: bool,
     capacity: u32,
-    /// Indirect dispatch triples of one iteration (`Vectors::args`).
-    n_args: u32,
-    vector_bytes: u64,
-    /// Iterations the last solve took: the next one records half as many again (and at
-    /// least [`MIN_RECORDED`]) in its one submission.
-    last_iterations: AtomicU32,
-    /// Whether x holds the answer of a solve of this system (a warm start on the device).
-    x_solved: AtomicBool,
-    /// One solve at a time: the vectors are shared.
-    busy: Mutex<()>,
+    /// The vectors of one solve.
+    one: Lanes,
+    /// The vectors of a batch of [`BATCH`], made on the first batch; `Err`: they did not
+    /// fit (batches then solve one by one).
+    batch: OnceLock<Result<Lanes, String>>,
 }
 
 /// Fewest iterations a submission records. Iterations past the stop dispatch no
@@ -450,9 +502,9 @@ pub struct GpuSystem {
 const MIN_RECORDED: u32 = 8;
 
 /// Bytes of the counter and history a solve reads back before its answer, for a history
-/// of `slots` entries.
-fn counter_bytes(slots: u32) -> u64 {
-    16 + 4 * slots as u64
+/// of `slots` entries of `kv` systems.
+fn counter_bytes(slots: u32, kv: u32) -> u64 {
+    16 + 4 * (slots * kv) as u64
 }
 
 impl GpuSystem {
@@ -510,32 +562,49 @@ impl GpuSystem {
             )));
         }
         let capacity = max_iterations + 2;
-        let sizes = Sizes::of(&f, capacity);
-        let vector_bytes = sizes.total();
-        if let Err(e) = ctx.reserve(&format!("{what} vectors"), vector_bytes) {
+        let sizes = Sizes::of(&f, capacity, 1);
+        if let Err(e) = ctx.reserve(&format!("{what} vectors"), sizes.total()) {
             ctx.release(s.bytes());
             return Err(e);
         }
-        let made = ctx.scoped(|| Ok(bind_solve(ctx, &f, &s, s_linked, &sizes)));
-        match made {
-            Ok((v, ops, n_args)) => Ok(GpuSystem {
+        match ctx.scoped(|| Ok(bind_solve(ctx, &f, &s, s_linked, &sizes))) {
+            Ok(one) => Ok(GpuSystem {
                 n,
                 f,
                 s,
-                v,
-                ops,
+                s_linked,
                 capacity,
-                n_args,
-                vector_bytes,
-                last_iterations: AtomicU32::new(0),
-                x_solved: AtomicBool::new(false),
-                busy: Mutex::new(()),
+                one,
+                batch: OnceLock::new(),
             }),
             Err(e) => {
-                ctx.release(vector_bytes + s.bytes());
+                ctx.release(sizes.total() + s.bytes());
                 Err(e)
             }
         }
+    }
+
+    /// The vectors of a batch of [`BATCH`] systems, made on first use; `None` when they do
+    /// not fit (said once in the log).
+    pub(crate) fn batch(&self, ctx: &GpuContext) -> Option<&Lanes> {
+        let made = self.batch.get_or_init(|| {
+            let sizes = Sizes::of(&self.f, self.capacity, BATCH);
+            ctx.reserve("batch vectors", sizes.total())
+                .and_then(|()| {
+                    ctx.scoped(|| Ok(bind_solve(ctx, &self.f, &self.s, self.s_linked, &sizes)))
+                        .inspect_err(|_| ctx.release(sizes.total()))
+                })
+                .map_err(|e| {
+                    tracing::warn!("batched relights solve one by one: {e}");
+                    e.to_string()
+                })
+        });
+        made.as_ref().ok()
+    }
+
+    /// The vectors of one solve.
+    pub(crate) fn one(&self) -> &Lanes {
+        &self.one
     }
 
     /// Patches.
@@ -550,7 +619,11 @@ impl GpuSystem {
 
     /// GPU bytes held by S and the vectors (not the shared F).
     pub fn own_bytes(&self) -> u64 {
-        self.s.bytes() + self.vector_bytes
+        let batch = match self.batch.get() {
+            Some(Ok(b)) => b.bytes,
+            _ => 0,
+        };
+        self.s.bytes() + self.one.bytes + batch
     }
 
     /// The shared F.
@@ -642,24 +715,89 @@ impl GpuSystem {
         }
     }
 
-    /// [`Self::run`] reading back x: B per patch (0 where b = 0).
+    /// [`Self::run`] on the vectors of one solve, reading back x: B per patch (0 where
+    /// b = 0).
     fn solve_x(
         &self,
         ctx: &GpuContext,
         job: &Job<'_>,
         params: &SolveParams,
     ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
-        let run = self.run(ctx, job, params)?;
-        let b: Vec<Rgb> = if run.dark {
+        let run = self.run(ctx, &self.one, job, params)?;
+        let b: Vec<Rgb> = if run.dark[0] {
             vec![[0.0; 3]; self.n]
         } else {
             let x: Vec<f32> = bytemuck::pod_collect_to_vec(&run.out);
             x.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
         };
-        Ok((b, run.stats))
+        Ok((b, run.stats[0]))
     }
 
-    /// The buffer E lives in (a job's `before` stage writes it on the device).
+    /// A solve of `lanes`' kv systems in as few submissions as the iterations allow,
+    /// usually one: the job's inputs written, then one command buffer that records
+    /// `before`, b = Bₑ + S E and ‖b‖², the start, [`Lanes::recorded`] iterations
+    /// (dispatched indirectly: `reduce_sum` zeroes their grids once every system's residual
+    /// meets the tolerance), `after`, and the copy of the counter, the history and the
+    /// answer into staging, read back once. Only when the iterations recorded did not reach
+    /// the tolerance (nor the cap) does a further submission record more.
+    pub(crate) fn run(
+        &self,
+        ctx: &GpuContext,
+        lanes: &Lanes,
+        job: &Job<'_>,
+        params: &SolveParams,
+    ) -> Result<Run, GpuError> {
+        let t0 = Instant::now();
+        let max_it = params.max_iterations.clamp(1, self.capacity - 2);
+        let _busy = lanes.busy.lock().unwrap_or_else(|p| p.into_inner());
+        ctx.scoped(|| {
+            let bytes_up = lanes.write_inputs(ctx, self.n, self.capacity, job, params);
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            lanes.record_start(&mut enc, self.n, job);
+            let mut per = lanes.recorded(max_it);
+            let (mut done, mut submissions, mut bytes_down) = (0u32, 0u32, 0u64);
+            loop {
+                let count = per.min(max_it - done);
+                let (slots, out_bytes) =
+                    lanes.record_iterations(&mut enc, self.n, job, done, count);
+                ctx.queue.submit([enc.finish()]);
+                submissions += 1;
+                let staging = job.out.map_or(&lanes.v.read, |o| o.2);
+                let head = counter_bytes(slots, lanes.kv);
+                let bytes = ctx.read_back(staging, head + out_bytes)?;
+                bytes_down += head + out_bytes;
+                done += count;
+                let state = History::parse(&bytes, slots, lanes.kv);
+                if state.stopped.is_some() || done >= max_it || state.all_dark() {
+                    let stats = lanes.finish(&state, job, t0, max_it, params.tolerance);
+                    return Ok(Run {
+                        out: bytes[head as usize..].to_vec(),
+                        dark: (0..lanes.kv as usize).map(|q| state.dark(q)).collect(),
+                        stats: stats
+                            .into_iter()
+                            .map(|stats| GpuSolveStats {
+                                stats,
+                                submissions,
+                                bytes_up,
+                                bytes_down,
+                            })
+                            .collect(),
+                    });
+                }
+                per = per.saturating_mul(2);
+                enc = ctx.device.create_command_encoder(&Default::default());
+            }
+        })
+    }
+}
+
+impl Lanes {
+    /// Systems solved together.
+    pub(crate) fn kv(&self) -> usize {
+        self.kv as usize
+    }
+
+    /// The buffer E lives in, system after system (a job's `before` stage writes it).
     pub(crate) fn e_buffer(&self) -> &wgpu::Buffer {
         &self.v.e
     }
@@ -670,68 +808,15 @@ impl GpuSystem {
     }
 
     /// Bytes a job's staging buffer holds before its answer: the counter and the longest
-    /// history.
-    pub(crate) fn counter_bytes(&self) -> u64 {
-        counter_bytes(self.capacity)
+    /// history, for a system of `capacity` history slots.
+    pub(crate) fn counter_bytes(&self, system: &GpuSystem) -> u64 {
+        counter_bytes(system.capacity, self.kv)
     }
 
-    /// Whether x holds the answer of an earlier solve of this system, so a job may start
-    /// there ([`Input::OnDevice`]).
+    /// Whether x holds the answer of an earlier solve, so a job may start there
+    /// ([`Input::OnDevice`]).
     pub(crate) fn holds_answer(&self) -> bool {
         self.x_solved.load(Ordering::Relaxed)
-    }
-
-    /// A solve in as few submissions as the iterations allow, usually one: the job's inputs
-    /// written, then one command buffer that records `before`, b = Bₑ + S E and ‖b‖², the
-    /// start, [`Self::recorded`] iterations (dispatched indirectly: `reduce_sum` zeroes
-    /// their grids once the residual meets the tolerance), `after`, and the copy of the
-    /// counter, the history and the answer into staging, read back once. Only when the
-    /// iterations recorded did not reach the tolerance (nor the cap) does a further
-    /// submission record more.
-    pub(crate) fn run(
-        &self,
-        ctx: &GpuContext,
-        job: &Job<'_>,
-        params: &SolveParams,
-    ) -> Result<Run, GpuError> {
-        let t0 = Instant::now();
-        let max_it = params.max_iterations.clamp(1, self.capacity - 2);
-        let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
-        ctx.scoped(|| {
-            let bytes_up = self.write_inputs(ctx, job, params);
-            let mut enc = ctx.device.create_command_encoder(&Default::default());
-            self.record_start(&mut enc, job);
-            let mut per = self.recorded(max_it);
-            let (mut done, mut submissions, mut bytes_down) = (0u32, 0u32, 0u64);
-            loop {
-                let count = per.min(max_it - done);
-                let (slots, out_bytes) = self.record_iterations(&mut enc, job, done, count);
-                ctx.queue.submit([enc.finish()]);
-                submissions += 1;
-                let staging = job.out.map_or(&self.v.read, |o| o.2);
-                let read_bytes = counter_bytes(slots) + out_bytes;
-                let bytes = ctx.read_back(staging, read_bytes)?;
-                bytes_down += read_bytes;
-                done += count;
-                let state = History::parse(&bytes, slots);
-                if state.stopped.is_some() || done >= max_it || state.dark() {
-                    let out = bytes[counter_bytes(slots) as usize..].to_vec();
-                    let stats = self.finish(&state, job, t0, max_it);
-                    return Ok(Run {
-                        out,
-                        dark: state.dark(),
-                        stats: GpuSolveStats {
-                            stats,
-                            submissions,
-                            bytes_up,
-                            bytes_down,
-                        },
-                    });
-                }
-                per = per.saturating_mul(2);
-                enc = ctx.device.create_command_encoder(&Default::default());
-            }
-        })
     }
 
     /// Iterations the next submission records: half as many again as the last solve took,
@@ -741,8 +826,16 @@ impl GpuSystem {
         (last + last / 2 + 2).max(MIN_RECORDED).min(max_it)
     }
 
-    /// Writes the job's host vectors and the tolerance; answers the bytes written.
-    fn write_inputs(&self, ctx: &GpuContext, job: &Job<'_>, params: &SolveParams) -> u64 {
+    /// Writes the job's host vectors (one system's) and the tolerance; answers the bytes
+    /// written.
+    fn write_inputs(
+        &self,
+        ctx: &GpuContext,
+        n: usize,
+        capacity: u32,
+        job: &Job<'_>,
+        params: &SolveParams,
+    ) -> u64 {
         let q = &ctx.queue;
         let mut up = 0u64;
         let mut put = |buffer: &wgpu::Buffer, v: &[Rgb]| {
@@ -759,22 +852,32 @@ impl GpuSystem {
             put(&self.v.x, w);
         }
         let rp = ReduceParams {
-            count: (self.n as u32).div_ceil(256),
-            capacity: self.capacity,
+            count: (n as u32).div_ceil(256),
+            capacity,
             n_args: self.n_args,
             tol2: params.tolerance * params.tolerance,
+            kv: self.kv,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
         };
         q.write_buffer(&self.v.reduce_params, 0, bytemuck::bytes_of(&rp));
         up + std::mem::size_of::<ReduceParams>() as u64
     }
 
-    /// Records the start of a solve: Bₑ copied in where the job gives it on the device, the
-    /// iteration grids restored, the counter cleared; then `before`, S E, b and ‖b‖²; then
-    /// x = b unless the job starts elsewhere.
-    fn record_start(&self, enc: &mut wgpu::CommandEncoder, job: &Job<'_>) {
-        let vb = 12 * self.n as u64;
+    /// Records the start of a solve: `before` (its own passes and copies), Bₑ copied in
+    /// for every system where the job gives it on the device, the iteration grids
+    /// restored, the counter cleared; then S E, b and ‖b‖²; then x = b unless the job
+    /// starts elsewhere.
+    fn record_start(&self, enc: &mut wgpu::CommandEncoder, n: usize, job: &Job<'_>) {
+        let vb = 12 * n as u64;
+        if let Some(before) = job.before {
+            before(enc);
+        }
         if let Input::Copy(be) = job.be {
-            enc.copy_buffer_to_buffer(be, 0, &self.v.be, 0, vb);
+            for q in 0..self.kv as u64 {
+                enc.copy_buffer_to_buffer(be, 0, &self.v.be, q * vb, vb);
+            }
         }
         let args_bytes = 12 * self.n_args as u64;
         enc.copy_buffer_to_buffer(&self.v.args_full, 0, &self.v.args, 0, args_bytes);
@@ -785,9 +888,6 @@ impl GpuSystem {
         }
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
-            if let Some(before) = job.before {
-                before(&mut pass);
-            }
             if !matches!(job.e, Input::Absent) {
                 self.ops.s_e.encode(&mut pass);
             }
@@ -795,7 +895,7 @@ impl GpuSystem {
             self.ops.reduce.encode(&mut pass);
         }
         if matches!(job.warm, Input::Absent) {
-            enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb);
+            enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb * self.kv as u64);
         }
     }
 
@@ -805,6 +905,7 @@ impl GpuSystem {
     fn record_iterations(
         &self,
         enc: &mut wgpu::CommandEncoder,
+        n: usize,
         job: &Job<'_>,
         done: u32,
         count: u32,
@@ -824,70 +925,90 @@ impl GpuSystem {
             }
         }
         let slots = done + count + 1;
-        let (out, out_bytes, staging) =
-            job.out
-                .unwrap_or((&self.v.x, 12 * self.n as u64, &self.v.read));
+        let x_bytes = 12 * (n as u64) * self.kv as u64;
+        let (out, out_bytes, staging) = job.out.unwrap_or((&self.v.x, x_bytes, &self.v.read));
+        let head = counter_bytes(slots, self.kv);
         enc.copy_buffer_to_buffer(&self.v.counter, 0, staging, 0, 16);
-        enc.copy_buffer_to_buffer(&self.v.history, 0, staging, 16, 4 * slots as u64);
-        enc.copy_buffer_to_buffer(out, 0, staging, counter_bytes(slots), out_bytes);
+        enc.copy_buffer_to_buffer(&self.v.history, 0, staging, 16, head - 16);
+        enc.copy_buffer_to_buffer(out, 0, staging, head, out_bytes);
         (slots, out_bytes)
     }
 
-    /// The solve's stats from its history, remembering its iterations for the next one.
-    fn finish(&self, h: &History, job: &Job<'_>, t0: Instant, max_it: u32) -> SolveStats {
+    /// Each system's stats from the history, remembering the iterations for the next solve.
+    fn finish(
+        &self,
+        h: &History,
+        job: &Job<'_>,
+        t0: Instant,
+        max_it: u32,
+        tolerance: f32,
+    ) -> Vec<SolveStats> {
         let iterations = h.iterations().min(max_it);
         self.last_iterations.store(iterations, Ordering::Relaxed);
         self.x_solved.store(true, Ordering::Relaxed);
-        let (residual, converged) = if h.dark() {
-            (0.0, true)
-        } else {
-            (h.relative(iterations as usize), h.stopped.is_some())
-        };
-        SolveStats {
-            method: Method::Jacobi,
-            iterations: if h.dark() { 0 } else { iterations },
-            products: if h.dark() { 0 } else { iterations },
-            warm: matches!(job.warm, Input::Host(_) | Input::OnDevice),
-            residual,
-            converged,
-            seconds: t0.elapsed().as_secs_f64(),
-        }
+        let seconds = t0.elapsed().as_secs_f64();
+        (0..self.kv as usize)
+            .map(|q| {
+                let dark = h.dark(q);
+                let residual = if dark {
+                    0.0
+                } else {
+                    h.relative(q, iterations as usize)
+                };
+                SolveStats {
+                    method: Method::Jacobi,
+                    iterations: if dark { 0 } else { iterations },
+                    products: if dark { 0 } else { iterations },
+                    warm: matches!(job.warm, Input::Host(_) | Input::OnDevice),
+                    residual,
+                    converged: dark || h.stopped.is_some() || residual <= tolerance,
+                    seconds,
+                }
+            })
+            .collect()
     }
 }
 
-/// What a solve read back: its answer and stats.
+/// What a solve read back: its answer and each system's stats.
 pub(crate) struct Run {
-    /// The bytes of the job's answer (x, or what `out` names).
+    /// The bytes of the job's answer (x, or what `out` names), system after system.
     pub(crate) out: Vec<u8>,
-    /// ‖b‖ = 0: the answer is 0 whatever x holds.
-    pub(crate) dark: bool,
-    pub(crate) stats: GpuSolveStats,
+    /// Per system, ‖b‖ = 0: its answer is 0 whatever x holds.
+    pub(crate) dark: Vec<bool>,
+    pub(crate) stats: Vec<GpuSolveStats>,
 }
 
 /// The counter and the residual history as read back.
 struct History {
     /// The next free slot.
     next: u32,
-    /// The iteration whose residual met the tolerance.
+    /// The iteration whose residuals all met the tolerance.
     stopped: Option<u32>,
-    /// h[0] = ‖b‖², then the squared residual of each iteration.
+    /// Slot after slot, one entry per system: h[0] = ‖b‖², then the squared residual of
+    /// each iteration.
     h: Vec<f32>,
+    kv: usize,
 }
 
 impl History {
-    fn parse(bytes: &[u8], slots: u32) -> History {
+    fn parse(bytes: &[u8], slots: u32, kv: u32) -> History {
         let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[..16]);
-        let h: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes[16..counter_bytes(slots) as usize]);
+        let head = counter_bytes(slots, kv) as usize;
         History {
             next: words[0],
             stopped: (words[1] != 0).then_some(words[1]),
-            h,
+            h: bytemuck::pod_collect_to_vec(&bytes[16..head]),
+            kv: kv as usize,
         }
     }
 
-    /// ‖b‖ = 0.
-    fn dark(&self) -> bool {
-        self.h.first().is_none_or(|&h0| h0 == 0.0)
+    /// System q's ‖b‖ = 0.
+    fn dark(&self, q: usize) -> bool {
+        self.h.get(q).is_none_or(|&h0| h0 == 0.0)
+    }
+
+    fn all_dark(&self) -> bool {
+        (0..self.kv).all(|q| self.dark(q))
     }
 
     /// Iterations run: up to the stop, else every slot after ‖b‖².
@@ -895,9 +1016,9 @@ impl History {
         self.stopped.unwrap_or(self.next.saturating_sub(1))
     }
 
-    /// √h[k] / √h[0] (the residual of the iterate before update k).
-    fn relative(&self, k: usize) -> f32 {
-        match (self.h.first(), self.h.get(k)) {
+    /// System q's √h[k] / √h[0] (the residual of the iterate before update k).
+    fn relative(&self, q: usize, k: usize) -> f32 {
+        match (self.h.get(q), self.h.get(k * self.kv + q)) {
             (Some(&h0), Some(&hk)) if k > 0 && h0 > 0.0 => {
                 ((hk as f64).sqrt() / (h0 as f64).sqrt()) as f32
             }
@@ -929,8 +1050,8 @@ pub fn jacobi_update_once(
             &VecParams {
                 n: n as u32,
                 groups_x: g.0,
-                _pad0: 0,
-                _pad1: 0,
+                gpk: groups,
+                kv: 1,
             },
         );
         let bb = super::matrix::storage_init(ctx, "b", bytemuck::cast_slice(b));
@@ -958,20 +1079,26 @@ pub fn jacobi_update_once(
     })
 }
 
-/// `reduce_sum` dispatched once per entry of `partials` (each the same length, copied in
-/// before its dispatch) into a fresh history of `partials.len()` slots, with the stopping
-/// rule at `tol2` over `n_args` indirect triples (set to 1): answers the history, the
-/// counter and the triples (what the tests hold to [`super::cpu_twin::reduce_stop`]).
+/// `reduce_sum` dispatched once per entry of `partials` (each `kv` systems' partial sums,
+/// system after system, all of one length, copied in before its dispatch) into a fresh
+/// history of `partials.len()` slots, with the stopping rule at `tol2` over `n_args`
+/// indirect triples (set to 1): answers the history, the counter and the triples (what the
+/// tests hold to [`super::cpu_twin::reduce_stop`]).
 pub fn reduce_sum_once(
     ctx: &GpuContext,
     partials: &[Vec<f32>],
+    kv: u32,
     tol2: f32,
     n_args: u32,
 ) -> Result<super::cpu_twin::ReduceState, GpuError> {
-    let count = partials.first().map_or(0, Vec::len);
-    if partials.iter().any(|p| p.len() != count) {
-        return Err(GpuError::Invalid("partials must have equal lengths".into()));
+    let len = partials.first().map_or(0, Vec::len);
+    let kv = kv.max(1);
+    if partials.iter().any(|p| p.len() != len) || !len.is_multiple_of(kv as usize) {
+        return Err(GpuError::Invalid(
+            "partials must have equal lengths, a multiple of kv".into(),
+        ));
     }
+    let count = len / kv as usize;
     let capacity = (partials.len() as u32).max(1);
     ctx.scoped(|| {
         let p = uniform(
@@ -982,12 +1109,16 @@ pub fn reduce_sum_once(
                 capacity,
                 n_args,
                 tol2,
+                kv,
+                _pad0: 0,
+                _pad1: 0,
+                _pad2: 0,
             },
         );
         let all: Vec<f32> = partials.iter().flatten().copied().collect();
         let src = super::matrix::storage_init(ctx, "partials", bytemuck::cast_slice(&all));
-        let pb = storage_zeroed(ctx, "partial", 4 * count as u64);
-        let hb = storage_zeroed(ctx, "history", 4 * capacity as u64);
+        let pb = storage_zeroed(ctx, "partial", 4 * len as u64);
+        let hb = storage_zeroed(ctx, "history", 4 * (capacity * kv) as u64);
         let cb = storage_zeroed(ctx, "counter", 16);
         let ab = super::matrix::storage_init(
             ctx,
@@ -1002,11 +1133,11 @@ pub fn reduce_sum_once(
                 (1, 1),
             )],
         );
-        let (hbytes, abytes) = (4 * capacity as u64, alloc_size(12 * n_args as u64));
+        let (hbytes, abytes) = (4 * (capacity * kv) as u64, alloc_size(12 * n_args as u64));
         let read = staging(ctx, "reduce-read", 16 + hbytes + abytes);
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         for i in 0..partials.len() {
-            let chunk = 4 * count as u64;
+            let chunk = 4 * len as u64;
             if chunk > 0 {
                 enc.copy_buffer_to_buffer(&src, i as u64 * chunk, &pb, 0, chunk);
             }
@@ -1019,7 +1150,7 @@ pub fn reduce_sum_once(
         ctx.queue.submit([enc.finish()]);
         let bytes = ctx.read_back(&read, 16 + hbytes + abytes)?;
         let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
-        let h = 4 + capacity as usize;
+        let h = 4 + (capacity * kv) as usize;
         Ok(super::cpu_twin::ReduceState {
             counter: [words[0], words[1]],
             history: bytemuck::cast_slice(&words[4..h]).to_vec(),

@@ -261,7 +261,7 @@ fn jacobi_update_and_reduce_sum_match_their_twins() {
             1e-4,
         );
         // reduce_sum on those partials, three times, never stopping: three equal slots.
-        let st = reduce_sum_once(ctx, &[gp.clone(), gp.clone(), gp.clone()], 0.0, 0).unwrap();
+        let st = reduce_sum_once(ctx, &[gp.clone(), gp.clone(), gp.clone()], 1, 0.0, 0).unwrap();
         let want = cpu_twin::reduce_sum(&gp);
         assert_eq!(st.counter, [3, 0], "n = {n}");
         for (k, v) in st.history.iter().enumerate() {
@@ -279,29 +279,41 @@ fn reduce_sum_stops_the_solve_where_its_twin_does() {
     let mut rng = Rng(5);
     // ‖b‖² then residuals falling by 10 per slot: a tolerance of 0.02 (0.0004 squared) is
     // met at slot 4 (1e-4 of ‖b‖²), after which nothing is appended and the grids are zero.
+    // In a batch of three the third system falls by 10 only every other slot: the batch
+    // stops when it too has met the tolerance, at slot 8.
     let base: Vec<f32> = (0..700).map(|_| rng.f(0.5, 1.5)).collect();
-    let partials: Vec<Vec<f32>> = (0..7)
-        .map(|k| base.iter().map(|v| v * 10f32.powi(-k)).collect())
+    let fall = |k: i32| -> Vec<f32> { base.iter().map(|v| v * 10f32.powi(-k)).collect() };
+    let single: Vec<Vec<f32>> = (0..10).map(fall).collect();
+    let batch: Vec<Vec<f32>> = (0..10)
+        .map(|k| [fall(k), fall(k), fall(k / 2)].concat())
         .collect();
-    for (tol, stop) in [(0.02f32, Some(4u32)), (1e-6, None)] {
-        let got = reduce_sum_once(ctx, &partials, tol * tol, 5).unwrap();
+    for (partials, kv, tol, stop) in [
+        (&single, 1usize, 0.02f32, Some(4u32)),
+        (&single, 1, 1e-6, None),
+        (&batch, 3, 0.02, Some(8)),
+    ] {
+        let got = reduce_sum_once(ctx, partials, kv as u32, tol * tol, 5).unwrap();
         let mut twin = cpu_twin::ReduceState {
-            history: vec![0.0; partials.len()],
+            history: vec![0.0; partials.len() * kv],
             counter: [0, 0],
             args: vec![1; 15],
         };
-        for p in &partials {
-            cpu_twin::reduce_stop(p, tol * tol, &mut twin);
+        for p in partials {
+            cpu_twin::reduce_stop(p, kv, tol * tol, &mut twin);
         }
-        assert_eq!(got.counter, twin.counter, "tolerance {tol}");
-        assert_eq!(got.args, twin.args, "tolerance {tol}");
+        let what = format!("kv {kv}, tolerance {tol}");
+        assert_eq!(got.counter, twin.counter, "{what}");
+        assert_eq!(got.args, twin.args, "{what}");
         assert_eq!(
             stop,
             (got.counter[1] != 0).then_some(got.counter[1]),
-            "tolerance {tol}"
+            "{what}"
         );
         for (k, (g, t)) in got.history.iter().zip(&twin.history).enumerate() {
-            assert!((g - t).abs() <= 1e-4 * t.abs(), "slot {k}: {g} vs twin {t}");
+            assert!(
+                (g - t).abs() <= 1e-4 * t.abs(),
+                "{what}, entry {k}: {g} vs twin {t}"
+            );
         }
     }
 }
@@ -405,7 +417,7 @@ fn solve_both(ctx: &GpuContext, sys: &System, seed: u64) -> (usize, usize) {
         gs2.bytes_down <= 12 * n as u64 + 16 + 4 * (gs.stats.iterations as u64 * 2 + 4),
         "{gs2:?}"
     );
-    assert_eq!(gs2.bytes_up, 24 * n as u64 + 16, "{gs2:?}");
+    assert_eq!(gs2.bytes_up, 24 * n as u64 + 32, "{gs2:?}");
     assert_eq!(again, gb);
     for method in [Method::Jacobi, Method::BiCgStab] {
         let p = SolveParams { method, ..params };

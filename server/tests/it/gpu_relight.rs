@@ -51,13 +51,30 @@ fn gpu_backend() -> Backend {
     )
 }
 
-/// A Cornell box with its marble block at 400 patches, precomputed once per test binary.
+/// A Cornell box with its marble block at 400 patches (a hierarchical F and S),
+/// precomputed once per test binary.
 fn cornell() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
-    DIR.get_or_init(|| {
+    precomputed(&DIR, false)
+}
+
+/// The same with two-sided links (F's node rows pushed to the patches).
+fn cornell_two_sided() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    precomputed(&DIR, true)
+}
+
+fn precomputed(dir: &'static OnceLock<tempfile::TempDir>, two_sided: bool) -> &'static Path {
+    use translux_precompute::hierarchy::HierarchyParams;
+    use translux_precompute::pipeline::FormFactorMethod;
+    dir.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let params = PrecomputeParams {
             patches: Some(400),
+            transport: FormFactorMethod::Hierarchical(HierarchyParams {
+                two_sided,
+                ..Default::default()
+            }),
             ..Default::default()
         };
         precompute(
@@ -179,44 +196,73 @@ fn the_whole_relight_on_the_device_agrees_with_the_cpu_for_every_lamp() {
     assert_eq!(h.scenes[0].on, "gpu", "{h:?}");
 }
 
-/// A batch of relights of one scene (as the worker pool runs concurrent requests): each
-/// done whole on the device, each as the CPU backend answers it.
+/// Batches of relights of one scene (as the worker pool runs concurrent requests): 3 in one
+/// submission, 11 in two (8 and 3), each as the CPU backend answers it, with a one- and a
+/// two-sided F.
 #[test]
-fn a_batch_of_whole_relights_agrees_with_the_cpu() {
+fn batches_of_whole_relights_agree_with_the_cpu() {
     let Some(_) = ctx() else { return };
-    let bodies: Vec<String> = (0..3)
-        .map(|i| {
-            format!(
-                r#"{{"lights":[{{"type":"point","position":[{},0.55,0.1],"intensity":[1,2,1]}}]}}"#,
-                0.15 * i as f32 - 0.15
-            )
+    for dir in [cornell(), cornell_two_sided()] {
+        for k in [3usize, 11] {
+            let bodies: Vec<String> = (0..k)
+                .map(|i| {
+                    format!(
+                        r#"{{"lights":[{{"type":"point","position":[{},0.55,0.1],"intensity":[1,2,1]}}]}}"#,
+                        0.05 * i as f32 - 0.3
+                    )
+                })
+                .collect();
+            let cpu = batch(dir, &bodies, &Backend::cpu("reference"), 1e-6);
+            let backend = gpu_backend();
+            let gpu = batch(dir, &bodies, &backend, 1e-6);
+            // The same batch again at the default tolerance, warm: one submission for each
+            // 8, whose relights share its counts; each reads back its own colours and its
+            // share of the history.
+            let again = batch(dir, &bodies, &backend, relight::solve_params().tolerance);
+            let nv = again[0].0.len() as u64;
+            for (r, (_, s)) in again.iter().enumerate() {
+                let d = s.device.unwrap();
+                assert_eq!(d.submissions, 1, "relight {r} of {k}: {s:?}");
+                assert!(s.warm, "relight {r} of {k}: {s:?}");
+                assert!(d.bytes_down <= 16 * nv + 4096, "{d:?} for {nv} vertices");
+            }
+            for (r, ((want, _), (got, s))) in cpu.iter().zip(&gpu).enumerate() {
+                let d = s
+                    .device
+                    .unwrap_or_else(|| panic!("relight {r} of {k}: {s:?}"));
+                assert_eq!(s.batch, k, "relight {r} of {k}: {s:?}");
+                assert!(d.submissions >= 1, "{s:?}");
+                let err = max_rel(got, want);
+                assert!(err <= 1e-4, "relight {r} of {k}: device vs CPU {err}");
+            }
+        }
+    }
+}
+
+/// Every relight of `bodies` as one batch on `backend`, to `tolerance`.
+fn batch(
+    dir: &Path,
+    bodies: &[String],
+    backend: &Backend,
+    tolerance: f32,
+) -> Vec<(Vec<Rgb>, RelightStats)> {
+    let scene = Scene::open_with("cornell", dir, &backend.resources()).unwrap();
+    let plans: Vec<_> = bodies
+        .iter()
+        .map(|b| {
+            let mut p = relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap();
+            p.tolerance = tolerance;
+            p
         })
         .collect();
-    let batch = |backend: &Backend| -> Vec<(Vec<Rgb>, RelightStats)> {
-        let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
-        let plans: Vec<_> = bodies
-            .iter()
-            .map(|b| {
-                let mut p = relight::plan(&scene, serde_json::from_str(b).unwrap()).unwrap();
-                p.tolerance = 1e-6;
-                p
-            })
-            .collect();
-        relight::run_batch(&scene, &plans)
-            .into_iter()
-            .map(|r| {
-                let r = r.unwrap();
-                (r.radiance, r.stats)
-            })
-            .collect()
-    };
-    let cpu = batch(&Backend::cpu("reference"));
-    let gpu = batch(&gpu_backend());
-    for (k, ((want, _), (got, s))) in cpu.iter().zip(&gpu).enumerate() {
-        assert!(s.device.is_some(), "relight {k}: {s:?}");
-        let err = max_rel(got, want);
-        assert!(err <= 1e-4, "relight {k}: device vs CPU {err}");
-    }
+    relight::run_batch(&scene, &plans)
+        .into_iter()
+        .map(|r| {
+            let r = r.unwrap();
+            assert!(r.stats.converged, "{:?}", r.stats);
+            (r.radiance, r.stats)
+        })
+        .collect()
 }
 
 /// A dragged light: after the first relight every one is a single submission that writes

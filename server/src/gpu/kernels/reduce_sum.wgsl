@@ -1,5 +1,6 @@
-// reduce_sum: history[counter] = Σ partial[0..count], then counter += 1 (one workgroup),
-// and the solve's stopping rule on the device.
+// reduce_sum: for each of kv systems q, history[counter · kv + q] = Σ partial[q · count ..
+// (q + 1) · count], then counter += 1 (one workgroup), and the solve's stopping rule on the
+// device (every system's residual met).
 //
 // Appends each iteration's squared residual to a history, so the solve needs no read-back
 // per iteration. Thread t sums entries t, t + WG, ..., then a tree. Slot 0 holds ‖b‖²; a
@@ -18,6 +19,11 @@ struct Params {
     n_args: u32,
     // The relative tolerance squared.
     tol2: f32,
+    // Systems (a batch).
+    kv: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -38,25 +44,30 @@ fn main(@builtin(local_invocation_index) li: u32) {
     if (workgroupUniformLoad(&stopped) != 0u) {
         return;
     }
-    var s = 0.0;
-    for (var k = li; k < p.count; k += WG) {
-        s += partial[k];
-    }
-    part[li] = s;
-    workgroupBarrier();
-    for (var h = WG / 2u; h > 0u; h = h / 2u) {
-        if (li < h) {
-            part[li] += part[li + h];
+    let slot = counter[0];
+    var met = true;
+    for (var q = 0u; q < p.kv; q++) {
+        var s = 0.0;
+        for (var k = li; k < p.count; k += WG) {
+            s += partial[q * p.count + k];
         }
+        part[li] = s;
+        workgroupBarrier();
+        for (var h = WG / 2u; h > 0u; h = h / 2u) {
+            if (li < h) {
+                part[li] += part[li + h];
+            }
+            workgroupBarrier();
+        }
+        if (li == 0u && slot < p.capacity) {
+            history[slot * p.kv + q] = part[0];
+        }
+        let h0 = history[q];
+        met = met && (h0 == 0.0 || part[0] <= p.tol2 * h0);
         workgroupBarrier();
     }
     if (li == 0u) {
-        let slot = counter[0];
-        if (slot < p.capacity) {
-            history[slot] = part[0];
-        }
         counter[0] = slot + 1u;
-        let met = history[0] == 0.0 || part[0] <= p.tol2 * history[0];
         if (p.n_args > 0u && slot >= 1u && met) {
             counter[1] = slot;
             for (var a = 0u; a < 3u * p.n_args; a++) {

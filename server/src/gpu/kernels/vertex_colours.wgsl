@@ -6,7 +6,8 @@
 //                              widened by `overshoot` on each side;
 //                              L = max(0, (c + ρ̄ E(v)) / π),   ρ̄ = own.xyz
 //
-// CPU twin: `cpu_twin::vertex_colours`.
+// A batch of kv relights lies vector after vector: relight r's B and E at r · n, its E(v)
+// and colours at r · nv; each has gpv workgroups. CPU twin: `cpu_twin::vertex_colours`.
 
 const WG: u32 = 256u;
 
@@ -15,6 +16,11 @@ struct Params {
     groups_x: u32,
     overshoot: f32,
     inv_pi: f32,
+    // Patches, relights in the batch, workgroups per relight.
+    n: u32,
+    kv: u32,
+    gpv: u32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -28,21 +34,28 @@ struct Params {
 @group(0) @binding(7) var<storage, read> ev: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out: array<f32>;
 
-fn x_at(k: u32) -> vec3<f32> {
-    return vec3<f32>(x[3u * k], x[3u * k + 1u], x[3u * k + 2u]);
+// B of patch k in the relight whose vectors start at patch `at`.
+fn x_at(at: u32, k: u32) -> vec3<f32> {
+    let o = 3u * (at + k);
+    return vec3<f32>(x[o], x[o + 1u], x[o + 2u]);
 }
 
-fn rho_e_at(k: u32) -> vec3<f32> {
+fn rho_e_at(at: u32, k: u32) -> vec3<f32> {
     let rho = vec3<f32>(albedo[3u * k], albedo[3u * k + 1u], albedo[3u * k + 2u]);
-    return rho * vec3<f32>(e[3u * k], e[3u * k + 1u], e[3u * k + 2u]);
+    let o = 3u * (at + k);
+    return rho * vec3<f32>(e[o], e[o + 1u], e[o + 2u]);
 }
 
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32) {
-    let q = (wid.x + wid.y * p.groups_x) * WG + li;
-    if (q >= p.nv) {
+    let g = wid.x + wid.y * p.groups_x;
+    let r = g / p.gpv;
+    let q = (g % p.gpv) * WG + li;
+    if (q >= p.nv || r >= p.kv) {
         return;
     }
+    let at = r * p.n;
+    let out_at = 3u * (r * p.nv + q);
     let a = offsets[q];
     let z = offsets[q + 1u];
     let o = own[q];
@@ -50,7 +63,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     if (o.w == 0.0) {
         for (var k = a; k < z; k++) {
             let en = entries[k];
-            value += bitcast<f32>(en.y) * x_at(en.x);
+            value += bitcast<f32>(en.y) * x_at(at, en.x);
         }
     } else {
         var sum = vec3<f32>(0.0);
@@ -58,14 +71,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         var hi = vec3<f32>(0.0);
         for (var k = a; k < z; k++) {
             let en = entries[k];
-            let r = x_at(en.x) - rho_e_at(en.x);
-            sum += bitcast<f32>(en.y) * r;
+            let t = x_at(at, en.x) - rho_e_at(at, en.x);
+            sum += bitcast<f32>(en.y) * t;
             if (k == a) {
-                lo = r;
-                hi = r;
+                lo = t;
+                hi = t;
             } else {
-                lo = min(lo, r);
-                hi = max(hi, r);
+                lo = min(lo, t);
+                hi = max(hi, t);
             }
         }
         var rest = vec3<f32>(0.0);
@@ -73,10 +86,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let slack = p.overshoot * (hi - lo);
             rest = clamp(sum, lo - slack, hi + slack);
         }
-        let e_v = vec3<f32>(ev[3u * q], ev[3u * q + 1u], ev[3u * q + 2u]);
+        let e_v = vec3<f32>(ev[out_at], ev[out_at + 1u], ev[out_at + 2u]);
         value = max((rest + o.xyz * e_v) * p.inv_pi, vec3<f32>(0.0));
     }
-    out[3u * q] = value.x;
-    out[3u * q + 1u] = value.y;
-    out[3u * q + 2u] = value.z;
+    out[out_at] = value.x;
+    out[out_at + 1u] = value.y;
+    out[out_at + 2u] = value.z;
 }
