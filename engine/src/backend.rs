@@ -41,6 +41,10 @@ pub struct SceneRef<'a> {
 pub struct DeviceRelight<'a> {
     pub lights: &'a [&'a [Light]],
     pub params: &'a SolveParams,
+    /// The direct light of diffuse objects is left to a picture per pixel
+    /// (`direct_at: pixel`): their opaque vertices leave it out, and each answer carries
+    /// the luminance of the whole answer for the exposure.
+    pub pixel: bool,
     /// The colour stage for the bundle's materials.
     pub rows: &'a std::sync::Arc<VertexRows>,
 }
@@ -51,6 +55,9 @@ pub struct DeviceRelight<'a> {
 #[derive(Debug, Clone)]
 pub struct DeviceAnswer {
     pub radiance: Vec<Rgb>,
+    /// With [`DeviceRelight::pixel`]: per vertex, the luminance of the whole answer (the
+    /// direct term included), from which the exposure is taken.
+    pub luminance: Option<Vec<f32>>,
     pub stats: SolveStats,
     /// Command submissions.
     pub submissions: u32,

@@ -766,10 +766,17 @@ pub const AUTO_EXPOSURE_TARGET: f64 = 0.8;
 /// its exposure of 0, and so does this. The answer is clamped to ±[`MAX_EXPOSURE`], the range
 /// renders and exports accept, which matters only for luminances under 2⁻⁶⁴.
 pub fn auto_exposure(vertex_radiance: &[[f32; 3]]) -> f32 {
-    let mut lum: Vec<f64> = vertex_radiance
-        .iter()
-        .map(|c| 0.2126 * f64::from(c[0]) + 0.7152 * f64::from(c[1]) + 0.0722 * f64::from(c[2]))
-        .collect();
+    exposure_of_luminance(vertex_radiance.iter().map(|&c| luminance(c)).collect())
+}
+
+/// The luminance [`auto_exposure`] reads of a radiance (Rec. 709 weights).
+pub fn luminance(c: [f32; 3]) -> f64 {
+    0.2126 * f64::from(c[0]) + 0.7152 * f64::from(c[1]) + 0.0722 * f64::from(c[2])
+}
+
+/// [`auto_exposure`] from the vertices' luminances ([`luminance`]; a backend that makes the
+/// colours where B is sends these back instead of a second set of colours).
+pub fn exposure_of_luminance(mut lum: Vec<f64>) -> f32 {
     if lum.is_empty() {
         return 0.0;
     }

@@ -463,10 +463,15 @@ impl Scene {
         self.vertex_rows.get_or_init(|| {
             let materials = crate::smatrix::materials_with(&self.bundle, &[]);
             let opaque = crate::vertexlight::opaque_objects(&materials, Components::Full);
+            let per_pixel: Vec<bool> = materials
+                .iter()
+                .map(|m| crate::vertexlight::per_pixel_direct(m).is_some())
+                .collect();
             Arc::new(crate::vertexrows::VertexRows::new(
                 &self.bundle,
                 self.vertex_samples(),
                 &opaque,
+                &per_pixel,
             ))
         })
     }

@@ -391,6 +391,16 @@ impl VertexSamples {
     }
 }
 
+/// The albedo a picture multiplies the per-pixel direct irradiance by for an object of
+/// `material` (`direct_at: pixel`): a diffuse object's ρ; `None` for the others, which keep
+/// their direct light at the vertices (a translucent object's is smoothed by S).
+pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
+    match material {
+        Material::Diffuse { albedo, .. } => Some(*albedo),
+        _ => None,
+    }
+}
+
 /// Which objects reflect the direct light as an opaque surface, B = … + ρ̄E, under
 /// `materials` (one per object, the request's overrides applied) and `components`: diffuse
 /// objects always; every object in the `direct` and `interreflection_only` components,

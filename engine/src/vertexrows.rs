@@ -11,6 +11,10 @@
 //!           (s = OVERSHOOT · (hi − lo)),  L(q) = max(0, (c + ρ̄_q E(q)) / π)
 //! ```
 //!
+//! With the direct light per pixel (`direct_at: pixel`) the opaque vertices of diffuse
+//! objects leave out ρ̄_q E(q) (mode 2), and the exposure is taken from the luminance of
+//! the whole answer.
+//!
 //! with E(q) the direct light at the vertex's sample point: the same numbers as
 //! [`crate::radiosity::vertex_radiance`] followed by [`crate::vertexlight::VertexMeans`]
 //! (which [`VertexRows::colours`] computes from the rows, and the tests hold to them).
@@ -28,7 +32,8 @@ pub struct VertexRows {
     pub patch: Vec<u32>,
     pub weight: Vec<f32>,
     /// Per vertex: ρ̄ (the area-weighted albedo of the patches it counts) in `[0..3]`, and
-    /// in `[3]` 1 for an opaque vertex (its own direct term), 0 for the plain mean.
+    /// in `[3]` 0 for the plain mean, 1 for an opaque vertex (its own direct term), 2 for
+    /// one of a diffuse object (whose direct term a picture adds per pixel).
     pub own: Vec<[f32; 4]>,
     /// Per patch: the albedo ρ the opaque rows subtract ρE with.
     pub albedo: Vec<Rgb>,
@@ -41,14 +46,27 @@ pub struct VertexRows {
 
 impl VertexRows {
     /// The rows for the bundle's materials, the vertices of objects with `opaque[o]` set
-    /// taking their own direct term ([`crate::vertexlight::opaque_objects`]).
-    pub fn new(b: &Bundle, samples: &VertexSamples, opaque: &[bool]) -> VertexRows {
+    /// taking their own direct term ([`crate::vertexlight::opaque_objects`]), those of
+    /// objects with `per_pixel[o]` set (diffuse ones) leaving it to a picture per pixel.
+    pub fn new(
+        b: &Bundle,
+        samples: &VertexSamples,
+        opaque: &[bool],
+        per_pixel: &[bool],
+    ) -> VertexRows {
         let v = b.vertex_positions().len();
         let albedo = b.patch_albedo().to_vec();
         let (rho, area) = counted_albedo(b, samples, &albedo, v);
-        let mut opaque_vertex = vec![false; v];
+        let mut mode = vec![0.0f32; v];
         for q in samples.opaque_vertices(b, opaque) {
-            opaque_vertex[q] = area[q] > 0.0;
+            if area[q] > 0.0 {
+                mode[q] = 1.0;
+            }
+        }
+        for q in samples.opaque_vertices(b, per_pixel) {
+            if mode[q] == 1.0 {
+                mode[q] = 2.0;
+            }
         }
         let means = mean_rows(b, v);
         let mut rows = VertexRows {
@@ -60,9 +78,9 @@ impl VertexRows {
             ..VertexRows::default()
         };
         for q in 0..v {
-            if opaque_vertex[q] {
+            if mode[q] > 0.0 {
                 let r: [f32; 3] = std::array::from_fn(|c| (rho[q][c] / area[q]) as f32);
-                rows.own.push([r[0], r[1], r[2], 1.0]);
+                rows.own.push([r[0], r[1], r[2], mode[q]]);
                 // The reconstruction's weights; the 1/π comes after the clamp.
                 rows.push(samples.rest.row(q));
             } else {
@@ -92,8 +110,9 @@ impl VertexRows {
     }
 
     /// The colours from B (`rad`) and E per patch and E at each vertex's sample point
-    /// (`at_vertex`, one per vertex): the module's formula, in f64 as the CPU path sums.
-    pub fn colours(&self, rad: &[Rgb], e: &[Rgb], at_vertex: &[Rgb]) -> Vec<Rgb> {
+    /// (`at_vertex`, one per vertex): the module's formula, in f64 as the CPU path sums;
+    /// with `pixel`, without the direct term of mode-2 vertices.
+    pub fn colours(&self, rad: &[Rgb], e: &[Rgb], at_vertex: &[Rgb], pixel: bool) -> Vec<Rgb> {
         let inv_pi = 1.0 / std::f64::consts::PI;
         (0..self.len())
             .map(|q| {
@@ -121,6 +140,7 @@ impl VertexRows {
                         hi[c] = hi[c].max(r);
                     }
                 }
+                let direct = if pixel && own[3] == 2.0 { 0.0 } else { 1.0 };
                 std::array::from_fn(|c| {
                     let rest = if lo[c] <= hi[c] {
                         let slack = self.overshoot as f64 * (hi[c] - lo[c]);
@@ -128,7 +148,8 @@ impl VertexRows {
                     } else {
                         0.0
                     };
-                    ((rest + own[c] as f64 * at_vertex[q][c] as f64) * inv_pi).max(0.0) as f32
+                    let ev = direct * own[c] as f64 * at_vertex[q][c] as f64;
+                    ((rest + ev) * inv_pi).max(0.0) as f32
                 })
             })
             .collect()

@@ -572,16 +572,17 @@ impl translux_engine::backend::Backend for Backend {
         let ctx = self.inner.gpu.as_ref()?;
         let g = self.scene(scene)?;
         let whole = g.whole(ctx, scene, job.rows)?;
-        match whole.relight(ctx, &g.base, job.lights, job.params) {
+        match whole.relight(ctx, &g.base, job.lights, job.params, job.pixel) {
             Ok(answers) => Some(
                 answers
                     .into_iter()
-                    .map(|(radiance, st)| DeviceAnswer {
-                        radiance,
-                        stats: st.stats,
-                        submissions: st.submissions,
-                        bytes_up: st.bytes_up,
-                        bytes_down: st.bytes_down,
+                    .map(|a| DeviceAnswer {
+                        radiance: a.radiance,
+                        luminance: a.luminance,
+                        stats: a.stats.stats,
+                        submissions: a.stats.submissions,
+                        bytes_up: a.stats.bytes_up,
+                        bytes_down: a.stats.bytes_down,
                     })
                     .collect(),
             ),

@@ -5,9 +5,9 @@
 //!
 //! A plan qualifies when it needs nothing the backend's relight leaves out: the bundle's
 //! materials (no translucency change), the `full` components, point, spot and directional
-//! lamps (no environment), the direct light at the vertices (`direct_at: vertex`), no
-//! lamp walks, no simulated objects (their collimated entry), and the iterative path (not
-//! the bundle's T). Every other plan, and every plan the backend declines, runs the stages.
+//! lamps (no environment), no lamp walks, no simulated objects (their collimated entry),
+//! and the iterative path (not the bundle's T); the direct light at the vertices or per
+//! pixel. Every other plan, and every plan the backend declines, runs the stages.
 
 use std::time::Instant;
 
@@ -22,8 +22,8 @@ use crate::radiosity::SolveParams;
 use crate::scene::Scene;
 
 /// The plans done whole by the scene's backend, one slot per plan: `None` where a plan does
-/// not qualify or the backend declined. Qualifying plans with the same tolerance go to the
-/// backend together, as one batch.
+/// not qualify or the backend declined. Qualifying plans with the same tolerance and the
+/// same `direct_at` go to the backend together, as one batch.
 pub(super) fn relight(
     scene: &Scene,
     plans: &[RelightPlan],
@@ -33,13 +33,13 @@ pub(super) fn relight(
     if scene.backend().name() == "cpu" {
         return out;
     }
-    let mut groups: Vec<(u32, Vec<usize>)> = Vec::new();
+    let mut groups: Vec<((u32, DirectAt), Vec<usize>)> = Vec::new();
     for (i, plan) in plans.iter().enumerate() {
         if let Err(why) = qualifies(scene, plan) {
             tracing::debug!(scene = %scene.id, "relight through the engine's stages: {why}");
             continue;
         }
-        let key = plan.tolerance.to_bits();
+        let key = (plan.tolerance.to_bits(), plan.direct_at);
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, g)) => g.push(i),
             None => groups.push((key, vec![i])),
@@ -69,6 +69,7 @@ fn batch(
     let job = DeviceRelight {
         lights: &lights,
         params: &params,
+        pixel: plans[group[0]].direct_at == DirectAt::Pixel,
         rows: scene.vertex_rows(),
     };
     let Some(answers) = scene.backend().relight(scene.view(), &job) else {
@@ -95,8 +96,6 @@ fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
         "a translucency or material change (S is made on the CPU)"
     } else if plan.components != Components::Full {
         "components other than full"
-    } else if plan.direct_at != DirectAt::Vertex {
-        "direct light per pixel"
     } else if plan.lamp_walks.is_some() {
         "lamp walks"
     } else if plan
@@ -150,7 +149,9 @@ fn output(
         warm: s.warm,
         batch,
         note: None,
-        auto_exposure: None,
+        auto_exposure: answer.luminance.map(|lum| {
+            crate::render::exposure_of_luminance(lum.into_iter().map(f64::from).collect())
+        }),
         device: Some(DeviceStats {
             submissions: answer.submissions,
             bytes_up: answer.bytes_up,

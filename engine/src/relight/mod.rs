@@ -277,15 +277,7 @@ pub fn run(scene: &Scene, plan: &RelightPlan) -> Result<RelightOutput, EngineErr
         .unwrap_or_else(|| Err(EngineError::internal("run_batch answered nothing")))
 }
 
-/// The albedo a picture multiplies the per-pixel direct irradiance by for an object of
-/// `material` ([`DirectAt::Pixel`]): a diffuse object's ρ; `None` for the others, which keep
-/// their direct light at the vertices (a translucent object's is smoothed by S).
-pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
-    match material {
-        Material::Diffuse { albedo, .. } => Some(*albedo),
-        _ => None,
-    }
-}
+pub use crate::vertexlight::per_pixel_direct;
 
 /// Runs several plans for one scene (the worker pool batches concurrent relights this way);
 /// answers one result per plan, in order. Each plan fails or succeeds on its own.

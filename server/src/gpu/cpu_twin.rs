@@ -236,14 +236,17 @@ pub fn reduce_stop(partial: &[f32], kv: usize, tol2: f32, state: &mut ReduceStat
 
 /// Twin of `vertex_colours.wgsl`: one vertex at a time, in f32, from `rows`
 /// ([`translux_engine::vertexrows::VertexRows`]), B (`x`) and E (`e`) per patch and E at
-/// each vertex's sample point (`ev`).
+/// each vertex's sample point (`ev`); with `pixel` the diffuse objects' vertices without
+/// their direct term. Answers the colours and the luminance of the whole answer.
 pub fn vertex_colours(
     rows: &translux_engine::vertexrows::VertexRows,
     x: &[Rgb],
     e: &[Rgb],
     ev: &[Rgb],
-) -> Vec<Rgb> {
+    pixel: bool,
+) -> (Vec<Rgb>, Vec<f32>) {
     let inv_pi = std::f32::consts::FRAC_1_PI;
+    let lum = |v: Rgb| v[0] * 0.2126 + v[1] * 0.7152 + v[2] * 0.0722;
     (0..rows.len())
         .map(|q| {
             let (a, z) = (rows.offsets[q] as usize, rows.offsets[q + 1] as usize);
@@ -256,7 +259,7 @@ pub fn vertex_colours(
                         value[c] += w * x[k as usize][c];
                     }
                 }
-                return value;
+                return (value, lum(value));
             }
             let (mut sum, mut lo, mut hi) = ([0.0f32; 3], [0.0f32; 3], [0.0f32; 3]);
             for (i, (&k, &w)) in entries.enumerate() {
@@ -271,17 +274,24 @@ pub fn vertex_colours(
                     };
                 }
             }
-            std::array::from_fn(|c| {
-                let rest = if z > a {
+            let rest: Rgb = std::array::from_fn(|c| {
+                if z > a {
                     let slack = rows.overshoot * (hi[c] - lo[c]);
                     sum[c].clamp(lo[c] - slack, hi[c] + slack)
                 } else {
                     0.0
-                };
-                ((rest + own[c] * ev[q][c]) * inv_pi).max(0.0)
-            })
+                }
+            });
+            let whole: Rgb =
+                std::array::from_fn(|c| ((rest[c] + own[c] * ev[q][c]) * inv_pi).max(0.0));
+            let value = if pixel && own[3] == 2.0 {
+                rest.map(|r| (r * inv_pi).max(0.0))
+            } else {
+                whole
+            };
+            (value, lum(whole))
         })
-        .collect()
+        .unzip()
 }
 
 /// Twin of `bvh_traverse.wgsl`'s `slab`: the ray's interval inside the box, clipped to

@@ -35,7 +35,7 @@ use translux_proto::light::Light;
 use super::direct::{DirectParams, DirectPass, GpuLight, GpuLights, GpuOccluder, SurfacePoints};
 use super::kernels::BATCH;
 use super::matrix::{BoundOp, alloc_size, staging, storage_init, storage_zeroed, uniform};
-use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes};
+use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes, Out};
 use super::{GpuContext, GpuError, grid};
 
 /// Most lights one relight may carry (the engine's `relight::MAX_LIGHTS`).
@@ -52,7 +52,8 @@ struct ColourParams {
     n: u32,
     kv: u32,
     gpv: u32,
-    _pad: u32,
+    /// 1: the diffuse objects' direct light is left to a picture, and luminance written.
+    pixel: u32,
 }
 
 /// The colour rows on the device (uploaded once, read by every lane).
@@ -94,11 +95,12 @@ impl ColourRows {
     }
 
     /// The `vertex_colours` dispatch for `kv` relights: B from `x`, E from `e`, E(v) from
-    /// `ev`, colours into `out` (each relight's vector after the last's).
+    /// `ev`, colours into `out` (each relight's vector after the last's; with `pixel` the
+    /// luminances after all the colours).
     fn bind(
         &self,
         ctx: &GpuContext,
-        kv: u32,
+        (kv, pixel): (u32, bool),
         (x, e, ev): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
         out: &wgpu::Buffer,
     ) -> BoundOp {
@@ -115,7 +117,7 @@ impl ColourRows {
                 n: self.n as u32,
                 kv,
                 gpv,
-                _pad: 0,
+                pixel: pixel as u32,
             },
         );
         let k = &ctx.kernels;
@@ -149,7 +151,9 @@ struct Lane {
     e_parts: Vec<wgpu::Buffer>,
     ev_parts: Vec<wgpu::Buffer>,
     ev: wgpu::Buffer,
-    colours: BoundOp,
+    /// The colours with the direct light at the vertices, and with it per pixel.
+    colours: [BoundOp; 2],
+    /// Each relight's colours, then (per pixel) each one's luminances.
     out: wgpu::Buffer,
     read: wgpu::Buffer,
     bytes: u64,
@@ -164,7 +168,7 @@ impl Lane {
             0
         };
         let lights = 2 * kv * alloc_size((MAX_LIGHTS * std::mem::size_of::<GpuLight>()) as u64);
-        parts + lights + 2 * alloc_size(12 * nv * kv) + alloc_size(head + 12 * nv * kv)
+        parts + lights + alloc_size(12 * nv * kv) + 2 * alloc_size(head + 16 * nv * kv)
     }
 
     /// Binds a lane over `lanes` (the system's vectors for as many relights).
@@ -207,17 +211,14 @@ impl Lane {
                     ctx, occ, &v.points, &v.normals, nv, ev_out, MAX_LIGHTS,
                 )?);
             }
-            let out = storage_zeroed(ctx, "colours", 12 * (nv * kv) as u64);
-            let colours = scene.rows.bind(
-                ctx,
-                kv as u32,
-                (lanes.x_buffer(), lanes.e_buffer(), &ev),
-                &out,
-            );
+            let out = storage_zeroed(ctx, "colours", 16 * (nv * kv) as u64);
+            let inputs = (lanes.x_buffer(), lanes.e_buffer(), &ev);
+            let colours =
+                [false, true].map(|pixel| scene.rows.bind(ctx, (kv as u32, pixel), inputs, &out));
             let read = staging(
                 ctx,
                 "relight-read",
-                lanes.counter_bytes(system) + 12 * (nv * kv) as u64,
+                lanes.counter_bytes(system) + 16 * (nv * kv) as u64,
             );
             Ok(Lane {
                 kv,
@@ -392,7 +393,8 @@ impl DeviceRelight {
         system: &GpuSystem,
         lights: &[&[Light]],
         params: &SolveParams,
-    ) -> Result<Vec<(Vec<Rgb>, GpuSolveStats)>, GpuError> {
+        pixel: bool,
+    ) -> Result<Vec<Answer>, GpuError> {
         if lights
             .iter()
             .any(|set| set.iter().any(|l| matches!(l, Light::Environment { .. })))
@@ -408,22 +410,16 @@ impl DeviceRelight {
         };
         let mut answers = Vec::with_capacity(lights.len());
         match batch {
-            Some((lane, lanes)) => {
+            Some(lane) => {
                 for chunk in lights.chunks(BATCH as usize) {
-                    answers.extend(self.run_lane(ctx, system, lane, lanes, chunk, params)?);
+                    answers.extend(self.run_lane(ctx, system, lane, chunk, params, pixel)?);
                 }
             }
             None => {
                 for set in lights {
                     let one = std::slice::from_ref(set);
-                    answers.extend(self.run_lane(
-                        ctx,
-                        system,
-                        &self.one,
-                        system.one(),
-                        one,
-                        params,
-                    )?);
+                    let lane = (&self.one, system.one());
+                    answers.extend(self.run_lane(ctx, system, lane, one, params, pixel)?);
                 }
             }
         }
@@ -452,11 +448,11 @@ impl DeviceRelight {
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
-        lane: &Lane,
-        lanes: &Lanes,
+        (lane, lanes): (&Lane, &Lanes),
         lights: &[&[Light]],
         params: &SolveParams,
-    ) -> Result<Vec<(Vec<Rgb>, GpuSolveStats)>, GpuError> {
+        pixel: bool,
+    ) -> Result<Vec<Answer>, GpuError> {
         let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         let mut lights_up = 0u64;
         for r in 0..lane.kv {
@@ -470,7 +466,14 @@ impl DeviceRelight {
         }
         let (n, nv) = (system.n(), self.nv);
         let before = |enc: &mut wgpu::CommandEncoder| lane.record_direct(enc, lanes, n, nv);
-        let after = |pass: &mut wgpu::ComputePass<'_>| lane.colours.encode(pass);
+        let after = |pass: &mut wgpu::ComputePass<'_>| lane.colours[pixel as usize].encode(pass);
+        // Only the lanes that carry a relight are read back: their colours, and per pixel
+        // their luminances.
+        let m = lights.len();
+        let mut ranges = vec![(&lane.out, 0, 12 * (nv * m) as u64)];
+        if pixel {
+            ranges.push((&lane.out, 12 * (nv * lane.kv) as u64, 4 * (nv * m) as u64));
+        }
         let job = Job {
             e: Input::OnDevice,
             be: Input::Copy(&self.emission),
@@ -481,38 +484,63 @@ impl DeviceRelight {
             },
             before: Some(&before),
             after: Some(&after),
-            // Only the lanes that carry a relight are read back.
-            out: Some((&lane.out, 12 * (nv * lights.len()) as u64, &lane.read)),
+            out: Some(Out {
+                ranges,
+                staging: &lane.read,
+            }),
         };
         let run = system.run(ctx, lanes, &job, params)?;
-        let m = lights.len().max(1) as u64;
-        Ok((0..lights.len())
+        let share = m.max(1) as u64;
+        let lum_at = 12 * nv * m;
+        Ok((0..m)
             .map(|r| {
+                let floats = |at: usize, count: usize| -> Vec<f32> {
+                    bytemuck::pod_collect_to_vec(&run.out[at..at + 4 * count])
+                };
                 let radiance: Vec<Rgb> = if run.dark[r] {
                     vec![[0.0; 3]; nv]
                 } else {
-                    let bytes = &run.out[12 * nv * r..12 * nv * (r + 1)];
-                    let v: Vec<f32> = bytemuck::pod_collect_to_vec(bytes);
+                    let v = floats(12 * nv * r, 3 * nv);
                     v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
                 };
+                let luminance = pixel.then(|| {
+                    if run.dark[r] {
+                        vec![0.0; nv]
+                    } else {
+                        floats(lum_at + 4 * nv * r, nv)
+                    }
+                });
                 let mut stats = run.stats[r];
-                stats.bytes_up = (stats.bytes_up + lights_up).div_ceil(m);
-                stats.bytes_down = stats.bytes_down.div_ceil(m);
-                (radiance, stats)
+                stats.bytes_up = (stats.bytes_up + lights_up).div_ceil(share);
+                stats.bytes_down = stats.bytes_down.div_ceil(share);
+                Answer {
+                    radiance,
+                    luminance,
+                    stats,
+                }
             })
             .collect())
     }
 }
 
+/// One whole relight's answer: B/π per vertex, with the direct light per pixel the
+/// luminance of the whole answer per vertex, and the solve's stats.
+#[derive(Debug, Clone)]
+pub struct Answer {
+    pub radiance: Vec<Rgb>,
+    pub luminance: Option<Vec<f32>>,
+    pub stats: GpuSolveStats,
+}
+
 /// One `vertex_colours` dispatch on uploaded inputs: B (`x`) and E (`e`) per patch, E at
-/// each vertex (`ev`); what the tests hold to [`super::cpu_twin::vertex_colours`].
+/// each vertex (`ev`), the direct light per pixel or not: the colours, and with `pixel` the
+/// luminances (what the tests hold to [`super::cpu_twin::vertex_colours`]).
 pub fn vertex_colours_once(
     ctx: &GpuContext,
     rows: &VertexRows,
-    x: &[Rgb],
-    e: &[Rgb],
-    ev: &[Rgb],
-) -> Result<Vec<Rgb>, GpuError> {
+    (x, e, ev): (&[Rgb], &[Rgb], &[Rgb]),
+    pixel: bool,
+) -> Result<(Vec<Rgb>, Vec<f32>), GpuError> {
     let (n, nv) = (rows.albedo.len(), rows.len());
     if x.len() != n || e.len() != n || ev.len() != nv {
         return Err(GpuError::Invalid(format!(
@@ -527,20 +555,27 @@ pub fn vertex_colours_once(
         let xb = storage_init(ctx, "x", bytemuck::cast_slice(x));
         let eb = storage_init(ctx, "e", bytemuck::cast_slice(e));
         let evb = storage_init(ctx, "ev", bytemuck::cast_slice(ev));
-        let out = storage_zeroed(ctx, "colours", 12 * nv as u64);
-        let op = dev_rows.bind(ctx, 1, (&xb, &eb, &evb), &out);
-        let read = staging(ctx, "colours-read", 12 * nv as u64);
+        let bytes = alloc_size(16 * nv as u64);
+        let out = storage_zeroed(ctx, "colours", bytes);
+        let op = dev_rows.bind(ctx, (1, pixel), (&xb, &eb, &evb), &out);
+        let read = staging(ctx, "colours-read", bytes);
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
             op.encode(&mut pass);
         }
-        enc.copy_buffer_to_buffer(&out, 0, &read, 0, alloc_size(12 * nv as u64));
+        enc.copy_buffer_to_buffer(&out, 0, &read, 0, bytes);
         ctx.queue.submit([enc.finish()]);
-        let v: Vec<f32> = ctx.read_back_as(&read, alloc_size(12 * nv as u64))?;
-        Ok(v[..3 * nv]
+        let v: Vec<f32> = ctx.read_back_as(&read, bytes)?;
+        let colours = v[..3 * nv]
             .chunks_exact(3)
             .map(|c| [c[0], c[1], c[2]])
-            .collect())
+            .collect();
+        let lum = if pixel {
+            v[3 * nv..4 * nv].to_vec()
+        } else {
+            Vec::new()
+        };
+        Ok((colours, lum))
     })
 }

@@ -126,9 +126,16 @@ pub(crate) struct Job<'a> {
     pub(crate) before: Option<EncoderStage<'a>>,
     /// Records work after the solve (vertex colours from x).
     pub(crate) after: Option<Stage<'a>>,
-    /// What is read back after the counters: `(buffer, bytes, staging)`, the staging
-    /// buffer holding [`GpuSystem::counter_bytes`] before it; `None`: x.
-    pub(crate) out: Option<(&'a wgpu::Buffer, u64, &'a wgpu::Buffer)>,
+    /// What is read back after the counters; `None`: x.
+    pub(crate) out: Option<Out<'a>>,
+}
+
+/// A job's answer as read back: ranges of device buffers, one after another in `staging`
+/// after the counter and the history ([`Lanes::counter_bytes`] of room).
+pub(crate) struct Out<'a> {
+    /// `(buffer, offset, bytes)`.
+    pub(crate) ranges: Vec<(&'a wgpu::Buffer, u64, u64)>,
+    pub(crate) staging: &'a wgpu::Buffer,
 }
 
 /// What a device solve did, and what crossed the bus for it.
@@ -762,7 +769,7 @@ impl GpuSystem {
                     lanes.record_iterations(&mut enc, self.n, job, done, count);
                 ctx.queue.submit([enc.finish()]);
                 submissions += 1;
-                let staging = job.out.map_or(&lanes.v.read, |o| o.2);
+                let staging = job.out.as_ref().map_or(&lanes.v.read, |o| o.staging);
                 let head = counter_bytes(slots, lanes.kv);
                 let bytes = ctx.read_back(staging, head + out_bytes)?;
                 bytes_down += head + out_bytes;
@@ -926,12 +933,20 @@ impl Lanes {
         }
         let slots = done + count + 1;
         let x_bytes = 12 * (n as u64) * self.kv as u64;
-        let (out, out_bytes, staging) = job.out.unwrap_or((&self.v.x, x_bytes, &self.v.read));
+        let x_range = [(&self.v.x, 0, x_bytes)];
+        let (ranges, staging) = match &job.out {
+            Some(o) => (o.ranges.as_slice(), o.staging),
+            None => (x_range.as_slice(), &self.v.read),
+        };
         let head = counter_bytes(slots, self.kv);
         enc.copy_buffer_to_buffer(&self.v.counter, 0, staging, 0, 16);
         enc.copy_buffer_to_buffer(&self.v.history, 0, staging, 16, head - 16);
-        enc.copy_buffer_to_buffer(out, 0, staging, head, out_bytes);
-        (slots, out_bytes)
+        let mut at = head;
+        for &(buffer, offset, bytes) in ranges {
+            enc.copy_buffer_to_buffer(buffer, offset, staging, at, bytes);
+            at += bytes;
+        }
+        (slots, at - head)
     }
 
     /// Each system's stats from the history, remembering the iterations for the next solve.

@@ -5,6 +5,8 @@
 //   opaque vertex (own.w = 1): c = Σ_k w_k (B_k − ρ_k E_k), clamped to its terms' spread
 //                              widened by `overshoot` on each side;
 //                              L = max(0, (c + ρ̄ E(v)) / π),   ρ̄ = own.xyz
+//   a diffuse object's (own.w = 2): the same, without ρ̄ E(v) when `pixel` is set; the
+//                              luminance of the whole L is written beside the colours
 //
 // A batch of kv relights lies vector after vector: relight r's B and E at r · n, its E(v)
 // and colours at r · nv; each has gpv workgroups. CPU twin: `cpu_twin::vertex_colours`.
@@ -20,7 +22,9 @@ struct Params {
     n: u32,
     kv: u32,
     gpv: u32,
-    _pad: u32,
+    // 1: the direct light of diffuse objects is added per pixel (own.w = 2 leaves it out),
+    // and the luminance of the whole answer follows the colours (at 3 · nv · kv).
+    pixel: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -60,11 +64,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let z = offsets[q + 1u];
     let o = own[q];
     var value = vec3<f32>(0.0);
+    var whole = vec3<f32>(0.0);
     if (o.w == 0.0) {
         for (var k = a; k < z; k++) {
             let en = entries[k];
             value += bitcast<f32>(en.y) * x_at(at, en.x);
         }
+        whole = value;
     } else {
         var sum = vec3<f32>(0.0);
         var lo = vec3<f32>(0.0);
@@ -87,7 +93,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             rest = clamp(sum, lo - slack, hi + slack);
         }
         let e_v = vec3<f32>(ev[out_at], ev[out_at + 1u], ev[out_at + 2u]);
-        value = max((rest + o.xyz * e_v) * p.inv_pi, vec3<f32>(0.0));
+        whole = max((rest + o.xyz * e_v) * p.inv_pi, vec3<f32>(0.0));
+        value = whole;
+        if (p.pixel == 1u && o.w == 2.0) {
+            value = max(rest * p.inv_pi, vec3<f32>(0.0));
+        }
+    }
+    if (p.pixel == 1u) {
+        out[3u * p.nv * p.kv + r * p.nv + q] = dot(whole, vec3<f32>(0.2126, 0.7152, 0.0722));
     }
     out[out_at] = value.x;
     out[out_at + 1u] = value.y;
