@@ -6,24 +6,37 @@
 # table — per-shard times, the merge's cost and share, and F's wall time with two shards
 # against one single-threaded task — and appends it, with the date and machine, to
 # bench/results/shards-DATE.md. It also checks that each merged bundle's arrays are the
-# one-box bundle's bytes. Not a test: nothing here asserts a time.
+# one-box bundle's bytes. Not a test: nothing here asserts a time. `--scene SCENE` takes
+# another scene (e.g. builtin:bowls, where the shards' subsurface cuts count too); BIN=PATH
+# times that translux-precompute binary instead of building one (an older build, say).
 #
-#   bash bench/shards.sh [PATCHES] [--profile PROFILE]    (default: 50000, release)
+#   bash bench/shards.sh [PATCHES] [--profile PROFILE] [--scene SCENE]
+#                                                          (default: 50000, release)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 patches=50000
 profile=release
+scene=
 while [ $# -gt 0 ]; do
   case "$1" in
     --profile) profile="$2"; shift 2 ;;
+    --scene) scene="$2"; shift 2 ;;
     *) patches="$1"; shift ;;
   esac
 done
-cargo build -q --profile "$profile" -p translux-precompute
-dir=$([ "$profile" = dev ] || [ "$profile" = test ] && echo debug || echo "$profile")
-bin="target/$dir/translux-precompute"
+if [ -n "${BIN:-}" ]; then
+  bin="$BIN"
+else
+  cargo build -q --profile "$profile" -p translux-precompute
+  dir=$([ "$profile" = dev ] || [ "$profile" = test ] && echo debug || echo "$profile")
+  bin="target/$dir/translux-precompute"
+fi
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
+described="a diffuse Cornell box of separate quads and boxes (bench/shards.sh)"
+if [ -n "$scene" ]; then
+  described="$scene"
+else
 scene="$work/cornell-diffuse.json"
 cat > "$scene" <<'JSON'
 {"unit_mm": 100,
@@ -51,6 +64,7 @@ cat > "$scene" <<'JSON'
  ],
  "lights": [{"type": "point", "position": [0, 5.3, 0], "intensity": [40, 40, 40]}]}
 JSON
+fi
 
 now() { date +%s.%N; }
 secs() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.1f", b - a }'; }
@@ -90,7 +104,11 @@ for k in 2 4; do
     line=$(grep 'stage times' "$work/shard-$k-$j.txt")
     f=$(printf '%s' "$line" | sed -E 's/.*form factors ([0-9.]+) s.*/\1/')
     e=$(printf '%s' "$line" | sed -E 's/.*environment ([0-9.]+) s.*/\1/')
-    shard_times+=("$(awk -v f="$f" -v e="$e" 'BEGIN { printf "%.1f", f + e }')")
+    c=0
+    if printf '%s' "$line" | grep -q 'subsurface cuts'; then
+      c=$(printf '%s' "$line" | sed -E 's/.*subsurface cuts ([0-9.]+) s.*/\1/')
+    fi
+    shard_times+=("$(awk -v f="$f" -v e="$e" -v c="$c" 'BEGIN { printf "%.1f", f + e + c }')")
   done
   t0=$(now)
   merged=$("$bin" "$scene" --out "$out" --patches "$patches" -q --merge "$k")
@@ -112,12 +130,12 @@ done
 patch_count=$(printf '%s\n' "$one" | grep -m1 '^  patches ' | awk '{print $2}')
 cpu=$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//')
 table=$(
-  echo "a diffuse Cornell box of separate quads and boxes (bench/shards.sh), $patch_count patches, $(nproc) cores ($cpu), profile $profile, $(date -u +%F)"
+  echo "$described, $patch_count patches, $(nproc) cores ($cpu), profile $profile, $(date -u +%F)"
   echo
   echo "One box, every core: $one_wall s wall (form factors $one_f s, environment $one_env s)."
   echo "One task, one thread: form factors $single_f s, environment $single_env s."
   echo
-  echo "| K | each shard: F + environment (s) | shards, two at a time, wall (s) | merge wall (s) | merge share | total (s) | arrays = one box |"
+  echo "| K | each shard: F + environment + S cuts (s) | shards, two at a time, wall (s) | merge wall (s) | merge share | total (s) | arrays = one box |"
   echo "|---|---|---|---|---|---|---|"
   printf '%s\n' "${rows[@]}"
 )

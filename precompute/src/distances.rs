@@ -293,15 +293,7 @@ pub fn scene_distances(
             && matches!(o.material, Material::Translucent { .. })
             && on_demand.get(k).copied().unwrap_or(false)
         {
-            let (oracle, warning) = match voxel::Oracle::new(o.name, tris, cen, nor, radius, voxels)
-            {
-                Ok(oracle) => (oracle, None),
-                Err(VoxelError::NoInterior { .. }) => (
-                    voxel::Oracle::straight(cen, radius),
-                    Some(no_interior(o.name)),
-                ),
-                Err(e) => return Err(e.into()),
-            };
+            let (oracle, warning) = oracle_of(o.name, tris, cen, nor, radius, voxels)?;
             let stats = oracle.stats();
             reports.push(DistanceReport {
                 name: o.name.to_string(),
@@ -440,6 +432,69 @@ pub fn scene_distances(
         reports,
         on_demand: oracles,
     })
+}
+
+/// The distances on demand of one object ([`voxel::Oracle`]): traced through its voxel
+/// grid, or straight lines (with a warning) when it has no interior.
+fn oracle_of(
+    name: &str,
+    tris: &[[Vec3; 3]],
+    cen: &[Vec3],
+    nor: &[Vec3],
+    radius: f32,
+    voxels: &VoxelParams,
+) -> Result<(voxel::Oracle, Option<String>), DistanceError> {
+    match voxel::Oracle::new(name, tris, cen, nor, radius, voxels) {
+        Ok(oracle) => Ok((oracle, None)),
+        Err(VoxelError::NoInterior { .. }) => Ok((
+            voxel::Oracle::straight(cen, radius),
+            Some(no_interior(name)),
+        )),
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// Only the distances on demand of [`scene_distances`] (a shard's share of a hierarchical
+/// S needs nothing else): per object, the oracle `scene_distances` would give it, and how
+/// far each object's distances reach (0 where it stores none).
+#[allow(clippy::too_many_arguments)]
+pub fn on_demand_oracles(
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    triangles: &[&[[Vec3; 3]]],
+    media: &SceneMedia,
+    unit_mm: f64,
+    params: &SParams,
+    voxels: &VoxelParams,
+    on_demand: &[bool],
+) -> Result<(Vec<Option<voxel::Oracle>>, Vec<f32>), DistanceError> {
+    let mut oracles = Vec::with_capacity(objects.len());
+    let mut reach = Vec::with_capacity(objects.len());
+    for (k, (o, tris)) in objects.iter().zip(triangles).enumerate() {
+        let radius = match o.material {
+            Material::ThinSheet { .. } => None,
+            _ => stored_radius(o, unit_mm, params)?,
+        };
+        reach.push(radius.unwrap_or(0.0));
+        let Some(radius) = radius else {
+            oracles.push(None);
+            continue;
+        };
+        let r = o.patches.clone();
+        let local_media = media.patch_material.get(r.clone()).unwrap_or(&[]);
+        let frame = media.frames.get(k).copied().unwrap_or_default();
+        let homogeneous = hetero::medium_field(o.material, frame, local_media).is_none();
+        if !(homogeneous
+            && matches!(o.material, Material::Translucent { .. })
+            && on_demand.get(k).copied().unwrap_or(false))
+        {
+            oracles.push(None);
+            continue;
+        }
+        let (cen, nor) = (&g.centroid[r.clone()], &g.normal[r]);
+        oracles.push(Some(oracle_of(o.name, tris, cen, nor, radius, voxels)?.0));
+    }
+    Ok((oracles, reach))
 }
 
 /// The warning for an object without interior, whose distances fall back to straight lines.

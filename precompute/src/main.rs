@@ -51,7 +51,8 @@ struct Cli {
     #[arg(long, short)]
     quiet: bool,
     /// Compute only shard I of K (0-based: 0/4 to 3/4) of the receiver rows — the form
-    /// factors and the environment visibility — into `OUT.parts/part-I-of-K/`, for a job
+    /// factors, the environment visibility and, with a hierarchical S, the cuts of its share
+    /// of the translucent receivers — into `OUT.parts/part-I-of-K/`, for a job
     /// array on a scheduler. A shard already finished for the same scene and settings is
     /// not computed again; a killed one leaves no part. Hierarchical transport only. For an
     /// animated scene, the I-th share of the frames (consecutive blocks of 8) instead, each
@@ -59,7 +60,8 @@ struct Cli {
     #[arg(long, value_name = "I/K", conflicts_with_all = ["merge", "resimulate"])]
     shard: Option<Shard>,
     /// Put the K parts in `OUT.parts/` together — each checked: none missing, from another
-    /// split, scene or settings, or damaged — run the remaining stages (subsurface, T) and
+    /// split, scene or settings, or damaged — run the remaining stages (the rest of
+    /// subsurface, T) and
     /// write the bundle, the same arrays as one run without shards; the parts are removed
     /// after. Give the scene and the same settings as the shards. For an animated scene:
     /// check that every frame is there and made from the current inputs (refusing, with the
@@ -256,8 +258,8 @@ fn print_part(
     );
     println!("  part               {}", human_bytes(r.bytes));
     println!(
-        "  stage times        form factors {:.2} s, environment {:.2} s",
-        r.form_factor_seconds, r.environment_seconds
+        "  stage times        form factors {:.2} s, environment {:.2} s, subsurface cuts {:.2} s",
+        r.form_factor_seconds, r.environment_seconds, r.subsurface_seconds
     );
     Ok(())
 }

@@ -34,6 +34,7 @@ use crate::patch::{self, Density, Patches};
 use crate::scene::LoadedScene;
 use crate::shard::{PartReport, Shard, ShardRows, Split};
 use crate::simulate::SceneWalks;
+use crate::slinks::ReceiverCuts;
 use crate::voxel::VoxelParams;
 use translux_engine::hetero::MediaLen;
 use translux_engine::inverse::Transfer;
@@ -538,12 +539,18 @@ fn run(
         Split::Whole => transport_rows(patches, &occ, params, &mut stages.times)?,
         Split::Shard(shard) => {
             let tree = hierarchy::ClusterTree::build(patches);
-            let plan = plan_of(patches, &occluder_tris, &tree, params);
-            return shard_rows(patches, &occ, params, out, (shard, plan, &tree)).map(Outcome::Part);
+            let plan = plan_of(scene, patches, &occluder_tris, &tree, params);
+            let subsurface = SubsurfaceInputs {
+                patched: &patched,
+                materials: &materials,
+                paths: &budget.paths,
+            };
+            return shard_rows(scene, &subsurface, &occ, params, out, (shard, plan, &tree))
+                .map(Outcome::Part);
         }
         Split::Merge(count) => {
             let tree = hierarchy::ClusterTree::build(patches);
-            let plan = plan_of(patches, &occluder_tris, &tree, params);
+            let plan = plan_of(scene, patches, &occluder_tris, &tree, params);
             merged_rows(
                 scene,
                 patches,
@@ -556,7 +563,8 @@ fn run(
     };
 
     let tree = rows.tree.as_ref().map(|(t, _, _)| t);
-    let subsurface = stages.subsurface(&patched, &materials, &budget, tree)?;
+    let subsurface =
+        stages.subsurface(&patched, &materials, &budget, (tree, rows.cuts.as_ref()))?;
     let transfer = stages.transfer(&patched, &occ, &rows, &subsurface.smat, budget.limit)?;
     let made = Made {
         patched,
@@ -932,21 +940,14 @@ impl<'a> Stages<'a> {
         patched: &Patched<'_>,
         materials: &[ObjectMaterial<'_>],
         budget: &Budget,
-        tree: Option<&hierarchy::ClusterTree>,
+        (tree, precut): (Option<&hierarchy::ClusterTree>, Option<&ReceiverCuts>),
     ) -> Result<SubsurfaceOut, PrecomputeError> {
         let (scene, params) = (self.scene, self.params);
         let t = Instant::now();
         stage_start(params, "subsurface")?;
         let bar = stage_bar(params.progress, 2, "subsurface");
         let patches = &patched.patches;
-        let mut geometry = smatrix::PatchGeometry {
-            corners: patches.corners.clone(),
-            centroid: patches.centroid.clone(),
-            normal: patches.normal.clone(),
-            area: patches.area.clone(),
-            size: patches.size.clone(),
-            nodes: None,
-        };
+        let mut geometry = patch_geometry(patches);
         let media = scene_media(scene, patches, patched.h);
         let steps = SubsurfaceSteps {
             params,
@@ -962,7 +963,7 @@ impl<'a> Stages<'a> {
         bar.inc(1);
         budget.check_stored(found.dist.col.len() as u64)?;
         let stored = stored_radii(materials, &found.reports);
-        let linked = steps.links(&mut geometry, &stored, found, &link_bounds)?;
+        let linked = steps.links(&mut geometry, &stored, found, (&link_bounds, precut))?;
         let (mut smat, s_reports) =
             steps.assemble(&geometry, &linked, &media.patch_material, &stored, &walks)?;
         let textured = textured_albedos(scene, patched);
@@ -1286,7 +1287,7 @@ impl SubsurfaceSteps<'_> {
         geometry: &mut smatrix::PatchGeometry,
         stored: &[f32],
         found: distances::SceneDistances,
-        link_bounds: &[Vec<LinkBound>],
+        (link_bounds, precut): (&[Vec<LinkBound>], Option<&ReceiverCuts>),
     ) -> Result<Linked, PrecomputeError> {
         let distances::SceneDistances {
             dist,
@@ -1311,6 +1312,7 @@ impl SubsurfaceSteps<'_> {
         let (dist, dist_len, dist_kind, dist_spread, links) =
             match (&self.params.subsurface_links, self.tree) {
                 (Some(sl), Some(t)) => {
+                    check_cuts(t, materials, &oracles, precut)?;
                     let c = crate::slinks::collapse(
                         t,
                         geometry,
@@ -1322,6 +1324,7 @@ impl SubsurfaceSteps<'_> {
                         &oracles,
                         sl,
                         link_bounds,
+                        precut,
                     )?;
                     if c.links > 0 {
                         geometry.nodes = Some(c.nodes);
@@ -1471,6 +1474,42 @@ impl SubsurfaceSteps<'_> {
             objects,
         }
     }
+}
+
+/// The per-patch geometry S reads, copied from the patches (no tree nodes yet).
+fn patch_geometry(patches: &Patches) -> smatrix::PatchGeometry {
+    smatrix::PatchGeometry {
+        corners: patches.corners.clone(),
+        centroid: patches.centroid.clone(),
+        normal: patches.normal.clone(),
+        area: patches.area.clone(),
+        size: patches.size.clone(),
+        nodes: None,
+    }
+}
+
+/// The shards' cuts (a merge's) cover exactly the receivers this run traces on demand.
+fn check_cuts(
+    tree: &hierarchy::ClusterTree,
+    materials: &[ObjectMaterial<'_>],
+    oracles: &[Option<crate::voxel::Oracle>],
+    precut: Option<&ReceiverCuts>,
+) -> Result<(), PrecomputeError> {
+    let Some(pc) = precut else {
+        return Ok(());
+    };
+    let want: usize = crate::slinks::on_demand_receivers(tree, materials, oracles)
+        .iter()
+        .map(|(_, r)| r.len())
+        .sum();
+    if pc.receivers() != want {
+        return Err(PrecomputeError::Shard(format!(
+            "the parts hold the subsurface cuts of {} receivers; this scene traces {want} on \
+             demand (parts made by another version of translux-precompute?)",
+            pc.receivers()
+        )));
+    }
+    Ok(())
 }
 
 /// How far each object's stored distances reach (stage 1's radius; 0 where it has none).
@@ -1754,6 +1793,8 @@ struct TransportRows {
     tree: Option<(hierarchy::ClusterTree, Vec<[u32; 2]>, HierarchyInfo)>,
     environment: Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)>,
     ff_seconds: f64,
+    /// A merge's: the shards' subsurface cuts, put together.
+    cuts: Option<ReceiverCuts>,
 }
 
 /// The F and environment stages over every receiver (one box).
@@ -1814,6 +1855,7 @@ fn transport_rows(
         tree,
         environment,
         ff_seconds,
+        cuts: None,
     })
 }
 
@@ -1858,17 +1900,26 @@ fn environment_rows(
 }
 
 /// The fingerprint of what the receiver rows depend on ([`crate::shard::plan_hash`]): the
-/// bundle format, the patches, the source triangles, the tree and the F and environment
-/// settings.
+/// bundle format, the patches, the source triangles, the tree, the F, environment and
+/// subsurface settings and the materials.
 fn plan_of(
+    scene: &LoadedScene,
     patches: &Patches,
     occluder_tris: &[[Vec3; 3]],
     tree: &hierarchy::ClusterTree,
     params: &PrecomputeParams,
 ) -> u64 {
+    let materials: Vec<_> = scene.objects.iter().map(|o| &o.material).collect();
     let settings = format!(
-        "{:?}|{:?}|{:?}",
-        params.form_factors, params.transport, params.environment
+        "{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{}",
+        params.form_factors,
+        params.transport,
+        params.environment,
+        params.subsurface,
+        params.subsurface_links,
+        params.voxels,
+        materials,
+        scene.file.unit_mm
     );
     crate::shard::plan_hash(&[
         &FORMAT_VERSION.to_le_bytes(),
@@ -1880,15 +1931,27 @@ fn plan_of(
     ])
 }
 
-/// One shard's rows into its part folder, or nothing when it is already there, finished,
-/// for the same plan.
+/// What a shard's share of the subsurface stage reads: the patches, each object's material
+/// and the paths estimated before F ([`Budget::paths`]).
+#[derive(Clone, Copy)]
+struct SubsurfaceInputs<'a, 'b> {
+    patched: &'a Patched<'b>,
+    materials: &'a [ObjectMaterial<'b>],
+    paths: &'a [(String, u64, f32)],
+}
+
+/// One shard's rows (F, environment visibility and the subsurface cuts of its share of
+/// the receivers traced on demand) into its part folder, or nothing when it is already
+/// there, finished, for the same plan.
 fn shard_rows(
-    patches: &Patches,
+    scene: &LoadedScene,
+    inputs: &SubsurfaceInputs<'_, '_>,
     occ: &Occluder,
     params: &PrecomputeParams,
     out: &Path,
     (shard, plan, tree): (Shard, u64, &hierarchy::ClusterTree),
 ) -> Result<PartReport, PrecomputeError> {
+    let patches = &inputs.patched.patches;
     let rows = shard.rows(patches.len());
     if crate::shard::finished(out, shard, plan).map_err(PrecomputeError::Shard)? {
         return Ok(PartReport {
@@ -1900,6 +1963,7 @@ fn shard_rows(
             entries: 0,
             form_factor_seconds: 0.0,
             environment_seconds: 0.0,
+            subsurface_seconds: 0.0,
         });
     }
     let FormFactorMethod::Hierarchical(hp) = &params.transport else {
@@ -1928,13 +1992,75 @@ fn shard_rows(
     finish(bar, params.progress, "form factors", t, &mut stages);
     let t = Instant::now();
     let environment = environment_rows(patches, occ, params, rows, &mut stages)?;
+    let environment_seconds = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let cuts = shard_cuts(scene, inputs, params, (shard, tree))?;
     let part = ShardRows {
         block,
         environment,
+        cuts,
         form_factor_seconds,
-        environment_seconds: t.elapsed().as_secs_f64(),
+        environment_seconds,
+        subsurface_seconds: t.elapsed().as_secs_f64(),
     };
     crate::shard::write_part(out, shard, plan, &part).map_err(PrecomputeError::Shard)
+}
+
+/// A shard's share of a hierarchical S: of the receivers of the objects whose distances are
+/// traced on demand ([`crate::slinks::on_demand_receivers`], one after the other), the
+/// shard's equal share, cut and traced ([`crate::slinks::shard_cuts`]). The same steps the
+/// subsurface stage takes up to its cut: which objects are traced on demand, their link
+/// bounds and their oracles. Nothing without a hierarchical S.
+fn shard_cuts(
+    scene: &LoadedScene,
+    inputs: &SubsurfaceInputs<'_, '_>,
+    params: &PrecomputeParams,
+    (shard, tree): (Shard, &hierarchy::ClusterTree),
+) -> Result<ReceiverCuts, PrecomputeError> {
+    let Some(sl) = &params.subsurface_links else {
+        return Ok(ReceiverCuts::default());
+    };
+    stage_start(params, "subsurface")?;
+    let SubsurfaceInputs {
+        patched,
+        materials,
+        paths,
+    } = *inputs;
+    let patches = &patched.patches;
+    let geometry = patch_geometry(patches);
+    let media = scene_media(scene, patches, patched.h);
+    let steps = SubsurfaceSteps {
+        params,
+        materials,
+        unit_mm: scene.file.unit_mm,
+        tree: Some(tree),
+        paths,
+    };
+    let (on_demand, link_bounds) = steps.on_demand(&geometry)?;
+    let (oracles, reach) = distances::on_demand_oracles(
+        &geometry,
+        materials,
+        &patched.sources,
+        &media,
+        scene.file.unit_mm,
+        &params.subsurface,
+        &params.voxels,
+        &on_demand,
+    )?;
+    let total: usize = crate::slinks::on_demand_receivers(tree, materials, &oracles)
+        .iter()
+        .map(|(_, r)| r.len())
+        .sum();
+    Ok(crate::slinks::shard_cuts(
+        tree,
+        &geometry,
+        materials,
+        &reach,
+        &oracles,
+        sl,
+        &link_bounds,
+        shard.rows(total),
+    ))
 }
 
 /// The rows of the `count` parts, checked against this run's plan and put together; their
@@ -1963,6 +2089,8 @@ fn merged_rows(
         .map_err(PrecomputeError::Shard)?;
     let ff_seconds: f64 = parts.iter().map(|p| p.form_factor_seconds).sum();
     let env_seconds: f64 = parts.iter().map(|p| p.environment_seconds).sum();
+    let s_seconds: f64 = parts.iter().map(|p| p.subsurface_seconds).sum();
+    let mut cuts = ReceiverCuts::default();
     let mut environment: Option<(Vec<u16>, translux_proto::bundle::EnvironmentInfo)> = None;
     let mut blocks = Vec::with_capacity(parts.len());
     for p in parts {
@@ -1976,6 +2104,7 @@ fn merged_rows(
                 }
             }
         }
+        cuts.append(p.cuts);
         blocks.push(p.block);
     }
     let h = hierarchy::assemble(tree, hp, blocks);
@@ -1988,6 +2117,12 @@ fn merged_rows(
         stage: "environment (shards)".into(),
         seconds: env_seconds,
     });
+    if params.subsurface_links.is_some() {
+        stages.push(StageTime {
+            stage: "subsurface cuts (shards)".into(),
+            seconds: s_seconds,
+        });
+    }
     stages.push(StageTime {
         stage: "merge parts".into(),
         seconds: t.elapsed().as_secs_f64(),
@@ -1998,6 +2133,7 @@ fn merged_rows(
         tree: Some((h.tree, ranges, h.info)),
         environment,
         ff_seconds,
+        cuts: params.subsurface_links.is_some().then_some(cuts),
     })
 }
 

@@ -2,8 +2,9 @@
 //! Indexed Job, several shells) and a merge that puts them together.
 //!
 //! In: a [`Shard`] (`I/K`: the I-th of K equal shares of the receiver rows, 0-based) and the
-//! rows the pipeline computed for it ([`ShardRows`]: the hierarchical F's row block and the
-//! environment visibility of the same patches). Out: a part folder `DIR.parts/part-I-of-K/`
+//! rows the pipeline computed for it ([`ShardRows`]: the hierarchical F's row block, the
+//! environment visibility of the same patches, and the subsurface cuts of its share of the
+//! translucent receivers). Out: a part folder `DIR.parts/part-I-of-K/`
 //! — `part.json` (which share, the plan it was made for, each file's length and xxh3
 //! checksum, the counts and times) beside the raw little-endian arrays — written to a hidden
 //! temporary folder and renamed into place, so a killed shard leaves nothing that looks
@@ -11,11 +12,23 @@
 //! back in order; the pipeline then runs the remaining stages and writes the bundle.
 //!
 //! The plan ([`plan_hash`]) fingerprints what the rows depend on: the patches, the source
-//! triangles, the cluster tree and the F and environment settings. Each receiver's row
-//! depends on nothing else, so the merged arrays are the bytes a one-box precompute writes.
+//! triangles, the cluster tree, the F, environment and subsurface settings and the
+//! materials. Each receiver's row depends on nothing else, so the merged arrays are the
+//! bytes a one-box precompute writes.
 //!
 //! What is sharded: the form factors and the environment visibility (the stages that cast
-//! rays per receiver). The subsurface stage and T run in the merge.
+//! rays per receiver), and of a hierarchical S the cut of every receiver whose optical
+//! distances are traced on demand (`crate::slinks::shard_cuts`: its direct sources and
+//! links, the distance runs they need and the links' spreads — most of the subsurface
+//! stage). Those receivers are split apart from F's rows: the receivers of every object
+//! traced on demand, one after the other, in K equal shares, so that each shard gets an
+//! equal share of S's work whatever the diffuse patches around them (F's row split would
+//! give the translucent patches to whichever shards their objects' indices fall in). Each
+//! shard builds the oracles (voxel grids) of those objects itself. In the merge: the
+//! oracles again (their stats go into the manifest), the rows of S put together from the
+//! cuts, S's assembly, and whatever is not cut on demand — a pairwise S's distances, thin
+//! sheets, heterogeneous objects and the random walks of simulated objects (per object,
+//! not per receiver) — and T. Parts of version 1 (before the cuts) are refused.
 
 use std::io::Write;
 use std::ops::Range;
@@ -25,6 +38,7 @@ use serde::{Deserialize, Serialize};
 use translux_proto::bundle::EnvironmentInfo;
 
 use crate::hierarchy::RowBlock;
+use crate::slinks::ReceiverCuts;
 
 /// The I-th (0-based) of K shares of a precompute's receiver rows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -104,9 +118,13 @@ pub struct ShardRows {
     pub block: RowBlock,
     /// Half-float visibility of the block's patches (`[rows · bins]`) and its summary.
     pub environment: Option<(Vec<u16>, EnvironmentInfo)>,
-    /// Seconds of the form-factor and environment stages.
+    /// The cuts of the shard's share of the receivers a hierarchical S traces on demand
+    /// (none without such an S).
+    pub cuts: ReceiverCuts,
+    /// Seconds of the form-factor, environment and subsurface stages.
     pub form_factor_seconds: f64,
     pub environment_seconds: f64,
+    pub subsurface_seconds: f64,
 }
 
 /// What [`write_part`] did.
@@ -121,6 +139,7 @@ pub struct PartReport {
     pub entries: u64,
     pub form_factor_seconds: f64,
     pub environment_seconds: f64,
+    pub subsurface_seconds: f64,
 }
 
 /// The folder of a bundle's parts: `DIR.parts` beside `DIR`.
@@ -143,13 +162,17 @@ fn part_name(shard: Shard) -> String {
 }
 
 const PART_FORMAT: &str = "translux-part";
-const PART_VERSION: u32 = 1;
+/// 2: the subsurface cuts of the shard's receivers (the `s_cut_*` arrays).
+const PART_VERSION: u32 = 2;
 const HEADER: &str = "part.json";
-const FILES: [&str; 4] = [
+const FILES: [&str; 7] = [
     "c_row_ptr.u64",
     "c_col.u32",
     "c_val.f32",
     "env_visibility.f16",
+    "s_cut_ptr.u64",
+    "s_cut_direct.u32",
+    "s_cut_entry.u32x4",
 ];
 
 /// `part.json`.
@@ -175,6 +198,13 @@ struct Header {
     environment: Option<EnvironmentInfo>,
     form_factor_seconds: f64,
     environment_seconds: f64,
+    /// Version 2 on (an older part's header reads, to be refused by its version).
+    #[serde(default)]
+    cut_first: u64,
+    #[serde(default)]
+    cut_node_runs: (u64, u64),
+    #[serde(default)]
+    subsurface_seconds: f64,
 }
 
 /// The fingerprint of what a shard's rows depend on, from the caller's byte views of the
@@ -247,6 +277,7 @@ pub fn write_part(
         entries: rows.block.col.len() as u64,
         form_factor_seconds: rows.form_factor_seconds,
         environment_seconds: rows.environment_seconds,
+        subsurface_seconds: rows.subsurface_seconds,
     })
 }
 
@@ -268,11 +299,14 @@ fn remove_own_leftovers(parts: &Path, shard: Shard) {
 fn write_files(tmp: &Path, shard: Shard, plan: u64, rows: &ShardRows) -> Result<u64, String> {
     std::fs::create_dir(tmp).map_err(|e| format!("cannot create {}: {e}", tmp.display()))?;
     let env_bits: &[u16] = rows.environment.as_ref().map_or(&[], |e| &e.0);
-    let arrays: [&[u8]; 4] = [
+    let arrays: [&[u8]; 7] = [
         bytemuck::cast_slice(&rows.block.row_ptr),
         bytemuck::cast_slice(&rows.block.col),
         bytemuck::cast_slice(&rows.block.val),
         bytemuck::cast_slice(env_bits),
+        bytemuck::cast_slice(&rows.cuts.ptr),
+        bytemuck::cast_slice(&rows.cuts.direct),
+        bytemuck::cast_slice(&rows.cuts.entries),
     ];
     let mut files = Vec::new();
     let mut total = 0u64;
@@ -304,6 +338,9 @@ fn write_files(tmp: &Path, shard: Shard, plan: u64, rows: &ShardRows) -> Result<
         environment: rows.environment.as_ref().map(|e| e.1.clone()),
         form_factor_seconds: rows.form_factor_seconds,
         environment_seconds: rows.environment_seconds,
+        cut_first: rows.cuts.first,
+        cut_node_runs: rows.cuts.node_runs,
+        subsurface_seconds: rows.subsurface_seconds,
     };
     let text = serde_json::to_vec_pretty(&header).map_err(|e| e.to_string())?;
     write_synced(&tmp.join(HEADER), &text)?;
@@ -377,11 +414,23 @@ fn read_part(dir: &Path, shard: Shard, plan: u64) -> Result<ShardRows, String> {
     let col: Vec<u32> = items(&data[1]).ok_or_else(|| cast_err(FILES[1]))?;
     let val: Vec<f32> = items(&data[2]).ok_or_else(|| cast_err(FILES[2]))?;
     let env: Vec<u16> = items(&data[3]).ok_or_else(|| cast_err(FILES[3]))?;
+    let cuts = ReceiverCuts {
+        first: h.cut_first,
+        ptr: items(&data[4]).ok_or_else(|| cast_err(FILES[4]))?,
+        direct: items(&data[5]).ok_or_else(|| cast_err(FILES[5]))?,
+        entries: items(&data[6]).ok_or_else(|| cast_err(FILES[6]))?,
+        node_runs: h.cut_node_runs,
+    };
     if row_ptr.len() as u64 != h.rows + 1
         || row_ptr.last().copied() != Some(col.len() as u64)
         || col.len() != val.len()
     {
         return Err(format!("{what}: its row offsets do not match its entries"));
+    }
+    if !cuts.is_consistent() {
+        return Err(format!(
+            "{what}: its subsurface cuts' offsets do not match their entries"
+        ));
     }
     Ok(ShardRows {
         block: RowBlock {
@@ -396,8 +445,10 @@ fn read_part(dir: &Path, shard: Shard, plan: u64) -> Result<ShardRows, String> {
             covered: h.covered,
         },
         environment: h.environment.map(|info| (env, info)),
+        cuts,
         form_factor_seconds: h.form_factor_seconds,
         environment_seconds: h.environment_seconds,
+        subsurface_seconds: h.subsurface_seconds,
     })
 }
 
@@ -446,6 +497,18 @@ pub fn read_parts(
                 r.block.first as usize + r.block.rows(),
                 want.start,
                 want.end
+            ));
+        }
+        let next: u64 = rows
+            .iter()
+            .map(|p: &ShardRows| p.cuts.receivers() as u64)
+            .sum();
+        if r.cuts.first != next {
+            return Err(format!(
+                "part {index} of {count} ({}) holds the subsurface cuts of receivers from {}; \
+                 the parts before it end at {next}",
+                dir.display(),
+                r.cuts.first
             ));
         }
         rows.push(r);
@@ -518,6 +581,16 @@ mod tests {
                 rays: 7,
                 ..Default::default()
             },
+            // A receiver of the cuts per row: one direct source and one link each.
+            cuts: ReceiverCuts {
+                first,
+                ptr: (0..=k as u64).map(|r| 2 * r).collect(),
+                direct: vec![1; k],
+                entries: (0..k as u32)
+                    .flat_map(|r| [[r, 1.5f32.to_bits(), 0, 0], [r, 2.5f32.to_bits(), 0, 7]])
+                    .collect(),
+                node_runs: (1, 0),
+            },
             ..Default::default()
         }
     }
@@ -538,6 +611,33 @@ mod tests {
         let back = read_parts(&out, 2, 1, n, &rerun).unwrap();
         assert_eq!(back[1].block.first, 5);
         assert_eq!(back[1].block.rays, 7);
+        assert_eq!(back[1].cuts, rows(5, 5).cuts);
+
+        // A part of the format before the subsurface cuts: refused by its version.
+        let header = parts_dir(&out).join("part-1-of-2").join(HEADER);
+        let text = std::fs::read_to_string(&header).unwrap();
+        let mut old: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let o = old.as_object_mut().unwrap();
+        for new in ["cut_first", "cut_node_runs", "subsurface_seconds"] {
+            o.remove(new);
+        }
+        o.insert("version".into(), 1.into());
+        std::fs::write(&header, serde_json::to_vec(&old).unwrap()).unwrap();
+        let e = read_parts(&out, 2, 1, n, &rerun).unwrap_err();
+        assert!(
+            e.contains("part 1 of 2") && e.contains("version 1") && e.contains("version 2"),
+            "{e}"
+        );
+        std::fs::write(&header, text).unwrap();
+        // Cuts that do not follow on from the part before.
+        std::fs::remove_dir_all(parts_dir(&out).join("part-1-of-2")).unwrap();
+        let mut gap = rows(5, 5);
+        gap.cuts.first = 6;
+        write_part(&out, Shard { index: 1, count: 2 }, 1, &gap).unwrap();
+        let e = read_parts(&out, 2, 1, n, &rerun).unwrap_err();
+        assert!(e.contains("subsurface cuts of receivers from 6"), "{e}");
+        std::fs::remove_dir_all(parts_dir(&out).join("part-1-of-2")).unwrap();
+        write_part(&out, Shard { index: 1, count: 2 }, 1, &rows(5, 5)).unwrap();
 
         // Another plan.
         let e = read_parts(&out, 2, 2, n, &rerun).unwrap_err();

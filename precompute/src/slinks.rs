@@ -510,10 +510,245 @@ impl<'a> Cutter<'a> {
 /// distance, kind).
 type Cut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32)>);
 
+/// A receiver's cut as S stores it: direct sources (patch, distance, kind) and links
+/// (node, distance moved to the node's straight mean, kind, spread; [`link_spread`]).
+type SpreadCut = (Vec<(u32, f32, u32)>, Vec<(u32, f32, u32, f32)>);
+
+/// The cuts of a run of the receivers that a hierarchical S traces on demand (a shard's
+/// share, or all the shards' put together): the receivers of every object cut on demand,
+/// in object order ([`on_demand_receivers`]), numbered from 0, and each one's entries —
+/// its direct sources first, then its links — as `[patch or node, distance bits, kind,
+/// spread bits]` (spread 0 for a direct source).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReceiverCuts {
+    /// The first receiver's number among all of them.
+    pub first: u64,
+    /// Per receiver, where its entries begin (one more at the end).
+    pub ptr: Vec<u64>,
+    /// Per receiver, how many of its entries are direct sources.
+    pub direct: Vec<u32>,
+    pub entries: Vec<[u32; 4]>,
+    /// [`Collapsed::node_runs`] of these receivers' cuts.
+    pub node_runs: (u64, u64),
+}
+
+impl Default for ReceiverCuts {
+    fn default() -> Self {
+        ReceiverCuts {
+            first: 0,
+            ptr: vec![0],
+            direct: Vec::new(),
+            entries: Vec::new(),
+            node_runs: (0, 0),
+        }
+    }
+}
+
+impl ReceiverCuts {
+    /// How many receivers these cuts hold.
+    pub fn receivers(&self) -> usize {
+        self.direct.len()
+    }
+
+    /// Whether the offsets and counts agree with the entries.
+    pub fn is_consistent(&self) -> bool {
+        self.ptr.len() == self.direct.len() + 1
+            && self.ptr.first() == Some(&0)
+            && self.ptr.last() == Some(&(self.entries.len() as u64))
+            && self
+                .ptr
+                .windows(2)
+                .zip(&self.direct)
+                .all(|(w, &d)| w[0] <= w[1] && u64::from(d) <= w[1] - w[0])
+    }
+
+    fn push(&mut self, (direct, links): SpreadCut) {
+        self.direct.push(direct.len() as u32);
+        self.entries.extend(
+            direct
+                .into_iter()
+                .map(|(i, d, kd)| [i, d.to_bits(), kd, 0])
+                .chain(
+                    links
+                        .into_iter()
+                        .map(|(q, d, kd, s)| [q, d.to_bits(), kd, s.to_bits()]),
+                ),
+        );
+        self.ptr.push(self.entries.len() as u64);
+    }
+
+    /// The next share after these, appended (the shards' parts in order).
+    pub fn append(&mut self, other: ReceiverCuts) {
+        let base = self.entries.len() as u64;
+        self.ptr.extend(other.ptr.iter().skip(1).map(|p| p + base));
+        self.direct.extend(other.direct);
+        self.entries.extend(other.entries);
+        self.node_runs.0 += other.node_runs.0;
+        self.node_runs.1 += other.node_runs.1;
+    }
+
+    /// The cuts of receivers `range` (numbered from this run's first), or `None` when
+    /// these cuts do not hold them all or name a patch or node beyond `(patches, nodes)`.
+    fn slice(
+        &self,
+        range: Range<usize>,
+        (patches, nodes): (usize, usize),
+    ) -> Option<Vec<SpreadCut>> {
+        if range.end > self.receivers() || !self.is_consistent() {
+            return None;
+        }
+        let in_range = range.clone().all(|j| {
+            let (a, b) = (self.ptr[j] as usize, self.ptr[j + 1] as usize);
+            let split = a + self.direct[j] as usize;
+            self.entries[a..split]
+                .iter()
+                .all(|e| (e[0] as usize) < patches)
+                && self.entries[split..b]
+                    .iter()
+                    .all(|e| (e[0] as usize) < nodes)
+        });
+        if !in_range {
+            return None;
+        }
+        let f = |e: &[u32; 4]| f32::from_bits(e[1]);
+        Some(
+            range
+                .map(|j| {
+                    let (a, b) = (self.ptr[j] as usize, self.ptr[j + 1] as usize);
+                    let split = a + self.direct[j] as usize;
+                    let direct = self.entries[a..split]
+                        .iter()
+                        .map(|e| (e[0], f(e), e[2]))
+                        .collect();
+                    let links = self.entries[split..b]
+                        .iter()
+                        .map(|e| (e[0], f(e), e[2], f32::from_bits(e[3])))
+                        .collect();
+                    (direct, links)
+                })
+                .collect(),
+        )
+    }
+}
+
+/// The objects whose receivers' cuts a shard computes: those cut (a subtree of their own)
+/// with distances traced on demand (an [`Oracle`]), not thin sheets; each with its patches.
+/// Their receivers, one after the other, are what [`shard_cuts`] splits.
+pub fn on_demand_receivers(
+    tree: &ClusterTree,
+    objects: &[ObjectMaterial<'_>],
+    on_demand: &[Option<Oracle>],
+) -> Vec<(usize, Range<usize>)> {
+    cut_roots(tree, objects)
+        .into_iter()
+        .enumerate()
+        .filter(|&(k, c)| {
+            matches!(c, Some((_, false))) && on_demand.get(k).is_some_and(Option::is_some)
+        })
+        .map(|(k, _)| (k, objects[k].patches.clone()))
+        .collect()
+}
+
+/// The cuts of receivers `share` (numbered as [`on_demand_receivers`] lists them) with
+/// their links' distances and spreads: what [`collapse`] makes for them, by the same code,
+/// so that the shards' cuts put together are the bytes of a one-box cut.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "collapse's inputs for the objects cut on demand"
+)]
+pub fn shard_cuts(
+    tree: &ClusterTree,
+    g: &PatchGeometry,
+    objects: &[ObjectMaterial<'_>],
+    stored: &[f32],
+    on_demand: &[Option<Oracle>],
+    params: &SLinkParams,
+    bounds: &[Vec<LinkBound>],
+    share: Range<usize>,
+) -> ReceiverCuts {
+    let ranges = tree.ranges();
+    let pos = positions(tree);
+    let rep = representatives(tree, g);
+    let cutter = Cutter::new(tree, &ranges, &pos, g, params);
+    let roots = cut_roots(tree, objects);
+    let mut out = ReceiverCuts {
+        first: share.start as u64,
+        ..Default::default()
+    };
+    let mut at = 0usize;
+    for (k, r) in on_demand_receivers(tree, objects, on_demand) {
+        let (from, to) = (at, at + r.len());
+        at = to;
+        let (lo, hi) = (share.start.max(from), share.end.min(to));
+        let (Some((root, _)), Some(oracle)) = (roots[k], on_demand[k].as_ref()) else {
+            continue;
+        };
+        if lo >= hi {
+            continue;
+        }
+        let js = r.start + (lo - from)..r.start + (hi - from);
+        let reach = stored.get(k).copied().unwrap_or(0.0);
+        let cuts = cut_on_demand(
+            &cutter,
+            &rep,
+            (r.clone(), js.clone()),
+            root,
+            reach,
+            &bounds[k],
+            oracle,
+            &mut out.node_runs,
+        );
+        for c in with_spreads(g, tree, &ranges, &rep, js.start, cuts) {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Receivers `first..`'s cuts with each link's distance moved and its spread, read at two
+/// distances ([`link_spread`]).
+fn with_spreads(
+    g: &PatchGeometry,
+    tree: &ClusterTree,
+    ranges: &[[u32; 2]],
+    rep: &[u32],
+    first: usize,
+    cuts: Vec<Cut>,
+) -> Vec<SpreadCut> {
+    let spreads: Vec<Vec<(f32, f32)>> = cuts
+        .par_iter()
+        .enumerate()
+        .map(|(jl, (_, links))| {
+            let x = g.centroid[first + jl];
+            links
+                .iter()
+                .map(|&(q, d, _)| {
+                    let [a, b] = ranges[q as usize];
+                    let members = &tree.perm[a as usize..b as usize];
+                    link_spread(g, x, members, rep[q as usize], d)
+                })
+                .collect()
+        })
+        .collect();
+    cuts.into_iter()
+        .zip(spreads)
+        .map(|((direct, links), moved)| {
+            let links = links
+                .into_iter()
+                .zip(moved)
+                .map(|((q, _, kd), (d, sigma))| (q, d, kd, sigma))
+                .collect();
+            (direct, links)
+        })
+        .collect()
+}
+
 /// Replaces the pairwise distances of every homogeneous translucent object and thin sheet
 /// (of two patches or more) by direct pairs and links (the module docs); other rows are
 /// copied. `stored[k]` is how far object k's distances reach. An object with an [`Oracle`] in `on_demand` has no pairwise rows in
-/// `dist`: its cut is made first and only the distances it uses are traced.
+/// `dist`: its cut is made first and only the distances it uses are traced — or, with
+/// `precut`, taken from the shards ([`shard_cuts`]; the receivers of every such object, in
+/// object order).
 #[expect(
     clippy::too_many_arguments,
     reason = "stage 1's arrays as the pipeline holds them"
@@ -529,6 +764,7 @@ pub fn collapse(
     on_demand: &[Option<Oracle>],
     params: &SLinkParams,
     bounds: &[Vec<LinkBound>],
+    precut: Option<&ReceiverCuts>,
 ) -> Result<Collapsed, SError> {
     let n = g.corners.len();
     let ranges = tree.ranges();
@@ -584,31 +820,48 @@ pub fn collapse(
     let mut links_total = 0u64;
     let mut node_runs = (0u64, 0u64);
     let mut seconds = vec![0.0f64; objects.len()];
+    // Where each object cut on demand begins among the shards' receivers.
+    let mut shared_at = 0usize;
     for &(k, root, sheet) in &cut {
         let t = std::time::Instant::now();
         let r = objects[k].patches.clone();
         let reach = stored.get(k).copied().unwrap_or(0.0);
-        let cuts = match on_demand.get(k).and_then(Option::as_ref) {
-            Some(oracle) if !sheet => cut_on_demand(
-                &cutter,
-                &rep,
-                r.clone(),
-                root,
-                reach,
-                &bounds[k],
-                oracle,
-                &mut node_runs,
-            ),
-            _ => cut_pairwise(
-                &cutter,
-                &rep,
-                r.clone(),
-                root,
-                (reach, sheet),
-                &bounds[k],
-                dist,
-                kind,
-            ),
+        let cuts = match (on_demand.get(k).and_then(Option::as_ref), precut) {
+            (Some(_), Some(pc)) if !sheet => {
+                let from = shared_at;
+                shared_at += r.len();
+                pc.slice(from..shared_at, (n, m))
+                    .ok_or_else(|| SError::Media {
+                        object: objects[k].name.to_string(),
+                        why: "the shards' cuts do not cover its receivers".into(),
+                    })?
+            }
+            (Some(oracle), None) if !sheet => {
+                let c = cut_on_demand(
+                    &cutter,
+                    &rep,
+                    (r.clone(), r.clone()),
+                    root,
+                    reach,
+                    &bounds[k],
+                    oracle,
+                    &mut node_runs,
+                );
+                with_spreads(g, tree, &ranges, &rep, r.start, c)
+            }
+            _ => {
+                let c = cut_pairwise(
+                    &cutter,
+                    &rep,
+                    r.clone(),
+                    root,
+                    (reach, sheet),
+                    &bounds[k],
+                    dist,
+                    kind,
+                );
+                with_spreads(g, tree, &ranges, &rep, r.start, c)
+            }
         };
         // Direct pairs are stored by source (row i lists its receivers j); receivers come
         // in increasing order, so every row stays sorted.
@@ -618,32 +871,18 @@ pub fn collapse(
                 rows[i as usize].push((j, d, [0.0; MEDIA], kd, 0.0));
             }
         }
-        // Links read at two distances: each one's distance moved and its spread.
-        let spreads: Vec<Vec<(f32, f32)>> = cuts
-            .par_iter()
-            .enumerate()
-            .map(|(jl, (_, links))| {
-                let x = g.centroid[r.start + jl];
-                links
-                    .iter()
-                    .map(|&(q, d, _)| {
-                        let [a, b] = ranges[q as usize];
-                        let members = &tree.perm[a as usize..b as usize];
-                        link_spread(g, x, members, rep[q as usize], d)
-                    })
-                    .collect()
-            })
-            .collect();
-        for (jl, ((_, links), moved)) in cuts.into_iter().zip(&spreads).enumerate() {
+        for (jl, (_, links)) in cuts.into_iter().enumerate() {
             links_total += links.len() as u64;
             rows[r.start + jl].extend(
                 links
                     .into_iter()
-                    .zip(moved)
-                    .map(|((q, _, kd), &(d, sigma))| (n as u32 + q, d, [0.0; MEDIA], kd, sigma)),
+                    .map(|(q, d, kd, sigma)| (n as u32 + q, d, [0.0; MEDIA], kd, sigma)),
             );
         }
         seconds[k] = t.elapsed().as_secs_f64();
+    }
+    if let Some(pc) = precut {
+        node_runs = pc.node_runs;
     }
     let linked = links_total > 0;
     let mut material_len = Vec::new();
@@ -760,7 +999,7 @@ fn cut_pairwise(
 fn cut_on_demand(
     cutter: &Cutter<'_>,
     rep: &[u32],
-    r: Range<usize>,
+    (r, js): (Range<usize>, Range<usize>),
     root: Child,
     reach: f32,
     bounds: &[LinkBound],
@@ -769,9 +1008,12 @@ fn cut_on_demand(
 ) -> Vec<Cut> {
     let g = cutter.g;
     let base = r.start as u32;
+    // Receivers are indexed from `js.start` (`jl`); the oracle's runs take object-local
+    // indices (`jl + off`).
+    let off = (js.start - r.start) as u32;
     let within = |a: u32, b: u32| g.centroid[a as usize].distance(g.centroid[b as usize]) <= reach;
     // Per receiver: its direct candidates (local) and far nodes.
-    let geo: Vec<(Vec<u32>, Vec<u32>)> = r
+    let geo: Vec<(Vec<u32>, Vec<u32>)> = js
         .clone()
         .into_par_iter()
         .map(|j| {
@@ -794,7 +1036,7 @@ fn cut_on_demand(
         .iter()
         .enumerate()
         .map(|(jl, (near, _))| {
-            let j = jl as u32 + base;
+            let j = jl as u32 + off + base;
             let limit = close * g.size[j as usize];
             let (mut mine, mut far_off) = (Vec::new(), Vec::new());
             for &i in near {
@@ -805,9 +1047,9 @@ fn cut_on_demand(
                 }
             }
             for i in far_off {
-                distant.entry(i).or_default().push(jl as u32);
+                distant.entry(i).or_default().push(jl as u32 + off);
             }
-            (jl as u32, mine)
+            (jl as u32 + off, mine)
         })
         .collect();
     // Each receiver's distances aligned with its (sorted) candidates.
@@ -815,10 +1057,11 @@ fn cut_on_demand(
         .iter()
         .map(|(near, _)| vec![f32::INFINITY; near.len()])
         .collect();
-    let mut put = |jl: u32, i: u32, d: f32| {
-        let (near, _) = &geo[jl as usize];
+    let mut put = |jo: u32, i: u32, d: f32| {
+        let jl = (jo - off) as usize;
+        let (near, _) = &geo[jl];
         if let Ok(k) = near.binary_search(&i) {
-            direct_d[jl as usize][k] = d;
+            direct_d[jl][k] = d;
         }
     };
     for ((jl, mine), ds) in jobs.iter().zip(cutter.runs(oracle, &jobs).0) {
@@ -837,7 +1080,7 @@ fn cut_on_demand(
     let mut linkers: std::collections::BTreeMap<u32, Vec<u32>> = Default::default();
     for (jl, (_, far)) in geo.iter().enumerate() {
         for &q in far {
-            linkers.entry(q).or_default().push(jl as u32);
+            linkers.entry(q).or_default().push(jl as u32 + off);
         }
     }
     let (node_list, jobs): (Vec<u32>, Vec<(u32, Vec<u32>)>) = linkers
@@ -848,11 +1091,11 @@ fn cut_on_demand(
     runs.0 += jobs.len() as u64;
     runs.1 += coarse as u64;
     // Back to receivers: (node, distance) per receiver.
-    let mut by_receiver: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); r.len()];
+    let mut by_receiver: Vec<Vec<(u32, f32, u32)>> = vec![Vec::new(); js.len()];
     for ((q, (_, receivers)), ds) in node_list.iter().zip(&jobs).zip(&link_d) {
-        for (&jl, &d) in receivers.iter().zip(ds) {
+        for (&jo, &d) in receivers.iter().zip(ds) {
             if d.is_finite() {
-                by_receiver[jl as usize].push((*q, d, KIND_SAME));
+                by_receiver[(jo - off) as usize].push((*q, d, KIND_SAME));
             }
         }
     }

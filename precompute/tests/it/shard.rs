@@ -165,6 +165,76 @@ fn shards_merged_hold_the_one_box_bundle_byte_for_byte() {
     assert_same_bundle(&one, &sharded);
 }
 
+/// Two translucent objects on a floor (a box and a ball: the translucent receivers split
+/// across both, one object between two shards at K = 3).
+fn translucent_pair(dir: &Path) -> PathBuf {
+    let scene = serde_json::json!({
+        "unit_mm": 1000.0,
+        "objects": [
+            {"name": "floor", "mesh": {"shape": "quad", "size": [2, 2]},
+             "material": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
+            {"name": "soap", "mesh": {"shape": "box", "size": [0.4, 0.6, 0.4]},
+             "transform": {"translate": [0.0, 0.3, 0.0]},
+             "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "marble"}}},
+            {"name": "ball", "mesh": {"shape": "sphere", "radius": 0.2},
+             "transform": {"translate": [0.6, 0.2, 0.3]},
+             "material": {"type": "translucent", "profile": {"type": "dipole", "preset": "skimmilk"}}}
+        ],
+        "lights": [{"type": "point", "position": [0.0, 1.5, 0.5], "intensity": [3, 3, 3]}]
+    });
+    let path = dir.join("pair.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&scene).unwrap()).unwrap();
+    path
+}
+
+/// A hierarchical S whose distances are traced on demand (each shard cuts its share of the
+/// translucent receivers) and a pairwise S (made in the merge): merged at K = 2 and 3,
+/// every array is the one-box bytes.
+#[test]
+fn sharded_subsurface_cuts_merge_to_the_one_box_bundle_byte_for_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = translucent_pair(dir.path());
+    for s in ["hierarchical", "pairwise"] {
+        let base = |out: &Path| -> Vec<String> {
+            [
+                scene.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--patches",
+                "2000",
+                "--quiet",
+                "--subsurface",
+                s,
+            ]
+            .map(String::from)
+            .to_vec()
+        };
+        let one = dir.path().join(format!("one-{s}"));
+        let t = run_ok(&args(&base(&one)));
+        if s == "hierarchical" {
+            assert!(
+                t.contains("nnz(S)") && t.contains("links to cluster nodes"),
+                "{t}"
+            );
+        }
+        for k in [2, 3] {
+            let out = dir.path().join(format!("{s}-{k}"));
+            for i in 0..k {
+                let mut a = base(&out);
+                a.extend(["--shard".into(), format!("{i}/{k}")]);
+                run_ok(&args(&a));
+            }
+            let mut a = base(&out);
+            a.extend(["--merge".into(), k.to_string()]);
+            let t = run_ok(&args(&a));
+            if s == "hierarchical" {
+                assert!(t.contains("subsurface cuts (shards)"), "{t}");
+            }
+            assert_same_bundle(&one, &out);
+        }
+    }
+}
+
 #[test]
 fn missing_duplicated_foreign_and_damaged_parts_are_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();
