@@ -9,7 +9,8 @@
 //! Whole-relight times include the shadowed direct light: on the CPU backend on the CPU; on
 //! the GPU backend a relight with the solver and the bundle's materials is done whole on the
 //! device (direct light, solve, colours: one submission), and the rows say how many
-//! submissions and bytes it took. A last row runs 64 clients at once, each dragging its own
+//! submissions and bytes it took, and the viewer's relight (`direct_at: pixel`) beside it.
+//! A last row runs 64 clients at once, each dragging its own
 //! light, their relights batched as the server's worker pool batches concurrent requests,
 //! and gives the relights per second of all of them together.
 //!
@@ -133,7 +134,7 @@ fn relight_rows(scene: &Scene, reps: usize) -> anyhow::Result<Vec<Row>> {
     for (what, extra) in [
         ("relight with the solver (light moved, warm start)", ""),
         (
-            "the same through the engine's stages (direct_at pixel: direct light on the CPU)",
+            "the viewer's relight (direct_at pixel: the exposure's luminances come back too)",
             r#","direct_at":"pixel""#,
         ),
     ] {
@@ -250,7 +251,10 @@ fn main() -> anyhow::Result<()> {
     let b = &scene.bundle;
     let n = b.patch_areas().len();
     let t_bytes = b.transfer().map_or(0, |t| (t.bits.len() * 2) as u64);
-    println!("# GPU benchmark: builtin:cornell_paper, {n} patches");
+    println!(
+        "# GPU benchmark: builtin:cornell_paper, {n} patches, {} vertices",
+        b.vertex_positions().len()
+    );
     println!(
         "\nnnz(F) {}, nnz(S) {}, T (f16 RGB) {:.1} MiB; CPU threads {}",
         b.form_factors().nnz(),
