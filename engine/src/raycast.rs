@@ -15,6 +15,48 @@ use obvhs::{
     triangle::Triangle,
 };
 
+/// The triangles as `obvhs` reads them, then two tiny padding triangles just outside their
+/// bounds, and the length of the real triangles' bounding-box diagonal: what
+/// [`Occluder::new`] builds its tree over (and the GPU backend its own, so both see the same
+/// triangles; the padding's hits are ignored).
+pub fn padded_triangles(triangles: &[[Vec3; 3]]) -> (Vec<Triangle>, f32) {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for t in triangles {
+        for v in t {
+            lo = lo.min(*v);
+            hi = hi.max(*v);
+        }
+    }
+    if triangles.is_empty() {
+        lo = Vec3::ZERO;
+        hi = Vec3::ONE;
+    }
+    let diagonal = (hi - lo).length().max(1e-6);
+    let mut tris: Vec<Triangle> = triangles
+        .iter()
+        .map(|t| Triangle {
+            v0: t[0].into(),
+            v1: t[1].into(),
+            v2: t[2].into(),
+        })
+        .collect();
+    // obvhs 0.4 maps a primitive centroid lying exactly on the scene's upper bound to
+    // Morton code 0 (a wrap-around), which makes box-like scenes ~13x slower to trace.
+    // Two tiny triangles just outside the bounds move the bounds.
+    let pad = 1e-3 * diagonal;
+    let tiny = 1e-4 * diagonal;
+    for corner in [lo - Vec3::splat(pad), hi + Vec3::splat(pad)] {
+        let c: Vec3A = corner.into();
+        tris.push(Triangle {
+            v0: c,
+            v1: c + Vec3A::X * tiny,
+            v2: c + Vec3A::Y * tiny,
+        });
+    }
+    (tris, diagonal)
+}
+
 /// A BVH over triangles answering "is anything between these two points?".
 #[derive(Debug)]
 pub struct Occluder {
@@ -47,40 +89,7 @@ impl Occluder {
 
     /// Builds the tree (in parallel when called inside a rayon pool).
     pub fn new(triangles: &[[Vec3; 3]]) -> Self {
-        let mut lo = Vec3::splat(f32::INFINITY);
-        let mut hi = Vec3::splat(f32::NEG_INFINITY);
-        for t in triangles {
-            for v in t {
-                lo = lo.min(*v);
-                hi = hi.max(*v);
-            }
-        }
-        if triangles.is_empty() {
-            lo = Vec3::ZERO;
-            hi = Vec3::ONE;
-        }
-        let diagonal = (hi - lo).length().max(1e-6);
-        let mut tris: Vec<Triangle> = triangles
-            .iter()
-            .map(|t| Triangle {
-                v0: t[0].into(),
-                v1: t[1].into(),
-                v2: t[2].into(),
-            })
-            .collect();
-        // obvhs 0.4 maps a primitive centroid lying exactly on the scene's upper bound to
-        // Morton code 0 (a wrap-around), which makes box-like scenes ~13x slower to trace.
-        // Two tiny triangles just outside the bounds move the bounds; their hits are ignored.
-        let pad = 1e-3 * diagonal;
-        let tiny = 1e-4 * diagonal;
-        for corner in [lo - Vec3::splat(pad), hi + Vec3::splat(pad)] {
-            let c: Vec3A = corner.into();
-            tris.push(Triangle {
-                v0: c,
-                v1: c + Vec3A::X * tiny,
-                v2: c + Vec3A::Y * tiny,
-            });
-        }
+        let (tris, diagonal) = padded_triangles(triangles);
         let n_real = triangles.len();
         let bvh = build_cwbvh_from_tris(
             &tris,

@@ -148,8 +148,7 @@ impl Bounds {
 impl FlatBvh {
     /// Builds the tree over `triangles` (plus the engine's two padding triangles).
     pub fn build(triangles: &[[Vec3; 3]]) -> FlatBvh {
-        let (lo, hi, diagonal) = scene_bounds(triangles);
-        let tris = with_padding(triangles, lo, hi, diagonal);
+        let (tris, diagonal) = translux_engine::raycast::padded_triangles(triangles);
         let bvh = build_bvh2_from_tris(
             &tris,
             BvhBuildParams::medium_build(),
@@ -185,42 +184,6 @@ impl FlatBvh {
         alloc_size(std::mem::size_of_val(&self.nodes[..]) as u64)
             + alloc_size(std::mem::size_of_val(&self.tris[..]) as u64)
     }
-}
-
-/// The real triangles' bounds and diagonal, exactly as `Occluder::new` computes them.
-fn scene_bounds(triangles: &[[Vec3; 3]]) -> (Vec3, Vec3, f32) {
-    let b = triangles
-        .iter()
-        .flatten()
-        .fold(Bounds::EMPTY, |b, &v| b.grow(v));
-    let (lo, hi) = if triangles.is_empty() {
-        (Vec3::ZERO, Vec3::ONE)
-    } else {
-        (b.lo, b.hi)
-    };
-    (lo, hi, (hi - lo).length().max(1e-6))
-}
-
-/// The triangles followed by the engine's two padding triangles just outside the bounds.
-fn with_padding(triangles: &[[Vec3; 3]], lo: Vec3, hi: Vec3, diagonal: f32) -> Vec<Triangle> {
-    let pad = 1e-3 * diagonal;
-    let tiny = 1e-4 * diagonal;
-    let mut tris: Vec<Triangle> = triangles
-        .iter()
-        .map(|t| Triangle {
-            v0: t[0].into(),
-            v1: t[1].into(),
-            v2: t[2].into(),
-        })
-        .collect();
-    for corner in [lo - Vec3::splat(pad), hi + Vec3::splat(pad)] {
-        tris.push(Triangle {
-            v0: corner.into(),
-            v1: (corner + Vec3::X * tiny).into(),
-            v2: (corner + Vec3::Y * tiny).into(),
-        });
-    }
-    tris
 }
 
 /// The device form of a triangle; a padding triangle collapses to one point (never hit:

@@ -18,37 +18,14 @@ use translux_server::gpu::{GpuContext, GpuCsr, GpuDense, GpuOptions, GpuSystem};
 /// The shared context (adapter limits), or `None` when skipping is allowed and no adapter
 /// exists.
 fn ctx() -> Option<&'static GpuContext> {
-    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
-    CTX.get_or_init(|| open(None)).as_ref()
+    crate::support::gpu()
 }
 
 /// A context whose matrix buffers hold at most 4 KiB: everything is split into blocks.
 fn tiny_ctx() -> Option<&'static GpuContext> {
     static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
-    CTX.get_or_init(|| open(Some(4096))).as_ref()
-}
-
-fn open(cap: Option<u64>) -> Option<GpuContext> {
-    let opts = GpuOptions {
-        allow_software: true,
-        max_binding_bytes: cap,
-        budget_bytes: None,
-    };
-    match GpuContext::new(&opts) {
-        Ok(c) => {
-            eprintln!("GPU tests on {:?}", c.adapter());
-            Some(c)
-        }
-        Err(e) if std::env::var("TRANSLUX_SKIP_GPU_TESTS").as_deref() == Ok("1") => {
-            eprintln!("GPU tests skipped (TRANSLUX_SKIP_GPU_TESTS=1): {e}");
-            None
-        }
-        Err(e) => panic!(
-            "the GPU tests need a GPU adapter and found none: {e}\n\
-             Install Mesa's software Vulkan (apt-get install -y mesa-vulkan-drivers libvulkan1) \
-             or set TRANSLUX_SKIP_GPU_TESTS=1 to skip them"
-        ),
-    }
+    CTX.get_or_init(|| crate::support::gpu_context(Some(4096)))
+        .as_ref()
 }
 
 /// A seeded xorshift generator: reproducible random inputs without a crate.

@@ -8,45 +8,20 @@
 //! `TRANSLUX_SKIP_GPU_TESTS=1`.
 
 use std::path::Path;
-use std::sync::OnceLock;
 
 use glam::Vec3;
 use translux_engine::radiosity::{PatchGeometry, Rgb, direct_irradiance, spot_falloff};
 use translux_engine::raycast::Occluder;
 use translux_proto::light::Light;
+use translux_server::gpu::GpuContext;
 use translux_server::gpu::cpu_twin;
 use translux_server::gpu::direct::{
     DirectPass, FlatBvh, GpuLights, GpuOccluder, ShadowRay, SurfacePoints,
 };
-use translux_server::gpu::{GpuContext, GpuOptions};
 
 /// The shared context, or `None` when skipping is allowed and no adapter exists.
 fn ctx() -> Option<&'static GpuContext> {
-    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
-    CTX.get_or_init(open).as_ref()
-}
-
-fn open() -> Option<GpuContext> {
-    let opts = GpuOptions {
-        allow_software: true,
-        max_binding_bytes: None,
-        budget_bytes: None,
-    };
-    match GpuContext::new(&opts) {
-        Ok(c) => {
-            eprintln!("GPU tests on {:?}", c.adapter());
-            Some(c)
-        }
-        Err(e) if std::env::var("TRANSLUX_SKIP_GPU_TESTS").as_deref() == Ok("1") => {
-            eprintln!("GPU tests skipped (TRANSLUX_SKIP_GPU_TESTS=1): {e}");
-            None
-        }
-        Err(e) => panic!(
-            "the GPU tests need a GPU adapter and found none: {e}\n\
-             Install Mesa's software Vulkan (apt-get install -y mesa-vulkan-drivers libvulkan1) \
-             or set TRANSLUX_SKIP_GPU_TESTS=1 to skip them"
-        ),
-    }
+    crate::support::gpu()
 }
 
 /// A seeded xorshift generator.

@@ -17,27 +17,9 @@ use translux_proto::api::{RelightRequest, RelightStats};
 use translux_server::backend::Backend;
 use translux_server::gpu::{GpuContext, GpuOptions, cpu_twin, relight::vertex_colours_once};
 
+/// The shared context, or `None` when skipping is allowed and no adapter exists.
 fn ctx() -> Option<&'static GpuContext> {
-    static CTX: OnceLock<Option<GpuContext>> = OnceLock::new();
-    CTX.get_or_init(|| {
-        let opts = GpuOptions {
-            allow_software: true,
-            ..Default::default()
-        };
-        match GpuContext::new(&opts) {
-            Ok(c) => Some(c),
-            Err(e) if std::env::var("TRANSLUX_SKIP_GPU_TESTS").as_deref() == Ok("1") => {
-                eprintln!("GPU tests skipped (TRANSLUX_SKIP_GPU_TESTS=1): {e}");
-                None
-            }
-            Err(e) => panic!(
-                "the GPU tests need a GPU adapter and found none: {e}\n\
-                 Install Mesa's software Vulkan (apt-get install -y mesa-vulkan-drivers \
-                 libvulkan1) or set TRANSLUX_SKIP_GPU_TESTS=1 to skip them"
-            ),
-        }
-    })
-    .as_ref()
+    crate::support::gpu()
 }
 
 /// The GPU backend on an adapter of its own (software ones too).
