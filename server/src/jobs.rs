@@ -285,12 +285,15 @@ impl Entry {
         let snapshot = {
             let mut r = self.lock();
             f(&mut r);
+            // Published under the lock, so watchers see the records in the order they were
+            // made: rows of F finish on several threads, and a record sent after a later
+            // one would show the percent going back.
+            self.tx.send_replace(r.clone());
             r.clone()
         };
         if persist && let Err(e) = write_record(jobs_dir, &snapshot) {
             tracing::warn!("job {}: cannot save its record: {e:#}", snapshot.id);
         }
-        self.tx.send_replace(snapshot);
     }
 }
 
