@@ -32,14 +32,20 @@ pub struct SceneRef<'a> {
 }
 
 /// Relights a backend may do whole, where the matrices are: for each set of `lights`
-/// (point, spot and directional lamps, shadowed) the direct light at the patches and at the
-/// vertices, the solve of B = Bₑ + S(E + F B) with the bundle's S and emission, and the
-/// vertex colours by `rows` ([`crate::relight`] hands over only plans that need nothing
-/// else). Several sets are a batch (concurrent requests), which a backend may solve
-/// together.
+/// (point, spot and directional lamps, shadowed, and environment lights through the
+/// bundle's visibility) the direct light at the patches and at the vertices, the solve of
+/// B = Bₑ + S(E + F B) with the bundle's S and emission, and the vertex colours by `rows`
+/// ([`crate::relight`] hands over only plans that need nothing else). Several sets are a
+/// batch (concurrent requests), which a backend may solve together.
 #[derive(Debug, Clone, Copy)]
 pub struct DeviceRelight<'a> {
     pub lights: &'a [&'a [Light]],
+    /// Per set of lights, its environments' radiance per direction bin of the bundle's
+    /// visibility, Σ scale · L̄_k ([`crate::environment::bin_radiance_total`]); `None`
+    /// without an environment light. The environment's E at patch i is Σ_k V_ik L̄_k, and
+    /// the colour stage leaves it out of ρE at opaque vertices (it is part of the patches'
+    /// smooth light there, as [`crate::vertexlight`]'s `at_patch` has it).
+    pub environment: &'a [Option<Vec<Rgb>>],
     pub params: &'a SolveParams,
     /// The direct light of diffuse objects is left to a picture per pixel
     /// (`direct_at: pixel`): their opaque vertices leave it out, and each answer carries

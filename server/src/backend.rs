@@ -23,8 +23,9 @@
 //! vectors of the solve; bind groups and staging buffers made once and reused; T on the first
 //! relight that uses it). A scene that does not fit — a row larger than one binding, the
 //! device refusing memory, or more than the budget (`--gpu-memory-mib`) — is served from
-//! the CPU, with a warning in the log and its reason in `/healthz`. Direct lighting (shadow
-//! rays) stays on the CPU. A translucency change's S is written in place on the CPU, and
+//! the CPU, with a warning in the log and its reason in `/healthz`. The direct light (lamps
+//! and environments) runs on the device in a whole relight ([`crate::gpu::relight`]); for
+//! the other relights it stays on the CPU. A translucency change's S is written in place on the CPU, and
 //! the solves with it run there, warm from the last answer's kept products: uploading S
 //! anew for every change cost more than the solve (`docs/gpu.md`).
 
@@ -572,7 +573,14 @@ impl translux_engine::backend::Backend for Backend {
         let ctx = self.inner.gpu.as_ref()?;
         let g = self.scene(scene)?;
         let whole = g.whole(ctx, scene, job.rows)?;
-        match whole.relight(ctx, &g.base, job.lights, job.params, job.pixel) {
+        if job.environment.iter().any(Option::is_some)
+            && let Err(why) = whole.environment(ctx, scene.bundle)
+        {
+            tracing::debug!(scene = %scene.id, "environment relights on the CPU: {why}");
+            return None;
+        }
+        let lights = (job.lights, job.environment);
+        match whole.relight(ctx, &g.base, lights, job.params, job.pixel) {
             Ok(answers) => Some(
                 answers
                     .into_iter()

@@ -5,9 +5,12 @@
 //!
 //! A plan qualifies when it needs nothing the backend's relight leaves out: the bundle's
 //! materials (no translucency change), the `full` components, point, spot and directional
-//! lamps (no environment), no lamp walks, no simulated objects (their collimated entry),
-//! and the iterative path (not the bundle's T); the direct light at the vertices or per
-//! pixel. Every other plan, and every plan the backend declines, runs the stages.
+//! lamps and environment lights (these where the bundle holds their visibility: the host
+//! hands over each bin's radiance, [`crate::environment::bin_radiance_total`], and the
+//! backend adds Σ_k V_ik L̄_k to E), no lamp walks, no simulated objects (their collimated
+//! entry), and the iterative path (not the bundle's T); the direct light at the vertices or
+//! per pixel. Every other plan, every plan whose maps fail to load (the stages answer the
+//! error), and every plan the backend declines, runs the stages.
 
 use std::time::Instant;
 
@@ -65,22 +68,43 @@ fn batch(
         tolerance: plans[group[0]].tolerance,
         ..solve_params()
     };
-    let lights: Vec<&[Light]> = group.iter().map(|&i| plans[i].lights.as_slice()).collect();
+    // The environments' radiance per bin (maps through the scene's cache); a plan whose
+    // map fails is left to the stages, which answer the error.
+    let mut out: Vec<Option<Result<RelightOutput, EngineError>>> =
+        group.iter().map(|_| None).collect();
+    let mut kept = Vec::with_capacity(group.len());
+    let mut environment = Vec::with_capacity(group.len());
+    for (slot, &i) in group.iter().enumerate() {
+        match crate::environment::bin_radiance_total(&scene.env(), &plans[i].lights) {
+            Ok(total) => {
+                kept.push(slot);
+                environment.push(total);
+            }
+            Err(e) => tracing::debug!(scene = %scene.id, "relight through the stages: {e}"),
+        }
+    }
+    if kept.is_empty() {
+        return out;
+    }
+    let lights: Vec<&[Light]> = kept
+        .iter()
+        .map(|&s| plans[group[s]].lights.as_slice())
+        .collect();
     let job = DeviceRelight {
         lights: &lights,
+        environment: &environment,
         params: &params,
         pixel: plans[group[0]].direct_at == DirectAt::Pixel,
         rows: scene.vertex_rows(),
     };
     let Some(answers) = scene.backend().relight(scene.view(), &job) else {
-        return group.iter().map(|_| None).collect();
+        return out;
     };
     let ms = t0.elapsed().as_secs_f64() * 1e3;
-    group
-        .iter()
-        .zip(answers)
-        .map(|(&i, answer)| Some(output(&plans[i], answer, ms, group.len())))
-        .collect()
+    for (&s, answer) in kept.iter().zip(answers) {
+        out[s] = Some(output(&plans[group[s]], answer, ms, kept.len()));
+    }
+    out
 }
 
 /// Whether the plan needs nothing beyond what a backend's whole relight does; else what
@@ -98,12 +122,13 @@ fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
         "components other than full"
     } else if plan.lamp_walks.is_some() {
         "lamp walks"
-    } else if plan
-        .lights
-        .iter()
-        .any(|l| matches!(l, Light::Environment { .. }))
+    } else if scene.bundle.environment_visibility().is_none()
+        && plan
+            .lights
+            .iter()
+            .any(|l| matches!(l, Light::Environment { .. }))
     {
-        "an environment light (its visibility is stored per patch)"
+        "an environment light without the bundle's visibility"
     } else if simulated {
         "simulated objects (their collimated entry)"
     } else if plan.solver == Solver::Inverse || super::prepare::path(scene, plan).0 {

@@ -5,8 +5,9 @@
 //! pipeline of stages, each a function of its own:
 //!
 //! 0. *The whole relight on the backend* (`device::relight`): a plan that needs only the
-//!    bundle's materials, lamps and the solve goes to the scene's backend whole (the GPU:
-//!    direct light, solve and vertex colours in one submission) and skips the rest.
+//!    bundle's materials, lamps, environments and the solve goes to the scene's backend
+//!    whole (the GPU: direct light, solve and vertex colours in one submission) and skips
+//!    the rest.
 //! 1. *Direct light* per plan (`prepare::prepare`): E per patch from the lights, shadowed,
 //!    the direct light at the vertices of opaque surfaces ([`crate::vertexlight`]), the
 //!    lamps' collimated entry into simulated objects ([`crate::collimated`]) and their walked

@@ -235,13 +235,14 @@ pub fn reduce_stop(partial: &[f32], kv: usize, tol2: f32, state: &mut ReduceStat
 }
 
 /// Twin of `vertex_colours.wgsl`: one vertex at a time, in f32, from `rows`
-/// ([`translux_engine::vertexrows::VertexRows`]), B (`x`) and E (`e`) per patch and E at
-/// each vertex's sample point (`ev`); with `pixel` the diffuse objects' vertices without
-/// their direct term. Answers the colours and the luminance of the whole answer.
+/// ([`translux_engine::vertexrows::VertexRows`]), B (`x`), E (`e`) and its environment
+/// part (`e_env`, taken out of E at opaque vertices) per patch and E at each vertex's
+/// sample point (`ev`); with `pixel` the diffuse objects' vertices without their direct
+/// term. Answers the colours and the luminance of the whole answer.
 pub fn vertex_colours(
     rows: &translux_engine::vertexrows::VertexRows,
     x: &[Rgb],
-    e: &[Rgb],
+    (e, e_env): (&[Rgb], &[Rgb]),
     ev: &[Rgb],
     pixel: bool,
 ) -> (Vec<Rgb>, Vec<f32>) {
@@ -264,7 +265,8 @@ pub fn vertex_colours(
             let (mut sum, mut lo, mut hi) = ([0.0f32; 3], [0.0f32; 3], [0.0f32; 3]);
             for (i, (&k, &w)) in entries.enumerate() {
                 let k = k as usize;
-                let r: Rgb = std::array::from_fn(|c| x[k][c] - rows.albedo[k][c] * e[k][c]);
+                let r: Rgb =
+                    std::array::from_fn(|c| x[k][c] - rows.albedo[k][c] * (e[k][c] - e_env[k][c]));
                 for c in 0..3 {
                     sum[c] += w * r[c];
                     (lo[c], hi[c]) = if i == 0 {
@@ -292,6 +294,48 @@ pub fn vertex_colours(
             (value, lum(whole))
         })
         .unzip()
+}
+
+/// Twin of `env_irradiance.wgsl`: for each relight r with an environment (`radiance[r]`,
+/// its L̄ per bin) and each patch i, E_env = Σ_k V_ik L̄_k in bin order in one f32
+/// accumulator, from `words` (V packed as [`super::environment::GpuVisibility::pack`]
+/// lays it out: two half floats a word, ⌈bins/2⌉ words a patch), added to `e` (relight
+/// after relight, n each). Answers E_env (0 for relights without an environment).
+pub fn env_irradiance(
+    words: &[u32],
+    bins: usize,
+    radiance: &[Option<Vec<Rgb>>],
+    e: &mut [Rgb],
+) -> Vec<Rgb> {
+    let per = bins.div_ceil(2);
+    let n = words.len().checked_div(per).unwrap_or(0);
+    let half = |bits: u32| half::f16::from_bits(bits as u16).to_f32();
+    let mut env = vec![[0.0f32; 3]; e.len()];
+    for (r, l) in radiance.iter().enumerate() {
+        let Some(l) = l else { continue };
+        for i in 0..n {
+            let mut acc = [0.0f32; 3];
+            for w in 0..per {
+                let word = words[i * per + w];
+                let k = 2 * w;
+                let (lo, hi) = (half(word & 0xffff), half(word >> 16));
+                for c in 0..3 {
+                    acc[c] += lo * l[k][c];
+                }
+                if k + 1 < bins {
+                    for c in 0..3 {
+                        acc[c] += hi * l[k + 1][c];
+                    }
+                }
+            }
+            let o = r * n + i;
+            env[o] = acc;
+            for c in 0..3 {
+                e[o][c] += acc[c];
+            }
+        }
+    }
+    env
 }
 
 /// Twin of `bvh_traverse.wgsl`'s `slab`: the ray's interval inside the box, clipped to

@@ -15,6 +15,7 @@ pub const BVH_TRAVERSE: &str = include_str!("kernels/bvh_traverse.wgsl");
 pub const SHADOW_RAYS: &str = include_str!("kernels/shadow_rays.wgsl");
 pub const DIRECT_LIGHT: &str = include_str!("kernels/direct_light.wgsl");
 pub const VERTEX_COLOURS: &str = include_str!("kernels/vertex_colours.wgsl");
+pub const ENV_IRRADIANCE: &str = include_str!("kernels/env_irradiance.wgsl");
 
 /// Relights one batched device solve carries (`KV` of the batch's `csr_spmv_rgb`; at most
 /// its `KMAX`).
@@ -134,6 +135,7 @@ pub struct Kernels {
     pub(crate) shadow: Kernel,
     pub(crate) direct: Kernel,
     pub(crate) colours: Kernel,
+    pub(crate) env: Kernel,
     pub(crate) spmv_scalar: wgpu::ComputePipeline,
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
     /// The same for [`BATCH`] vectors at once.
@@ -144,6 +146,7 @@ pub struct Kernels {
     pub(crate) shadow_rays: wgpu::ComputePipeline,
     pub(crate) direct_light: wgpu::ComputePipeline,
     pub(crate) vertex_colours: wgpu::ComputePipeline,
+    pub(crate) env_irradiance: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -179,7 +182,13 @@ impl Kernels {
             device,
             "vertex_colours",
             VERTEX_COLOURS,
-            &[Read, Read, Read, Read, Read, Read, Read, ReadWrite],
+            &[Read, Read, Read, Read, Read, Read, Read, Read, ReadWrite],
+        );
+        let env = Kernel::new(
+            device,
+            "env_irradiance",
+            ENV_IRRADIANCE,
+            &[Read, Read, ReadWrite, ReadWrite],
         );
         // Bindings 1 and 2 (nodes, triangles) are the traversal's, declared in BVH_TRAVERSE.
         let shadow = Kernel::new(
@@ -204,6 +213,7 @@ impl Kernels {
             shadow_rays: shadow.pipeline(device, &[]),
             direct_light: direct.pipeline(device, &[]),
             vertex_colours: colours.pipeline(device, &[]),
+            env_irradiance: env.pipeline(device, &[]),
             spmv,
             dense,
             jacobi,
@@ -211,6 +221,7 @@ impl Kernels {
             shadow,
             direct,
             colours,
+            env,
             dense_variants: Mutex::new(HashMap::new()),
         }
     }

@@ -1,8 +1,9 @@
 //! The wgpu compute backend: the relight's matrix work on a GPU, and whole relights.
 //!
 //! In: a bundle's sparse F and S (CSR, [`translux_proto::csr`]), a dense transfer matrix T
-//! when one is given, the occluder triangles and the colour rows, and per request the
-//! direct irradiance E and emission Bₑ, or the lamps of one relight or a batch. Out: the
+//! when one is given, the occluder triangles, the colour rows and the environment
+//! visibility, and per request the direct irradiance E and emission Bₑ, or the lamps and
+//! environments' bin radiance of one relight or a batch. Out: the
 //! radiosity B = Bₑ + S(E + F B) from a Jacobi solve that runs on the device, the vertex
 //! colours of whole relights ([`relight`]), or the products T X for a batch of up to 64
 //! right-hand sides in one pass over T.
@@ -15,7 +16,8 @@
 //! | `reduce_sum` | appends each system's Σ of the partials to a residual history; stops the iterations once all meet the tolerance | `reduce_sum`, `reduce_stop` |
 //! | `shadow_rays` | one occluded flag per ray, any-hit walk of the occluder BVH | same name |
 //! | `direct_light` | shadowed direct irradiance E per surface point (point, spot, directional) | same name |
-//! | `vertex_colours` | B/π per vertex from B, E, ρ and E at the vertex (`translux_engine::vertexrows`) | same name |
+//! | `env_irradiance` | an environment's E_i = Σ_k V_ik L̄_k from the bundle's f16 visibility, added to E | same name |
+//! | `vertex_colours` | B/π per vertex from B, E (less its environment part), ρ and E at the vertex (`translux_engine::vertexrows`) | same name |
 //!
 //! `shadow_rays` and `direct_light` share one traversal source, `bvh_traverse.wgsl`, put in
 //! front of each at compile time.
@@ -25,12 +27,13 @@
 //! binding (the adapter's real limit, or a smaller forced one for tests); [`system`] holds one
 //! scene's buffers and bind groups, built once and reused by every request (one set of
 //! vectors per solve, one more for batches); [`direct`] holds the occluder BVH on the device
-//! and the direct-light dispatch; [`relight`] puts direct light, solve and colours in one
-//! submission. A solve is one submission and one read-back (the counter, the residual
+//! and the direct-light dispatch; [`environment`] the visibility and the environments'
+//! pass; [`relight`] puts direct light, solve and colours in one submission. A solve is one submission and one read-back (the counter, the residual
 //! history and the answer); the stopping rule runs on the device ([`system`]).
 
 pub mod cpu_twin;
 pub mod direct;
+pub mod environment;
 pub mod kernels;
 pub mod matrix;
 pub mod relight;

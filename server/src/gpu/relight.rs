@@ -3,27 +3,30 @@
 //! In: a scene's [`GpuSystem`] (F, S and the solve), its bundle (the occluder triangles,
 //! patch centroids and normals, emission) and the colour stage as rows
 //! ([`translux_engine::vertexrows::VertexRows`]), uploaded once by [`DeviceRelight::new`];
-//! per request the point, spot and directional lamps of one relight or of a batch, and the
-//! solve's tolerance. Out: B/π per viewer vertex for each relight, as the engine's colour
-//! stage makes it, with what crossed the bus.
+//! per request the point, spot and directional lamps of one relight or of a batch, each
+//! one's environments as the radiance per direction bin (the visibility uploaded on the
+//! first, [`super::environment`]), and the solve's tolerance. Out: B/π per viewer vertex
+//! for each relight, as the engine's colour stage makes it, with what crossed the bus.
 //!
 //! One command buffer records, in order (the system's one-submission solve, [`super::system`]):
 //!
 //! ```text
 //!   direct_light at the patch centroids → E          (the occluder's BVH, [`super::direct`])
 //!   direct_light at the vertices' sample points → E(v)
+//!   env_irradiance: E += E_env = V L̄ per relight      (with an environment)
 //!   Bₑ copied from the scene's emission; b = Bₑ + S E; the Jacobi iterations, stopped on
 //!   the device; x starts from the last answer the device holds
-//!   vertex_colours from B, E, ρ and E(v) → colours
+//!   vertex_colours from B, E − E_env, ρ and E(v) → colours
 //!   copy the counter, the residual history and the colours to staging
 //! ```
 //!
 //! A batch of relights (the worker pool's concurrent requests for one scene) runs
 //! [`BATCH`] at a time in one such submission: each has its own direct light, and the
 //! iterations read F and S once for all of them (`csr_spmv_rgb` with KV vectors); the solve
-//! stops when every one has met the tolerance. The host writes only the lights and a few
-//! parameters, and reads back the colours (12 bytes a vertex and relight) with the counter
-//! and the history of the iterations recorded.
+//! stops when every one has met the tolerance. The host writes only the lights, a few
+//! parameters and an environment's bin radiance where it changed, and reads back the
+//! colours (12 bytes a vertex and relight) with the counter and the history of the
+//! iterations recorded.
 
 use std::sync::OnceLock;
 
@@ -33,6 +36,7 @@ use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 
 use super::direct::{DirectParams, DirectPass, GpuLight, GpuLights, GpuOccluder, SurfacePoints};
+use super::environment::{EnvPass, GpuVisibility};
 use super::kernels::BATCH;
 use super::matrix::{BoundOp, alloc_size, staging, storage_init, storage_zeroed, uniform};
 use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes, Out};
@@ -94,14 +98,14 @@ impl ColourRows {
             + alloc_size(12 * rows.albedo.len() as u64)
     }
 
-    /// The `vertex_colours` dispatch for `kv` relights: B from `x`, E from `e`, E(v) from
-    /// `ev`, colours into `out` (each relight's vector after the last's; with `pixel` the
-    /// luminances after all the colours).
+    /// The `vertex_colours` dispatch for `kv` relights: B from `x`, E from `e` less its
+    /// environment part `e_env`, E(v) from `ev`, colours into `out` (each relight's vector
+    /// after the last's; with `pixel` the luminances after all the colours).
     fn bind(
         &self,
         ctx: &GpuContext,
         (kv, pixel): (u32, bool),
-        (x, e, ev): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        (x, e, e_env, ev): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
         out: &wgpu::Buffer,
     ) -> BoundOp {
         let gpv = (self.nv as u32).div_ceil(256);
@@ -131,6 +135,7 @@ impl ColourRows {
                 &self.albedo,
                 x,
                 e,
+                e_env,
                 ev,
                 out,
             ],
@@ -140,7 +145,8 @@ impl ColourRows {
 }
 
 /// The per-lane part of the whole relight: for each of the lane's relights a direct pass
-/// at the patches and one at the vertices, E(v), the colours and their staging.
+/// at the patches and one at the vertices, E(v), the environments' part of E, the colours
+/// and their staging.
 #[derive(Debug)]
 struct Lane {
     kv: usize,
@@ -151,6 +157,12 @@ struct Lane {
     e_parts: Vec<wgpu::Buffer>,
     ev_parts: Vec<wgpu::Buffer>,
     ev: wgpu::Buffer,
+    /// E_env: the environments' part of E, relight after relight (0 until the lane's first
+    /// environment).
+    e_env: wgpu::Buffer,
+    /// The `env_irradiance` pass, made on the lane's first relight with an environment
+    /// (`Err`: it did not fit).
+    env: OnceLock<Result<EnvPass, String>>,
     /// The colours with the direct light at the vertices, and with it per pixel.
     colours: [BoundOp; 2],
     /// Each relight's colours, then (per pixel) each one's luminances.
@@ -168,7 +180,11 @@ impl Lane {
             0
         };
         let lights = 2 * kv * alloc_size((MAX_LIGHTS * std::mem::size_of::<GpuLight>()) as u64);
-        parts + lights + alloc_size(12 * nv * kv) + 2 * alloc_size(head + 16 * nv * kv)
+        parts
+            + lights
+            + alloc_size(12 * nv * kv)
+            + alloc_size(12 * n * kv)
+            + 2 * alloc_size(head + 16 * nv * kv)
     }
 
     /// Binds a lane over `lanes` (the system's vectors for as many relights).
@@ -183,6 +199,7 @@ impl Lane {
         ctx.reserve("relight lane", bytes)?;
         ctx.scoped(|| {
             let ev = storage_zeroed(ctx, "E(v)", 12 * (nv * kv) as u64);
+            let e_env = storage_zeroed(ctx, "E_env", 12 * (n * kv) as u64);
             let (e_parts, ev_parts) = if kv > 1 {
                 (
                     (0..kv).map(|_| DirectPass::output_buffer(ctx, n)).collect(),
@@ -212,7 +229,7 @@ impl Lane {
                 )?);
             }
             let out = storage_zeroed(ctx, "colours", 16 * (nv * kv) as u64);
-            let inputs = (lanes.x_buffer(), lanes.e_buffer(), &ev);
+            let inputs = (lanes.x_buffer(), lanes.e_buffer(), &e_env, &ev);
             let colours =
                 [false, true].map(|pixel| scene.rows.bind(ctx, (kv as u32, pixel), inputs, &out));
             let read = staging(
@@ -227,6 +244,8 @@ impl Lane {
                 e_parts,
                 ev_parts,
                 ev,
+                e_env,
+                env: OnceLock::new(),
                 colours,
                 out,
                 read,
@@ -236,9 +255,41 @@ impl Lane {
         .inspect_err(|_| ctx.release(bytes))
     }
 
+    /// GPU bytes held, its environment pass included.
+    fn held(&self) -> u64 {
+        self.bytes
+            + match self.env.get() {
+                Some(Ok(p)) => p.bytes(),
+                _ => 0,
+            }
+    }
+
+    /// The lane's environment pass over `vis`, made on first use.
+    fn env_pass(
+        &self,
+        ctx: &GpuContext,
+        lanes: &Lanes,
+        vis: &GpuVisibility,
+    ) -> Result<&EnvPass, GpuError> {
+        self.env
+            .get_or_init(|| {
+                EnvPass::new(ctx, vis, self.kv, lanes.e_buffer(), &self.e_env)
+                    .map_err(|e| e.to_string())
+            })
+            .as_ref()
+            .map_err(|e| GpuError::Invalid(format!("the environment pass: {e}")))
+    }
+
     /// Records the direct light of every relight of the lane, and for a batch the copies of
-    /// each one's E and E(v) into the lane's vectors.
-    fn record_direct(&self, enc: &mut wgpu::CommandEncoder, lanes: &Lanes, n: usize, nv: usize) {
+    /// each one's E and E(v) into the lane's vectors; then, with `env`, the environments'
+    /// E added to E.
+    fn record_direct(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        lanes: &Lanes,
+        (n, nv): (usize, usize),
+        env: Option<&EnvPass>,
+    ) {
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
             for (p, v) in self.at_patches.iter().zip(&self.at_vertices) {
@@ -255,6 +306,12 @@ impl Lane {
             if evb > 0 {
                 enc.copy_buffer_to_buffer(ev, 0, &self.ev, r * evb, evb);
             }
+        }
+        if let Some(env) = env
+            && n > 0
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            env.encode(&mut pass);
         }
     }
 }
@@ -277,6 +334,10 @@ pub struct DeviceRelight {
     /// did not fit, and batches run one relight at a time).
     one: Lane,
     batch: OnceLock<Result<Lane, String>>,
+    /// The bundle's environment visibility, uploaded on the first relight with an
+    /// environment ([`DeviceRelight::environment`]; `Err`: the bundle has none, or it did
+    /// not fit).
+    visibility: OnceLock<Result<GpuVisibility, String>>,
     nv: usize,
     unit_mm: f64,
     /// Bytes of the emission and the colour rows.
@@ -349,6 +410,7 @@ impl DeviceRelight {
                 emission,
                 one,
                 batch: OnceLock::new(),
+                visibility: OnceLock::new(),
                 nv: rows.len(),
                 unit_mm: bundle.manifest().unit_mm,
                 own_bytes,
@@ -364,15 +426,53 @@ impl DeviceRelight {
     /// GPU bytes held.
     pub fn bytes(&self) -> u64 {
         let batch = match self.batch.get() {
-            Some(Ok(l)) => l.bytes,
+            Some(Ok(l)) => l.held(),
+            _ => 0,
+        };
+        let vis = match self.visibility.get() {
+            Some(Ok(v)) => v.bytes(),
             _ => 0,
         };
         self.scene.occluder.bytes()
             + self.scene.patches.bytes()
             + self.scene.vertices.bytes()
             + self.own_bytes
-            + self.one.bytes
+            + self.one.held()
             + batch
+            + vis
+    }
+
+    /// Makes environment relights possible: uploads `bundle`'s environment visibility on
+    /// the first call (the bundle this was made with); `Err` says why they cannot run here
+    /// (no visibility in the bundle, or it does not fit), and is kept.
+    pub fn environment(&self, ctx: &GpuContext, bundle: &Bundle) -> Result<(), String> {
+        self.visibility
+            .get_or_init(|| {
+                let Some(vis) = bundle.environment_visibility() else {
+                    return Err("the bundle holds no environment visibility".into());
+                };
+                if vis.bins() == 0 || vis.bits.len() != vis.bins() * self.scene.rows.n {
+                    return Err(format!(
+                        "the environment visibility holds {} values, not {} patches × {} bins",
+                        vis.bits.len(),
+                        self.scene.rows.n,
+                        vis.bins()
+                    ));
+                }
+                let up = GpuVisibility::upload(ctx, vis).map_err(|e| e.to_string());
+                match &up {
+                    Ok(v) => tracing::info!(
+                        "environment visibility on the GPU: {} bins, {} KiB",
+                        v.bins(),
+                        v.bytes() >> 10
+                    ),
+                    Err(e) => tracing::warn!("environment lights stay on the CPU: {e}"),
+                }
+                up
+            })
+            .as_ref()
+            .map(|_| ())
+            .map_err(Clone::clone)
     }
 
     /// Returns the bytes to the context's budget; call when dropping it.
@@ -382,26 +482,44 @@ impl DeviceRelight {
         ctx.release(bytes);
     }
 
-    /// The relights of `lights` (one set of point, spot and directional lamps per relight;
-    /// environment lights are refused) on `system`, the system this was made with: B/π per
-    /// vertex and the solve's stats with what crossed the bus, per relight. One relight
-    /// runs alone; several run [`BATCH`] at a time where the batch's vectors fit (else one
-    /// by one). Each solve starts from the last answer the device holds.
+    /// The relights of `lights` (one set of point, spot and directional lamps per relight,
+    /// their environment lights given instead as `environment`: per relight the bins' total
+    /// radiance L̄, or `None`) on `system`, the system this was made with: B/π per vertex
+    /// and the solve's stats with what crossed the bus, per relight. One relight runs
+    /// alone; several run [`BATCH`] at a time where the batch's vectors fit (else one by
+    /// one). Each solve starts from the last answer the device holds. A relight with an
+    /// environment needs [`DeviceRelight::environment`] to have succeeded first.
     pub fn relight(
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
-        lights: &[&[Light]],
+        (lights, environment): (&[&[Light]], &[Option<Vec<Rgb>>]),
         params: &SolveParams,
         pixel: bool,
     ) -> Result<Vec<Answer>, GpuError> {
-        if lights
-            .iter()
-            .any(|set| set.iter().any(|l| matches!(l, Light::Environment { .. })))
-        {
-            return Err(GpuError::Invalid(
-                "environment lights are lit on the CPU, not in a device relight".into(),
-            ));
+        if environment.len() != lights.len() {
+            return Err(GpuError::Invalid(format!(
+                "{} sets of lights but {} environments",
+                lights.len(),
+                environment.len()
+            )));
+        }
+        let env: Vec<Option<&[Rgb]>> = environment.iter().map(|l| l.as_deref()).collect();
+        if env.iter().any(Option::is_some) {
+            match self.visibility.get() {
+                Some(Ok(v)) if env.iter().flatten().all(|l| l.len() == v.bins()) => {}
+                Some(Ok(v)) => {
+                    return Err(GpuError::Invalid(format!(
+                        "an environment's radiance must have one value per bin ({})",
+                        v.bins()
+                    )));
+                }
+                _ => {
+                    return Err(GpuError::Invalid(
+                        "environment lights without the visibility on the device".into(),
+                    ));
+                }
+            }
         }
         let batch = if lights.len() > 1 {
             self.batch_lane(ctx, system)
@@ -409,19 +527,13 @@ impl DeviceRelight {
             None
         };
         let mut answers = Vec::with_capacity(lights.len());
-        match batch {
-            Some(lane) => {
-                for chunk in lights.chunks(BATCH as usize) {
-                    answers.extend(self.run_lane(ctx, system, lane, chunk, params, pixel)?);
-                }
-            }
-            None => {
-                for set in lights {
-                    let one = std::slice::from_ref(set);
-                    let lane = (&self.one, system.one());
-                    answers.extend(self.run_lane(ctx, system, lane, one, params, pixel)?);
-                }
-            }
+        let per = match batch {
+            Some(_) => BATCH as usize,
+            None => 1,
+        };
+        let lane = batch.unwrap_or((&self.one, system.one()));
+        for (chunk, env) in lights.chunks(per).zip(env.chunks(per)) {
+            answers.extend(self.run_lane(ctx, system, lane, (chunk, env), params, pixel)?);
         }
         Ok(answers)
     }
@@ -442,14 +554,15 @@ impl DeviceRelight {
         lane.as_ref().ok().map(|l| (l, lanes))
     }
 
-    /// One submission's relights (at most the lane's): their lights written (lanes past
-    /// them get none), the solve run, each one's colours and its share of the bytes.
+    /// One submission's relights (at most the lane's): their lights and environments'
+    /// radiance written (lanes past them get none), the solve run, each one's colours and
+    /// its share of the bytes.
     fn run_lane(
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
         (lane, lanes): (&Lane, &Lanes),
-        lights: &[&[Light]],
+        (lights, env): (&[&[Light]], &[Option<&[Rgb]>]),
         params: &SolveParams,
         pixel: bool,
     ) -> Result<Vec<Answer>, GpuError> {
@@ -464,8 +577,22 @@ impl DeviceRelight {
                 * (std::mem::size_of_val(lamps.lights.as_slice())
                     + std::mem::size_of::<DirectParams>()) as u64;
         }
+        // The environments: the lane's pass is made on its first one; once made it runs
+        // while any relight has one, and once more after to clear E_env.
+        let env_pass = match self.visibility.get() {
+            Some(Ok(vis)) if env.iter().any(Option::is_some) => {
+                Some(lane.env_pass(ctx, lanes, vis)?)
+            }
+            _ => lane.env.get().and_then(|p| p.as_ref().ok()),
+        };
+        let env_pass = env_pass.and_then(|p| {
+            let (up, run) = p.write(ctx, env);
+            lights_up += up;
+            run.then_some(p)
+        });
         let (n, nv) = (system.n(), self.nv);
-        let before = |enc: &mut wgpu::CommandEncoder| lane.record_direct(enc, lanes, n, nv);
+        let before =
+            |enc: &mut wgpu::CommandEncoder| lane.record_direct(enc, lanes, (n, nv), env_pass);
         let after = |pass: &mut wgpu::ComputePass<'_>| lane.colours[pixel as usize].encode(pass);
         // Only the lanes that carry a relight are read back: their colours, and per pixel
         // their luminances.
@@ -532,21 +659,24 @@ pub struct Answer {
     pub stats: GpuSolveStats,
 }
 
-/// One `vertex_colours` dispatch on uploaded inputs: B (`x`) and E (`e`) per patch, E at
-/// each vertex (`ev`), the direct light per pixel or not: the colours, and with `pixel` the
-/// luminances (what the tests hold to [`super::cpu_twin::vertex_colours`]).
+/// One `vertex_colours` dispatch on uploaded inputs: B (`x`), E (`e`) and its
+/// environment part (`e_env`) per patch, E at each vertex (`ev`), the direct light per
+/// pixel or not: the colours, and with `pixel` the luminances (what the tests hold to
+/// [`super::cpu_twin::vertex_colours`]).
 pub fn vertex_colours_once(
     ctx: &GpuContext,
     rows: &VertexRows,
-    (x, e, ev): (&[Rgb], &[Rgb], &[Rgb]),
+    (x, e, e_env, ev): (&[Rgb], &[Rgb], &[Rgb], &[Rgb]),
     pixel: bool,
 ) -> Result<(Vec<Rgb>, Vec<f32>), GpuError> {
     let (n, nv) = (rows.albedo.len(), rows.len());
-    if x.len() != n || e.len() != n || ev.len() != nv {
+    if x.len() != n || e.len() != n || e_env.len() != n || ev.len() != nv {
         return Err(GpuError::Invalid(format!(
-            "x has {}, e {} and ev {} entries; the rows span {n} patches and {nv} vertices",
+            "x has {}, e {}, e_env {} and ev {} entries; the rows span {n} patches and {nv} \
+             vertices",
             x.len(),
             e.len(),
+            e_env.len(),
             ev.len()
         )));
     }
@@ -554,10 +684,11 @@ pub fn vertex_colours_once(
         let dev_rows = ColourRows::upload(ctx, rows);
         let xb = storage_init(ctx, "x", bytemuck::cast_slice(x));
         let eb = storage_init(ctx, "e", bytemuck::cast_slice(e));
+        let envb = storage_init(ctx, "e-env", bytemuck::cast_slice(e_env));
         let evb = storage_init(ctx, "ev", bytemuck::cast_slice(ev));
         let bytes = alloc_size(16 * nv as u64);
         let out = storage_zeroed(ctx, "colours", bytes);
-        let op = dev_rows.bind(ctx, (1, pixel), (&xb, &eb, &evb), &out);
+        let op = dev_rows.bind(ctx, (1, pixel), (&xb, &eb, &envb, &evb), &out);
         let read = staging(ctx, "colours-read", bytes);
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         {

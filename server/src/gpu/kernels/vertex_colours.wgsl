@@ -2,14 +2,18 @@
 // (translux_engine::vertexrows), one thread per vertex:
 //
 //   mean vertex (own.w = 0):   L = Σ_k w_k B_k                 (w = a_k / (π Σ a))
-//   opaque vertex (own.w = 1): c = Σ_k w_k (B_k − ρ_k E_k), clamped to its terms' spread
+//   opaque vertex (own.w = 1): c = Σ_k w_k (B_k − ρ_k E'_k), clamped to its terms' spread
 //                              widened by `overshoot` on each side;
 //                              L = max(0, (c + ρ̄ E(v)) / π),   ρ̄ = own.xyz
 //   a diffuse object's (own.w = 2): the same, without ρ̄ E(v) when `pixel` is set; the
 //                              luminance of the whole L is written beside the colours
 //
-// A batch of kv relights lies vector after vector: relight r's B and E at r · n, its E(v)
-// and colours at r · nv; each has gpv workgroups. CPU twin: `cpu_twin::vertex_colours`.
+// E' = E − E_env: the lamps' part of E. E(v) holds the lamps alone, so the environment's
+// direct light stays in the patches' smooth part c (the engine's `at_patch`); E_env is 0
+// for relights without an environment (`env_irradiance` writes it).
+//
+// A batch of kv relights lies vector after vector: relight r's B, E and E_env at r · n, its
+// E(v) and colours at r · nv; each has gpv workgroups. CPU twin: `cpu_twin::vertex_colours`.
 
 const WG: u32 = 256u;
 
@@ -35,8 +39,9 @@ struct Params {
 @group(0) @binding(4) var<storage, read> albedo: array<f32>;
 @group(0) @binding(5) var<storage, read> x: array<f32>;
 @group(0) @binding(6) var<storage, read> e: array<f32>;
-@group(0) @binding(7) var<storage, read> ev: array<f32>;
-@group(0) @binding(8) var<storage, read_write> out: array<f32>;
+@group(0) @binding(7) var<storage, read> e_env: array<f32>;
+@group(0) @binding(8) var<storage, read> ev: array<f32>;
+@group(0) @binding(9) var<storage, read_write> out: array<f32>;
 
 // B of patch k in the relight whose vectors start at patch `at`.
 fn x_at(at: u32, k: u32) -> vec3<f32> {
@@ -47,7 +52,9 @@ fn x_at(at: u32, k: u32) -> vec3<f32> {
 fn rho_e_at(at: u32, k: u32) -> vec3<f32> {
     let rho = vec3<f32>(albedo[3u * k], albedo[3u * k + 1u], albedo[3u * k + 2u]);
     let o = 3u * (at + k);
-    return rho * vec3<f32>(e[o], e[o + 1u], e[o + 2u]);
+    let env = vec3<f32>(e_env[o], e_env[o + 1u], e_env[o + 2u]);
+    let lamps = vec3<f32>(e[o], e[o + 1u], e[o + 2u]) - env;
+    return rho * lamps;
 }
 
 @compute @workgroup_size(256)
