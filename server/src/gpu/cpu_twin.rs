@@ -180,6 +180,105 @@ pub fn jacobi_update(b: &[Rgb], sfx: &[Rgb], x: &mut [Rgb]) -> Vec<f32> {
         .collect()
 }
 
+/// The stage of `mr_step.wgsl` (its `STAGE` override).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MrStage {
+    /// r ← b + kr − x (kr = S F x); answers Σ |r|² per workgroup.
+    Residual = 0,
+    /// v = kr − r (kr = S F r); answers per workgroup Σ r_c v_c (c = 0, 1, 2) then Σ v_c².
+    Dots = 1,
+    /// x ← x + α r, r ← r + α (kr − r) with α = `alpha[4 q + c]`; answers Σ |r|² of the
+    /// new r per workgroup.
+    Update = 2,
+}
+
+/// Twin of `mr_step.wgsl` at `stage` for one system (q = 0): one patch a thread, each
+/// workgroup's sums by the tree over its 256 patches (three channels at once). Answers the
+/// partials as the kernel writes them (one per workgroup, six for [`MrStage::Dots`]).
+pub fn mr_step(
+    stage: MrStage,
+    b: &[Rgb],
+    kr: &[Rgb],
+    alpha: [f32; 4],
+    x: &mut [Rgb],
+    r: &mut [Rgb],
+) -> Vec<f32> {
+    let n = x.len();
+    let groups = n.div_ceil(WG);
+    let mut out = Vec::new();
+    for g in 0..groups {
+        let mut part_a = vec![[0.0f32; 3]; WG];
+        let mut part_b = vec![[0.0f32; 3]; WG];
+        for li in 0..WG {
+            let i = g * WG + li;
+            if i >= n {
+                continue;
+            }
+            let (a, v2) = (&mut part_a[li], &mut part_b[li]);
+            for c in 0..3 {
+                match stage {
+                    MrStage::Residual => {
+                        let rc = b[i][c] + kr[i][c] - x[i][c];
+                        r[i][c] = rc;
+                        a[0] += rc * rc;
+                    }
+                    MrStage::Dots => {
+                        let rc = r[i][c];
+                        let vc = kr[i][c] - rc;
+                        a[c] = rc * vc;
+                        v2[c] = vc * vc;
+                    }
+                    MrStage::Update => {
+                        let s = alpha[c];
+                        let rc = r[i][c];
+                        x[i][c] += s * rc;
+                        let next = rc + s * (kr[i][c] - rc);
+                        r[i][c] = next;
+                        a[0] += next * next;
+                    }
+                }
+            }
+        }
+        let (t, u) = (tree(part_a), tree(part_b));
+        match stage {
+            MrStage::Dots => out.extend(t.into_iter().chain(u)),
+            _ => out.push(t[0]),
+        }
+    }
+    out
+}
+
+/// Twin of `mr_alpha.wgsl`: for each of `kv` systems (their `mr_step` dots partials one
+/// after another, six per workgroup) and channel c, α = clamp(−⟨r, v⟩_c / ⟨v, v⟩_c, 0.1,
+/// 1.9), or 1 where ⟨v, v⟩_c = 0 or the ratio is not finite; thread t summing workgroups
+/// t, t + 256, …, then the tree. Answers four entries a system (the fourth 0).
+pub fn mr_alpha(partial: &[f32], kv: usize) -> Vec<f32> {
+    let count = partial.len() / 6 / kv.max(1);
+    let mut alpha = Vec::with_capacity(4 * kv);
+    for q in 0..kv {
+        let mut rv = vec![[0.0f32; 3]; WG];
+        let mut vv = vec![[0.0f32; 3]; WG];
+        for k in 0..count {
+            let o = 6 * (q * count + k);
+            for c in 0..3 {
+                rv[k % WG][c] += partial[o + c];
+                vv[k % WG][c] += partial[o + 3 + c];
+            }
+        }
+        let (rv, vv) = (tree(rv), tree(vv));
+        for c in 0..3 {
+            let s = -rv[c] / vv[c];
+            alpha.push(if vv[c] > 0.0 && s.abs() < 3.0e38 {
+                s.clamp(0.1, 1.9)
+            } else {
+                1.0
+            });
+        }
+        alpha.push(0.0);
+    }
+    alpha
+}
+
 /// Twin of `reduce_sum.wgsl`: Σ partial, thread t summing entries t, t + 256, …, then the
 /// tree.
 pub fn reduce_sum(partial: &[f32]) -> f32 {

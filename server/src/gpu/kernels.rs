@@ -10,6 +10,8 @@ pub const CSR_SPMV_RGB: &str = include_str!("kernels/csr_spmv_rgb.wgsl");
 pub const DENSE_MATMUL_RGB: &str = include_str!("kernels/dense_matmul_rgb.wgsl");
 pub const JACOBI_UPDATE: &str = include_str!("kernels/jacobi_update.wgsl");
 pub const REDUCE_SUM: &str = include_str!("kernels/reduce_sum.wgsl");
+pub const MR_STEP: &str = include_str!("kernels/mr_step.wgsl");
+pub const MR_ALPHA: &str = include_str!("kernels/mr_alpha.wgsl");
 /// The BVH traversal `shadow_rays` and `direct_light` share, put in front of each source.
 pub const BVH_TRAVERSE: &str = include_str!("kernels/bvh_traverse.wgsl");
 pub const SHADOW_RAYS: &str = include_str!("kernels/shadow_rays.wgsl");
@@ -132,6 +134,8 @@ pub struct Kernels {
     pub(crate) dense: Kernel,
     pub(crate) jacobi: Kernel,
     pub(crate) reduce: Kernel,
+    pub(crate) mr: Kernel,
+    pub(crate) alpha: Kernel,
     pub(crate) shadow: Kernel,
     pub(crate) direct: Kernel,
     pub(crate) colours: Kernel,
@@ -143,6 +147,11 @@ pub struct Kernels {
     pub(crate) spmv_rgb_batch: wgpu::ComputePipeline,
     pub(crate) jacobi_update: wgpu::ComputePipeline,
     pub(crate) reduce_sum: wgpu::ComputePipeline,
+    /// `mr_step` by its `STAGE`: the residual, the dots, the update.
+    pub(crate) mr_residual: wgpu::ComputePipeline,
+    pub(crate) mr_dots: wgpu::ComputePipeline,
+    pub(crate) mr_update: wgpu::ComputePipeline,
+    pub(crate) mr_alpha: wgpu::ComputePipeline,
     pub(crate) shadow_rays: wgpu::ComputePipeline,
     pub(crate) direct_light: wgpu::ComputePipeline,
     pub(crate) vertex_colours: wgpu::ComputePipeline,
@@ -178,6 +187,13 @@ impl Kernels {
             REDUCE_SUM,
             &[Read, ReadWrite, ReadWrite, ReadWrite],
         );
+        let mr = Kernel::new(
+            device,
+            "mr_step",
+            MR_STEP,
+            &[Read, Read, Read, ReadWrite, ReadWrite, ReadWrite],
+        );
+        let alpha = Kernel::new(device, "mr_alpha", MR_ALPHA, &[Read, ReadWrite]);
         let colours = Kernel::new(
             device,
             "vertex_colours",
@@ -210,6 +226,10 @@ impl Kernels {
             spmv_rgb_batch: spmv.pipeline(device, &[("VAL_RGB", 1.0), ("KV", BATCH as f64)]),
             jacobi_update: jacobi.pipeline(device, &[]),
             reduce_sum: reduce.pipeline(device, &[]),
+            mr_residual: mr.pipeline(device, &[("STAGE", 0.0)]),
+            mr_dots: mr.pipeline(device, &[("STAGE", 1.0)]),
+            mr_update: mr.pipeline(device, &[("STAGE", 2.0)]),
+            mr_alpha: alpha.pipeline(device, &[]),
             shadow_rays: shadow.pipeline(device, &[]),
             direct_light: direct.pipeline(device, &[]),
             vertex_colours: colours.pipeline(device, &[]),
@@ -218,6 +238,8 @@ impl Kernels {
             dense,
             jacobi,
             reduce,
+            mr,
+            alpha,
             shadow,
             direct,
             colours,

@@ -4,7 +4,8 @@
 //! when one is given, the occluder triangles, the colour rows and the environment
 //! visibility, and per request the direct irradiance E and emission Bₑ, or the lamps and
 //! environments' bin radiance of one relight or a batch. Out: the
-//! radiosity B = Bₑ + S(E + F B) from a Jacobi solve that runs on the device, the vertex
+//! radiosity B = Bₑ + S(E + F B) from a minimal-residual Jacobi solve that runs on the
+//! device, the vertex
 //! colours of whole relights ([`relight`]), or the products T X for a batch of up to 64
 //! right-hand sides in one pass over T.
 //!
@@ -12,7 +13,9 @@
 //! | --- | --- | --- |
 //! | `csr_spmv_rgb` | y = A x, A CSR with f32 (F) or RGB (S) values, 32 threads a row, for 1 or [`kernels::BATCH`] vectors per read of A | same name |
 //! | `dense_matmul_rgb` | Y = T X, T dense f16/f32 RGB, k ≤ 64 vectors per pass | same name |
-//! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup, for each system of a batch | same name |
+//! | `jacobi_update` | x ← b + S F x, Σ‖r‖² per workgroup, for each system of a batch (the solve's right-hand side b = Bₑ + S E, ‖b‖²) | same name |
+//! | `mr_step` | the minimal-residual step by `STAGE`: r = b + S F x − x; ⟨r, v⟩ and ⟨v, v⟩ per channel and workgroup (v = S F r − r); x ← x + α r, r ← r + α v with Σ‖r‖² | same name |
+//! | `mr_alpha` | α = clamp(−⟨r, v⟩/⟨v, v⟩, 0.1, 1.9) per system and channel from `mr_step`'s partials (one workgroup) | same name |
 //! | `reduce_sum` | appends each system's Σ of the partials to a residual history; stops the iterations once all meet the tolerance | `reduce_sum`, `reduce_stop` |
 //! | `shadow_rays` | one occluded flag per ray, any-hit walk of the occluder BVH | same name |
 //! | `direct_light` | shadowed direct irradiance E per surface point (point, spot, directional) | same name |

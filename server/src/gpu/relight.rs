@@ -14,8 +14,9 @@
 //!   direct_light at the patch centroids → E          (the occluder's BVH, [`super::direct`])
 //!   direct_light at the vertices' sample points → E(v)
 //!   env_irradiance: E += E_env = V L̄ per relight      (with an environment)
-//!   Bₑ copied from the scene's emission; b = Bₑ + S E; the Jacobi iterations, stopped on
-//!   the device; x starts from the last answer the device holds
+//!   Bₑ copied from the scene's emission; b = Bₑ + S E; the Jacobi iterations (minimal-residual
+//!   steps, α on the device), stopped on the device; x starts from the last answer the
+//!   device holds
 //!   vertex_colours from B, E − E_env, ρ and E(v) → colours
 //!   copy the counter, the residual history and the colours to staging
 //! ```

@@ -2,28 +2,42 @@
 //! group made once, so a request writes only what the host holds, runs, and reads back.
 //!
 //! The Jacobi solve of B = b + S F B, b = Bₑ + S E (the CPU's [`radiosity::solve`] with
-//! [`radiosity::Method::Jacobi`], same stopping rule on the relative residual), recorded
-//! into one submission:
+//! [`radiosity::Method::Jacobi`]: the same minimal-residual step, `minimal_residual_step`
+//! in `engine/src/solver.rs`, and the same stopping rule on the relative residual),
+//! recorded into one submission:
 //!
 //! ```text
 //!   [before: E on the device]
 //!   sfx ← S E;  b ← Bₑ + sfx, h[0] = ‖b‖²             (jacobi_update with x = 0)
 //!   x ← b (or the warm start)
+//!   fx ← F x; sfx ← S fx; r ← b + sfx − x; h[1] = ‖r‖²   (mr_step 0, reduce_sum)
 //!   m times, each dispatched indirectly from `args`:
-//!     fx ← F x; sfx ← S fx; r = b + sfx − x, x ← b + sfx; h[k] = ‖r‖²
-//!     (reduce_sum: at the first k with √h[k] / √h[0] ≤ tolerance it zeroes `args`, so
-//!      the iterations after it dispatch nothing)
+//!     fx ← F r; sfx ← S fx                            (one pass over F and S: S F r)
+//!     v = sfx − r: per workgroup ⟨r, v⟩_c, ⟨v, v⟩_c    (mr_step 1)
+//!     α_qc = clamp(−⟨r, v⟩/⟨v, v⟩, 0.1, 1.9), or 1    (mr_alpha, per system and channel)
+//!     x ← x + α r; r ← r + α v; h[k] = ‖r‖²          (mr_step 2, reduce_sum)
+//!     (reduce_sum: at the first k ≥ 1 with √h[k] / √h[0] ≤ tolerance it zeroes `args`,
+//!      so the iterations after it dispatch nothing)
 //!   [after: vertex colours from x]
 //!   copy the counter, the history and the answer to staging; read back once
 //! ```
+//!
+//! r(α) = r + α v is the residual of x + α r for every α (v = S F r − r), so α is the
+//! least-squares step along r, channel by channel, and each step costs one pass over F and
+//! S, as plain Jacobi's (α = 1) did; r is carried from step to step, not recomputed. A
+//! step's α is made and read on the device: no host round trip. Slot k of the history is
+//! the residual of the iterate after pass k (the start's own in slot 1: a start that
+//! already meets the tolerance takes no step), so the answer is the iterate whose
+//! residual met the tolerance; `iterations` counts the steps and `products` the passes
+//! (one more), as the CPU's stats do. x starts at b, as on the CPU: on the Cornell box a
+//! start at 0 (r = b, no first pass) took a pass more.
 //!
 //! m is half as many again as the last solve took (at least 8); a solve that did not
 //! converge in them continues in a further submission, up to the cap. A batch of
 //! [`BATCH`] systems (concurrent relights) solves the same way on a second set of vectors
 //! (`Lanes`) laid out system after system: each product reads F and S once for all of
-//! them, and the iterations stop when every system's residual meets the tolerance. The returned B has
-//! had every iteration up to the stop applied, so it is at least as converged as the
-//! iterate whose residual met the tolerance.
+//! them, each system has its own α and its own residual, and the iterations stop when
+//! every system's residual meets the tolerance.
 //!
 //! [`radiosity::solve`]: translux_engine::radiosity::solve
 //! [`radiosity::Method::Jacobi`]: translux_engine::radiosity::Method::Jacobi
@@ -40,7 +54,7 @@ use super::kernels::BATCH;
 use super::matrix::{BoundOp, GpuCsr, alloc_size, staging, storage_zeroed, uniform};
 use super::{GpuContext, GpuError, grid};
 
-/// Keep in sync with `Params` in `jacobi_update.wgsl`.
+/// Keep in sync with `Params` in `jacobi_update.wgsl` and `mr_step.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct VecParams {
@@ -68,10 +82,22 @@ struct ReduceParams {
     _pad2: u32,
 }
 
+/// Keep in sync with `Params` in `mr_alpha.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct AlphaParams {
+    /// Workgroups of `mr_step` per system.
+    count: u32,
+    kv: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
 /// The per-scene vectors (n × RGB f32 each) the host and the stages touch, the residual
-/// history and the indirect dispatch arguments of one iteration. (F x, the pulled vector
-/// x̄ = [x; P x] of a hierarchical F, C x̄ of a two-sided one and the residual's partial
-/// sums live only in the bind groups that use them.)
+/// history and the indirect dispatch arguments of one iteration. (F x or F r, the pulled
+/// vector x̄ = [x; P x] of a hierarchical F, C x̄ of a two-sided one, the residual r carried
+/// from step to step, the partial sums and the steps α live only in the bind groups that
+/// use them.)
 #[derive(Debug)]
 struct Vectors {
     e: wgpu::Buffer,
@@ -157,11 +183,19 @@ struct Ops {
     s_e: BoundOp,
     /// b ← Bₑ + sfx (x = b starts at zero), h ← ‖b‖²
     rhs: BoundOp,
-    /// fx ← F x
+    /// fx ← F x (the start's residual)
     f_x: BoundOp,
+    /// fx ← F r (each step's product)
+    f_r: BoundOp,
     /// sfx ← S fx
     s_fx: BoundOp,
-    /// x ← b + sfx, partials of ‖r‖²
+    /// r ← b + sfx − x, partials of ‖r‖² (the start's residual)
+    residual: BoundOp,
+    /// v = sfx − r: partials of ⟨r, v⟩ and ⟨v, v⟩ per channel
+    dots: BoundOp,
+    /// α per system and channel from the dots' partials
+    alpha: BoundOp,
+    /// x ← x + α r, r ← r + α v, partials of ‖r‖²
     update: BoundOp,
     /// h[counter++] ← Σ partials
     reduce: BoundOp,
@@ -312,7 +346,7 @@ struct Sizes {
     vector: u64,
     pulled: u64,
     rows: u64,
-    /// Workgroups of `jacobi_update` per system.
+    /// Workgroups of `jacobi_update` and `mr_step` per system.
     groups: u32,
     capacity: u32,
 }
@@ -343,10 +377,13 @@ impl Sizes {
     /// Every buffer of [`Vectors`] and the stubs beside them (the indirect arguments
     /// counted at a generous 4 KiB).
     fn total(&self) -> u64 {
-        6 * self.vector
+        7 * self.vector
             + self.pulled
             + self.rows
             + alloc_size(4 * (self.groups * self.kv) as u64)
+            + alloc_size(24 * (self.groups * self.kv) as u64)
+            + alloc_size(16 * self.kv as u64)
+            + 16
             + alloc_size(4 * (self.capacity * self.kv) as u64)
             + 16
             + 32
@@ -393,21 +430,45 @@ fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes)
     let be = storage_zeroed(ctx, "Be", z.vector);
     let b = storage_zeroed(ctx, "b", z.vector);
     let x = storage_zeroed(ctx, "x", z.vector);
+    let r = storage_zeroed(ctx, "r", z.vector);
     let fx = storage_zeroed(ctx, "Fx", z.vector);
     let sfx = storage_zeroed(ctx, "SFx", z.vector);
     let pulled = storage_zeroed(ctx, "pulled", z.pulled);
     let rows = storage_zeroed(ctx, "rows", z.rows);
     let partial = storage_zeroed(ctx, "partial", 4 * (z.groups * z.kv) as u64);
+    let dots_partial = storage_zeroed(ctx, "dots-partial", 24 * (z.groups * z.kv) as u64);
+    let alpha = storage_zeroed(ctx, "alpha", 16 * z.kv as u64);
+    let ap = uniform(
+        ctx,
+        "alpha-params",
+        &AlphaParams {
+            count: z.groups,
+            kv: z.kv,
+            _pad0: 0,
+            _pad1: 0,
+        },
+    );
     let f_x = f.bind(ctx, &x, &pulled, &rows, &fx, batch);
+    let f_r = f.bind(ctx, &r, &pulled, &rows, &fx, batch);
     let s_fx = s_product(f, s, s_linked, ctx, &fx, &pulled, &sfx, batch);
     let k = &ctx.kernels;
     let dev = &ctx.device;
-    let update = BoundOp::new(
-        k.jacobi_update.clone(),
-        vec![(k.jacobi.bind(dev, &vp, &[&b, &sfx, &x, &partial]), g)],
+    let mr = |pipeline: &wgpu::ComputePipeline, partial: &wgpu::Buffer| {
+        BoundOp::new(
+            pipeline.clone(),
+            vec![(k.mr.bind(dev, &vp, &[&b, &sfx, &alpha, &x, &r, partial]), g)],
+        )
+    };
+    let residual = mr(&k.mr_residual, &partial);
+    let dots = mr(&k.mr_dots, &dots_partial);
+    let update = mr(&k.mr_update, &partial);
+    let alpha_op = BoundOp::new(
+        k.mr_alpha.clone(),
+        vec![(k.alpha.bind(dev, &ap, &[&dots_partial, &alpha]), (1, 1))],
     );
-    // The grids of one iteration's indirect dispatches, in the order `iterate` records.
-    let grids: Vec<u32> = [&f_x, &s_fx, &update]
+    // The grids of one iteration's indirect dispatches, in the order `record_iterations`
+    // records them.
+    let grids: Vec<u32> = [&f_r, &s_fx, &dots, &alpha_op, &update]
         .iter()
         .flat_map(|op| op.grids())
         .flat_map(|(gx, gy)| [gx, gy, 1])
@@ -454,7 +515,11 @@ fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes)
             vec![(k.jacobi.bind(dev, &vp, &[&be, &sfx, &b, &partial]), g)],
         ),
         f_x,
+        f_r,
         s_fx,
+        residual,
+        dots,
+        alpha: alpha_op,
         update,
         reduce,
     };
@@ -875,7 +940,8 @@ impl Lanes {
     /// Records the start of a solve: `before` (its own passes and copies), Bₑ copied in
     /// for every system where the job gives it on the device, the iteration grids
     /// restored, the counter cleared; then S E, b and ‖b‖²; then x = b unless the job
-    /// starts elsewhere.
+    /// starts elsewhere, and the start's residual r = b + S F x − x (one pass over F and
+    /// S), its ‖r‖² in history slot 1 (where the stopping rule may already stop the solve).
     fn record_start(&self, enc: &mut wgpu::CommandEncoder, n: usize, job: &Job<'_>) {
         let vb = 12 * n as u64;
         if let Some(before) = job.before {
@@ -904,6 +970,11 @@ impl Lanes {
         if matches!(job.warm, Input::Absent) {
             enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb * self.kv as u64);
         }
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        self.ops.f_x.encode(&mut pass);
+        self.ops.s_fx.encode(&mut pass);
+        self.ops.residual.encode(&mut pass);
+        self.ops.reduce.encode(&mut pass);
     }
 
     /// Records `count` iterations (after `done`), the job's `after` stage and the copies of
@@ -920,8 +991,15 @@ impl Lanes {
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
             for _ in 0..count {
-                let slot = self.ops.f_x.encode_indirect(&mut pass, &self.v.args, 0);
-                let slot = self.ops.s_fx.encode_indirect(&mut pass, &self.v.args, slot);
+                let mut slot = 0;
+                for op in [
+                    &self.ops.f_r,
+                    &self.ops.s_fx,
+                    &self.ops.dots,
+                    &self.ops.alpha,
+                ] {
+                    slot = op.encode_indirect(&mut pass, &self.v.args, slot);
+                }
                 self.ops
                     .update
                     .encode_indirect(&mut pass, &self.v.args, slot);
@@ -931,7 +1009,8 @@ impl Lanes {
                 after(&mut pass);
             }
         }
-        let slots = done + count + 1;
+        // ‖b‖², the start's residual, then one slot a step.
+        let slots = done + count + 2;
         let x_bytes = 12 * (n as u64) * self.kv as u64;
         let x_range = [(&self.v.x, 0, x_bytes)];
         let (ranges, staging) = match &job.out {
@@ -958,7 +1037,9 @@ impl Lanes {
         max_it: u32,
         tolerance: f32,
     ) -> Vec<SolveStats> {
-        let iterations = h.iterations().min(max_it);
+        let passes = h.iterations().min(max_it + 1);
+        // The steps after the start's residual (the blocks a submission records).
+        let iterations = passes.saturating_sub(1);
         self.last_iterations.store(iterations, Ordering::Relaxed);
         self.x_solved.store(true, Ordering::Relaxed);
         let seconds = t0.elapsed().as_secs_f64();
@@ -968,12 +1049,12 @@ impl Lanes {
                 let residual = if dark {
                     0.0
                 } else {
-                    h.relative(q, iterations as usize)
+                    h.relative(q, passes as usize)
                 };
                 SolveStats {
                     method: Method::Jacobi,
                     iterations: if dark { 0 } else { iterations },
-                    products: if dark { 0 } else { iterations },
+                    products: if dark { 0 } else { passes },
                     warm: matches!(job.warm, Input::Host(_) | Input::OnDevice),
                     residual,
                     converged: dark || h.stopped.is_some() || residual <= tolerance,
@@ -1000,7 +1081,7 @@ struct History {
     /// The iteration whose residuals all met the tolerance.
     stopped: Option<u32>,
     /// Slot after slot, one entry per system: h[0] = ‖b‖², then the squared residual of
-    /// each iteration.
+    /// each pass's iterate (the start's own first, then each step's).
     h: Vec<f32>,
     kv: usize,
 }
@@ -1026,12 +1107,13 @@ impl History {
         (0..self.kv).all(|q| self.dark(q))
     }
 
-    /// Iterations run: up to the stop, else every slot after ‖b‖².
+    /// Passes over F and S run (the start's residual, then the steps): up to the stop,
+    /// else every slot after ‖b‖².
     fn iterations(&self) -> u32 {
         self.stopped.unwrap_or(self.next.saturating_sub(1))
     }
 
-    /// System q's √h[k] / √h[0] (the residual of the iterate before update k).
+    /// System q's √h[k] / √h[0] (the residual of the iterate after pass k).
     fn relative(&self, q: usize, k: usize) -> f32 {
         match (self.h.get(q), self.h.get(k * self.kv + q)) {
             (Some(&h0), Some(&hk)) if k > 0 && h0 > 0.0 => {
@@ -1091,6 +1173,134 @@ pub fn jacobi_update_once(
         let xs: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&xr, 12 * n as u64)?);
         let ps: Vec<f32> = bytemuck::pod_collect_to_vec(&ctx.read_back(&pr, 4 * groups as u64)?);
         Ok((xs.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(), ps))
+    })
+}
+
+/// What one dispatch of `mr_step` left ([`mr_step_once`]).
+#[derive(Debug, Clone)]
+pub struct MrStepRun {
+    pub x: Vec<Rgb>,
+    pub r: Vec<Rgb>,
+    /// Per workgroup: Σ |r|², or for the dots Σ r_c v_c then Σ v_c² (six a workgroup).
+    pub partial: Vec<f32>,
+}
+
+/// One dispatch of `mr_step` at `stage` on uploaded vectors of one system, α = `alpha`
+/// (read by [`MrStage::Update`]): returns the new x, the new r and the per-workgroup
+/// partials (what the tests hold to [`super::cpu_twin::mr_step`]).
+///
+/// [`MrStage::Update`]: super::cpu_twin::MrStage::Update
+pub fn mr_step_once(
+    ctx: &GpuContext,
+    stage: super::cpu_twin::MrStage,
+    b: &[Rgb],
+    kr: &[Rgb],
+    alpha: [f32; 4],
+    x: &[Rgb],
+    r: &[Rgb],
+) -> Result<MrStepRun, GpuError> {
+    use super::cpu_twin::MrStage;
+    let n = x.len();
+    if b.len() != n || kr.len() != n || r.len() != n {
+        return Err(GpuError::Invalid(
+            "b, kr, x and r must have equal lengths".into(),
+        ));
+    }
+    let groups = (n as u32).div_ceil(256);
+    let per = if stage == MrStage::Dots { 6 } else { 1 };
+    ctx.scoped(|| {
+        let g = grid(groups);
+        let p = uniform(
+            ctx,
+            "vec-params",
+            &VecParams {
+                n: n as u32,
+                groups_x: g.0,
+                gpk: groups,
+                kv: 1,
+            },
+        );
+        let init =
+            |what: &str, v: &[Rgb]| super::matrix::storage_init(ctx, what, bytemuck::cast_slice(v));
+        let (bb, kb, xb, rb) = (init("b", b), init("kr", kr), init("x", x), init("r", r));
+        let ab = super::matrix::storage_init(ctx, "alpha", bytemuck::cast_slice(&alpha));
+        let pbytes = 4 * per * groups as u64;
+        let pb = storage_zeroed(ctx, "partial", pbytes);
+        let k = &ctx.kernels;
+        let pipeline = match stage {
+            MrStage::Residual => &k.mr_residual,
+            MrStage::Dots => &k.mr_dots,
+            MrStage::Update => &k.mr_update,
+        };
+        let op = BoundOp::new(
+            pipeline.clone(),
+            vec![(
+                k.mr.bind(&ctx.device, &p, &[&bb, &kb, &ab, &xb, &rb, &pb]),
+                g,
+            )],
+        );
+        let vbytes = 12 * n as u64;
+        let read = staging(ctx, "mr-read", 2 * vbytes + pbytes);
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            op.encode(&mut pass);
+        }
+        enc.copy_buffer_to_buffer(&xb, 0, &read, 0, vbytes);
+        enc.copy_buffer_to_buffer(&rb, 0, &read, vbytes, vbytes);
+        enc.copy_buffer_to_buffer(&pb, 0, &read, 2 * vbytes, pbytes);
+        ctx.queue.submit([enc.finish()]);
+        let all: Vec<f32> =
+            bytemuck::pod_collect_to_vec(&ctx.read_back(&read, 2 * vbytes + pbytes)?);
+        let rgb =
+            |v: &[f32]| -> Vec<Rgb> { v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() };
+        Ok(MrStepRun {
+            x: rgb(&all[..3 * n]),
+            r: rgb(&all[3 * n..6 * n]),
+            partial: all[6 * n..].to_vec(),
+        })
+    })
+}
+
+/// One dispatch of `mr_alpha` on `kv` systems' dots partials (six per workgroup, system
+/// after system): returns α, four entries a system (what the tests hold to
+/// [`super::cpu_twin::mr_alpha`]).
+pub fn mr_alpha_once(ctx: &GpuContext, partial: &[f32], kv: u32) -> Result<Vec<f32>, GpuError> {
+    let kv = kv.max(1);
+    if partial.is_empty() || !partial.len().is_multiple_of(6 * kv as usize) {
+        return Err(GpuError::Invalid(
+            "partials must be six per workgroup, a multiple of kv workgroups".into(),
+        ));
+    }
+    let count = (partial.len() / 6 / kv as usize) as u32;
+    ctx.scoped(|| {
+        let p = uniform(
+            ctx,
+            "alpha-params",
+            &AlphaParams {
+                count,
+                kv,
+                _pad0: 0,
+                _pad1: 0,
+            },
+        );
+        let pb = super::matrix::storage_init(ctx, "dots-partial", bytemuck::cast_slice(partial));
+        let bytes = 16 * kv as u64;
+        let ab = storage_zeroed(ctx, "alpha", bytes);
+        let k = &ctx.kernels;
+        let op = BoundOp::new(
+            k.mr_alpha.clone(),
+            vec![(k.alpha.bind(&ctx.device, &p, &[&pb, &ab]), (1, 1))],
+        );
+        let read = staging(ctx, "alpha-read", bytes);
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            op.encode(&mut pass);
+        }
+        enc.copy_buffer_to_buffer(&ab, 0, &read, 0, bytes);
+        ctx.queue.submit([enc.finish()]);
+        Ok(bytemuck::pod_collect_to_vec(&ctx.read_back(&read, bytes)?))
     })
 }
 
