@@ -781,9 +781,9 @@ fn place(
     }
 }
 
-/// A homogeneous translucent object's profile tabulated out to its truncation radius,
-/// capped by `reach` (how far its stored distances go), and the radius wanted when the cap
-/// bites.
+/// A homogeneous translucent object's profile tabulated out to its kept radius
+/// ([`kept_radius`]), capped by `reach` (how far its stored distances go), and the radius
+/// wanted when the cap bites.
 pub fn translucent_table(
     name: &str,
     profile: &Profile,
@@ -795,11 +795,40 @@ pub fn translucent_table(
         object: name.to_string(),
         error,
     })?;
-    let wanted = eval.truncation_radius(params.truncation_energy);
+    let wanted = kept_radius(&eval, reach, params);
     let radius = wanted.min(reach.max(f32::MIN_POSITIVE));
     let capped_from = (wanted > reach * (1.0 + 1e-6)).then_some(wanted);
     Ok((Tabulated::new(&eval, radius, 4096), capped_from))
 }
+
+/// How far S keeps a translucent profile whose distances are stored out to `reach`: its
+/// truncation radius (the tail past it carries `truncation_energy` of its energy), or,
+/// for a profile narrower than the one the distances were stored for (a translucency
+/// change towards less translucent: the stored radius, `reach / radius_margin`, is
+/// wider), further, as far as the tail carries [`TAIL_ENERGY`] of the energy and at most
+/// to the stored radius.
+///
+/// Why. On an object a few profile widths across, what reaches its far side is the tail
+/// alone, so a tail cut at 10⁻³ of the energy takes 1–5% of that light (the slab and the
+/// cube at ×0.25, `precompute/tests/it/dipole.rs`). The stored radius is what the bundle's
+/// own S was built to, so keeping the narrower profile out to it costs at most the entries
+/// that S had; a built profile and a wider one keep their truncation radius (their stored
+/// radius is theirs, or narrower).
+pub fn kept_radius(eval: &ProfileEval, reach: f32, params: &SParams) -> f32 {
+    let kept = eval.truncation_radius(params.truncation_energy);
+    let stored = reach / params.radius_margin.max(1.0);
+    // A relative margin: the built profile's own radius, stored times the margin and
+    // divided again, may come back an ulp away.
+    if kept < stored * (1.0 - 1e-4) {
+        eval.truncation_radius(TAIL_ENERGY).clamp(kept, stored)
+    } else {
+        kept
+    }
+}
+
+/// The tail a narrower profile keeps within the stored radius ([`kept_radius`]): 10⁻⁶ of
+/// its energy.
+pub const TAIL_ENERGY: f32 = 1e-6;
 
 /// Each object's material with `overrides` (by object index) applied: the override where
 /// there is one, else the bundle's (one per manifest object).

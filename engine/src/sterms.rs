@@ -335,6 +335,22 @@ pub fn reduce(
             }
             polar_terms(events, out);
         }
+        Quadrature::Lifted {
+            tri,
+            normal,
+            factor,
+        } => {
+            let c = factor / (xs.len() as f32 * params.directions as f32);
+            let mut events: Vec<(f32, f32)> =
+                Vec::with_capacity(2 * xs.len() * params.directions as usize);
+            for &x in xs {
+                subsurface::lifted_intervals(x, &tri, normal, params.directions, |lo, hi, w| {
+                    events.push((lo, c * w));
+                    events.push((hi, -c * w));
+                });
+            }
+            polar_terms(events, out);
+        }
     }
 }
 
@@ -2419,6 +2435,41 @@ mod tests {
                 &xs,
                 1e-3,
                 &format!("across an edge, side {side}"),
+            );
+            // The same wall by the lifted polar rule (a straight path), and a facet folded
+            // 10° down from b's edge (neighbouring facets of a curved mesh).
+            let wall = Quadrature::Lifted {
+                tri: w,
+                normal: Vec3::X,
+                factor: 1.0,
+            };
+            check(
+                wall,
+                side * 0.5,
+                &xs,
+                1e-3,
+                &format!("across an edge, lifted, side {side}"),
+            );
+            // b turned 10° down about the diagonal it shares with a.
+            let pivot = Vec3::new(side, 0.0, 0.0);
+            let turn = glam::Quat::from_axis_angle(
+                Vec3::new(-1.0, 0.0, 1.0).normalize(),
+                10f32.to_radians(),
+            );
+            let folded = b.map(|v| pivot + turn * (v - pivot));
+            let folded_n = (folded[1] - folded[0])
+                .cross(folded[2] - folded[0])
+                .normalize();
+            check(
+                Quadrature::Lifted {
+                    tri: folded,
+                    normal: folded_n,
+                    factor: 1.0,
+                },
+                side * 0.5,
+                &xs,
+                1e-3,
+                &format!("folded facet, lifted, side {side}"),
             );
             // A coplanar pair two cells away (near, not touching): its radii span a ratio of
             // about 2, two Gauss bins.

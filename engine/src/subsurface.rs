@@ -16,8 +16,14 @@
 //!   from x is Σₖ (W(ρ_out,k) − W(ρ_in,k)) / K over K directions, where [ρ_in, ρ_out] is where
 //!   the ray from x at angle k crosses the region — exact in r, so patches far larger than a
 //!   mean free path are handled;
-//! - near pairs in different planes (across an edge of a box): m² × m² point samples with
-//!   r(x, y) = |x − y| plus the excess of the optical path over the centroid distance.
+//! - near pairs in different planes (across an edge of a box, neighbouring facets of a
+//!   curved mesh) joined by a straight path: the same polar integration around the feet of
+//!   patch i's samples on patch j's plane, each ray's ends lifted to the 3-D distance
+//!   √(ρ² + h²) from the sample (exact in r too: point samples miss a profile narrower than
+//!   a patch);
+//! - near pairs in different planes whose optical path bends (voxel paths round a
+//!   concavity): m² × m² point samples with r(x, y) = |x − y| plus the excess of the optical
+//!   path over the centroid distance.
 //!
 //! Energy: Σ_j A_j S_ji ≤ A_i must hold for every column i (light re-emitted never exceeds
 //! light received). Quadrature can overshoot a little; such columns are scaled down to the
@@ -310,21 +316,32 @@ pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) 
 /// The K rays of [`polar_integral`]: for each direction from x in t's plane that crosses
 /// `t`, `f(ρ_in, ρ_out)`, where the ray enters and leaves the triangle (ρ_in = 0 when x is
 /// inside). The integral is Σ (W(ρ_out) − W(ρ_in)) / K over these calls.
-pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMut(f32, f32)) {
-    // An orthonormal frame (u, v) in the plane.
+pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, f: impl FnMut(f32, f32)) {
+    let p = plane_coords(x, t, n);
+    rays(&p, (0.0, std::f32::consts::TAU), k, f);
+}
+
+/// t's corners in an orthonormal frame of its plane (normal `n`) centred on x's foot.
+fn plane_coords(x: Vec3, t: &[Vec3; 3], n: Vec3) -> [[f32; 2]; 3] {
     let u = (t[1] - t[0]).normalize_or_zero();
     let v = n.cross(u);
     let to2 = |p: Vec3| {
         let d = p - x;
         [d.dot(u), d.dot(v)]
     };
-    let p = [to2(t[0]), to2(t[1]), to2(t[2])];
+    [to2(t[0]), to2(t[1]), to2(t[2])]
+}
+
+/// K rays from the origin at angles spread evenly over `[θ₀, θ₀ + span)` (each at the
+/// middle of its share), clipped against the triangle `p`: `f(ρ_in, ρ_out)` for each ray
+/// that crosses it.
+fn rays(p: &[[f32; 2]; 3], (th0, span): (f32, f32), k: u32, mut f: impl FnMut(f32, f32)) {
     // Orientation so that "inside" is left of every edge.
     let area2 =
         (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
     let sign = if area2 >= 0.0 { 1.0 } else { -1.0 };
     for dir in 0..k {
-        let th = (dir as f32 + 0.5) * std::f32::consts::TAU / k as f32;
+        let th = th0 + (dir as f32 + 0.5) * span / k as f32;
         let d = [th.cos(), th.sin()];
         // Clip the ray s·d, s ≥ 0, against the three edge half-planes.
         let (mut lo, mut hi) = (0.0f32, f32::INFINITY);
@@ -353,6 +370,74 @@ pub fn polar_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMu
         }
     }
 }
+
+/// The angles under which the origin sees the triangle `p`, as (θ₀, span): the whole
+/// circle when the origin is inside it by more than [`INSIDE_MARGIN`] of its longest edge,
+/// else the arc from one corner's angle to another's that holds the third (at most about π;
+/// for an origin just inside, a little more, and the rays miss only a sliver between it and
+/// the nearest edge).
+///
+/// The margin keeps the choice stable: a sample's foot on a box's edge lies on the other
+/// face's boundary, where the precompute's and a rebuild's arithmetic differ in the last
+/// bits, and the two rules' angular quadratures differ by more than that.
+fn seen_arc(p: &[[f32; 2]; 3]) -> (f32, f32) {
+    use std::f32::consts::TAU;
+    let area2 =
+        (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
+    let sign = if area2 >= 0.0 { 1.0 } else { -1.0 };
+    let edge = |e: usize| {
+        let (a, b) = (p[e], p[(e + 1) % 3]);
+        [b[0] - a[0], b[1] - a[1]]
+    };
+    let longest = (0..3)
+        .map(|e| edge(e)[0].hypot(edge(e)[1]))
+        .fold(0.0f32, f32::max);
+    // Each edge's c0 is |edge| × the origin's signed distance from its line.
+    let inside = (0..3).all(|e| {
+        let (a, d) = (p[e], edge(e));
+        sign * (d[0] * (-a[1]) - d[1] * (-a[0])) > INSIDE_MARGIN * longest * d[0].hypot(d[1])
+    });
+    if inside || area2 == 0.0 {
+        return (0.0, TAU);
+    }
+    let mut a: Vec<f32> = p.iter().map(|q| q[1].atan2(q[0])).collect();
+    a.sort_by(f32::total_cmp);
+    // The widest gap between neighbouring corners' angles (round the circle) is what the
+    // triangle leaves out; the arc starts where that gap ends.
+    let gaps = [(a[1] - a[0], 1), (a[2] - a[1], 2), (a[0] + TAU - a[2], 0)];
+    let (gap, after) = gaps
+        .into_iter()
+        .fold((f32::MIN, 0), |m, g| if g.0 > m.0 { g } else { m });
+    (a[after], TAU - gap)
+}
+
+/// How far inside a triangle (a fraction of its longest edge) the origin must be for
+/// [`seen_arc`] to take the whole circle.
+const INSIDE_MARGIN: f32 = 1e-3;
+
+/// [`polar_intervals`] from x's foot on t's plane (normal `n`), each ray's ends lifted to
+/// the distances from x itself: `f(√(ρ_in² + h²), √(ρ_out² + h²), w)`, h x's height over
+/// the plane. The K rays cover only the arc under which the foot sees `t` (all of it when
+/// the foot is inside), each standing for w = arc / 2π of a full circle's ray, so a far or
+/// small triangle is crossed by all K rays, not by the few of a full circle that hit it.
+/// The integral of R over `t` seen from x is Σ w (W(out) − W(in)) / K over these calls
+/// (the area element ρ dρ dθ is s ds dθ with s² = ρ² + h²).
+pub fn lifted_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMut(f32, f32, f32)) {
+    let h = n.dot(x - t[0]);
+    let h2 = h * h;
+    let p = plane_coords(x, t, n);
+    let arc = seen_arc(&p);
+    let w = arc.1 / std::f32::consts::TAU;
+    rays(&p, arc, k, |lo, hi| {
+        f((lo * lo + h2).sqrt(), (hi * hi + h2).sqrt(), w)
+    });
+}
+
+/// A near pair's optical path counts as straight (its S taken by [`Quadrature::Lifted`])
+/// when it exceeds the centroid distance by at most this fraction of the larger patch's
+/// size: rounding, not a bend (a convex object's distances are the centroid distances; an
+/// object's voxel paths bend by at least a voxel).
+pub const STRAIGHT: f32 = 1e-4;
 
 fn coplanar(a: &[Vec3; 3], na: Vec3, b: &[Vec3; 3], nb: Vec3, eps: f32) -> bool {
     na.dot(nb) > 0.9999 && b.iter().all(|v| na.dot(*v - a[0]).abs() <= eps)
@@ -414,8 +499,20 @@ pub enum Quadrature {
         normal: Vec3,
         factor: f32,
     },
+    /// S_ji = `factor` · mean over x ∈ patch i's samples of ∫_tri R(|x − y|) dA_y, x off
+    /// `tri`'s plane (normal `normal`): near pairs in different planes joined by a straight
+    /// path. With x′ x's foot on the plane and h its height, |x − y| = √(ρ² + h²) for y at
+    /// ρ from x′, so each of the K rays from x′ adds W(√(ρ_out² + h²)) − W(√(ρ_in² + h²))
+    /// ([`lifted_intervals`]): exact in r, like [`Quadrature::Polar`], for profiles far
+    /// narrower than the patches (point samples miss them).
+    Lifted {
+        tri: [Vec3; 3],
+        normal: Vec3,
+        factor: f32,
+    },
     /// S_ji = A_i · mean over sample pairs (x, y) of R(|x − y| + excess): near pairs in
-    /// different planes; `excess` is the optical path's excess over the centroid distance.
+    /// different planes whose optical path bends (`excess`, its excess over the centroid
+    /// distance, above [`STRAIGHT`] of the larger patch).
     Points {
         tri_j: [Vec3; 3],
         excess: f32,
@@ -453,10 +550,19 @@ impl Quadrature {
                 factor: p.area[i] / p.area[j],
             }
         } else {
-            Quadrature::Points {
-                tri_j: p.corners[j],
-                excess: (r - p.centroid[i].distance(p.centroid[j])).max(0.0),
-                area_i: p.area[i],
+            let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
+            if excess <= STRAIGHT * p.size[i].max(p.size[j]) {
+                Quadrature::Lifted {
+                    tri: p.corners[j],
+                    normal: p.normal[j],
+                    factor: p.area[i] / p.area[j],
+                }
+            } else {
+                Quadrature::Points {
+                    tri_j: p.corners[j],
+                    excess,
+                    area_i: p.area[i],
+                }
             }
         }
     }
@@ -484,6 +590,22 @@ impl Quadrature {
                     }
                 }
                 acc.map(|v| v / xs.len() as f32 * factor)
+            }
+            Quadrature::Lifted {
+                tri,
+                normal,
+                factor,
+            } => {
+                let mut acc = [0.0f32; 3];
+                for &x in xs {
+                    lifted_intervals(x, &tri, normal, params.directions, |lo, hi, w| {
+                        let (w0, w1) = (tab.w(lo), tab.w(hi));
+                        for c in 0..3 {
+                            acc[c] += w * (w1[c] - w0[c]);
+                        }
+                    });
+                }
+                acc.map(|v| v / (xs.len() as f32 * params.directions as f32) * factor)
             }
             Quadrature::Points {
                 tri_j,
