@@ -324,15 +324,11 @@ pub fn reduce(
             normal,
             factor,
         } => {
-            let c = factor / (xs.len() as f32 * params.directions as f32);
-            let mut events: Vec<(f32, f32)> =
-                Vec::with_capacity(2 * xs.len() * params.directions as usize);
-            for &x in xs {
+            let events = ray_events(xs, factor, params.directions, |x, f| {
                 subsurface::polar_intervals(x, &tri, normal, params.directions, |lo, hi| {
-                    events.push((lo, c));
-                    events.push((hi, -c));
-                });
-            }
+                    f(lo, hi, 1.0)
+                })
+            });
             polar_terms(events, out);
         }
         Quadrature::Lifted {
@@ -340,18 +336,32 @@ pub fn reduce(
             normal,
             factor,
         } => {
-            let c = factor / (xs.len() as f32 * params.directions as f32);
-            let mut events: Vec<(f32, f32)> =
-                Vec::with_capacity(2 * xs.len() * params.directions as usize);
-            for &x in xs {
-                subsurface::lifted_intervals(x, &tri, normal, params.directions, |lo, hi, w| {
-                    events.push((lo, c * w));
-                    events.push((hi, -c * w));
-                });
-            }
+            let events = ray_events(xs, factor, params.directions, |x, f| {
+                subsurface::lifted_intervals(x, &tri, normal, params.directions, f)
+            });
             polar_terms(events, out);
         }
     }
+}
+
+/// The (radius, ±weight) ends of every ray of a polar rule, for [`polar_terms`]: `rays(x,
+/// f)` calls `f(ρ_in, ρ_out, w)` for each of the `k` rays from sample x that cross the
+/// patch, and a ray weighs `factor` · w / (samples · k).
+fn ray_events(
+    xs: &[Vec3],
+    factor: f32,
+    k: u32,
+    rays: impl Fn(Vec3, &mut dyn FnMut(f32, f32, f32)),
+) -> Vec<(f32, f32)> {
+    let c = factor / (xs.len() as f32 * k as f32);
+    let mut events = Vec::with_capacity(2 * xs.len() * k as usize);
+    for &x in xs {
+        rays(x, &mut |lo, hi, w| {
+            events.push((lo, c * w));
+            events.push((hi, -c * w));
+        });
+    }
+    events
 }
 
 /// Geometric edges from `first` to `last`, each bin spanning a ratio of at most

@@ -313,6 +313,31 @@ pub fn polar_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) 
     sum.map(|s| s / k as f32)
 }
 
+/// ∫ over triangle `t` of R(|x − y|) dA_y for x off t's plane (normal `n`): the polar rule
+/// about x's foot, lifted ([`lifted_intervals`]).
+pub fn lifted_integral(x: Vec3, t: &[Vec3; 3], n: Vec3, tab: &Tabulated, k: u32) -> [f32; 3] {
+    let mut sum = [0.0f32; 3];
+    lifted_intervals(x, t, n, k, |lo, hi, w| {
+        let (w0, w1) = (tab.w(lo), tab.w(hi));
+        for c in 0..3 {
+            sum[c] += w * (w1[c] - w0[c]);
+        }
+    });
+    sum.map(|s| s / k as f32)
+}
+
+/// `factor` × the mean over the samples `xs` of `integral(x)`.
+fn mean_over(xs: &[Vec3], factor: f32, integral: impl Fn(Vec3) -> [f32; 3]) -> [f32; 3] {
+    let mut acc = [0.0f32; 3];
+    for &x in xs {
+        let v = integral(x);
+        for c in 0..3 {
+            acc[c] += v[c];
+        }
+    }
+    acc.map(|v| v / xs.len() as f32 * factor)
+}
+
 /// The K rays of [`polar_integral`]: for each direction from x in t's plane that crosses
 /// `t`, `f(ρ_in, ρ_out)`, where the ray enters and leaves the triangle (ρ_in = 0 when x is
 /// inside). The integral is Σ (W(ρ_out) − W(ρ_in)) / K over these calls.
@@ -581,32 +606,16 @@ impl Quadrature {
                 tri,
                 normal,
                 factor,
-            } => {
-                let mut acc = [0.0f32; 3];
-                for &x in xs {
-                    let v = polar_integral(x, &tri, normal, tab, params.directions);
-                    for c in 0..3 {
-                        acc[c] += v[c];
-                    }
-                }
-                acc.map(|v| v / xs.len() as f32 * factor)
-            }
+            } => mean_over(xs, factor, |x| {
+                polar_integral(x, &tri, normal, tab, params.directions)
+            }),
             Quadrature::Lifted {
                 tri,
                 normal,
                 factor,
-            } => {
-                let mut acc = [0.0f32; 3];
-                for &x in xs {
-                    lifted_intervals(x, &tri, normal, params.directions, |lo, hi, w| {
-                        let (w0, w1) = (tab.w(lo), tab.w(hi));
-                        for c in 0..3 {
-                            acc[c] += w * (w1[c] - w0[c]);
-                        }
-                    });
-                }
-                acc.map(|v| v / (xs.len() as f32 * params.directions as f32) * factor)
-            }
+            } => mean_over(xs, factor, |x| {
+                lifted_integral(x, &tri, normal, tab, params.directions)
+            }),
             Quadrature::Points {
                 tri_j,
                 excess,
