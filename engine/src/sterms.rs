@@ -324,44 +324,41 @@ pub fn reduce(
             normal,
             factor,
         } => {
-            let events = ray_events(xs, factor, params.directions, |x, f| {
+            let rays = ray_intervals(xs, factor, params.directions, |x, f| {
                 subsurface::polar_intervals(x, &tri, normal, params.directions, |lo, hi| {
                     f(lo, hi, 1.0)
                 })
             });
-            polar_terms(events, out);
+            polar_terms(&rays, out);
         }
         Quadrature::Lifted {
             tri,
             normal,
             factor,
         } => {
-            let events = ray_events(xs, factor, params.directions, |x, f| {
+            let rays = ray_intervals(xs, factor, params.directions, |x, f| {
                 subsurface::lifted_intervals(x, &tri, normal, params.directions, f)
             });
-            polar_terms(events, out);
+            polar_terms(&rays, out);
         }
     }
 }
 
-/// The (radius, ±weight) ends of every ray of a polar rule, for [`polar_terms`]: `rays(x,
-/// f)` calls `f(ρ_in, ρ_out, w)` for each of the `k` rays from sample x that cross the
-/// patch, and a ray weighs `factor` · w / (samples · k).
-fn ray_events(
+/// The intervals (ρ_in, ρ_out, weight) of every ray of a polar rule, for [`polar_terms`]:
+/// `rays(x, f)` calls `f(ρ_in, ρ_out, w)` for each of the `k` rays from sample x that cross
+/// the patch, and a ray weighs `factor` · w / (samples · k).
+fn ray_intervals(
     xs: &[Vec3],
     factor: f32,
     k: u32,
     rays: impl Fn(Vec3, &mut dyn FnMut(f32, f32, f32)),
-) -> Vec<(f32, f32)> {
+) -> Vec<[f32; 3]> {
     let c = factor / (xs.len() as f32 * k as f32);
-    let mut events = Vec::with_capacity(2 * xs.len() * k as usize);
+    let mut out = Vec::with_capacity(xs.len() * k as usize);
     for &x in xs {
-        rays(x, &mut |lo, hi, w| {
-            events.push((lo, c * w));
-            events.push((hi, -c * w));
-        });
+        rays(x, &mut |lo, hi, w| out.push([lo, hi, c * w]));
     }
-    events
+    out
 }
 
 /// Geometric edges from `first` to `last`, each bin spanning a ratio of at most
@@ -532,55 +529,55 @@ fn gauss_terms(m: &Moments, a: f64, h: f64, out: &mut Vec<Term>) {
     push(&rule);
 }
 
-/// Polar terms from the rays' (radius, ±weight) ends. The coverage n(ρ) is swept in order:
-/// from 0 to the first ray end (where n is constant) one exact term n̄ W(first); past it the
-/// measure n(ρ) 2πρ dρ, in coarse geometric bins, each replaced by its Gauss rule.
-fn polar_terms(mut events: Vec<(f32, f32)>, out: &mut Vec<Term>) {
-    if events.is_empty() {
+/// Polar terms from the rays' intervals (ρ_in, ρ_out, weight). The coverage n(ρ), the
+/// weights of the rays covering ρ, gives from 0 to the first ray end (where n is constant)
+/// one exact term n̄ W(first); past it the measure n(ρ) 2πρ dρ, in coarse geometric bins,
+/// each replaced by its Gauss rule. Both are linear in n, so each interval adds its own
+/// share (no sweep over sorted ends: sorting them was half the reduction's time).
+fn polar_terms(rays: &[[f32; 3]], out: &mut Vec<Term>) {
+    let Some(last) = rays.iter().map(|r| r[1]).reduce(f32::max) else {
         return;
-    }
-    events.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let last = events.last().map_or(0.0, |e| e.0) as f64;
-    let first = events
+    };
+    let last = last as f64;
+    let floor = 1e-6 * last;
+    let first = rays
         .iter()
-        .map(|e| e.0 as f64)
-        .find(|&r| r > 1e-6 * last)
-        .unwrap_or(last);
+        .flat_map(|r| [r[0] as f64, r[1] as f64])
+        .filter(|&r| r > floor)
+        .fold(last, f64::min);
     let e = coarse_edges(first, last);
     let mut bins = vec![Moments::default(); e.len() - 1];
     let mut head = 0.0f64;
-    let (mut n, mut prev, mut bin) = (0.0f64, 0.0f64, 0usize);
-    for &(r, dn) in &events {
-        let r = r as f64;
-        let mut lo = prev;
-        if n > 0.0 && lo < r {
-            // The head [0, first]: its area mass (π dropped, W carries it).
-            let end = r.min(first);
-            if lo < end {
-                head += n * (end * end - lo * lo);
-                lo = end;
-            }
-            while lo < r {
-                while bin + 1 < bins.len() && e[bin + 1] <= lo {
-                    bin += 1;
-                }
-                let end = if bin + 1 == bins.len() {
-                    r
-                } else {
-                    e[bin + 1].min(r)
-                };
-                let (a, h) = (e[bin], (e[bin + 1] - e[bin]).max(f64::MIN_POSITIVE));
-                bins[bin].ring(
-                    ((lo - a) / h, (end - a) / h),
-                    a,
-                    h,
-                    2.0 * std::f64::consts::PI * n,
-                );
-                lo = end;
-            }
+    for &[lo, hi, w] in rays {
+        let (mut lo, hi, w) = (lo as f64, hi as f64, w as f64);
+        if hi.is_nan() || lo.is_nan() || hi <= lo {
+            continue;
         }
-        prev = prev.max(r);
-        n += dn as f64;
+        // The head [0, first]: its area mass (π dropped, W carries it).
+        let end = hi.min(first);
+        if lo < end {
+            head += w * (end * end - lo * lo);
+            lo = end;
+        }
+        let mut bin = 0;
+        while lo < hi {
+            while bin + 1 < bins.len() && e[bin + 1] <= lo {
+                bin += 1;
+            }
+            let end = if bin + 1 == bins.len() {
+                hi
+            } else {
+                e[bin + 1].min(hi)
+            };
+            let (a, h) = (e[bin], (e[bin + 1] - e[bin]).max(f64::MIN_POSITIVE));
+            bins[bin].ring(
+                ((lo - a) / h, (end - a) / h),
+                a,
+                h,
+                2.0 * std::f64::consts::PI * w,
+            );
+            lo = end;
+        }
     }
     if head > 0.0 && first > 0.0 {
         out.push(Term::new(

@@ -365,9 +365,17 @@ fn rays(p: &[[f32; 2]; 3], (th0, span): (f32, f32), k: u32, mut f: impl FnMut(f3
     let area2 =
         (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[1][1] - p[0][1]) * (p[2][0] - p[0][0]);
     let sign = if area2 >= 0.0 { 1.0 } else { -1.0 };
-    for dir in 0..k {
-        let th = th0 + (dir as f32 + 0.5) * span / k as f32;
-        let d = [th.cos(), th.sin()];
+    // The directions by rotating one step at a time (in f64, so k steps drift by ~k ulps
+    // of f64): a sine and cosine per ray were a tenth of S's assembly.
+    let step = span as f64 / k as f64;
+    let (sin_step, cos_step) = step.sin_cos();
+    let (mut sin_th, mut cos_th) = (th0 as f64 + 0.5 * step).sin_cos();
+    for _ in 0..k {
+        let d = [cos_th as f32, sin_th as f32];
+        (cos_th, sin_th) = (
+            cos_th * cos_step - sin_th * sin_step,
+            sin_th * cos_step + cos_th * sin_step,
+        );
         // Clip the ray s·d, s ≥ 0, against the three edge half-planes.
         let (mut lo, mut hi) = (0.0f32, f32::INFINITY);
         let mut empty = false;
@@ -442,20 +450,37 @@ const INSIDE_MARGIN: f32 = 1e-3;
 
 /// [`polar_intervals`] from x's foot on t's plane (normal `n`), each ray's ends lifted to
 /// the distances from x itself: `f(√(ρ_in² + h²), √(ρ_out² + h²), w)`, h x's height over
-/// the plane. The K rays cover only the arc under which the foot sees `t` (all of it when
-/// the foot is inside), each standing for w = arc / 2π of a full circle's ray, so a far or
-/// small triangle is crossed by all K rays, not by the few of a full circle that hit it.
-/// The integral of R over `t` seen from x is Σ w (W(out) − W(in)) / K over these calls
-/// (the area element ρ dρ dθ is s ds dθ with s² = ρ² + h²).
+/// the plane. The rays cover only the arc under which the foot sees `t` (the whole circle
+/// when the foot is inside, K rays): `arc_rays` of them, the full circle's angular
+/// density, so a far or small triangle is crossed by K / 2 rays, not by the few of a full
+/// circle that hit it. Each stands for w = (arc / 2π) ·
+/// (K / rays) of a full circle's ray, so the integral of R over `t` seen from x is
+/// Σ w (W(out) − W(in)) / K over these calls (the area element ρ dρ dθ is s ds dθ with
+/// s² = ρ² + h²).
 pub fn lifted_intervals(x: Vec3, t: &[Vec3; 3], n: Vec3, k: u32, mut f: impl FnMut(f32, f32, f32)) {
     let h = n.dot(x - t[0]);
     let h2 = h * h;
     let p = plane_coords(x, t, n);
     let arc = seen_arc(&p);
-    let w = arc.1 / std::f32::consts::TAU;
-    rays(&p, arc, k, |lo, hi| {
+    let count = arc_rays(k, arc.1);
+    let w = arc.1 / std::f32::consts::TAU * (k as f32 / count as f32);
+    rays(&p, arc, count, |lo, hi| {
         f((lo * lo + h2).sqrt(), (hi * hi + h2).sqrt(), w)
     });
+}
+
+/// How many rays [`lifted_intervals`] spreads over an arc of `span` radians, K being the
+/// full circle's: K for the whole circle, else K / 2. An arc is at most a little over π
+/// ([`seen_arc`]: a foot outside the triangle, or inside by less than [`INSIDE_MARGIN`]),
+/// so that is the circle's angular density. One count for every arc: a count rounded up
+/// from the span would jump at π, where a sample's foot on a box's edge sees the other
+/// face, and a rebuild would differ from the precompute by more than rounding.
+fn arc_rays(k: u32, span: f32) -> u32 {
+    if span >= std::f32::consts::TAU {
+        k
+    } else {
+        (k / 2).max(1)
+    }
 }
 
 /// A near pair's optical path counts as straight (its S taken by [`Quadrature::Lifted`])
@@ -508,9 +533,9 @@ pub fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
 }
 
 /// How one entry S_ji is integrated: decided from geometry alone (which pair, how near, in
-/// which plane), then evaluated against a profile table. The GPU rebuild of S stores these
-/// plans per entry and evaluates them in WGSL (`server/src/gpu/kernels/s_entries.wgsl`), so
-/// the CPU and the device share one decision.
+/// which plane), then evaluated against a profile table ([`Quadrature::eval`]) or reduced to
+/// radial terms for translucency changes (`crate::sterms::reduce`), so both share one
+/// decision.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Quadrature {
     /// S_ji ≈ A_i R(r_ij): pairs far apart compared with their size.
@@ -527,7 +552,7 @@ pub enum Quadrature {
     /// S_ji = `factor` · mean over x ∈ patch i's samples of ∫_tri R(|x − y|) dA_y, x off
     /// `tri`'s plane (normal `normal`): near pairs in different planes joined by a straight
     /// path. With x′ x's foot on the plane and h its height, |x − y| = √(ρ² + h²) for y at
-    /// ρ from x′, so each of the K rays from x′ adds W(√(ρ_out² + h²)) − W(√(ρ_in² + h²))
+    /// ρ from x′, so each ray from x′ adds W(√(ρ_out² + h²)) − W(√(ρ_in² + h²))
     /// ([`lifted_intervals`]): exact in r, like [`Quadrature::Polar`], for profiles far
     /// narrower than the patches (point samples miss them).
     Lifted {
