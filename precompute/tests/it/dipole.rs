@@ -675,7 +675,7 @@ fn check(name: &str, shape: Shape, patches: u32) {
 /// where ketchup's and marble's profiles are 0.05–0.2 mm deep, 5–40 times narrower than a
 /// patch, and an S with every pair (`--subsurface pairwise`) reads the same vertices as far
 /// off as the default, so what limits them is not the links:
-/// - The sphere's dark side, held to 2% / 3% (ketchup 1.42% / 2.02%, marble 1.00% / 1.45%;
+/// - The sphere's dark side, held to 2% / 3% (ketchup 1.40% / 1.99%, marble 0.97% / 1.41%;
 ///   62 and 11 vertices just past the band, about 1.3% low in red): the pairs there are
 ///   far pairs (beyond 3 patch sizes), taken at their centroids' distance, A_i R(r_ij), and
 ///   R is convex: for 0.6 mm patches 1.8–3.5 mm apart, ketchup's red profile at ×0.25
