@@ -16,7 +16,9 @@
 //!   for T.
 //! - [`solver`] — Jacobi, Gauss-Seidel and BiCGSTAB for (I − S F) B = S E + Bₑ, warm
 //!   started, several right-hand sides per pass over F.
-//! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays.
+//! - [`raycast`] — a BVH over the scene's triangles for shadow and visibility rays;
+//!   [`clearance`] — a lower bound on the distance to an object's triangles, from a grid,
+//!   so a random walk's flight that cannot reach the mesh asks no ray.
 //! - [`radiosity`] — direct irradiance from the lights (with shadows), the solve
 //!   B = Bₑ + S (E + F B), and patch values to vertex values; [`vertexlight`] — the direct
 //!   term of opaque diffuse surfaces evaluated at the viewer's vertices themselves;
@@ -57,6 +59,7 @@
 //! `docs/architecture.md`.
 
 pub mod backend;
+pub mod clearance;
 pub mod collimated;
 pub mod environment;
 pub mod envmap;

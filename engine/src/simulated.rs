@@ -54,7 +54,8 @@
 //! precompute, and [`check_override`] says so.
 //!
 //! Why by hand: no crate walks a medium inside a triangle mesh and keeps per-pair path
-//! lengths; the rays go through the scene's BVH crate (`obvhs`, [`Occluder`]).
+//! lengths; the rays go through the scene's BVH crate (`obvhs`, [`Occluder`]), and only
+//! where a flight may reach the mesh ([`Clearance`]).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
@@ -67,6 +68,7 @@ use thiserror::Error;
 use translux_proto::bundle::SimulationInfo;
 use translux_proto::scene::Material;
 
+use crate::clearance::Clearance;
 use crate::profile;
 use crate::raycast::Occluder;
 use crate::specular::fresnel_dielectric;
@@ -620,6 +622,8 @@ enum End {
 struct Walker<'a> {
     p: SimPatches<'a>,
     occ: &'a Occluder,
+    /// Where a free flight certainly misses the mesh (the ray query is skipped there).
+    clear: &'a Clearance,
     /// σs of the group being walked, per scene unit.
     sigma_s: f32,
     g: f32,
@@ -669,7 +673,12 @@ impl Walker<'_> {
         let mut scatters = 0u32;
         let end = loop {
             let s = -(1.0 - rng.random::<f32>()).ln() / self.sigma_s;
-            match self.occ.closest_hit(pos, d, 0.0, s) {
+            let hit = if self.clear.clear(pos, s) {
+                None
+            } else {
+                self.occ.closest_hit(pos, d, 0.0, s)
+            };
+            match hit {
                 None => {
                     pos += d * s;
                     len += s;
@@ -721,6 +730,7 @@ impl Walker<'_> {
 pub(crate) struct WalkFrame {
     corners: Vec<[Vec3; 3]>,
     occ: Occluder,
+    clear: Clearance,
     /// Millimetres per unit of the frame.
     unit_mm: f64,
 }
@@ -742,9 +752,11 @@ impl WalkFrame {
             .map(|t| t.map(|v| (v - centre) * (WALK_FRAME / size)))
             .collect();
         let occ = Occluder::new(&corners);
+        let clear = Clearance::new(&corners);
         WalkFrame {
             corners,
             occ,
+            clear,
             unit_mm: unit_mm * (size / WALK_FRAME) as f64,
         }
     }
@@ -771,6 +783,7 @@ impl WalkFrame {
                 area,
             },
             occ: &self.occ,
+            clear: &self.clear,
             sigma_s: sigma_s * self.unit_mm as f32,
             g,
             eta,
@@ -822,7 +835,7 @@ pub fn simulate(
         corners: &frame.corners,
         ..p
     };
-    let (unit_mm, occ) = (frame.unit_mm, &frame.occ);
+    let (unit_mm, occ, clear) = (frame.unit_mm, &frame.occ, &frame.clear);
     let eps = 1e-5 * occ.diagonal();
     let groups = medium.groups();
     let floor = medium.floor();
@@ -838,6 +851,7 @@ pub fn simulate(
             || Walker {
                 p,
                 occ,
+                clear,
                 sigma_s: 1.0,
                 g: medium.g,
                 eta: medium.eta,
@@ -1455,6 +1469,7 @@ mod tests {
             .collect();
         let unit_mm = size / WALK_FRAME;
         let occ = Occluder::new(&corners);
+        let clear = Clearance::new(&corners);
         let p = SimPatches {
             corners: &corners,
             normal: &m.normal,
@@ -1466,6 +1481,7 @@ mod tests {
                 let mut w = Walker {
                     p,
                     occ: &occ,
+                    clear: &clear,
                     sigma_s: sigma_s * unit_mm,
                     g: 0.0,
                     eta: 1.0,
@@ -1502,6 +1518,61 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The clearance grid only skips ray queries that would have missed: walks with it and
+    /// with a grid that never skips (one built over no triangles) end at the same patch
+    /// after the same length, walk for walk, and most flights deep in a large box skip.
+    #[test]
+    fn skipping_flights_by_clearance_changes_no_walk() {
+        let m = mesh([40.0, 20.0, 30.0], 6);
+        let scale = WALK_FRAME / Vec3::new(40.0, 20.0, 30.0).length();
+        let corners: Vec<[Vec3; 3]> = m.tris.iter().map(|t| t.map(|v| v * scale)).collect();
+        let occ = Occluder::new(&corners);
+        let (clear, never) = (Clearance::new(&corners), Clearance::new(&[]));
+        let p = SimPatches {
+            corners: &corners,
+            normal: &m.normal,
+            area: &m.area,
+        };
+        let walker = |clear| Walker {
+            p,
+            occ: &occ,
+            clear,
+            sigma_s: 0.5 / scale,
+            g: 0.3,
+            eta: 1.4,
+            eps: 1e-5 * occ.diagonal(),
+            max_len: f32::INFINITY,
+            events: 0,
+        };
+        let (mut a, mut b) = (walker(&clear), walker(&never));
+        let mut skipped = 0u64;
+        for i in (0..corners.len()).step_by(7) {
+            let mut ra = ChaCha8Rng::seed_from_u64(5);
+            ra.set_stream(i as u64);
+            let mut rb = ra.clone();
+            for _ in 0..200 {
+                let (ea, wa, ta) = a.walk(i, Entry::Diffuse, &mut ra);
+                let (eb, wb, tb) = b.walk(i, Entry::Diffuse, &mut rb);
+                let key = |e: End| match e {
+                    End::Out { j, len, scattered } => (0, j, len.to_bits(), scattered),
+                    End::Lost => (1, 0, 0, false),
+                    End::Cut => (2, 0, 0, false),
+                };
+                assert_eq!((key(ea), wa, ta), (key(eb), wb, tb), "patch {i}");
+            }
+        }
+        assert_eq!(a.events, b.events);
+        // How often the grid spoke: the flights it let through without a query.
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        for _ in 0..10_000 {
+            let q = Vec3::new(rng.random(), rng.random(), rng.random()) * 2.0 - 1.0;
+            let half = Vec3::new(20.0, 10.0, 15.0);
+            let pos = (half + q * half * 0.6) * scale;
+            skipped += clear.clear(pos, 2.0 * scale) as u64;
+        }
+        assert!(skipped > 5_000, "{skipped} of 10,000 deep flights skipped");
     }
 
     /// Per face of `m`, the power leaving it (scattered light only, at absorption
