@@ -103,6 +103,12 @@ async function idle(page, timeout = 90000) {
   await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
 }
 
+/** The text of the shown banner of `kind`, or null when there is none. Read at once, not
+ * waited for: after `idle` the answer to the last request, a refusal included, is in. */
+async function bannerText(page, kind) {
+  return page.evaluate((k) => document.querySelector(`#banners [data-kind="${k}"]`)?.textContent ?? null, kind);
+}
+
 /** A browser context; with TRANSLUX_WEB_DIR, its pages load the viewer's files from there. */
 async function newContext(browser, options) {
   const context = await browser.newContext({ acceptDownloads: true, ...options });
@@ -394,7 +400,7 @@ async function checkAbsorption(browser) {
     await page.waitForTimeout(40);
   }
   await idle(page);
-  const banner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+  const banner = await bannerText(page, "request");
   check(!banner, `the absorption change was refused: ${banner}`);
   const after = await pixels(page, rect);
   const d = diff(before, after);
@@ -1010,7 +1016,7 @@ try {
   for (const c of ["direct", "subsurface_only", "interreflection_only", "heuristic_a", "heuristic_b"]) {
     await page.click(`#comp-${c}`);
     await idle(page);
-    const banner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+    const banner = await bannerText(page, "request");
     const shown = await page.evaluate(() => window.translux.app.lastInfo.stats.components);
     if (banner) {
       check(shown !== c, `${c} was refused but the overlay says it is shown`);
@@ -1031,7 +1037,7 @@ try {
   // 5. The environment map: drawn, or the server's refusal in the banner (never hidden).
   await page.check("#env-on");
   await idle(page);
-  const envBanner = await page.locator('#banners [data-kind="request"]').textContent().catch(() => null);
+  const envBanner = await bannerText(page, "request");
   result.environment = envBanner ? "refused: " + envBanner.replace(/^Server: /, "").replace(/×$/, "") : "drawn";
   if (envBanner) check(/environment/i.test(envBanner), `the environment refusal does not say why: ${envBanner}`);
   await shot(page, "05-environment.png");
