@@ -62,7 +62,14 @@ impl Clearance {
         grid.bound = grid
             .rings(&marked)
             .into_iter()
-            .map(|k| (k.max(1) - 1) as f32 * h)
+            // A cell no ring reached (nothing marked) says nothing.
+            .map(|k| {
+                if k == u32::MAX {
+                    0.0
+                } else {
+                    k.saturating_sub(1) as f32 * h
+                }
+            })
             .collect();
         grid
     }
@@ -124,8 +131,8 @@ impl Clearance {
         std::array::from_fn(|a| (c[a] as usize).min(self.dims[a] - 1))
     }
 
-    /// Each cell's Chebyshev ring distance to the nearest marked cell (0 on one), by a
-    /// breadth-first pass over the 26 neighbours.
+    /// Each cell's Chebyshev ring distance to the nearest marked cell (0 on one, u32::MAX
+    /// where nothing is marked), by a breadth-first pass over the 26 neighbours.
     fn rings(&self, marked: &[bool]) -> Vec<u32> {
         let [nx, ny, nz] = self.dims;
         let mut ring = vec![u32::MAX; marked.len()];
@@ -153,7 +160,7 @@ impl Clearance {
             }
             front = next;
         }
-        ring.iter().map(|&r| r.min(u32::MAX - 1)).collect()
+        ring
     }
 }
 

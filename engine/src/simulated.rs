@@ -1547,7 +1547,6 @@ mod tests {
             events: 0,
         };
         let (mut a, mut b) = (walker(&clear), walker(&never));
-        let mut skipped = 0u64;
         for i in (0..corners.len()).step_by(7) {
             let mut ra = ChaCha8Rng::seed_from_u64(5);
             ra.set_stream(i as u64);
@@ -1566,6 +1565,7 @@ mod tests {
         assert_eq!(a.events, b.events);
         // How often the grid spoke: the flights it let through without a query.
         let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut skipped = 0u64;
         for _ in 0..10_000 {
             let q = Vec3::new(rng.random(), rng.random(), rng.random()) * 2.0 - 1.0;
             let half = Vec3::new(20.0, 10.0, 15.0);
