@@ -67,7 +67,7 @@ pub fn pair_plan(
     params: &SubsurfaceParams,
 ) -> Quadrature {
     // Far: S_ji ≈ A_i P(r_ij).
-    let far = Quadrature::Far { area_i: p.area[i] };
+    let far = subsurface::far_plan(p, i, j);
     if r >= params.near_factor * p.size[i].max(p.size[j]) {
         return far;
     }

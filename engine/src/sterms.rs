@@ -15,7 +15,8 @@
 //! Why this is accurate at every translucency. Every quadrature plan is linear in the
 //! profile: S_ji = ∫ R(ρ) dμ(ρ) for a positive measure μ on the radii the pair spans, fixed by
 //! geometry:
-//! - far pairs: A_i R(r_ij), one term;
+//! - far pairs: A_i (R(m − σ) + R(m + σ)) / 2 (`subsurface::far_plan`), two terms (one
+//!   where the spread is 0);
 //! - polar integration (the self term, coplanar and sheet near pairs):
 //!   Σ_rays c (W(ρ_out) − W(ρ_in)) = ∫ n(ρ) R(ρ) 2πρ dρ, where n(ρ) counts (with weights c) the
 //!   rays that cover radius ρ — a step function. From 0 to the first ray end n is constant,
@@ -302,10 +303,20 @@ pub fn reduce(
     out: &mut Vec<Term>,
 ) {
     match *plan {
-        Quadrature::Far { area_i } => {
-            let root = r.max(0.0).sqrt();
-            out.push(Term::new(r, area_i, Of::R { lo: root, hi: root }))
-        }
+        Quadrature::Far {
+            area_i,
+            shift,
+            sigma,
+        } => match two_point_roots(r + shift, sigma) {
+            Some([lo, hi]) => {
+                out.push(Term::new(lo * lo, 0.5 * area_i, Of::R { lo, hi: lo }));
+                out.push(Term::new(hi * hi, 0.5 * area_i, Of::R { lo: hi, hi }));
+            }
+            None => {
+                let root = r.max(0.0).sqrt();
+                out.push(Term::new(r, area_i, Of::R { lo: root, hi: root }))
+            }
+        },
         Quadrature::Points {
             tri_j,
             excess,
@@ -2495,7 +2506,11 @@ mod tests {
                 &format!("coplanar pair two cells apart, side {side}"),
             );
             assert!(terms <= 6, "{terms} terms for a pair two cells apart");
-            let far = Quadrature::Far { area_i: area };
+            let far = Quadrature::Far {
+                area_i: area,
+                shift: 0.0,
+                sigma: 0.0,
+            };
             // Only the table lookup differs: linear in √r instead of r within a grid cell.
             check(
                 far,

@@ -10,7 +10,12 @@
 //! ```
 //!
 //! Quadrature, by how close the pair is:
-//! - far pairs (r_ij > `near_factor` × the larger patch's longest edge): S_ji = A_i R(r_ij);
+//! - far pairs (r_ij > `near_factor` × the larger patch's longest edge):
+//!   S_ji = A_i (R(m − σ) + R(m + σ)) / 2, with m and σ the mean and spread of the distance
+//!   between the two patches' points about r_ij (their second moments, [`far_plan`]): R
+//!   is convex, so its mean over the pair lies above R(r_ij), by several percent where the
+//!   profile falls steeply across a patch, and the two readings keep the mean exactly where
+//!   R is quadratic in the distance;
 //! - the self term and near pairs in the same plane: polar integration around m² sample
 //!   points x of patch i. With W(ρ) = ∫₀^ρ R(r) 2πr dr, the integral of R over a region seen
 //!   from x is Σₖ (W(ρ_out,k) − W(ρ_in,k)) / K over K directions, where [ρ_in, ρ_out] is where
@@ -538,8 +543,10 @@ pub fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
 /// decision.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Quadrature {
-    /// S_ji ≈ A_i R(r_ij): pairs far apart compared with their size.
-    Far { area_i: f32 },
+    /// S_ji ≈ A_i (R(r_ij + shift − σ) + R(r_ij + shift + σ)) / 2: pairs far apart compared
+    /// with their size, read at the mean distance between their points ± its spread
+    /// ([`far_plan`]; σ = 0 reads R(r_ij) alone).
+    Far { area_i: f32, shift: f32, sigma: f32 },
     /// S_ji = `factor` · mean over x ∈ patch i's samples of ∫_tri R(|x − y|) dA_y, with `tri`
     /// in the plane of normal `normal` through the samples: the self term (tri = patch i,
     /// factor 1), a coplanar near pair (tri = patch j, factor A_i / A_j), a thin sheet's near
@@ -592,7 +599,7 @@ impl Quadrature {
     ) -> Quadrature {
         let near = r < params.near_factor * p.size[i].max(p.size[j]);
         if !near {
-            Quadrature::Far { area_i: p.area[i] }
+            far_plan(p, i, j)
         } else if coplanar(&p.corners[i], p.normal[i], &p.corners[j], p.normal[j], eps) {
             Quadrature::Polar {
                 tri: p.corners[j],
@@ -626,7 +633,17 @@ impl Quadrature {
         params: &SubsurfaceParams,
     ) -> [f32; 3] {
         match *self {
-            Quadrature::Far { area_i } => tab.r(r).map(|v| v * area_i),
+            Quadrature::Far {
+                area_i,
+                shift,
+                sigma,
+            } => match crate::sterms::two_point_roots(r + shift, sigma) {
+                Some([lo, hi]) => {
+                    let (a, b) = (tab.r(lo * lo), tab.r(hi * hi));
+                    std::array::from_fn(|c| 0.5 * (a[c] + b[c]) * area_i)
+                }
+                None => tab.r(r).map(|v| v * area_i),
+            },
             Quadrature::Polar {
                 tri,
                 normal,
@@ -660,6 +677,37 @@ impl Quadrature {
                 acc.map(|v| v / k * area_i)
             }
         }
+    }
+}
+
+/// A far pair's plan: A_i R read at the mean distance between the two patches' points
+/// ± its spread, from the patches' second moments (Σ = (1/12) Σ_k (v_k − c)(v_k − c)ᵀ per
+/// triangle; with u the unit vector between centroids D apart, the distance's mean is
+/// |D| + (tr Σ − uᵀΣu) / 2|D| and its variance uᵀΣu, Σ = Σ_i + Σ_j).
+pub fn far_plan(p: &ObjectPatches<'_>, i: usize, j: usize) -> Quadrature {
+    let d = p.centroid[j] - p.centroid[i];
+    let len = d.length();
+    let area_i = p.area[i];
+    if len <= 0.0 {
+        return Quadrature::Far {
+            area_i,
+            shift: 0.0,
+            sigma: 0.0,
+        };
+    }
+    let u = d / len;
+    let (mut trace, mut along) = (0.0f32, 0.0f32);
+    for (k, c) in [(i, p.centroid[i]), (j, p.centroid[j])] {
+        for v in p.corners[k] {
+            let e = v - c;
+            trace += e.length_squared() / 12.0;
+            along += e.dot(u).powi(2) / 12.0;
+        }
+    }
+    Quadrature::Far {
+        area_i,
+        shift: (trace - along).max(0.0) / (2.0 * len),
+        sigma: along.max(0.0).sqrt(),
     }
 }
 
