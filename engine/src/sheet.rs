@@ -57,16 +57,16 @@ pub enum SheetError {
 }
 
 /// The plan for S_ji of a pair at sheet distance `r` through either profile (R for the same
-/// side, T for the other), by the quadrature of the module docs: far pairs by A_i P(r_ij),
-/// near pairs by polar integration over j projected onto i's plane (far again when the
-/// projection is edge-on).
+/// side, T for the other), by the quadrature of the module docs: far pairs by A_i P read at
+/// two distances ([`subsurface::far_plan`]), near pairs by polar integration over j
+/// projected onto i's plane (far again when the projection is edge-on).
 pub fn pair_plan(
     p: &ObjectPatches<'_>,
     (i, j): (usize, usize),
     r: f32,
     params: &SubsurfaceParams,
 ) -> Quadrature {
-    // Far: S_ji ≈ A_i P(r_ij).
+    // Far: S_ji ≈ A_i (P(m − σ) + P(m + σ)) / 2.
     let far = subsurface::far_plan(p, i, j);
     if r >= params.near_factor * p.size[i].max(p.size[j]) {
         return far;

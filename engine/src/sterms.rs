@@ -313,8 +313,8 @@ pub fn reduce(
                 out.push(Term::new(hi * hi, 0.5 * area_i, Of::R { lo: hi, hi }));
             }
             None => {
-                let root = r.max(0.0).sqrt();
-                out.push(Term::new(r, area_i, Of::R { lo: root, hi: root }))
+                let root = (r + shift).max(0.0).sqrt();
+                out.push(Term::new(r + shift, area_i, Of::R { lo: root, hi: root }))
             }
         },
         Quadrature::Points {

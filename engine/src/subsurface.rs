@@ -545,7 +545,7 @@ pub fn coplanar_eps(p: &ObjectPatches<'_>) -> f32 {
 pub enum Quadrature {
     /// S_ji ≈ A_i (R(r_ij + shift − σ) + R(r_ij + shift + σ)) / 2: pairs far apart compared
     /// with their size, read at the mean distance between their points ± its spread
-    /// ([`far_plan`]; σ = 0 reads R(r_ij) alone).
+    /// ([`far_plan`]; σ = 0 reads R(r_ij + shift) alone).
     Far { area_i: f32, shift: f32, sigma: f32 },
     /// S_ji = `factor` · mean over x ∈ patch i's samples of ∫_tri R(|x − y|) dA_y, with `tri`
     /// in the plane of normal `normal` through the samples: the self term (tri = patch i,
@@ -642,7 +642,7 @@ impl Quadrature {
                     let (a, b) = (tab.r(lo * lo), tab.r(hi * hi));
                     std::array::from_fn(|c| 0.5 * (a[c] + b[c]) * area_i)
                 }
-                None => tab.r(r).map(|v| v * area_i),
+                None => tab.r(r + shift).map(|v| v * area_i),
             },
             Quadrature::Polar {
                 tri,
