@@ -720,7 +720,7 @@ fn write_terms(
 /// A_k P(r), P the table `tab(kind)` of the stored entry's kind, kept while √r is within
 /// the table's end; a link with a spread σ > 0 (`dist_spread`, aligned with the entries;
 /// empty: none) is read at two distances, A_k (P(r − σ) + P(r + σ)) / 2
-/// ([`crate::sterms::two_point_roots`]). Empty rows when the distances hold no links.
+/// ([`crate::subsurface::two_point_roots`]). Empty rows when the distances hold no links.
 fn node_links<'t>(
     distances: CsrView<'_, f32>,
     dist_kind: &[u32],
@@ -750,7 +750,7 @@ fn node_links<'t>(
                     let spread = dist_spread.get(first + e).copied().unwrap_or(0.0);
                     (root < t.root_max()).then(|| {
                         let a = nodes.area[c as usize - n];
-                        let two = crate::sterms::two_point_roots(d, spread);
+                        let two = crate::subsurface::two_point_roots(d, spread);
                         let r = crate::sterms::link_reading(two, root, |x| t.r_root(x));
                         (c, r.map(|v| v * a))
                     })

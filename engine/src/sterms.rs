@@ -46,6 +46,7 @@ use crate::linkbound::LinkBound;
 use crate::sheet;
 use crate::subsurface::{
     self, EnergyReport, Nodes, ObjectPatches, ObjectS, Quadrature, SubsurfaceParams, Tabulated,
+    two_point_roots,
 };
 
 /// Each coarse bin of an entry's radii spans at most this ratio (ρ_max / ρ_min).
@@ -263,15 +264,6 @@ impl Term {
     pub fn eval(&self, tab: &Tabulated) -> [f32; 3] {
         TermTable::new(tab).eval(self)
     }
-}
-
-/// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
-/// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
-/// assembly (`smatrix::node_links`) and the radial terms' rewrite ([`ObjectTerms::write`]),
-/// so both read the same cells: a link's value is the mean of the profile at the two.
-#[inline]
-pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
-    (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
 }
 
 /// A link's profile value, R read through `r_at` (R at a root √r): at its two roots'

@@ -637,7 +637,7 @@ impl Quadrature {
                 area_i,
                 shift,
                 sigma,
-            } => match crate::sterms::two_point_roots(r + shift, sigma) {
+            } => match two_point_roots(r + shift, sigma) {
                 Some([lo, hi]) => {
                     let (a, b) = (tab.r(lo * lo), tab.r(hi * hi));
                     std::array::from_fn(|c| 0.5 * (a[c] + b[c]) * area_i)
@@ -980,6 +980,16 @@ pub struct AssemblyReport {
     pub entries: u64,
     pub links: u64,
     pub seconds: f64,
+}
+
+/// The roots √(r − σ) and √(r + σ) at which a link of distance `r` and spread `sigma` is
+/// read (r − σ clamped at 0), or None for a link read at r alone (σ = 0). Shared by the
+/// assembly (`smatrix::node_links`), far pairs ([`Quadrature::eval`]) and the radial terms'
+/// rewrite (`sterms::ObjectTerms::write`), so all read the same cells: a link's value is
+/// the mean of the profile at the two.
+#[inline]
+pub fn two_point_roots(r: f32, sigma: f32) -> Option<[f32; 2]> {
+    (sigma > 0.0).then(|| [(r - sigma).max(0.0).sqrt(), (r + sigma).max(0.0).sqrt()])
 }
 
 #[cfg(test)]
