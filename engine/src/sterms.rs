@@ -338,8 +338,10 @@ pub fn reduce(
             tri,
             normal,
             factor,
+            ..
         } => {
-            let rays = ray_intervals(xs, factor, params.directions, |x, f| {
+            let xs = plan.sources(xs, params);
+            let rays = ray_intervals(&xs, factor, params.directions, |x, f| {
                 subsurface::lifted_intervals(x, &tri, normal, params.directions, f)
             });
             polar_terms(&rays, out);
@@ -2452,6 +2454,7 @@ mod tests {
                 tri: w,
                 normal: Vec3::X,
                 factor: 1.0,
+                source: None,
             };
             check(
                 wall,
@@ -2459,6 +2462,19 @@ mod tests {
                 &xs,
                 1e-3,
                 &format!("across an edge, lifted, side {side}"),
+            );
+            // The same, integrated from (2m)² points of a (a crease's plan).
+            check(
+                Quadrature::Lifted {
+                    tri: w,
+                    normal: Vec3::X,
+                    factor: 1.0,
+                    source: Some(a),
+                },
+                side * 0.5,
+                &xs,
+                1e-3,
+                &format!("across a crease, lifted, side {side}"),
             );
             // b turned 10° down about the diagonal it shares with a.
             let pivot = Vec3::new(side, 0.0, 0.0);
@@ -2475,6 +2491,7 @@ mod tests {
                     tri: folded,
                     normal: folded_n,
                     factor: 1.0,
+                    source: None,
                 },
                 side * 0.5,
                 &xs,

@@ -25,7 +25,8 @@
 //!   curved mesh) joined by a straight path: the same polar integration around the feet of
 //!   patch i's samples on patch j's plane, each ray's ends lifted to the 3-D distance
 //!   √(ρ² + h²) from the sample (exact in r too: point samples miss a profile narrower than
-//!   a patch);
+//!   a patch), around (2m)² sample points of patch i where the two touch at a crease
+//!   ([`CREASE_DEG`]);
 //! - near pairs in different planes whose optical path bends (voxel paths round a
 //!   concavity): m² × m² point samples with r(x, y) = |x − y| plus the excess of the optical
 //!   path over the centroid distance.
@@ -34,6 +35,7 @@
 //! light received). Quadrature can overshoot a little; such columns are scaled down to the
 //! bound and counted in the report, never silently.
 
+use std::borrow::Cow;
 use std::ops::Range;
 
 use glam::Vec3;
@@ -494,6 +496,17 @@ fn arc_rays(k: u32, span: f32) -> u32 {
 /// object's voxel paths bend by at least a voxel).
 pub const STRAIGHT: f32 = 1e-4;
 
+/// Touching near pairs whose normals are further apart than this many degrees meet at a
+/// crease and integrate from more points of the source patch ([`Quadrature::Lifted`]'s
+/// `source`).
+pub const CREASE_DEG: f32 = 30.0;
+
+/// Whether two triangles share a corner (within `eps`).
+fn touching(a: &[Vec3; 3], b: &[Vec3; 3], eps: f32) -> bool {
+    a.iter()
+        .any(|u| b.iter().any(|v| u.distance_squared(*v) <= eps * eps))
+}
+
 fn coplanar(a: &[Vec3; 3], na: Vec3, b: &[Vec3; 3], nb: Vec3, eps: f32) -> bool {
     na.dot(nb) > 0.9999 && b.iter().all(|v| na.dot(*v - a[0]).abs() <= eps)
 }
@@ -562,10 +575,18 @@ pub enum Quadrature {
     /// ρ from x′, so each ray from x′ adds W(√(ρ_out² + h²)) − W(√(ρ_in² + h²))
     /// ([`lifted_intervals`]): exact in r, like [`Quadrature::Polar`], for profiles far
     /// narrower than the patches (point samples miss them).
+    ///
+    /// Across a crease (touching patches whose normals are more than [`CREASE_DEG`] apart,
+    /// a box's edge) `source` holds patch i's corners and x runs over (2m)² points of it
+    /// ([`Quadrature::sources`]) instead of the caller's m²: there the integral over j
+    /// falls off from the shared edge within a mean free path on i's side alone, and a
+    /// profile far narrower than a patch falls between m² points. Between facets of a
+    /// smooth mesh the over- and under-reads cancel across the neighbours, as in a plane.
     Lifted {
         tri: [Vec3; 3],
         normal: Vec3,
         factor: f32,
+        source: Option<[Vec3; 3]>,
     },
     /// S_ji = A_i · mean over sample pairs (x, y) of R(|x − y| + excess): near pairs in
     /// different planes whose optical path bends (`excess`, its excess over the centroid
@@ -609,10 +630,13 @@ impl Quadrature {
         } else {
             let excess = (r - p.centroid[i].distance(p.centroid[j])).max(0.0);
             if excess <= STRAIGHT * p.size[i].max(p.size[j]) {
+                let crease = p.normal[i].dot(p.normal[j]) < CREASE_DEG.to_radians().cos()
+                    && touching(&p.corners[i], &p.corners[j], eps);
                 Quadrature::Lifted {
                     tri: p.corners[j],
                     normal: p.normal[j],
                     factor: p.area[i] / p.area[j],
+                    source: crease.then_some(p.corners[i]),
                 }
             } else {
                 Quadrature::Points {
@@ -621,6 +645,17 @@ impl Quadrature {
                     area_i: p.area[i],
                 }
             }
+        }
+    }
+
+    /// Patch i's points the plan integrates from: `xs` (its m² sample points), or (2m)²
+    /// points of patch i for a [`Quadrature::Lifted`] pair across a crease.
+    pub fn sources<'a>(&self, xs: &'a [Vec3], params: &SubsurfaceParams) -> Cow<'a, [Vec3]> {
+        match self {
+            Quadrature::Lifted {
+                source: Some(c), ..
+            } => Cow::Owned(samples(c, 2 * params.samples)),
+            _ => Cow::Borrowed(xs),
         }
     }
 
@@ -655,7 +690,8 @@ impl Quadrature {
                 tri,
                 normal,
                 factor,
-            } => mean_over(xs, factor, |x| {
+                ..
+            } => mean_over(&self.sources(xs, params), factor, |x| {
                 lifted_integral(x, &tri, normal, tab, params.directions)
             }),
             Quadrature::Points {
@@ -1127,6 +1163,61 @@ mod tests {
             }
         }
         assert!(s.report.max_column <= 1.0 + 1e-3, "{:?}", s.report);
+    }
+
+    #[test]
+    fn a_crease_integrates_from_more_points_of_its_source_patch() {
+        // A profile 20 times narrower than the 1 mm patches: across a right-angled edge the
+        // integral over the wall falls off within 0.05 mm of the edge on the source's side.
+        let narrow = Profile::Exponentials {
+            terms: vec![ExpTerm {
+                a: [1.0; 3],
+                b: [20.0; 3],
+            }],
+        };
+        let eval = ProfileEval::new(&narrow, 1.0).unwrap();
+        let r_max = eval.truncation_radius(1e-4);
+        let tab = Tabulated::new(&eval, r_max, 4096);
+        let a = [Vec3::ZERO, Vec3::X, Vec3::Z];
+        let wall = [Vec3::ZERO, Vec3::Y, Vec3::Z];
+        let turn = glam::Quat::from_axis_angle(Vec3::Z, -10f32.to_radians());
+        let folded = [Vec3::ZERO, Vec3::Z, turn * -Vec3::X];
+        let params = SubsurfaceParams::default();
+        for (other, crease) in [(wall, true), (folded, false)] {
+            let o = prepare(vec![a, other], 10.0);
+            let p = ObjectPatches {
+                corners: &o.corners,
+                centroid: &o.centroid,
+                normal: &o.normal,
+                area: &o.area,
+                size: &o.size,
+            };
+            let r = o.centroid[0].distance(o.centroid[1]);
+            let plan = Quadrature::pair(&p, 0, 1, r, &params, coplanar_eps(&p));
+            let Quadrature::Lifted { source, .. } = plan else {
+                panic!("a straight near pair in two planes is lifted: {plan:?}");
+            };
+            assert_eq!(source.is_some(), crease, "{plan:?}");
+            if !crease {
+                continue;
+            }
+            // The source integrated from 64² points, against the plan and the m² rule.
+            let xs = samples(&a, params.samples);
+            let dense = mean_over(&samples(&a, 64), 1.0, |x| {
+                lifted_integral(x, &wall, o.normal[1], &tab, params.directions)
+            })[0];
+            let got = plan.eval(r, &xs, &tab, &params)[0];
+            let coarse = mean_over(&xs, 1.0, |x| {
+                lifted_integral(x, &wall, o.normal[1], &tab, params.directions)
+            })[0];
+            let (e, e_coarse) = ((got / dense - 1.0).abs(), (coarse / dense - 1.0).abs());
+            eprintln!(
+                "crease: (2m)² {:.2}%, m² {:.2}%",
+                100.0 * e,
+                100.0 * e_coarse
+            );
+            assert!(e < 0.5 * e_coarse, "(2m)² {e} against m² {e_coarse}");
+        }
     }
 
     #[test]
