@@ -1064,6 +1064,18 @@ mod tests {
         dist: Vec<f32>,
     }
 
+    impl Owned {
+        fn patches(&self) -> ObjectPatches<'_> {
+            ObjectPatches {
+                corners: &self.corners,
+                centroid: &self.centroid,
+                normal: &self.normal,
+                area: &self.area,
+                size: &self.size,
+            }
+        }
+    }
+
     /// Patches and Euclidean distances within `r_max` (brute force: test sizes are small).
     fn prepare(corners: Vec<[Vec3; 3]>, r_max: f32) -> Owned {
         let centroid: Vec<Vec3> = corners.iter().map(|c| (c[0] + c[1] + c[2]) / 3.0).collect();
@@ -1108,16 +1120,9 @@ mod tests {
     }
 
     fn run(o: &Owned, tab: &Tabulated) -> ObjectS {
-        let p = ObjectPatches {
-            corners: &o.corners,
-            centroid: &o.centroid,
-            normal: &o.normal,
-            area: &o.area,
-            size: &o.size,
-        };
         let n = o.area.len();
         let d = CsrView::new_checked(n, n, &o.row_ptr, &o.col, &o.dist).unwrap();
-        assemble(p, d, tab, &SubsurfaceParams::default())
+        assemble(o.patches(), d, tab, &SubsurfaceParams::default())
     }
 
     #[test]
@@ -1185,13 +1190,7 @@ mod tests {
         let params = SubsurfaceParams::default();
         for (other, crease) in [(wall, true), (folded, false)] {
             let o = prepare(vec![a, other], 10.0);
-            let p = ObjectPatches {
-                corners: &o.corners,
-                centroid: &o.centroid,
-                normal: &o.normal,
-                area: &o.area,
-                size: &o.size,
-            };
+            let p = o.patches();
             let r = o.centroid[0].distance(o.centroid[1]);
             let plan = Quadrature::pair(&p, 0, 1, r, &params, coplanar_eps(&p));
             let Quadrature::Lifted { source, .. } = plan else {
