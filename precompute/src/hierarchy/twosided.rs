@@ -18,12 +18,14 @@
 //!     [`RECEIVER_VARIATION`] of its mean, or by less than [`RECEIVER_SPREAD`] — every patch
 //!     of a node receives the mean, so this bounds how far a patch's share may be off;
 //!   - visibility: a node receiver sees its source whole when the shaft between their boxes
-//!     ([`super::shaft`]) holds no other patch. Otherwise the fraction of sample pairs that
-//!     see each other is kept only when the unoccluded coefficient is at most
-//!     [`PARTIAL_VISIBILITY`] (the most light the shadow could misplace); a patch receiver
+//!     ([`super::shaft`]) holds no other patch. Otherwise each receiver point casts a ray to
+//!     each source point: when the receiver points see different shares of the source,
+//!     the node's patches lie in different shadows and the receiver is split; when they see
+//!     the same share, its fraction is kept only when the unoccluded coefficient is at most
+//!     [`PARTIAL_VISIBILITY`] (the most light the shadow could misplace). A patch receiver
 //!     takes the one-sided rule (rays to every source point, linked when they agree);
 //! - otherwise **refined**: the larger of the two is split (the receiver when its kernel
-//!   varies too much; a receiver split hands the source down to its children); two patches
+//!   or its shadow varies; a receiver split hands the source down to its children); two patches
 //!   take the dense code's pair rule.
 //!
 //! The admissibility test is symmetric and scale-invariant; where shafts are clear and the
@@ -102,6 +104,9 @@ enum Coefficient {
     Link(f32),
     /// The kernel varies across the receiver more than [`RECEIVER_VARIATION`].
     ReceiverVaries,
+    /// A node receiver's points see different shares of the source: some of its patches
+    /// are in a blocker's shadow that others are not.
+    ShadowVaries,
     /// Partly visible and carrying too much to keep the visible fraction.
     PartlyVisible,
 }
@@ -318,7 +323,7 @@ impl Traversal<'_> {
         if admissible {
             match self.coefficient(r, s, rays) {
                 Coefficient::Link(v) => return Verdict::Link(v),
-                Coefficient::ReceiverVaries => varies = true,
+                Coefficient::ReceiverVaries | Coefficient::ShadowVaries => varies = true,
                 Coefficient::PartlyVisible => {}
             }
         }
@@ -424,9 +429,9 @@ impl Traversal<'_> {
     }
 
     /// The link's coefficient: the receiver points' mean of the source's kernel sum, times
-    /// the visible fraction of the sample pairs — unless the kernel varies too much across
-    /// the receiver, or a partly visible pair carries too much to keep its fraction (the
-    /// caller refines).
+    /// the visible fraction of the sample pairs — unless the kernel or the visible share
+    /// varies across the receiver, or a partly visible pair carries too much to keep its
+    /// fraction (the caller refines).
     fn coefficient(&self, r: Child, s: Child, rays: &mut u64) -> Coefficient {
         let p = self.p;
         let (mut xs, mut qs) = (Vec::new(), Vec::new());
@@ -454,39 +459,55 @@ impl Traversal<'_> {
         }
         // Visibility. A node receiver sees its source whole when the shaft between them
         // holds no other surface; otherwise sample rays give the visible fraction, which
-        // only a pair carrying little may keep. A patch receiver takes the one-sided rule:
-        // rays to every source point, kept when they all agree.
+        // only a pair carrying little and seen alike from every receiver point may keep (a
+        // fraction shared by patches in and out of a shadow would light the shadow). A patch
+        // receiver takes the one-sided rule: rays to every source point, kept when they all
+        // agree.
         let vs = match r {
             Child::Node(_) if !self.shaft_blocked(r, s) => return Coefficient::Link(kernel),
             Child::Node(_) => &xs,
             Child::Patch(_) => &xs[..1],
         };
         let pairs = vs.len() * qs.len();
-        let mut seen = 0usize;
-        for &(i, _) in vs {
-            let from = p.centroid[i] + p.normal[i] * self.offset;
-            for &(q, _) in &qs {
-                *rays += 1;
-                if !self
-                    .occ
-                    .occluded(from, p.centroid[q] + p.normal[q] * self.offset)
-                {
-                    seen += 1;
-                }
-            }
-        }
+        let seen = self.visible_per_point(vs, &qs, rays);
+        let all: usize = seen.iter().sum();
         if let Child::Patch(_) = r {
-            return match seen {
+            return match all {
                 0 => Coefficient::Link(0.0),
                 s if s == pairs => Coefficient::Link(kernel),
                 _ => Coefficient::PartlyVisible,
             };
         }
-        if kernel <= PARTIAL_VISIBILITY {
-            Coefficient::Link(kernel * seen as f32 / pairs as f32)
+        if seen.iter().any(|&s| s != seen[0]) {
+            Coefficient::ShadowVaries
+        } else if kernel <= PARTIAL_VISIBILITY {
+            Coefficient::Link(kernel * all as f32 / pairs as f32)
         } else {
             Coefficient::PartlyVisible
         }
+    }
+
+    /// How many of the source points `qs` each receiver point of `xs` sees (a ray each).
+    fn visible_per_point(
+        &self,
+        xs: &[(usize, f64)],
+        qs: &[(usize, f64)],
+        rays: &mut u64,
+    ) -> Vec<usize> {
+        let p = self.p;
+        xs.iter()
+            .map(|&(i, _)| {
+                let from = p.centroid[i] + p.normal[i] * self.offset;
+                *rays += qs.len() as u64;
+                qs.iter()
+                    .filter(|&&(q, _)| {
+                        !self
+                            .occ
+                            .occluded(from, p.centroid[q] + p.normal[q] * self.offset)
+                    })
+                    .count()
+            })
+            .collect()
     }
 
     /// The sorted entries as one block of N + M rows, with the counts of the cut.

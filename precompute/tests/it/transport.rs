@@ -608,8 +608,9 @@ fn room_with_a_box() -> Vec<Vec<[Vec3; 3]>> {
     objects
 }
 
-/// The two-sided cut (nodes receive too) against dense F, with no light: each patch's row
-/// sum (its own row plus the node rows that hold it) and the operator on a smooth field.
+/// The two-sided cut (nodes receive too) against dense F: each patch's row sum (its own row
+/// plus the node rows that hold it), the operator on a smooth field, and the solve under a
+/// lamp, in and out of the lamp's shadow.
 #[test]
 fn two_sided_f_agrees_with_dense_f_in_a_room_with_a_box() {
     use translux_precompute::hierarchy::{self, HierarchyParams};
@@ -671,11 +672,107 @@ fn two_sided_f_agrees_with_dense_f_in_a_room_with_a_box() {
     let e = rel_diff(&yt, &yd);
     eprintln!("two-sided operator error on a smooth field: {e:.2e}");
     assert!(e < 0.015, "{e}");
+    // The solve under a lamp over the box: the floor in the box's shadow gets only
+    // inter-reflected light, part of which the box hides from it. The issue's bounds on
+    // the patches the lamp lights and on those it does not.
+    let lamp = Vec3::new(0.95, 1.35, 0.85);
+    let e: Vec<Rgb> = (0..n)
+        .map(|i| {
+            let (c, nrm) = (p.centroid[i], p.normal[i]);
+            let to = lamp - c;
+            let cos = nrm.dot(to.normalize());
+            let seen = cos > 0.0 && !occ.occluded(c + nrm * 1e-4, lamp);
+            [if seen { cos / to.length_squared() } else { 0.0 }; 3]
+        })
+        .collect();
+    let mut errors = LampErrors::default();
+    errors.add(&bounce(&t, &e), &bounce(&d, &e), &e);
+    errors.check("a room with a box, two-sided", 100);
+}
+
+/// B = ρ (E + F B) with ρ = 0.6, by 60 Jacobi steps (ρ⁶⁰ < 10⁻¹³).
+fn bounce(f: &Transport, e: &[Rgb]) -> Vec<Rgb> {
+    let mut b: Vec<Rgb> = e.iter().map(|x| x.map(|v| 0.6 * v)).collect();
+    let mut fb = vec![[0.0f32; 3]; e.len()];
+    for _ in 0..60 {
+        f.apply_rgb(&b, &mut fb);
+        for ((b, fb), e) in b.iter_mut().zip(&fb).zip(e) {
+            *b = std::array::from_fn(|c| 0.6 * (e[c] + fb[c]));
+        }
+    }
+    b
+}
+
+/// Relative errors |got − want| / want of solves under lamps, apart over the patches each
+/// lamp lights (E > 0) and those it does not.
+#[derive(Default)]
+struct LampErrors {
+    lit: Vec<f64>,
+    shadowed: Vec<f64>,
+}
+
+impl LampErrors {
+    /// Over the patches whose reference is above 1% of the lit patches' median (a patch
+    /// that nothing reaches, pressed against another, has no relative error).
+    fn add(&mut self, got: &[Rgb], want: &[Rgb], e: &[Rgb]) {
+        let mut lit: Vec<f32> = want
+            .iter()
+            .zip(e)
+            .filter(|(_, e)| e[0] > 0.0)
+            .map(|(w, _)| w[0])
+            .collect();
+        lit.sort_by(f32::total_cmp);
+        let floor = 0.01 * lit[lit.len() / 2];
+        for ((g, w), e) in got.iter().zip(want).zip(e) {
+            if w[0] <= floor {
+                continue;
+            }
+            let err = ((g[0] - w[0]) / w[0]).abs() as f64;
+            if e[0] > 0.0 {
+                self.lit.push(err);
+            } else {
+                self.shadowed.push(err);
+            }
+        }
+    }
+
+    /// Prints the median and 90th percentile of each side and holds them to the issue's
+    /// bounds against dense F: lit 1% / 3%, shadowed 1.5% / 5%.
+    fn check(&mut self, what: &str, least_shadowed: usize) {
+        let quantiles = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+            (at(0.5), at(0.9))
+        };
+        let (lit, shadowed) = (quantiles(&mut self.lit), quantiles(&mut self.shadowed));
+        eprintln!(
+            "{what} under lamps against dense: lit median {:.2}% p90 {:.2}% ({} patches), \
+             shadowed median {:.2}% p90 {:.2}% ({} patches)",
+            100.0 * lit.0,
+            100.0 * lit.1,
+            self.lit.len(),
+            100.0 * shadowed.0,
+            100.0 * shadowed.1,
+            self.shadowed.len()
+        );
+        assert!(
+            self.shadowed.len() >= least_shadowed,
+            "{} shadowed patches",
+            self.shadowed.len()
+        );
+        assert!(lit.0 <= 0.01 && lit.1 <= 0.03, "{what}, lit: {lit:?}");
+        assert!(
+            shadowed.0 <= 0.015 && shadowed.1 <= 0.05,
+            "{what}, shadowed: {shadowed:?}"
+        );
+    }
 }
 
 /// The furnished room of `examples/scenes/furnished-room` (one OBJ per wall and per piece
 /// of furniture, as users model rooms) loads as modelled — no object turned over — and its
-/// two-sided F's row sums match dense F's for 99% of the patches.
+/// two-sided F matches dense F at 6,000 patches: row sums for 99% of the patches, and solves
+/// under lamps among the furniture (the issue's bounds on lit and shadowed patches). (At 2,500 patches the cut stores little but patch pairs,
+/// and light kept from a shadow by a fraction of a node's visibility did not show.)
 #[test]
 fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_sums() {
     use translux_precompute::hierarchy::HierarchyParams;
@@ -696,7 +793,7 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
         .collect();
     assert!(turned.is_empty(), "turned over: {turned:?}");
     let dir = tempfile::tempdir().unwrap();
-    let mut sums = Vec::new();
+    let mut bundles = Vec::new();
     for (name, transport) in [
         ("dense", FormFactorMethod::Dense),
         (
@@ -709,7 +806,7 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
     ] {
         let out = dir.path().join(name);
         let params = PrecomputeParams {
-            patches: Some(2500),
+            patches: Some(6000),
             transport,
             environment: translux_engine::envvis::EnvVisParams {
                 bins: None,
@@ -718,8 +815,10 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
             ..Default::default()
         };
         precompute(&loaded, &out, &params).unwrap();
-        sums.push(Transport::of(&Bundle::open(&out).unwrap()).row_sums());
+        bundles.push(Bundle::open(&out).unwrap());
     }
+    let (dense, two) = (Transport::of(&bundles[0]), Transport::of(&bundles[1]));
+    let sums = [dense.row_sums(), two.row_sums()];
     let mut diffs: Vec<f64> = sums[0]
         .iter()
         .zip(&sums[1])
@@ -731,7 +830,28 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
         "furnished room: row-sum difference, two-sided against dense: p99 {p99:.4}, largest {:.4}",
         diffs[diffs.len() - 1]
     );
-    // The largest differences are on the ceiling's patches, a metre across at this size,
-    // where dense F's own centroid samples are coarse (its row sums reach 1.05 there).
-    assert!(p99 <= 0.02, "{p99}");
+    // Under four lamps among the furniture: the light between books, chairs and tables, in
+    // and out of their shadows.
+    let mut errors = LampErrors::default();
+    for at in [
+        [2.2, 2.6, 2.0],
+        [6.0, 2.4, 4.5],
+        [1.0, 1.5, 4.0],
+        [4.0, 0.9, 3.0],
+    ] {
+        let lamp: translux_proto::light::Light = serde_json::from_value(
+            serde_json::json!({"type": "point", "position": at, "intensity": [5, 5, 5]}),
+        )
+        .unwrap();
+        let e = radiosity::BundleLighting::new(&bundles[0])
+            .irradiance(&[lamp])
+            .unwrap();
+        errors.add(&bounce(&two, &e), &bounce(&dense, &e), &e);
+    }
+    errors.check("the furnished room, two-sided", 1000);
+    // Dense F's own near samples between books and chair legs overshoot (its row sums reach
+    // 1.19 here), so the cuts differ from it most there: at 6,000 patches the one-sided
+    // default by 0.055 at the 99th percentile (0.30 at most), the two-sided cut by 0.035
+    // (0.064), and by 0.053 when a node shared a visible fraction across a shadow.
+    assert!(p99 <= 0.04, "{p99}");
 }

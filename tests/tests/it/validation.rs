@@ -11,6 +11,7 @@
 //! `TRANSLUX_SKIP_MITSUBA=1` (CI never sets it).
 
 use std::path::Path;
+use std::sync::OnceLock;
 use translux_engine::transport::Transport;
 
 use serde_json::json;
@@ -1031,6 +1032,40 @@ struct LoneObject<'a> {
     /// many walks per lamp (a relight's `"lamp_walks"`): entries named "…, lamp walks",
     /// (dipole, walked).
     lamp_walks: Option<u32>,
+    /// Where tests of the same object, medium and patches (lit differently) keep its two
+    /// bundles, built by whichever test comes first: S is light-independent.
+    shared: Option<&'static OnceLock<Built>>,
+}
+
+/// A lone object precomputed with the dipole and with walks, in its folder.
+struct Built {
+    _dir: tempfile::TempDir,
+    dipole: Scene,
+    simulated: Scene,
+}
+
+impl Built {
+    fn of(c: &LoneObject<'_>, scene: &dyn Fn(Material) -> SceneFile) -> Built {
+        let dir = tempfile::tempdir().unwrap();
+        let name = |kind: &str| format!("{}_{kind}", c.object);
+        let dipole = build(
+            scene(c.medium.dipole()),
+            dir.path(),
+            &name("dipole"),
+            c.patches,
+        );
+        let simulated = build(
+            scene(c.medium.simulated(c.noise)),
+            dir.path(),
+            &name("simulated"),
+            c.patches,
+        );
+        Built {
+            _dir: dir,
+            dipole,
+            simulated,
+        }
+    }
 }
 
 fn lone_object_against_volpath(
@@ -1038,20 +1073,15 @@ fn lone_object_against_volpath(
     scene: &dyn Fn(Material) -> SceneFile,
     group: &dyn Fn([f32; 3], [f32; 3]) -> usize,
 ) -> Option<Vec<(String, Errors, Errors)>> {
-    let dir = tempfile::tempdir().unwrap();
-    let name = |kind: &str| format!("{}_{kind}", c.object);
-    let a = build(
-        scene(c.medium.dipole()),
-        dir.path(),
-        &name("dipole"),
-        c.patches,
-    );
-    let s = build(
-        scene(c.medium.simulated(c.noise)),
-        dir.path(),
-        &name("simulated"),
-        c.patches,
-    );
+    let own;
+    let built = match c.shared {
+        Some(cell) => cell.get_or_init(|| Built::of(c, scene)),
+        None => {
+            own = Built::of(c, scene);
+            &own
+        }
+    };
+    let (a, s) = (&built.dipole, &built.simulated);
     let b = &a.bundle;
     assert_eq!(b.patch_corners(), s.bundle.patch_corners());
     let parsed: Vec<translux_proto::light::Light> =
@@ -1140,14 +1170,14 @@ fn lone_object_against_volpath(
             at.iter().map(|&v| radiance[v]).collect()
         };
         let (ed, es) = (
-            errors(&relit_with(&a, None), &deep, 0.05),
-            errors(&relit_with(&s, None), &deep, 0.05),
+            errors(&relit_with(a, None), &deep, 0.05),
+            errors(&relit_with(s, None), &deep, 0.05),
         );
         let name = format!("{} at vertices ({spp} paths)", c.names[g]);
         rows.push(table_row(&format!("{name}, dipole"), at.len(), &ed));
         rows.push(table_row(&format!("{name}, simulated"), at.len(), &es));
         if let Some(per) = c.lamp_walks {
-            let ew = errors(&relit_with(&s, Some(per)), &deep, 0.05);
+            let ew = errors(&relit_with(s, Some(per)), &deep, 0.05);
             rows.push(table_row(
                 &format!("{name}, simulated, lamp walks"),
                 at.len(),
@@ -1204,6 +1234,9 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
     )
 }
 
+/// The lit cubes' bundles, built once for both tests (their S does not depend on the light).
+static CUBE: OnceLock<Built> = OnceLock::new();
+
 /// The same cube lit by a directional light travelling along `direction`, its faces named
 /// `faces` (−x, +x, +y, +z, −y, −z), the groups `deep` compared again at vertices.
 fn lit_cube(
@@ -1231,6 +1264,7 @@ fn lit_cube(
             seed: 5,
             names: faces,
             lamp_walks,
+            shared: Some(&CUBE),
         },
         &|m| {
             alone(
@@ -1391,6 +1425,7 @@ fn bowl_lit_from_inside() -> Option<Vec<(String, Errors, Errors)>> {
                 "rim",
             ],
             lamp_walks: None,
+            shared: None,
         },
         &|m| {
             alone(
@@ -1777,6 +1812,7 @@ fn cube_in_a_coloured_room() -> Option<Vec<(String, Errors, Errors)>> {
                 "walls",
             ],
             lamp_walks: None,
+            shared: None,
         },
         &|m| {
             let mut objects = walls.clone();
