@@ -690,16 +690,20 @@ fn two_sided_f_agrees_with_dense_f_in_a_room_with_a_box() {
     errors.check("a room with a box, two-sided", 100);
 }
 
-/// B = ρ (E + F B) with ρ = 0.6, by 60 Jacobi steps (ρ⁶⁰ < 10⁻¹³).
+/// B = ρ (E + F B) with ρ = 0.6 on every patch, solved to 10⁻⁶.
 fn bounce(f: &Transport, e: &[Rgb]) -> Vec<Rgb> {
-    let mut b: Vec<Rgb> = e.iter().map(|x| x.map(|v| 0.6 * v)).collect();
-    let mut fb = vec![[0.0f32; 3]; e.len()];
-    for _ in 0..60 {
-        f.apply_rgb(&b, &mut fb);
-        for ((b, fb), e) in b.iter_mut().zip(&fb).zip(e) {
-            *b = std::array::from_fn(|c| 0.6 * (e[c] + fb[c]));
-        }
-    }
+    let albedo = vec![[0.6f32; 3]; e.len()];
+    let none = vec![[0.0f32; 3]; e.len()];
+    let (b, stats) = radiosity::solve(
+        f,
+        &Albedo(&albedo),
+        &none,
+        e,
+        &params(Method::Jacobi, 1e-6),
+        None,
+    )
+    .unwrap();
+    assert!(stats.converged, "{stats:?}");
     b
 }
 
@@ -771,8 +775,9 @@ impl LampErrors {
 /// The furnished room of `examples/scenes/furnished-room` (one OBJ per wall and per piece
 /// of furniture, as users model rooms) loads as modelled — no object turned over — and its
 /// two-sided F matches dense F at 6,000 patches: row sums for 99% of the patches, and solves
-/// under lamps among the furniture (the bounds on lit and shadowed patches). (At 2,500 patches the cut stores little but patch pairs,
-/// and light kept from a shadow by a fraction of a node's visibility did not show.)
+/// under lamps among the furniture (the bounds on lit and shadowed patches). At
+/// 2,500 patches the cut stores little but patch pairs, and light let into a shadow by a
+/// node's shared visible fraction did not show.
 #[test]
 fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_sums() {
     use translux_precompute::hierarchy::HierarchyParams;
@@ -832,6 +837,7 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
     );
     // Under four lamps among the furniture: the light between books, chairs and tables, in
     // and out of their shadows.
+    let lighting = radiosity::BundleLighting::new(&bundles[0]);
     let mut errors = LampErrors::default();
     for at in [
         [2.2, 2.6, 2.0],
@@ -843,9 +849,7 @@ fn the_furnished_room_loads_as_modelled_and_its_two_sided_f_matches_dense_row_su
             serde_json::json!({"type": "point", "position": at, "intensity": [5, 5, 5]}),
         )
         .unwrap();
-        let e = radiosity::BundleLighting::new(&bundles[0])
-            .irradiance(&[lamp])
-            .unwrap();
+        let e = lighting.irradiance(&[lamp]).unwrap();
         errors.add(&bounce(&two, &e), &bounce(&dense, &e), &e);
     }
     errors.check("the furnished room, two-sided", 1000);

@@ -11,7 +11,7 @@
 //! `TRANSLUX_SKIP_MITSUBA=1` (CI never sets it).
 
 use std::path::Path;
-use std::sync::OnceLock;
+use std::sync::{Arc, Mutex, Weak};
 use translux_engine::transport::Transport;
 
 use serde_json::json;
@@ -1032,9 +1032,10 @@ struct LoneObject<'a> {
     /// many walks per lamp (a relight's `"lamp_walks"`): entries named "…, lamp walks",
     /// (dipole, walked).
     lamp_walks: Option<u32>,
-    /// Where tests of the same object, medium and patches (lit differently) keep its two
-    /// bundles, built by whichever test comes first: S is light-independent.
-    shared: Option<&'static OnceLock<Built>>,
+    /// Where tests of the same object, medium and patches (lit differently) find its two
+    /// bundles while another of them holds them (S is light-independent); the last to let
+    /// go removes their folder.
+    shared: Option<&'static Mutex<Weak<Built>>>,
 }
 
 /// A lone object precomputed with the dipole and with walks, in its folder.
@@ -1073,13 +1074,17 @@ fn lone_object_against_volpath(
     scene: &dyn Fn(Material) -> SceneFile,
     group: &dyn Fn([f32; 3], [f32; 3]) -> usize,
 ) -> Option<Vec<(String, Errors, Errors)>> {
-    let own;
     let built = match c.shared {
-        Some(cell) => cell.get_or_init(|| Built::of(c, scene)),
-        None => {
-            own = Built::of(c, scene);
-            &own
+        Some(kept) => {
+            // Held while building, so a test lit differently waits for these bundles.
+            let mut kept = kept.lock().unwrap_or_else(|e| e.into_inner());
+            kept.upgrade().unwrap_or_else(|| {
+                let built = Arc::new(Built::of(c, scene));
+                *kept = Arc::downgrade(&built);
+                built
+            })
         }
+        None => Arc::new(Built::of(c, scene)),
     };
     let (a, s) = (&built.dipole, &built.simulated);
     let b = &a.bundle;
@@ -1234,8 +1239,9 @@ fn cube_lit_from_one_side() -> Option<Vec<(String, Errors, Errors)>> {
     )
 }
 
-/// The lit cubes' bundles, built once for both tests (their S does not depend on the light).
-static CUBE: OnceLock<Built> = OnceLock::new();
+/// The lit cubes' bundles, shared by the two tests while both run (their S does not depend
+/// on the light).
+static CUBE: Mutex<Weak<Built>> = Mutex::new(Weak::new());
 
 /// The same cube lit by a directional light travelling along `direction`, its faces named
 /// `faces` (−x, +x, +y, +z, −y, −z), the groups `deep` compared again at vertices.
