@@ -1,5 +1,6 @@
 //! The workspace's structure, checked: dependencies between crates point one way
-//! (`proto ← engine ← precompute ← server`), and no crate has a cycle among its modules.
+//! (`proto ← engine ← precompute ← server`), no crate has a cycle among its modules, and
+//! every crate of the workspace has its own build settings in the root `Cargo.toml`.
 //! See `docs/architecture.md`.
 //!
 //! In: the crates' `Cargo.toml` files and `src/` trees beside this crate. Out: test
@@ -66,6 +67,32 @@ mod tests {
             "[dependencies]\na.workspace = true\nb = \"1\"\n[dev-dependencies]\nc = \"1\"\n",
         );
         assert_eq!(parse, BTreeSet::from(["a".to_string(), "b".to_string()]));
+    }
+
+    /// The root `Cargo.toml`'s dev profile is the dependencies' (opt-level 3, no debug
+    /// info) and names each of our crates with its own settings: a crate added to the
+    /// workspace without its table would build like a dependency.
+    #[test]
+    fn every_workspace_crate_has_its_own_dev_profile() {
+        let root_toml = std::fs::read_to_string(root().join("Cargo.toml")).unwrap();
+        let members = root_toml
+            .lines()
+            .find_map(|l| l.trim().strip_prefix("members = ["))
+            .expect("the workspace's members line");
+        for dir in members.trim_end_matches(']').split(',') {
+            let dir = dir.trim().trim_matches('"');
+            let toml = std::fs::read_to_string(root().join(dir).join("Cargo.toml")).unwrap();
+            let name = toml
+                .lines()
+                .find_map(|l| l.trim().strip_prefix("name = "))
+                .map(|n| n.trim_matches('"'))
+                .unwrap_or_else(|| panic!("{dir}/Cargo.toml names no package"));
+            assert!(
+                root_toml.contains(&format!("[profile.dev.package.{name}]")),
+                "{name} ({dir}) has no [profile.dev.package.{name}] in Cargo.toml: it would \
+                 build like a dependency (opt-level 3, no line tables)"
+            );
+        }
     }
 
     /// Top-level module of each `.rs` file under `src` → the top-level modules its non-test
