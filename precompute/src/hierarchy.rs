@@ -14,8 +14,9 @@
 //! patch centroids along the longest axis. Leaves are the patches.
 //!
 //! The cut for receiver i at x (its centroid, normal nᵢ), from the root down:
-//! - a node entirely behind nᵢ's plane, or whose every face turns away from x (normal cone and
-//!   bounding sphere), is culled;
+//! - a node entirely behind nᵢ's plane, or whose every face turns away from every point of
+//!   patch i (normal cone and bounding sphere, against x widened by the patch's reach), is
+//!   culled;
 //! - a node s is linked when R_s ≤ η d (η = [`HierarchyParams::accuracy`], d the distance
 //!   from x to its centre), d ≥ `near_factor` × patch i's size, s lies wholly in front of
 //!   x's plane, its normal cone is at most [`HierarchyParams::cone_deg`] wide and every face
@@ -642,6 +643,10 @@ impl<'a> Cut<'a> {
         let n = p.len();
         let (x, ni, corners_i) = (p.centroid[i], p.normal[i], &p.corners[i]);
         let near = self.ff.near_factor * p.size[i];
+        // The receiver's reach from its centroid: a node is culled only when every face of
+        // it turns away from every point of the receiver (the dense pair cull asks each of
+        // the receiver's corners), not from its centroid alone.
+        let r_i = corners_i.iter().map(|c| c.distance(x)).fold(0.0, f32::max);
         let mut st = RowStats::default();
         let mut out = Vec::new();
         let mut stack = vec![self.tree.root];
@@ -700,9 +705,15 @@ impl<'a> Cut<'a> {
                 f32::INFINITY
             };
             let height = s.axis.dot(x);
-            if (s.cone < PI && facing > FRAC_PI_2 + s.cone + beta)
-                || s.plane_min - height > slack
-                || (s.cone == 0.0 && height - s.plane_min <= self.eps_plane)
+            // The cull's angle, widened by what the receiver subtends at the node.
+            let beta_cull = if d > s.radius + r_i {
+                ((s.radius + r_i) / d).asin()
+            } else {
+                PI
+            };
+            if (s.cone < PI && facing > FRAC_PI_2 + s.cone + beta_cull)
+                || s.plane_min - (height + r_i) > slack
+                || (s.cone == 0.0 && height + r_i - s.plane_min <= self.eps_plane)
             {
                 continue;
             }
