@@ -541,38 +541,17 @@ mod tests {
         }
     }
 
-    /// The 12 triangles of the box `[lo, hi]`, wound so their normals point out of it
-    /// (`outward`) or into it.
-    fn box_triangles(lo: Vec3, hi: Vec3, outward: bool) -> Vec<[Vec3; 3]> {
-        let centre = (lo + hi) * 0.5;
-        let corner = |k: usize| {
-            Vec3::new(
-                if k & 1 == 0 { lo.x } else { hi.x },
-                if k & 2 == 0 { lo.y } else { hi.y },
-                if k & 4 == 0 { lo.z } else { hi.z },
-            )
+    /// The box `[lo, hi]` as the scene file's `box` shape makes it (facing out, or in).
+    fn box_triangles(lo: Vec3, hi: Vec3, inward: bool) -> Vec<[Vec3; 3]> {
+        let shape = translux_proto::scene::Shape::Box {
+            size: (hi - lo).to_array(),
+            inward,
         };
-        let faces = [
-            [0, 2, 6, 4],
-            [1, 3, 7, 5],
-            [0, 1, 5, 4],
-            [2, 3, 7, 6],
-            [0, 1, 3, 2],
-            [4, 5, 7, 6],
-        ];
-        let mut out = Vec::new();
-        for f in faces {
-            let q = f.map(corner);
-            for mut t in [[q[0], q[1], q[2]], [q[0], q[2], q[3]]] {
-                let n = (t[1] - t[0]).cross(t[2] - t[0]);
-                let centroid = (t[0] + t[1] + t[2]) / 3.0;
-                if (n.dot(centroid - centre) > 0.0) != outward {
-                    t.swap(1, 2);
-                }
-                out.push(t);
-            }
-        }
-        out
+        let centre = (lo + hi) * 0.5;
+        crate::shapes::shape_triangles(&shape)
+            .into_iter()
+            .map(|t| t.map(|v| v + centre))
+            .collect()
     }
 
     /// A box standing on the floor of a closed 1 m room, off the patch grid: every patch
@@ -584,8 +563,12 @@ mod tests {
     /// F(x → q) leaves out) as hidden: the bottom row read 0.82–0.87.
     #[test]
     fn a_box_on_the_floor_sees_its_whole_hemisphere() {
-        let room = box_triangles(Vec3::ZERO, Vec3::ONE, false);
-        let block = box_triangles(Vec3::new(0.37, 0.0, 0.33), Vec3::new(0.63, 0.3, 0.61), true);
+        let room = box_triangles(Vec3::ZERO, Vec3::ONE, true);
+        let block = box_triangles(
+            Vec3::new(0.37, 0.0, 0.33),
+            Vec3::new(0.63, 0.3, 0.61),
+            false,
+        );
         let objects: Vec<&[[Vec3; 3]]> = vec![&room, &block];
         let p = crate::patch::subdivide(&objects, 0.06);
         let occ = Occluder::new(&p.corners);
