@@ -5,6 +5,12 @@
 //! Mitsuba must be installed (`pip install mitsuba`, Debian's `libllvm19`; `.ci/run` does
 //! both). Without it [`run`] panics and says what to install, unless
 //! `TRANSLUX_SKIP_MITSUBA=1` (CI never sets it).
+//!
+//! The validation tests take Mitsuba's answers through [`stored`]: an answer rendered once
+//! is kept in the repository (`tests/validation/references/`, tens of KiB each), named by a
+//! digest of its whole input, the reference script and the pinned Mitsuba version, so CI
+//! compares against the same Mitsuba render without spending its minutes on it again. Any
+//! change to what Mitsuba would be asked names a new file, and the test renders it.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -35,13 +41,82 @@ pub struct Reference {
 /// `TRANSLUX_SKIP_MITSUBA=1`.
 pub fn run(input: &Value) -> Option<Reference> {
     let dir = tempfile::tempdir().unwrap();
-    let (inp, out) = (dir.path().join("in.json"), dir.path().join("out.json"));
+    let out = dir.path().join("out.json");
+    render(input, &out)?;
+    Some(parse(&std::fs::read(&out).unwrap()))
+}
+
+/// Mitsuba's answer for `input` from the reference store ([`STORE`]) when it holds one,
+/// else rendered ([`run`]) and added to the store (with a line on stderr asking for the new
+/// file to be committed). `TRANSLUX_MITSUBA_RENDER=1` renders every input again and
+/// replaces what the store holds.
+///
+/// A stored answer is named by the SHA-256 of everything that decides it: the input as
+/// sent (geometry, materials, lights, query points, samples, seed), the reference script's
+/// bytes and the Mitsuba version `scripts/test` pins. A changed mesh, probe, light, sample
+/// count, script or Mitsuba version names another file, so a stale answer is never read:
+/// the test renders anew.
+pub fn stored(input: &Value) -> Option<Reference> {
+    let path = store_path(input);
+    let fresh = std::env::var("TRANSLUX_MITSUBA_RENDER").as_deref() == Ok("1");
+    if !fresh && let Ok(bytes) = std::fs::read(&path) {
+        return Some(parse(&bytes));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out.json");
+    render(input, &out)?;
+    let bytes = std::fs::read(&out).unwrap();
+    let reference = parse(&bytes);
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(&path, &bytes).unwrap();
+    eprintln!(
+        "Mitsuba rendered in {:.1} s; stored as {} (commit it: CI reads it instead of rendering)",
+        reference.seconds,
+        path.display()
+    );
+    Some(reference)
+}
+
+/// Where Mitsuba's answers are stored, in the repository: `tests/validation/references/`.
+pub const STORE: &str = "validation/references";
+
+/// The store's file for `input` (see [`stored`]).
+fn store_path(input: &Value) -> PathBuf {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    h.update(std::fs::read(script()).unwrap());
+    h.update(pinned_mitsuba().as_bytes());
+    h.update(serde_json::to_vec(input).unwrap());
+    let hex: String = h.finalize()[..16]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join(STORE)
+        .join(format!("{hex}.json"))
+}
+
+/// The `mitsuba==…` requirement `scripts/test` installs.
+fn pinned_mitsuba() -> String {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/test");
+    let text = std::fs::read_to_string(&script).unwrap();
+    let at = text
+        .find("'mitsuba==")
+        .unwrap_or_else(|| panic!("{} pins no Mitsuba version", script.display()));
+    text[at + 1..].split('\'').next().unwrap().to_owned()
+}
+
+/// The reference script on `input`, its answer written to `out`; `None` only when Mitsuba
+/// is missing and `TRANSLUX_SKIP_MITSUBA=1`.
+fn render(input: &Value, out: &Path) -> Option<()> {
+    let dir = tempfile::tempdir().unwrap();
+    let inp = dir.path().join("in.json");
     std::fs::write(&inp, serde_json::to_vec(input).unwrap()).unwrap();
     let python = std::env::var("TRANSLUX_PYTHON").unwrap_or_else(|_| "python3".to_owned());
     let run = Command::new(&python)
         .arg(script())
         .arg(&inp)
-        .arg(&out)
+        .arg(out)
         .output()
         .unwrap_or_else(|e| panic!("cannot run {python}: {e} (set TRANSLUX_PYTHON)"));
     let stderr = String::from_utf8_lossy(&run.stderr);
@@ -59,7 +134,12 @@ pub fn run(input: &Value) -> Option<Reference> {
         run.status.success(),
         "mitsuba_reference.py failed: {stderr}"
     );
-    let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+    Some(())
+}
+
+/// The reference script's answer (its OUT.json).
+fn parse(bytes: &[u8]) -> Reference {
+    let v: Value = serde_json::from_slice(bytes).unwrap();
     let rgb = |key: &str| -> Vec<Rgb> {
         v[key]
             .as_array()
@@ -81,17 +161,17 @@ pub fn run(input: &Value) -> Option<Reference> {
         .unwrap_or_default();
     assert!(
         suspect.len() * 20 < radiance.len(),
-        "{} of {} query rays missed their surface: {stderr}",
+        "{} of {} query rays missed their surface",
         suspect.len(),
         radiance.len()
     );
-    Some(Reference {
+    Reference {
         radiance,
         std_error: rgb("std_error"),
         seconds: v["seconds"].as_f64().unwrap(),
         render_seconds: v["render_seconds"].as_f64().unwrap_or(f64::NAN),
         suspect,
-    })
+    }
 }
 
 /// The bundle's geometry as Mitsuba objects: each object's patches as its triangles (in

@@ -6,9 +6,12 @@
 //! radiance Mitsuba measures at the same points. They print a table of the errors
 //! (`cargo test -p translux-tests --test it validation:: -- --nocapture`).
 //!
-//! Mitsuba must be installed (`pip install mitsuba`, Debian's `libllvm19`; `.ci/run` does
-//! both). Without it these tests fail and say what to install, unless
-//! `TRANSLUX_SKIP_MITSUBA=1` (CI never sets it).
+//! Mitsuba's answers come from the repository's store (`tests/validation/references/`,
+//! [`mitsuba::stored`]) when it holds the answer to exactly this input; otherwise Mitsuba
+//! renders it and the new file is to be committed. Rendering needs Mitsuba
+//! (`pip install mitsuba`, Debian's `libllvm19`; `.ci/run` installs both); without it such a
+//! test fails and says what to install, unless `TRANSLUX_SKIP_MITSUBA=1` (CI never sets
+//! it). `TRANSLUX_MITSUBA_RENDER=1` renders every answer again.
 
 use std::path::Path;
 use std::sync::{Arc, Mutex, Weak};
@@ -204,7 +207,7 @@ fn closed_room_against_mitsuba(
         "queries": {"points": points, "normals": normals},
         "spp": 8192, "max_depth": 64, "rr_depth": 16, "seed": 7,
     });
-    let Some(reference) = mitsuba::run(&input) else {
+    let Some(reference) = mitsuba::stored(&input) else {
         return;
     };
     let nv = vp.len();
@@ -812,7 +815,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         "measure": "exitance",
         "spp": 2048, "max_depth": 4096, "rr_depth": 256, "seed": 3,
     });
-    let Some(reference) = mitsuba::run(&input) else {
+    let Some(reference) = mitsuba::stored(&input) else {
         return;
     };
     let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
@@ -910,7 +913,7 @@ fn a_translucent_block_in_a_diffuse_box_against_volumetric_path_tracing() {
         });
         again["spp"] = json!(8192);
         again["seed"] = json!(4 + k);
-        let Some(deep) = mitsuba::run(&again) else {
+        let Some(deep) = mitsuba::stored(&again) else {
             return;
         };
         vertex_seconds += deep.seconds;
@@ -1110,7 +1113,7 @@ fn lone_object_against_volpath(
         "measure": "exitance",
         "spp": c.spp, "max_depth": 4096, "rr_depth": 256, "seed": c.seed,
     });
-    let reference = mitsuba::run(&input)?;
+    let reference = mitsuba::stored(&input)?;
     let got: Vec<Rgb> = probes.iter().map(|&k| ours[k]).collect();
     let got_sim: Vec<Rgb> = probes.iter().map(|&k| ours_sim[k]).collect();
     let mut groups: Vec<(String, Vec<usize>)> = c
@@ -1162,7 +1165,7 @@ fn lone_object_against_volpath(
         });
         again["spp"] = json!(spp);
         again["seed"] = json!(c.seed + 1 + g as u32);
-        let deep = mitsuba::run(&again)?;
+        let deep = mitsuba::stored(&again)?;
         seconds += deep.seconds;
         let relit_with = |scene: &Scene, lamp_walks: Option<u32>| -> Vec<Rgb> {
             let mut body = json!({ "lights": c.lights });
