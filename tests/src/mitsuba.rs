@@ -40,10 +40,7 @@ pub struct Reference {
 /// Runs the reference script on `input`; `None` only when Mitsuba is missing and
 /// `TRANSLUX_SKIP_MITSUBA=1`.
 pub fn run(input: &Value) -> Option<Reference> {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("out.json");
-    render(input, &out)?;
-    Some(parse(&std::fs::read(&out).unwrap()))
+    render(input).map(|bytes| parse(&bytes))
 }
 
 /// Mitsuba's answer for `input` from the reference store ([`STORE`]) when it holds one,
@@ -62,10 +59,7 @@ pub fn stored(input: &Value) -> Option<Reference> {
     if !fresh && let Ok(bytes) = std::fs::read(&path) {
         return Some(parse(&bytes));
     }
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("out.json");
-    render(input, &out)?;
-    let bytes = std::fs::read(&out).unwrap();
+    let bytes = render(input)?;
     let reference = parse(&bytes);
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     std::fs::write(&path, &bytes).unwrap();
@@ -106,17 +100,17 @@ fn pinned_mitsuba() -> String {
     text[at + 1..].split('\'').next().unwrap().to_owned()
 }
 
-/// The reference script on `input`, its answer written to `out`; `None` only when Mitsuba
-/// is missing and `TRANSLUX_SKIP_MITSUBA=1`.
-fn render(input: &Value, out: &Path) -> Option<()> {
+/// The reference script on `input`: its answer (OUT.json's bytes); `None` only when
+/// Mitsuba is missing and `TRANSLUX_SKIP_MITSUBA=1`.
+fn render(input: &Value) -> Option<Vec<u8>> {
     let dir = tempfile::tempdir().unwrap();
-    let inp = dir.path().join("in.json");
+    let (inp, out) = (dir.path().join("in.json"), dir.path().join("out.json"));
     std::fs::write(&inp, serde_json::to_vec(input).unwrap()).unwrap();
     let python = std::env::var("TRANSLUX_PYTHON").unwrap_or_else(|_| "python3".to_owned());
     let run = Command::new(&python)
         .arg(script())
         .arg(&inp)
-        .arg(out)
+        .arg(&out)
         .output()
         .unwrap_or_else(|e| panic!("cannot run {python}: {e} (set TRANSLUX_PYTHON)"));
     let stderr = String::from_utf8_lossy(&run.stderr);
@@ -134,7 +128,7 @@ fn render(input: &Value, out: &Path) -> Option<()> {
         run.status.success(),
         "mitsuba_reference.py failed: {stderr}"
     );
-    Some(())
+    Some(std::fs::read(&out).unwrap())
 }
 
 /// The reference script's answer (its OUT.json).
