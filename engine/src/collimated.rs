@@ -52,7 +52,8 @@
 //! ```
 //!
 //! The lamps' part is then one product over the pattern of Δ, whose every entry holds
-//! [Δ, G_u, G_v, U]_ji (they share S's sources), with [E_t, E_u, E_v, E_w]_i per source,
+//! [Δ, G_u, G_v, U]_ji (they share S's sources; and U's own Gᵁ_u, Gᵁ_v, which lamps do not
+//! read), with [E_t, E_u, E_v, E_w]_i per source,
 //! E_u,i = Σ_lamps E_i u₀, E_w,i = Σ_lamps E_i (3μ₀ − 3).
 //!
 //! **Light from other surfaces has a direction too.** F B arrives from where the other
@@ -67,9 +68,12 @@
 //!
 //! (μ_ij, u_ij, v_ij: the direction from j's centroid, or from a cluster node's area-weighted
 //! centroid, to i's, on i's normal and tangent frame) the light other surfaces send in adds
-//! Δ E_t + G_u E_u + G_v E_v; U keeps its diffuse weight (light crossing a corner unscattered
-//! is exitance here, not a beam). For light arriving evenly E_t = E_u = E_v = 0, and nothing
-//! changes. [`interreflected_first_scatter`] gives that term for a solved B; a relight adds
+//! Δ E_t + (G_u + Gᵁ_u) E_u + (G_v + Gᵁ_v) E_v. U keeps its diffuse weight (light crossing a
+//! corner unscattered is exitance here, not a beam) and turns with its own first harmonic
+//! Gᵁ, from the unscattered walks as G is from the others, no longer than U
+//! ([`crate::simulated::with_realizable_u_tilt`]): light entering the sides of a cube
+//! from the room's bright half and crossing the corner unscattered leaves on the far face
+//! near its edges. For light arriving evenly E_t = E_u = E_v = 0, and nothing changes. [`interreflected_first_scatter`] gives that term for a solved B; a relight adds
 //! it as one correction, solved through the same transport (docs/transport.md).
 //! An environment map's light is such an L(ω) too, known before the solve: its direction
 //! bins' moments ([`add_environment_moments`]) join the lamps'.
@@ -91,7 +95,7 @@ use translux_proto::scene::Material;
 use crate::linalg::Rgb;
 use crate::radiosity::{PatchGeometry, PointLights};
 use crate::raycast::Occluder;
-use crate::simulated::{self, SimMedium};
+use crate::simulated::{self, SimMedium, TiltEntry};
 use crate::smatrix::SimTilts;
 use crate::transport::{Pulled, Transport};
 
@@ -99,10 +103,11 @@ use crate::transport::{Pulled, Transport};
 /// and U beside it when the walks carry them.
 #[derive(Debug, Clone)]
 pub struct Tilt {
-    /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U]_ji
-    /// (the last three 0 for walks without lamp weights), of either sign. Checked once when
+    /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U,
+    /// U's G_u, U's G_v]_ji ([`TiltEntry`]; all but Δ 0 for walks without lamp weights), of
+    /// either sign. Checked once when
     /// made: a relight reads it twice (the lamps' and the other surfaces' light).
-    pub delta: ValidCsr<[Rgb; 4]>,
+    pub delta: ValidCsr<TiltEntry>,
     /// The simulated objects' patch ranges (where E_t is needed).
     pub ranges: Vec<Range<usize>>,
     /// Each patch's tangent frame (û, v̂) where `delta` has G_u, G_v and U (zero outside the
@@ -128,7 +133,7 @@ impl Tilt {
         !self.frames.is_empty()
     }
 
-    fn view(&self) -> CsrView<'_, [Rgb; 4]> {
+    fn view(&self) -> CsrView<'_, TiltEntry> {
         self.delta.view()
     }
 
@@ -175,7 +180,7 @@ pub fn tilt_of_with(bundle: &Bundle, materials: &[&Material], mut given: SimTilt
     }
     let n = bundle.patch_areas().len();
     let harmonic = walks.lamp.is_some();
-    let mut rows: Vec<Vec<(u32, [Rgb; 4])>> = vec![Vec::new(); n];
+    let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
     for (k, r, medium) in &simulated {
         let made = given
             .iter()
@@ -467,7 +472,7 @@ pub fn add_interreflected_first_scatter(
     out: &mut [f32],
 ) {
     let e = interreflected_moments(slant, f, x, k);
-    add_first_scatter(tilt, &e, k, out);
+    add_first_scatter_of(tilt, &e, k, Beams::FromSurfaces, out);
 }
 
 /// The tilt of `bundle`'s simulated objects under their own materials; `None` without one
@@ -500,12 +505,28 @@ pub fn interreflected_first_scatter(
     Some(bytemuck::cast_slice(&y).to_vec())
 }
 
-/// y_j += Σ_i Δ_ji E_t,i + G_u,ji E_u,i + G_v,ji E_v,i + U_ji E_w,i for `k` stacked plans:
-/// `e` is `[patch][plan][E_t, E_u, E_v, E_w][rgb]` (12 k values per patch), `out`
-/// `[patch][plan][rgb]`. Written by hand: four RGB matrices on one pattern, which no sparse
-/// crate's product takes.
+/// y_j += Σ_i Δ_ji E_t,i + G_u,ji E_u,i + G_v,ji E_v,i + U_ji E_w,i for `k` stacked plans of
+/// lamps' (or an environment's) light: `e` is `[patch][plan][E_t, E_u, E_v, E_w][rgb]` (12 k
+/// values per patch), `out` `[patch][plan][rgb]`.
 pub fn add_first_scatter(tilt: &Tilt, e: &[f32], k: usize, out: &mut [f32]) {
+    add_first_scatter_of(tilt, e, k, Beams::Lamps, out);
+}
+
+/// Whose light [`add_first_scatter_of`] adds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Beams {
+    /// Lamps and environments: U's tilt is left out with U (E_w removes U).
+    Lamps,
+    /// Other surfaces: U stays (E_w is 0), and turns with its own tilt.
+    FromSurfaces,
+}
+
+/// [`add_first_scatter`] for `beams`: light from other surfaces adds U's tilt to G_u and G_v
+/// (U crossing a corner unscattered leaves along its entry direction). Written by hand: RGB
+/// matrices on one pattern, which no sparse crate's product takes.
+fn add_first_scatter_of(tilt: &Tilt, e: &[f32], k: usize, beams: Beams, out: &mut [f32]) {
     let view = tilt.view();
+    let with_u = beams == Beams::FromSurfaces;
     out.par_chunks_mut(3 * k)
         .with_min_len(64)
         .enumerate()
@@ -518,10 +539,13 @@ pub fn add_first_scatter(tilt: &Tilt, e: &[f32], k: usize, out: &mut [f32]) {
                     let at = (i as usize * k + plan) * 12;
                     let ep = &e[at..at + 12];
                     for c in 0..3 {
-                        acc[c] += v[0][c] * ep[c]
-                            + v[1][c] * ep[3 + c]
-                            + v[2][c] * ep[6 + c]
-                            + v[3][c] * ep[9 + c];
+                        let (gu, gv) = if with_u {
+                            (v[1][c] + v[4][c], v[2][c] + v[5][c])
+                        } else {
+                            (v[1][c], v[2][c])
+                        };
+                        acc[c] +=
+                            v[0][c] * ep[c] + gu * ep[3 + c] + gv * ep[6 + c] + v[3][c] * ep[9 + c];
                     }
                 }
                 y.copy_from_slice(&acc);
@@ -553,10 +577,11 @@ mod tests {
     use translux_proto::bundle::TreeView;
 
     /// A tilt over patch 0 alone (frame û = x, v̂ = y) whose only entry, (0, 0), holds
-    /// `v` = [Δ, G_u, G_v, U] in every channel; `n` patches in all.
+    /// `v` = [Δ, G_u, G_v, U] in every channel (U's own tilt 0); `n` patches in all.
     fn tilt(n: usize, v: [f32; 4]) -> Tilt {
-        let mut rows: Vec<Vec<(u32, [Rgb; 4])>> = vec![Vec::new(); n];
-        rows[0].push((0, v.map(|x| [x; 3])));
+        let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
+        let [d, gu, gv, u] = v.map(|x| [x; 3]);
+        rows[0].push((0, [d, gu, gv, u, [0.0; 3], [0.0; 3]]));
         let mut frames = vec![(Vec3::ZERO, Vec3::ZERO); n];
         frames[0] = (Vec3::X, Vec3::Y);
         Tilt {
@@ -706,6 +731,44 @@ mod tests {
             "the lamp's light travels toward +x: E_u = {}",
             want[1]
         );
+    }
+
+    #[test]
+    fn us_own_tilt_turns_light_from_surfaces_and_not_lamps() {
+        // A tilt whose only entry has U = 0.3 and U's own G_u = 0.2 (nothing else): light
+        // from the −x half of the hemisphere (E_u = 2/(3π)) adds 0.2 E_u; a lamp beam along
+        // +x adds nothing, for U is taken out of a lamp's light whole (E_w) and its tilt with it.
+        let (f, c, nrm) = hemisphere(45, 90);
+        let n = c.len();
+        let mut t = tilt(n, [0.0, 0.0, 0.0, 0.3]);
+        let entry = t.delta.view().row(0).1[0];
+        let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
+        rows[0].push((
+            0,
+            [entry[0], entry[1], entry[2], entry[3], [0.2; 3], [0.0; 3]],
+        ));
+        t.delta = ValidCsr::new(Csr::from_rows(n, &rows).unwrap()).unwrap();
+        let tr = Transport::dense(f.view().unwrap());
+        let x: Vec<Rgb> = c
+            .iter()
+            .enumerate()
+            .map(|(j, w)| [f32::from(j > 0 && w.x < 0.0); 3])
+            .collect();
+        let geo = PatchGeometry {
+            centroid: &c,
+            normal: &nrm,
+        };
+        let slant = Slant::new(&t, &tr, geo);
+        let mut y = vec![0.0f32; 3 * n];
+        add_interreflected_first_scatter(&t, &slant, &tr, bytemuck::cast_slice(&x), 1, &mut y);
+        let want = 0.2 * 2.0 / (3.0 * std::f32::consts::PI);
+        assert!((y[0] - want).abs() < 5e-3 * want, "{} against {want}", y[0]);
+        // A lamp's light with E_u = 1 alone: U's tilt is not read.
+        let mut e = vec![0.0f32; 12 * n];
+        e[3..6].copy_from_slice(&[1.0; 3]);
+        let mut y = vec![0.0f32; 3 * n];
+        add_first_scatter(&t, &e, 1, &mut y);
+        assert_eq!(y[..3], [0.0; 3]);
     }
 
     #[test]

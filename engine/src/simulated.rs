@@ -309,7 +309,7 @@ pub struct Walks {
     pub weight_normal: Vec<[f32; 3]>,
     /// The records' G_u and G_v, S's first harmonic in the tilt of collimated entry, packed
     /// ([`unpack_tilt`]); records of walks that left without scattering (U) have
-    /// [`UNSCATTERED`] in their bin (see the module docs).
+    /// [`UNSCATTERED`] in their bin and U's own first harmonic here (see the module docs).
     pub weight_lamp: Vec<[u32; 3]>,
     /// What the walks did (the bundle's per-object record).
     pub report: SimulationInfo,
@@ -320,9 +320,16 @@ pub struct Walks {
 /// Rows of S: per receiver, `(source, S_ji)`.
 pub type Rows = Vec<Vec<(u32, [f32; 3])>>;
 
-/// Rows of the lamps' tilt: per receiver, `(source, [Δ_ji, G_u,ji, G_v,ji, U_ji])` (the last
-/// three 0 for walks without lamp weights).
-pub type TiltRows = Vec<Vec<(u32, [[f32; 3]; 4])>>;
+/// One entry of the tilt, per channel: [Δ, G_u, G_v, U, G_u of U, G_v of U]. Lamps read
+/// the first four ([`crate::collimated`]); light from other surfaces reads Δ and G_u, G_v
+/// with U's own beside them (U's exits leave along their entry direction, so its tilt is
+/// the strongest of all, and is limited to U's length: [`with_realizable_u_tilt`]; lamps
+/// leave U out altogether).
+pub type TiltEntry = [[f32; 3]; 6];
+
+/// Rows of the tilt: per receiver, `(source, TiltEntry)` (all but Δ 0 for walks without
+/// lamp weights).
+pub type TiltRows = Vec<Vec<(u32, TiltEntry)>>;
 
 /// e^(−σa L_b) for every bin and channel, σa in mm⁻¹.
 pub(crate) fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
@@ -336,33 +343,39 @@ pub(crate) fn attenuation(sigma_a: [f32; 3]) -> Vec<[f32; 3]> {
 
 /// Row j of `walks` summed per source at attenuation `att` ([`attenuation`]): `emit(i, S_ji,
 /// t_ji)` once per source i, in the records' order (a source's records are consecutive), with
-/// t_ji = [Δ_ji, G_u,ji, G_v,ji, U_ji] when `tilt` and the walks carry collimated weights
-/// (all 0 otherwise): Δ = S⁽ⁿ⁾ − S from w⁽ⁿ⁾ − w, and where the walks carry lamp weights
-/// G_u, G_v and U beside it, which [`crate::collimated`] applies to E_t, E_u, E_v and E_w.
+/// t_ji = [Δ_ji, G_u,ji, G_v,ji, U_ji, U's G_u,ji, U's G_v,ji] when `tilt` and the walks
+/// carry collimated weights (all 0 otherwise): Δ = S⁽ⁿ⁾ − S from w⁽ⁿ⁾ − w, and where the walks
+/// carry lamp weights G_u, G_v and U beside it, and U's own G ([`with_realizable_u_tilt`]),
+/// which [`crate::collimated`] applies to E_t, E_u, E_v and E_w.
 fn merge_row(
     walks: &WalksView<'_>,
     j: usize,
     att: &[[f32; 3]],
     tilt: bool,
-    mut emit: impl FnMut(u32, [f32; 3], [[f32; 3]; 4]),
+    mut emit: impl FnMut(u32, [f32; 3], TiltEntry),
 ) {
     let (cols, bins, ws) = walks.row(j);
     let wn = if tilt { walks.row_normal(j) } else { None };
     let wt = if tilt { walks.row_lamp(j) } else { None };
-    let mut cur: Option<(u32, [f32; 3], [[f32; 3]; 4])> = None;
+    let mut cur: Option<(u32, [f32; 3], TiltEntry)> = None;
     for (k, ((&i, &b), w)) in cols.iter().zip(bins).zip(ws).enumerate() {
         let a = att[(b & !UNSCATTERED) as usize];
         let v = [w[0] * a[0], w[1] * a[1], w[2] * a[2]];
-        let mut t = [[0.0f32; 3]; 4];
+        let mut t = [[0.0f32; 3]; 6];
         if let Some(wn) = wn {
             let n = wn[k];
             t[0] = std::array::from_fn(|c| (n[c] - w[c]) * a[c]);
-            if b & UNSCATTERED != 0 {
+            // U's tilt goes beside U (slots 4 and 5), the scattered walks' in slots 1 and 2.
+            let g = if b & UNSCATTERED != 0 {
                 t[3] = v;
-            } else if let Some(wt) = wt {
+                4
+            } else {
+                1
+            };
+            if let Some(wt) = wt {
                 let [gu, gv] = unpack_tilt(&wt[k], w);
-                t[1] = std::array::from_fn(|c| gu[c] * a[c]);
-                t[2] = std::array::from_fn(|c| gv[c] * a[c]);
+                t[g] = std::array::from_fn(|c| gu[c] * a[c]);
+                t[g + 1] = std::array::from_fn(|c| gv[c] * a[c]);
             }
         }
         match &mut cur {
@@ -378,14 +391,35 @@ fn merge_row(
             }
             _ => {
                 if let Some((c, acc, tacc)) = cur.replace((i, v, t)) {
-                    emit(c, acc, tacc);
+                    emit(c, acc, with_realizable_u_tilt(tacc));
                 }
             }
         }
     }
     if let Some((c, acc, tacc)) = cur {
-        emit(c, acc, tacc);
+        emit(c, acc, with_realizable_u_tilt(tacc));
     }
+}
+
+/// `t` with U's tilt (slots 4 and 5) no longer than U, per channel. U's response to light
+/// from direction ω is a density: U + G·ω_t ≥ 0 for every tangential part |ω_t| ≤ 1 holds
+/// only while |G| ≤ U. Unscattered walks leave along their entry direction, so a source
+/// reached through a corner is a narrow lobe whose least-squares slope is longer than that,
+/// and taken as it is it overshoots wherever the incident light is itself peaked (the
+/// bowl's rim, lit by light that climbs the inner wall: 7% too bright). Scaling G down to
+/// U keeps the lobe's direction and makes it the nearest realizable first harmonic, the
+/// same limit that flux-limited diffusion puts on a flux (|F| ≤ c E).
+pub fn with_realizable_u_tilt(mut t: TiltEntry) -> TiltEntry {
+    let [_, _, _, u, gu, gv] = &mut t;
+    for ((&u, gu), gv) in u.iter().zip(gu.iter_mut()).zip(gv.iter_mut()) {
+        let g = gu.hypot(*gv);
+        if g > u {
+            let scale = if u > 0.0 { u / g } else { 0.0 };
+            *gu *= scale;
+            *gv *= scale;
+        }
+    }
+    t
 }
 
 /// Rows `rows` (global) of `walks` summed per source at absorption `sigma_a` in one pass
@@ -403,7 +437,7 @@ fn sum_rows(
         .into_par_iter()
         .map(|j| {
             let mut row: Vec<(u32, [f32; 3])> = Vec::new();
-            let mut delta: Vec<(u32, [[f32; 3]; 4])> = Vec::new();
+            let mut delta: Vec<(u32, TiltEntry)> = Vec::new();
             merge_row(walks, j, &att, tilt, |i, v, t| {
                 row.push((i, v));
                 if tilt {
@@ -435,7 +469,7 @@ pub fn write_rows(
     rows: std::ops::Range<usize>,
     sigma_a: [f32; 3],
     s_rows: Vec<RowMut<'_, [f32; 3]>>,
-    tilt_rows: Option<Vec<RowMut<'_, [[f32; 3]; 4]>>>,
+    tilt_rows: Option<Vec<RowMut<'_, TiltEntry>>>,
 ) -> Result<bool, usize> {
     assert_eq!(s_rows.len(), rows.len(), "one S row per walks row");
     let att = attenuation(sigma_a);
@@ -443,7 +477,7 @@ pub fn write_rows(
     if tilt && walks.normal.is_none() {
         return Err(rows.start);
     }
-    let mut tilt_rows: Vec<Option<RowMut<'_, [[f32; 3]; 4]>>> = match tilt_rows {
+    let mut tilt_rows: Vec<Option<RowMut<'_, TiltEntry>>> = match tilt_rows {
         Some(t) => {
             assert_eq!(t.len(), rows.len(), "one tilt row per walks row");
             t.into_iter().map(Some).collect()
@@ -545,7 +579,7 @@ pub fn reweight_with_tilt(
 
 /// S⁽ⁿ⁾ − S of one simulated object at absorption `sigma_a` (see the module docs), with
 /// G_u, G_v and U beside it when the walks carry lamp weights (the tilt rows of `sum_rows`):
-/// rows `rows` (global) as local rows of `(global i, [Δ, G_u, G_v, U])`, values of either
+/// rows `rows` (global) as local rows of `(global i, `[`TiltEntry`]`)`, values of either
 /// sign; `None` when the walks carry no collimated weights (a bundle older than version 7).
 pub fn reweight_tilt(
     walks: &WalksView<'_>,
@@ -902,20 +936,19 @@ pub fn simulate(
                                 End::Out { j, len, scattered } => {
                                     let mm = len as f64 * unit_mm;
                                     // The first harmonic in the tilt: 4 E[w u_in] (E[u²] = ¼
-                                    // under cosine-weighted incidence), from the walks that
-                                    // scattered (a lamp's unscattered beam is not exitance).
-                                    // The others are U, which lamps leave out: records of
-                                    // their own, flagged in the bin.
-                                    let (lamp, bin) = if scattered {
-                                        (
-                                            [
-                                                4.0 * weight * tangent.dot(tu),
-                                                4.0 * weight * tangent.dot(tv),
-                                            ],
-                                            bin_of(mm),
-                                        )
+                                    // under cosine-weighted incidence). Walks that left
+                                    // without scattering are U, which lamps leave out (a
+                                    // lamp's unscattered beam is not exitance): records of
+                                    // their own, flagged in the bin, with their own tilt
+                                    // for light from other surfaces.
+                                    let lamp = [
+                                        4.0 * weight * tangent.dot(tu),
+                                        4.0 * weight * tangent.dot(tv),
+                                    ];
+                                    let bin = if scattered {
+                                        bin_of(mm)
                                     } else {
-                                        ([0.0; 2], bin_of(mm) | UNSCATTERED)
+                                        bin_of(mm) | UNSCATTERED
                                     };
                                     group_recs.push((j, bin, weight, 0.0, lamp));
                                     let att: f64 = group
@@ -1697,6 +1730,56 @@ mod tests {
             );
         }
         assert!(faces[0] > 1.4 * faces[1], "{faces:?}");
+    }
+
+    #[test]
+    fn the_unscattered_walks_tilt_is_a_density_at_most_as_long_as_u() {
+        // A thin medium (mean free path 20 mm in a 16 mm cube): most walks cross
+        // unscattered, each to the patch its entry direction points at, so a pair's U is a
+        // narrow lobe whose least-squares slope is longer than U. The tilt rows keep U's
+        // G beside U and no longer than it; pairs seen through a corner reach the limit.
+        let m = mesh([16.0, 16.0, 16.0], 4);
+        let n = m.tris.len();
+        let w = walks(
+            &m,
+            &SimMedium {
+                noise: 0.0,
+                max_walks: 4_096,
+                ..medium(0.05, 0.01, 1.0)
+            },
+        );
+        let v = view(&w).with_lamp(&w.weight_lamp).expect("lamp weights");
+        let tilt = reweight_tilt(&v, 0..n, [0.01; 3]).expect("collimated weights");
+        let (mut with_u, mut turned, mut at_limit) = (0, 0, 0);
+        for t in tilt.iter().flatten().map(|(_, t)| t) {
+            for c in 0..3 {
+                let (u, g) = (t[3][c], t[4][c].hypot(t[5][c]));
+                assert!(g <= u * (1.0 + 1e-5), "U {u}, its tilt {g}: {t:?}");
+                with_u += (u > 0.0) as usize;
+                turned += (g > 0.0) as usize;
+                at_limit += (g > 0.0 && g >= u * (1.0 - 1e-5)) as usize;
+            }
+        }
+        assert!(turned > with_u / 2, "{turned} of {with_u} U entries turn");
+        assert!(
+            at_limit > 0 && at_limit < turned,
+            "{at_limit} of {turned} at |G| = U"
+        );
+    }
+
+    #[test]
+    fn a_tilt_longer_than_u_is_scaled_to_u_along_its_direction() {
+        let mut t = [[0.0f32; 3]; 6];
+        t[3] = [0.5, 0.5, 0.0];
+        t[4] = [0.3, 0.6, 0.2];
+        t[5] = [0.4, -0.8, 0.0];
+        let r = with_realizable_u_tilt(t);
+        // Channel 0: |G| = 0.5 = U, kept; channel 1: |G| = 1, halved; channel 2: no U,
+        // so no tilt.
+        assert_eq!((r[4][0], r[5][0]), (0.3, 0.4));
+        assert_eq!((r[4][1], r[5][1]), (0.3, -0.4));
+        assert_eq!((r[4][2], r[5][2]), (0.0, 0.0));
+        assert_eq!(r[..4], t[..4]);
     }
 
     #[test]

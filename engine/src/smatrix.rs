@@ -1358,7 +1358,7 @@ pub fn changed_profiles(
 pub fn rewrite_with_terms(
     bundle: &Bundle,
     s: ValidCsr<[f32; 3]>,
-    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
+    tilt: &mut Option<ValidCsr<crate::simulated::TiltEntry>>,
     overrides: &[(usize, Material)],
     changed: &[usize],
     params: &SParams,
@@ -1392,7 +1392,7 @@ pub fn rewrite_with_terms_deferred(
     bundle: &Bundle,
     mut s: ValidCsr<[f32; 3]>,
     columns: &mut ColumnScale,
-    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
+    tilt: &mut Option<ValidCsr<crate::simulated::TiltEntry>>,
     overrides: &[(usize, Material)],
     changed: &[usize],
     params: &SParams,
@@ -1445,7 +1445,7 @@ pub fn rewrite_with_terms_deferred(
 fn write_walks(
     bundle: &Bundle,
     s: ValidCsr<[f32; 3]>,
-    tilt: &mut Option<ValidCsr<[Rgb; 4]>>,
+    tilt: &mut Option<ValidCsr<crate::simulated::TiltEntry>>,
     g: &PatchGeometry,
     o: &ObjectMaterial<'_>,
 ) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {

@@ -62,8 +62,8 @@ impl CsrValue for f32 {
     }
 }
 
-/// Four RGB values per entry (the lamps' tilt of a simulated S: Δ, G_u, G_v and U).
-impl CsrValue for [[f32; 3]; 4] {
+/// Six RGB values per entry (the tilt of a simulated S: Δ, G_u, G_v, U and U's G_u, G_v).
+impl CsrValue for [[f32; 3]; 6] {
     fn is_finite_value(&self) -> bool {
         self.iter().flatten().all(|v| v.is_finite())
     }

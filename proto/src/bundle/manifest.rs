@@ -18,8 +18,10 @@ pub const FORMAT: &str = "translux-bundle";
 /// 7 added [`arrays::SIM_WEIGHT_NORMAL`], and a version 6 bundle's walks serve diffuse entry
 /// only; version 8 added [`arrays::SIM_WEIGHT_LAMP`], and a version 7 bundle's lamps
 /// enter by their angle to the normal alone; version 9 added F's node rows,
-/// [`HierarchyInfo::receiver_nodes`], and reads every version 8 bundle as one-sided).
-pub const FORMAT_VERSION: u32 = 9;
+/// [`HierarchyInfo::receiver_nodes`], and reads every version 8 bundle as one-sided; version
+/// 10 writes [`arrays::SIM_WEIGHT_LAMP`] on the unscattered records too, which a version 8
+/// or 9 bundle leaves 0, so its unscattered light from other surfaces does not turn).
+pub const FORMAT_VERSION: u32 = 10;
 /// The first version whose walks carry [`arrays::SIM_WEIGHT_NORMAL`].
 pub const SIM_NORMAL_SINCE: u32 = 7;
 /// The first version whose walks carry [`arrays::SIM_WEIGHT_LAMP`].
@@ -82,15 +84,15 @@ pub mod arrays {
     /// normal instead of diffusely, from walks launched that way (f32 `[W, 3]`, version 7
     /// on); a record has 0 in whichever weight its walks did not add to.
     pub const SIM_WEIGHT_NORMAL: &str = "sim_weight_normal";
-    /// The records' share of what only lamps' collimated light uses (u32 `[W, 3]`, version 8
-    /// on): G_u and G_v, how S_ji changes as the beam entering patch i tilts along the
-    /// patch's tangent u (its first edge) and v (normal × u), 4 Σ w·u_in and 4 Σ w·v_in over
-    /// the diffuse walks that scattered (u_in, v_in: the tangent components of each walk's
-    /// incident direction outside). |G| ≤ 4 w, so each is stored per channel as the ratio
-    /// G / (4 w) in i16 fixed point (`SIM_TILT_ONE` = 1): the low 16 bits G_u's, the high
-    /// G_v's. U, the diffuse walks' share that left without scattering (which a lamp's beam
-    /// does not have), is in records of their own, flagged in `sim_bin` by
-    /// `SIM_UNSCATTERED`.
+    /// The records' share of what directional light uses (u32 `[W, 3]`, version 8 on): G_u
+    /// and G_v, how S_ji changes as the beam entering patch i tilts along the patch's
+    /// tangent u (its first edge) and v (normal × u), 4 Σ w·u_in and 4 Σ w·v_in over the
+    /// record's diffuse walks (u_in, v_in: the tangent components of each walk's incident
+    /// direction outside). |G| ≤ 4 w, so each is stored per channel as the ratio G / (4 w)
+    /// in i16 fixed point (`SIM_TILT_ONE` = 1): the low 16 bits G_u's, the high G_v's. U,
+    /// the diffuse walks' share that left without scattering (which a lamp's beam does not
+    /// have), is in records of their own, flagged in `sim_bin` by `SIM_UNSCATTERED`; their
+    /// G (version 10 on, 0 before) is U's own, which only light from other surfaces reads.
     pub const SIM_WEIGHT_LAMP: &str = "sim_weight_lamp";
 }
 

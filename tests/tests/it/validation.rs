@@ -1847,9 +1847,10 @@ fn cube_in_a_coloured_room() -> Option<Vec<(String, Errors, Errors)>> {
 /// The simulated S in a closed room against Mitsuba's volumetric path tracer, at its
 /// defaults and without `"lamp_walks"`: every face group's median within 5% and its total
 /// within 5%, the walls' too, and every face of the cube closer to Mitsuba than the dipole.
-/// The far face is held to 5% at the viewer's vertices inside it (what a relight answers);
-/// at its patch centroids, which include the patches along its four edges, it reads 5.1%
-/// (5.4% with walks at 0.5% noise: not S's noise) and is held to 6% (docs/validation.md).
+/// The far face is held to 5% at its patch centroids too, the patches along its four edges
+/// included: their light enters the sides from the room's bright half and crosses the
+/// corner, unscattered as often as not (U's own tilt, docs/transport.md; without it the
+/// far face reads 5.1%, all of it within 1.5 mm of the edges).
 #[test]
 fn a_cube_in_a_closed_room_of_coloured_walls_against_volumetric_path_tracing() {
     let Some(groups) = cube_in_a_coloured_room() else {
@@ -1865,8 +1866,7 @@ fn a_cube_in_a_closed_room_of_coloured_walls_against_volumetric_path_tracing() {
             (es.total_ratio - 1.0).abs() < 0.05,
             "{name}: simulated {es:?} (total)"
         );
-        let bar = if name == "far (-x)" { 0.06 } else { 0.05 };
-        assert!(es.median < bar, "{name}: simulated {es:?}");
+        assert!(es.median < 0.05, "{name}: simulated {es:?}");
         if name != "walls" && !name.starts_with("lit") {
             assert!(
                 es.median < ed.median,
