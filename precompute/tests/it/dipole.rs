@@ -502,6 +502,61 @@ fn sides(b: &Bundle, l: DVec3) -> Vec<Side> {
         .collect()
 }
 
+/// Where [`stored_reference`] keeps the references, in the repository.
+const STORE: &str = "tests/references/dipole";
+
+/// [`reference`], read from [`STORE`] when it was computed for exactly this input, else
+/// computed and written there (stderr asks for the file to be committed): the integration
+/// is most of these tests' time, and its answer is a function of its input alone. A file is
+/// named by the SHA-256 of this source file (the integrator, the media and the bounds), the
+/// bundle's mesh (patch corners and areas, the vertices' triangles), the shape, the dipole
+/// and the light, so any change to them names a new one and no stale answer is read.
+/// `TRANSLUX_DIPOLE_INTEGRATE=1` integrates every one again and replaces the stored file.
+/// The integrator is checked against closed forms on every run
+/// (`the_reference_integrator_meets_closed_forms`).
+fn stored_reference(b: &Bundle, shape: Shape, d: &Dipole, l: DVec3) -> Vec<V3> {
+    let path = store_path(b, shape, d, l);
+    let n = b.vertex_positions().len();
+    let fresh = std::env::var("TRANSLUX_DIPOLE_INTEGRATE").as_deref() == Ok("1");
+    if !fresh && let Ok(text) = std::fs::read_to_string(&path) {
+        let stored: Vec<[f64; 3]> = serde_json::from_str(&text)
+            .unwrap_or_else(|e| panic!("{}: not a stored reference: {e}", path.display()));
+        assert_eq!(stored.len(), n, "{}: one value per vertex", path.display());
+        return stored;
+    }
+    let reference = reference(b, shape, d, l);
+    // Single precision: the references agree with ten times tighter tolerances to 0.15%
+    // (see `reference`), far coarser than f32's rounding; a third of the file's size.
+    let rounded: Vec<[f32; 3]> = reference.iter().map(|v| v.map(|x| x as f32)).collect();
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(&path, serde_json::to_string(&rounded).unwrap()).unwrap();
+    eprintln!(
+        "dipole reference integrated; stored as {} (commit it: CI reads it instead of \
+         integrating)",
+        path.display()
+    );
+    rounded.iter().map(|v| v.map(f64::from)).collect()
+}
+
+/// The store's file for one reference (see [`stored_reference`]).
+fn store_path(b: &Bundle, shape: Shape, d: &Dipole, l: DVec3) -> std::path::PathBuf {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    h.update(include_bytes!("dipole.rs"));
+    h.update(bytemuck::cast_slice::<_, u8>(b.patch_corners()));
+    h.update(bytemuck::cast_slice::<_, u8>(b.patch_areas()));
+    h.update(bytemuck::cast_slice::<_, u8>(b.triangle_vertices()));
+    h.update((b.vertex_positions().len() as u64).to_le_bytes());
+    h.update(format!("{shape:?} {d:?} {l:?}").as_bytes());
+    let hex: String = h.finalize()[..16]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join(STORE)
+        .join(format!("{hex}.json"))
+}
+
 /// The reference vertex radiance (B/π) of the bundle's mesh on `shape` in `d`.
 fn reference(b: &Bundle, shape: Shape, d: &Dipole, l: DVec3) -> Vec<V3> {
     let gl = gauss_legendre(8);
@@ -641,7 +696,7 @@ fn check(name: &str, shape: Shape, patches: u32) {
         for scale in SCALES {
             let d = Dipole::of(m, scale);
             let t = std::time::Instant::now();
-            let reference = reference(&bundle, shape, &d, l);
+            let reference = stored_reference(&bundle, shape, &d, l);
             let reference_s = t.elapsed().as_secs_f64();
             let ours = relight_at(&scene, medium, scale, l);
             eprintln!("{name}: {medium} ×{scale}: reference {reference_s:.1} s");
