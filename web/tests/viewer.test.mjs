@@ -123,7 +123,8 @@ async function newContext(browser, options) {
   return context;
 }
 
-/** Waits for a page's first lit frame and for it to settle. */
+/** Waits for a page's first lit frame and for it to settle. As generous as `idle`, and for
+ * the same reason (CI: a page opened on a shared link passed 30 s beside the bowl's walks). */
 async function firstLit(page) {
   await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 90000 });
   await idle(page);
@@ -385,7 +386,6 @@ async function checkAbsorption(browser) {
   const page = await context.newPage();
   await page.goto(url + "#scene=simulated_cube");
   await firstLit(page);
-  await idle(page);
   const o = await page.evaluate(() => window.translux.app.detail.objects.find((x) => x.material.type === "simulated"));
   check(o && o.absorption && o.absorption.sigma_a.every((a, c) => a > o.absorption.sigma_a_min[c]),
     `the scene detail gives the simulated object no absorption range: ${JSON.stringify(o)}`);
@@ -875,8 +875,7 @@ try {
 
   // 1. Load, first lit frame, not blank.
   await page.goto(url);
-  await page.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
-  await idle(page);
+  await firstLit(page);
   result.first_lit_ms = await page.evaluate(() => performance.getEntriesByName("translux:first-lit-frame")[0].startTime);
   result.renderer = await page.evaluate(() => {
     const gl = window.translux.app.renderer.gl;
@@ -1062,8 +1061,7 @@ try {
   check(/comp=direct/.test(shared) && /lights=/.test(shared) && /mat=/.test(shared), `the URL lacks the state: ${shared}`);
   const page2 = await context.newPage();
   await page2.goto(shared);
-  await page2.waitForFunction(() => window.translux && window.translux.metrics.firstLitMs !== null, null, { timeout: 30000 });
-  await idle(page2);
+  await firstLit(page2);
   const restored = await page2.evaluate(() => {
     const a = window.translux.app;
     return { comp: a.state.components, light: a.state.lights[0].position, mat: a.state.materials, ev: a.state.exposure };
