@@ -73,8 +73,9 @@
 //! Gᵁ, from the unscattered walks as G is from the others, no longer than U
 //! ([`crate::simulated::with_realizable_u_tilt`]): light entering the sides of a cube
 //! from the room's bright half and crossing the corner unscattered leaves on the far face
-//! near its edges. For light arriving evenly E_t = E_u = E_v = 0, and nothing changes. [`interreflected_first_scatter`] gives that term for a solved B; a relight adds
-//! it as one correction, solved through the same transport (docs/transport.md).
+//! near its edges. For light arriving evenly E_t = E_u = E_v = 0, and nothing changes.
+//! [`interreflected_first_scatter`] gives that term for a solved B; a relight adds it as one
+//! correction, solved through the same transport (docs/transport.md).
 //! An environment map's light is such an L(ω) too, known before the solve: its direction
 //! bins' moments ([`add_environment_moments`]) join the lamps'.
 //!
@@ -105,8 +106,8 @@ use crate::transport::{Pulled, Transport};
 pub struct Tilt {
     /// N × N, rows and columns only within simulated objects; each entry [Δ, G_u, G_v, U,
     /// U's G_u, U's G_v]_ji ([`TiltEntry`]; all but Δ 0 for walks without lamp weights), of
-    /// either sign. Checked once when
-    /// made: a relight reads it twice (the lamps' and the other surfaces' light).
+    /// either sign. Checked once when made: a relight reads it twice (the lamps' and the
+    /// other surfaces' light).
     pub delta: ValidCsr<TiltEntry>,
     /// The simulated objects' patch ranges (where E_t is needed).
     pub ranges: Vec<Range<usize>>,
@@ -579,9 +580,14 @@ mod tests {
     /// A tilt over patch 0 alone (frame û = x, v̂ = y) whose only entry, (0, 0), holds
     /// `v` = [Δ, G_u, G_v, U] in every channel (U's own tilt 0); `n` patches in all.
     fn tilt(n: usize, v: [f32; 4]) -> Tilt {
-        let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
         let [d, gu, gv, u] = v.map(|x| [x; 3]);
-        rows[0].push((0, [d, gu, gv, u, [0.0; 3], [0.0; 3]]));
+        tilt_entry(n, [d, gu, gv, u, [0.0; 3], [0.0; 3]])
+    }
+
+    /// [`tilt`] with the whole entry given, U's own tilt included.
+    fn tilt_entry(n: usize, entry: TiltEntry) -> Tilt {
+        let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
+        rows[0].push((0, entry));
         let mut frames = vec![(Vec3::ZERO, Vec3::ZERO); n];
         frames[0] = (Vec3::X, Vec3::Y);
         Tilt {
@@ -740,14 +746,8 @@ mod tests {
         // +x adds nothing, for U is taken out of a lamp's light whole (E_w) and its tilt with it.
         let (f, c, nrm) = hemisphere(45, 90);
         let n = c.len();
-        let mut t = tilt(n, [0.0, 0.0, 0.0, 0.3]);
-        let entry = t.delta.view().row(0).1[0];
-        let mut rows: Vec<Vec<(u32, TiltEntry)>> = vec![Vec::new(); n];
-        rows[0].push((
-            0,
-            [entry[0], entry[1], entry[2], entry[3], [0.2; 3], [0.0; 3]],
-        ));
-        t.delta = ValidCsr::new(Csr::from_rows(n, &rows).unwrap()).unwrap();
+        let zero = [0.0; 3];
+        let t = tilt_entry(n, [zero, zero, zero, [0.3; 3], [0.2; 3], zero]);
         let tr = Transport::dense(f.view().unwrap());
         let x: Vec<Rgb> = c
             .iter()
