@@ -398,18 +398,18 @@ pub struct Hierarchical {
     pub ff_info: FormFactorInfo,
 }
 
-/// Builds the tree and every receiver's cut. `progress` is called with the number of rows
-/// finished since its last call; once `stop()` returns `true` the rows not yet started are
-/// skipped (the result must then be thrown away).
+/// Every receiver's cut through `tree` ([`ClusterTree::build`] of `p`). `progress` is
+/// called with the number of rows finished since its last call; once `stop()` returns
+/// `true` the rows not yet started are skipped (the result must then be thrown away).
 pub fn compute(
     p: &Patches,
     occ: &Occluder,
     ff: &FormFactorParams,
     params: &HierarchyParams,
+    tree: ClusterTree,
     progress: &(dyn Fn(u64) + Sync),
     stop: &(dyn Fn() -> bool + Sync),
 ) -> Hierarchical {
-    let tree = ClusterTree::build(p);
     let rows = if params.two_sided {
         twosided::compute(p, occ, ff, params, &tree, progress, stop)
     } else {
@@ -443,16 +443,23 @@ pub fn compute_rows(
             if stop() {
                 return Default::default();
             }
-            let r = ctx.row(i, samples);
+            let mut r = ctx.row(i, samples);
+            // Held until the block is put together: without the room its pushes grew
+            // (about 1.4 times the entries' bytes otherwise), as the memory estimate counts
+            // (`pipeline::HIERARCHICAL_BUILD_BYTES_PER_NNZ`).
+            r.0.shrink_to_fit();
             rays.fetch_add(r.1.rays, Ordering::Relaxed);
             tests.fetch_add(r.1.tests, Ordering::Relaxed);
             progress(1);
             r
         })
         .collect();
+    let nnz: usize = cuts.iter().map(|c| c.0.len()).sum();
     let mut block = RowBlock {
         first: rows.start as u64,
         row_ptr: Vec::with_capacity(cuts.len() + 1),
+        col: Vec::with_capacity(nnz),
+        val: Vec::with_capacity(nnz),
         rays: rays.into_inner(),
         tests: tests.into_inner(),
         ..Default::default()
@@ -469,6 +476,58 @@ pub fn compute_rows(
         block.row_ptr.push(block.col.len() as u64);
     }
     block
+}
+
+/// Entries per receiver of the one-sided cut, measured on a sample of receivers before F is
+/// built (the memory estimate, `pipeline::check_memory`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SampledCut {
+    /// Receivers whose cut was made.
+    pub rows: usize,
+    /// Their mean entries per row.
+    pub mean: f64,
+    /// The standard error of that mean.
+    pub std_error: f64,
+}
+
+/// Makes the one-sided cut of `rows` receivers spread evenly over the patches (in the
+/// tree's order, so every part of the scene is sampled: objects are contiguous there) and
+/// counts their entries. Each cut depends on nothing but the patches, the tree and the
+/// parameters ([`compute_rows`]), so their mean estimates F's entries per patch; the cost
+/// is that of `rows` rows of the F stage.
+pub fn sample_entries(
+    p: &Patches,
+    occ: &Occluder,
+    ff: &FormFactorParams,
+    params: &HierarchyParams,
+    tree: &ClusterTree,
+    rows: usize,
+) -> SampledCut {
+    let n = p.len();
+    let rows = rows.min(n);
+    if rows == 0 {
+        return SampledCut {
+            rows: 0,
+            mean: 0.0,
+            std_error: 0.0,
+        };
+    }
+    let ctx = Cut::new(p, occ, ff, params, tree);
+    let counts: Vec<f64> = (0..rows)
+        .into_par_iter()
+        .map_init(Vec::new, |samples, k| {
+            // The middle of each of `rows` equal runs of the tree's order.
+            let i = tree.perm[(2 * k + 1) * n / (2 * rows)] as usize;
+            ctx.row(i, samples).0.len() as f64
+        })
+        .collect();
+    let mean = counts.iter().sum::<f64>() / rows as f64;
+    let var = counts.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / (rows.max(2) - 1) as f64;
+    SampledCut {
+        rows,
+        mean,
+        std_error: (var / rows as f64).sqrt(),
+    }
 }
 
 /// Consecutive rows of C ([`compute_rows`]) with their counts.
@@ -515,13 +574,14 @@ pub fn assemble(
         n_rows: rows,
         n_cols: n + tree.node_count(),
         row_ptr: Vec::with_capacity(n + 1),
-        col: Vec::with_capacity(nnz),
-        val: Vec::with_capacity(nnz),
+        col: Vec::new(),
+        val: Vec::new(),
     };
     c.row_ptr.push(0);
     let (mut rays, mut tests) = (0u64, 0u64);
     let (mut node_entries, mut patch_entries, mut dense_equivalent) = (0u64, 0u64, 0u64);
-    for b in blocks {
+    let whole = blocks.len() == 1;
+    for mut b in blocks {
         assert_eq!(
             b.first as usize,
             c.row_ptr.len() - 1,
@@ -529,8 +589,16 @@ pub fn assemble(
         );
         let base = c.col.len() as u64;
         c.row_ptr.extend(b.row_ptr[1..].iter().map(|&o| base + o));
-        c.col.extend_from_slice(&b.col);
-        c.val.extend_from_slice(&b.val);
+        if whole {
+            // One block (one box): its entries are C's, moved rather than copied (F's
+            // peak is then its entries once).
+            (c.col, c.val) = (std::mem::take(&mut b.col), std::mem::take(&mut b.val));
+        } else {
+            c.col.reserve_exact(nnz - c.col.len());
+            c.val.reserve_exact(nnz - c.val.len());
+            c.col.extend_from_slice(&b.col);
+            c.val.extend_from_slice(&b.val);
+        }
         rays += b.rays;
         tests += b.tests;
         node_entries += b.node_entries;
@@ -909,6 +977,7 @@ mod tests {
             &occ,
             &FormFactorParams::default(),
             &HierarchyParams::default(),
+            ClusterTree::build(&p),
             &|_| {},
             &|| false,
         );
@@ -924,6 +993,29 @@ mod tests {
             (h.ff_info.row_sum_mean - 1.0).abs() < 0.01 && lo > 0.95 && hi < 1.05,
             "{:?}",
             h.ff_info
+        );
+    }
+
+    /// The memory estimate's sample of receivers: their cuts are the rows F will have, so
+    /// their mean is F's entries per patch within its standard errors.
+    #[test]
+    fn sampled_receivers_estimate_the_entries_per_patch() {
+        let p = closed_box(0.05);
+        let occ = Occluder::new(&p.corners);
+        let (ff, params) = (FormFactorParams::default(), HierarchyParams::default());
+        let tree = ClusterTree::build(&p);
+        let sample = sample_entries(&p, &occ, &ff, &params, &tree, 64);
+        let h = compute(&p, &occ, &ff, &params, tree, &|_| {}, &|| false);
+        let n = p.len();
+        let actual = h.c.nnz() as f64 / n as f64;
+        assert_eq!(sample.rows, 64);
+        assert!(
+            sample.std_error > 0.0 && (sample.mean - actual).abs() <= 4.0 * sample.std_error,
+            "{sample:?} against {actual} entries per patch over {n} patches"
+        );
+        assert!(
+            (sample.mean / actual - 1.0).abs() < 0.15,
+            "{sample:?} against {actual}"
         );
     }
 

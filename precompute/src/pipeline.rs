@@ -2,7 +2,8 @@
 //!
 //! Stages, in the order `run` calls them, each a function of this module: the scene's notes
 //! and the settings checked (`check_settings`) → plan, patches and viewer mesh
-//! (`Stages::patches`) → the memory budget (`check_memory`) → BVH (`Stages::bvh`) → form
+//! (`Stages::patches`) → BVH (`Stages::bvh`) and a hierarchical F's cluster tree → the
+//! memory budget (`check_memory`, which samples the F cut it estimates) → form
 //! factors and environment visibility: all rows (`transport_rows`), one shard's rows into a
 //! part (`shard_rows`) or the parts merged (`merged_rows`; [`crate::shard`]) → subsurface
 //! (`Stages::subsurface`: walks, which objects trace on demand, distances, links, S) → T
@@ -117,18 +118,6 @@ impl FormFactorMethod {
     }
 }
 
-/// Entries per patch a hierarchical F at the default accuracy stays under (for the memory
-/// estimate only): measured 446 on the Cornell box at 24k patches and 1,501 with the scanned
-/// bunny at 100k; this is above both. Entries grow about as 1/η² (345, 446, 681 at η =
-/// 0.25, 0.2, 0.15), so the bound scales with (η₀/η)², η₀ the default accuracy.
-const HIERARCHICAL_ENTRIES_BOUND: f64 = 2_000.0;
-
-/// [`HIERARCHICAL_ENTRIES_BOUND`] at accuracy `eta`.
-fn hierarchical_entries_bound(eta: f32) -> f64 {
-    let eta0 = f64::from(HierarchyParams::default().accuracy);
-    HIERARCHICAL_ENTRIES_BOUND * (eta0 / f64::from(eta)).powi(2)
-}
-
 /// More patches than this are refused with a hierarchical F (its pass is O(N log N); the
 /// limit keeps u32 column indices and the tree's memory far from their bounds).
 pub const MAX_PATCHES_HIERARCHICAL: u64 = 4_000_000;
@@ -230,33 +219,36 @@ pub enum PrecomputeError {
     BadHierarchy(String),
     #[error(
         "the subsurface stage would need about {} (~{paths:.2e} stored optical paths in \
-         {object:?}, every patch pair within {radius:.4} scene units, {} bytes each while \
-         building, with F), more than the {} allowed; use fewer patches (simplify_to for a \
-         scanned mesh), a less translucent profile, or --subsurface hierarchical (which \
+         {object:?}, every patch pair within {radius:.4} scene units, {bytes_each} bytes each \
+         while building, with F), more than the {} allowed; use fewer patches (simplify_to \
+         for a scanned mesh), a less translucent profile, or --subsurface hierarchical (which \
          traces only the paths its cut uses)",
         human_bytes(*estimate),
-        distances::PEAK_BYTES_PER_PATH,
         human_bytes(*limit)
     )]
     SubsurfaceOutOfMemory {
         object: String,
         paths: u64,
         radius: f32,
+        bytes_each: u64,
         estimate: u64,
         limit: u64,
     },
     #[error(
-        "{patches} patches would need about {} (F has ~{nnz:.2e} non-zeros, {bytes_per_nnz} \
-         bytes each while building), more than the {} allowed; use fewer patches",
+        "{patches} patches would need about {} (F: ~{per_patch:.0} entries per patch, from \
+         {how}), more than the {} allowed; {}",
         human_bytes(*estimate),
-        human_bytes(*limit)
+        human_bytes(*limit),
+        fits_hint(*fits)
     )]
     OutOfMemory {
         patches: u64,
-        nnz: f64,
-        bytes_per_nnz: u64,
+        per_patch: f64,
+        how: &'static str,
         estimate: u64,
         limit: u64,
+        /// About how many patches would fit (0: not even a hundred).
+        fits: u64,
     },
     #[error("the scene has no triangles")]
     Empty,
@@ -277,11 +269,6 @@ pub enum PrecomputeError {
     #[error("{0}")]
     Shard(String),
 }
-
-/// Bytes per stored non-zero of F while building: the final CSR (col 4 + val 4), the upper
-/// triangle as computed (12 bytes per pair = 6 per non-zero) and the transposed lower half
-/// (8 bytes per lower entry = 4 per non-zero).
-const BUILD_BYTES_PER_NNZ: u64 = 18;
 
 /// Where the media of the scene's heterogeneous objects are: each object's pattern frame
 /// (from its transform) and each patch's medium ([`hetero::patch_media`]; by OBJ material,
@@ -352,6 +339,16 @@ fn finish(bar: ProgressBar, progress: bool, name: &str, t: Instant, stages: &mut
         stage: name.to_string(),
         seconds,
     });
+}
+
+/// What an out-of-memory refusal suggests: the patch count that would fit, or a larger
+/// limit.
+fn fits_hint(fits: u64) -> String {
+    if fits > 0 {
+        format!("about {fits} patches would fit (--patches {fits}), or raise --max-memory-gib")
+    } else {
+        "not even a hundred patches would fit; raise --max-memory-gib".into()
+    }
 }
 
 /// `1.5 GiB`, `12.0 MiB`, `512 B`.
@@ -529,16 +526,25 @@ fn run(
     let sources = source_triangles(scene)?;
     let patched = stages.patches(sources, density)?;
     let materials = object_materials(scene, &patched.patches);
-    let budget = check_memory(scene, params, &patched.patches, &materials)?;
     let (occluder_tris, occ) = stages.bvh(&patched.sources)?;
+    // A hierarchical F's cluster tree, built once: the memory estimate samples its cut.
+    let tree = matches!(params.transport, FormFactorMethod::Hierarchical(_))
+        .then(|| hierarchy::ClusterTree::build(&patched.patches));
+    let budget = check_memory(
+        scene,
+        params,
+        &patched.patches,
+        &materials,
+        (&occ, tree.as_ref()),
+    )?;
 
     // Form factors and environment visibility: every receiver's row, one shard's, or the
     // parts' put together.
     let patches = &patched.patches;
     let rows = match split {
-        Split::Whole => transport_rows(patches, &occ, params, &mut stages.times)?,
+        Split::Whole => transport_rows(patches, &occ, tree, params, &mut stages.times)?,
         Split::Shard(shard) => {
-            let tree = hierarchy::ClusterTree::build(patches);
+            let tree = tree.expect("check_settings refuses a split of a dense F");
             let plan = plan_of(scene, patches, &occluder_tris, &tree, params);
             let subsurface = SubsurfaceInputs {
                 patched: &patched,
@@ -549,7 +555,7 @@ fn run(
                 .map(Outcome::Part);
         }
         Split::Merge(count) => {
-            let tree = hierarchy::ClusterTree::build(patches);
+            let tree = tree.expect("check_settings refuses a split of a dense F");
             let plan = plan_of(scene, patches, &occluder_tris, &tree, params);
             merged_rows(
                 scene,
@@ -740,7 +746,7 @@ struct Budget {
     limit: u64,
     /// The estimated peak: F while it is built, or the subsurface stage where larger.
     memory_estimate: u64,
-    /// Bytes of F kept through the subsurface stage.
+    /// Bytes F leaves resident through the subsurface stage ([`MemoryModel::f_resident`]).
     f_kept: u64,
     /// Per translucent object: its name, the paths a pairwise S stores (an estimate, an
     /// upper bound) and their radius ([`distances::estimate_paths`]).
@@ -755,31 +761,34 @@ fn check_memory(
     params: &PrecomputeParams,
     patches: &Patches,
     materials: &[ObjectMaterial<'_>],
+    (occ, tree): (&Occluder, Option<&hierarchy::ClusterTree>),
 ) -> Result<Budget, PrecomputeError> {
-    // Memory estimate for F, refused before the big allocation.
-    let nnz_est = match params.transport {
-        FormFactorMethod::Dense => estimate_nnz(patches),
-        FormFactorMethod::Hierarchical(hp) => estimate_nnz(patches)
-            .min(patches.len() as f64 * hierarchical_entries_bound(hp.accuracy)),
-    };
-    let memory_estimate =
-        (nnz_est * BUILD_BYTES_PER_NNZ as f64) as u64 + patches.len() as u64 * 200;
+    let f = estimate_f(patches, occ, tree, params);
+    let n = patches.len() as u64;
+    let held = MemoryModel::of(params);
+    let memory_estimate = held.f_peak(n, f.nnz);
     let limit = params
         .memory_limit
         .or_else(|| available_memory().map(|a| (a as f64 * 0.85) as u64))
         .unwrap_or(u64::MAX);
+    // F and what every stage holds: refused with the patch count that would fit.
+    if memory_estimate > limit {
+        return Err(PrecomputeError::OutOfMemory {
+            patches: n,
+            per_patch: f.per_patch(n),
+            how: f.how,
+            estimate: memory_estimate,
+            limit,
+            fits: held.patches_that_fit(n, &f, limit),
+        });
+    }
     // The dense LU of the inverse comes after F is built and dominates: refuse it up front.
     if params.inverse {
-        let need = translux_engine::inverse::memory_estimate(patches.len() as u64)
-            + (nnz_est * 8.0) as u64
-            + patches.len() as u64 * 200;
+        let need = translux_engine::inverse::memory_estimate(n) + held.f_resident(n, f.nnz);
         if need > limit {
-            return Err(translux_engine::inverse::InverseError::OutOfMemory {
-                n: patches.len() as u64,
-                need,
-                limit,
-            }
-            .into());
+            return Err(
+                translux_engine::inverse::InverseError::OutOfMemory { n, need, limit }.into(),
+            );
         }
     }
     // The subsurface stage comes after F (which it keeps) and can outgrow it: a large
@@ -790,47 +799,244 @@ fn check_memory(
         scene.file.unit_mm,
         &params.subsurface,
     )?;
-    let f_kept = (nnz_est * 8.0) as u64 + patches.len() as u64 * 200;
-    let held = held_paths(params, materials, &paths);
-    let path_total: u64 = held.iter().map(|p| p.1).sum();
-    let subsurface_estimate =
-        f_kept.saturating_add(path_total.saturating_mul(distances::PEAK_BYTES_PER_PATH));
+    let f_kept = held.f_resident(n, f.nnz);
+    let held_paths = held_paths(params, materials, &paths);
+    let path_bytes: u64 = held_paths
+        .iter()
+        .map(|p| p.paths.saturating_mul(p.bytes_each))
+        .fold(0, u64::saturating_add);
+    let subsurface_estimate = f_kept.saturating_add(path_bytes);
     if subsurface_estimate > limit {
-        let (object, most, radius) = held.iter().max_by_key(|p| p.1).cloned().unwrap_or_default();
+        let most = held_paths
+            .iter()
+            .max_by_key(|p| p.paths.saturating_mul(p.bytes_each))
+            .cloned()
+            .unwrap_or_default();
         return Err(PrecomputeError::SubsurfaceOutOfMemory {
-            object,
-            paths: most,
-            radius,
+            object: most.name,
+            paths: most.paths,
+            radius: most.radius,
+            bytes_each: most.bytes_each,
             estimate: subsurface_estimate,
             limit,
         });
     }
-    let memory_estimate = memory_estimate.max(subsurface_estimate);
-    if memory_estimate > limit {
-        return Err(PrecomputeError::OutOfMemory {
-            patches: patches.len() as u64,
-            nnz: nnz_est,
-            bytes_per_nnz: BUILD_BYTES_PER_NNZ,
-            estimate: memory_estimate,
-            limit,
-        });
-    }
     Ok(Budget {
+        memory_estimate: memory_estimate.max(subsurface_estimate),
         limit,
-        memory_estimate,
         f_kept,
         paths,
     })
 }
 
+/// F's stored entries as estimated before it is built, and how.
+#[derive(Debug, Clone, Copy)]
+struct FEstimate {
+    nnz: f64,
+    /// How entries per patch grow with the patch count at this scene's density:
+    /// entries per patch ∝ N^growth (1 for dense F).
+    growth: f64,
+    how: &'static str,
+}
+
+impl FEstimate {
+    fn per_patch(&self, n: u64) -> f64 {
+        self.nnz / n.max(1) as f64
+    }
+}
+
+/// Receivers whose one-sided cut the memory estimate makes ([`hierarchy::sample_entries`]):
+/// a sixteenth of the patches, at least 64 and at most 1,024 (4% of the F stage at 25k
+/// patches, a few seconds at a million, where the mean's standard error is about 3%).
+fn sampled_receivers(n: usize) -> usize {
+    (n / 16).clamp(64, 1024)
+}
+
+/// The two-sided cut's entries against the one-sided cut's at the same accuracy, at most,
+/// as measured (docs/hierarchy.md: 1.11 on the Cornell box at 25k, 0.73 in the furnished
+/// room at 50k), with room.
+const TWO_SIDED_ENTRIES_RATIO: f64 = 1.25;
+
+/// How entries per patch of the hierarchical cut grow with the patch count, for the
+/// refusal's "would fit": as N^0.1, below every growth measured (the Cornell box: 376 →
+/// 484 from 6k to 25k, N^0.18, and N^0.14 from 19k to 40k; the furnished room: 485 →
+/// 1,579 from 6k to 50k, N^0.56; `bench/results/links-2026-12-06.md`). Going down, the
+/// smaller exponent is the cautious one: fewer patches keep more of their entries.
+const HIERARCHICAL_GROWTH: f64 = 0.1;
+
+/// nnz(F) before F is built: dense F from the orientation cull on sampled rows (an upper
+/// bound), a hierarchical F from its cut made for [`sampled_receivers`] receivers (their
+/// mean plus three standard errors; two-sided, times [`TWO_SIDED_ENTRIES_RATIO`]).
+fn estimate_f(
+    patches: &Patches,
+    occ: &Occluder,
+    tree: Option<&hierarchy::ClusterTree>,
+    params: &PrecomputeParams,
+) -> FEstimate {
+    let n = patches.len() as f64;
+    match (&params.transport, tree) {
+        (FormFactorMethod::Hierarchical(hp), Some(tree)) => {
+            let cut = hierarchy::sample_entries(
+                patches,
+                occ,
+                &params.form_factors,
+                hp,
+                tree,
+                sampled_receivers(patches.len()),
+            );
+            let one_sided = (cut.mean + 3.0 * cut.std_error) * n;
+            let (nnz, how) = if hp.two_sided {
+                (
+                    one_sided * TWO_SIDED_ENTRIES_RATIO,
+                    "the one-sided cut of sampled receivers, with room for the two-sided one",
+                )
+            } else {
+                (one_sided, "the cut of sampled receivers")
+            };
+            FEstimate {
+                nnz,
+                growth: HIERARCHICAL_GROWTH,
+                how,
+            }
+        }
+        _ => FEstimate {
+            nnz: estimate_nnz(patches),
+            growth: 1.0,
+            how: "the pairs facing each other, an upper bound",
+        },
+    }
+}
+
+/// What a run holds besides F and S, and what F costs while built and once kept: the
+/// memory estimate's model (`docs/commands.md`, *Memory*).
+#[derive(Debug, Clone, Copy)]
+struct MemoryModel {
+    /// Bytes per stored entry of F while it is built.
+    build_per_nnz: u64,
+    /// Bytes per patch held through every stage: the patches, the viewer mesh, the tree,
+    /// the solve's per-patch arrays.
+    per_patch: u64,
+    /// Bytes per patch of the environment visibility (f16), and of the run of rows traced
+    /// at once (f32, `translux_engine::envvis::stage`).
+    env_kept: u64,
+    env_run: u64,
+}
+
+/// Bytes per stored non-zero of a dense F while building: the final CSR (col 4 + val 4),
+/// the upper triangle as computed (12 bytes per pair = 6 per non-zero) and the transposed
+/// lower half (8 bytes per lower entry = 4 per non-zero).
+const BUILD_BYTES_PER_NNZ: u64 = 18;
+
+/// Bytes per stored entry of a hierarchical F while built: each receiver's entries (8
+/// bytes) and the block they are put together into (8), with room (measured 17.0 on the
+/// diffuse Cornell box from 25k to 100k patches, `bench/results/memory-estimate-2026-12-07.md`).
+const HIERARCHICAL_BUILD_BYTES_PER_NNZ: u64 = 18;
+/// The same two-sided: the traversal's (receiver, source, value) triples as its halves are
+/// joined, then the block (measured 29 at 25k).
+const TWO_SIDED_BUILD_BYTES_PER_NNZ: u64 = 32;
+
+/// Bytes per patch held besides F, S and the environment visibility (see
+/// [`MemoryModel::per_patch`]): the patches (72), the viewer mesh (up to 84), the cluster
+/// tree (about 110) and F's row pointers and per-patch arrays, with room (measured about
+/// 106 with the process's own on the Cornell box's simple mesh).
+const PATCH_BYTES: u64 = 400;
+
+/// Rows of the environment visibility traced at once (`translux_engine::envvis::stage`).
+const ENV_RUN_ROWS: u64 = 8192;
+
+impl MemoryModel {
+    fn of(params: &PrecomputeParams) -> MemoryModel {
+        let bins = params
+            .environment
+            .bins
+            .map_or(0, |b| u64::from(b.rows) * u64::from(b.cols));
+        let build_per_nnz = match params.transport {
+            FormFactorMethod::Dense => BUILD_BYTES_PER_NNZ,
+            FormFactorMethod::Hierarchical(h) if h.two_sided => TWO_SIDED_BUILD_BYTES_PER_NNZ,
+            FormFactorMethod::Hierarchical(_) => HIERARCHICAL_BUILD_BYTES_PER_NNZ,
+        };
+        MemoryModel {
+            build_per_nnz,
+            per_patch: PATCH_BYTES,
+            env_kept: bins * 2,
+            env_run: bins * 4,
+        }
+    }
+
+    /// What the stages after F start from: F's build counted whole, the allocator keeping
+    /// most of what F's rows held when they are freed (measured: 97 of the F stage's 105
+    /// MiB still resident after it, at 16k patches), with what every stage holds and the
+    /// environment visibility kept beside it.
+    fn f_resident(&self, n: u64, nnz: f64) -> u64 {
+        (nnz * self.build_per_nnz as f64) as u64 + n * (self.per_patch + self.env_kept)
+    }
+
+    /// The F and environment stages' peak: [`MemoryModel::f_resident`] and the run of
+    /// environment rows traced at once.
+    fn f_peak(&self, n: u64, nnz: f64) -> u64 {
+        self.f_resident(n, nnz) + n.min(ENV_RUN_ROWS) * self.env_run
+    }
+
+    /// The most patches, about, whose F peak fits in `limit` at this scene's density of
+    /// entries ([`FEstimate::growth`]), rounded down to two significant figures; 0 when
+    /// not even a hundred would.
+    fn patches_that_fit(&self, n: u64, f: &FEstimate, limit: u64) -> u64 {
+        let per_patch = f.per_patch(n);
+        let peak = |m: f64| -> f64 {
+            let nnz = m * per_patch * (m / n as f64).powf(f.growth);
+            self.f_peak(m as u64, nnz) as f64
+        };
+        let (mut lo, mut hi) = (0.0f64, n as f64);
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if peak(mid) <= limit as f64 {
+                lo = mid
+            } else {
+                hi = mid
+            }
+        }
+        round_down_2(lo as u64).filter(|&m| m >= 100).unwrap_or(0)
+    }
+}
+
+/// `x` rounded down to two significant figures (None for 0).
+fn round_down_2(x: u64) -> Option<u64> {
+    if x == 0 {
+        return None;
+    }
+    let digits = x.ilog10();
+    let unit = 10u64.pow(digits.saturating_sub(1));
+    Some(x / unit * unit)
+}
+
+/// What one object holds at the subsurface stage's peak ([`held_paths`]).
+#[derive(Debug, Clone, Default)]
+struct HeldPaths {
+    name: String,
+    /// Its stored paths (pairs, or a cut's direct pairs and links).
+    paths: u64,
+    /// Their radius (scene units).
+    radius: f32,
+    /// Bytes each holds while S is built.
+    bytes_each: u64,
+}
+
+/// Bytes an entry of a hierarchical S traced on demand holds while S is built, with room:
+/// its optical distance and spread, the cut's lists, S's value and column, and the
+/// allocator's share (measured 92 on the Cornell box's translucent block at 25k patches,
+/// `bench/results/memory-estimate-2026-12-07.md`).
+const ON_DEMAND_BYTES_PER_ENTRY: u64 = 112;
+
 /// The paths each object of `paths` holds at the subsurface stage's peak: a hierarchical S
 /// traced on demand never lists a homogeneous translucent object's pairs, it holds its
-/// direct pairs and links only (at most [`crate::slinks::ENTRIES_BOUND`] per patch).
+/// direct pairs and links only (counted as [`crate::slinks::ENTRIES_BOUND`] per patch, at
+/// [`ON_DEMAND_BYTES_PER_ENTRY`]); every other object its pairs within reach
+/// ([`distances::PEAK_BYTES_PER_PATH`] each).
 fn held_paths(
     params: &PrecomputeParams,
     materials: &[ObjectMaterial<'_>],
     paths: &[(String, u64, f32)],
-) -> Vec<(String, u64, f32)> {
+) -> Vec<HeldPaths> {
     let on_demand_bound = |name: &str| -> Option<u64> {
         params
             .subsurface_links
@@ -846,8 +1052,16 @@ fn held_paths(
     paths
         .iter()
         .map(|(name, p, r)| {
-            let p = on_demand_bound(name).map_or(*p, |b| b.min(*p));
-            (name.clone(), p, *r)
+            let (paths, bytes_each) = match on_demand_bound(name) {
+                Some(b) => (b.min(*p), ON_DEMAND_BYTES_PER_ENTRY),
+                None => (*p, distances::PEAK_BYTES_PER_PATH),
+            };
+            HeldPaths {
+                name: name.clone(),
+                paths,
+                radius: *r,
+                bytes_each,
+            }
         })
         .collect()
 }
@@ -864,6 +1078,7 @@ impl Budget {
                 object: "all translucent objects".into(),
                 paths: stored,
                 radius: 0.0,
+                bytes_each: distances::PEAK_BYTES_PER_PATH,
                 estimate: grown,
                 limit: self.limit,
             });
@@ -1801,6 +2016,7 @@ struct TransportRows {
 fn transport_rows(
     patches: &Patches,
     occ: &Occluder,
+    tree: Option<hierarchy::ClusterTree>,
     params: &PrecomputeParams,
     stages: &mut Vec<StageTime>,
 ) -> Result<TransportRows, PrecomputeError> {
@@ -1836,6 +2052,7 @@ fn transport_rows(
                 occ,
                 &params.form_factors,
                 hp,
+                tree.unwrap_or_else(|| hierarchy::ClusterTree::build(patches)),
                 &row_progress(&bar, params, &ff_done, n),
                 &stop,
             );

@@ -462,6 +462,79 @@ fn a_subsurface_stage_too_big_for_memory_is_refused_up_front() {
     assert!(t0.elapsed().as_secs() < 60, "{:?}", t0.elapsed());
 }
 
+/// The memory guard follows the F it will build: a hierarchical F is estimated from its cut
+/// on sampled receivers, a refusal says how many patches would fit, and that many do: the
+/// run it suggests peaks under the same limit.
+#[test]
+fn a_refusal_for_memory_names_a_patch_count_that_fits() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/scenes/cornell-diffuse.json");
+    let scene = scene.to_str().unwrap();
+    let out = dir.path().join("room");
+    let limit_gib = 0.15;
+    let limit = limit_gib * 1024.0 * 1024.0 * 1024.0;
+    let run = |patches: &str| {
+        precompute(&[
+            scene,
+            "--out",
+            out.to_str().unwrap(),
+            "--patches",
+            patches,
+            "--max-memory-gib",
+            &limit_gib.to_string(),
+            "--quiet",
+        ])
+    };
+    let o = run("40000");
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(!out.exists(), "a refused precompute left a bundle");
+    assert!(
+        t.contains("entries per patch, from the cut of sampled receivers"),
+        "{t}"
+    );
+    let fits: u64 = t
+        .split("(--patches ")
+        .nth(1)
+        .and_then(|rest| rest.split(')').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no patch count that fits: {t}"));
+    assert!((4_000..40_000).contains(&fits), "{fits}: {t}");
+
+    let o = run(&fits.to_string());
+    let t = text(&o);
+    assert!(
+        o.status.success(),
+        "the suggested {fits} patches were refused: {t}"
+    );
+    let figure = |label: &str| -> f64 {
+        let line = t
+            .lines()
+            .find(|l| l.trim_start().starts_with(label))
+            .unwrap_or_else(|| panic!("no {label}: {t}"));
+        let mut words = line[line.find(label).unwrap() + label.len()..].split_whitespace();
+        let v: f64 = words.next().unwrap().parse().unwrap();
+        v * match words.next().unwrap() {
+            "GiB" => 1024.0 * 1024.0 * 1024.0,
+            "MiB" => 1024.0 * 1024.0,
+            "KiB" => 1024.0,
+            _ => 1.0,
+        }
+    };
+    let (estimate, peak) = (figure("memory estimate"), figure("peak memory (RSS)"));
+    assert!(
+        peak <= limit,
+        "the suggested run peaked at {peak} bytes, over {limit}: {t}"
+    );
+    // The estimate follows the run: neither the old fixed bound per patch (several times
+    // the peak) nor far under it.
+    assert!(
+        (0.9 * peak..=1.5 * peak).contains(&estimate),
+        "estimate {estimate} against a peak of {peak}: {t}"
+    );
+}
+
 /// A binary little-endian PLY with float coordinates and `int` index lists.
 fn binary_ply(v: &[[f32; 3]], faces: &[&[u32]]) -> Vec<u8> {
     let mut out = format!(

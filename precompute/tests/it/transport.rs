@@ -626,7 +626,8 @@ fn two_sided_f_agrees_with_dense_f_in_a_room_with_a_box() {
         two_sided: true,
         ..Default::default()
     };
-    let two = hierarchy::compute(&p, &occ, &ff, &params, &|_| {}, &|| false);
+    let tree = hierarchy::ClusterTree::build(&p);
+    let two = hierarchy::compute(&p, &occ, &ff, &params, tree, &|_| {}, &|| false);
     let n = p.len();
     assert_eq!(two.c.n_rows, n + two.tree.node_count(), "a row per node");
     assert!(two.info.receiver_nodes, "{:?}", two.info);
