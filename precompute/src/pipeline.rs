@@ -931,9 +931,9 @@ const BUILD_BYTES_PER_NNZ: u64 = 18;
 /// bytes) and the block they are put together into (8), with room (measured 17.0 on the
 /// diffuse Cornell box from 25k to 100k patches, `bench/results/memory-estimate-2026-12-07.md`).
 const HIERARCHICAL_BUILD_BYTES_PER_NNZ: u64 = 18;
-/// The same two-sided: the traversal's (receiver, source, value) triples as its halves are
-/// joined, then the block (measured 29 at 25k).
-const TWO_SIDED_BUILD_BYTES_PER_NNZ: u64 = 32;
+/// The same two-sided: each receiver's row, set by its visit, then the block (measured 19.5
+/// at 25k).
+const TWO_SIDED_BUILD_BYTES_PER_NNZ: u64 = 22;
 
 /// Bytes per patch held besides F, S and the environment visibility (see
 /// [`MemoryModel::per_patch`]): the patches (72), the viewer mesh (up to 84), the cluster

@@ -33,6 +33,7 @@
 //! stores at growing N against the one-sided cut).
 
 use std::f32::consts::{FRAC_PI_2, PI};
+use std::sync::OnceLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::Vec3;
@@ -111,8 +112,8 @@ enum Coefficient {
     PartlyVisible,
 }
 
-/// One link (row, column, value) of C.
-type Entry = (u32, u32, f32);
+/// One row of C: its links (column, value), sorted by column.
+type Row = Vec<(u32, f32)>;
 
 /// The one-sided cut's inputs and tolerances ([`Cut`], reached through `Deref`), with what
 /// the traversal adds.
@@ -125,6 +126,11 @@ struct Traversal<'a> {
     tests: AtomicU64,
     progress: &'a (dyn Fn(u64) + Sync),
     stop: &'a (dyn Fn() -> bool + Sync),
+    /// Each row of C (the N patches, then the M nodes), set by the one visit of its
+    /// receiver: the rows are put together once, without the halves of the tree being
+    /// joined level by level (which held each link about three times over, 29 bytes a
+    /// link while F was built) or a sort of every link.
+    rows: Vec<OnceLock<Row>>,
 }
 
 /// The two-sided C's rows: the N patch rows then the M node rows, as one block from row 0
@@ -151,7 +157,7 @@ pub fn compute(
     for (k, &q) in tree.perm.iter().enumerate() {
         position[q as usize] = k as u32;
     }
-    let t = Traversal {
+    let mut t = Traversal {
         cut: Cut::new(p, occ, ff, params, tree),
         position,
         radius,
@@ -159,14 +165,14 @@ pub fn compute(
         tests: AtomicU64::new(0),
         progress,
         stop,
+        rows: (0..p.len() + tree.node_count())
+            .map(|_| OnceLock::new())
+            .collect(),
     };
-    let mut entries = if p.is_empty() {
-        Vec::new()
-    } else {
-        t.visit(tree.root, vec![tree.root])
-    };
-    entries.sort_unstable_by_key(|e| (e.0, e.1));
-    t.block(entries)
+    if !p.is_empty() {
+        t.visit(tree.root, vec![tree.root]);
+    }
+    t.block()
 }
 
 impl<'a> std::ops::Deref for Traversal<'a> {
@@ -178,10 +184,10 @@ impl<'a> std::ops::Deref for Traversal<'a> {
 
 impl Traversal<'_> {
     /// The links of receiver `r` with the sources `candidates` (what its ancestors handed
-    /// down), and of its descendants with what it hands down in turn.
-    fn visit(&self, r: Child, candidates: Vec<Child>) -> Vec<Entry> {
+    /// down) into its row, and of its descendants with what it hands down in turn.
+    fn visit(&self, r: Child, candidates: Vec<Child>) {
         if (self.stop)() {
-            return Vec::new();
+            return;
         }
         let mut out = Vec::new();
         let mut deferred = Vec::new();
@@ -193,7 +199,7 @@ impl Traversal<'_> {
             tests += 1;
             if let (Child::Patch(i), Child::Patch(j)) = (r, s) {
                 if let Some(v) = self.patch_pair(i as usize, j as usize, &mut samples, &mut rays) {
-                    out.push((i, j, v));
+                    out.push((j, v));
                 }
                 continue;
             }
@@ -201,7 +207,7 @@ impl Traversal<'_> {
                 Verdict::Cull => {}
                 Verdict::Link(v) => {
                     if v > 0.0 {
-                        out.push((self.index(r), self.index(s), v));
+                        out.push((self.index(s), v));
                     }
                 }
                 Verdict::SplitReceiver => deferred.push(s),
@@ -215,6 +221,10 @@ impl Traversal<'_> {
         }
         self.rays.fetch_add(rays, Ordering::Relaxed);
         self.tests.fetch_add(tests, Ordering::Relaxed);
+        out.sort_unstable_by_key(|e| e.0);
+        out.shrink_to_fit();
+        let first = self.rows[self.index(r) as usize].set(out);
+        debug_assert!(first.is_ok(), "every receiver is visited once");
         match r {
             Child::Patch(_) => {
                 debug_assert!(deferred.is_empty(), "a patch receiver is never split");
@@ -223,12 +233,9 @@ impl Traversal<'_> {
             Child::Node(k) => {
                 let [a, b] = self.tree.nodes[k as usize].children;
                 let copy = deferred.clone();
-                let (left, right) = rayon::join(|| self.visit(a, copy), || self.visit(b, deferred));
-                out.extend(left);
-                out.extend(right);
+                rayon::join(|| self.visit(a, copy), || self.visit(b, deferred));
             }
         }
-        out
     }
 
     /// Row or column of a side: a patch's index, or N + its node index.
@@ -510,15 +517,16 @@ impl Traversal<'_> {
             .collect()
     }
 
-    /// The sorted entries as one block of N + M rows, with the counts of the cut.
-    fn block(&self, entries: Vec<Entry>) -> RowBlock {
+    /// Every row, in order, as one block of N + M rows, with the counts of the cut.
+    fn block(&mut self) -> RowBlock {
         let n = self.p.len();
-        let rows = n + self.tree.node_count();
+        let rows = std::mem::take(&mut self.rows);
+        let links: usize = rows.iter().map(|r| r.get().map_or(0, Vec::len)).sum();
         let mut block = RowBlock {
             first: 0,
-            row_ptr: Vec::with_capacity(rows + 1),
-            col: Vec::with_capacity(entries.len()),
-            val: Vec::with_capacity(entries.len()),
+            row_ptr: Vec::with_capacity(rows.len() + 1),
+            col: Vec::with_capacity(links),
+            val: Vec::with_capacity(links),
             rays: self.rays.load(Ordering::Relaxed),
             tests: self.tests.load(Ordering::Relaxed),
             ..Default::default()
@@ -533,10 +541,9 @@ impl Traversal<'_> {
             }
         };
         block.row_ptr.push(0);
-        let mut at = 0usize;
-        for row in 0..rows as u32 {
-            while at < entries.len() && entries[at].0 == row {
-                let (_, c, v) = entries[at];
+        for (row, links) in rows.into_iter().enumerate() {
+            // Each row is freed as it is copied.
+            for (c, v) in links.into_inner().unwrap_or_default() {
                 block.col.push(c);
                 block.val.push(v);
                 if (c as usize) < n {
@@ -544,8 +551,7 @@ impl Traversal<'_> {
                 } else {
                     block.node_entries += 1;
                 }
-                block.covered += size(row) * size(c);
-                at += 1;
+                block.covered += size(row as u32) * size(c);
             }
             block.row_ptr.push(block.col.len() as u64);
         }
