@@ -581,6 +581,10 @@ pub fn assemble(
     let (mut rays, mut tests) = (0u64, 0u64);
     let (mut node_entries, mut patch_entries, mut dense_equivalent) = (0u64, 0u64, 0u64);
     let whole = blocks.len() == 1;
+    if !whole {
+        c.col.reserve_exact(nnz);
+        c.val.reserve_exact(nnz);
+    }
     for mut b in blocks {
         assert_eq!(
             b.first as usize,
@@ -594,8 +598,6 @@ pub fn assemble(
             // peak is then its entries once).
             (c.col, c.val) = (std::mem::take(&mut b.col), std::mem::take(&mut b.val));
         } else {
-            c.col.reserve_exact(nnz - c.col.len());
-            c.val.reserve_exact(nnz - c.val.len());
             c.col.extend_from_slice(&b.col);
             c.val.extend_from_slice(&b.val);
         }

@@ -913,9 +913,6 @@ fn estimate_f(
 struct MemoryModel {
     /// Bytes per stored entry of F while it is built.
     build_per_nnz: u64,
-    /// Bytes per patch held through every stage: the patches, the viewer mesh, the tree,
-    /// the solve's per-patch arrays.
-    per_patch: u64,
     /// Bytes per patch of the environment visibility (f16), and of the run of rows traced
     /// at once (f32, `translux_engine::envvis::stage`).
     env_kept: u64,
@@ -935,8 +932,8 @@ const HIERARCHICAL_BUILD_BYTES_PER_NNZ: u64 = 18;
 /// at 25k).
 const TWO_SIDED_BUILD_BYTES_PER_NNZ: u64 = 22;
 
-/// Bytes per patch held besides F, S and the environment visibility (see
-/// [`MemoryModel::per_patch`]): the patches (72), the viewer mesh (up to 84), the cluster
+/// Bytes per patch held through every stage besides F, S and the environment visibility:
+/// the patches (72), the viewer mesh (up to 84), the cluster
 /// tree (about 110) and F's row pointers and per-patch arrays, with room (measured about
 /// 106 with the process's own on the Cornell box's simple mesh).
 const PATCH_BYTES: u64 = 400;
@@ -957,7 +954,6 @@ impl MemoryModel {
         };
         MemoryModel {
             build_per_nnz,
-            per_patch: PATCH_BYTES,
             env_kept: bins * 2,
             env_run: bins * 4,
         }
@@ -968,7 +964,7 @@ impl MemoryModel {
     /// MiB still resident after it, at 16k patches), with what every stage holds and the
     /// environment visibility kept beside it.
     fn f_resident(&self, n: u64, nnz: f64) -> u64 {
-        (nnz * self.build_per_nnz as f64) as u64 + n * (self.per_patch + self.env_kept)
+        (nnz * self.build_per_nnz as f64) as u64 + n * (PATCH_BYTES + self.env_kept)
     }
 
     /// The F and environment stages' peak: [`MemoryModel::f_resident`] and the run of
