@@ -746,8 +746,9 @@ struct Budget {
     limit: u64,
     /// The estimated peak: F while it is built, or the subsurface stage where larger.
     memory_estimate: u64,
-    /// Bytes F leaves resident through the subsurface stage ([`MemoryModel::f_resident`]).
-    f_kept: u64,
+    /// Bytes held through the subsurface stage besides its paths: what F leaves resident
+    /// ([`MemoryModel::f_resident`]) and the voxel grids ([`voxel_grid_bytes`]).
+    held: u64,
     /// Per translucent object: its name, the paths a pairwise S stores (an estimate, an
     /// upper bound) and their radius ([`distances::estimate_paths`]).
     paths: Vec<(String, u64, f32)>,
@@ -805,7 +806,8 @@ fn check_memory(
         .iter()
         .map(|p| p.paths.saturating_mul(p.bytes_each))
         .fold(0, u64::saturating_add);
-    let subsurface_estimate = f_kept.saturating_add(path_bytes);
+    let grids = voxel_grid_bytes(scene, params, materials, &paths);
+    let subsurface_estimate = f_kept.saturating_add(path_bytes).saturating_add(grids);
     if subsurface_estimate > limit {
         let most = held_paths
             .iter()
@@ -824,7 +826,7 @@ fn check_memory(
     Ok(Budget {
         memory_estimate: memory_estimate.max(subsurface_estimate),
         limit,
-        f_kept,
+        held: f_kept.saturating_add(grids),
         paths,
     })
 }
@@ -1005,6 +1007,66 @@ fn round_down_2(x: u64) -> Option<u64> {
     Some(x / unit * unit)
 }
 
+/// Bytes per voxel of an object's grid while its paths are traced: which voxels are
+/// inside (1) and the same on the grid of twice the edge (1/8), with room.
+const GRID_BYTES_PER_VOXEL: u64 = 2;
+
+/// Bytes per voxel and worker thread: a Dijkstra run's distances and target slots (4 + 4
+/// bytes a voxel, `voxel::paths::Scratch`), on the grid and on the coarse one (an eighth
+/// of that), with room. Each object keeps one per thread while it is traced.
+const SCRATCH_BYTES_PER_VOXEL: u64 = 10;
+
+/// The voxel grids the subsurface stage holds at its peak, which no patch count scales:
+/// an object whose optical paths bend through its interior (not convex, or media set per
+/// patch) gets a grid of up to `VoxelParams::max_voxels` cells (2 M), and each worker
+/// thread's Dijkstra state over it (about 42 MiB a grid on 2 threads). Objects whose
+/// paths a hierarchical S traces on demand keep theirs until S is cut (summed); the
+/// others are traced one after another (the largest counts). `paths` names the objects
+/// S is made for ([`distances::estimate_paths`]).
+fn voxel_grid_bytes(
+    scene: &LoadedScene,
+    params: &PrecomputeParams,
+    materials: &[ObjectMaterial<'_>],
+    paths: &[(String, u64, f32)],
+) -> u64 {
+    let threads = rayon::current_num_threads() as u64;
+    let grid = params.voxels.max_voxels as u64
+        * (GRID_BYTES_PER_VOXEL + threads * SCRATCH_BYTES_PER_VOXEL);
+    let on_demand = params
+        .subsurface_links
+        .as_ref()
+        .is_some_and(|sl| sl.trace != crate::slinks::Trace::All)
+        && matches!(params.transport, FormFactorMethod::Hierarchical(_));
+    let (mut held, mut one_at_a_time) = (0u64, 0u64);
+    for (k, o) in materials.iter().enumerate() {
+        if !paths.iter().any(|p| p.0 == o.name) {
+            continue;
+        }
+        let tris = scene
+            .objects
+            .get(k)
+            .map_or(&[][..], |s| s.triangles.as_slice());
+        let bends = match o.material {
+            Material::ThinSheet { .. } => false,
+            Material::Translucent { .. } => {
+                params.voxels.force_voxels
+                    || !crate::voxel::is_convex(tris, params.voxels.convex_tolerance)
+            }
+            // Media by patch always take the voxel route.
+            _ => true,
+        };
+        match (
+            bends,
+            on_demand && matches!(o.material, Material::Translucent { .. }),
+        ) {
+            (false, _) => {}
+            (true, true) => held = held.saturating_add(grid),
+            (true, false) => one_at_a_time = one_at_a_time.max(grid),
+        }
+    }
+    held.saturating_add(one_at_a_time)
+}
+
 /// What one object holds at the subsurface stage's peak ([`held_paths`]).
 #[derive(Debug, Clone, Default)]
 struct HeldPaths {
@@ -1067,7 +1129,7 @@ impl Budget {
     /// the budget, stop here, before S (the larger half) is assembled.
     fn check_stored(&self, stored: u64) -> Result<(), PrecomputeError> {
         let grown = self
-            .f_kept
+            .held
             .saturating_add(stored.saturating_mul(distances::PEAK_BYTES_PER_PATH));
         if grown > self.limit {
             return Err(PrecomputeError::SubsurfaceOutOfMemory {
