@@ -1019,7 +1019,9 @@ const SCRATCH_BYTES_PER_VOXEL: u64 = 10;
 /// The voxel grids the subsurface stage holds at its peak, which no patch count scales:
 /// an object whose optical paths bend through its interior (not convex, or media set per
 /// patch) gets a grid of up to `VoxelParams::max_voxels` cells (2 M), and each worker
-/// thread's Dijkstra state over it (about 42 MiB a grid on 2 threads). Objects whose
+/// thread's Dijkstra state over it (about 42 MiB a grid on 2 threads). A heterogeneous
+/// object counts one whatever its shape (an upper bound: a convex one laid out by a
+/// pattern takes straight paths). Objects whose
 /// paths a hierarchical S traces on demand keep theirs until S is cut (summed); the
 /// others are traced one after another (the largest counts). `paths` names the objects
 /// S is made for ([`distances::estimate_paths`]).
@@ -1052,7 +1054,8 @@ fn voxel_grid_bytes(
                 params.voxels.force_voxels
                     || !crate::voxel::is_convex(tris, params.voxels.convex_tolerance)
             }
-            // Media by patch always take the voxel route.
+            // Media by patch always take the voxel route; a pattern's only where the
+            // object is not convex (counted as if it never were).
             _ => true,
         };
         match (
