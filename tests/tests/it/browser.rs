@@ -148,8 +148,11 @@ impl ServerThread {
             // Dropping the runtime ends whatever the graceful shutdown left running.
             rt.shutdown_timeout(Duration::from_secs(1));
         });
+        // A generous limit: this test shares the machine (and the process's rayon pool,
+        // which opening a bundle's occluder uses) with the suite's other tests, and in CI a
+        // restart beside a validation test's walks once took over 30 s.
         let addr = rx_addr
-            .recv_timeout(Duration::from_secs(30))
+            .recv_timeout(Duration::from_secs(180))
             .expect("the server did not start");
         ServerThread {
             addr,
