@@ -1040,31 +1040,25 @@ fn voxel_grid_bytes(
         .is_some_and(|sl| sl.trace != crate::slinks::Trace::All)
         && matches!(params.transport, FormFactorMethod::Hierarchical(_));
     let (mut held, mut one_at_a_time) = (0u64, 0u64);
-    for (k, o) in materials.iter().enumerate() {
+    // `materials` is made from `scene.objects`, one per object in order.
+    for (o, source) in materials.iter().zip(&scene.objects) {
         if !paths.iter().any(|p| p.0 == o.name) {
             continue;
         }
-        let tris = scene
-            .objects
-            .get(k)
-            .map_or(&[][..], |s| s.triangles.as_slice());
-        let bends = match o.material {
-            Material::ThinSheet { .. } => false,
-            Material::Translucent { .. } => {
-                params.voxels.force_voxels
-                    || !crate::voxel::is_convex(tris, params.voxels.convex_tolerance)
-            }
-            // Media by patch always take the voxel route; a pattern's only where the
-            // object is not convex (counted as if it never were).
-            _ => true,
-        };
-        match (
-            bends,
-            on_demand && matches!(o.material, Material::Translucent { .. }),
-        ) {
-            (false, _) => {}
-            (true, true) => held = held.saturating_add(grid),
-            (true, false) => one_at_a_time = one_at_a_time.max(grid),
+        let translucent = matches!(o.material, Material::Translucent { .. });
+        // The only other material with paths is a heterogeneous one: media by patch always
+        // take the voxel route, a pattern's only where the object is not convex (counted
+        // as if it never were).
+        let bends = !translucent
+            || params.voxels.force_voxels
+            || !crate::voxel::is_convex(&source.triangles, params.voxels.convex_tolerance);
+        if !bends {
+            continue;
+        }
+        if on_demand && translucent {
+            held = held.saturating_add(grid);
+        } else {
+            one_at_a_time = one_at_a_time.max(grid);
         }
     }
     held.saturating_add(one_at_a_time)
