@@ -44,6 +44,19 @@ function ask(event) {
 }
 const log = (...a) => console.error("[viewer.test]", ...a);
 
+// Seconds each part of the session took (`result.seconds`): where a slow run spent its time.
+const started = Date.now();
+const seconds = {};
+async function timed(name, part) {
+  const t = Date.now();
+  try {
+    return await part();
+  } finally {
+    seconds[name] = +((Date.now() - t) / 1000).toFixed(1);
+    log(`${name}: ${seconds[name]} s`);
+  }
+}
+
 function check(cond, message) {
   if (!cond) throw new Error("check failed: " + message);
 }
@@ -529,9 +542,13 @@ async function checkSpecular(browser) {
   return out;
 }
 
+/** Bytes the page sent as base64 (`page.evaluate` carries a plain array of 1.4 M numbers
+ * in about 5 s on this test's machine; a string in a fraction of that). */
+const fromBase64 = (b64) => new Uint8Array(Buffer.from(b64, "base64"));
+
 /** The drawing buffer as RGB rows from the top (0–255). */
 async function viewerRgb(page) {
-  return page.evaluate(() => {
+  const { w, h, rgb } = await page.evaluate(() => {
     const { w, h, px } = window.translux.app.renderer.readPixels();
     const out = new Uint8Array(w * h * 3);
     for (let y = 0; y < h; y++) {
@@ -540,13 +557,16 @@ async function viewerRgb(page) {
         out[o] = px[i]; out[o + 1] = px[i + 1]; out[o + 2] = px[i + 2];
       }
     }
-    return { w, h, rgb: Array.from(out) };
+    let s = "";
+    for (let i = 0; i < out.length; i += 0x8000) s += String.fromCharCode(...out.subarray(i, i + 0x8000));
+    return { w, h, rgb: btoa(s) };
   });
+  return { w, h, rgb: fromBase64(rgb) };
 }
 
 /** The render route's picture of the page's current state and camera, as RGB rows. */
 async function renderRgb(page, w, h, extra = {}) {
-  return page.evaluate(async ({ w, h, extra }) => {
+  const rgb = await page.evaluate(async ({ w, h, extra }) => {
     const a = window.translux.app;
     const cam = a.camera.toJSON();
     const body = {
@@ -564,8 +584,11 @@ async function renderRgb(page, w, h, extra = {}) {
     const px = g.getImageData(0, 0, w, h).data;
     const out = new Uint8Array(w * h * 3);
     for (let i = 0; i < w * h; i++) { out[3 * i] = px[4 * i]; out[3 * i + 1] = px[4 * i + 1]; out[3 * i + 2] = px[4 * i + 2]; }
-    return Array.from(out);
+    let s = "";
+    for (let i = 0; i < out.length; i += 0x8000) s += String.fromCharCode(...out.subarray(i, i + 0x8000));
+    return btoa(s);
   }, { w, h, extra });
+  return fromBase64(rgb);
 }
 
 /**
@@ -1121,14 +1144,17 @@ try {
   await idle(page);
   await shot(page, "08-reconnected.png");
 
-  result.sign_in = await checkSignIn(browser);
-  result.link_and_layout = await checkLinkMaterialLayout(browser);
-  result.phone = await checkPhone(browser);
-  result.specular = await checkSpecular(browser);
-  result.absorption = await checkAbsorption(browser);
-  result.crisp_light = await checkCrispLight(browser);
-  result.animation = await checkAnimation(browser);
-  result.translucency_note = await checkTranslucencyNote(browser);
+  seconds.main_view = +((Date.now() - started) / 1000).toFixed(1);
+  log(`main view: ${seconds.main_view} s`);
+  result.sign_in = await timed("sign_in", () => checkSignIn(browser));
+  result.link_and_layout = await timed("link_and_layout", () => checkLinkMaterialLayout(browser));
+  result.phone = await timed("phone", () => checkPhone(browser));
+  result.specular = await timed("specular", () => checkSpecular(browser));
+  result.absorption = await timed("absorption", () => checkAbsorption(browser));
+  result.crisp_light = await timed("crisp_light", () => checkCrispLight(browser));
+  result.animation = await timed("animation", () => checkAnimation(browser));
+  result.translucency_note = await timed("translucency_note", () => checkTranslucencyNote(browser));
+  result.seconds = seconds;
 
   check(pageErrors.length === 0, `errors in the page: ${pageErrors.join("; ")}`);
 } finally {
