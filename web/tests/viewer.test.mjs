@@ -122,6 +122,20 @@ async function bannerText(page, kind) {
   return page.evaluate((k) => document.querySelector(`#banners [data-kind="${k}"]`)?.textContent ?? null, kind);
 }
 
+/** Clicks `selector` and returns the download it starts. The .glb first asks the server
+ * for the vertex colours, and beside the suite's other tests that answer can take a while;
+ * when no download comes, the error says which banners the page shows. */
+async function downloadOf(page, selector, timeout = 90000) {
+  try {
+    const [download] = await Promise.all([page.waitForEvent("download", { timeout }), page.click(selector)]);
+    return download;
+  } catch (e) {
+    const banners = await page.evaluate(() =>
+      Array.from(document.querySelectorAll("#banners [data-kind]"), (b) => `${b.dataset.kind}: ${b.textContent}`));
+    throw new Error(`${selector} started no download (banners: ${banners.join(" | ") || "none"}): ${e.message}`);
+  }
+}
+
 /** A browser context; with TRANSLUX_WEB_DIR, its pages load the viewer's files from there. */
 async function newContext(browser, options) {
   const context = await browser.newContext({ acceptDownloads: true, ...options });
@@ -1102,10 +1116,10 @@ try {
   await page2.close();
 
   // 8. PNG snapshot and .glb download.
-  const [png] = await Promise.all([page.waitForEvent("download"), page.click("#snap")]);
+  const png = await downloadOf(page, "#snap");
   const pngPath = join(outDir, "snapshot.png");
   await png.saveAs(pngPath);
-  const [glb] = await Promise.all([page.waitForEvent("download"), page.click("#glb")]);
+  const glb = await downloadOf(page, "#glb");
   await glb.saveAs(join(outDir, "viewer.glb"));
   const source = await page.evaluate(() => {
     const a = window.translux.app;
