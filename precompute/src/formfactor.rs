@@ -11,12 +11,14 @@
 //!    form factor from a point x with normal n to polygon q (Lambert's contour formula,
 //!    q first clipped to the half-space in front of x),
 //!    `F(x → q) = (1/2π) |Σₖ θₖ n·ĝₖ|`, `ĝₖ = unit(rₖ × rₖ₊₁)`, `θₖ = ∠(rₖ, rₖ₊₁)`,
-//!    `rₖ = qₖ − x`, is exact for the polygon; only p is point-sampled. Far pairs use p's centroid and one
-//!    occlusion ray centroid to centroid. Near pairs (centroid distance below
-//!    `near_factor` × the larger patch's longest edge) average F(x → q) over `near_samples`²
-//!    equal-area points x of p, each with its own ray to one of as many points of q, taken
-//!    in front of x's plane (the part of q behind it is clipped from F(x → q)); the rays
-//!    spread over q, so a q partly hidden counts in part.
+//!    `rₖ = qₖ − x`, is exact for the polygon; only p is point-sampled. Far pairs use p's
+//!    centroid and one occlusion ray centroid to centroid. Near pairs (centroid distance
+//!    below `near_factor` × the larger patch's longest edge), and far pairs whose centroid
+//!    form factor exceeds `far_sampled_above` (one ray would decide a large share of a row:
+//!    a floor patch seeing the ceiling past a table's edge), average F(x → q) over
+//!    `near_samples`² equal-area points x of p, each with its own ray to one of as many
+//!    points of q, taken in front of x's plane (the part of q behind it is clipped from
+//!    F(x → q)); the rays spread over q, so a q partly hidden counts in part.
 //! 3. Reciprocity gives the other direction: A_p F_pq = A_q F_qp. Nothing is computed twice.
 //!
 //! Entries below `threshold` are dropped only when asked, and the power they carried is
@@ -44,6 +46,10 @@ pub struct FormFactorParams {
     /// patch's longest edge: neighbours across a crease, where F(x → q) varies fastest).
     /// Default 10.
     pub touching_samples: u32,
+    /// Far pairs whose form factor from the point side's centroid exceeds this are sampled
+    /// as near pairs (`near_samples`² points, as many rays), not decided by one ray.
+    /// Default 10⁻³.
+    pub far_sampled_above: f32,
     /// Drop entries below this value (0 = keep every non-zero entry). Default 0.
     pub threshold: f32,
 }
@@ -54,6 +60,7 @@ impl Default for FormFactorParams {
             near_factor: 2.5,
             near_samples: 4,
             touching_samples: 10,
+            far_sampled_above: 1e-3,
             threshold: 0.0,
         }
     }
@@ -141,8 +148,9 @@ pub(crate) fn any_in_front(corners: &[Vec3; 3], x: Vec3, n: Vec3, eps: f32) -> b
 }
 
 /// F_ij and F_ji of one pair that passed the orientation cull (`None`: they exchange
-/// nothing). The smaller patch is point-sampled (its centroid far away, `near_samples`² or
-/// `touching_samples`² points near), the larger integrated exactly; reciprocity gives the
+/// nothing). The smaller patch is point-sampled (its centroid far away unless the pair's
+/// form factor is above `far_sampled_above`, `near_samples`² or `touching_samples`²
+/// points near), the larger integrated exactly; reciprocity gives the
 /// other direction. Adds the rays it cast to `rays`. Shared by the dense F and the leaf
 /// links of the hierarchical one ([`crate::hierarchy`]).
 #[expect(
@@ -166,17 +174,22 @@ pub(crate) fn pair(
     let dist = cp.distance(cq);
     let big = p.size[i].max(p.size[j]);
     let near = dist < params.near_factor * big;
-    let f_pq = if !near {
-        if nq.dot(cp - cq) <= 0.0 {
+    let far_f = if near || nq.dot(cp - cq) <= 0.0 {
+        0.0
+    } else {
+        point_to_polygon(cp, np, poly)
+    };
+    let f_pq = if !near && far_f <= params.far_sampled_above {
+        if far_f <= 0.0 {
             return None;
         }
         *rays += 1;
         if occ.occluded(cp + np * offset, cq + nq * offset) {
             return None;
         }
-        point_to_polygon(cp, np, poly)
+        far_f
     } else {
-        let m = if dist < 1.5 * big {
+        let m = if near && dist < 1.5 * big {
             params.touching_samples
         } else {
             params.near_samples
@@ -587,6 +600,81 @@ mod tests {
             "the box's face patch at {} (normal {}) sees {s} of its hemisphere",
             p.centroid[i],
             p.normal[i]
+        );
+    }
+
+    /// A far pair whose one ray would decide a large share of a row: a small floor patch
+    /// under a 1 m ceiling 5 m up, and at mid-height a half-plane hiding the ceiling's
+    /// quarter on one side. The rays from the patches' centroids all pass the edge, so one
+    /// ray each counted the ceiling whole (4/3 of the reference).
+    #[test]
+    fn a_far_pair_partly_hidden_counts_its_visible_part() {
+        let quad = |c: [Vec3; 4]| vec![[c[0], c[1], c[2]], [c[0], c[2], c[3]]];
+        let v = Vec3::new;
+        let floor = quad([
+            v(-0.1, 0.0, -0.1),
+            v(-0.1, 0.0, 0.1),
+            v(0.1, 0.0, 0.1),
+            v(0.1, 0.0, -0.1),
+        ]);
+        let ceiling = quad([
+            v(-0.5, 5.0, -0.5),
+            v(0.5, 5.0, -0.5),
+            v(0.5, 5.0, 0.5),
+            v(-0.5, 5.0, 0.5),
+        ]);
+        let edge = -0.125;
+        let blocker = quad([
+            v(-3.0, 2.5, -3.0),
+            v(edge, 2.5, -3.0),
+            v(edge, 2.5, 3.0),
+            v(-3.0, 2.5, 3.0),
+        ]);
+        let objects: Vec<&[[Vec3; 3]]> = vec![&floor, &ceiling, &blocker];
+        let p = crate::patch::subdivide(&objects, 1.5);
+        let occ = Occluder::new(&p.corners);
+        let (f, _) = compute(&p, &occ, &FormFactorParams::default(), &|_| {});
+        let view = f.view().unwrap();
+        let floor_patches: Vec<usize> = (0..p.len()).filter(|&i| p.object[i] == 0).collect();
+        let flux: f64 = floor_patches
+            .iter()
+            .map(|&i| {
+                let (cols, vals) = view.row(i);
+                let to_ceiling: f64 = cols
+                    .iter()
+                    .zip(vals)
+                    .filter(|(j, _)| p.object[**j as usize] == 1)
+                    .map(|(_, &x)| x as f64)
+                    .sum();
+                p.area[i] as f64 * to_ceiling
+            })
+            .sum();
+        let got = flux / floor_patches.iter().map(|&i| p.area[i] as f64).sum::<f64>();
+        // The reference: from a point x0 of the floor the half-plane's edge hides the
+        // ceiling up to 2 · edge − x0, so F(x0 → the visible part), averaged over the floor.
+        let k = 40;
+        let mut want = 0.0f64;
+        for a in 0..k {
+            for b in 0..k {
+                let x0 = v(
+                    -0.1 + 0.2 * (a as f32 + 0.5) / k as f32,
+                    0.0,
+                    -0.1 + 0.2 * (b as f32 + 0.5) / k as f32,
+                );
+                let cut = 2.0 * edge - x0.x;
+                let seen = [
+                    v(cut, 5.0, -0.5),
+                    v(0.5, 5.0, -0.5),
+                    v(0.5, 5.0, 0.5),
+                    v(cut, 5.0, 0.5),
+                ];
+                want += point_to_polygon(x0, Vec3::Y, &seen) as f64;
+            }
+        }
+        want /= (k * k) as f64;
+        assert!(
+            (got / want - 1.0).abs() < 0.05,
+            "floor to ceiling {got}, the visible part's {want}"
         );
     }
 }
