@@ -23,12 +23,6 @@
 //!
 //! The workers are plain OS threads blocked on a condition variable; a panic inside a relight
 //! is caught and answered 500 for its batch, and the worker lives on.
-//!
-//! A job's parallel loops run on the pool's own rayon thread pool (one thread per core, or
-//! `RAYON_NUM_THREADS`), not on the process's global one. Precompute jobs and translucency
-//! preparation have pools of their own too, so none of them waits behind another's long
-//! loop; nor do relights wait behind a program that embeds the server and keeps the
-//! global pool busy.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -258,8 +252,6 @@ struct Shared {
     /// Set by [`Pool::close`]: running jobs' long work stops (a server that is stopping
     /// does not wait for hours of lamp walks).
     closing: StopFlag,
-    /// Where the jobs' parallel loops run.
-    rayon: rayon::ThreadPool,
 }
 
 /// The worker pool; cheap to clone (one `Arc`).
@@ -290,7 +282,6 @@ impl Pool {
             metrics,
             job_us: AtomicU64::new(0),
             closing: StopFlag::new(),
-            rayon: compute_threads(),
         });
         let mut threads: Vec<JoinHandle<()>> = (0..shared.params.workers)
             .map(|k| {
@@ -446,18 +437,9 @@ fn worker(s: &Shared) {
             s.metrics.queue_depth.set(q.len as i64);
             batch
         };
-        s.rayon.install(|| process(s, batch));
+        process(s, batch);
         lock(&s.queue).busy -= 1;
     }
-}
-
-/// The rayon pool the jobs' parallel loops run on: as many threads as the global pool
-/// would have.
-fn compute_threads() -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .thread_name(|k| format!("relight-compute-{k}"))
-        .build()
-        .expect("cannot start the relight compute threads")
 }
 
 /// Answers a job that waited past its deadline with 503 `deadline_exceeded`, `queued`

@@ -1,7 +1,6 @@
 //! The relight transport through the server's own code (no sockets): the transfer matrix T
 //! against a tight iterative solve, the light components against their definitions, area
-//! lights, batching, the errors for what cannot be done, and the relight pool's own
-//! compute threads.
+//! lights, batching, and the errors for what cannot be done.
 
 use std::path::{Path, PathBuf};
 use translux_engine::transport::Transport;
@@ -752,67 +751,4 @@ fn a_scene_prepared_ahead_answers_its_first_translucency_change_as_one_that_was_
         "{l:?}"
     );
     assert_eq!(l.bytes, Some(bytes));
-}
-
-/// The relight pool's parallel loops run on a rayon pool of its own: a relight answers
-/// while every thread of the process's global pool is held (a program embedding the
-/// server, or the suite's other tests, keeping it busy).
-#[test]
-fn relights_answer_while_the_global_rayon_pool_is_busy() {
-    use std::sync::atomic::{AtomicUsize, Ordering};
-    use std::sync::{Arc, Condvar, Mutex};
-    use std::time::{Duration, Instant};
-    use translux_server::config::ServerParams;
-    use translux_server::metrics::Metrics;
-    use translux_server::pool::{Done, Pool, Work};
-
-    let scene = Scene::open("c", crate::support::bundle_dir()).unwrap();
-    let work = Work::Relight(plan(
-        &scene,
-        r#"{"lights":[{"type":"point","position":[0.1,0.3,0.1],"intensity":[1,1,1]}]}"#,
-    ));
-    let pool = Pool::new(ServerParams::default(), Metrics::new());
-
-    // Hold every global thread until the relight has answered (or a minute has passed).
-    let gate = Arc::new((Mutex::new(false), Condvar::new()));
-    let held = Arc::new(AtomicUsize::new(0));
-    {
-        let (gate, held) = (gate.clone(), held.clone());
-        rayon::spawn_broadcast(move |_| {
-            held.fetch_add(1, Ordering::SeqCst);
-            let (open, cv) = &*gate;
-            let open = open.lock().unwrap();
-            let _ = cv
-                .wait_timeout_while(open, Duration::from_secs(60), |o| !*o)
-                .unwrap();
-        });
-    }
-    let t = Instant::now();
-    while held.load(Ordering::SeqCst) < rayon::current_num_threads() {
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "the global pool never freed up"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
-
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let answer = rt.block_on(async {
-        tokio::time::timeout(
-            Duration::from_secs(30),
-            pool.run(scene.engine(), work, "t".into()),
-        )
-        .await
-    });
-    *gate.0.lock().unwrap() = true;
-    gate.1.notify_all();
-    let answer = answer
-        .expect("no answer within 30 s while the global rayon pool was busy")
-        .unwrap();
-    match answer.result {
-        Ok(Done::Relight(out)) => assert!(peak(&out.radiance) > 0.0, "a dark relight"),
-        Ok(_) => panic!("a relight answered as a render"),
-        Err(e) => panic!("the relight failed: {e:?}"),
-    }
-    pool.close();
 }
