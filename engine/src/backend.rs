@@ -14,8 +14,8 @@
 
 use std::sync::Arc;
 
+use translux_proto::api::Components;
 use translux_proto::bundle::Bundle;
-
 use translux_proto::light::Light;
 
 use crate::linalg::Rgb;
@@ -33,10 +33,10 @@ pub struct SceneRef<'a> {
 
 /// Relights a backend may do whole, where the matrices are: for each set of `lights`
 /// (point, spot and directional lamps, shadowed, and environment lights through the
-/// bundle's visibility) the direct light at the patches and at the vertices, the solve of
-/// B = Bₑ + S(E + F B) with the bundle's S and emission, and the vertex colours by `rows`
-/// ([`crate::relight`] hands over only plans that need nothing else). Several sets are a
-/// batch (concurrent requests), which a backend may solve together.
+/// bundle's visibility) the direct light at the patches and at the vertices, the transport
+/// of `components` with the bundle's S, albedo and emission, and the vertex colours by
+/// `rows` ([`crate::relight`] hands over only plans that need nothing else). Several sets
+/// are a batch (concurrent requests), which a backend may solve together.
 #[derive(Debug, Clone, Copy)]
 pub struct DeviceRelight<'a> {
     pub lights: &'a [&'a [Light]],
@@ -51,8 +51,22 @@ pub struct DeviceRelight<'a> {
     /// (`direct_at: pixel`): their opaque vertices leave it out, and each answer carries
     /// the luminance of the whole answer for the exposure.
     pub pixel: bool,
-    /// The colour stage for the bundle's materials.
+    /// The transport, with P = diag ρ (the bundle's `patch_albedo`):
+    /// - `full`: B = Bₑ + S(E + F B), solved;
+    /// - `subsurface_only`: B = Bₑ + S E, no solve;
+    /// - `direct`: B = Bₑ + P E, no solve;
+    /// - `interreflection_only`: B = Bₑ + P(E + F B), solved;
+    /// - `heuristic_a`: B = Bₑ + S E + P F B, solved;
+    /// - `heuristic_b`: B = Bₑ + S E + Y, Y = P F (Bₑ + P E) + P F Y solved.
+    pub components: Components,
+    /// The colour stage for the bundle's materials under `components`
+    /// ([`crate::scene::Scene::vertex_rows`]).
     pub rows: &'a std::sync::Arc<VertexRows>,
+}
+
+/// Whether `components` solve a system (else B is Bₑ plus one product).
+pub fn solves(components: Components) -> bool {
+    !matches!(components, Components::Direct | Components::SubsurfaceOnly)
 }
 
 /// What a backend's whole relight gave: B/π per vertex (as [`crate::relight`]'s colour

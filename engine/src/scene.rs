@@ -82,8 +82,9 @@ pub struct Scene {
     /// Where direct light is evaluated at the viewer's vertices (made on first use).
     pub(crate) vertex_samples: OnceLock<VertexSamples>,
     /// The colour stage as rows for the bundle's materials, made on a backend's first
-    /// whole relight ([`Scene::vertex_rows`]).
-    pub(crate) vertex_rows: OnceLock<Arc<crate::vertexrows::VertexRows>>,
+    /// whole relight ([`Scene::vertex_rows`]): where diffuse objects alone count as opaque,
+    /// and where every object does (`direct`, `interreflection_only`).
+    pub(crate) vertex_rows: [OnceLock<Arc<crate::vertexrows::VertexRows>>; 2],
     /// The last solutions, for warm starts (see [`WarmCache`]).
     pub(crate) warm: WarmCache,
     /// The last lights' direct light (see [`DirectCache`]).
@@ -444,7 +445,7 @@ impl Scene {
             }),
             s_scratch: Mutex::new(Scratch::default()),
             vertex_samples: OnceLock::new(),
-            vertex_rows: OnceLock::new(),
+            vertex_rows: [OnceLock::new(), OnceLock::new()],
             warm: Default::default(),
             direct: Default::default(),
             resources: resources.clone(),
@@ -457,12 +458,18 @@ impl Scene {
             .get_or_init(|| VertexSamples::new(&self.bundle, &self.occluder))
     }
 
-    /// The colour stage of a relight with the bundle's materials and the `full`
-    /// components as rows ([`crate::vertexrows`]), for a backend's whole relight.
-    pub fn vertex_rows(&self) -> &Arc<crate::vertexrows::VertexRows> {
-        self.vertex_rows.get_or_init(|| {
-            let materials = crate::smatrix::materials_with(&self.bundle, &[]);
-            let opaque = crate::vertexlight::opaque_objects(&materials, Components::Full);
+    /// The colour stage of a relight with the bundle's materials and `components` as rows
+    /// ([`crate::vertexrows`]), for a backend's whole relight: one set where diffuse objects
+    /// alone count as opaque, one where every object does
+    /// ([`crate::vertexlight::opaque_objects`]), each made on first use.
+    pub fn vertex_rows(&self, components: Components) -> &Arc<crate::vertexrows::VertexRows> {
+        let materials = crate::smatrix::materials_with(&self.bundle, &[]);
+        let opaque = crate::vertexlight::opaque_objects(&materials, components);
+        let all = matches!(
+            components,
+            Components::Direct | Components::InterreflectionOnly
+        );
+        self.vertex_rows[usize::from(all)].get_or_init(|| {
             let per_pixel: Vec<bool> = materials
                 .iter()
                 .map(|m| crate::vertexlight::per_pixel_direct(m).is_some())

@@ -70,8 +70,9 @@ struct GpuScene {
     /// The bundle's transfer matrix R = T − S, uploaded on first use; `Err`: it did not fit
     /// (the CPU computes the product).
     transfer: Mutex<Option<Result<Arc<GpuDense>, String>>>,
-    /// What the whole relight needs beside `base` (the occluder, the sample points, the
-    /// colour rows), uploaded on the first one; `Err`: it did not fit (the engine's
+    /// What the whole relight needs beside `base` (the occluder, the sample points; each
+    /// route's colour rows and the system of K = P on the first relight that needs them),
+    /// uploaded on the first one; `Err`: it did not fit (the engine's
     /// stages relight on the CPU and solve here).
     whole: Mutex<Option<Result<Arc<DeviceRelight>, String>>>,
 }
@@ -580,7 +581,12 @@ impl translux_engine::backend::Backend for Backend {
             return None;
         }
         let lights = (job.lights, job.environment);
-        match whole.relight(ctx, &g.base, lights, job.params, job.pixel) {
+        if let Err(why) = whole.route(ctx, &g.base, job.components, job.rows) {
+            tracing::debug!(scene = %scene.id, "relights through the engine's stages: {why}");
+            return None;
+        }
+        let how = (job.components, job.pixel);
+        match whole.relight(ctx, &g.base, lights, job.params, how) {
             Ok(answers) => Some(
                 answers
                     .into_iter()

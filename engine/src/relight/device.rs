@@ -1,15 +1,16 @@
 //! Stage 0 of the relight: the plans the scene's backend can do whole go there — the
-//! direct light, the solve and the vertex colours where the matrices are, lights in and
+//! direct light, the transport and the vertex colours where the matrices are, lights in and
 //! colours out ([`crate::backend::Backend::relight`]), a batch of them together — and skip
 //! the other stages.
 //!
 //! A plan qualifies when it needs nothing the backend's relight leaves out: the bundle's
-//! materials (no translucency change), the `full` components, point, spot and directional
-//! lamps and environment lights (these where the bundle holds their visibility: the host
-//! hands over each bin's radiance, [`crate::environment::bin_radiance_total`], and the
-//! backend adds Σ_k V_ik L̄_k to E), no lamp walks, no simulated objects (their collimated
-//! entry), and the iterative path (not the bundle's T); the direct light at the vertices or
-//! per pixel. Every other plan, every plan whose maps fail to load (the stages answer the
+//! materials (no translucency change), any components
+//! ([`crate::backend::DeviceRelight::components`]), point, spot and directional lamps
+//! and environment lights (these where the bundle holds their visibility: the host hands
+//! over each bin's radiance, [`crate::environment::bin_radiance_total`], and the backend
+//! adds Σ_k V_ik L̄_k to E), no lamp walks, no simulated objects (their collimated entry),
+//! and the iterative path (not the bundle's T); the direct light at the vertices or per
+//! pixel. Every other plan, every plan whose maps fail to load (the stages answer the
 //! error), and every plan the backend declines, runs the stages.
 
 use std::time::Instant;
@@ -19,14 +20,14 @@ use translux_proto::light::Light;
 use translux_proto::scene::Material;
 
 use super::{RelightOutput, RelightPlan, solve_params};
-use crate::backend::{DeviceAnswer, DeviceRelight};
+use crate::backend::{DeviceAnswer, DeviceRelight, solves};
 use crate::error::EngineError;
 use crate::radiosity::SolveParams;
 use crate::scene::Scene;
 
 /// The plans done whole by the scene's backend, one slot per plan: `None` where a plan does
-/// not qualify or the backend declined. Qualifying plans with the same tolerance and the
-/// same `direct_at` go to the backend together, as one batch.
+/// not qualify or the backend declined. Qualifying plans with the same tolerance, the same
+/// `direct_at` and the same components go to the backend together, as one batch.
 pub(super) fn relight(
     scene: &Scene,
     plans: &[RelightPlan],
@@ -36,13 +37,13 @@ pub(super) fn relight(
     if scene.backend().name() == "cpu" {
         return out;
     }
-    let mut groups: Vec<((u32, DirectAt), Vec<usize>)> = Vec::new();
+    let mut groups: Vec<((u32, DirectAt, Components), Vec<usize>)> = Vec::new();
     for (i, plan) in plans.iter().enumerate() {
         if let Err(why) = qualifies(scene, plan) {
             tracing::debug!(scene = %scene.id, "relight through the engine's stages: {why}");
             continue;
         }
-        let key = (plan.tolerance.to_bits(), plan.direct_at);
+        let key = (plan.tolerance.to_bits(), plan.direct_at, plan.components);
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, g)) => g.push(i),
             None => groups.push((key, vec![i])),
@@ -95,14 +96,15 @@ fn batch(
         environment: &environment,
         params: &params,
         pixel: plans[group[0]].direct_at == DirectAt::Pixel,
-        rows: scene.vertex_rows(),
+        components: plans[group[0]].components,
+        rows: scene.vertex_rows(plans[group[0]].components),
     };
     let Some(answers) = scene.backend().relight(scene.view(), &job) else {
         return out;
     };
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     for (&s, answer) in kept.iter().zip(answers) {
-        out[s] = Some(output(&plans[group[s]], answer, ms, kept.len()));
+        out[s] = Some(output(scene, &plans[group[s]], answer, ms, kept.len()));
     }
     out
 }
@@ -118,8 +120,6 @@ fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
         .any(|o| matches!(o.material, Material::Simulated { .. }));
     let why = if !plan.overrides.is_empty() {
         "a translucency or material change (S is made on the CPU)"
-    } else if plan.components != Components::Full {
-        "components other than full"
     } else if plan.lamp_walks.is_some() {
         "lamp walks"
     } else if scene.bundle.environment_visibility().is_none()
@@ -140,8 +140,10 @@ fn qualifies(scene: &Scene, plan: &RelightPlan) -> Result<(), &'static str> {
 }
 
 /// The answer and its stats (the direct light is part of the one submission: its time is
-/// in `solve_ms`, `direct_ms` is 0; a batch's relights share its time).
+/// in `solve_ms`, `direct_ms` is 0; a batch's relights share its time; components without
+/// a solve say `none`, and the path's note is the stages' own).
 fn output(
+    scene: &Scene,
     plan: &RelightPlan,
     answer: DeviceAnswer,
     ms: f64,
@@ -159,7 +161,12 @@ fn output(
     }
     let s = answer.stats;
     let stats = RelightStats {
-        solver: s.method.as_str().to_string(),
+        solver: if solves(plan.components) {
+            s.method.as_str()
+        } else {
+            "none"
+        }
+        .to_string(),
         components: plan.components,
         iterations: s.iterations,
         residual: s.residual,
@@ -173,7 +180,7 @@ fn output(
         products: s.products,
         warm: s.warm,
         batch,
-        note: None,
+        note: super::prepare::path(scene, plan).1,
         auto_exposure: answer.luminance.map(|lum| {
             crate::render::exposure_of_luminance(lum.into_iter().map(f64::from).collect())
         }),

@@ -1,29 +1,33 @@
 //! The whole relight on the device: lights in, vertex colours out, one submission.
 //!
 //! In: a scene's [`GpuSystem`] (F, S and the solve), its bundle (the occluder triangles,
-//! patch centroids and normals, emission) and the colour stage as rows
-//! ([`translux_engine::vertexrows::VertexRows`]), uploaded once by [`DeviceRelight::new`];
-//! per request the point, spot and directional lamps of one relight or of a batch, each
-//! one's environments as the radiance per direction bin (the visibility uploaded on the
-//! first, [`super::environment`]), and the solve's tolerance. Out: B/π per viewer vertex
-//! for each relight, as the engine's colour stage makes it, with what crossed the bus.
+//! patch centroids and normals, emission), uploaded once by [`DeviceRelight::new`], and per
+//! route the colour stage as rows ([`translux_engine::vertexrows::VertexRows`]), uploaded
+//! on the route's first relight ([`DeviceRelight::route`]); per request the point, spot and
+//! directional lamps of one relight or of a batch, each one's environments as the radiance
+//! per direction bin (the visibility uploaded on the first, [`super::environment`]), the
+//! components and the solve's tolerance. Out: B/π per viewer vertex for each relight, as
+//! the engine's colour stage makes it, with what crossed the bus.
 //!
-//! One command buffer records, in order (the system's one-submission solve, [`super::system`]):
+//! Two routes: over the scene's system, K = S (`full`, `subsurface_only`; diffuse objects
+//! count as opaque at the vertices), and over a system of K = P = diag ρ sharing the
+//! scene's F (`direct`, `interreflection_only`; every object counts as opaque). One command
+//! buffer records, in order (the system's one-submission solve, [`super::system`]):
 //!
 //! ```text
 //!   direct_light at the patch centroids → E          (the occluder's BVH, [`super::direct`])
 //!   direct_light at the vertices' sample points → E(v)
 //!   env_irradiance: E += E_env = V L̄ per relight      (with an environment)
-//!   Bₑ copied from the scene's emission; b = Bₑ + S E; the Jacobi iterations (minimal-residual
-//!   steps, α on the device), stopped on the device; x starts from the last answer the
-//!   device holds
-//!   vertex_colours from B, E − E_env, ρ and E(v) → colours
+//!   Bₑ copied from the scene's emission; b = Bₑ + K E
+//!   full, interreflection_only: the Jacobi iterations (minimal-residual steps, α on the
+//!   device), stopped on the device; x starts from the last answer the system holds
+//!   vertex_colours from B (x, or b without a solve), E − E_env, ρ and E(v) → colours
 //!   copy the counter, the residual history and the colours to staging
 //! ```
 //!
 //! A batch of relights (the worker pool's concurrent requests for one scene) runs
 //! [`BATCH`] at a time in one such submission: each has its own direct light, and the
-//! iterations read F and S once for all of them (`csr_spmv_rgb` with KV vectors); the solve
+//! iterations read F and K once for all of them (`csr_spmv_rgb` with KV vectors); the solve
 //! stops when every one has met the tolerance. The host writes only the lights, a few
 //! parameters and an environment's bin radiance where it changed, and reads back the
 //! colours (12 bytes a vertex and relight) with the counter and the history of the
@@ -33,6 +37,7 @@ use std::sync::OnceLock;
 
 use translux_engine::radiosity::{Rgb, SolveParams};
 use translux_engine::vertexrows::VertexRows;
+use translux_proto::api::Components;
 use translux_proto::bundle::Bundle;
 use translux_proto::light::Light;
 
@@ -40,7 +45,7 @@ use super::direct::{DirectParams, DirectPass, GpuLight, GpuLights, GpuOccluder, 
 use super::environment::{EnvPass, GpuVisibility};
 use super::kernels::BATCH;
 use super::matrix::{BoundOp, alloc_size, staging, storage_init, storage_zeroed, uniform};
-use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes, Out};
+use super::system::{GpuSolveStats, GpuSystem, Input, Job, Lanes, Out, Rhs};
 use super::{GpuContext, GpuError, grid};
 
 /// Most lights one relight may carry (the engine's `relight::MAX_LIGHTS`).
@@ -164,8 +169,9 @@ struct Lane {
     /// The `env_irradiance` pass, made on the lane's first relight with an environment
     /// (`Err`: it did not fit).
     env: OnceLock<Result<EnvPass, String>>,
-    /// The colours with the direct light at the vertices, and with it per pixel.
-    colours: [BoundOp; 2],
+    /// The colours from each [`ColoursFrom`] buffer the lanes have, each with the direct light
+    /// at the vertices and with it per pixel: `colours[answer][pixel]`.
+    colours: Vec<[BoundOp; 2]>,
     /// Each relight's colours, then (per pixel) each one's luminances.
     out: wgpu::Buffer,
     read: wgpu::Buffer,
@@ -188,14 +194,15 @@ impl Lane {
             + 2 * alloc_size(head + 16 * nv * kv)
     }
 
-    /// Binds a lane over `lanes` (the system's vectors for as many relights).
+    /// Binds a lane over `lanes` (the system's vectors for as many relights), its colours
+    /// by `rows`.
     fn new(
         ctx: &GpuContext,
-        system: &GpuSystem,
-        lanes: &Lanes,
+        (system, lanes): (&GpuSystem, &Lanes),
         scene: &SceneBuffers,
+        rows: &ColourRows,
     ) -> Result<Lane, GpuError> {
-        let (n, nv, kv) = (system.n(), scene.rows.nv, lanes.kv());
+        let (n, nv, kv) = (system.n(), rows.nv, lanes.kv());
         let bytes = Lane::bytes(kv as u64, n as u64, nv as u64, lanes.counter_bytes(system));
         ctx.reserve("relight lane", bytes)?;
         ctx.scoped(|| {
@@ -230,9 +237,19 @@ impl Lane {
                 )?);
             }
             let out = storage_zeroed(ctx, "colours", 16 * (nv * kv) as u64);
-            let inputs = (lanes.x_buffer(), lanes.e_buffer(), &e_env, &ev);
-            let colours =
-                [false, true].map(|pixel| scene.rows.bind(ctx, (kv as u32, pixel), inputs, &out));
+            let answers = [
+                Some(lanes.x_buffer()),
+                Some(lanes.b_buffer()),
+                lanes.y_buffer(),
+            ];
+            let colours = answers
+                .into_iter()
+                .flatten()
+                .map(|answer| {
+                    let inputs = (answer, lanes.e_buffer(), &e_env, &ev);
+                    [false, true].map(|pixel| rows.bind(ctx, (kv as u32, pixel), inputs, &out))
+                })
+                .collect();
             let read = staging(
                 ctx,
                 "relight-read",
@@ -317,13 +334,61 @@ impl Lane {
     }
 }
 
-/// What every lane reads: the occluder, the sample points, the colour rows.
+/// What every lane reads: the occluder and the sample points.
 #[derive(Debug)]
 struct SceneBuffers {
     occluder: GpuOccluder,
     patches: SurfacePoints,
     vertices: SurfacePoints,
+}
+
+/// The whole relights over one system: its colour rows (which objects count as opaque),
+/// the lane of one relight and the lane of a batch (made on the first batch; `Err`: it did
+/// not fit, and batches run one relight at a time).
+#[derive(Debug)]
+struct Route {
+    /// Over the system of K = P = diag ρ ([`DeviceRelight::p`]); else over the scene's own
+    /// system, K = S.
+    over_p: bool,
     rows: ColourRows,
+    one: Lane,
+    batch: OnceLock<Result<Lane, String>>,
+    /// Bytes of the rows.
+    own_bytes: u64,
+}
+
+impl Route {
+    /// GPU bytes held.
+    fn bytes(&self) -> u64 {
+        let batch = match self.batch.get() {
+            Some(Ok(l)) => l.held(),
+            _ => 0,
+        };
+        self.own_bytes + self.one.held() + batch
+    }
+}
+
+/// Where a relight's colours are read from: x (a solve's answer), b (a product's, no
+/// solve) or y (`heuristic_b`'s sum after its solve); the index into [`Lane::colours`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ColoursFrom {
+    X = 0,
+    B = 1,
+    Y = 2,
+}
+
+/// How `components` run on the device: the route (0: over S, diffuse objects opaque at the
+/// vertices; 1: over P, every object opaque; 2: over P, diffuse objects opaque), the
+/// right-hand side, whether they solve, and where the answer is.
+fn plan_of(components: Components) -> (usize, Rhs, bool, ColoursFrom) {
+    match components {
+        Components::Full => (0, Rhs::Own, true, ColoursFrom::X),
+        Components::SubsurfaceOnly => (0, Rhs::Own, false, ColoursFrom::B),
+        Components::Direct => (1, Rhs::Own, false, ColoursFrom::B),
+        Components::InterreflectionOnly => (1, Rhs::Own, true, ColoursFrom::X),
+        Components::HeuristicA => (2, Rhs::SceneS, true, ColoursFrom::X),
+        Components::HeuristicB => (2, Rhs::Bounced, true, ColoursFrom::Y),
+    }
 }
 
 /// What a scene keeps on the device for its whole relights, beside its [`GpuSystem`].
@@ -331,17 +396,19 @@ struct SceneBuffers {
 pub struct DeviceRelight {
     scene: SceneBuffers,
     emission: wgpu::Buffer,
-    /// The lane of one relight, and the lane of a batch (made on the first batch; `Err`: it
-    /// did not fit, and batches run one relight at a time).
-    one: Lane,
-    batch: OnceLock<Result<Lane, String>>,
+    /// The system of K = P = diag ρ over the scene's F, with the scene's S beside it, made
+    /// with the first route over it (`Err`: it did not fit).
+    p: OnceLock<Result<GpuSystem, String>>,
+    /// The routes of [`plan_of`], each made on its first relight ([`DeviceRelight::route`];
+    /// `Err`: it did not fit).
+    routes: [OnceLock<Result<Route, String>>; 3],
     /// The bundle's environment visibility, uploaded on the first relight with an
     /// environment ([`DeviceRelight::environment`]; `Err`: the bundle has none, or it did
     /// not fit).
     visibility: OnceLock<Result<GpuVisibility, String>>,
     nv: usize,
     unit_mm: f64,
-    /// Bytes of the emission and the colour rows.
+    /// Bytes of the emission.
     own_bytes: u64,
     /// One relight at a time from writing its lights to reading its colours: the light
     /// buffers are shared.
@@ -349,9 +416,10 @@ pub struct DeviceRelight {
 }
 
 impl DeviceRelight {
-    /// Uploads what the whole relight needs beside `system`: the occluder, the patches'
-    /// and the vertices' sample points, the emission and the colour rows; on failure
-    /// every byte reserved is returned to the budget.
+    /// Uploads what every whole relight needs beside `system`: the occluder, the patches'
+    /// and the vertices' sample points (`rows`' points: every set of colour rows has the
+    /// same) and the emission; on failure every byte reserved is returned to the budget.
+    /// Each route is made on its first relight ([`DeviceRelight::route`]).
     pub fn new(
         ctx: &GpuContext,
         system: &GpuSystem,
@@ -380,17 +448,14 @@ impl DeviceRelight {
         let vertices = SurfacePoints::upload(ctx, &points, &vnormals)
             .inspect_err(|_| ctx.release(occluder.bytes() + patches.bytes()))?;
         let held = occluder.bytes() + patches.bytes() + vertices.bytes();
-        let own_bytes = ColourRows::bytes(rows) + alloc_size(12 * n as u64);
+        let own_bytes = alloc_size(12 * n as u64);
         ctx.reserve("relight buffers", own_bytes)
             .inspect_err(|_| ctx.release(held))?;
-        let (rows_dev, emission) = match ctx.scoped(|| {
-            Ok((
-                ColourRows::upload(ctx, rows),
-                storage_init(
-                    ctx,
-                    "emission",
-                    bytemuck::cast_slice(bundle.patch_emission()),
-                ),
+        let emission = match ctx.scoped(|| {
+            Ok(storage_init(
+                ctx,
+                "emission",
+                bytemuck::cast_slice(bundle.patch_emission()),
             ))
         }) {
             Ok(made) => made,
@@ -399,47 +464,138 @@ impl DeviceRelight {
                 return Err(e);
             }
         };
-        let scene = SceneBuffers {
-            occluder,
-            patches,
-            vertices,
-            rows: rows_dev,
+        Ok(DeviceRelight {
+            scene: SceneBuffers {
+                occluder,
+                patches,
+                vertices,
+            },
+            emission,
+            p: OnceLock::new(),
+            routes: [OnceLock::new(), OnceLock::new(), OnceLock::new()],
+            visibility: OnceLock::new(),
+            nv: rows.len(),
+            unit_mm: bundle.manifest().unit_mm,
+            own_bytes,
+            busy: std::sync::Mutex::new(()),
+        })
+    }
+
+    /// The route of `components` ([`plan_of`]), made on its first call with its colour
+    /// `rows` (and the first over P with P's system: K = diag of `rows`' albedo, the
+    /// bundle's ρ, over `system`'s F); `Err` says why such relights cannot run here (rows
+    /// of another scene, or the route does not fit), and a route that did not fit is said
+    /// once in the log and kept.
+    pub fn route(
+        &self,
+        ctx: &GpuContext,
+        system: &GpuSystem,
+        components: Components,
+        rows: &VertexRows,
+    ) -> Result<(), String> {
+        let (k, ..) = plan_of(components);
+        let n = system.n();
+        if rows.albedo.len() != n || rows.len() != self.nv {
+            return Err(format!(
+                "the colour rows span {} patches and {} vertices, the scene {n} and {}",
+                rows.albedo.len(),
+                rows.len(),
+                self.nv
+            ));
+        }
+        self.routes[k]
+            .get_or_init(|| {
+                let made = self.make_route(ctx, system, k, rows);
+                if let Err(e) = &made {
+                    tracing::warn!(
+                        "{} relights take the engine's stages: {e}",
+                        components.as_str()
+                    );
+                }
+                made
+            })
+            .as_ref()
+            .map(|_| ())
+            .map_err(Clone::clone)
+    }
+
+    /// The system of K = P over `base`'s F, made on first use from `albedo`.
+    fn p_system(
+        &self,
+        ctx: &GpuContext,
+        base: &GpuSystem,
+        albedo: &[Rgb],
+    ) -> Result<&GpuSystem, String> {
+        self.p
+            .get_or_init(|| {
+                base.with_diagonal(ctx, "P", albedo)
+                    .map_err(|e| e.to_string())
+            })
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+
+    /// Uploads route `k`'s colour rows (and the first over P, P's system) and binds its
+    /// lane of one relight; on failure the rows' bytes are returned to the budget.
+    fn make_route(
+        &self,
+        ctx: &GpuContext,
+        base: &GpuSystem,
+        k: usize,
+        rows: &VertexRows,
+    ) -> Result<Route, String> {
+        let over_p = k > 0;
+        let on = if over_p {
+            self.p_system(ctx, base, &rows.albedo)?
+        } else {
+            base
         };
-        match Lane::new(ctx, system, system.one(), &scene) {
-            Ok(one) => Ok(DeviceRelight {
-                scene,
-                emission,
+        let own_bytes = ColourRows::bytes(rows);
+        ctx.reserve("colour rows", own_bytes)
+            .map_err(|e| e.to_string())?;
+        let made = ctx
+            .scoped(|| Ok(ColourRows::upload(ctx, rows)))
+            .and_then(|rows| {
+                let one = Lane::new(ctx, (on, on.one()), &self.scene, &rows)?;
+                Ok((rows, one))
+            });
+        match made {
+            Ok((rows, one)) => Ok(Route {
+                over_p,
+                rows,
                 one,
                 batch: OnceLock::new(),
-                visibility: OnceLock::new(),
-                nv: rows.len(),
-                unit_mm: bundle.manifest().unit_mm,
                 own_bytes,
-                busy: std::sync::Mutex::new(()),
             }),
             Err(e) => {
-                ctx.release(held + own_bytes);
-                Err(e)
+                ctx.release(own_bytes);
+                Err(e.to_string())
             }
         }
     }
 
     /// GPU bytes held.
     pub fn bytes(&self) -> u64 {
-        let batch = match self.batch.get() {
-            Some(Ok(l)) => l.held(),
-            _ => 0,
-        };
+        let routes: u64 = self
+            .routes
+            .iter()
+            .filter_map(|r| r.get()?.as_ref().ok())
+            .map(Route::bytes)
+            .sum();
         let vis = match self.visibility.get() {
             Some(Ok(v)) => v.bytes(),
+            _ => 0,
+        };
+        let p = match self.p.get() {
+            Some(Ok(p)) => p.own_bytes(),
             _ => 0,
         };
         self.scene.occluder.bytes()
             + self.scene.patches.bytes()
             + self.scene.vertices.bytes()
             + self.own_bytes
-            + self.one.held()
-            + batch
+            + routes
+            + p
             + vis
     }
 
@@ -452,11 +608,12 @@ impl DeviceRelight {
                 let Some(vis) = bundle.environment_visibility() else {
                     return Err("the bundle holds no environment visibility".into());
                 };
-                if vis.bins() == 0 || vis.bits.len() != vis.bins() * self.scene.rows.n {
+                let n = self.scene.patches.len();
+                if vis.bins() == 0 || vis.bits.len() != vis.bins() * n {
                     return Err(format!(
                         "the environment visibility holds {} values, not {} patches × {} bins",
                         vis.bits.len(),
-                        self.scene.rows.n,
+                        n,
                         vis.bins()
                     ));
                 }
@@ -485,19 +642,40 @@ impl DeviceRelight {
 
     /// The relights of `lights` (one set of point, spot and directional lamps per relight,
     /// their environment lights given instead as `environment`: per relight the bins' total
-    /// radiance L̄, or `None`) on `system`, the system this was made with: B/π per vertex
-    /// and the solve's stats with what crossed the bus, per relight. One relight runs
-    /// alone; several run [`BATCH`] at a time where the batch's vectors fit (else one by
-    /// one). Each solve starts from the last answer the device holds. A relight with an
-    /// environment needs [`DeviceRelight::environment`] to have succeeded first.
+    /// radiance L̄, or `None`) under `components` on `system`, the system this was made
+    /// with: B/π per vertex and the solve's stats with what crossed the bus, per relight.
+    /// One relight runs alone; several run [`BATCH`] at a time where the batch's vectors
+    /// fit (else one by one). Each solve starts from the last answer its route's system
+    /// holds; `subsurface_only` and `direct` make one product and no solve. The route of
+    /// `components` needs [`DeviceRelight::route`], and a relight with an environment
+    /// [`DeviceRelight::environment`], to have succeeded first.
     pub fn relight(
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
         (lights, environment): (&[&[Light]], &[Option<Vec<Rgb>>]),
         params: &SolveParams,
-        pixel: bool,
+        (components, pixel): (Components, bool),
     ) -> Result<Vec<Answer>, GpuError> {
+        let (k, rhs, solve, from) = plan_of(components);
+        let (route, p) = (self.routes[k].get(), self.p.get());
+        let (route, system) = match (route, p) {
+            (Some(Ok(r)), _) if !r.over_p => (r, system),
+            (Some(Ok(r)), Some(Ok(p))) => (r, p),
+            _ => {
+                return Err(GpuError::Invalid(format!(
+                    "the route of {} is not on the device",
+                    components.as_str()
+                )));
+            }
+        };
+        let how = How {
+            params,
+            pixel,
+            rhs,
+            solve,
+            from,
+        };
         if environment.len() != lights.len() {
             return Err(GpuError::Invalid(format!(
                 "{} sets of lights but {} environments",
@@ -523,7 +701,7 @@ impl DeviceRelight {
             }
         }
         let batch = if lights.len() > 1 {
-            self.batch_lane(ctx, system)
+            self.batch_lane(ctx, system, route)
         } else {
             None
         };
@@ -532,22 +710,24 @@ impl DeviceRelight {
             Some(_) => BATCH as usize,
             None => 1,
         };
-        let lane = batch.unwrap_or((&self.one, system.one()));
+        let lane = batch.unwrap_or((&route.one, system.one()));
         for (chunk, env) in lights.chunks(per).zip(env.chunks(per)) {
-            answers.extend(self.run_lane(ctx, system, lane, (chunk, env), params, pixel)?);
+            answers.extend(self.run_lane(ctx, system, lane, (chunk, env), &how)?);
         }
         Ok(answers)
     }
 
-    /// The batch's lane and vectors, made on the first batch; `None` when they do not fit.
+    /// The batch's lane of `route` and its vectors, made on the first batch; `None` when
+    /// they do not fit.
     fn batch_lane<'a>(
         &'a self,
         ctx: &GpuContext,
         system: &'a GpuSystem,
+        route: &'a Route,
     ) -> Option<(&'a Lane, &'a Lanes)> {
         let lanes = system.batch(ctx)?;
-        let lane = self.batch.get_or_init(|| {
-            Lane::new(ctx, system, lanes, &self.scene).map_err(|e| {
+        let lane = route.batch.get_or_init(|| {
+            Lane::new(ctx, (system, lanes), &self.scene, &route.rows).map_err(|e| {
                 tracing::warn!("batched relights run one by one: {e}");
                 e.to_string()
             })
@@ -556,17 +736,23 @@ impl DeviceRelight {
     }
 
     /// One submission's relights (at most the lane's): their lights and environments'
-    /// radiance written (lanes past them get none), the solve run, each one's colours and
-    /// its share of the bytes.
+    /// radiance written (lanes past them get none), the solve (or the product) run, each
+    /// one's colours and its share of the bytes.
     fn run_lane(
         &self,
         ctx: &GpuContext,
         system: &GpuSystem,
         (lane, lanes): (&Lane, &Lanes),
         (lights, env): (&[&[Light]], &[Option<&[Rgb]>]),
-        params: &SolveParams,
-        pixel: bool,
+        how: &How<'_>,
     ) -> Result<Vec<Answer>, GpuError> {
+        let pixel = how.pixel;
+        if !lanes.makes(how.rhs) {
+            return Err(GpuError::Invalid(format!(
+                "the system cannot make the right-hand side {:?}",
+                how.rhs
+            )));
+        }
         let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         let mut lights_up = 0u64;
         for r in 0..lane.kv {
@@ -594,7 +780,11 @@ impl DeviceRelight {
         let (n, nv) = (system.n(), self.nv);
         let before =
             |enc: &mut wgpu::CommandEncoder| lane.record_direct(enc, lanes, (n, nv), env_pass);
-        let after = |pass: &mut wgpu::ComputePass<'_>| lane.colours[pixel as usize].encode(pass);
+        let colours = lane.colours.get(how.from as usize).ok_or_else(|| {
+            GpuError::Invalid(format!("these lanes hold no {:?} to colour", how.from))
+        })?;
+        let colours = &colours[usize::from(pixel)];
+        let after = |pass: &mut wgpu::ComputePass<'_>| colours.encode(pass);
         // Only the lanes that carry a relight are read back: their colours, and per pixel
         // their luminances.
         let m = lights.len();
@@ -611,13 +801,18 @@ impl DeviceRelight {
                 Input::Absent
             },
             before: Some(&before),
+            rhs: how.rhs,
             after: Some(&after),
             out: Some(Out {
                 ranges,
                 staging: &lane.read,
             }),
         };
-        let run = system.run(ctx, lanes, &job, params)?;
+        let run = if how.solve {
+            system.run(ctx, lanes, &job, how.params)?
+        } else {
+            system.product(ctx, lanes, &job, how.params)?
+        };
         let share = m.max(1) as u64;
         let lum_at = 12 * nv * m;
         Ok((0..m)
@@ -649,6 +844,17 @@ impl DeviceRelight {
             })
             .collect())
     }
+}
+
+/// How a lane's relights run: the solve's parameters, the direct light per pixel or not,
+/// the right-hand side, whether the components solve (else B = b, one product) and where
+/// the colours read B.
+struct How<'a> {
+    params: &'a SolveParams,
+    pixel: bool,
+    rhs: Rhs,
+    solve: bool,
+    from: ColoursFrom,
 }
 
 /// One whole relight's answer: B/π per vertex, with the direct light per pixel the

@@ -105,6 +105,10 @@ struct Vectors {
     b: wgpu::Buffer,
     x: wgpu::Buffer,
     sfx: wgpu::Buffer,
+    /// Fx (scratch between products).
+    fx: wgpu::Buffer,
+    /// The heuristics' answer ([`HeuristicOps`]).
+    y: Option<wgpu::Buffer>,
     history: wgpu::Buffer,
     /// `[next history slot, the iteration the solve stopped at (0: running), 0, 0]`.
     counter: wgpu::Buffer,
@@ -133,6 +137,18 @@ pub(crate) enum Input<'a> {
     Absent,
 }
 
+/// The right-hand side a job solves for (K the system's operator, S the scene's).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Rhs {
+    /// b = Bₑ + K E.
+    Own,
+    /// b = Bₑ + S E (`heuristic_a` on a system of K = P).
+    SceneS,
+    /// b = K F (Bₑ + K E), and after the solve y = x + Bₑ + S E (`heuristic_b` on a
+    /// system of K = P: x is (I − P F)⁻¹ P F (Bₑ + P E)).
+    Bounced,
+}
+
 /// A stage recorded into a compute pass of the solve's one submission.
 pub(crate) type Stage<'a> = &'a dyn Fn(&mut wgpu::ComputePass<'_>);
 
@@ -150,6 +166,8 @@ pub(crate) struct Job<'a> {
     pub(crate) warm: Input<'a>,
     /// Records work before the solve (the device's direct light into E).
     pub(crate) before: Option<EncoderStage<'a>>,
+    /// The right-hand side (and with [`Rhs::Bounced`] the sum after the solve).
+    pub(crate) rhs: Rhs,
     /// Records work after the solve (vertex colours from x).
     pub(crate) after: Option<Stage<'a>>,
     /// What is read back after the counters; `None`: x.
@@ -199,6 +217,23 @@ struct Ops {
     update: BoundOp,
     /// h[counter++] ← Σ partials
     reduce: BoundOp,
+    /// With the scene's S beside K = P: the heuristics' products.
+    heuristic: Option<HeuristicOps>,
+}
+
+/// The products of the paper's heuristics on a system of K = P, beside the scene's S.
+#[derive(Debug)]
+struct HeuristicOps {
+    /// sfx ← S E
+    s_e: BoundOp,
+    /// fx ← F b
+    f_b: BoundOp,
+    /// b ← fx + sfx (fx cleared first: b = P F b), partials of ‖b‖²
+    rhs_f: BoundOp,
+    /// fx ← Bₑ + sfx
+    lit: BoundOp,
+    /// y ← x + fx
+    sum: BoundOp,
 }
 
 /// F on the device: a dense F, or a hierarchical F̃ = C·P as C with its pull
@@ -349,10 +384,12 @@ struct Sizes {
     /// Workgroups of `jacobi_update` and `mr_step` per system.
     groups: u32,
     capacity: u32,
+    /// The heuristics' answer vector y ([`HeuristicOps`]).
+    heuristic: bool,
 }
 
 impl Sizes {
-    fn of(f: &GpuF, capacity: u32, kv: u32) -> Sizes {
+    fn of(f: &GpuF, capacity: u32, kv: u32, heuristic: bool) -> Sizes {
         let n = f.n_rows();
         let k = kv as u64;
         Sizes {
@@ -371,13 +408,14 @@ impl Sizes {
             },
             groups: (n as u32).div_ceil(256),
             capacity,
+            heuristic,
         }
     }
 
     /// Every buffer of [`Vectors`] and the stubs beside them (the indirect arguments
     /// counted at a generous 4 KiB).
     fn total(&self) -> u64 {
-        7 * self.vector
+        (7 + u64::from(self.heuristic)) * self.vector
             + self.pulled
             + self.rows
             + alloc_size(4 * (self.groups * self.kv) as u64)
@@ -413,7 +451,13 @@ pub(crate) struct Lanes {
 }
 
 /// The solve's vectors and its dispatches, bound once.
-fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes) -> Lanes {
+fn bind_solve(
+    ctx: &GpuContext,
+    f: &GpuF,
+    (s, s_linked): (&GpuCsr, bool),
+    scene_s: Option<(&GpuCsr, bool)>,
+    z: &Sizes,
+) -> Lanes {
     let batch = z.kv > 1;
     let g = grid(z.groups * z.kv);
     let vp = uniform(
@@ -466,6 +510,23 @@ fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes)
         k.mr_alpha.clone(),
         vec![(k.alpha.bind(dev, &ap, &[&dots_partial, &alpha]), (1, 1))],
     );
+    // y ← a + c by `jacobi_update` (x = 0 there: its partials are not read).
+    let add = |a: &wgpu::Buffer, c: &wgpu::Buffer, y: &wgpu::Buffer| {
+        BoundOp::new(
+            k.jacobi_update.clone(),
+            vec![(k.jacobi.bind(dev, &vp, &[a, c, y, &partial]), g)],
+        )
+    };
+    let y = z.heuristic.then(|| storage_zeroed(ctx, "y", z.vector));
+    let heuristic = scene_s
+        .zip(y.as_ref())
+        .map(|((ss, linked), y)| HeuristicOps {
+            s_e: s_product(f, ss, linked, ctx, &e, &pulled, &sfx, batch),
+            f_b: f.bind(ctx, &b, &pulled, &rows, &fx, batch),
+            rhs_f: add(&fx, &sfx, &b),
+            lit: add(&be, &sfx, &fx),
+            sum: add(&x, &fx, y),
+        });
     // The grids of one iteration's indirect dispatches, in the order `record_iterations`
     // records them.
     let grids: Vec<u32> = [&f_r, &s_fx, &dots, &alpha_op, &update]
@@ -522,6 +583,7 @@ fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes)
         alpha: alpha_op,
         update,
         reduce,
+        heuristic,
     };
     let v = Vectors {
         e,
@@ -529,6 +591,8 @@ fn bind_solve(ctx: &GpuContext, f: &GpuF, s: &GpuCsr, s_linked: bool, z: &Sizes)
         b,
         x,
         sfx,
+        fx,
+        y,
         history,
         counter,
         reduce_params,
@@ -558,8 +622,11 @@ pub struct GpuSystem {
     n: usize,
     /// Shared by every system of the scene (the bundle's S and overridden ones).
     f: Arc<GpuF>,
-    s: GpuCsr,
+    s: Arc<GpuCsr>,
     s_linked: bool,
+    /// On a system of K = P ([`GpuSystem::with_diagonal`]): the scene's S, for the
+    /// heuristics' right-hand sides ([`Rhs`]).
+    scene_s: Option<(Arc<GpuCsr>, bool)>,
     capacity: u32,
     /// The vectors of one solve.
     one: Lanes,
@@ -608,16 +675,17 @@ impl GpuSystem {
             }
         };
         let f_bytes = f.bytes();
-        Self::with_f(ctx, what, f, s, max_iterations).inspect_err(|_| ctx.release(f_bytes))
+        Self::with_f(ctx, what, (f, s), None, max_iterations).inspect_err(|_| ctx.release(f_bytes))
     }
 
     /// A system over an F already on the device (shared with other systems of the scene)
-    /// and an uploaded S; on failure S's bytes are returned to the budget.
+    /// and an uploaded S (K), with `scene_s` the scene's S beside a K of P; on failure K's
+    /// bytes are returned to the budget.
     pub fn with_f(
         ctx: &GpuContext,
         what: &str,
-        f: Arc<GpuF>,
-        s: GpuCsr,
+        (f, s): (Arc<GpuF>, GpuCsr),
+        scene_s: Option<(Arc<GpuCsr>, bool)>,
         max_iterations: u32,
     ) -> Result<GpuSystem, GpuError> {
         let n = f.n_rows();
@@ -634,17 +702,19 @@ impl GpuSystem {
             )));
         }
         let capacity = max_iterations + 2;
-        let sizes = Sizes::of(&f, capacity, 1);
+        let sizes = Sizes::of(&f, capacity, 1, scene_s.is_some());
         if let Err(e) = ctx.reserve(&format!("{what} vectors"), sizes.total()) {
             ctx.release(s.bytes());
             return Err(e);
         }
-        match ctx.scoped(|| Ok(bind_solve(ctx, &f, &s, s_linked, &sizes))) {
+        let scene = scene_s.as_ref().map(|(ss, linked)| (&**ss, *linked));
+        match ctx.scoped(|| Ok(bind_solve(ctx, &f, (&s, s_linked), scene, &sizes))) {
             Ok(one) => Ok(GpuSystem {
                 n,
                 f,
-                s,
+                s: Arc::new(s),
                 s_linked,
+                scene_s,
                 capacity,
                 one,
                 batch: OnceLock::new(),
@@ -656,14 +726,41 @@ impl GpuSystem {
         }
     }
 
+    /// A system over this one's F with K = diag(`diagonal`) (P = diag ρ: the transport with
+    /// translucent objects opaque) and this one's S beside it for the heuristics' right-hand
+    /// sides ([`Rhs`]), sized like this one; on failure its bytes are returned to the budget.
+    pub fn with_diagonal(
+        &self,
+        ctx: &GpuContext,
+        what: &str,
+        diagonal: &[Rgb],
+    ) -> Result<GpuSystem, GpuError> {
+        let n = self.n;
+        if diagonal.len() != n {
+            return Err(GpuError::Invalid(format!(
+                "{what}: {} diagonal entries for {n} patches",
+                diagonal.len()
+            )));
+        }
+        let row_ptr: Vec<u64> = (0..=n as u64).collect();
+        let col: Vec<u32> = (0..n as u32).collect();
+        let view = CsrView::new_checked(n, n, &row_ptr, &col, diagonal)
+            .map_err(|e| GpuError::Invalid(format!("{what}: {e}")))?;
+        let k = GpuCsr::upload_rgb(ctx, what, &view)?;
+        let scene_s = Some((self.s.clone(), self.s_linked));
+        Self::with_f(ctx, what, (self.f.clone(), k), scene_s, self.capacity - 2)
+    }
+
     /// The vectors of a batch of [`BATCH`] systems, made on first use; `None` when they do
     /// not fit (said once in the log).
     pub(crate) fn batch(&self, ctx: &GpuContext) -> Option<&Lanes> {
         let made = self.batch.get_or_init(|| {
-            let sizes = Sizes::of(&self.f, self.capacity, BATCH);
+            let sizes = Sizes::of(&self.f, self.capacity, BATCH, self.scene_s.is_some());
+            let scene = self.scene_s.as_ref().map(|(ss, linked)| (&**ss, *linked));
+            let own = (&*self.s, self.s_linked);
             ctx.reserve("batch vectors", sizes.total())
                 .and_then(|()| {
-                    ctx.scoped(|| Ok(bind_solve(ctx, &self.f, &self.s, self.s_linked, &sizes)))
+                    ctx.scoped(|| Ok(bind_solve(ctx, &self.f, own, scene, &sizes)))
                         .inspect_err(|_| ctx.release(sizes.total()))
                 })
                 .map_err(|e| {
@@ -746,6 +843,7 @@ impl GpuSystem {
             be: Input::Host(emission),
             warm: self.host_start(warm),
             before: None,
+            rhs: Rhs::Own,
             after: None,
             out: None,
         };
@@ -773,6 +871,7 @@ impl GpuSystem {
             be: Input::Host(rhs),
             warm: self.host_start(warm),
             before: None,
+            rhs: Rhs::Own,
             after: None,
             out: None,
         };
@@ -861,6 +960,58 @@ impl GpuSystem {
             }
         })
     }
+
+    /// b = Bₑ + K E for `lanes`' kv systems without a solve (the `subsurface_only` and
+    /// `direct` components), in one submission: the job's inputs written, then one command
+    /// buffer that records `before`, b and ‖b‖², `after` (which reads b,
+    /// [`Lanes::b_buffer`]) and the copy of the counter and of what the job's `out` names
+    /// into its staging, read back once. x, the next solve's warm start, is left as it was.
+    pub(crate) fn product(
+        &self,
+        ctx: &GpuContext,
+        lanes: &Lanes,
+        job: &Job<'_>,
+        params: &SolveParams,
+    ) -> Result<Run, GpuError> {
+        let t0 = Instant::now();
+        if job.out.is_none() {
+            return Err(GpuError::Invalid(
+                "a product reads back what its job's `out` names".into(),
+            ));
+        }
+        let _busy = lanes.busy.lock().unwrap_or_else(|p| p.into_inner());
+        ctx.scoped(|| {
+            let bytes_up = lanes.write_inputs(ctx, self.n, self.capacity, job, params);
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            lanes.record_rhs(&mut enc, self.n, job);
+            let (slots, out_bytes) = lanes.record_iterations(&mut enc, self.n, job, 0, 0);
+            ctx.queue.submit([enc.finish()]);
+            let staging = job.out.as_ref().map_or(&lanes.v.read, |o| o.staging);
+            let head = counter_bytes(slots, lanes.kv);
+            let bytes = ctx.read_back(staging, head + out_bytes)?;
+            let seconds = t0.elapsed().as_secs_f64();
+            let stats = GpuSolveStats {
+                stats: SolveStats {
+                    method: Method::Jacobi,
+                    iterations: 0,
+                    products: 0,
+                    warm: false,
+                    residual: 0.0,
+                    converged: true,
+                    seconds,
+                },
+                submissions: 1,
+                bytes_up,
+                bytes_down: head + out_bytes,
+            };
+            Ok(Run {
+                out: bytes[head as usize..].to_vec(),
+                // The answer is b itself, which the `after` stage read: nothing to zero.
+                dark: vec![false; lanes.kv as usize],
+                stats: vec![stats; lanes.kv as usize],
+            })
+        })
+    }
 }
 
 impl Lanes {
@@ -872,6 +1023,17 @@ impl Lanes {
     /// The buffer E lives in, system after system (a job's `before` stage writes it).
     pub(crate) fn e_buffer(&self) -> &wgpu::Buffer {
         &self.v.e
+    }
+
+    /// The buffer b = Bₑ + K E lives in (a product's answer, [`GpuSystem::product`]).
+    pub(crate) fn b_buffer(&self) -> &wgpu::Buffer {
+        &self.v.b
+    }
+
+    /// The buffer y = x + Bₑ + S E lives in (the answer of a job with [`Rhs::Bounced`]), on
+    /// a system of K = P.
+    pub(crate) fn y_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.v.y.as_ref()
     }
 
     /// The buffer the solve leaves B in (a job's `after` stage reads it).
@@ -937,12 +1099,27 @@ impl Lanes {
         up + std::mem::size_of::<ReduceParams>() as u64
     }
 
-    /// Records the start of a solve: `before` (its own passes and copies), Bₑ copied in
-    /// for every system where the job gives it on the device, the iteration grids
-    /// restored, the counter cleared; then S E, b and ‖b‖²; then x = b unless the job
-    /// starts elsewhere, and the start's residual r = b + S F x − x (one pass over F and
+    /// Records the start of a solve: the right-hand side ([`Lanes::record_rhs`]); then
+    /// x = b unless the job starts elsewhere, and the start's residual r = b + S F x − x (one pass over F and
     /// S), its ‖r‖² in history slot 1 (where the stopping rule may already stop the solve).
     fn record_start(&self, enc: &mut wgpu::CommandEncoder, n: usize, job: &Job<'_>) {
+        let vb = 12 * n as u64;
+        self.record_rhs(enc, n, job);
+        if matches!(job.warm, Input::Absent) {
+            enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb * self.kv as u64);
+        }
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        self.ops.f_x.encode(&mut pass);
+        self.ops.s_fx.encode(&mut pass);
+        self.ops.residual.encode(&mut pass);
+        self.ops.reduce.encode(&mut pass);
+    }
+
+    /// Records the right-hand side: `before` (its own passes and copies), Bₑ copied in for
+    /// every system where the job gives it on the device, the iteration grids restored,
+    /// the counter cleared; then b by the job's [`Rhs`] (Bₑ + K E, Bₑ + S E, or
+    /// K F (Bₑ + K E)) and ‖b‖² in history slot 0.
+    fn record_rhs(&self, enc: &mut wgpu::CommandEncoder, n: usize, job: &Job<'_>) {
         let vb = 12 * n as u64;
         if let Some(before) = job.before {
             before(enc);
@@ -959,22 +1136,41 @@ impl Lanes {
         if matches!(job.e, Input::Absent) {
             enc.clear_buffer(&self.v.sfx, 0, None);
         }
-        {
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            if !matches!(job.e, Input::Absent) {
-                self.ops.s_e.encode(&mut pass);
-            }
-            self.ops.rhs.encode(&mut pass);
-            self.ops.reduce.encode(&mut pass);
-        }
-        if matches!(job.warm, Input::Absent) {
-            enc.copy_buffer_to_buffer(&self.v.b, 0, &self.v.x, 0, vb * self.kv as u64);
-        }
+        let heuristic = self.ops.heuristic.as_ref();
+        let s_e = match (job.rhs, heuristic) {
+            (Rhs::SceneS, Some(h)) => &h.s_e,
+            _ => &self.ops.s_e,
+        };
         let mut pass = enc.begin_compute_pass(&Default::default());
-        self.ops.f_x.encode(&mut pass);
-        self.ops.s_fx.encode(&mut pass);
-        self.ops.residual.encode(&mut pass);
+        if !matches!(job.e, Input::Absent) {
+            s_e.encode(&mut pass);
+        }
+        self.ops.rhs.encode(&mut pass);
+        if let (Rhs::Bounced, Some(h)) = (job.rhs, heuristic) {
+            // b = K F (Bₑ + K E): F and K over the b just made, then b replaced by it.
+            h.f_b.encode(&mut pass);
+            self.ops.s_fx.encode(&mut pass);
+            drop(pass);
+            enc.clear_buffer(&self.v.fx, 0, None);
+            pass = enc.begin_compute_pass(&Default::default());
+            h.rhs_f.encode(&mut pass);
+        }
         self.ops.reduce.encode(&mut pass);
+    }
+
+    /// Records what follows the solve for the job's [`Rhs`]: with [`Rhs::Bounced`],
+    /// y = x + Bₑ + S E (the scratch vectors fx and sfx hold the parts).
+    fn record_then(&self, pass: &mut wgpu::ComputePass<'_>, job: &Job<'_>) {
+        if let (Rhs::Bounced, Some(h)) = (job.rhs, self.ops.heuristic.as_ref()) {
+            h.s_e.encode(pass);
+            h.lit.encode(pass);
+            h.sum.encode(pass);
+        }
+    }
+
+    /// Whether the lanes can make `rhs` (the scene's S beside K = P for the heuristics).
+    pub(crate) fn makes(&self, rhs: Rhs) -> bool {
+        rhs == Rhs::Own || self.ops.heuristic.is_some()
     }
 
     /// Records `count` iterations (after `done`), the job's `after` stage and the copies of
@@ -1005,6 +1201,7 @@ impl Lanes {
                     .encode_indirect(&mut pass, &self.v.args, slot);
                 self.ops.reduce.encode(&mut pass);
             }
+            self.record_then(&mut pass, job);
             if let Some(after) = job.after {
                 after(&mut pass);
             }

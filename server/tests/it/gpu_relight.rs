@@ -1,8 +1,9 @@
 //! The whole relight on the device (`translux_server::gpu::relight`): the colour and
 //! environment kernels against their twins and the engine, whole relights on the GPU
 //! backend against the CPU backend per vertex for each lamp type and for environment maps
-//! (alone, beside a lamp, in a batch, per pixel), one submission per relight with only the
-//! colours read back, and the plans the device leaves to the engine's stages.
+//! (alone, beside a lamp, in a batch, per pixel) and for the components the device relights,
+//! one submission per relight with only the colours read back, and the plans the device
+//! leaves to the engine's stages.
 //!
 //! On lavapipe in CI; `TRANSLUX_SKIP_GPU_TESTS=1` skips them where no adapter exists.
 
@@ -14,7 +15,7 @@ use translux_engine::relight;
 use translux_engine::scene::Scene;
 use translux_precompute::pipeline::{PrecomputeParams, precompute};
 use translux_precompute::scene::load_scene;
-use translux_proto::api::{RelightRequest, RelightStats};
+use translux_proto::api::{Components, RelightRequest, RelightStats};
 use translux_server::backend::Backend;
 use translux_server::gpu::environment::{GpuVisibility, env_irradiance_once};
 use translux_server::gpu::{GpuContext, GpuOptions, cpu_twin, relight::vertex_colours_once};
@@ -150,6 +151,11 @@ fn max_rel(got: &[Rgb], want: &[Rgb]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// Some vertex of an answer is lit.
+fn lit(radiance: &[Rgb]) -> bool {
+    radiance.iter().flatten().any(|&v| v > 0.0)
+}
+
 /// A relight of `body` on `scene` to a tight tolerance.
 fn relit(scene: &Scene, body: &str) -> (Vec<Rgb>, RelightStats) {
     let req: RelightRequest = serde_json::from_str(body).unwrap();
@@ -164,7 +170,7 @@ fn relit(scene: &Scene, body: &str) -> (Vec<Rgb>, RelightStats) {
 fn vertex_colours_matches_its_twin_and_the_engines_rows() {
     let Some(ctx) = ctx() else { return };
     let scene = Scene::open("cornell", cornell()).unwrap();
-    let rows = scene.vertex_rows();
+    let rows = scene.vertex_rows(Components::Full);
     let (n, nv) = (rows.albedo.len(), rows.len());
     assert!(
         rows.own.iter().any(|o| o[3] > 0.0),
@@ -283,24 +289,41 @@ fn env_irradiance_matches_its_twin_and_the_engine() {
 }
 
 /// Every lamp type, two lamps at once, the bundle's own lights and none: the GPU backend's
-/// whole relight against the CPU backend's stages, per vertex.
+/// whole relight against the CPU backend's stages, per vertex; directional lamps on the open
+/// box (the closed one keeps them out).
 #[test]
 fn the_whole_relight_on_the_device_agrees_with_the_cpu_for_every_lamp() {
     let Some(_) = ctx() else { return };
     let bodies = [
-        r#"{"solver":"iterative"}"#,
-        r#"{"lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}]}"#,
-        r#"{"lights":[{"type":"spot","position":[0.0,0.95,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}]}"#,
-        r#"{"lights":[{"type":"directional","direction":[0.3,-1,-0.2],"irradiance":[1,0.9,0.8]}]}"#,
-        r#"{"lights":[{"type":"point","position":[-0.3,0.7,0.3],"intensity":[1,1,1]},{"type":"directional","direction":[-0.2,-1,0.4],"irradiance":[0.5,0.5,0.6]}]}"#,
-        r#"{"lights":[]}"#,
+        (cornell(), r#"{"solver":"iterative"}"#),
+        (
+            cornell(),
+            r#"{"lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}]}"#,
+        ),
+        (
+            cornell(),
+            r#"{"lights":[{"type":"spot","position":[0.0,0.5,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}]}"#,
+        ),
+        (
+            open_box(),
+            r#"{"lights":[{"type":"directional","direction":[0.3,-1,-0.2],"irradiance":[1,0.9,0.8]}]}"#,
+        ),
+        (
+            open_box(),
+            r#"{"lights":[{"type":"point","position":[-0.3,0.7,0.3],"intensity":[1,1,1]},{"type":"directional","direction":[-0.2,-1,0.4],"irradiance":[0.5,0.5,0.6]}]}"#,
+        ),
+        (cornell(), r#"{"lights":[]}"#),
     ];
-    let cpu =
-        Scene::open_with("cornell", cornell(), &Backend::cpu("reference").resources()).unwrap();
     let gpu_backend = gpu_backend();
-    let gpu = Scene::open_with("cornell", cornell(), &gpu_backend.resources()).unwrap();
-    for body in bodies {
+    for (dir, body) in bodies {
+        let cpu = Scene::open_with("s", dir, &Backend::cpu("reference").resources()).unwrap();
+        let gpu = Scene::open_with("s", dir, &gpu_backend.resources()).unwrap();
         let (want, cs) = relit(&cpu, body);
+        assert!(
+            lit(&want) != body.contains("[]"),
+            "{body}: lit {}",
+            lit(&want)
+        );
         let (got, gs) = relit(&gpu, body);
         assert!(cs.device.is_none(), "{body}: {cs:?}");
         let device = gs
@@ -315,7 +338,7 @@ fn the_whole_relight_on_the_device_agrees_with_the_cpu_for_every_lamp() {
         );
     }
     let h = gpu_backend.gpu_health();
-    assert_eq!(h.scenes[0].on, "gpu", "{h:?}");
+    assert!(h.scenes.iter().all(|s| s.on == "gpu"), "{h:?}");
 }
 
 /// Batches of relights of one scene (as the worker pool runs concurrent requests): 3 in one
@@ -398,9 +421,10 @@ fn relights_with_the_direct_light_per_pixel_agree_with_the_cpu() {
     let gpu = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
     for body in [
         r#"{"direct_at":"pixel"}"#,
-        r#"{"direct_at":"pixel","lights":[{"type":"spot","position":[0.0,0.95,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}]}"#,
+        r#"{"direct_at":"pixel","lights":[{"type":"spot","position":[0.0,0.5,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}]}"#,
     ] {
         let (want, cs) = relit(&cpu, body);
+        assert!(lit(&want), "{body}: the lamp lights nothing");
         let (got, gs) = relit(&gpu, body);
         assert!(gs.device.is_some(), "{body}: {gs:?}");
         let err = max_rel(&got, &want);
@@ -442,6 +466,141 @@ fn a_relight_makes_one_submission_and_reads_back_only_vertex_colours() {
     }
 }
 
+/// The components other than `full`, which the device relights whole too — one product
+/// (`subsurface_only`: B = Bₑ + S E; `direct`: B = Bₑ + P E) or a solve over P
+/// (`interreflection_only`, and the paper's heuristics with S E beside it), every object
+/// counting as opaque at the vertices where the components take translucent objects as
+/// opaque — against the CPU backend per vertex, alone, per pixel and in a batch; the
+/// answers differ between components.
+#[test]
+fn the_device_relights_every_component_as_the_cpu_does() {
+    let Some(_) = ctx() else { return };
+    let cpu =
+        Scene::open_with("cornell", cornell(), &Backend::cpu("reference").resources()).unwrap();
+    let backend = gpu_backend();
+    let gpu = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
+    let lamps = [
+        r#""lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}]"#,
+        r#""lights":[{"type":"spot","position":[0.0,0.5,0.0],"intensity":[3,3,3],"direction":[0.1,-1,0.05],"inner_deg":15,"outer_deg":35}],"direct_at":"pixel""#,
+    ];
+    let mut answers = Vec::new();
+    for components in COMPONENTS {
+        for lamp in lamps {
+            let body = format!(r#"{{"components":"{components}",{lamp}}}"#);
+            let (want, cs) = relit(&cpu, &body);
+            assert!(lit(&want), "{body}: the lamp lights nothing");
+            let (got, gs) = relit(&gpu, &body);
+            let device = gs
+                .device
+                .unwrap_or_else(|| panic!("{body}: not on the device: {gs:?}"));
+            assert_eq!(gs.components.as_str(), components, "{body}");
+            assert_eq!(gs.note, cs.note, "{body}");
+            if !matches!(components, "subsurface_only" | "direct") {
+                assert_eq!(gs.solver, "jacobi", "{body}");
+                assert!(gs.iterations > 0, "{body}: {gs:?}");
+            } else {
+                assert_eq!((gs.solver.as_str(), gs.iterations), ("none", 0), "{body}");
+                assert_eq!(cs.solver, "none", "{body}");
+                assert_eq!(device.submissions, 1, "{body}: {gs:?}");
+            }
+            let err = max_rel(&got, &want);
+            assert!(
+                err <= 1e-4,
+                "{body}: device vs CPU {err} of the brightest vertex"
+            );
+            if let (Some(ge), Some(ce)) = (gs.auto_exposure, cs.auto_exposure) {
+                assert!(
+                    (ge - ce).abs() <= 0.1 + 1e-6,
+                    "{body}: exposure {ge} vs {ce}"
+                );
+            }
+            answers.push(got);
+        }
+    }
+    // Each component's answer under the point lamp differs from the others'.
+    for a in (0..answers.len()).step_by(2) {
+        for b in (a + 2..answers.len()).step_by(2) {
+            assert!(
+                max_rel(&answers[a], &answers[b]) > 1e-3,
+                "{} and {} agree",
+                COMPONENTS[a / 2],
+                COMPONENTS[b / 2]
+            );
+        }
+    }
+    // A batch of each, as the worker pool runs concurrent requests.
+    for components in COMPONENTS {
+        let bodies: Vec<String> = (0..3)
+            .map(|i| {
+                format!(
+                    r#"{{"components":"{components}","lights":[{{"type":"point","position":[{},0.55,0.1],"intensity":[1,2,1]}}]}}"#,
+                    0.2 * i as f32 - 0.2
+                )
+            })
+            .collect();
+        let want = batch(cornell(), &bodies, &Backend::cpu("reference"), 1e-6);
+        let got = batch(cornell(), &bodies, &backend, 1e-6);
+        for (r, ((w, _), (g, s))) in want.iter().zip(&got).enumerate() {
+            assert!(s.device.is_some(), "{components} {r}: {s:?}");
+            assert_eq!(s.batch, 3, "{components} {r}: {s:?}");
+            let err = max_rel(g, w);
+            assert!(err <= 1e-4, "{components} {r}: device vs CPU {err}");
+        }
+    }
+}
+
+/// The components besides `full`.
+const COMPONENTS: [&str; 5] = [
+    "subsurface_only",
+    "direct",
+    "interreflection_only",
+    "heuristic_a",
+    "heuristic_b",
+];
+
+/// Every component's dragged light is one submission that writes the lights and reads back
+/// the colours, and a look at another component between two dragged `full` relights
+/// leaves the full solve's start on the device: the relight after it is still warm and one
+/// submission.
+#[test]
+fn every_component_drags_in_one_submission_and_keeps_the_full_start() {
+    let Some(_) = ctx() else { return };
+    let backend = gpu_backend();
+    let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
+    let body = |x: f32, components: &str| {
+        format!(
+            r#"{{"components":"{components}","lights":[{{"type":"point","position":[{x},0.6,0.1],"intensity":[1,1,1]}}]}}"#
+        )
+    };
+    let at_default = |body: &str| {
+        let req: RelightRequest = serde_json::from_str(body).unwrap();
+        let plan = relight::plan(&scene, req).unwrap();
+        relight::run(&scene, &plan).unwrap().stats
+    };
+    at_default(&body(-0.2, "full"));
+    let warm = at_default(&body(-0.1, "full"));
+    let nv = scene.bundle.vertex_positions().len() as u64;
+    for components in COMPONENTS {
+        // Each component's first relight makes its route; the second is a dragged light.
+        at_default(&body(0.05, components));
+        let s = at_default(&body(0.0, components));
+        let d = s.device.unwrap_or_else(|| panic!("{components}: {s:?}"));
+        assert_eq!(d.submissions, 1, "{components}: {s:?}");
+        assert!(
+            d.bytes_down <= 16 * nv + 4096 && d.bytes_up <= 1024,
+            "{components}: {d:?} for {nv} vertices"
+        );
+        let after = at_default(&body(0.0, "full"));
+        let d = after.device.unwrap();
+        assert!(after.warm, "full after {components}: {after:?}");
+        assert_eq!(d.submissions, 1, "full after {components}: {after:?}");
+        assert!(
+            after.iterations <= warm.iterations + 2,
+            "full after {components}: {after:?}, a warm one before it: {warm:?}"
+        );
+    }
+}
+
 /// Plans that need more than lamps, environments and the bundle's own S run the engine's
 /// stages on the GPU backend too, and say so by having no `device` stats.
 #[test]
@@ -451,7 +610,7 @@ fn plans_the_device_leaves_to_the_stages_have_no_device_stats() {
     let scene = Scene::open_with("cornell", cornell(), &backend.resources()).unwrap();
     for body in [
         r#"{"materials":{"tall_block":{"type":"translucent","profile":{"type":"dipole","preset":"marble","scale":2}}}}"#,
-        r#"{"components":"direct"}"#,
+        r#"{"lamp_walks":1000,"lights":[{"type":"point","position":[0.1,0.5,0.2],"intensity":[1,1,1]}]}"#,
     ] {
         let req: RelightRequest = match serde_json::from_str(body) {
             Ok(r) => r,
