@@ -39,6 +39,12 @@
 //! them, each system has its own α and its own residual, and the iterations stop when
 //! every system's residual meets the tolerance.
 //!
+//! S stands for the system's K: the scene's S, or P = diag ρ for the components that take
+//! translucent objects as opaque ([`GpuSystem::with_diagonal`], which binds the scene's S
+//! beside it for the paper's heuristics: b = Bₑ + S E, or b = P F (Bₑ + P E) and after the
+//! solve y = x + Bₑ + S E, [`Rhs`]). A job without a solve ([`GpuSystem::product`]) records
+//! only b, and its `after` stage reads b.
+//!
 //! [`radiosity::solve`]: translux_engine::radiosity::solve
 //! [`radiosity::Method::Jacobi`]: translux_engine::radiosity::Method::Jacobi
 
@@ -906,10 +912,10 @@ impl GpuSystem {
 
     /// A solve of `lanes`' kv systems in as few submissions as the iterations allow,
     /// usually one: the job's inputs written, then one command buffer that records
-    /// `before`, b = Bₑ + S E and ‖b‖², the start, [`Lanes::recorded`] iterations
+    /// `before`, b by the job's [`Rhs`] and ‖b‖², the start, [`Lanes::recorded`] iterations
     /// (dispatched indirectly: `reduce_sum` zeroes their grids once every system's residual
-    /// meets the tolerance), `after`, and the copy of the counter, the history and the
-    /// answer into staging, read back once. Only when the iterations recorded did not reach
+    /// meets the tolerance), what follows for the [`Rhs`], `after`, and the copy of the
+    /// counter, the history and the answer into staging, read back once. Only when the iterations recorded did not reach
     /// the tolerance (nor the cap) does a further submission record more.
     pub(crate) fn run(
         &self,
