@@ -481,7 +481,7 @@ impl DeviceRelight {
         })
     }
 
-    /// The route of `components` ([`plan_of`]), made on its first call with its colour
+    /// The route of `components` (over S or over P, by which objects count as opaque), made on its first call with its colour
     /// `rows` (and the first over P with P's system: K = diag of `rows`' albedo, the
     /// bundle's ρ, over `system`'s F); `Err` says why such relights cannot run here (rows
     /// of another scene, or the route does not fit), and a route that did not fit is said

@@ -42,7 +42,7 @@
 //! S stands for the system's K: the scene's S, or P = diag ρ for the components that take
 //! translucent objects as opaque ([`GpuSystem::with_diagonal`], which binds the scene's S
 //! beside it for the paper's heuristics: b = Bₑ + S E, or b = P F (Bₑ + P E) and after the
-//! solve y = x + Bₑ + S E, [`Rhs`]). A job without a solve ([`GpuSystem::product`]) records
+//! solve y = x + Bₑ + S E, `Rhs`). A job without a solve (`GpuSystem::product`) records
 //! only b, and its `after` stage reads b.
 //!
 //! [`radiosity::solve`]: translux_engine::radiosity::solve
@@ -734,7 +734,7 @@ impl GpuSystem {
 
     /// A system over this one's F with K = diag(`diagonal`) (P = diag ρ: the transport with
     /// translucent objects opaque) and this one's S beside it for the heuristics' right-hand
-    /// sides ([`Rhs`]), sized like this one; on failure its bytes are returned to the budget.
+    /// sides, sized like this one; on failure its bytes are returned to the budget.
     pub fn with_diagonal(
         &self,
         ctx: &GpuContext,
