@@ -463,13 +463,10 @@ impl Scene {
     /// alone count as opaque, one where every object does
     /// ([`crate::vertexlight::opaque_objects`]), each made on first use.
     pub fn vertex_rows(&self, components: Components) -> &Arc<crate::vertexrows::VertexRows> {
-        let materials = crate::smatrix::materials_with(&self.bundle, &[]);
-        let opaque = crate::vertexlight::opaque_objects(&materials, components);
-        let all = matches!(
-            components,
-            Components::Direct | Components::InterreflectionOnly
-        );
+        let all = crate::vertexlight::all_opaque(components);
         self.vertex_rows[usize::from(all)].get_or_init(|| {
+            let materials = crate::smatrix::materials_with(&self.bundle, &[]);
+            let opaque = crate::vertexlight::opaque_objects(&materials, components);
             let per_pixel: Vec<bool> = materials
                 .iter()
                 .map(|m| crate::vertexlight::per_pixel_direct(m).is_some())

@@ -401,15 +401,20 @@ pub fn per_pixel_direct(material: &Material) -> Option<Rgb> {
     }
 }
 
+/// Whether `components` take every object as opaque (`direct`, `interreflection_only`).
+pub fn all_opaque(components: Components) -> bool {
+    matches!(
+        components,
+        Components::Direct | Components::InterreflectionOnly
+    )
+}
+
 /// Which objects reflect the direct light as an opaque surface, B = … + ρ̄E, under
 /// `materials` (one per object, the request's overrides applied) and `components`: diffuse
 /// objects always; every object in the `direct` and `interreflection_only` components,
 /// which take translucent objects as opaque at ρ̄ (emitters have ρ̄ = 0 and are unchanged).
 pub fn opaque_objects(materials: &[&Material], components: Components) -> Vec<bool> {
-    let all = matches!(
-        components,
-        Components::Direct | Components::InterreflectionOnly
-    );
+    let all = all_opaque(components);
     materials
         .iter()
         .map(|m| all || matches!(m, Material::Diffuse { .. }))

@@ -237,10 +237,7 @@ pub(super) fn prepare(
 pub(super) fn path(scene: &Scene, plan: &RelightPlan) -> (bool, Option<String>) {
     let has_t = scene.bundle.transfer().is_some();
     let stale = transfer_stale(scene, &plan.overrides);
-    let solves = !matches!(
-        plan.components,
-        Components::Direct | Components::SubsurfaceOnly
-    );
+    let solves = crate::backend::solves(plan.components);
     let use_t = solves
         && plan.components == Components::Full
         && has_t

@@ -379,15 +379,15 @@ enum ColoursFrom {
 
 /// How `components` run on the device: the route (0: over S, diffuse objects opaque at the
 /// vertices; 1: over P, every object opaque; 2: over P, diffuse objects opaque), the
-/// right-hand side, whether they solve, and where the answer is.
-fn plan_of(components: Components) -> (usize, Rhs, bool, ColoursFrom) {
+/// right-hand side, and where the answer is (b: one product, no solve).
+fn plan_of(components: Components) -> (usize, Rhs, ColoursFrom) {
     match components {
-        Components::Full => (0, Rhs::Own, true, ColoursFrom::X),
-        Components::SubsurfaceOnly => (0, Rhs::Own, false, ColoursFrom::B),
-        Components::Direct => (1, Rhs::Own, false, ColoursFrom::B),
-        Components::InterreflectionOnly => (1, Rhs::Own, true, ColoursFrom::X),
-        Components::HeuristicA => (2, Rhs::SceneS, true, ColoursFrom::X),
-        Components::HeuristicB => (2, Rhs::Bounced, true, ColoursFrom::Y),
+        Components::Full => (0, Rhs::Own, ColoursFrom::X),
+        Components::SubsurfaceOnly => (0, Rhs::Own, ColoursFrom::B),
+        Components::Direct => (1, Rhs::Own, ColoursFrom::B),
+        Components::InterreflectionOnly => (1, Rhs::Own, ColoursFrom::X),
+        Components::HeuristicA => (2, Rhs::SceneS, ColoursFrom::X),
+        Components::HeuristicB => (2, Rhs::Bounced, ColoursFrom::Y),
     }
 }
 
@@ -481,8 +481,8 @@ impl DeviceRelight {
         })
     }
 
-    /// The route of `components` (over S or over P, by which objects count as opaque), made on its first call with its colour
-    /// `rows` (and the first over P with P's system: K = diag of `rows`' albedo, the
+    /// The route of `components` (over S or over P, by which objects count as opaque),
+    /// made on its first call with its colour `rows` (and the first over P with P's system: K = diag of `rows`' albedo, the
     /// bundle's ρ, over `system`'s F); `Err` says why such relights cannot run here (rows
     /// of another scene, or the route does not fit), and a route that did not fit is said
     /// once in the log and kept.
@@ -657,7 +657,7 @@ impl DeviceRelight {
         params: &SolveParams,
         (components, pixel): (Components, bool),
     ) -> Result<Vec<Answer>, GpuError> {
-        let (k, rhs, solve, from) = plan_of(components);
+        let (k, rhs, from) = plan_of(components);
         let (route, p) = (self.routes[k].get(), self.p.get());
         let (route, system) = match (route, p) {
             (Some(Ok(r)), _) if !r.over_p => (r, system),
@@ -673,7 +673,6 @@ impl DeviceRelight {
             params,
             pixel,
             rhs,
-            solve,
             from,
         };
         if environment.len() != lights.len() {
@@ -808,10 +807,9 @@ impl DeviceRelight {
                 staging: &lane.read,
             }),
         };
-        let run = if how.solve {
-            system.run(ctx, lanes, &job, how.params)?
-        } else {
-            system.product(ctx, lanes, &job, how.params)?
+        let run = match how.from {
+            ColoursFrom::B => system.product(ctx, lanes, &job, how.params)?,
+            ColoursFrom::X | ColoursFrom::Y => system.run(ctx, lanes, &job, how.params)?,
         };
         let share = m.max(1) as u64;
         let lum_at = 12 * nv * m;
@@ -847,13 +845,11 @@ impl DeviceRelight {
 }
 
 /// How a lane's relights run: the solve's parameters, the direct light per pixel or not,
-/// the right-hand side, whether the components solve (else B = b, one product) and where
-/// the colours read B.
+/// the right-hand side and where the colours read B (from b: one product, no solve).
 struct How<'a> {
     params: &'a SolveParams,
     pixel: bool,
     rhs: Rhs,
-    solve: bool,
     from: ColoursFrom,
 }
 

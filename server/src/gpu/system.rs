@@ -915,8 +915,9 @@ impl GpuSystem {
     /// `before`, b by the job's [`Rhs`] and ‖b‖², the start, [`Lanes::recorded`] iterations
     /// (dispatched indirectly: `reduce_sum` zeroes their grids once every system's residual
     /// meets the tolerance), what follows for the [`Rhs`], `after`, and the copy of the
-    /// counter, the history and the answer into staging, read back once. Only when the iterations recorded did not reach
-    /// the tolerance (nor the cap) does a further submission record more.
+    /// counter, the history and the answer into staging, read back once. Only when the
+    /// iterations recorded did not reach the tolerance (nor the cap) does a further
+    /// submission record more.
     pub(crate) fn run(
         &self,
         ctx: &GpuContext,
@@ -980,11 +981,11 @@ impl GpuSystem {
         params: &SolveParams,
     ) -> Result<Run, GpuError> {
         let t0 = Instant::now();
-        if job.out.is_none() {
+        let Some(out) = job.out.as_ref() else {
             return Err(GpuError::Invalid(
                 "a product reads back what its job's `out` names".into(),
             ));
-        }
+        };
         let _busy = lanes.busy.lock().unwrap_or_else(|p| p.into_inner());
         ctx.scoped(|| {
             let bytes_up = lanes.write_inputs(ctx, self.n, self.capacity, job, params);
@@ -992,9 +993,8 @@ impl GpuSystem {
             lanes.record_rhs(&mut enc, self.n, job);
             let (slots, out_bytes) = lanes.record_iterations(&mut enc, self.n, job, 0, 0);
             ctx.queue.submit([enc.finish()]);
-            let staging = job.out.as_ref().map_or(&lanes.v.read, |o| o.staging);
             let head = counter_bytes(slots, lanes.kv);
-            let bytes = ctx.read_back(staging, head + out_bytes)?;
+            let bytes = ctx.read_back(out.staging, head + out_bytes)?;
             let seconds = t0.elapsed().as_secs_f64();
             let stats = GpuSolveStats {
                 stats: SolveStats {
@@ -1106,8 +1106,9 @@ impl Lanes {
     }
 
     /// Records the start of a solve: the right-hand side ([`Lanes::record_rhs`]); then
-    /// x = b unless the job starts elsewhere, and the start's residual r = b + S F x − x (one pass over F and
-    /// S), its ‖r‖² in history slot 1 (where the stopping rule may already stop the solve).
+    /// x = b unless the job starts elsewhere, and the start's residual r = b + S F x − x
+    /// (one pass over F and S), its ‖r‖² in history slot 1 (where the stopping rule may
+    /// already stop the solve).
     fn record_start(&self, enc: &mut wgpu::CommandEncoder, n: usize, job: &Job<'_>) {
         let vb = 12 * n as u64;
         self.record_rhs(enc, n, job);
