@@ -35,7 +35,8 @@ use crate::profile::{ProfileError, ProfileEval};
 use crate::sheet::{self, SheetError};
 use crate::simulated::{self, SimMedium, WalksView};
 use crate::sterms::{
-    ColumnFactors, NodeRow, NodeShapes, ObjectTerms, Placement, STerms, Scratch, Written,
+    ColumnFactors, FlatTable, NodeRow, NodeShapes, ObjectTerms, Placement, STerms, Scratch,
+    TermTable, Written,
 };
 use crate::subsurface::{self, Nodes, ObjectBlock, ObjectPatches, SubsurfaceParams, Tabulated};
 pub use crate::subsurface::{AssemblyReport, SParams};
@@ -611,27 +612,17 @@ fn scene_matrix(
     Ok(b.finish_valid())
 }
 
-/// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its
-/// rows of `s` (laid out by [`ObjectTerms::pattern`]), `reach` being how far its stored
-/// distances go. With `columns` (S's column factors, [`ColumnScale`]), the energy bound's
-/// factors of the object's columns go there instead of into the values.
-#[expect(
-    clippy::too_many_arguments,
-    reason = "the matrix, the object and its terms, and the settings its tables are made with"
-)]
-fn write_terms(
-    s: ValidCsr<[f32; 3]>,
-    g: &PatchGeometry,
+/// The tables object `o`'s S is summed under: a translucent object's profile (`same`), or a
+/// sheet's reflectance and transmittance (`same`, `other`), each out to its kept radius
+/// capped by `reach` (how far its stored distances go), and the radius wanted where the cap
+/// bites. An error for any other material.
+pub fn object_tables(
     o: &ObjectMaterial<'_>,
-    t: &ObjectTerms,
     reach: f32,
     unit_mm: f64,
     params: &SParams,
-    scratch: &mut Scratch,
-    columns: Option<&mut ColumnScale>,
-) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {
-    let start = Instant::now();
-    let (same, other, capped_from) = match o.material {
+) -> Result<(Tabulated, Option<Tabulated>, Option<f32>), SError> {
+    let tables = match o.material {
         Material::Translucent { profile, .. } => {
             let (tab, capped) = translucent_table(o.name, profile, reach, unit_mm, params)?;
             (tab, None, capped)
@@ -652,6 +643,30 @@ fn write_terms(
             });
         }
     };
+    Ok(tables)
+}
+
+/// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its
+/// rows of `s` (laid out by [`ObjectTerms::pattern`]), `reach` being how far its stored
+/// distances go. With `columns` (S's column factors, [`ColumnScale`]), the energy bound's
+/// factors of the object's columns go there instead of into the values.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the matrix, the object and its terms, and the settings its tables are made with"
+)]
+fn write_terms(
+    s: ValidCsr<[f32; 3]>,
+    g: &PatchGeometry,
+    o: &ObjectMaterial<'_>,
+    t: &ObjectTerms,
+    reach: f32,
+    unit_mm: f64,
+    params: &SParams,
+    scratch: &mut Scratch,
+    columns: Option<&mut ColumnScale>,
+) -> Result<(ValidCsr<[f32; 3]>, AssemblyReport), SError> {
+    let start = Instant::now();
+    let (same, other, capped_from) = object_tables(o, reach, unit_mm, params)?;
     let r = o.patches.clone();
     let at = Placement {
         start: r.start,
@@ -1437,6 +1452,55 @@ pub fn rewrite_with_terms_deferred(
         reports.push(report);
     }
     Ok((s, reports))
+}
+
+/// Where object `k`'s rows sit in the scene's S and its patches' areas, for a device that
+/// writes them from the object's terms ([`ObjectTerms::flatten`],
+/// [`ObjectTerms::factors_from_sums`]); `g` is the bundle's geometry ([`bundle_geometry`]).
+pub fn object_placement<'g>(
+    bundle: &Bundle,
+    g: &'g PatchGeometry,
+    k: usize,
+) -> Option<(&'g [f32], Placement<'g>)> {
+    let o = bundle.manifest().objects.get(k)?;
+    let start = o.first_patch as usize;
+    let area = g.area.get(start..start + o.patch_count as usize)?;
+    let at = Placement {
+        start,
+        n: g.corners.len(),
+        nodes: g.nodes.as_ref(),
+        defer_bound: false,
+    };
+    Some((area, at))
+}
+
+/// The tables object `k`'s S is summed under with `overrides` applied, as a device reads
+/// them: (`same`, `other`), `other` being `same` again for a translucent object. An error
+/// when the object's material is summed from no terms (neither translucent nor a thin
+/// sheet).
+pub fn object_flat_tables(
+    bundle: &Bundle,
+    overrides: &[(usize, Material)],
+    k: usize,
+    params: &SParams,
+) -> Result<(FlatTable, FlatTable), SError> {
+    let m = bundle.manifest();
+    let (materials, stored) = bundle_materials(bundle, overrides)?;
+    let o = m.objects.get(k).ok_or_else(|| SError::Media {
+        object: format!("#{k}"),
+        why: "the bundle has no such object".into(),
+    })?;
+    let object = ObjectMaterial {
+        name: &o.name,
+        material: &materials[k],
+        patches: o.first_patch as usize..(o.first_patch + o.patch_count) as usize,
+    };
+    let reach = stored.get(k).copied().unwrap_or(0.0);
+    let (same, other, _) = object_tables(&object, reach, m.unit_mm, params)?;
+    let flat = |t: &Tabulated| FlatTable::of(&TermTable::new(t));
+    let same_flat = flat(&same);
+    let other_flat = other.as_ref().map_or_else(|| same_flat.clone(), flat);
+    Ok((same_flat, other_flat))
 }
 
 /// Writes simulated object `o`'s S at its material's absorption, re-weighted from the

@@ -42,6 +42,10 @@ use rayon::prelude::*;
 use translux_proto::csr::CsrView;
 use wide::{f32x4, f64x4};
 
+mod flat;
+
+pub use flat::{FlatEntry, FlatLink, FlatRow, FlatTable, FlatTerms, OPPOSITE, TWO, ValueRun};
+
 use crate::linkbound::LinkBound;
 use crate::sheet;
 use crate::subsurface::{
@@ -1831,7 +1835,12 @@ impl ObjectTerms {
         let sums = BlockTotals::add(&scratch.blocks[..blocks], n, self.node_count(at));
         let mut bound = ColumnBound::direct(&sums.column, area, sums.kept);
         let node_factor = match (at.nodes, sums.linked > 0) {
-            (Some(nodes), true) => self.bound_links(nodes, input, &sums, &mut bound, &mut rows),
+            (Some(nodes), true) => {
+                let links = (input.area, at, &sums.node[..]);
+                let scale = (!at.defer_bound).then_some(&mut rows[..]);
+                bound.report.nnz += sums.linked;
+                self.bound_links(nodes, links, &mut bound, scale)
+            }
             _ => vec![[1.0f32; 3]; sums.node.len()],
         };
         // A factor is in [0, 1] (a finite value stays finite).
@@ -2097,25 +2106,24 @@ impl ObjectTerms {
         }
     }
 
-    /// In: the tree, the write's input, its blocks' sums and the direct bound. Bounds every
-    /// column with its links counted (as `subsurface::add_links`), updating `bound`, and
-    /// (unless deferred) scales the links in `rows`; out: each linked node's factor.
+    /// In: the tree, the object's patch areas, its placement and its linked nodes' e_k,
+    /// and the direct bound. Bounds every column with its links counted (as
+    /// `subsurface::add_links`), updating `bound`, and scales the links in `rows` when
+    /// given; out: each linked node's factor.
     fn bound_links(
         &self,
         nodes: &Nodes,
-        input: WriteInput<'_>,
-        sums: &BlockTotals,
+        (area, at, node): (&[f32], Placement<'_>, &[[f32; 3]]),
         bound: &mut ColumnBound,
-        rows: &mut [(usize, Row<'_>)],
+        rows: Option<&mut [(usize, Row<'_>)]>,
     ) -> Vec<[f32; 3]> {
-        let (at, n) = (input.at, self.row_ptr.len() - 1);
+        let n = self.row_ptr.len() - 1;
         let span = NodeSpan {
             nodes,
             first: self.links.nodes.start,
             start: at.start,
             n,
         };
-        let node = &sums.node;
         let far = span.spread(node, &|_| [1.0; 3]);
         // As subsurface::add_links: each column's factor as a pairwise S would scale
         // it, every link to node k scaled by k's patches' area-weighted mean factor
@@ -2127,19 +2135,44 @@ impl ObjectTerms {
         let pair_factor: Vec<[f32; 3]> = (0..n)
             .map(|i| std::array::from_fn(|c| 1.0 / (direct[i][c] + far[i][c]).max(1.0)))
             .collect();
-        let mean_factor = span.mean_factors(input.area, &pair_factor, node);
+        let mean_factor = span.mean_factors(area, &pair_factor, node);
         let nodes_scaled = mean_factor.iter().any(|m| *m != [1.0; 3]);
         let far_kept = if nodes_scaled {
             span.spread(node, &|k| mean_factor[k])
         } else {
             far.clone()
         };
-        if nodes_scaled && !at.defer_bound {
+        if let Some(rows) = rows.filter(|_| nodes_scaled) {
             scale_links(rows, at.n + self.links.nodes.start, &mean_factor);
         }
         bound.count_links(&direct, &far, &far_kept, &pair_factor);
-        bound.report.nnz += sums.linked;
         mean_factor
+    }
+
+    /// The energy bound's factors of the object's columns from the sums a write adds up
+    /// (a device's write, [`flat`]): `column` holds each column's Σ_j A_j S_ji before the
+    /// bound, `node` each linked node's e_k = Σ_j A_j R(r_jk) (as many as
+    /// [`FlatTerms::nodes`]); `area` the object's patch areas. The factors
+    /// [`ObjectTerms::write`] with [`Placement::defer_bound`] returns for the same values,
+    /// to the rounding of the sums' order.
+    pub fn factors_from_sums(
+        &self,
+        area: &[f32],
+        at: Placement<'_>,
+        column: &[[f32; 3]],
+        node: &[[f32; 3]],
+    ) -> ColumnFactors {
+        let mut bound = ColumnBound::direct(column, area, 0);
+        let linked = node.iter().any(|e| *e != [0.0; 3]);
+        let nodes = match (at.nodes, linked) {
+            (Some(nodes), true) => self.bound_links(nodes, (area, at, node), &mut bound, None),
+            _ => vec![[1.0f32; 3]; node.len()],
+        };
+        ColumnFactors {
+            patches: bound.factor,
+            nodes,
+            node_column: at.n + self.links.nodes.start,
+        }
     }
 
     /// Scales the direct entries of the columns over the bound (`factor` per local column,
@@ -2735,6 +2768,89 @@ mod tests {
         let params = SubsurfaceParams::default();
         let t = ObjectTerms::build(p, d.view().unwrap(), false, &|_| false, &params);
         (g, t)
+    }
+
+    /// The flat records a device writes through ([`ObjectTerms::flatten`]) put each entry
+    /// at S's value for its column, and the energy bound's factors taken from the sums a
+    /// device adds up through their column gather ([`ObjectTerms::factors_from_sums`])
+    /// are those a deferred write returns, with many columns scaled and with none.
+    #[test]
+    fn factors_from_a_devices_sums_are_the_writes_own() {
+        let point = |x: f32, y: f32| Vec3::new(x, y, 0.0);
+        let (g, t) = sheet_terms(6, point, 5.0);
+        let n = g.area.len();
+        // Every third patch counted 6 times as large drives its neighbours' columns past 1.
+        let area: Vec<f32> = (0..n)
+            .map(|i| g.area[i] * if i % 3 == 0 { 6.0 } else { 1.0 })
+            .collect();
+        let pattern = t.pattern(0, false);
+        let mut row_ptr = vec![0u64];
+        for r in &pattern {
+            row_ptr.push(row_ptr.last().unwrap() + r.len() as u64);
+        }
+        let at = Placement {
+            start: 0,
+            n,
+            nodes: None,
+            defer_bound: true,
+        };
+        let flat = t.flatten(&area, at, &row_ptr).unwrap();
+        assert_eq!(flat.values as u64, row_ptr[n]);
+        assert_eq!(
+            flat.runs.len(),
+            1,
+            "one object's rows are one run of S's values"
+        );
+        for (j, row) in flat.rows.iter().enumerate() {
+            for e in row.entries[0]..row.entries[1] {
+                let v = (row.value + e - row.entries[0]) as usize;
+                let (col, _) = pattern[j][v - row_ptr[j] as usize];
+                assert_eq!(col, flat.entries[e as usize].src, "row {j}, entry {e}");
+            }
+        }
+        let mut scaled = 0;
+        for scale in [0.5f32, 8.0] {
+            let tab = table(scale, 5.0);
+            let cols: Vec<Vec<u32>> = pattern
+                .iter()
+                .map(|r| r.iter().map(|e| e.0).collect())
+                .collect();
+            let mut vals: Vec<Vec<[f32; 3]>> =
+                pattern.iter().map(|r| vec![[0.0; 3]; r.len()]).collect();
+            let rows = cols
+                .iter()
+                .zip(vals.iter_mut())
+                .map(|(c, v)| (c.as_slice(), v.as_mut_slice()))
+                .collect();
+            let w = t.write(&area, &tab, &tab, at, rows, &mut Scratch::default());
+            let want = w.columns.unwrap();
+            let values: Vec<[f32; 3]> = vals.into_iter().flatten().collect();
+            let column: Vec<[f32; 3]> = (0..n)
+                .map(|i| {
+                    let items = &flat.column_items
+                        [flat.column_ptr[i] as usize..flat.column_ptr[i + 1] as usize];
+                    let mut s = [0.0f32; 3];
+                    for &[v, a] in items {
+                        for c in 0..3 {
+                            s[c] += f32::from_bits(a) * values[v as usize][c];
+                        }
+                    }
+                    s
+                })
+                .collect();
+            let got = t.factors_from_sums(&area, at, &column, &[]);
+            for (i, (g, w)) in got.patches.iter().zip(&want.patches).enumerate() {
+                assert!(
+                    (0..3).all(|c| (g[c] - w[c]).abs() <= 1e-5 * w[c]),
+                    "column {i} at scale {scale}: {g:?} vs {w:?}"
+                );
+            }
+            scaled += want.patches.iter().filter(|f| **f != [1.0; 3]).count();
+        }
+        assert!(
+            scaled > 0,
+            "no column was scaled: the factors went untested"
+        );
     }
 
     /// A write's `finite` says whether every value it wrote is finite: true under marble,

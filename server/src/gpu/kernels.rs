@@ -18,6 +18,7 @@ pub const SHADOW_RAYS: &str = include_str!("kernels/shadow_rays.wgsl");
 pub const DIRECT_LIGHT: &str = include_str!("kernels/direct_light.wgsl");
 pub const VERTEX_COLOURS: &str = include_str!("kernels/vertex_colours.wgsl");
 pub const ENV_IRRADIANCE: &str = include_str!("kernels/env_irradiance.wgsl");
+pub const S_TERMS: &str = include_str!("kernels/s_terms.wgsl");
 
 /// Relights one batched device solve carries (`KV` of the batch's `csr_spmv_rgb`; at most
 /// its `KMAX`).
@@ -140,6 +141,7 @@ pub struct Kernels {
     pub(crate) direct: Kernel,
     pub(crate) colours: Kernel,
     pub(crate) env: Kernel,
+    pub(crate) s_terms: Kernel,
     pub(crate) spmv_scalar: wgpu::ComputePipeline,
     pub(crate) spmv_rgb: wgpu::ComputePipeline,
     /// The same for [`BATCH`] vectors at once.
@@ -156,6 +158,12 @@ pub struct Kernels {
     pub(crate) direct_light: wgpu::ComputePipeline,
     pub(crate) vertex_colours: wgpu::ComputePipeline,
     pub(crate) env_irradiance: wgpu::ComputePipeline,
+    /// `s_terms` by its `STAGE`: the rows' values, the column sums, the node sums, the
+    /// scaling by the energy bound's factors.
+    pub(crate) s_write: wgpu::ComputePipeline,
+    pub(crate) s_column_sums: wgpu::ComputePipeline,
+    pub(crate) s_node_sums: wgpu::ComputePipeline,
+    pub(crate) s_scale: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -219,7 +227,18 @@ impl Kernels {
             &format!("{BVH_TRAVERSE}\n{DIRECT_LIGHT}"),
             &[Read, Read, Read, Read, Read, ReadWrite],
         );
+        let s_terms = Kernel::new(
+            device,
+            "s_terms",
+            S_TERMS,
+            &[Read, Read, Read, Read, Read, Read, ReadWrite, ReadWrite],
+        );
+        let stage = |k: f64| s_terms.pipeline(device, &[("STAGE", k)]);
         Kernels {
+            s_write: stage(0.0),
+            s_column_sums: stage(1.0),
+            s_node_sums: stage(2.0),
+            s_scale: stage(3.0),
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
             spmv_scalar_batch: spmv.pipeline(device, &[("VAL_RGB", 0.0), ("KV", BATCH as f64)]),
@@ -244,6 +263,7 @@ impl Kernels {
             direct,
             colours,
             env,
+            s_terms,
             dense_variants: Mutex::new(HashMap::new()),
         }
     }

@@ -117,6 +117,8 @@ struct CsrBlock {
     col: wgpu::Buffer,
     val: wgpu::Buffer,
     groups: (u32, u32),
+    /// The entries it holds: `values.0..values.1` of the whole matrix's.
+    values: (u64, u64),
 }
 
 /// A CSR matrix on the device (F with f32 values, or S with RGB values), in row blocks.
@@ -328,6 +330,7 @@ impl GpuCsr {
                         bytemuck::cast_slice(&val[e0 * comps..e1 * comps]),
                     ),
                     groups,
+                    values: (row_ptr[a], row_ptr[b]),
                 });
             }
             Ok(blocks)
@@ -434,6 +437,55 @@ impl GpuCsr {
                     .map(|c| [c[0], c[1], c[2]])
                     .collect(),
             )
+        })
+    }
+}
+
+impl GpuCsr {
+    /// Records copies of runs of RGB values from `src` into the matrix's values: each run's
+    /// `len` values from `src`'s value `local` on land at the matrix's value `s_value` on,
+    /// split over the blocks that hold them. Values are three f32 each.
+    pub(crate) fn copy_values_in(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        src: &wgpu::Buffer,
+        runs: &[translux_engine::sterms::ValueRun],
+    ) {
+        let comps = if self.rgb { 12 } else { 4 };
+        for r in runs {
+            let (a, b) = (r.s_value, r.s_value + r.len as u64);
+            for blk in &self.blocks {
+                let (lo, hi) = (a.max(blk.values.0), b.min(blk.values.1));
+                if lo >= hi {
+                    continue;
+                }
+                enc.copy_buffer_to_buffer(
+                    src,
+                    (r.local as u64 + (lo - a)) * comps,
+                    &blk.val,
+                    (lo - blk.values.0) * comps,
+                    (hi - lo) * comps,
+                );
+            }
+        }
+    }
+
+    /// Every value, read back (three f32 each for RGB): what tests compare.
+    pub fn read_values(&self, ctx: &GpuContext) -> Result<Vec<f32>, GpuError> {
+        let comps = if self.rgb { 3 } else { 1 };
+        let bytes = 4 * comps * self.nnz as u64;
+        ctx.scoped(|| {
+            let st = staging(ctx, "values-read", bytes);
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            for blk in &self.blocks {
+                let len = 4 * comps * (blk.values.1 - blk.values.0);
+                if len > 0 {
+                    enc.copy_buffer_to_buffer(&blk.val, 0, &st, 4 * comps * blk.values.0, len);
+                }
+            }
+            ctx.queue.submit([enc.finish()]);
+            let out: Vec<f32> = ctx.read_back_as(&st, alloc_size(bytes))?;
+            Ok(out[..(comps * self.nnz as u64) as usize].to_vec())
         })
     }
 }

@@ -21,6 +21,7 @@
 //! | `direct_light` | shadowed direct irradiance E per surface point (point, spot, directional) | same name |
 //! | `env_irradiance` | an environment's E_i = Σ_k V_ik L̄_k from the bundle's f16 visibility, added to E | same name |
 //! | `vertex_colours` | B/π per vertex from B, E (less its environment part), ρ and E at the vertex (`translux_engine::vertexrows`) | same name |
+//! | `s_terms` | a translucency change: one object's rows of S from its radial terms by `STAGE` (values, column sums, node sums, scaling by the energy bound's factors) | `translux_engine::sterms::ObjectTerms::write` |
 //!
 //! `shadow_rays` and `direct_light` share one traversal source, `bvh_traverse.wgsl`, put in
 //! front of each at compile time.
@@ -31,7 +32,8 @@
 //! scene's buffers and bind groups, built once and reused by every request (one set of
 //! vectors per solve, one more for batches); [`direct`] holds the occluder BVH on the device
 //! and the direct-light dispatch; [`environment`] the visibility and the environments'
-//! pass; [`relight`] puts direct light, solve and colours in one submission. A solve is one submission and one read-back (the counter, the residual
+//! pass; [`sterms`] an object's radial terms and the write of its rows of S on a
+//! translucency change; [`relight`] puts direct light, solve and colours in one submission. A solve is one submission and one read-back (the counter, the residual
 //! history and the answer); the stopping rule runs on the device ([`system`]).
 
 pub mod cpu_twin;
@@ -40,6 +42,7 @@ pub mod environment;
 pub mod kernels;
 pub mod matrix;
 pub mod relight;
+pub mod sterms;
 pub mod system;
 
 use std::sync::{Arc, Mutex};

@@ -995,7 +995,10 @@ fn device_solve_of_hierarchical_f(two_sided: bool) {
 
 /// A Cornell box whose marble block is 8 times as translucent (its profile reaches past
 /// the near field), precomputed into `out` with a hierarchical S at `patches`.
-fn hierarchical_cornell(out: &std::path::Path, patches: u64) -> translux_proto::bundle::Bundle {
+pub(crate) fn hierarchical_cornell(
+    out: &std::path::Path,
+    patches: u64,
+) -> translux_proto::bundle::Bundle {
     use translux_precompute::pipeline::{PrecomputeParams, precompute};
     use translux_precompute::slinks::SLinkParams;
     use translux_proto::scene::{Material, Profile};

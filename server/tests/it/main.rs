@@ -5,7 +5,8 @@
 //! kernel against its CPU twin, on lavapipe here), `gpu_direct` (the device BVH's shadow
 //! rays and direct light against the engine's `Occluder` and `direct_irradiance`), `gpu_relight` (the
 //! whole relight on the device: its colour kernel, its answers against the CPU backend, one
-//! submission and the bytes it moves), `prepare` (translucency preparation in
+//! submission and the bytes it moves), `gpu_sterms` (a translucency change's rows of S written
+//! on the device against the CPU's rewrite), `prepare` (translucency preparation in
 //! the binary), `shared_folder` (several servers over one bundles folder), `shutdown` (SIGTERM with queued
 //! relights), `slurm` (precompute jobs on a munged, slurmctld and slurmd the test starts), `team_cluster` (an upload
 //! through haproxy run as a Slurm array and merge: the same bytes as one box, served by both
@@ -21,6 +22,7 @@ mod deploy;
 mod gpu;
 mod gpu_direct;
 mod gpu_relight;
+mod gpu_sterms;
 mod k8s;
 mod prepare;
 mod shared_folder;

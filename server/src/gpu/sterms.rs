@@ -1,0 +1,281 @@
+//! A translucency change written on the device: one object's rows of S summed from its
+//! radial terms (`s_terms.wgsl`) into S's values where the solve reads them.
+//!
+//! In: the object's flat terms ([`FlatTerms`], uploaded once), and per change the tables of
+//! its new profiles ([`FlatTable`]) and the energy bound's rule (from the column and node
+//! sums to the factors, [`translux_engine::sterms::ObjectTerms::factors_from_sums`]). Out:
+//! the object's values of a device S ([`GpuCsr`]), as the engine's
+//! `ObjectTerms::write` makes them on the CPU (its twin), to f32 rounding.
+//!
+//! A change is two submissions: the values and the sums, whose (n + nodes) × 16 bytes are
+//! read back for the bound; then the factors up, the scaling and the copies into S.
+
+use translux_engine::radiosity::Rgb;
+use translux_engine::sterms::{ColumnFactors, FlatTable, FlatTerms, ValueRun};
+
+use super::matrix::{alloc_size, staging, storage_init, storage_zeroed, uniform};
+use super::{GpuContext, GpuCsr, GpuError, grid};
+
+/// `s_terms.wgsl`'s `Table`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct TableParams {
+    base: u32,
+    w_base: u32,
+    end: f32,
+    r_max: f32,
+    scale: f32,
+    cells_f: f32,
+    _pad: [u32; 2],
+}
+
+/// `s_terms.wgsl`'s `Params`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rows: u32,
+    n: u32,
+    nodes: u32,
+    grid_x: u32,
+    column_ptr: u32,
+    node_ptr: u32,
+    column_items: u32,
+    node_items: u32,
+    same: TableParams,
+    other: TableParams,
+}
+
+/// Threads per workgroup of `s_terms.wgsl`.
+const WG: u32 = 64;
+
+/// One object's terms on the device, with the buffers its changes write.
+#[derive(Debug)]
+pub struct GpuObjectTerms {
+    params: wgpu::Buffer,
+    base: Params,
+    rows: wgpu::Buffer,
+    entries: wgpu::Buffer,
+    terms: wgpu::Buffer,
+    links: wgpu::Buffer,
+    gather: wgpu::Buffer,
+    sums: wgpu::Buffer,
+    values: wgpu::Buffer,
+    sums_read: wgpu::Buffer,
+    groups: (u32, u32),
+    runs: Vec<ValueRun>,
+    n: usize,
+    nodes: usize,
+    bytes: u64,
+}
+
+/// What one change did on the device.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ChangeCounts {
+    pub submissions: u32,
+    pub bytes_up: u64,
+    pub bytes_down: u64,
+}
+
+impl GpuObjectTerms {
+    /// Uploads `flat` (`what` names it in errors and the memory budget).
+    pub fn upload(ctx: &GpuContext, what: &str, flat: &FlatTerms) -> Result<Self, GpuError> {
+        let gather = gather_of(flat);
+        let sums_len = 16 * (flat.n + flat.nodes) as u64;
+        let arrays: [u64; 5] = [
+            std::mem::size_of_val(flat.rows.as_slice()) as u64,
+            std::mem::size_of_val(flat.entries.as_slice()) as u64,
+            std::mem::size_of_val(flat.terms.as_slice()) as u64,
+            std::mem::size_of_val(flat.links.as_slice()) as u64,
+            4 * gather.len() as u64,
+        ];
+        let bytes = arrays.iter().map(|&b| alloc_size(b)).sum::<u64>()
+            + 2 * alloc_size(sums_len)
+            + alloc_size(12 * flat.values as u64);
+        for b in arrays {
+            if b > ctx.adapter().max_binding_bytes {
+                return Err(GpuError::MatrixTooLarge {
+                    what: format!("{what}'s radial terms"),
+                    requested: b,
+                    max_binding: ctx.adapter().max_binding_bytes,
+                });
+            }
+        }
+        ctx.reserve(what, bytes)?;
+        let (n, nodes) = (flat.n as u32, flat.nodes as u32);
+        let threads = (flat.rows.len() as u32).max(n).max(nodes);
+        let groups = grid(threads.div_ceil(WG));
+        let base = Params {
+            rows: flat.rows.len() as u32,
+            n,
+            nodes,
+            grid_x: groups.0,
+            column_ptr: 0,
+            node_ptr: n + 1,
+            column_items: n + 1 + nodes + 1,
+            node_items: n + 1 + nodes + 1 + 2 * flat.column_items.len() as u32,
+            ..Default::default()
+        };
+        let made = ctx.scoped(|| {
+            Ok(GpuObjectTerms {
+                params: uniform(ctx, what, &base),
+                base,
+                rows: storage_init(ctx, what, bytemuck::cast_slice(&flat.rows)),
+                entries: storage_init(ctx, what, bytemuck::cast_slice(&flat.entries)),
+                terms: storage_init(ctx, what, bytemuck::cast_slice(&flat.terms)),
+                links: storage_init(ctx, what, bytemuck::cast_slice(&flat.links)),
+                gather: storage_init(ctx, what, bytemuck::cast_slice(&gather)),
+                sums: storage_zeroed(ctx, what, sums_len),
+                values: storage_zeroed(ctx, what, 12 * flat.values as u64),
+                sums_read: staging(ctx, what, sums_len),
+                groups,
+                runs: flat.runs.clone(),
+                n: flat.n,
+                nodes: flat.nodes,
+                bytes,
+            })
+        });
+        if made.is_err() {
+            ctx.release(bytes);
+        }
+        made
+    }
+
+    /// Bytes held on the device.
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Writes the object's values of `s` under the tables `same` and `other` (a sheet's
+    /// transmittance; `same` again for a translucent object): the values and sums, then
+    /// `bound` from the columns' and nodes' sums to the factors, then the scaling and the
+    /// copies into `s`. Counts what crossed the bus.
+    pub fn write(
+        &self,
+        ctx: &GpuContext,
+        s: &GpuCsr,
+        (same, other): (&FlatTable, &FlatTable),
+        bound: impl FnOnce(&[Rgb], &[Rgb]) -> ColumnFactors,
+    ) -> Result<ChangeCounts, GpuError> {
+        let mut counts = ChangeCounts::default();
+        ctx.scoped(|| {
+            let (tables, params) = self.tables(same, other);
+            let tables = storage_init(ctx, "S tables", bytemuck::cast_slice(&tables));
+            ctx.queue
+                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+            counts.bytes_up += tables.size() + std::mem::size_of::<Params>() as u64;
+            let bind = self.bind(ctx, &tables);
+            let k = &ctx.kernels;
+            let sums_len = 16 * (self.n + self.nodes) as u64;
+            // The values, then the sums the bound reads, read back.
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_bind_group(0, &bind, &[]);
+                for p in [&k.s_write, &k.s_column_sums, &k.s_node_sums] {
+                    pass.set_pipeline(p);
+                    pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+                }
+            }
+            enc.copy_buffer_to_buffer(&self.sums, 0, &self.sums_read, 0, alloc_size(sums_len));
+            ctx.queue.submit([enc.finish()]);
+            let sums: Vec<[f32; 4]> = ctx.read_back_as(&self.sums_read, alloc_size(sums_len))?;
+            counts.bytes_down += alloc_size(sums_len);
+            let rgb = |v: &[f32; 4]| [v[0], v[1], v[2]];
+            let column: Vec<Rgb> = sums[..self.n].iter().map(rgb).collect();
+            let node: Vec<Rgb> = sums[self.n..self.n + self.nodes].iter().map(rgb).collect();
+            // The factors over the sums, the values scaled by them and copied into S.
+            let f = bound(&column, &node);
+            let factors: Vec<[f32; 4]> = f
+                .patches
+                .iter()
+                .chain(&f.nodes)
+                .map(|c| [c[0], c[1], c[2], 0.0])
+                .collect();
+            if factors.len() != self.n + self.nodes {
+                return Err(GpuError::Invalid(format!(
+                    "{} factors for {} columns and {} nodes",
+                    factors.len(),
+                    self.n,
+                    self.nodes
+                )));
+            }
+            ctx.queue
+                .write_buffer(&self.sums, 0, bytemuck::cast_slice(&factors));
+            counts.bytes_up += sums_len;
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_bind_group(0, &bind, &[]);
+                pass.set_pipeline(&k.s_scale);
+                pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+            }
+            s.copy_values_in(&mut enc, &self.values, &self.runs);
+            ctx.queue.submit([enc.finish()]);
+            counts.submissions = 2;
+            Ok(())
+        })?;
+        Ok(counts)
+    }
+
+    /// The two tables' cells one after the other, and the parameters that find them.
+    fn tables(&self, same: &FlatTable, other: &FlatTable) -> (Vec<[f32; 4]>, Params) {
+        let mut cells = Vec::with_capacity(2 * (same.cells.len() + other.cells.len()));
+        let mut header = |t: &FlatTable| {
+            let base = cells.len() as u32;
+            cells.extend(t.cells.iter().flatten().copied());
+            TableParams {
+                base,
+                w_base: t.w_base,
+                end: t.end,
+                r_max: t.r_max,
+                scale: t.scale,
+                cells_f: t.cells_f,
+                _pad: [0; 2],
+            }
+        };
+        let (same, other) = (header(same), header(other));
+        let params = Params {
+            same,
+            other,
+            ..self.base
+        };
+        (cells, params)
+    }
+
+    fn bind(&self, ctx: &GpuContext, tables: &wgpu::Buffer) -> wgpu::BindGroup {
+        ctx.kernels.s_terms.bind(
+            &ctx.device,
+            &self.params,
+            &[
+                tables,
+                &self.rows,
+                &self.entries,
+                &self.terms,
+                &self.links,
+                &self.gather,
+                &self.sums,
+                &self.values,
+            ],
+        )
+    }
+
+    /// Gives its memory back to the budget.
+    pub fn release(self, ctx: &GpuContext) {
+        ctx.release(self.bytes);
+    }
+}
+
+/// The column and node pointers, then the column and node items, as `s_terms.wgsl`'s
+/// `gather` reads them.
+fn gather_of(flat: &FlatTerms) -> Vec<u32> {
+    let mut g = Vec::with_capacity(
+        flat.column_ptr.len()
+            + flat.node_ptr.len()
+            + 2 * (flat.column_items.len() + flat.node_items.len()),
+    );
+    g.extend(&flat.column_ptr);
+    g.extend(&flat.node_ptr);
+    g.extend(flat.column_items.iter().flatten());
+    g.extend(flat.node_items.iter().flatten());
+    g
+}

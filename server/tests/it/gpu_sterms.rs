@@ -1,0 +1,160 @@
+//! A translucency change's rows of S written on the device (`s_terms.wgsl`) from the radial
+//! terms, against the CPU's rewrite of the same rows (`smatrix::rewrite_with_terms`, which
+//! `ObjectTerms::write` does), value for value, on lavapipe.
+
+use std::cell::RefCell;
+
+use translux_engine::smatrix::{self, SParams};
+use translux_engine::sterms::Scratch;
+use translux_proto::csr::ValidCsr;
+use translux_proto::scene::{Material, Profile};
+use translux_server::gpu::sterms::GpuObjectTerms;
+use translux_server::gpu::{GpuContext, GpuCsr};
+
+fn marble(scale: f32) -> Material {
+    Material::Translucent {
+        profile: Profile::Dipole {
+            preset: Some("marble".into()),
+            sigma_a: None,
+            sigma_s_prime: None,
+            eta: None,
+            scale: Some(scale),
+        },
+        specular: None,
+    }
+}
+
+/// R(r) = a e^(−b r) whose whole integral is `energy` per channel (a profile brighter than
+/// any physical one drives every column past the energy bound).
+fn exponential(energy: [f32; 3], b: f32) -> Material {
+    use translux_proto::scene::ExpTerm;
+    let a = energy.map(|e| e * b * b / (2.0 * std::f32::consts::PI));
+    Material::Translucent {
+        profile: Profile::Exponentials {
+            terms: vec![ExpTerm { a, b: [b; 3] }],
+        },
+        specular: None,
+    }
+}
+
+/// S rewritten for the block at several translucencies — marble less and more translucent
+/// than it was built with, and profiles bright enough in some channels that the energy
+/// bound scales columns and the links' nodes —
+/// on the device from S as it was, equals the CPU's rewrite entry for entry (within f32
+/// rounding: the device adds the bound's sums in another order), every other object's
+/// values untouched; with S in one block and split over many (a 4 KiB binding).
+#[test]
+fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
+    let contexts: Vec<&GpuContext> = [crate::support::gpu(), tiny()]
+        .into_iter()
+        .flatten()
+        .collect();
+    if contexts.is_empty() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let b = crate::gpu::hierarchical_cornell(&tmp.path().join("cornell"), 1500);
+    let params = SParams::default();
+    let terms = smatrix::terms_of_bundle(&b, &params.quadrature);
+    let k = b
+        .manifest()
+        .objects
+        .iter()
+        .position(|o| o.name == "tall_block")
+        .unwrap();
+    let t = terms.get(k, false).expect("the block has radial terms");
+    let g = smatrix::bundle_geometry(&b);
+    let (area, at) = smatrix::object_placement(&b, &g, k).unwrap();
+    let (start, _) = smatrix::rebuild_with_terms(&b, &[(k, marble(8.0))], &params, &terms).unwrap();
+    let start = ValidCsr::new(start).unwrap();
+    let flat = t.flatten(area, at, start.view().row_ptr()).unwrap();
+    assert!(!flat.links.is_empty(), "the block links to nodes");
+    assert!(
+        flat.rows.iter().any(|r| r.local == u32::MAX),
+        "the block has node rows"
+    );
+    let (mut scaled_columns, mut scaled_nodes) = (0, 0);
+    for ctx in contexts {
+        let s = GpuCsr::upload_rgb(ctx, "S", &start.view()).unwrap();
+        let dev = GpuObjectTerms::upload(ctx, "block", &flat).unwrap();
+        let materials = [
+            marble(8.0),
+            marble(2.0),
+            marble(0.5),
+            marble(20.0),
+            exponential([3.0, 1.0, 0.5], 0.05),
+            exponential([2.0, 0.5, 1.5], 0.01),
+        ];
+        for (x, m) in materials.into_iter().enumerate() {
+            let over = [(k, m)];
+            let mut scratch = Scratch::default();
+            let (want, _) = smatrix::rewrite_with_terms(
+                &b,
+                start.clone(),
+                &mut None,
+                &over,
+                &[k],
+                &params,
+                &terms,
+                &mut scratch,
+            )
+            .unwrap();
+            let tables = smatrix::object_flat_tables(&b, &over, k, &params).unwrap();
+            let seen = RefCell::new((0, 0));
+            let counts = dev
+                .write(ctx, &s, (&tables.0, &tables.1), |column, node| {
+                    let f = t.factors_from_sums(area, at, column, node);
+                    let below = |v: &[[f32; 3]]| v.iter().filter(|x| **x != [1.0; 3]).count();
+                    *seen.borrow_mut() = (below(&f.patches), below(&f.nodes));
+                    f
+                })
+                .unwrap();
+            let (c, n) = seen.into_inner();
+            scaled_columns += c;
+            scaled_nodes += n;
+            assert_eq!(counts.submissions, 2);
+            let got = s.read_values(ctx).unwrap();
+            let want: Vec<f32> = want.view().val().iter().flatten().copied().collect();
+            compare(&format!("material {x}"), &got, &want);
+        }
+        dev.release(ctx);
+        drop(s);
+    }
+    assert!(
+        scaled_columns > 0,
+        "no column was scaled: the bound went untested"
+    );
+    assert!(
+        scaled_nodes > 0,
+        "no node was scaled: the links' bound went untested"
+    );
+}
+
+/// A context whose matrix buffers hold at most 4 KiB (S split into many blocks).
+fn tiny() -> Option<&'static GpuContext> {
+    static CTX: std::sync::OnceLock<Option<GpuContext>> = std::sync::OnceLock::new();
+    CTX.get_or_init(|| crate::support::gpu_context(Some(4096)))
+        .as_ref()
+}
+
+/// Every value within 2e-5 of the CPU's, relative to itself or to a millionth of the
+/// largest value (values near 0).
+fn compare(what: &str, got: &[f32], want: &[f32]) {
+    assert_eq!(got.len(), want.len(), "{what}: values");
+    let top = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let mut worst = (0.0f32, 0usize);
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        let rel = (g - w).abs() / w.abs().max(1e-6 * top);
+        if rel > worst.0 {
+            worst = (rel, i);
+        }
+    }
+    assert!(
+        worst.0 <= 2e-5,
+        "{what}: relative error {:.3e} at value {} (got {}, want {})",
+        worst.0,
+        worst.1,
+        got[worst.1],
+        want[worst.1]
+    );
+}
