@@ -6,7 +6,9 @@
 //! or the colours when the backend did it, or "not here" (`false`, `None`), which
 //! tells the engine to compute it on the CPU — so a backend may decline any call (a scene
 //! that does not fit, a device error) and the answer is still computed. S for a
-//! translucency change is always made on the CPU ([`crate::scene::Scene`]).
+//! translucency change is built on the CPU; a change written in place (a slider) is left
+//! to the backend's [`Backend::solve_materials`] first, and written on the CPU only when
+//! it declines or a CPU stage needs S ([`crate::scene::Scene::cpu_s`]).
 //!
 //! A backend is made once by whoever owns the process (the server's `--backend`) and handed
 //! to every scene it opens ([`crate::scene::Resources`]); there is no global backend,
@@ -16,19 +18,23 @@ use std::sync::Arc;
 
 use translux_proto::api::Components;
 use translux_proto::bundle::Bundle;
+use translux_proto::csr::ValidCsr;
 use translux_proto::light::Light;
 
 use crate::linalg::Rgb;
 use crate::smatrix::OverrideMaterials;
 use crate::solver::{SolveParams, SolveStats};
+use crate::sterms::STerms;
 use crate::vertexrows::VertexRows;
 
 /// What a backend sees of a scene ([`crate::scene::Scene::view`]): its id (named in logs,
-/// a key of the device's copy with the bundle's checksums) and its bundle.
+/// a key of the device's copy with the bundle's checksums), its bundle, and S's radial
+/// terms once the first translucency change (or its preparation) made them.
 #[derive(Debug, Clone, Copy)]
 pub struct SceneRef<'a> {
     pub id: &'a str,
     pub bundle: &'a Bundle,
+    pub terms: Option<&'a STerms>,
 }
 
 /// Relights a backend may do whole, where the matrices are: for each set of `lights`
@@ -86,6 +92,36 @@ pub struct DeviceAnswer {
     pub bytes_down: u64,
 }
 
+/// The materials of a relight whose S a backend may write itself
+/// ([`Backend::solve_materials`]): the overrides (their S on the CPU may not be written
+/// yet), and S made on the CPU for a backend that holds no S of their layout yet (each
+/// value times its column's factor; `None` when it cannot be made).
+pub struct WithMaterials<'a> {
+    pub materials: &'a Arc<OverrideMaterials>,
+    pub cpu: &'a dyn Fn() -> Option<std::borrow::Cow<'a, ValidCsr<Rgb>>>,
+}
+
+impl std::fmt::Debug for WithMaterials<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WithMaterials")
+            .field("materials", &self.materials.key)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What a backend's solve with overridden materials gave ([`Backend::solve_materials`]).
+#[derive(Debug, Clone)]
+pub struct MaterialsAnswer {
+    /// B per patch, `[patch][k·3]`.
+    pub x: Vec<f32>,
+    pub stats: SolveStats,
+    /// Seconds spent writing S for the materials (0 when the backend held it).
+    pub s_seconds: f64,
+    pub submissions: u32,
+    pub bytes_up: u64,
+    pub bytes_down: u64,
+}
+
 /// A compute backend for the relight's products. Every method may decline.
 pub trait Backend: Send + Sync + std::fmt::Debug {
     /// `cpu` or `gpu`, for stats and logs.
@@ -114,6 +150,19 @@ pub trait Backend: Send + Sync + std::fmt::Debug {
     /// The whole relights of `job` for `scene` where the matrices are, one answer per set of
     /// lights in order; `None` to leave them to the engine's stages.
     fn relight(&self, scene: SceneRef<'_>, job: &DeviceRelight<'_>) -> Option<Vec<DeviceAnswer>>;
+
+    /// Solves B = Bₑ + S(E + F B) for `k` right-hand sides (`sources`: E and Bₑ, each
+    /// `[patch][k·3]`) with S of `with`'s materials, written where the backend keeps S (a
+    /// translucency change's rows summed there from S's radial terms); `None` to leave S
+    /// and the solve to the CPU.
+    fn solve_materials(
+        &self,
+        scene: SceneRef<'_>,
+        with: &WithMaterials<'_>,
+        sources: (&[f32], &[f32]),
+        k: usize,
+        params: &SolveParams,
+    ) -> Option<MaterialsAnswer>;
 }
 
 /// The CPU backend: declines every call, so the engine computes everything itself.
@@ -152,6 +201,17 @@ impl Backend for Cpu {
     }
 
     fn relight(&self, _scene: SceneRef<'_>, _job: &DeviceRelight<'_>) -> Option<Vec<DeviceAnswer>> {
+        None
+    }
+
+    fn solve_materials(
+        &self,
+        _scene: SceneRef<'_>,
+        _with: &WithMaterials<'_>,
+        _sources: (&[f32], &[f32]),
+        _k: usize,
+        _params: &SolveParams,
+    ) -> Option<MaterialsAnswer> {
         None
     }
 }

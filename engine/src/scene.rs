@@ -5,11 +5,14 @@
 //!
 //! In: a bundle folder (or an opened [`Bundle`]) and the [`Resources`] to relight with.
 //! Out: a [`Scene`] that [`crate::relight`] and [`crate::picture`] take; with material
-//! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ (S written on the CPU from its
-//! radial terms, on every backend). What the first translucency change would make (S's
-//! radial terms) can be made ahead of it: [`Scene::prepare_translucency`].
+//! overrides, [`Scene::materials_for`] gives S, ρ and Bₑ: S built on the CPU from its radial
+//! terms, and for a change that only moves profiles (a slider) written in place, on the CPU
+//! when a CPU stage first needs it ([`Scene::cpu_s`]), so a backend that writes those rows
+//! itself (the GPU's) is not kept waiting. What the first translucency change would make
+//! (S's radial terms) can be made ahead of it: [`Scene::prepare_translucency`].
 
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use glam::Vec3;
@@ -54,6 +57,14 @@ impl Resources {
     }
 }
 
+/// S for a translucency change written in place ([`Scene::rewrite_last`]), of the last
+/// S's layout: made on the CPU, or deferred (an earlier S and the objects whose rows in it
+/// are stale).
+enum Rewritten {
+    Made(smatrix::ScaledS, u64),
+    Deferred((smatrix::ScaledS, Vec<usize>), u64),
+}
+
 /// One bundle opened for relighting (see the module docs).
 #[derive(Debug)]
 pub struct Scene {
@@ -66,6 +77,8 @@ pub struct Scene {
     /// The materials of the last override set, so a client that keeps its overrides while
     /// moving lights pays for the S rebuild once.
     pub(crate) material_cache: Mutex<Option<(String, Arc<OverrideMaterials>)>>,
+    /// The next layout number of an S built afresh ([`OverrideMaterials::layout`]).
+    layouts: AtomicU64,
     /// S's entries reduced to radial terms, made by the first CPU rebuild of S and reused
     /// by every later one ([`crate::sterms`]).
     pub(crate) s_terms: OnceLock<STerms>,
@@ -110,13 +123,31 @@ impl Scene {
             return Ok(Some((m.clone(), false)));
         }
         let invalid = |e: smatrix::SError| EngineError::invalid(format!("materials: {e}"));
-        let ((values, columns), in_place) = match self.rewrite_last(&key, overrides) {
-            Some(s) => (s.map_err(invalid)?, true),
-            None => (
-                (self.build_s(&key, overrides)?, ColumnScale::default()),
-                false,
-            ),
+        let named = (key.clone(), overrides.to_vec());
+        let rho_be = self.albedo_emission(overrides);
+        let m = match self.rewrite_last(&key, overrides) {
+            Some(Ok(Rewritten::Made(s, layout))) => {
+                OverrideMaterials::made(named, s, rho_be, (true, layout))
+            }
+            Some(Ok(Rewritten::Deferred(base, layout))) => {
+                OverrideMaterials::deferred(named, base, rho_be, layout)
+            }
+            Some(Err(e)) => return Err(invalid(e)),
+            None => {
+                let s = (self.build_s(&key, overrides)?, ColumnScale::default());
+                let layout = self.layouts.fetch_add(1, Ordering::Relaxed);
+                OverrideMaterials::made(named, s, rho_be, (false, layout))
+            }
         };
+        let m = Arc::new(m);
+        if let Ok(mut cache) = self.material_cache.lock() {
+            *cache = Some((key, m.clone()));
+        }
+        Ok(Some((m, true)))
+    }
+
+    /// ρ and Bₑ per patch with `overrides` applied.
+    fn albedo_emission(&self, overrides: &[(usize, Material)]) -> (Vec<Rgb>, Vec<Rgb>) {
         let mut albedo = self.bundle.patch_albedo().to_vec();
         let mut emission = self.bundle.patch_emission().to_vec();
         for (k, m) in overrides {
@@ -133,19 +164,33 @@ impl Scene {
                 }
             }
         }
-        let m = Arc::new(OverrideMaterials {
-            key: key.clone(),
-            overrides: overrides.to_vec(),
-            values,
-            columns,
-            albedo,
-            emission,
-            in_place,
-        });
-        if let Ok(mut cache) = self.material_cache.lock() {
-            *cache = Some((key, m.clone()));
-        }
-        Ok(Some((m, true)))
+        (albedo, emission)
+    }
+
+    /// S of `m` on the CPU: made now when it was deferred (the changed objects' rows
+    /// written in place from their radial terms, [`smatrix::rewrite_with_terms_deferred`]).
+    pub fn cpu_s<'m>(&self, m: &'m OverrideMaterials) -> Result<&'m smatrix::ScaledS, EngineError> {
+        let rewrite = |(s, mut columns): smatrix::ScaledS, stale: &[usize]| {
+            let terms = self.s_terms.get().ok_or_else(|| smatrix::SError::Media {
+                object: "S".into(),
+                why: "its radial terms are not made".into(),
+            })?;
+            let mut scratch = self.s_scratch.lock().unwrap_or_else(|p| p.into_inner());
+            let (s, _) = smatrix::rewrite_with_terms_deferred(
+                &self.bundle,
+                s,
+                &mut columns,
+                &mut None,
+                &m.overrides,
+                stale,
+                &SParams::default(),
+                terms,
+                &mut scratch,
+            )?;
+            Ok((s, columns))
+        };
+        m.cpu_s(&rewrite)
+            .map_err(|e| EngineError::invalid(format!("materials: {e}")))
     }
 
     /// S for `overrides` built afresh on the CPU from the radial terms (on every backend).
@@ -254,20 +299,23 @@ impl Scene {
         });
     }
 
-    /// A translucency change since the last S built on the CPU (only translucent objects' or
-    /// thin sheets' profiles, or simulated objects' absorption, differ,
-    /// [`smatrix::changed_profiles`]): the last S with those objects' values rewritten in
-    /// place, taken from the cache (copied only while a relight still holds it), and the
-    /// simulated objects' lamp tilt with them (kept under `key` for [`Scene::tilt_for`]).
-    /// S comes as its values and the energy bound's column factors
-    /// ([`smatrix::rewrite_with_terms_deferred`]). `None` when S must be built afresh.
+    /// A translucency change since the last S (only translucent objects' or thin sheets'
+    /// profiles, or simulated objects' absorption, differ, [`smatrix::changed_profiles`]):
+    /// the last S, taken from the cache (copied only while a relight still holds it), with
+    /// those objects' values to be rewritten in place. Where only profiles summed from
+    /// radial terms changed, the rewrite is deferred to the first CPU consumer
+    /// ([`Scene::cpu_s`]), so a backend that writes those rows itself never waits for it;
+    /// where a simulated object's absorption changed it is made now, with the simulated
+    /// objects' lamp tilt (kept under `key` for [`Scene::tilt_for`]). S comes as its values
+    /// and the energy bound's column factors ([`smatrix::rewrite_with_terms_deferred`]).
+    /// `None` when S must be built afresh.
     fn rewrite_last(
         &self,
         key: &str,
         overrides: &[(usize, Material)],
-    ) -> Option<Result<smatrix::ScaledS, smatrix::SError>> {
+    ) -> Option<Result<Rewritten, smatrix::SError>> {
         let terms = self.s_terms.get()?;
-        let (last, changed, tilt) = {
+        let (last, changed, tilt, simulated) = {
             let mut cache = self.material_cache.lock().ok()?;
             let (_, m) = cache.as_ref()?;
             let changed = smatrix::changed_profiles(&m.overrides, overrides, terms)?;
@@ -294,12 +342,18 @@ impl Scene {
                 }),
                 _ => None,
             };
-            (m, changed, tilt)
+            (m, changed, tilt, simulated)
         };
-        let (s, mut columns) = match Arc::try_unwrap(last) {
-            Ok(m) => (m.values, m.columns),
-            Err(shared) => (shared.values.clone(), shared.columns.clone()),
-        };
+        let layout = last.layout;
+        let ((s, mut columns), mut stale) = OverrideMaterials::into_base(last)?;
+        for k in changed {
+            if !stale.contains(&k) {
+                stale.push(k);
+            }
+        }
+        if !simulated {
+            return Some(Ok(Rewritten::Deferred(((s, columns), stale), layout)));
+        }
         let params = SParams::default();
         let mut scratch = self.s_scratch.lock().unwrap_or_else(|p| p.into_inner());
         let (mut delta, rest) = match tilt {
@@ -316,7 +370,7 @@ impl Scene {
             &mut columns,
             &mut delta,
             overrides,
-            &changed,
+            &stale,
             &params,
             terms,
             &mut scratch,
@@ -332,7 +386,7 @@ impl Scene {
             }
         }
         match written {
-            Ok((s, _)) => Some(Ok((s, columns))),
+            Ok((s, _)) => Some(Ok(Rewritten::Made((s, columns), layout))),
             Err(e @ smatrix::SError::Pattern { .. }) => {
                 tracing::warn!(scene = %self.id, "S built again: {e}");
                 None
@@ -432,6 +486,7 @@ impl Scene {
             centroids,
             normals,
             material_cache: Mutex::new(None),
+            layouts: AtomicU64::new(0),
             tilt_cache: Mutex::new(None),
             slant_cache: Mutex::new(None),
             s_terms: OnceLock::new(),
@@ -495,6 +550,7 @@ impl Scene {
         SceneRef {
             id: &self.id,
             bundle: &self.bundle,
+            terms: self.s_terms.get(),
         }
     }
 
@@ -516,12 +572,8 @@ impl Scene {
             .lock()
             .ok()
             .and_then(|c| {
-                c.as_ref().map(|(_, m)| {
-                    let s = m.values.csr();
-                    (s.row_ptr.len() * 8 + s.col.len() * 4 + s.val.len() * 12) as u64
-                        + m.columns.bytes()
-                        + m.albedo.len() as u64 * 24
-                })
+                c.as_ref()
+                    .map(|(_, m)| m.s_bytes() + m.albedo.len() as u64 * 24)
             })
             .unwrap_or(0)
     }

@@ -20,7 +20,7 @@
 //! the sources i of S_ji), with a report per translucent object.
 
 use std::ops::Range;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use glam::Vec3;
@@ -1179,39 +1179,150 @@ impl ColumnScale {
 pub type ScaledS = (ValidCsr<[f32; 3]>, ColumnScale);
 
 /// S, ρ and Bₑ for a set of material overrides.
+///
+/// S's values are made on the CPU when it is built, or, for a change written in place
+/// ([`rewrite_with_terms`]), when a CPU consumer first asks ([`OverrideMaterials::cpu_s`]):
+/// a backend that writes S's changed rows itself (the GPU's) leaves the CPU's copy
+/// unwritten while it serves every relight with these materials.
 #[derive(Debug)]
 pub struct OverrideMaterials {
     /// The overrides, as JSON: which override set this is (the backend's key too).
     pub key: String,
     /// The overrides themselves (what a translucency change compares with).
     pub overrides: Vec<(usize, Material)>,
-    /// S's values: S itself is these times `columns`' factors ([`OverrideMaterials::s`]).
-    pub values: ValidCsr<[f32; 3]>,
-    /// The energy bound's column factors the values do not carry yet.
-    pub columns: ColumnScale,
     pub albedo: Vec<Rgb>,
     pub emission: Vec<Rgb>,
     /// S is the last override set's, with the profiles that changed written into it in
     /// place ([`rewrite_with_terms`]), not built afresh.
     pub in_place: bool,
+    /// S's layout: a number of its own for every S built afresh, kept by every change
+    /// written in place since (a device holding S of this layout writes only the changed
+    /// objects' rows).
+    pub layout: u64,
+    /// S's values and the energy bound's column factors they do not carry yet, once made
+    /// on the CPU.
+    cpu: OnceLock<ScaledS>,
+    /// Until then: the values of an earlier S of this layout and the objects whose rows
+    /// in them are not yet these overrides' (`None` once made, or after a failure).
+    pending: Mutex<Option<(ScaledS, Vec<usize>)>>,
 }
 
+/// S written in place for later overrides ([`OverrideMaterials::cpu_s`]): from an earlier
+/// S of the same layout and the objects to rewrite, S for these overrides.
+pub type RewriteS<'a> = &'a dyn Fn(ScaledS, &[usize]) -> Result<ScaledS, SError>;
+
 impl OverrideMaterials {
-    /// S's values as a view (no pass over it: S is valid by construction), and the column
-    /// factors S is those times (None: S is the values).
-    pub fn s_parts(&self) -> (CsrView<'_, [f32; 3]>, Option<&[Rgb]>) {
-        (self.values.view(), self.columns.factors())
+    /// Materials whose S is made: its values and column factors.
+    pub fn made(
+        (key, overrides): (String, Vec<(usize, Material)>),
+        s: ScaledS,
+        (albedo, emission): (Vec<Rgb>, Vec<Rgb>),
+        (in_place, layout): (bool, u64),
+    ) -> Self {
+        let cpu = OnceLock::new();
+        let _ = cpu.set(s);
+        OverrideMaterials {
+            key,
+            overrides,
+            albedo,
+            emission,
+            in_place,
+            layout,
+            cpu,
+            pending: Mutex::new(None),
+        }
     }
 
-    /// S itself: the values, or a copy scaled by the column factors when there are any
-    /// (for those that read S's entries: a device upload, a check).
-    pub fn s(&self) -> Result<std::borrow::Cow<'_, ValidCsr<[f32; 3]>>, CsrError> {
-        match self.columns.factors() {
-            None => Ok(std::borrow::Cow::Borrowed(&self.values)),
-            Some(_) => Ok(std::borrow::Cow::Owned(
-                self.columns.apply(self.values.clone())?,
-            )),
+    /// Materials whose S is `base` (an earlier S of this layout) with the rows of the
+    /// objects `stale` not yet written for these overrides.
+    pub fn deferred(
+        (key, overrides): (String, Vec<(usize, Material)>),
+        (base, stale): (ScaledS, Vec<usize>),
+        (albedo, emission): (Vec<Rgb>, Vec<Rgb>),
+        layout: u64,
+    ) -> Self {
+        OverrideMaterials {
+            key,
+            overrides,
+            albedo,
+            emission,
+            in_place: true,
+            layout,
+            cpu: OnceLock::new(),
+            pending: Mutex::new(Some((base, stale))),
         }
+    }
+
+    /// S on the CPU, made by `rewrite` on first use when it was deferred; an error when
+    /// that rewrite failed (now or before).
+    pub fn cpu_s(&self, rewrite: RewriteS<'_>) -> Result<&ScaledS, SError> {
+        if let Some(s) = self.cpu.get() {
+            return Ok(s);
+        }
+        let mut pending = self.pending.lock().unwrap_or_else(|p| p.into_inner());
+        // Made by a concurrent caller while this one waited.
+        if let Some(s) = self.cpu.get() {
+            return Ok(s);
+        }
+        let (base, stale) = pending.take().ok_or_else(|| SError::Media {
+            object: "S".into(),
+            why: "an earlier rewrite of these materials failed".into(),
+        })?;
+        let s = rewrite(base, &stale)?;
+        Ok(self.cpu.get_or_init(|| s))
+    }
+
+    /// S's values and column factors if made on the CPU.
+    pub fn made_s(&self) -> Option<&ScaledS> {
+        self.cpu.get()
+    }
+
+    /// What a change written in place after this one starts from: S's values and factors
+    /// (the CPU's, or the earlier S still pending) and the objects whose rows in them are
+    /// stale; taken from `this` when it is the only holder, copied otherwise (a relight
+    /// still reads it). `None` after a failed rewrite.
+    pub fn into_base(this: Arc<Self>) -> Option<(ScaledS, Vec<usize>)> {
+        match Arc::try_unwrap(this) {
+            Ok(m) => match m.cpu.into_inner() {
+                Some(s) => Some((s, Vec::new())),
+                None => m.pending.into_inner().unwrap_or_else(|p| p.into_inner()),
+            },
+            Err(shared) => match shared.cpu.get() {
+                Some(s) => Some((s.clone(), Vec::new())),
+                None => shared
+                    .pending
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .clone(),
+            },
+        }
+    }
+
+    /// Bytes held by S's values and factors (made or pending).
+    pub fn s_bytes(&self) -> u64 {
+        let of = |(v, c): &ScaledS| {
+            let s = v.csr();
+            (s.row_ptr.len() * 8 + s.col.len() * 4 + s.val.len() * 12) as u64 + c.bytes()
+        };
+        match self.cpu.get() {
+            Some(s) => of(s),
+            None => self
+                .pending
+                .lock()
+                .map(|p| p.as_ref().map_or(0, |(s, _)| of(s)))
+                .unwrap_or(0),
+        }
+    }
+}
+
+/// S itself from its values and column factors: the values, or a copy scaled by the
+/// factors when there are any (for those that read S's entries: a device upload, a check).
+pub fn scaled_s(
+    (values, columns): &ScaledS,
+) -> Result<std::borrow::Cow<'_, ValidCsr<[f32; 3]>>, CsrError> {
+    match columns.factors() {
+        None => Ok(std::borrow::Cow::Borrowed(values)),
+        Some(_) => Ok(std::borrow::Cow::Owned(columns.apply(values.clone())?)),
     }
 }
 

@@ -34,6 +34,12 @@
 //!
 //! The error is checked against the full quadrature at translucency scales ×0.25 to
 //! ×4 (`tests` below, and `precompute/tests/it/subsurface.rs` through a bundle).
+//!
+//! For a device that writes S itself (the server's GPU backend), [`ObjectTerms::flatten`]
+//! lays an object's entries, terms and links out as flat records ([`FlatTerms`], module
+//! `flat`), [`ObjectTerms::push_into`] maps them onto S with node rows pushed down to the
+//! patches, and [`ObjectTerms::factors_from_sums`] turns the sums the device adds up into
+//! the energy bound's factors, as `write` would.
 
 use std::ops::Range;
 
@@ -2150,7 +2156,7 @@ impl ObjectTerms {
     }
 
     /// The energy bound's factors of the object's columns from the sums a write adds up
-    /// (a device's write, [`flat`]): `column` holds each column's Σ_j A_j S_ji before the
+    /// (a device's write, [`FlatTerms`]): `column` holds each column's Σ_j A_j S_ji before the
     /// bound, `node` each linked node's e_k = Σ_j A_j R(r_jk) (as many as
     /// [`FlatTerms::nodes`]); `area` the object's patch areas. The factors
     /// [`ObjectTerms::write`] with [`Placement::defer_bound`] returns for the same values,

@@ -529,15 +529,19 @@ pub struct RelightStats {
     pub device: Option<DeviceStats>,
 }
 
-/// What a relight done whole on the GPU took ([`RelightStats::device`]).
+/// What a relight took on the GPU ([`RelightStats::device`]): done whole there, or solved
+/// there with S of its materials written there.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct DeviceStats {
-    /// Command submissions (1 when the iterations recorded up front sufficed).
+    /// Command submissions (1 for a whole relight when the iterations recorded up front
+    /// sufficed; a translucency change written on the device adds 2).
     pub submissions: u32,
-    /// Bytes the host wrote to the device (the lights, the solve's parameters).
+    /// Bytes the host wrote to the device (the lights, the solve's parameters; E and Bₑ, and
+    /// a translucency change's tables and factors, where S of the materials is written).
     pub bytes_up: u64,
-    /// Bytes read back (the vertex colours, the solve's counter and residual history).
+    /// Bytes read back (the vertex colours or B, the solve's counter and residual history,
+    /// a translucency change's column and node sums).
     pub bytes_down: u64,
 }
 

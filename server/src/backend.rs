@@ -25,9 +25,11 @@
 //! device refusing memory, or more than the budget (`--gpu-memory-mib`) — is served from
 //! the CPU, with a warning in the log and its reason in `/healthz`. The direct light (lamps
 //! and environments) runs on the device in a whole relight ([`crate::gpu::relight`]); for
-//! the other relights it stays on the CPU. A translucency change's S is written in place on the CPU, and
-//! the solves with it run there, warm from the last answer's kept products: uploading S
-//! anew for every change cost more than the solve (`docs/gpu.md`).
+//! the other relights it stays on the CPU. A `full` relight with material overrides solves
+//! on the device with S of those materials: uploaded from the CPU's S once per layout, then
+//! each translucency change (a slider) writes its changed objects' rows there from their
+//! radial terms ([`crate::gpu::sterms`]) and solves from the last answer on the device;
+//! other components with overrides take the CPU's S and stages.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -39,7 +41,10 @@ use crate::gpu::relight::DeviceRelight;
 use crate::gpu::{
     AdapterSummary, DenseData, GpuContext, GpuDense, GpuError, GpuOptions, GpuSystem,
 };
-use translux_engine::backend::{DeviceAnswer, SceneRef};
+use translux_engine::backend::{DeviceAnswer, MaterialsAnswer, SceneRef, WithMaterials};
+use translux_engine::sterms::STerms;
+
+use crate::gpu::sterms::{ChangeCounts, MaterialsOnDevice, Rewrite};
 use translux_engine::smatrix::OverrideMaterials;
 use translux_engine::vertexrows::VertexRows;
 
@@ -75,6 +80,9 @@ struct GpuScene {
     /// uploaded on the first one; `Err`: it did not fit (the engine's
     /// stages relight on the CPU and solve here).
     whole: Mutex<Option<Result<Arc<DeviceRelight>, String>>>,
+    /// S of the last material overrides solved here, kept for the next translucency
+    /// change, which writes its changed rows in place ([`MaterialsOnDevice`]).
+    materials: Mutex<Option<MaterialsOnDevice>>,
 }
 
 impl GpuScene {
@@ -87,7 +95,11 @@ impl GpuScene {
             Some(Some(Ok(w))) => w.bytes(),
             _ => 0,
         };
-        t + w + self.base.bytes()
+        let m = match self.materials.lock().ok().as_deref() {
+            Some(Some(m)) => m.bytes(),
+            _ => 0,
+        };
+        t + w + m + self.base.bytes()
     }
 
     /// The whole relight's buffers, uploaded on first use (a failure is logged once and
@@ -233,7 +245,7 @@ impl Backend {
                 let a = ctx.adapter();
                 format!(
                     "backend gpu: {} ({}, {}{}), one binding holds {} MiB; translucency \
-                     changes make S on the CPU",
+                     changes write S on the GPU",
                     a.name,
                     a.backend,
                     a.device_type,
@@ -356,6 +368,7 @@ impl Backend {
                     base: sys,
                     transfer: Mutex::new(None),
                     whole: Mutex::new(None),
+                    materials: Mutex::new(None),
                 });
                 scenes.insert(key, (scene.id.to_string(), Slot::Gpu(g.clone())));
                 Some(g)
@@ -539,15 +552,7 @@ impl translux_engine::backend::Backend for Backend {
                 let st = st.stats;
                 total = Some(match total {
                     None => st,
-                    Some(t) => SolveStats {
-                        iterations: t.iterations.max(st.iterations),
-                        products: t.products + st.products,
-                        residual: t.residual.max(st.residual),
-                        converged: t.converged && st.converged,
-                        warm: t.warm && st.warm,
-                        seconds: t.seconds + st.seconds,
-                        ..t
-                    },
+                    Some(t) => merge_stats(t, st),
                 });
             }
             Ok((x, total.expect("k > 0")))
@@ -602,6 +607,136 @@ impl translux_engine::backend::Backend for Backend {
             ),
             Err(e) => {
                 self.fail(ctx, scene, "relight", &e);
+                None
+            }
+        }
+    }
+
+    /// Solves with the relight's overridden materials on the device: S of their layout is
+    /// uploaded once from the CPU's, and each later translucency change writes its changed
+    /// objects' rows there from their radial terms ([`MaterialsOnDevice`]); each system
+    /// solves from the answer the last one left. `None`: on the CPU (CPU backend, no radial
+    /// terms yet, S does not fit, a device error, which is logged and leaves S to the CPU
+    /// until the next layout).
+    fn solve_materials(
+        &self,
+        scene: SceneRef<'_>,
+        with: &WithMaterials<'_>,
+        (e, be): (&[f32], &[f32]),
+        k: usize,
+        params: &SolveParams,
+    ) -> Option<MaterialsAnswer> {
+        let ctx = self.inner.gpu.as_ref()?;
+        let g = self.scene(scene)?;
+        let terms = scene.terms?;
+        let n = g.base.n();
+        if k == 0 || e.len() != n * 3 * k || be.len() != n * 3 * k {
+            return None;
+        }
+        let t0 = std::time::Instant::now();
+        let mut slot = g.materials.lock().unwrap_or_else(|p| p.into_inner());
+        let counts = self.materials_s(ctx, (scene, terms), &g, &mut slot, with)?;
+        let s_seconds = t0.elapsed().as_secs_f64();
+        let on = slot.as_ref()?;
+        let ch = 3 * k;
+        let column = |v: &[f32], q: usize| -> Vec<Rgb> {
+            (0..n)
+                .map(|j| std::array::from_fn(|c| v[j * ch + 3 * q + c]))
+                .collect()
+        };
+        let mut x = vec![0.0f32; n * ch];
+        let (mut stats, mut counts) = (None::<SolveStats>, counts);
+        for q in 0..k {
+            let run = on
+                .system
+                .solve_from_last(ctx, &column(be, q), &column(e, q), params);
+            let (b, st) = match run {
+                Ok(r) => r,
+                Err(err) => {
+                    tracing::warn!(scene = %scene.id, "the device's solve with the relight's materials failed, the CPU takes over: {err}");
+                    if let Some(m) = slot.take() {
+                        m.release(ctx);
+                    }
+                    return None;
+                }
+            };
+            for (j, v) in b.iter().enumerate() {
+                x[j * ch + 3 * q..j * ch + 3 * q + 3].copy_from_slice(v);
+            }
+            stats = Some(match stats {
+                None => st.stats,
+                Some(a) => merge_stats(a, st.stats),
+            });
+            counts.submissions += st.submissions;
+            counts.bytes_up += st.bytes_up;
+            counts.bytes_down += st.bytes_down;
+        }
+        let answer = MaterialsAnswer {
+            x,
+            stats: stats?,
+            s_seconds,
+            submissions: counts.submissions,
+            bytes_up: counts.bytes_up,
+            bytes_down: counts.bytes_down,
+        };
+        Some(answer)
+    }
+}
+
+/// Two solves' stats as one batch's: the most iterations and the worst residual, the
+/// products and seconds added.
+fn merge_stats(a: SolveStats, b: SolveStats) -> SolveStats {
+    SolveStats {
+        iterations: a.iterations.max(b.iterations),
+        products: a.products + b.products,
+        residual: a.residual.max(b.residual),
+        converged: a.converged && b.converged,
+        warm: a.warm && b.warm,
+        seconds: a.seconds + b.seconds,
+        ..a
+    }
+}
+
+impl Backend {
+    /// Brings the device's S of `slot` to `with`'s materials: the changed objects' rows
+    /// written in place where it holds their layout, else S uploaded afresh from the CPU's
+    /// (the last one's memory given back first). What crossed the bus; `None` when S stays
+    /// on the CPU (logged).
+    fn materials_s(
+        &self,
+        ctx: &GpuContext,
+        (scene, terms): (SceneRef<'_>, &STerms),
+        g: &GpuScene,
+        slot: &mut Option<MaterialsOnDevice>,
+        with: &WithMaterials<'_>,
+    ) -> Option<ChangeCounts> {
+        let m = with.materials;
+        if let Some(on) = slot.as_mut().filter(|on| on.layout == m.layout) {
+            match on.write(ctx, (scene, terms), &m.overrides) {
+                Ok(c) => return Some(c),
+                Err(Rewrite::Upload) => {}
+                Err(Rewrite::Failed(e)) => {
+                    tracing::warn!(scene = %scene.id, "a translucency change on the device failed, S is uploaded again: {e}");
+                }
+            }
+        }
+        if let Some(old) = slot.take() {
+            old.release(ctx);
+        }
+        let s = (with.cpu)()?;
+        let bytes = (s.view().nnz() * 16 + s.view().row_ptr().len() * 4) as u64;
+        match MaterialsOnDevice::upload(ctx, (scene, terms), &g.base, m, &s) {
+            Ok(on) => {
+                tracing::info!(scene = %scene.id, "S of the relight's materials on the GPU ({} MiB): translucency changes write it there", on.bytes() >> 20);
+                *slot = Some(on);
+                Some(ChangeCounts {
+                    submissions: 0,
+                    bytes_up: bytes,
+                    bytes_down: 0,
+                })
+            }
+            Err(e) => {
+                tracing::warn!(scene = %scene.id, "S of the relight's materials stays on the CPU: {e}");
                 None
             }
         }

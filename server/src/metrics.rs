@@ -12,7 +12,7 @@
 //! | `translux_compute_seconds` | histogram | — one batch's compute time |
 //! | `translux_batch_size` | histogram | — relights per batch |
 //! | `translux_solver_iterations` | histogram | — per relight |
-//! | `translux_gpu_submissions_total` | counter | — command submissions of relights done whole on the GPU |
+//! | `translux_gpu_submissions_total` | counter | — command submissions of relights with `stats.device` (done whole on the GPU, or S of their materials written there) |
 //! | `translux_gpu_transfer_bytes_total` | counter | `direction`: `up` (host to device), `down` (read back), for those relights |
 //! | `translux_ws_connections` | gauge | — open streams |
 //! | `translux_ws_frames_total` | counter | `format` |
@@ -51,7 +51,7 @@ pub struct Metrics {
     pub mapped_bytes: IntGauge,
     /// GPU bytes held by the scenes (0 on the CPU backend).
     pub gpu_bytes: IntGauge,
-    /// Submissions of the relights done whole on the GPU.
+    /// Submissions of the relights with `stats.device`.
     pub gpu_submissions: IntCounter,
     /// Bytes those relights moved, by `direction` (`up`, `down`).
     pub gpu_transfer: IntCounterVec,
@@ -232,7 +232,7 @@ impl Metrics {
                 &registry,
                 IntCounter::new(
                     "translux_gpu_submissions_total",
-                    "Command submissions of the relights done whole on the GPU.",
+                    "Command submissions of the relights done on the GPU (whole, or S of their materials written there).",
                 )
                 .expect("valid counter"),
             ),
@@ -241,7 +241,7 @@ impl Metrics {
                 IntCounterVec::new(
                     Opts::new(
                         "translux_gpu_transfer_bytes_total",
-                        "Bytes the relights done whole on the GPU wrote (up) and read back (down).",
+                        "Bytes the relights done on the GPU wrote (up) and read back (down).",
                     ),
                     &["direction"],
                 )

@@ -48,6 +48,10 @@ pub(super) fn answer(
     }
     let ts = done.stats;
     let solve_ms = done.solve_ms;
+    // Where S was written (the CPU, or the backend that wrote it and solved), and the time
+    // the transport spent on it, taken out of the solve's.
+    let on = ts.device.map_or("cpu", |(on, _)| on);
+    let s_ms = ts.materials_ms.min(solve_ms);
     let stats = RelightStats {
         solver: ts.solver.to_string(),
         components: plan.components,
@@ -56,16 +60,16 @@ pub(super) fn answer(
         converged: ts.converged,
         ms: p.direct_ms + p.materials_ms + solve_ms,
         direct_ms: p.direct_ms,
-        solve_ms,
-        materials_ms: p.materials_ms,
-        materials_on: p.materials.as_ref().map(|_| "cpu".to_string()),
+        solve_ms: solve_ms - s_ms,
+        materials_ms: p.materials_ms + s_ms,
+        materials_on: p.materials.as_ref().map(|_| on.to_string()),
         lights: plan.lights.len(),
         products: ts.products,
         warm: ts.warm,
         batch: done.batch,
         note: p.note.clone(),
         auto_exposure,
-        device: None,
+        device: ts.device.map(|d| d.1),
     };
     Ok(RelightOutput { radiance, stats })
 }

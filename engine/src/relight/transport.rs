@@ -6,10 +6,11 @@
 
 use std::borrow::Cow;
 
-use translux_proto::api::Components;
+use translux_proto::api::{Components, DeviceStats};
 use translux_proto::scene::Material;
 
 use super::prepare::Prepared;
+use crate::backend::WithMaterials;
 use crate::collimated::{Tilt, TiltOf};
 use crate::error::EngineError;
 use crate::inverse;
@@ -26,6 +27,13 @@ pub(super) struct TransportStats {
     pub(super) residual: f32,
     pub(super) converged: bool,
     pub(super) warm: bool,
+    /// Milliseconds spent writing S for the group's materials within the transport (a
+    /// translucency change deferred to its first use, [`Scene::cpu_s`], or written by the
+    /// backend).
+    pub(super) materials_ms: f64,
+    /// Where the backend wrote S for the materials and solved with it: its name and what
+    /// crossed the bus; `None` on the CPU.
+    pub(super) device: Option<(&'static str, DeviceStats)>,
 }
 
 impl TransportStats {
@@ -38,6 +46,8 @@ impl TransportStats {
             residual: 0.0,
             converged: true,
             warm: false,
+            materials_ms: 0.0,
+            device: None,
         }
     }
 }
@@ -52,14 +62,28 @@ pub(super) fn transport(
     preps: &[&Prepared],
     n: usize,
 ) -> Result<(Vec<f32>, TransportStats), EngineError> {
+    if let Some(done) = on_backend(scene, components, params, first, preps, n) {
+        return Ok(done);
+    }
     // The group's operators: S and P = diag ρ̄ under its materials, and F.
     let b = &scene.bundle;
     let (albedo, emission) = match &first.materials {
         Some(m) => (m.albedo.as_slice(), m.emission.as_slice()),
         None => (b.patch_albedo(), b.patch_emission()),
     };
+    // S for the materials, written here when it was deferred (its time is S's, not the
+    // solve's).
+    let ts = std::time::Instant::now();
+    let mut materials_ms = 0.0;
     let (s_view, columns) = match &first.materials {
-        Some(m) => m.s_parts(),
+        Some(m) => {
+            let deferred = m.made_s().is_none();
+            let (values, columns) = scene.cpu_s(m)?;
+            if deferred {
+                materials_ms = ts.elapsed().as_secs_f64() * 1e3;
+            }
+            (values.view(), columns.factors())
+        }
         None => (b.subsurface(), None),
     };
     let s = crate::transport::subsurface_operator_scaled(b, s_view, columns);
@@ -82,11 +106,59 @@ pub(super) fn transport(
     let mut src = Sources::stack(preps, emission, n);
     src.y = sys.collimated(preps);
     // The path: no solve, T, or the solver from the kept start (keeping the next one's).
-    match route(components, first.use_t) {
-        Route::None => Ok((sys.without_solve(&src), TransportStats::none())),
-        Route::Transfer => sys.through_t(&src),
-        Route::Solve => sys.iterate(&src),
+    let (x, mut stats) = match route(components, first.use_t) {
+        Route::None => (sys.without_solve(&src), TransportStats::none()),
+        Route::Transfer => sys.through_t(&src)?,
+        Route::Solve => sys.iterate(&src)?,
+    };
+    stats.materials_ms = materials_ms;
+    Ok((x, stats))
+}
+
+/// The full transport of a group with overridden materials where the backend writes their
+/// S and solves with it (the GPU's, [`crate::backend::Backend::solve_materials`]): radiosity
+/// `[patch][k·3]`, or `None` to transport here (another backend; other components, T, or
+/// simulated objects' collimated light, which the CPU's stages add).
+fn on_backend(
+    scene: &Scene,
+    components: Components,
+    params: &SolveParams,
+    first: &Prepared,
+    preps: &[&Prepared],
+    n: usize,
+) -> Option<(Vec<f32>, TransportStats)> {
+    let m = first.materials.as_ref()?;
+    let collimated = first.collimated.is_some() || first.slant.is_some();
+    if components != Components::Full || first.use_t || collimated || first.lamp_walks.is_some() {
+        return None;
     }
+    let src = Sources::stack(preps, &m.emission, n);
+    let cpu = || {
+        let s = scene.cpu_s(m).ok()?;
+        crate::smatrix::scaled_s(s).ok()
+    };
+    let with = WithMaterials {
+        materials: m,
+        cpu: &cpu,
+    };
+    let backend = scene.backend();
+    let a = backend.solve_materials(scene.view(), &with, (&src.e, &src.be), preps.len(), params)?;
+    let device = DeviceStats {
+        submissions: a.submissions,
+        bytes_up: a.bytes_up,
+        bytes_down: a.bytes_down,
+    };
+    let stats = TransportStats {
+        solver: a.stats.method.as_str(),
+        iterations: a.stats.iterations,
+        products: a.stats.products,
+        residual: a.stats.residual,
+        converged: a.stats.converged,
+        warm: a.stats.warm,
+        materials_ms: a.s_seconds * 1e3,
+        device: Some((backend.name(), device)),
+    };
+    Some((a.x, stats))
 }
 
 /// Which way a group's transport goes.
@@ -297,6 +369,8 @@ impl System<'_> {
                 residual: more.map_or(0.0, |m| m.residual),
                 converged: more.is_none_or(|m| m.converged),
                 warm: false,
+                materials_ms: 0.0,
+                device: None,
             },
         ))
     }
@@ -337,6 +411,8 @@ impl System<'_> {
                 residual: st.residual,
                 converged: st.converged,
                 warm: st.warm,
+                materials_ms: 0.0,
+                device: None,
             },
         ))
     }

@@ -104,6 +104,13 @@ pub struct FlatTerms {
     /// Patches (local columns) and linked nodes.
     pub n: usize,
     pub nodes: usize,
+    /// With node rows pushed down to the patches ([`ObjectTerms::push_into`]): each value
+    /// of the object's rows of the pushed S is the sum of
+    /// `push_items[push_ptr[e]..push_ptr[e + 1]]`'s values, and `runs` place the pushed
+    /// values (`pushed` of them) in S. Empty without node rows: `runs` place the values.
+    pub push_ptr: Vec<u32>,
+    pub push_items: Vec<u32>,
+    pub pushed: usize,
 }
 
 /// A profile's table as [`TermTable`] reads it: R's cells, a zero cell, W's cells and W's
@@ -204,6 +211,88 @@ impl ObjectTerms {
         f.values = value as usize;
         self.flat_gathers(&mut f);
         Ok(f)
+    }
+
+    /// `f` (flattened against S with its node rows) made to write S with those rows pushed
+    /// down to the patches (`transport::push_node_rows`, `pushed` of N × (N + M)): each
+    /// pushed value of the object's patch rows as the sum of the values it gathers, and
+    /// `f.runs` placing them. Nothing changes without node rows. An error (the first row of
+    /// S that differs) when `pushed`'s rows are not the object's rows with its node rows
+    /// added (another object's node row reaches its patches, or S was pushed from other
+    /// terms).
+    pub fn push_into(
+        &self,
+        f: &mut FlatTerms,
+        at: Placement<'_>,
+        pushed: &translux_proto::csr::CsrView<'_, [f32; 3]>,
+    ) -> Result<(), usize> {
+        let n = f.n;
+        let Some(nodes) = at.nodes.filter(|_| !self.recv.is_empty()) else {
+            return Ok(());
+        };
+        // The object's node rows (as rows of `f`) holding each of its patches.
+        let mut holders: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (x, &m) in self.recv.iter().enumerate() {
+            let [a, b] = nodes.range[m as usize];
+            for &p in &nodes.perm[a as usize..b as usize] {
+                let j = (p as usize).wrapping_sub(at.start);
+                let h = holders.get_mut(j).ok_or(at.n + m as usize)?;
+                h.push(n + x);
+            }
+        }
+        let mut push_ptr = vec![0u32];
+        let mut items: Vec<u32> = Vec::new();
+        let row_ptr = pushed.row_ptr();
+        for (j, held) in holders.iter().enumerate() {
+            // (column, value) of the row and of the node rows holding it, by column.
+            let mut all: Vec<(u32, u32)> = Vec::new();
+            for r in std::iter::once(j).chain(held.iter().copied()) {
+                all.extend(self.row_values(f, r, at));
+            }
+            all.sort_unstable();
+            let (cols, _) = pushed.row(at.start + j);
+            let mut at_col = 0usize;
+            for group in all.chunk_by(|a, b| a.0 == b.0) {
+                if cols.get(at_col) != Some(&group[0].0) {
+                    return Err(at.start + j);
+                }
+                items.extend(group.iter().map(|g| g.1));
+                push_ptr.push(items.len() as u32);
+                at_col += 1;
+            }
+            if at_col != cols.len() {
+                return Err(at.start + j);
+            }
+        }
+        let first = row_ptr[at.start];
+        f.pushed = (row_ptr[at.start + n] - first) as usize;
+        f.runs = Vec::new();
+        push_run(&mut f.runs, first, 0, f.pushed as u32);
+        f.push_ptr = push_ptr;
+        f.push_items = items;
+        Ok(())
+    }
+
+    /// Row r of `f` (a patch's, or a node row's) as (S's column, its value's index).
+    fn row_values<'f>(
+        &'f self,
+        f: &'f FlatTerms,
+        r: usize,
+        at: Placement<'f>,
+    ) -> impl Iterator<Item = (u32, u32)> + 'f {
+        let row = f.rows[r];
+        let entries = (row.entries[0]..row.entries[1]).map(move |e| {
+            (
+                at.start as u32 + f.entries[e as usize].src,
+                row.value + e - row.entries[0],
+            )
+        });
+        let links = (row.links[0]..row.links[1]).map(move |l| {
+            let link = &f.links[l as usize];
+            let k = (link.node & !(OPPOSITE | TWO)) as usize + self.links.nodes.start;
+            ((at.n + k) as u32, link.value)
+        });
+        entries.chain(links)
     }
 
     /// Row j's place (a patch's for j < n, node row j − n's after): the links it reads

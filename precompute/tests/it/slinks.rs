@@ -585,13 +585,19 @@ fn compare(c: &Case<'_>, seed: u64) -> usize {
                 eprintln!(
                     "{} ×4 relit in place, {} columns scaled by factors S's values leave out",
                     mh.name,
-                    m.columns
+                    scene
+                        .cpu_s(&m)
+                        .unwrap()
+                        .1
                         .factors()
                         .map_or(0, |f| f.iter().filter(|f| **f != [1.0; 3]).count())
                 );
                 // (The scene's translucency changes make node-to-node links, θ_r by default.)
                 assert!(
-                    m.s().unwrap().csr() == &s_nodes,
+                    translux_engine::smatrix::scaled_s(scene.cpu_s(&m).unwrap())
+                        .unwrap()
+                        .csr()
+                        == &s_nodes,
                     "the scene's S in place differs from afresh"
                 );
                 let want = vertices(hier, &s_nodes, &lights);

@@ -159,11 +159,12 @@ pub struct Kernels {
     pub(crate) vertex_colours: wgpu::ComputePipeline,
     pub(crate) env_irradiance: wgpu::ComputePipeline,
     /// `s_terms` by its `STAGE`: the rows' values, the column sums, the node sums, the
-    /// scaling by the energy bound's factors.
+    /// scaling by the energy bound's factors, the node rows pushed to the patches.
     pub(crate) s_write: wgpu::ComputePipeline,
     pub(crate) s_column_sums: wgpu::ComputePipeline,
     pub(crate) s_node_sums: wgpu::ComputePipeline,
     pub(crate) s_scale: wgpu::ComputePipeline,
+    pub(crate) s_push: wgpu::ComputePipeline,
     /// `dense_matmul_rgb` by (f16 storage, vector lanes), built on first use.
     dense_variants: Mutex<HashMap<(bool, u32), wgpu::ComputePipeline>>,
 }
@@ -231,7 +232,9 @@ impl Kernels {
             device,
             "s_terms",
             S_TERMS,
-            &[Read, Read, Read, Read, Read, Read, ReadWrite, ReadWrite],
+            &[
+                Read, Read, Read, Read, Read, Read, ReadWrite, ReadWrite, ReadWrite,
+            ],
         );
         let stage = |k: f64| s_terms.pipeline(device, &[("STAGE", k)]);
         Kernels {
@@ -239,6 +242,7 @@ impl Kernels {
             s_column_sums: stage(1.0),
             s_node_sums: stage(2.0),
             s_scale: stage(3.0),
+            s_push: stage(4.0),
             spmv_scalar: spmv.pipeline(device, &[("VAL_RGB", 0.0)]),
             spmv_rgb: spmv.pipeline(device, &[("VAL_RGB", 1.0)]),
             spmv_scalar_batch: spmv.pipeline(device, &[("VAL_RGB", 0.0), ("KV", BATCH as f64)]),

@@ -8,13 +8,23 @@
 //! `ObjectTerms::write` makes them on the CPU (its twin), to f32 rounding.
 //!
 //! A change is two submissions: the values and the sums, whose (n + nodes) × 16 bytes are
-//! read back for the bound; then the factors up, the scaling and the copies into S.
+//! read back for the bound (taken on the host, by the engine's own rule); then the factors
+//! up, the scaling, the node rows pushed down to the patches where S has them, and the
+//! copies into S.
+//!
+//! [`MaterialsOnDevice`] is what the backend keeps per scene: S of the last material
+//! overrides as a system beside the scene's F, and the objects a slider's change rewrites.
 
+use translux_engine::backend::SceneRef;
 use translux_engine::radiosity::Rgb;
-use translux_engine::sterms::{ColumnFactors, FlatTable, FlatTerms, ValueRun};
+use translux_engine::smatrix::{self, OverrideMaterials, PatchGeometry, SParams};
+use translux_engine::sterms::{ColumnFactors, FlatTable, FlatTerms, STerms, ValueRun};
+use translux_engine::transport::push_node_rows;
+use translux_proto::csr::ValidCsr;
+use translux_proto::scene::Material;
 
 use super::matrix::{alloc_size, staging, storage_init, storage_zeroed, uniform};
-use super::{GpuContext, GpuCsr, GpuError, grid};
+use super::{GpuContext, GpuCsr, GpuError, GpuSystem, grid};
 
 /// `s_terms.wgsl`'s `Table`.
 #[repr(C)]
@@ -41,6 +51,10 @@ struct Params {
     node_ptr: u32,
     column_items: u32,
     node_items: u32,
+    push_ptr: u32,
+    push_items: u32,
+    pushed: u32,
+    _pad: u32,
     same: TableParams,
     other: TableParams,
 }
@@ -60,6 +74,9 @@ pub struct GpuObjectTerms {
     gather: wgpu::Buffer,
     sums: wgpu::Buffer,
     values: wgpu::Buffer,
+    /// The values of S with node rows pushed to the patches (a stand-in of 16 bytes
+    /// without node rows).
+    pushed: wgpu::Buffer,
     sums_read: wgpu::Buffer,
     groups: (u32, u32),
     runs: Vec<ValueRun>,
@@ -90,7 +107,8 @@ impl GpuObjectTerms {
         ];
         let bytes = arrays.iter().map(|&b| alloc_size(b)).sum::<u64>()
             + 2 * alloc_size(sums_len)
-            + alloc_size(12 * flat.values as u64);
+            + alloc_size(12 * flat.values as u64)
+            + alloc_size(12 * flat.pushed as u64);
         for b in arrays {
             if b > ctx.adapter().max_binding_bytes {
                 return Err(GpuError::MatrixTooLarge {
@@ -102,7 +120,8 @@ impl GpuObjectTerms {
         }
         ctx.reserve(what, bytes)?;
         let (n, nodes) = (flat.n as u32, flat.nodes as u32);
-        let threads = (flat.rows.len() as u32).max(n).max(nodes);
+        let pushed = flat.pushed as u32;
+        let threads = (flat.rows.len() as u32).max(n).max(nodes).max(pushed);
         let groups = grid(threads.div_ceil(WG));
         let base = Params {
             rows: flat.rows.len() as u32,
@@ -113,6 +132,18 @@ impl GpuObjectTerms {
             node_ptr: n + 1,
             column_items: n + 1 + nodes + 1,
             node_items: n + 1 + nodes + 1 + 2 * flat.column_items.len() as u32,
+            push_ptr: n
+                + 1
+                + nodes
+                + 1
+                + 2 * (flat.column_items.len() + flat.node_items.len()) as u32,
+            push_items: n
+                + 1
+                + nodes
+                + 1
+                + 2 * (flat.column_items.len() + flat.node_items.len()) as u32
+                + flat.push_ptr.len() as u32,
+            pushed,
             ..Default::default()
         };
         let made = ctx.scoped(|| {
@@ -126,6 +157,7 @@ impl GpuObjectTerms {
                 gather: storage_init(ctx, what, bytemuck::cast_slice(&gather)),
                 sums: storage_zeroed(ctx, what, sums_len),
                 values: storage_zeroed(ctx, what, 12 * flat.values as u64),
+                pushed: storage_zeroed(ctx, what, 12 * flat.pushed as u64),
                 sums_read: staging(ctx, what, sums_len),
                 groups,
                 runs: flat.runs.clone(),
@@ -208,8 +240,17 @@ impl GpuObjectTerms {
                 pass.set_bind_group(0, &bind, &[]);
                 pass.set_pipeline(&k.s_scale);
                 pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+                if self.base.pushed > 0 {
+                    pass.set_pipeline(&k.s_push);
+                    pass.dispatch_workgroups(self.groups.0, self.groups.1, 1);
+                }
             }
-            s.copy_values_in(&mut enc, &self.values, &self.runs);
+            let from = if self.base.pushed > 0 {
+                &self.pushed
+            } else {
+                &self.values
+            };
+            s.copy_values_in(&mut enc, from, &self.runs);
             ctx.queue.submit([enc.finish()]);
             counts.submissions = 2;
             Ok(())
@@ -255,6 +296,7 @@ impl GpuObjectTerms {
                 &self.gather,
                 &self.sums,
                 &self.values,
+                &self.pushed,
             ],
         )
     }
@@ -271,11 +313,165 @@ fn gather_of(flat: &FlatTerms) -> Vec<u32> {
     let mut g = Vec::with_capacity(
         flat.column_ptr.len()
             + flat.node_ptr.len()
-            + 2 * (flat.column_items.len() + flat.node_items.len()),
+            + 2 * (flat.column_items.len() + flat.node_items.len())
+            + flat.push_ptr.len()
+            + flat.push_items.len(),
     );
     g.extend(&flat.column_ptr);
     g.extend(&flat.node_ptr);
     g.extend(flat.column_items.iter().flatten());
     g.extend(flat.node_items.iter().flatten());
+    g.extend(&flat.push_ptr);
+    g.extend(&flat.push_items);
     g
+}
+
+/// S of a set of material overrides on the device ([`crate::backend`]'s solves with
+/// overridden materials): a system over the scene's F with K = that S, the radial terms of
+/// the objects a change rewrites there, and the overrides its values hold. A change that
+/// only moves those objects' profiles (a translucency slider) is written in place
+/// ([`MaterialsOnDevice::write`]); anything else is uploaded afresh from the CPU's S.
+#[derive(Debug)]
+pub struct MaterialsOnDevice {
+    /// The CPU's S layout it was uploaded from ([`OverrideMaterials::layout`]).
+    pub layout: u64,
+    pub system: GpuSystem,
+    /// The objects whose rows a change writes here, by object index.
+    objects: Vec<(usize, GpuObjectTerms)>,
+    /// The overrides S's values are for.
+    written: Vec<(usize, Material)>,
+    geometry: PatchGeometry,
+}
+
+/// Why S could not be written in place: it is uploaded afresh instead.
+#[derive(Debug)]
+pub enum Rewrite {
+    /// Something other than the profiles of objects held here changed.
+    Upload,
+    Failed(GpuError),
+}
+
+impl MaterialsOnDevice {
+    /// `s` (S for `m`, made on the CPU) as K beside `base`'s F, and the radial terms of
+    /// every overridden translucent object and thin sheet whose rows `s` lays out as its
+    /// terms do (the others are uploaded afresh when they change).
+    pub fn upload(
+        ctx: &GpuContext,
+        (scene, terms): (SceneRef<'_>, &STerms),
+        base: &GpuSystem,
+        m: &OverrideMaterials,
+        s: &ValidCsr<Rgb>,
+    ) -> Result<Self, GpuError> {
+        // S's node rows pushed down to the patches (the device multiplies patch rows alone).
+        let pushed = match scene.bundle.tree().filter(|_| s.view().n_rows() > base.n()) {
+            Some(tree) => Some(
+                push_node_rows(s.view(), tree)
+                    .and_then(ValidCsr::new)
+                    .map_err(|e| GpuError::Invalid(format!("{}: S's node rows: {e}", scene.id)))?,
+            ),
+            None => None,
+        };
+        let device_s = pushed.as_ref().unwrap_or(s);
+        let system = base.with_s(
+            ctx,
+            &format!("{} S of its materials", scene.id),
+            &device_s.view(),
+        )?;
+        let geometry = smatrix::bundle_geometry(scene.bundle);
+        let mut objects = Vec::new();
+        for (k, material) in &m.overrides {
+            let sheet = match material {
+                Material::Translucent { .. } => false,
+                Material::ThinSheet { .. } => true,
+                _ => continue,
+            };
+            let (Some(t), Some((area, at))) = (
+                terms.get(*k, sheet),
+                smatrix::object_placement(scene.bundle, &geometry, *k),
+            ) else {
+                continue;
+            };
+            let Ok(mut flat) = t.flatten(area, at, s.view().row_ptr()) else {
+                continue;
+            };
+            if let Some(p) = &pushed
+                && t.push_into(&mut flat, at, &p.view()).is_err()
+            {
+                continue;
+            }
+            let what = format!("{} object {k}", scene.id);
+            match GpuObjectTerms::upload(ctx, &what, &flat) {
+                Ok(o) => objects.push((*k, o)),
+                Err(e) => {
+                    for (_, o) in objects {
+                        o.release(ctx);
+                    }
+                    system.release(ctx);
+                    return Err(e);
+                }
+            }
+        }
+        Ok(MaterialsOnDevice {
+            layout: m.layout,
+            system,
+            objects,
+            written: m.overrides.clone(),
+            geometry,
+        })
+    }
+
+    /// Bytes held on the device (its K and vectors, and the objects' terms).
+    pub fn bytes(&self) -> u64 {
+        self.system.own_bytes() + self.objects.iter().map(|(_, o)| o.bytes()).sum::<u64>()
+    }
+
+    /// Writes the rows of the objects whose profiles differ between the overrides held and
+    /// `overrides` (of this layout) from their radial terms, as the CPU's
+    /// `smatrix::rewrite_with_terms` would; what crossed the bus. [`Rewrite::Upload`] when
+    /// anything else differs.
+    pub fn write(
+        &mut self,
+        ctx: &GpuContext,
+        (scene, terms): (SceneRef<'_>, &STerms),
+        overrides: &[(usize, Material)],
+    ) -> Result<ChangeCounts, Rewrite> {
+        let changed =
+            smatrix::changed_profiles(&self.written, overrides, terms).ok_or(Rewrite::Upload)?;
+        let params = SParams::default();
+        let mut counts = ChangeCounts::default();
+        for k in changed {
+            let sheet = matches!(
+                overrides.iter().find(|(o, _)| *o == k),
+                Some((_, Material::ThinSheet { .. }))
+            );
+            let (Some(t), Some((_, dev))) = (
+                terms.get(k, sheet),
+                self.objects.iter().find(|(o, _)| *o == k),
+            ) else {
+                return Err(Rewrite::Upload);
+            };
+            let (area, at) = smatrix::object_placement(scene.bundle, &self.geometry, k)
+                .ok_or(Rewrite::Upload)?;
+            let (same, other) = smatrix::object_flat_tables(scene.bundle, overrides, k, &params)
+                .map_err(|_| Rewrite::Upload)?;
+            let c = dev
+                .write(ctx, self.system.k(), (&same, &other), |column, node| {
+                    t.factors_from_sums(area, at, column, node)
+                })
+                .map_err(Rewrite::Failed)?;
+            counts.submissions += c.submissions;
+            counts.bytes_up += c.bytes_up;
+            counts.bytes_down += c.bytes_down;
+        }
+        self.written = overrides.to_vec();
+        Ok(counts)
+    }
+
+    /// Gives its memory back to the budget.
+    pub fn release(self, ctx: &GpuContext) {
+        for (_, o) in self.objects {
+            o.release(ctx);
+        }
+        self.system.release(ctx);
+    }
 }

@@ -732,6 +732,24 @@ impl GpuSystem {
         }
     }
 
+    /// A system over this one's F with K = `s` (a material override's S, laid out as the
+    /// scene's: n × n, or n × (n + nodes) over F's cluster tree), sized like this one; on
+    /// failure its bytes are returned to the budget.
+    pub fn with_s(
+        &self,
+        ctx: &GpuContext,
+        what: &str,
+        s: &CsrView<'_, Rgb>,
+    ) -> Result<GpuSystem, GpuError> {
+        let k = GpuCsr::upload_rgb(ctx, what, s)?;
+        Self::with_f(ctx, what, (self.f.clone(), k), None, self.capacity - 2)
+    }
+
+    /// K, the system's own operator (S, or P = diag ρ).
+    pub fn k(&self) -> &GpuCsr {
+        &self.s
+    }
+
     /// A system over this one's F with K = diag(`diagonal`) (P = diag ρ: the transport with
     /// translucent objects opaque) and this one's S beside it for the heuristics' right-hand
     /// sides, sized like this one; on failure its bytes are returned to the budget.
@@ -836,6 +854,34 @@ impl GpuSystem {
         params: &SolveParams,
         warm: Option<&[Rgb]>,
     ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
+        self.solve_from(ctx, (emission, irradiance), params, self.host_start(warm))
+    }
+
+    /// [`Self::solve`] started from the answer the last solve left on the device (cold, from
+    /// b, before the first).
+    pub fn solve_from_last(
+        &self,
+        ctx: &GpuContext,
+        emission: &[Rgb],
+        irradiance: &[Rgb],
+        params: &SolveParams,
+    ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
+        let start = if self.one.holds_answer() {
+            Input::OnDevice
+        } else {
+            Input::Absent
+        };
+        self.solve_from(ctx, (emission, irradiance), params, start)
+    }
+
+    /// B = Bₑ + S(E + F B) from `start`.
+    fn solve_from(
+        &self,
+        ctx: &GpuContext,
+        (emission, irradiance): (&[Rgb], &[Rgb]),
+        params: &SolveParams,
+        start: Input<'_>,
+    ) -> Result<(Vec<Rgb>, GpuSolveStats), GpuError> {
         let n = self.n;
         if emission.len() != n || irradiance.len() != n {
             return Err(GpuError::Invalid(format!(
@@ -847,7 +893,7 @@ impl GpuSystem {
         let job = Job {
             e: Input::Host(irradiance),
             be: Input::Host(emission),
-            warm: self.host_start(warm),
+            warm: start,
             before: None,
             rhs: Rhs::Own,
             after: None,

@@ -6,6 +6,7 @@ use std::cell::RefCell;
 
 use translux_engine::smatrix::{self, SParams};
 use translux_engine::sterms::Scratch;
+use translux_engine::transport::push_node_rows;
 use translux_proto::csr::ValidCsr;
 use translux_proto::scene::{Material, Profile};
 use translux_server::gpu::sterms::GpuObjectTerms;
@@ -42,7 +43,8 @@ fn exponential(energy: [f32; 3], b: f32) -> Material {
 /// bound scales columns and the links' nodes —
 /// on the device from S as it was, equals the CPU's rewrite entry for entry (within f32
 /// rounding: the device adds the bound's sums in another order), every other object's
-/// values untouched; with S in one block and split over many (a 4 KiB binding).
+/// values untouched; with S in one block and split over many (a 4 KiB binding); and with
+/// S's node rows pushed down to the patches, as the GPU backend holds it.
 #[test]
 fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
     let contexts: Vec<&GpuContext> = [crate::support::gpu(), tiny()]
@@ -73,10 +75,21 @@ fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
         flat.rows.iter().any(|r| r.local == u32::MAX),
         "the block has node rows"
     );
+    // The same S with its node rows pushed down to the patches, as the GPU backend holds it.
+    let tree = b.tree().unwrap();
+    let push =
+        |s: &ValidCsr<[f32; 3]>| ValidCsr::new(push_node_rows(s.view(), tree).unwrap()).unwrap();
+    let start_pushed = push(&start);
+    let mut flat_pushed = flat.clone();
+    t.push_into(&mut flat_pushed, at, &start_pushed.view())
+        .unwrap();
+    assert!(flat_pushed.pushed > 0, "the block has node rows to push");
     let (mut scaled_columns, mut scaled_nodes) = (0, 0);
     for ctx in contexts {
         let s = GpuCsr::upload_rgb(ctx, "S", &start.view()).unwrap();
         let dev = GpuObjectTerms::upload(ctx, "block", &flat).unwrap();
+        let sp = GpuCsr::upload_rgb(ctx, "pushed S", &start_pushed.view()).unwrap();
+        let dev_pushed = GpuObjectTerms::upload(ctx, "block pushed", &flat_pushed).unwrap();
         let materials = [
             marble(8.0),
             marble(2.0),
@@ -114,10 +127,26 @@ fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
             scaled_nodes += n;
             assert_eq!(counts.submissions, 2);
             let got = s.read_values(ctx).unwrap();
-            let want: Vec<f32> = want.view().val().iter().flatten().copied().collect();
-            compare(&format!("material {x}"), &got, &want);
+            let flat_values = |m: &ValidCsr<[f32; 3]>| -> Vec<f32> {
+                m.view().val().iter().flatten().copied().collect()
+            };
+            compare(&format!("material {x}"), &got, &flat_values(&want));
+            let bound = |column: &[[f32; 3]], node: &[[f32; 3]]| {
+                t.factors_from_sums(area, at, column, node)
+            };
+            dev_pushed
+                .write(ctx, &sp, (&tables.0, &tables.1), bound)
+                .unwrap();
+            let got = sp.read_values(ctx).unwrap();
+            compare(
+                &format!("material {x}, pushed"),
+                &got,
+                &flat_values(&push(&want)),
+            );
         }
         dev.release(ctx);
+        dev_pushed.release(ctx);
+        drop(sp);
         drop(s);
     }
     assert!(

@@ -7,7 +7,9 @@
 //   1: each column's Σ_j A_j S_ji through the column gather, into sums[i];
 //   2: each linked node's e_k = Σ_j A_j R(r_jk) through the node gather, into sums[n + k];
 //   3: each row's values times their column's factor (sums[i] for a direct entry,
-//      sums[n + k] for a link), the energy bound's factors written over the sums.
+//      sums[n + k] for a link), the energy bound's factors written over the sums;
+//   4: with node rows pushed down to the patches (S on the device is N × (N + M)), each
+//      pushed value as the sum of the values it gathers (`push` of `gather`).
 // Values are RGB, three f32 each, in the object's own array (its rows of S in S's order).
 
 override STAGE: u32 = 0u;
@@ -40,6 +42,11 @@ struct Params {
     node_ptr: u32,
     column_items: u32,
     node_items: u32,
+    // The pushed values' pointers and items in `gather`, and their count.
+    push_ptr: u32,
+    push_items: u32,
+    pushed: u32,
+    _pad: u32,
     same: Table,
     other: Table,
 }
@@ -83,6 +90,7 @@ struct Link {
 @group(0) @binding(6) var<storage, read> gather: array<u32>;
 @group(0) @binding(7) var<storage, read_write> sums: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read_write> values: array<f32>;
+@group(0) @binding(9) var<storage, read_write> pushed: array<f32>;
 
 fn table(opposite: bool) -> Table {
     if opposite {
@@ -218,6 +226,16 @@ fn scale_row(r: u32) {
     }
 }
 
+fn push(e: u32) {
+    var s = vec3<f32>(0.0);
+    for (var q = gather[P.push_ptr + e]; q < gather[P.push_ptr + e + 1u]; q++) {
+        s += value_at(gather[P.push_items + q]);
+    }
+    pushed[3u * e] = s.x;
+    pushed[3u * e + 1u] = s.y;
+    pushed[3u * e + 2u] = s.z;
+}
+
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let id = gid.x + gid.y * P.grid_x * WG;
@@ -233,7 +251,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         if id < P.nodes {
             node_sum(id);
         }
-    } else if id < P.rows {
-        scale_row(id);
+    } else if STAGE == 3u {
+        if id < P.rows {
+            scale_row(id);
+        }
+    } else if id < P.pushed {
+        push(id);
     }
 }
