@@ -1586,7 +1586,7 @@ pub fn object_placement<'g>(
 }
 
 /// The tables object `k`'s S is summed under with `overrides` applied, as a device reads
-/// them: (`same`, `other`), `other` being `same` again for a translucent object. An error
+/// them: (`same`, `other`), `other` only for a thin sheet (its transmittance). An error
 /// when the object's material is summed from no terms (neither translucent nor a thin
 /// sheet).
 pub fn object_flat_tables(
@@ -1594,7 +1594,7 @@ pub fn object_flat_tables(
     overrides: &[(usize, Material)],
     k: usize,
     params: &SParams,
-) -> Result<(FlatTable, FlatTable), SError> {
+) -> Result<(FlatTable, Option<FlatTable>), SError> {
     let m = bundle.manifest();
     let (materials, stored) = bundle_materials(bundle, overrides)?;
     let o = m.objects.get(k).ok_or_else(|| SError::Media {
@@ -1609,9 +1609,7 @@ pub fn object_flat_tables(
     let reach = stored.get(k).copied().unwrap_or(0.0);
     let (same, other, _) = object_tables(&object, reach, m.unit_mm, params)?;
     let flat = |t: &Tabulated| FlatTable::of(&TermTable::new(t));
-    let same_flat = flat(&same);
-    let other_flat = other.as_ref().map_or_else(|| same_flat.clone(), flat);
-    Ok((same_flat, other_flat))
+    Ok((flat(&same), other.as_ref().map(flat)))
 }
 
 /// Writes simulated object `o`'s S at its material's absorption, re-weighted from the

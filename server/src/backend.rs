@@ -724,11 +724,12 @@ impl Backend {
             old.release(ctx);
         }
         let s = (with.cpu)()?;
-        let bytes = (s.view().nnz() * 16 + s.view().row_ptr().len() * 4) as u64;
         match MaterialsOnDevice::upload(ctx, (scene, terms), &g.base, m, &s) {
             Ok(on) => {
-                tracing::info!(scene = %scene.id, "S of the relight's materials on the GPU ({} MiB): translucency changes write it there", on.bytes() >> 20);
+                let bytes = on.bytes();
+                tracing::info!(scene = %scene.id, "S of the relight's materials on the GPU ({} MiB): translucency changes write it there", bytes >> 20);
                 *slot = Some(on);
+                // Everything it holds was written from the host.
                 Some(ChangeCounts {
                     submissions: 0,
                     bytes_up: bytes,

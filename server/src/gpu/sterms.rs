@@ -99,10 +99,10 @@ impl GpuObjectTerms {
         let gather = gather_of(flat);
         let sums_len = 16 * (flat.n + flat.nodes) as u64;
         let arrays: [u64; 5] = [
-            std::mem::size_of_val(flat.rows.as_slice()) as u64,
-            std::mem::size_of_val(flat.entries.as_slice()) as u64,
-            std::mem::size_of_val(flat.terms.as_slice()) as u64,
-            std::mem::size_of_val(flat.links.as_slice()) as u64,
+            records(&flat.rows).len() as u64,
+            records(&flat.entries).len() as u64,
+            records(&flat.terms).len() as u64,
+            records(&flat.links).len() as u64,
             4 * gather.len() as u64,
         ];
         let bytes = arrays.iter().map(|&b| alloc_size(b)).sum::<u64>()
@@ -150,10 +150,10 @@ impl GpuObjectTerms {
             Ok(GpuObjectTerms {
                 params: uniform(ctx, what, &base),
                 base,
-                rows: storage_init(ctx, what, bytemuck::cast_slice(&flat.rows)),
-                entries: storage_init(ctx, what, bytemuck::cast_slice(&flat.entries)),
-                terms: storage_init(ctx, what, bytemuck::cast_slice(&flat.terms)),
-                links: storage_init(ctx, what, bytemuck::cast_slice(&flat.links)),
+                rows: storage_init(ctx, what, &records(&flat.rows)),
+                entries: storage_init(ctx, what, &records(&flat.entries)),
+                terms: storage_init(ctx, what, &records(&flat.terms)),
+                links: storage_init(ctx, what, &records(&flat.links)),
                 gather: storage_init(ctx, what, bytemuck::cast_slice(&gather)),
                 sums: storage_zeroed(ctx, what, sums_len),
                 values: storage_zeroed(ctx, what, 12 * flat.values as u64),
@@ -178,14 +178,14 @@ impl GpuObjectTerms {
     }
 
     /// Writes the object's values of `s` under the tables `same` and `other` (a sheet's
-    /// transmittance; `same` again for a translucent object): the values and sums, then
+    /// transmittance; none for a translucent object, which reads `same` alone): the values and sums, then
     /// `bound` from the columns' and nodes' sums to the factors, then the scaling and the
     /// copies into `s`. Counts what crossed the bus.
     pub fn write(
         &self,
         ctx: &GpuContext,
         s: &GpuCsr,
-        (same, other): (&FlatTable, &FlatTable),
+        (same, other): (&FlatTable, Option<&FlatTable>),
         bound: impl FnOnce(&[Rgb], &[Rgb]) -> ColumnFactors,
     ) -> Result<ChangeCounts, GpuError> {
         let mut counts = ChangeCounts::default();
@@ -258,9 +258,11 @@ impl GpuObjectTerms {
         Ok(counts)
     }
 
-    /// The two tables' cells one after the other, and the parameters that find them.
-    fn tables(&self, same: &FlatTable, other: &FlatTable) -> (Vec<[f32; 4]>, Params) {
-        let mut cells = Vec::with_capacity(2 * (same.cells.len() + other.cells.len()));
+    /// The tables' cells one after the other (`other`'s only for a sheet: without it the
+    /// other side reads `same`), and the parameters that find them.
+    fn tables(&self, same: &FlatTable, other: Option<&FlatTable>) -> (Vec<[f32; 4]>, Params) {
+        let cells_of = |t: &FlatTable| 2 * t.cells.len();
+        let mut cells = Vec::with_capacity(cells_of(same) + other.map_or(0, cells_of));
         let mut header = |t: &FlatTable| {
             let base = cells.len() as u32;
             cells.extend(t.cells.iter().flatten().copied());
@@ -274,7 +276,8 @@ impl GpuObjectTerms {
                 _pad: [0; 2],
             }
         };
-        let (same, other) = (header(same), header(other));
+        let same = header(same);
+        let other = other.map_or(same, header);
         let params = Params {
             same,
             other,
@@ -304,6 +307,16 @@ impl GpuObjectTerms {
     /// Gives its memory back to the budget.
     pub fn release(self, ctx: &GpuContext) {
         ctx.release(self.bytes);
+    }
+}
+
+/// `items` as bytes, or one zeroed record where there are none (a binding holds at least
+/// one of its array's elements: an object without links still binds `links`).
+fn records<T: bytemuck::Pod>(items: &[T]) -> Vec<u8> {
+    if items.is_empty() {
+        vec![0u8; std::mem::size_of::<T>()]
+    } else {
+        bytemuck::cast_slice(items).to_vec()
     }
 }
 
@@ -455,9 +468,12 @@ impl MaterialsOnDevice {
             let (same, other) = smatrix::object_flat_tables(scene.bundle, overrides, k, &params)
                 .map_err(|_| Rewrite::Upload)?;
             let c = dev
-                .write(ctx, self.system.k(), (&same, &other), |column, node| {
-                    t.factors_from_sums(area, at, column, node)
-                })
+                .write(
+                    ctx,
+                    self.system.k(),
+                    (&same, other.as_ref()),
+                    |column, node| t.factors_from_sums(area, at, column, node),
+                )
                 .map_err(Rewrite::Failed)?;
             counts.submissions += c.submissions;
             counts.bytes_up += c.bytes_up;

@@ -843,6 +843,12 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_device() {
                 let device = on_device && components == "full";
                 let on = if device { "gpu" } else { "cpu" };
                 assert_eq!(out.stats.materials_on.as_deref(), Some(on), "step {x}");
+                if let Some(d) = out.stats.device {
+                    eprintln!(
+                        "step {x} ({k}, {components}): S {:.1} ms, solve {:.1} ms, {} it., {d:?}",
+                        out.stats.materials_ms, out.stats.solve_ms, out.stats.iterations
+                    );
+                }
                 if device && x > 0 {
                     // Written in place: 2 submissions for S, then the solve's.
                     let d = out.stats.device.expect("device stats");

@@ -5,8 +5,9 @@
 use std::cell::RefCell;
 
 use translux_engine::smatrix::{self, SParams};
-use translux_engine::sterms::Scratch;
+use translux_engine::sterms::{OPPOSITE, Scratch};
 use translux_engine::transport::push_node_rows;
+use translux_proto::bundle::Bundle;
 use translux_proto::csr::ValidCsr;
 use translux_proto::scene::{Material, Profile};
 use translux_server::gpu::sterms::GpuObjectTerms;
@@ -47,62 +48,151 @@ fn exponential(energy: [f32; 3], b: f32) -> Material {
 /// S's node rows pushed down to the patches, as the GPU backend holds it.
 #[test]
 fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
-    let contexts: Vec<&GpuContext> = [crate::support::gpu(), tiny()]
-        .into_iter()
-        .flatten()
-        .collect();
-    if contexts.is_empty() {
-        return;
-    }
     let tmp = tempfile::tempdir().unwrap();
     let b = crate::gpu::hierarchical_cornell(&tmp.path().join("cornell"), 1500);
-    let params = SParams::default();
-    let terms = smatrix::terms_of_bundle(&b, &params.quadrature);
     let k = b
         .manifest()
         .objects
         .iter()
         .position(|o| o.name == "tall_block")
         .unwrap();
-    let t = terms.get(k, false).expect("the block has radial terms");
-    let g = smatrix::bundle_geometry(&b);
-    let (area, at) = smatrix::object_placement(&b, &g, k).unwrap();
-    let (start, _) = smatrix::rebuild_with_terms(&b, &[(k, marble(8.0))], &params, &terms).unwrap();
+    let materials = vec![
+        marble(8.0),
+        marble(2.0),
+        marble(0.5),
+        marble(20.0),
+        exponential([3.0, 1.0, 0.5], 0.05),
+        exponential([2.0, 0.5, 1.5], 0.01),
+    ];
+    let Some(seen) = device_against_cpu(&b, k, materials) else {
+        return;
+    };
+    assert!(
+        seen.links && seen.node_rows,
+        "the block links to nodes: {seen:?}"
+    );
+    assert!(
+        seen.scaled_columns > 0,
+        "no column was scaled: the bound went untested"
+    );
+    assert!(
+        seen.scaled_nodes > 0,
+        "no node was scaled: the links' bound went untested"
+    );
+}
+
+/// A thin sheet's change (a petal of `builtin:flower`, its reflectance and transmittance
+/// scaled and widened) written on the device equals the CPU's rewrite: entries on the
+/// petal's other side read the transmittance's table.
+#[test]
+fn a_thin_sheets_change_writes_s_on_the_device_as_the_cpu_does() {
+    use translux_precompute::pipeline::{PrecomputeParams, precompute};
+    use translux_proto::scene::ExpTerm;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("flower");
+    let scene = translux_precompute::scene::load_scene("builtin:flower").unwrap();
+    let params = PrecomputeParams {
+        patches: Some(1200),
+        environment: translux_engine::envvis::EnvVisParams {
+            bins: None,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    precompute(&scene, &dir, &params).unwrap();
+    let b = translux_proto::bundle::Bundle::open(&dir).unwrap();
+    let k = (0..b.manifest().objects.len())
+        .find(|&k| matches!(b.manifest().objects[k].material, Material::ThinSheet { .. }))
+        .unwrap();
+    let sheet = |r: f32, t: f32, wide: f32| {
+        let p = |energy: [f32; 3], b: f32| Profile::Exponentials {
+            terms: vec![ExpTerm {
+                a: energy.map(|e| e * b * b / (2.0 * std::f32::consts::PI)),
+                b: [b; 3],
+            }],
+        };
+        Material::ThinSheet {
+            reflectance: p([0.45 * r, 0.2 * r, 0.3 * r], 1.0 / wide),
+            transmittance: p([0.35 * t, 0.12 * t, 0.22 * t], 0.7 / wide),
+            thickness_mm: 1.0,
+            specular: None,
+        }
+    };
+    let materials = vec![
+        sheet(1.0, 1.0, 1.0),
+        sheet(0.5, 2.0, 2.0),
+        sheet(2.0, 0.2, 0.5),
+    ];
+    let Some(seen) = device_against_cpu(&b, k, materials) else {
+        return;
+    };
+    assert!(
+        seen.opposite,
+        "the petal has entries on its other side: {seen:?}"
+    );
+}
+
+/// What [`device_against_cpu`] found the object to hold and the bound to do.
+#[derive(Debug, Default)]
+struct Seen {
+    links: bool,
+    node_rows: bool,
+    opposite: bool,
+    scaled_columns: usize,
+    scaled_nodes: usize,
+}
+
+/// Object `k` of `b` overridden with each of `materials` in turn (S built for the first),
+/// written on the device from S as it was built, against the CPU's rewrite, value for
+/// value; with S in one block and split over many (a 4 KiB binding), and with S's node rows
+/// pushed down to the patches where it has them (as the GPU backend holds it). `None`
+/// without a GPU adapter.
+fn device_against_cpu(b: &Bundle, k: usize, materials: Vec<Material>) -> Option<Seen> {
+    let contexts: Vec<&GpuContext> = [crate::support::gpu(), tiny()]
+        .into_iter()
+        .flatten()
+        .collect();
+    if contexts.is_empty() {
+        return None;
+    }
+    let params = SParams::default();
+    let terms = smatrix::terms_of_bundle(b, &params.quadrature);
+    let sheet = matches!(materials[0], Material::ThinSheet { .. });
+    let t = terms.get(k, sheet).expect("the object has radial terms");
+    let g = smatrix::bundle_geometry(b);
+    let (area, at) = smatrix::object_placement(b, &g, k).unwrap();
+    let (start, _) =
+        smatrix::rebuild_with_terms(b, &[(k, materials[0].clone())], &params, &terms).unwrap();
     let start = ValidCsr::new(start).unwrap();
     let flat = t.flatten(area, at, start.view().row_ptr()).unwrap();
-    assert!(!flat.links.is_empty(), "the block links to nodes");
-    assert!(
-        flat.rows.iter().any(|r| r.local == u32::MAX),
-        "the block has node rows"
-    );
+    let mut seen = Seen {
+        links: !flat.links.is_empty(),
+        node_rows: flat.rows.iter().any(|r| r.local == u32::MAX),
+        opposite: flat.entries.iter().any(|e| e.terms & OPPOSITE != 0),
+        ..Default::default()
+    };
     // The same S with its node rows pushed down to the patches, as the GPU backend holds it.
-    let tree = b.tree().unwrap();
-    let push =
-        |s: &ValidCsr<[f32; 3]>| ValidCsr::new(push_node_rows(s.view(), tree).unwrap()).unwrap();
+    let push = |s: &ValidCsr<[f32; 3]>| match b.tree().filter(|_| seen.node_rows) {
+        Some(tree) => ValidCsr::new(push_node_rows(s.view(), tree).unwrap()).unwrap(),
+        None => s.clone(),
+    };
     let start_pushed = push(&start);
     let mut flat_pushed = flat.clone();
     t.push_into(&mut flat_pushed, at, &start_pushed.view())
         .unwrap();
-    assert!(flat_pushed.pushed > 0, "the block has node rows to push");
-    let (mut scaled_columns, mut scaled_nodes) = (0, 0);
+    assert_eq!(flat_pushed.pushed > 0, seen.node_rows);
+    let flat_values =
+        |m: &ValidCsr<[f32; 3]>| -> Vec<f32> { m.view().val().iter().flatten().copied().collect() };
     for ctx in contexts {
         let s = GpuCsr::upload_rgb(ctx, "S", &start.view()).unwrap();
-        let dev = GpuObjectTerms::upload(ctx, "block", &flat).unwrap();
+        let dev = GpuObjectTerms::upload(ctx, "object", &flat).unwrap();
         let sp = GpuCsr::upload_rgb(ctx, "pushed S", &start_pushed.view()).unwrap();
-        let dev_pushed = GpuObjectTerms::upload(ctx, "block pushed", &flat_pushed).unwrap();
-        let materials = [
-            marble(8.0),
-            marble(2.0),
-            marble(0.5),
-            marble(20.0),
-            exponential([3.0, 1.0, 0.5], 0.05),
-            exponential([2.0, 0.5, 1.5], 0.01),
-        ];
-        for (x, m) in materials.into_iter().enumerate() {
-            let over = [(k, m)];
+        let dev_pushed = GpuObjectTerms::upload(ctx, "object pushed", &flat_pushed).unwrap();
+        for (x, m) in materials.iter().enumerate() {
+            let over = [(k, m.clone())];
             let mut scratch = Scratch::default();
             let (want, _) = smatrix::rewrite_with_terms(
-                &b,
+                b,
                 start.clone(),
                 &mut None,
                 &over,
@@ -112,31 +202,27 @@ fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
                 &mut scratch,
             )
             .unwrap();
-            let tables = smatrix::object_flat_tables(&b, &over, k, &params).unwrap();
-            let seen = RefCell::new((0, 0));
+            let (same, other) = smatrix::object_flat_tables(b, &over, k, &params).unwrap();
+            let tables = (&same, other.as_ref());
+            let found = RefCell::new((0, 0));
             let counts = dev
-                .write(ctx, &s, (&tables.0, &tables.1), |column, node| {
+                .write(ctx, &s, tables, |column, node| {
                     let f = t.factors_from_sums(area, at, column, node);
                     let below = |v: &[[f32; 3]]| v.iter().filter(|x| **x != [1.0; 3]).count();
-                    *seen.borrow_mut() = (below(&f.patches), below(&f.nodes));
+                    *found.borrow_mut() = (below(&f.patches), below(&f.nodes));
                     f
                 })
                 .unwrap();
-            let (c, n) = seen.into_inner();
-            scaled_columns += c;
-            scaled_nodes += n;
+            let (c, n) = found.into_inner();
+            seen.scaled_columns += c;
+            seen.scaled_nodes += n;
             assert_eq!(counts.submissions, 2);
             let got = s.read_values(ctx).unwrap();
-            let flat_values = |m: &ValidCsr<[f32; 3]>| -> Vec<f32> {
-                m.view().val().iter().flatten().copied().collect()
-            };
             compare(&format!("material {x}"), &got, &flat_values(&want));
             let bound = |column: &[[f32; 3]], node: &[[f32; 3]]| {
                 t.factors_from_sums(area, at, column, node)
             };
-            dev_pushed
-                .write(ctx, &sp, (&tables.0, &tables.1), bound)
-                .unwrap();
+            dev_pushed.write(ctx, &sp, tables, bound).unwrap();
             let got = sp.read_values(ctx).unwrap();
             compare(
                 &format!("material {x}, pushed"),
@@ -146,17 +232,8 @@ fn a_translucency_change_writes_s_on_the_device_as_the_cpu_does() {
         }
         dev.release(ctx);
         dev_pushed.release(ctx);
-        drop(sp);
-        drop(s);
     }
-    assert!(
-        scaled_columns > 0,
-        "no column was scaled: the bound went untested"
-    );
-    assert!(
-        scaled_nodes > 0,
-        "no node was scaled: the links' bound went untested"
-    );
+    Some(seen)
 }
 
 /// A context whose matrix buffers hold at most 4 KiB (S split into many blocks).
