@@ -82,7 +82,15 @@ struct GpuScene {
     whole: Mutex<Option<Result<Arc<DeviceRelight>, String>>>,
     /// S of the last material overrides solved here, kept for the next translucency
     /// change, which writes its changed rows in place ([`MaterialsOnDevice`]).
-    materials: Mutex<Option<MaterialsOnDevice>>,
+    materials: Mutex<MaterialsSlot>,
+}
+
+/// S of the last material overrides on the device, and the layout of S that did not fit
+/// (not tried again: each try would flatten and upload the objects' terms anew).
+#[derive(Debug, Default)]
+struct MaterialsSlot {
+    on: Option<MaterialsOnDevice>,
+    refused: Option<u64>,
 }
 
 impl GpuScene {
@@ -96,7 +104,7 @@ impl GpuScene {
             _ => 0,
         };
         let m = match self.materials.lock().ok().as_deref() {
-            Some(Some(m)) => m.bytes(),
+            Some(MaterialsSlot { on: Some(m), .. }) => m.bytes(),
             _ => 0,
         };
         t + w + m + self.base.bytes()
@@ -368,7 +376,7 @@ impl Backend {
                     base: sys,
                     transfer: Mutex::new(None),
                     whole: Mutex::new(None),
-                    materials: Mutex::new(None),
+                    materials: Mutex::new(MaterialsSlot::default()),
                 });
                 scenes.insert(key, (scene.id.to_string(), Slot::Gpu(g.clone())));
                 Some(g)
@@ -637,7 +645,7 @@ impl translux_engine::backend::Backend for Backend {
         let mut slot = g.materials.lock().unwrap_or_else(|p| p.into_inner());
         let counts = self.materials_s(ctx, (scene, terms), &g, &mut slot, with)?;
         let s_seconds = t0.elapsed().as_secs_f64();
-        let on = slot.as_ref()?;
+        let on = slot.on.as_ref()?;
         let ch = 3 * k;
         let column = |v: &[f32], q: usize| -> Vec<Rgb> {
             (0..n)
@@ -654,7 +662,7 @@ impl translux_engine::backend::Backend for Backend {
                 Ok(r) => r,
                 Err(err) => {
                     tracing::warn!(scene = %scene.id, "the device's solve with the relight's materials failed, the CPU takes over: {err}");
-                    if let Some(m) = slot.take() {
+                    if let Some(m) = slot.on.take() {
                         m.release(ctx);
                     }
                     return None;
@@ -701,17 +709,17 @@ impl Backend {
     /// Brings the device's S of `slot` to `with`'s materials: the changed objects' rows
     /// written in place where it holds their layout, else S uploaded afresh from the CPU's
     /// (the last one's memory given back first). What crossed the bus; `None` when S stays
-    /// on the CPU (logged).
+    /// on the CPU (logged once per layout that does not fit).
     fn materials_s(
         &self,
         ctx: &GpuContext,
         (scene, terms): (SceneRef<'_>, &STerms),
         g: &GpuScene,
-        slot: &mut Option<MaterialsOnDevice>,
+        slot: &mut MaterialsSlot,
         with: &WithMaterials<'_>,
     ) -> Option<ChangeCounts> {
         let m = with.materials;
-        if let Some(on) = slot.as_mut().filter(|on| on.layout == m.layout) {
+        if let Some(on) = slot.on.as_mut().filter(|on| on.layout == m.layout) {
             match on.write(ctx, (scene, terms), &m.overrides) {
                 Ok(c) => return Some(c),
                 Err(Rewrite::Upload) => {}
@@ -720,15 +728,18 @@ impl Backend {
                 }
             }
         }
-        if let Some(old) = slot.take() {
+        if let Some(old) = slot.on.take() {
             old.release(ctx);
+        }
+        if slot.refused == Some(m.layout) {
+            return None;
         }
         let s = (with.cpu)()?;
         match MaterialsOnDevice::upload(ctx, (scene, terms), &g.base, m, &s) {
             Ok(on) => {
                 let bytes = on.bytes();
                 tracing::info!(scene = %scene.id, "S of the relight's materials on the GPU ({} MiB): translucency changes write it there", bytes >> 20);
-                *slot = Some(on);
+                slot.on = Some(on);
                 // Everything it holds was written from the host.
                 Some(ChangeCounts {
                     submissions: 0,
@@ -738,6 +749,7 @@ impl Backend {
             }
             Err(e) => {
                 tracing::warn!(scene = %scene.id, "S of the relight's materials stays on the CPU: {e}");
+                slot.refused = Some(m.layout);
                 None
             }
         }

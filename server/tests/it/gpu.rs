@@ -868,6 +868,70 @@ fn a_translucency_slider_on_the_gpu_backend_writes_s_on_the_device() {
     assert!(h.scenes[0].bytes > 0, "{h:?}");
 }
 
+/// A scene that fits the GPU budget while S of its material overrides does not: a `full`
+/// relight with those overrides answers from the CPU (as the CPU backend does), also for
+/// the slider's next step, and the device holds what it held.
+#[test]
+fn materials_over_the_budget_stay_on_the_cpu() {
+    use translux_engine::backend::Backend as _;
+    use translux_engine::relight;
+    use translux_engine::scene::Scene;
+    use translux_proto::api::RelightRequest;
+    use translux_server::backend::Backend;
+    let Some(_) = ctx() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("cornell");
+    hierarchical_cornell(&dir, 1500);
+    let body = |scale: f32| {
+        format!(
+            r#"{{"solver":"iterative","lights":[{{"type":"point","position":[0.1,0.5,0.2],"intensity":[2,1,0.5]}}],
+            "materials":{{"tall_block":{{"type":"translucent","profile":{{"type":"dipole","preset":"marble","scale":{scale}}}}}}}}}"#
+        )
+    };
+    let backend = |budget: Option<u64>| {
+        Backend::on_gpu(
+            GpuContext::new(&GpuOptions {
+                allow_software: true,
+                max_binding_bytes: None,
+                budget_bytes: budget,
+            })
+            .unwrap(),
+        )
+    };
+    // The scene's own bytes on the device, and a budget 64 KiB above them.
+    let probe = backend(None);
+    let scene = Scene::open_with("cornell", &dir, &probe.resources()).unwrap();
+    assert!(probe.prepare(scene.view()));
+    let base = probe.gpu_health().bytes;
+    let tight = backend(Some(base + (64 << 10)));
+    let cpu = Backend::cpu("the test's CPU half");
+    let run = |b: &Backend, scale: f32| {
+        let scene = Scene::open_with("cornell", &dir, &b.resources()).unwrap();
+        let req: RelightRequest = serde_json::from_str(&body(scale)).unwrap();
+        let mut plan = relight::plan(&scene, req).unwrap();
+        plan.tolerance = 1e-6;
+        relight::run(&scene, &plan).unwrap()
+    };
+    for scale in [1.0f32, 1.5] {
+        let got = run(&tight, scale);
+        assert_eq!(
+            got.stats.materials_on.as_deref(),
+            Some("cpu"),
+            "{:?}",
+            got.stats
+        );
+        assert!(got.stats.device.is_none(), "{:?}", got.stats);
+        assert_eq!(tight.gpu_health().bytes, base, "nothing more is held");
+        let want = run(&cpu, scale);
+        assert_close(
+            &format!("×{scale} over the budget"),
+            &got.radiance,
+            &want.radiance,
+            1e-5,
+        );
+    }
+}
+
 mod server_start {
     use std::io::{BufRead, BufReader, Read, Write};
     use std::process::{Command, Stdio};
