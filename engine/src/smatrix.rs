@@ -622,7 +622,7 @@ pub fn object_tables(
     unit_mm: f64,
     params: &SParams,
 ) -> Result<(Tabulated, Option<Tabulated>, Option<f32>), SError> {
-    let tables = match o.material {
+    Ok(match o.material {
         Material::Translucent { profile, .. } => {
             let (tab, capped) = translucent_table(o.name, profile, reach, unit_mm, params)?;
             (tab, None, capped)
@@ -642,8 +642,7 @@ pub fn object_tables(
                 why: "only translucent objects and thin sheets are summed from terms".into(),
             });
         }
-    };
-    Ok(tables)
+    })
 }
 
 /// Writes object `o`'s S, summed from its terms `t` under its material's profiles, into its

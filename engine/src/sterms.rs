@@ -1601,7 +1601,7 @@ impl ObjectTerms {
     /// quadrature's assembly. [`ObjectTerms::write`] into a local pattern, entries written 0
     /// left out.
     pub fn assemble(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> ObjectS {
-        let (cols, vals, written) = self.write_local(area, same, other);
+        let (cols, vals, written) = self.write_local(area, same, other, false);
         let report = written.report;
         let rows = cols
             .into_iter()
@@ -1622,8 +1622,15 @@ impl ObjectTerms {
     }
 
     /// [`ObjectTerms::write`] into a fresh local pattern without links: each row's columns
-    /// and values, and what the write did.
-    fn write_local(&self, area: &[f32], same: &Tabulated, other: &Tabulated) -> LocalWrite {
+    /// and values, and what the write did (with `defer_bound`, the bound's factors left out
+    /// of the values, [`Placement::defer_bound`]).
+    fn write_local(
+        &self,
+        area: &[f32],
+        same: &Tabulated,
+        other: &Tabulated,
+        defer_bound: bool,
+    ) -> LocalWrite {
         let pattern = self.pattern(0, false);
         let cols: Vec<Vec<u32>> = pattern
             .iter()
@@ -1640,7 +1647,7 @@ impl ObjectTerms {
             start: 0,
             n: area.len(),
             nodes: None,
-            defer_bound: false,
+            defer_bound,
         };
         let written = self.write(area, same, other, at, out, &mut Scratch::default());
         (cols, vals, written)
@@ -2817,18 +2824,7 @@ mod tests {
         let mut scaled = 0;
         for scale in [0.5f32, 8.0] {
             let tab = table(scale, 5.0);
-            let cols: Vec<Vec<u32>> = pattern
-                .iter()
-                .map(|r| r.iter().map(|e| e.0).collect())
-                .collect();
-            let mut vals: Vec<Vec<[f32; 3]>> =
-                pattern.iter().map(|r| vec![[0.0; 3]; r.len()]).collect();
-            let rows = cols
-                .iter()
-                .zip(vals.iter_mut())
-                .map(|(c, v)| (c.as_slice(), v.as_mut_slice()))
-                .collect();
-            let w = t.write(&area, &tab, &tab, at, rows, &mut Scratch::default());
+            let (_, vals, w) = t.write_local(&area, &tab, &tab, true);
             let want = w.columns.unwrap();
             let values: Vec<[f32; 3]> = vals.into_iter().flatten().collect();
             let column: Vec<[f32; 3]> = (0..n)
@@ -2866,7 +2862,7 @@ mod tests {
         // A flat 40 × 40 mm sheet of 10 mm cells, every pair within 30 mm stored.
         let (g, t) = sheet_terms(4, |x, y| Vec3::new(10.0 * x, 10.0 * y, 0.0), 30.0);
         let write = |tab: &Tabulated| {
-            let (_, vals, w) = t.write_local(&g.area, tab, tab);
+            let (_, vals, w) = t.write_local(&g.area, tab, tab, false);
             let all_finite = vals.iter().flatten().flatten().all(|x| x.is_finite());
             (w.finite, all_finite)
         };

@@ -539,24 +539,13 @@ impl translux_engine::backend::Backend for Backend {
         if k == 0 || rhs.len() != n * 3 * k {
             return None;
         }
-        let ch = 3 * k;
-        let column = |v: &[f32], s: usize| -> Vec<Rgb> {
-            (0..n)
-                .map(|j| {
-                    let o = j * ch + 3 * s;
-                    [v[o], v[o + 1], v[o + 2]]
-                })
-                .collect()
-        };
         let run = |sys: &GpuSystem| -> Result<(Vec<f32>, SolveStats), GpuError> {
-            let mut x = vec![0.0f32; n * ch];
+            let mut x = vec![0.0f32; rhs.len()];
             let mut total: Option<SolveStats> = None;
             for s in 0..k {
-                let w = warm.filter(|w| w.len() == n * ch).map(|w| column(w, s));
-                let (b, st) = sys.solve_rhs(ctx, &column(rhs, s), params, w.as_deref())?;
-                for (j, v) in b.iter().enumerate() {
-                    x[j * ch + 3 * s..j * ch + 3 * s + 3].copy_from_slice(v);
-                }
+                let w = warm.filter(|w| w.len() == rhs.len()).map(|w| lane(w, k, s));
+                let (b, st) = sys.solve_rhs(ctx, &lane(rhs, k, s), params, w.as_deref())?;
+                put_lane(&mut x, k, s, &b);
                 let st = st.stats;
                 total = Some(match total {
                     None => st,
@@ -646,18 +635,12 @@ impl translux_engine::backend::Backend for Backend {
         let counts = self.materials_s(ctx, (scene, terms), &g, &mut slot, with)?;
         let s_seconds = t0.elapsed().as_secs_f64();
         let on = slot.on.as_ref()?;
-        let ch = 3 * k;
-        let column = |v: &[f32], q: usize| -> Vec<Rgb> {
-            (0..n)
-                .map(|j| std::array::from_fn(|c| v[j * ch + 3 * q + c]))
-                .collect()
-        };
-        let mut x = vec![0.0f32; n * ch];
+        let mut x = vec![0.0f32; e.len()];
         let (mut stats, mut counts) = (None::<SolveStats>, counts);
         for q in 0..k {
             let run = on
                 .system
-                .solve_from_last(ctx, &column(be, q), &column(e, q), params);
+                .solve_from_last(ctx, &lane(be, k, q), &lane(e, k, q), params);
             let (b, st) = match run {
                 Ok(r) => r,
                 Err(err) => {
@@ -668,9 +651,7 @@ impl translux_engine::backend::Backend for Backend {
                     return None;
                 }
             };
-            for (j, v) in b.iter().enumerate() {
-                x[j * ch + 3 * q..j * ch + 3 * q + 3].copy_from_slice(v);
-            }
+            put_lane(&mut x, k, q, &b);
             stats = Some(match stats {
                 None => st.stats,
                 Some(a) => merge_stats(a, st.stats),
@@ -688,6 +669,20 @@ impl translux_engine::backend::Backend for Backend {
             bytes_down: counts.bytes_down,
         };
         Some(answer)
+    }
+}
+
+/// System `q` of the `k` stacked in `v` (`[patch][k·3]`, the relight's batched layout).
+fn lane(v: &[f32], k: usize, q: usize) -> Vec<Rgb> {
+    v.chunks_exact(3 * k)
+        .map(|p| [p[3 * q], p[3 * q + 1], p[3 * q + 2]])
+        .collect()
+}
+
+/// Writes `b` as system `q` of the `k` stacked in `x` ([`lane`]'s layout).
+fn put_lane(x: &mut [f32], k: usize, q: usize, b: &[Rgb]) {
+    for (p, v) in x.chunks_exact_mut(3 * k).zip(b) {
+        p[3 * q..3 * q + 3].copy_from_slice(v);
     }
 }
 

@@ -62,15 +62,17 @@ pub(super) fn transport(
     preps: &[&Prepared],
     n: usize,
 ) -> Result<(Vec<f32>, TransportStats), EngineError> {
-    if let Some(done) = on_backend(scene, components, params, first, preps, n) {
-        return Ok(done);
-    }
-    // The group's operators: S and P = diag ρ̄ under its materials, and F.
+    // The group's operators: S and P = diag ρ̄ under its materials, and F; its stacked
+    // E and Bₑ.
     let b = &scene.bundle;
     let (albedo, emission) = match &first.materials {
         Some(m) => (m.albedo.as_slice(), m.emission.as_slice()),
         None => (b.patch_albedo(), b.patch_emission()),
     };
+    let mut src = Sources::stack(preps, emission, n);
+    if let Some(done) = on_backend(scene, components, params, first, (&src, preps.len())) {
+        return Ok(done);
+    }
     // S for the materials, written here when it was deferred (its time is S's, not the
     // solve's).
     let ts = std::time::Instant::now();
@@ -102,8 +104,7 @@ pub(super) fn transport(
         f: &f,
         keys: Keys::of(components, &first.materials_key),
     };
-    // Stacked E and Bₑ, then the lamps' collimated entry (y).
-    let mut src = Sources::stack(preps, emission, n);
+    // The lamps' collimated entry (y).
     src.y = sys.collimated(preps);
     // The path: no solve, T, or the solver from the kept start (keeping the next one's).
     let (x, mut stats) = match route(components, first.use_t) {
@@ -116,23 +117,22 @@ pub(super) fn transport(
 }
 
 /// The full transport of a group with overridden materials where the backend writes their
-/// S and solves with it (the GPU's, [`crate::backend::Backend::solve_materials`]): radiosity
-/// `[patch][k·3]`, or `None` to transport here (another backend; other components, T, or
+/// S and solves with it (the GPU's, [`crate::backend::Backend::solve_materials`]), for the
+/// `k` plans whose E and Bₑ `src` stacks: radiosity `[patch][k·3]`, or `None` to transport
+/// here (another backend; other components, T, or
 /// simulated objects' collimated light, which the CPU's stages add).
 fn on_backend(
     scene: &Scene,
     components: Components,
     params: &SolveParams,
     first: &Prepared,
-    preps: &[&Prepared],
-    n: usize,
+    (src, k): (&Sources, usize),
 ) -> Option<(Vec<f32>, TransportStats)> {
     let m = first.materials.as_ref()?;
     let collimated = first.collimated.is_some() || first.slant.is_some();
     if components != Components::Full || first.use_t || collimated || first.lamp_walks.is_some() {
         return None;
     }
-    let src = Sources::stack(preps, &m.emission, n);
     let cpu = || {
         let s = scene.cpu_s(m).ok()?;
         crate::smatrix::scaled_s(s).ok()
@@ -142,7 +142,7 @@ fn on_backend(
         cpu: &cpu,
     };
     let backend = scene.backend();
-    let a = backend.solve_materials(scene.view(), &with, (&src.e, &src.be), preps.len(), params)?;
+    let a = backend.solve_materials(scene.view(), &with, (&src.e, &src.be), k, params)?;
     let device = DeviceStats {
         submissions: a.submissions,
         bytes_up: a.bytes_up,

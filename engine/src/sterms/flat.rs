@@ -69,6 +69,13 @@ pub struct FlatLink {
     pub _pad: [u32; 2],
 }
 
+impl FlatLink {
+    /// The linked node, counted from the object's first (its flags left out).
+    pub fn node_index(&self) -> usize {
+        (self.node & !(OPPOSITE | TWO)) as usize
+    }
+}
+
 /// Where a run of the object's values sits in the scene's S.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ValueRun {
@@ -145,11 +152,6 @@ impl FlatTable {
             w_base: t.w_base as u32,
         }
     }
-}
-
-/// f32 bits as a u32 (a gather's weight).
-fn bits(x: f32) -> u32 {
-    x.to_bits()
 }
 
 impl ObjectTerms {
@@ -289,7 +291,7 @@ impl ObjectTerms {
         });
         let links = (row.links[0]..row.links[1]).map(move |l| {
             let link = &f.links[l as usize];
-            let k = (link.node & !(OPPOSITE | TWO)) as usize + self.links.nodes.start;
+            let k = link.node_index() + self.links.nodes.start;
             ((at.n + k) as u32, link.value)
         });
         entries.chain(links)
@@ -368,12 +370,12 @@ impl ObjectTerms {
             .iter()
             .map(|&[j, e]| {
                 let row = &f.rows[j as usize];
-                [row.value + (e - row.entries[0]), bits(row.area)]
+                [row.value + (e - row.entries[0]), row.area.to_bits()]
             })
             .collect();
         let mut count = vec![0u32; f.nodes + 1];
         for l in &f.links {
-            count[(l.node & !(OPPOSITE | TWO)) as usize + 1] += 1;
+            count[l.node_index() + 1] += 1;
         }
         for k in 0..f.nodes {
             count[k + 1] += count[k];
@@ -382,8 +384,8 @@ impl ObjectTerms {
         f.node_items = vec![[0u32; 2]; f.links.len()];
         for row in &f.rows {
             for l in row.links[0]..row.links[1] {
-                let k = (f.links[l as usize].node & !(OPPOSITE | TWO)) as usize;
-                f.node_items[next[k] as usize] = [l, bits(row.area)];
+                let k = f.links[l as usize].node_index();
+                f.node_items[next[k] as usize] = [l, row.area.to_bits()];
                 next[k] += 1;
             }
         }

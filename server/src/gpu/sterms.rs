@@ -15,6 +15,8 @@
 //! [`MaterialsOnDevice`] is what the backend keeps per scene: S of the last material
 //! overrides as a system beside the scene's F, and the objects a slider's change rewrites.
 
+use std::borrow::Cow;
+
 use translux_engine::backend::SceneRef;
 use translux_engine::radiosity::Rgb;
 use translux_engine::smatrix::{self, OverrideMaterials, PatchGeometry, SParams};
@@ -96,27 +98,29 @@ pub struct ChangeCounts {
 impl GpuObjectTerms {
     /// Uploads `flat` (`what` names it in errors and the memory budget).
     pub fn upload(ctx: &GpuContext, what: &str, flat: &FlatTerms) -> Result<Self, GpuError> {
-        let gather = gather_of(flat);
-        let sums_len = 16 * (flat.n + flat.nodes) as u64;
-        let arrays: [u64; 5] = [
-            records(&flat.rows).len() as u64,
-            records(&flat.entries).len() as u64,
-            records(&flat.terms).len() as u64,
-            records(&flat.links).len() as u64,
-            4 * gather.len() as u64,
+        let (gather, at) = gather_of(flat);
+        let arrays = [
+            records(&flat.rows),
+            records(&flat.entries),
+            records(&flat.terms),
+            records(&flat.links),
+            records(&gather),
         ];
-        let bytes = arrays.iter().map(|&b| alloc_size(b)).sum::<u64>()
+        let sums_len = 16 * (flat.n + flat.nodes) as u64;
+        let bytes = arrays
+            .iter()
+            .map(|a| alloc_size(a.len() as u64))
+            .sum::<u64>()
             + 2 * alloc_size(sums_len)
             + alloc_size(12 * flat.values as u64)
             + alloc_size(12 * flat.pushed as u64);
-        for b in arrays {
-            if b > ctx.adapter().max_binding_bytes {
-                return Err(GpuError::MatrixTooLarge {
-                    what: format!("{what}'s radial terms"),
-                    requested: b,
-                    max_binding: ctx.adapter().max_binding_bytes,
-                });
-            }
+        let max_binding = ctx.adapter().max_binding_bytes;
+        if let Some(a) = arrays.iter().find(|a| a.len() as u64 > max_binding) {
+            return Err(GpuError::MatrixTooLarge {
+                what: format!("{what}'s radial terms"),
+                requested: a.len() as u64,
+                max_binding,
+            });
         }
         ctx.reserve(what, bytes)?;
         let (n, nodes) = (flat.n as u32, flat.nodes as u32);
@@ -128,33 +132,25 @@ impl GpuObjectTerms {
             n,
             nodes,
             grid_x: groups.0,
-            column_ptr: 0,
-            node_ptr: n + 1,
-            column_items: n + 1 + nodes + 1,
-            node_items: n + 1 + nodes + 1 + 2 * flat.column_items.len() as u32,
-            push_ptr: n
-                + 1
-                + nodes
-                + 1
-                + 2 * (flat.column_items.len() + flat.node_items.len()) as u32,
-            push_items: n
-                + 1
-                + nodes
-                + 1
-                + 2 * (flat.column_items.len() + flat.node_items.len()) as u32
-                + flat.push_ptr.len() as u32,
+            column_ptr: at[0],
+            node_ptr: at[1],
+            column_items: at[2],
+            node_items: at[3],
+            push_ptr: at[4],
+            push_items: at[5],
             pushed,
             ..Default::default()
         };
+        let [rows, entries, terms, links, gather] = arrays;
         let made = ctx.scoped(|| {
             Ok(GpuObjectTerms {
                 params: uniform(ctx, what, &base),
                 base,
-                rows: storage_init(ctx, what, &records(&flat.rows)),
-                entries: storage_init(ctx, what, &records(&flat.entries)),
-                terms: storage_init(ctx, what, &records(&flat.terms)),
-                links: storage_init(ctx, what, &records(&flat.links)),
-                gather: storage_init(ctx, what, bytemuck::cast_slice(&gather)),
+                rows: storage_init(ctx, what, &rows),
+                entries: storage_init(ctx, what, &entries),
+                terms: storage_init(ctx, what, &terms),
+                links: storage_init(ctx, what, &links),
+                gather: storage_init(ctx, what, &gather),
                 sums: storage_zeroed(ctx, what, sums_len),
                 values: storage_zeroed(ctx, what, 12 * flat.values as u64),
                 pushed: storage_zeroed(ctx, what, 12 * flat.pushed as u64),
@@ -312,31 +308,33 @@ impl GpuObjectTerms {
 
 /// `items` as bytes, or one zeroed record where there are none (a binding holds at least
 /// one of its array's elements: an object without links still binds `links`).
-fn records<T: bytemuck::Pod>(items: &[T]) -> Vec<u8> {
+fn records<T: bytemuck::Pod>(items: &[T]) -> Cow<'_, [u8]> {
     if items.is_empty() {
-        vec![0u8; std::mem::size_of::<T>()]
+        Cow::Owned(vec![0u8; std::mem::size_of::<T>()])
     } else {
-        bytemuck::cast_slice(items).to_vec()
+        Cow::Borrowed(bytemuck::cast_slice(items))
     }
 }
 
-/// The column and node pointers, then the column and node items, as `s_terms.wgsl`'s
-/// `gather` reads them.
-fn gather_of(flat: &FlatTerms) -> Vec<u32> {
-    let mut g = Vec::with_capacity(
-        flat.column_ptr.len()
-            + flat.node_ptr.len()
-            + 2 * (flat.column_items.len() + flat.node_items.len())
-            + flat.push_ptr.len()
-            + flat.push_items.len(),
-    );
-    g.extend(&flat.column_ptr);
-    g.extend(&flat.node_ptr);
-    g.extend(flat.column_items.iter().flatten());
-    g.extend(flat.node_items.iter().flatten());
-    g.extend(&flat.push_ptr);
-    g.extend(&flat.push_items);
-    g
+/// The column and node pointers, the column and node items, then the pushed values'
+/// pointers and items, one after another as `s_terms.wgsl`'s `gather` reads them; and where
+/// each of the six starts.
+fn gather_of(flat: &FlatTerms) -> (Vec<u32>, [u32; 6]) {
+    let parts: [&[u32]; 6] = [
+        &flat.column_ptr,
+        &flat.node_ptr,
+        flat.column_items.as_flattened(),
+        flat.node_items.as_flattened(),
+        &flat.push_ptr,
+        &flat.push_items,
+    ];
+    let mut g = Vec::with_capacity(parts.iter().map(|p| p.len()).sum());
+    let mut at = [0u32; 6];
+    for (a, p) in at.iter_mut().zip(parts) {
+        *a = g.len() as u32;
+        g.extend_from_slice(p);
+    }
+    (g, at)
 }
 
 /// S of a set of material overrides on the device ([`crate::backend`]'s solves with
